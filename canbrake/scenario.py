@@ -1,0 +1,315 @@
+"""Scenario files: the single source of truth for a run's parameters.
+
+A scenario is YAML validated by the pydantic models below (unknown keys are errors). Units
+are in the field names; km/h and km/h/s appear only here, at the edge, and are converted to SI
+by the accessors (``*_mps``). A scenario may carry ``profiles:`` — named partial overrides that
+are deep-merged over the base document when selected with ``profile:`` (or ``--profile``).
+
+Nothing else in canbrake reads YAML.
+"""
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Annotated, Any, Literal, Union
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+KMH = 1.0 / 3.6  # m/s per km/h
+
+
+class ScenarioError(Exception):
+    """A scenario cannot be used; the message names the file and the field."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_default=True)
+
+
+PerCar = Union[float, list[float]]
+
+
+def per_car(value: PerCar, n: int, name: str) -> np.ndarray:
+    """Broadcast a scalar or check a list of length ``n``; returns float array (n,)."""
+    arr = np.asarray(value, dtype=float)
+    if arr.ndim == 0:
+        return np.full(n, float(arr))
+    if arr.shape != (n,):
+        raise ValueError(f"{name}: expected {n} values (one per car), got {arr.size}")
+    return arr
+
+
+class CouplerConfig(_Model):
+    """Nonlinear coupler Φ = κ (1 + ε Δl²) Δl between neighbouring cars."""
+
+    stiffness_n_per_m: PerCar = Field(80000.0, description="κ per coupler (n-1 values or one)")
+    epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler")
+    spacing_m: PerCar = Field(10.0, description="nominal x_i - x_{i+1} (coupler at rest)")
+    damping_n_s_per_m: PerCar = Field(0.0, ge=0, description="optional viscous damping of the draft gear")
+
+
+class DavisConfig(_Model):
+    """Running resistance per car: c0 + c1 v + c2 v² (N, v in m/s)."""
+
+    c0_n: PerCar = 0.0
+    c1_n_s_per_m: PerCar = 0.0
+    c2_n_s2_per_m2: PerCar = 0.0
+
+
+class TrainConfig(_Model):
+    mass_kg: list[float] = Field(..., min_length=1, max_length=63)
+    davis: DavisConfig = DavisConfig()
+    coupler: CouplerConfig = CouplerConfig()
+    grade_permille: float = Field(0.0, description="track grade, positive uphill (‰)")
+
+    @field_validator("mass_kg")
+    @classmethod
+    def _positive_mass(cls, v: list[float]) -> list[float]:
+        for i, m in enumerate(v):
+            if not m > 0:
+                raise ValueError(f"car {i + 1}: mass must be > 0 kg, got {m}")
+        return v
+
+    @property
+    def n_cars(self) -> int:
+        return len(self.mass_kg)
+
+
+class InitialConfig(_Model):
+    speed_kmh: PerCar
+    position_m: list[float] | None = Field(None, description="default: spaced by coupler.spacing_m, car 1 in front")
+
+
+class ReferenceConfig(_Model):
+    """Virtual leader: v*(t) = speed - decel * t, floored at 0."""
+
+    speed_kmh: float = Field(..., ge=0)
+    decel_kmh_per_s: float = Field(..., ge=0)
+
+    @property
+    def speed_mps(self) -> float:
+        return self.speed_kmh * KMH
+
+    @property
+    def decel_mps2(self) -> float:
+        return self.decel_kmh_per_s * KMH
+
+
+class ControllerConfig(_Model):
+    name: str = "chen2023"
+    params: dict[str, Any] = Field(default_factory=dict, description="passed to the controller's constructor")
+
+
+class ActuatorConfig(_Model):
+    """Brake actuator: ``ideal`` applies the command at once; ``realistic`` adds lag, jerk limit, saturation."""
+
+    model: Literal["ideal", "realistic"] = "ideal"
+    lag_s: float = Field(0.3, ge=0, description="first-order brake lag time constant")
+    jerk_limit_mps3: float | None = Field(1.0, gt=0, description="max rate of change of force/mass")
+    max_brake_decel_mps2: float | None = Field(1.4, gt=0, description="brake rating as force/mass")
+    max_traction_accel_mps2: float | None = Field(1.0, ge=0, description="traction rating as force/mass")
+    adhesion_mu: PerCar = Field(0.15, description="wheel-rail adhesion limit μ (force ≤ μ m g)")
+
+
+class RailEvent(_Model):
+    """Rail condition change between start_s and stop_s (per car)."""
+
+    type: Literal["rail"]
+    start_s: float = Field(..., ge=0)
+    stop_s: float | None = Field(None, ge=0)
+    brake_factor: PerCar = Field(1.0, description="share of the braking force that reaches the rail (0..1)")
+    adhesion_mu: PerCar | None = Field(None, description="adhesion limit μ during the event (realistic actuator)")
+
+    @model_validator(mode="after")
+    def _order(self) -> "RailEvent":
+        if self.stop_s is not None and self.stop_s < self.start_s:
+            raise ValueError(f"stop_s ({self.stop_s}) is before start_s ({self.start_s})")
+        return self
+
+
+class DisturbanceEvent(_Model):
+    """Sinusoidal force on each car: F = amplitude sin(2π f (t - start) + phase), resisting when positive."""
+
+    type: Literal["disturbance"]
+    start_s: float = Field(..., ge=0)
+    stop_s: float | None = Field(None, ge=0)
+    amplitude_n: PerCar = 0.0
+    frequency_hz: float = Field(0.5, ge=0)
+    phase_rad: PerCar = 0.0
+    bias_n: PerCar = 0.0
+
+
+Event = Annotated[Union[RailEvent, DisturbanceEvent], Field(discriminator="type")]
+
+
+class BusConfig(_Model):
+    backend: Literal["memory", "socketcan", "virtual"] = "memory"
+    channel: str | None = Field(None, description="default: a fresh in-memory channel, or vcan0 for socketcan")
+    interface: str | None = Field(None, description="any python-can interface name; overrides backend")
+    bitrate_bps: int = Field(500000, gt=0)
+    impairments: list[dict[str, Any]] = Field(default_factory=list)
+
+
+class PlantConfig(_Model):
+    coupler_sensors: bool = Field(False, description="send COUPLER_Ci frames (locally measured deflection)")
+    substeps: int = Field(1, ge=1, le=1000, description="integration sub-steps per control period")
+
+
+class EcuConfig(_Model):
+    heartbeat_period_s: float = Field(0.1, gt=0)
+    realtime_compute_deadline: float = Field(0.5, gt=0, lt=1,
+                                             description="realtime: fraction of the period an ECU waits for peers")
+
+
+class Scenario(_Model):
+    name: str
+    description: str = ""
+    seed: int = Field(0, ge=0)
+    duration_s: float = Field(..., gt=0)
+    control_period_s: float = Field(0.001, gt=0, le=1.0)
+    mode: Literal["lockstep", "realtime"] = "lockstep"
+    profile: str | None = None
+    profiles: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    train: TrainConfig
+    initial: InitialConfig
+    reference: ReferenceConfig
+    controller: ControllerConfig = ControllerConfig()
+    actuator: ActuatorConfig = ActuatorConfig()
+    events: list[Event] = Field(default_factory=list)
+    bus: BusConfig = BusConfig()
+    plant: PlantConfig = PlantConfig()
+    ecu: EcuConfig = EcuConfig()
+
+    @model_validator(mode="after")
+    def _per_car_lengths(self) -> "Scenario":
+        n = self.train.n_cars
+        checks: list[tuple[str, Any, int]] = [
+            ("initial.speed_kmh", self.initial.speed_kmh, n),
+            ("train.davis.c0_n", self.train.davis.c0_n, n),
+            ("train.davis.c1_n_s_per_m", self.train.davis.c1_n_s_per_m, n),
+            ("train.davis.c2_n_s2_per_m2", self.train.davis.c2_n_s2_per_m2, n),
+            ("actuator.adhesion_mu", self.actuator.adhesion_mu, n),
+        ]
+        if n > 1:
+            c = self.train.coupler
+            checks += [("train.coupler.stiffness_n_per_m", c.stiffness_n_per_m, n - 1),
+                       ("train.coupler.epsilon_per_m2", c.epsilon_per_m2, n - 1),
+                       ("train.coupler.spacing_m", c.spacing_m, n - 1),
+                       ("train.coupler.damping_n_s_per_m", c.damping_n_s_per_m, n - 1)]
+        if self.initial.position_m is not None:
+            checks.append(("initial.position_m", self.initial.position_m, n))
+        for i, ev in enumerate(self.events):
+            for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "phase_rad", "bias_n"):
+                if hasattr(ev, fname) and getattr(ev, fname) is not None:
+                    checks.append((f"events.{i}.{fname}", getattr(ev, fname), n))
+        for name, value, k in checks:
+            per_car(value, k, name)
+        if self.duration_s / self.control_period_s > 10_000_000:
+            raise ValueError("duration_s / control_period_s exceeds 10 million ticks")
+        return self
+
+    # --- SI accessors -------------------------------------------------------------------
+    @property
+    def n_cars(self) -> int:
+        return self.train.n_cars
+
+    @property
+    def n_ticks(self) -> int:
+        """Number of control periods simulated."""
+        return int(round(self.duration_s / self.control_period_s))
+
+    def initial_speed_mps(self) -> np.ndarray:
+        return per_car(self.initial.speed_kmh, self.n_cars, "initial.speed_kmh") * KMH
+
+    def initial_position_m(self) -> np.ndarray:
+        if self.initial.position_m is not None:
+            return np.asarray(self.initial.position_m, dtype=float)
+        spacing = per_car(self.train.coupler.spacing_m, max(self.n_cars - 1, 0), "spacing")
+        # car 1 leads: x_1 > x_2 > ... with x_i - x_{i+1} = spacing_i
+        x = np.zeros(self.n_cars)
+        for i in range(1, self.n_cars):
+            x[i] = x[i - 1] - spacing[i - 1]
+        return x - x[-1]
+
+    def to_yaml(self) -> str:
+        """Resolved scenario (defaults filled in) as YAML."""
+        data = self.model_dump(mode="json")
+        return yaml.safe_dump(data, sort_keys=False)
+
+
+def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for k, v in override.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
+    keys = dotted.split(".")
+    cur = data
+    for k in keys[:-1]:
+        cur = cur.setdefault(k, {})
+        if not isinstance(cur, dict):
+            raise ScenarioError(f"--set {dotted}: {k} is not a mapping")
+    cur[keys[-1]] = value
+
+
+def format_validation_error(source: str, err: ValidationError) -> str:
+    """One readable message per problem: ``file: field.path: what is wrong``."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p in ("rail", "disturbance")))
+        msg = e["msg"]
+        if e["type"] == "extra_forbidden":
+            msg = "unknown key"
+        lines.append(f"{source}: {loc or '(top level)'}: {msg}")
+    return "\n".join(lines)
+
+
+def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | None = None,
+            overrides: dict[str, Any] | None = None) -> Scenario:
+    """Validate a scenario mapping, applying a profile and dotted-key overrides."""
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
+    data = copy.deepcopy(data)
+    profile = profile or data.get("profile")
+    profiles = data.get("profiles") or {}
+    if profile is not None:
+        if not isinstance(profiles, dict) or profile not in profiles:
+            known = ", ".join(sorted(profiles)) if isinstance(profiles, dict) and profiles else "none"
+            raise ScenarioError(f"{source}: profile {profile!r} is not defined (profiles: {known})")
+        if not isinstance(profiles[profile], dict):
+            raise ScenarioError(f"{source}: profiles.{profile}: expected a mapping")
+        data = _deep_merge(data, profiles[profile])
+        data["profile"] = profile
+    for k, v in (overrides or {}).items():
+        _set_dotted(data, k, v)
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as e:
+        raise ScenarioError(format_validation_error(source, e)) from None
+
+
+def load_scenario(path: str | Path, profile: str | None = None,
+                  overrides: dict[str, Any] | None = None) -> Scenario:
+    """Read and validate a scenario file; raises :class:`ScenarioError` with a clear message."""
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except FileNotFoundError:
+        raise ScenarioError(f"{p}: no such scenario file") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise ScenarioError(f"{p}: cannot read: {e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ScenarioError(f"{p}: malformed YAML{where}: {problem}") from None
+    return resolve(data, str(p), profile, overrides)
