@@ -1,0 +1,338 @@
+"""Chen 2023 observer-driven distributed consensus braking controller, registered as ``chen2023``.
+
+    u_i = u_i1 + u_i2 + u_i3                                                     (eq. 24)
+    u_i1 = α1 Σ_j a_ij (v_i − v_j) + α2 Σ_j b_ij (x_i − x_j − θ_ij)              (eq. 25)
+    u_i2 = δ Σ_j b_ij ∇U(x_ij)                                                   (eqs. 26–27)
+    u_i3 = m_i (k_i v_ei + v*) + k_di φ̂_i                                         (eq. 29)
+
+The force commanded is F_i = K_b u_i (N, + = brake). Readings taken (see docs/models-chen2023.md; all
+are constructor parameters, defaults = the "paper" reading that reproduces the paper's claims):
+
+* ``feedforward="decel"``: the v* in u_i3 is the reference deceleration a* (= −dv*/dt). ``"velocity"``
+  is the literal print (a speed used as an acceleration); it leaves a large steady error.
+* ``brake_gain`` K_b = 1 (u in newtons); Table 2 does not give K_b.
+* ``mass_scaled=True``: u_i1 and u_i2 are multiplied by m_i, as they appear in the error dynamics
+  (eq. 30), so α1 is in 1/s, α2 in 1/s², δ in m/s² per unit of ∇U. ``False``: printed as is (N).
+* Consensus on positions acts on the coupler deflection: x_i − x_j − θ_ij with θ_ij the nominal
+  spacing, i.e. Σ_j b_ij(...) = Δl_i − Δl_{i−1} on the path graph L_b.
+* Barrier (``barrier``): the printed U = 1/(|x|² − θ1²) + 1/(θ2² − |x|²) is identically zero when
+  θ1 = −θ2, so we use ``"inverse_square"``: U(z) = 1/(z − z1)² + 1/(z2 − z)² (minus its slope at 0, so
+  ∇U(0) = 0), or ``"log"``: U(z) = −ln((z − z1)(z2 − z)) (likewise). Both grow without bound at the
+  bounds. They act on z = Δl / ``barrier_unit_m`` (default: centimetres, θ = ±1 cm → z = ±1) and ∇U
+  is dU/dz. Near the bounds z is clipped to ``barrier_clip`` × the bound (the term is finite, huge).
+  The pair potential gives car i the term ∇U(Δl_i) − ∇U(Δl_{i−1}).
+* Observer cancellation (``observer_cancellation="mass"``): + m_i φ̂_i (φ̂ is an acceleration). The
+  printed ``"kd"`` (k_d φ̂ with k_d = 50) is too small to cancel anything.
+* ``deflection_source``: ``"peer_position"`` computes Δl from the peer positions received over CAN
+  (the paper: displacement is exchanged between neighbours) and needs the nominal spacing;
+  ``"local"`` uses the Observation's locally measured deflections.
+
+Stale data: a peer value never received (NaN) is always ignored. ``stale_policy="hold"`` uses the last
+value as is, ``"extrapolate"`` advances it by its age (x + v·age − a*·age²/2, v − a*·age),
+``"drop"`` ignores a peer whose age exceeds ``stale_timeout_s``.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from canbrake.control.base import ControlOutput, Controller, Observation, register
+from canbrake.control.observer import SlidingModeObserver
+
+_FEEDFORWARD = ("decel", "velocity")
+_BARRIERS = ("inverse_square", "log")
+_CANCEL = ("mass", "kd")
+_SOURCES = ("peer_position", "local")
+_STALE = ("hold", "extrapolate", "drop")
+
+
+def barrier_gradient(z: float, z_lower: float, z_upper: float, kind: str = "inverse_square", clip: float = 0.99) -> float:
+    """∇U(z) of the barrier on [z_lower, z_upper] (z_lower < 0 < z_upper), with ∇U(0) = 0.
+
+    ``z`` is clipped to ``clip``·bound so the value stays finite beyond the bounds.
+    """
+    zl, zu = z_lower * clip, z_upper * clip
+    if z > zu:
+        z = zu
+    elif z < zl:
+        z = zl
+    if kind == "inverse_square":
+        g = 2.0 / (z_upper - z) ** 3 - 2.0 / (z - z_lower) ** 3
+        g0 = 2.0 / z_upper**3 - 2.0 / (-z_lower) ** 3
+    elif kind == "log":
+        g = 1.0 / (z_upper - z) - 1.0 / (z - z_lower)
+        g0 = 1.0 / z_upper - 1.0 / (-z_lower)
+    else:  # pragma: no cover - validated in the constructor
+        raise ValueError(kind)
+    return g - g0
+
+
+@register("chen2023")
+class ChenConsensusController(Controller):
+    """One carriage's Chen 2023 controller. Units: SI; parameters below.
+
+    Gains: ``alpha1`` (1/s if mass-scaled, else N·s/m), ``alpha2`` (1/s² or N/m), ``k`` (1/s),
+    ``k_d`` (kg, used with ``observer_cancellation="kd"``), ``delta`` (m/s² or N per unit ∇U).
+    Safety bounds ``theta_lower_m``, ``theta_upper_m`` (m) on the deflection.
+    Observer: ``gamma1_mps`` (m/s), ``gamma2_mps2`` (m/s²), ``observer_boundary_pos_m`` (m),
+    ``observer_boundary_vel_mps`` (m/s), ``observer_filter_s`` (s), ``observer_limit_mps2`` (m/s²),
+    ``observer_error_limit_mps`` (m/s, anti-windup clamp of |v − v̂|),
+    ``observer_actuator_lag_s`` (s, first-order model of the brake lag the observer is driven with;
+    0 = the command acts at once).
+    Saturation: ``brake_force_max_n``, ``traction_force_max_n`` (N; inf = none).
+    ``nominal_spacing_m``: nominal x_i − x_{i+1} (m), scalar or n−1 values; ``None`` = latched from
+    the first observation that has the neighbours' positions (assumes the train starts undeflected).
+    ``velocity_graph``: ``"all"`` (L_a, eq. 6) or ``"neighbours"``.
+    """
+
+    diagnostic_names = (
+        "observer_accel_mps2",
+        "u_consensus_n",
+        "u_potential_n",
+        "u_tracking_n",
+        "u_observer_n",
+        "deflection_front_m",
+        "deflection_rear_m",
+    )
+
+    def __init__(
+        self,
+        car_index: int,
+        n_cars: int,
+        mass_kg: float,
+        dt_s: float,
+        *,
+        alpha1: float = 120.0,
+        alpha2: float = 100.0,
+        k: float = 36.0,
+        k_d: float = 50.0,
+        delta: float = 2.0,
+        theta_lower_m: float = -0.01,
+        theta_upper_m: float = 0.01,
+        feedforward: str = "decel",
+        brake_gain: float = 1.0,
+        mass_scaled: bool = True,
+        consensus: bool = True,
+        potential_field: bool = True,
+        barrier: str = "inverse_square",
+        barrier_unit_m: float = 0.01,
+        barrier_clip: float = 0.99,
+        observer: bool = True,
+        observer_cancellation: str = "mass",
+        gamma1_mps: float = 1.0,
+        gamma2_mps2: float = 5.0,
+        observer_boundary_pos_m: float = 1e-3,
+        observer_boundary_vel_mps: float = 0.01,
+        observer_filter_s: float = 0.005,
+        observer_limit_mps2: float = 5.0,
+        observer_error_limit_mps: float = 0.05,
+        observer_actuator_lag_s: float = 0.0,
+        deflection_source: str = "peer_position",
+        nominal_spacing_m: float | Sequence[float] | None = None,
+        velocity_graph: str = "all",
+        stale_policy: str = "hold",
+        stale_timeout_s: float = math.inf,
+        brake_force_max_n: float = math.inf,
+        traction_force_max_n: float = math.inf,
+    ) -> None:
+        super().__init__(car_index, n_cars, mass_kg, dt_s)
+        for name, val, allowed in (
+            ("feedforward", feedforward, _FEEDFORWARD),
+            ("barrier", barrier, _BARRIERS),
+            ("observer_cancellation", observer_cancellation, _CANCEL),
+            ("deflection_source", deflection_source, _SOURCES),
+            ("stale_policy", stale_policy, _STALE),
+            ("velocity_graph", velocity_graph, ("all", "neighbours")),
+        ):
+            if val not in allowed:
+                raise ValueError(f"{name} must be one of {allowed}, not {val!r}")
+        if not theta_lower_m < 0.0 < theta_upper_m:
+            raise ValueError("need theta_lower_m < 0 < theta_upper_m")
+        if not 0.0 < barrier_clip < 1.0:
+            raise ValueError("barrier_clip must be in (0, 1)")
+        self.alpha1 = float(alpha1)
+        self.alpha2 = float(alpha2)
+        self.k = float(k)
+        self.k_d = float(k_d)
+        self.delta = float(delta)
+        self.theta_lower_m = float(theta_lower_m)
+        self.theta_upper_m = float(theta_upper_m)
+        self.feedforward = feedforward
+        self.brake_gain = float(brake_gain)
+        self.mass_scaled = bool(mass_scaled)
+        self.consensus = bool(consensus)
+        self.potential_field = bool(potential_field)
+        self.barrier = barrier
+        self.barrier_unit_m = float(barrier_unit_m)
+        self.barrier_clip = float(barrier_clip)
+        self.observer = bool(observer)
+        self.observer_cancellation = observer_cancellation
+        self.observer_actuator_lag_s = float(observer_actuator_lag_s)
+        self.deflection_source = deflection_source
+        self.velocity_graph = velocity_graph
+        self.stale_policy = stale_policy
+        self.stale_timeout_s = float(stale_timeout_s)
+        self.brake_force_max_n = float(brake_force_max_n)
+        self.traction_force_max_n = float(traction_force_max_n)
+        self._obs = SlidingModeObserver(
+            self.mass_kg,
+            self.dt_s,
+            gamma1_mps=gamma1_mps,
+            gamma2_mps2=gamma2_mps2,
+            boundary_pos_m=observer_boundary_pos_m,
+            boundary_vel_mps=observer_boundary_vel_mps,
+            filter_s=observer_filter_s,
+            limit_mps2=observer_limit_mps2,
+            error_limit_mps=observer_error_limit_mps,
+        )
+        i, n = car_index, n_cars
+        adj = np.ones(n, dtype=bool) if velocity_graph == "all" else np.zeros(n, dtype=bool)
+        if velocity_graph == "neighbours":
+            adj[max(i - 1, 0): i + 2] = True
+        adj[i] = False
+        self._adj_a = adj
+        self._spacing_cfg = nominal_spacing_m
+        self._z_lower = self.theta_lower_m / self.barrier_unit_m
+        self._z_upper = self.theta_upper_m / self.barrier_unit_m
+        self._scale = self.mass_kg if self.mass_scaled else 1.0
+        self._lag_alpha = (
+            1.0 if self.observer_actuator_lag_s <= 0 else 1.0 - math.exp(-self.dt_s / self.observer_actuator_lag_s)
+        )
+        self.reset()
+
+    # ------------------------------------------------------------------
+    def reset(self) -> None:
+        """Initial state: observer uninitialised, spacing not latched, no force applied."""
+        self._obs.reset()
+        self._force_model_n = 0.0
+        self._spacing_front: float | None = None
+        self._spacing_rear: float | None = None
+        cfg = self._spacing_cfg
+        i, n = self.car_index, self.n_cars
+        if cfg is not None:
+            arr = np.asarray(cfg, dtype=float)
+            if arr.ndim == 0:
+                arr = np.full(n - 1, float(arr))
+            if arr.shape != (n - 1,):
+                raise ValueError(f"nominal_spacing_m: expected a scalar or {n - 1} values")
+            self._spacing_front = float(arr[i - 1]) if i > 0 else None
+            self._spacing_rear = float(arr[i]) if i < n - 1 else None
+        self._latched = cfg is not None
+
+    @property
+    def observer_estimate_mps2(self) -> float:
+        """Current φ̂ (m/s²)."""
+        return self._obs.phi_hat_mps2
+
+    # ------------------------------------------------------------------
+    def _peer_ok(self, j: int, obs: Observation) -> bool:
+        age = obs.peer_age_s[j]
+        if not (obs.peer_position_m[j] == obs.peer_position_m[j]):  # NaN
+            return False
+        return not (self.stale_policy == "drop" and age > self.stale_timeout_s)
+
+    def _peer_position(self, j: int, obs: Observation) -> float:
+        x = float(obs.peer_position_m[j])
+        if self.stale_policy == "extrapolate":
+            age = float(obs.peer_age_s[j])
+            if age > 0 and math.isfinite(age):
+                x += float(obs.peer_speed_mps[j]) * age - 0.5 * obs.ref_decel_mps2 * age * age
+        return x
+
+    def _deflections(self, obs: Observation) -> tuple[float | None, float | None]:
+        """(Δl_{i−1}, Δl_i) in m, None where unknown."""
+        if self.deflection_source == "local":
+            return obs.deflection_front_m, obs.deflection_rear_m
+        i, n = self.car_index, self.n_cars
+        x = obs.position_m
+        if not self._latched:
+            ok_f = i == 0 or self._peer_ok(i - 1, obs)
+            ok_r = i == n - 1 or self._peer_ok(i + 1, obs)
+            if not (ok_f and ok_r):
+                return None, None
+            if i > 0:
+                self._spacing_front = self._peer_position(i - 1, obs) - x
+            if i < n - 1:
+                self._spacing_rear = x - self._peer_position(i + 1, obs)
+            self._latched = True
+        front = rear = None
+        if i > 0 and self._peer_ok(i - 1, obs):
+            front = self._peer_position(i - 1, obs) - x - self._spacing_front  # type: ignore[operator]
+        if i < n - 1 and self._peer_ok(i + 1, obs):
+            rear = x - self._peer_position(i + 1, obs) - self._spacing_rear  # type: ignore[operator]
+        return front, rear
+
+    def _speed_disagreement(self, obs: Observation) -> float:
+        """Σ_j a_ij (v_i − v_j) over the usable peers (m/s)."""
+        pv = obs.peer_speed_mps
+        ok = self._adj_a & (pv == pv)
+        if self.stale_policy == "drop":
+            ok &= obs.peer_age_s <= self.stale_timeout_s
+        cnt = int(np.count_nonzero(ok))
+        if cnt == 0:
+            return 0.0
+        total = float(pv[ok].sum())
+        if self.stale_policy == "extrapolate":
+            ages = obs.peer_age_s[ok]
+            ages = ages[np.isfinite(ages)]
+            total -= obs.ref_decel_mps2 * float(ages.sum())
+        return cnt * obs.speed_mps - total
+
+    # ------------------------------------------------------------------
+    def step(self, obs: Observation) -> ControlOutput:
+        """Brake force (N) for this period from ``obs``."""
+        v = obs.speed_mps
+        m = self.mass_kg
+        kb = self.brake_gain
+        front, rear = self._deflections(obs)
+
+        u1 = 0.0
+        if self.consensus:
+            pos = 0.0
+            if rear is not None:
+                pos += rear
+            if front is not None:
+                pos -= front
+            u1 = self._scale * (self.alpha1 * self._speed_disagreement(obs) + self.alpha2 * pos)
+
+        u2 = 0.0
+        if self.potential_field:
+            unit, zl, zu, kind, clip = self.barrier_unit_m, self._z_lower, self._z_upper, self.barrier, self.barrier_clip
+            g = 0.0
+            if rear is not None:
+                g += barrier_gradient(rear / unit, zl, zu, kind, clip)
+            if front is not None:
+                g -= barrier_gradient(front / unit, zl, zu, kind, clip)
+            u2 = self._scale * self.delta * g
+
+        ff = obs.ref_decel_mps2 if self.feedforward == "decel" else obs.ref_speed_mps
+        u3 = m * (self.k * (v - obs.ref_speed_mps) + ff)
+
+        phi_hat = self._obs.update(obs.position_m, v)
+        force_obs = 0.0
+        if self.observer:
+            force_obs = m * phi_hat if self.observer_cancellation == "mass" else kb * self.k_d * phi_hat
+
+        force = kb * (u1 + u2 + u3) + force_obs
+        if force > self.brake_force_max_n:
+            force = self.brake_force_max_n
+        elif force < -self.traction_force_max_n:
+            force = -self.traction_force_max_n
+        # the observer is driven by the (saturated) force, through the brake-lag model if any
+        self._force_model_n += self._lag_alpha * (force - self._force_model_n)
+        self._obs.predict(self._force_model_n)
+
+        return ControlOutput(
+            brake_force_n=force,
+            diagnostics={
+                "observer_accel_mps2": phi_hat,
+                "u_consensus_n": kb * u1,
+                "u_potential_n": kb * u2,
+                "u_tracking_n": kb * u3,
+                "u_observer_n": force_obs,
+                "deflection_front_m": math.nan if front is None else front,
+                "deflection_rear_m": math.nan if rear is None else rear,
+            },
+        )

@@ -1,0 +1,68 @@
+"""Per-car PI speed controller with feed-forward, no communication (ablation baseline), ``pi``.
+
+    F_i = m_i (a* + kp (v_i − v*) + ki ∫(v_i − v*) dt)        (N, + = brake)
+
+Each car tracks the reference alone: no peer data, no coupler information. Anti-windup by
+conditional integration: the integral is frozen while the output is saturated in the direction the
+error pushes it.
+"""
+from __future__ import annotations
+
+import math
+
+from canbrake.control.base import ControlOutput, Controller, Observation, register
+
+
+@register("pi")
+class PISpeedController(Controller):
+    """Parameters: ``kp`` (1/s), ``ki`` (1/s²), ``feedforward`` (bool, add m·a*),
+    ``brake_force_max_n``, ``traction_force_max_n`` (N, inf = unlimited).
+
+    Defaults ``kp = 36`` (Chen's k) and ``ki = 0`` make it Chen's u_i3 without observer, consensus or
+    potential field; for a realistic (0.3 s lag) brake use e.g. kp = 1.5, ki = 0.3.
+    """
+
+    diagnostic_names = ("speed_error_mps", "integral_m")
+
+    def __init__(
+        self,
+        car_index: int,
+        n_cars: int,
+        mass_kg: float,
+        dt_s: float,
+        *,
+        kp: float = 36.0,
+        ki: float = 0.0,
+        feedforward: bool = True,
+        brake_force_max_n: float = math.inf,
+        traction_force_max_n: float = math.inf,
+    ) -> None:
+        super().__init__(car_index, n_cars, mass_kg, dt_s)
+        self.kp = float(kp)
+        self.ki = float(ki)
+        self.feedforward = bool(feedforward)
+        self.brake_force_max_n = float(brake_force_max_n)
+        self.traction_force_max_n = float(traction_force_max_n)
+        self.reset()
+
+    def reset(self) -> None:
+        """Zero the integral."""
+        self.integral_m = 0.0
+
+    def step(self, obs: Observation) -> ControlOutput:
+        """Brake force (N) for this period."""
+        e = obs.speed_mps - obs.ref_speed_mps
+        ff = obs.ref_decel_mps2 if self.feedforward else 0.0
+        trial_integral = self.integral_m + e * self.dt_s
+        force = self.mass_kg * (ff + self.kp * e + self.ki * trial_integral)
+        if force > self.brake_force_max_n:
+            force = self.brake_force_max_n
+            if e < 0:
+                self.integral_m = trial_integral
+        elif force < -self.traction_force_max_n:
+            force = -self.traction_force_max_n
+            if e > 0:
+                self.integral_m = trial_integral
+        else:
+            self.integral_m = trial_integral
+        return ControlOutput(brake_force_n=force, diagnostics={"speed_error_mps": e, "integral_m": self.integral_m})

@@ -1,0 +1,324 @@
+"""Longitudinal multi-carriage train plant (Chen 2023, eq. 3), vectorised over cars, SI inside.
+
+    m_i dv_i/dt = -F_brake,i + Φ_{i-1} - Φ_i - f_i + d_i(t)          (car 1 has no Φ_0, car n no Φ_n)
+    Δl_i = x_i - x_{i+1} - s_i,     Φ_i = κ_i (1 + ε_i Δl_i²) Δl_i       (coupler i joins car i and i+1)
+
+Geometry and sign convention
+----------------------------
+``s_i`` (``coupler_spacing_m``) is the *nominal* x_i − x_{i+1}; by default it is taken from the initial
+positions, so the initial deflection is 0. Chen's Table 2 puts car 1 at x = 10 m and car 6 at 60 m and
+the train runs towards +x (v > 0), so car 6 leads and s_i = −10 m. Equation 3 is unchanged by the
+orientation — it depends only on Δl_i and the speeds, and dΔl_i/dt = v_i − v_{i+1} either way — but
+the *meaning* of the sign flips: with Table 2's numbering (index grows towards the front) Δl_i > 0 is
+compression (buff), with the opposite numbering (s_i > 0) it is tension. In both, Φ_i acts on car i as
+−Φ_i and on car i+1 as +Φ_i: equal and opposite, restoring Δl_i towards 0.
+
+ε < 0 (Table 2: −0.5 1/m²) makes the spring *softening*: Φ peaks at |Δl| = 1/sqrt(−3ε) (0.816 m,
+43.5 kN for Table 2) and reverses beyond sqrt(−1/ε) (1.41 m). An optional end stop (``end_stop_m``)
+models the draft gear going solid; it is off by default (the paper has none).
+
+Forces
+------
+* Brake force (actuator output, + = brake) and running resistance (Davis, curve) are *dissipative*:
+  they act as ``-sign(v)·F`` on a moving car; on a car at rest they are static friction and hold it up
+  to their magnitude, never pushing it. So a train at rest stays at rest under a brake command and
+  c0 never makes it creep backwards.
+* Traction (negative actuator output), grade (−m g sin θ, θ > 0 uphill towards +x), couplers and
+  disturbances are ordinary forces.
+
+Integration: semi-implicit (symplectic) Euler on fixed sub-steps no longer than ``max_substep_s``
+(default 1 ms: ω = sqrt(2κ/m) ≈ 2.8 rad/s for Table 2, ωh ≈ 0.003). A car whose speed would change
+sign under friction stops instead (exact stop). Internal coupler forces cancel exactly, so total
+momentum is conserved to rounding when no external force acts.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import numpy as np
+
+from canbrake.physics.actuator import ActuatorState, BrakeActuator
+from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
+from canbrake.physics.resistance import DavisResistance, davis_1926
+
+GRAVITY_MPS2 = 9.81
+
+GradeSpec = float | Sequence[float] | np.ndarray | Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass(frozen=True)
+class PlantState:
+    """Snapshot of the plant; arrays have shape ``(n_cars,)`` or ``(n_cars - 1,)`` for couplers."""
+
+    time_s: float
+    position_m: np.ndarray
+    speed_mps: np.ndarray
+    accel_mps2: np.ndarray
+    deflection_m: np.ndarray
+    coupler_force_n: np.ndarray
+    applied_force_n: np.ndarray
+    brake_effort_n: np.ndarray
+
+
+class TrainPlant:
+    """n carriages joined by n−1 couplers.
+
+    Parameters (arrays are per car, shape ``(n,)``; coupler arrays shape ``(n-1,)``; scalars broadcast)
+    ----------
+    mass_kg: carriage masses (kg).
+    position_m: initial positions x_i (m), along the track, +x = direction of travel.
+    speed_mps: initial speeds v_i (m/s).
+    coupler_stiffness_n_per_m: κ_i (N/m). Default 80 000 (Chen Table 2).
+    coupler_nonlinearity_per_m2: ε_i (1/m²). Default −0.5 (Chen Table 2).
+    coupler_spacing_m: nominal x_i − x_{i+1} (m); ``None`` = from the initial positions (Δl(0) = 0).
+    resistance: Davis coefficients; ``None`` = :func:`davis_1926` for these masses.
+    grade_rad: track slope θ (rad), scalar, per car, or a function of the positions returning per-car θ.
+    curve_resistance_n: extra dissipative resistance per car (N), e.g. Chen's 0.004·m·D_c.
+    actuator: :class:`BrakeActuator` (default ideal).
+    rail: :class:`RailConditions` (base μ and events); default μ = 0.3 everywhere, no events.
+    disturbances: external forces, :class:`DisturbanceForce` list.
+    end_stop_m: |Δl| beyond which the draft gear is solid (m); ``None`` = no end stop.
+    end_stop_stiffness_n_per_m: stiffness added beyond the end stop (N/m).
+    max_substep_s: longest integration sub-step (s).
+    gravity_mps2: g (m/s²).
+    """
+
+    def __init__(
+        self,
+        mass_kg: Sequence[float] | np.ndarray,
+        position_m: Sequence[float] | np.ndarray,
+        speed_mps: Sequence[float] | np.ndarray,
+        *,
+        coupler_stiffness_n_per_m: float | Sequence[float] = 80_000.0,
+        coupler_nonlinearity_per_m2: float | Sequence[float] = -0.5,
+        coupler_spacing_m: float | Sequence[float] | None = None,
+        resistance: DavisResistance | None = None,
+        grade_rad: GradeSpec = 0.0,
+        curve_resistance_n: float | Sequence[float] = 0.0,
+        actuator: BrakeActuator | None = None,
+        rail: RailConditions | None = None,
+        disturbances: Sequence[DisturbanceForce] = (),
+        end_stop_m: float | None = None,
+        end_stop_stiffness_n_per_m: float = 2.0e7,
+        max_substep_s: float = 1e-3,
+        gravity_mps2: float = GRAVITY_MPS2,
+    ) -> None:
+        self.mass_kg = np.asarray(mass_kg, dtype=float).copy()
+        n = self.mass_kg.size
+        if n < 1:
+            raise ValueError("need at least one car")
+        self.n_cars = n
+        self._x0 = _per_car(position_m, n, "position_m")
+        self._v0 = _per_car(speed_mps, n, "speed_mps")
+        nc = n - 1
+        self.coupler_stiffness_n_per_m = _per_car(coupler_stiffness_n_per_m, nc, "coupler_stiffness_n_per_m")
+        self.coupler_nonlinearity_per_m2 = _per_car(coupler_nonlinearity_per_m2, nc, "coupler_nonlinearity_per_m2")
+        if coupler_spacing_m is None:
+            self.coupler_spacing_m = self._x0[:-1] - self._x0[1:]
+        else:
+            self.coupler_spacing_m = _per_car(coupler_spacing_m, nc, "coupler_spacing_m")
+        self.resistance = resistance if resistance is not None else davis_1926(self.mass_kg)
+        for arr in (self.resistance.c0_n, self.resistance.c1_n_per_mps, self.resistance.c2_n_per_mps2):
+            if np.shape(arr) != (n,):
+                raise ValueError("resistance coefficients must have one value per car")
+        self._grade_fn: Callable[[np.ndarray], np.ndarray] | None
+        if callable(grade_rad):
+            self._grade_fn = grade_rad
+            self._grade_force = None
+        else:
+            self._grade_fn = None
+            self._grade_force = -self.mass_kg * gravity_mps2 * np.sin(_per_car(grade_rad, n, "grade_rad"))
+        self.curve_resistance_n = _per_car(curve_resistance_n, n, "curve_resistance_n")
+        self.actuator = actuator if actuator is not None else BrakeActuator.ideal()
+        self.rail = rail if rail is not None else RailConditions()
+        self.disturbances = tuple(disturbances)
+        self._dist = [
+            (d.start_s, d.end_s, _per_car(d.amplitude_n, n, "amplitude_n"), _per_car(d.offset_n, n, "offset_n"),
+             2.0 * math.pi * d.frequency_hz, d.phase_rad)
+            for d in self.disturbances
+        ]
+        self._events = [
+            (ev.start_s, ev.end_s,
+             None if ev.adhesion_mu is None else _per_car(ev.adhesion_mu, n, "adhesion_mu"),
+             None if ev.brake_effectiveness is None else _per_car(ev.brake_effectiveness, n, "brake_effectiveness"))
+            for ev in self.rail.events
+        ]
+        self._base_mu = _per_car(self.rail.base_adhesion_mu, n, "base_adhesion_mu")
+        self.end_stop_m = end_stop_m
+        self.end_stop_stiffness_n_per_m = float(end_stop_stiffness_n_per_m)
+        if not max_substep_s > 0:
+            raise ValueError("max_substep_s must be > 0")
+        self.max_substep_s = float(max_substep_s)
+        self.gravity_mps2 = float(gravity_mps2)
+        self._c_static = self.resistance.c0_n + self.curve_resistance_n
+        self._inv_m = 1.0 / self.mass_kg
+        self._kappa_eps = self.coupler_stiffness_n_per_m * self.coupler_nonlinearity_per_m2
+        self._incidence = np.zeros((n, nc))
+        for i in range(nc):
+            self._incidence[i, i] = -1.0
+            self._incidence[i + 1, i] = 1.0
+        self._has_grade = self._grade_force is not None and bool(np.any(self._grade_force != 0.0))
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Back to the initial positions and speeds, actuator at rest, t = 0."""
+        self.time_s = 0.0
+        self.position_m = self._x0.copy()
+        self.speed_mps = self._v0.copy()
+        self.accel_mps2 = np.zeros(self.n_cars)
+        self._act = ActuatorState(self.actuator, self.mass_kg)
+        self.applied_force_n = np.zeros(self.n_cars)
+        self._rail_key: tuple[bool, ...] | None = None
+        self._mu = self._base_mu.copy()
+        self._eff = np.ones(self.n_cars)
+        self._plain_rail = not self.actuator.adhesion_limited
+
+    @property
+    def deflection_m(self) -> np.ndarray:
+        """Coupler deflections Δl_i = x_i − x_{i+1} − s_i (m), shape ``(n-1,)``."""
+        return self.position_m[:-1] - self.position_m[1:] - self.coupler_spacing_m
+
+    @property
+    def coupler_force_n(self) -> np.ndarray:
+        """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1."""
+        return self.coupler_force_from_deflection(self.deflection_m)
+
+    @property
+    def brake_effort_n(self) -> np.ndarray:
+        """Actuator effort before effectiveness/adhesion (N)."""
+        return self._act.effort_n
+
+    @property
+    def adhesion_mu(self) -> np.ndarray:
+        """Adhesion μ per car in force for the current step."""
+        return self._mu
+
+    @property
+    def brake_effectiveness(self) -> np.ndarray:
+        """Brake effectiveness per car in force for the current step."""
+        return self._eff
+
+    def coupler_force_from_deflection(self, dl: np.ndarray) -> np.ndarray:
+        """Φ(Δl) = κ(1 + εΔl²)Δl (N), plus the end stop if configured."""
+        phi = self.coupler_stiffness_n_per_m * (1.0 + self.coupler_nonlinearity_per_m2 * dl * dl) * dl
+        if self.end_stop_m is not None:
+            over = np.abs(dl) - self.end_stop_m
+            phi = phi + np.where(over > 0.0, np.sign(dl) * over * self.end_stop_stiffness_n_per_m, 0.0)
+        return phi
+
+    def coupler_energy_j(self) -> float:
+        """Potential energy stored in the couplers (J), without end stop: Σ κ(Δl²/2 + εΔl⁴/4)."""
+        dl = self.deflection_m
+        return float(np.sum(self.coupler_stiffness_n_per_m * (0.5 * dl**2 + 0.25 * self.coupler_nonlinearity_per_m2 * dl**4)))
+
+    def snapshot(self) -> PlantState:
+        """An immutable copy of the current state."""
+        return PlantState(
+            self.time_s, self.position_m.copy(), self.speed_mps.copy(), self.accel_mps2.copy(),
+            self.deflection_m, self.coupler_force_n, self.applied_force_n.copy(), self._act.effort_n.copy(),
+        )
+
+    # ------------------------------------------------------------------ dynamics
+    def _update_rail(self, t: float) -> None:
+        key = tuple(s <= t < e for s, e, _, _ in self._events)
+        if key == self._rail_key:
+            return
+        self._rail_key = key
+        mu = self._base_mu.copy()
+        eff = np.ones(self.n_cars)
+        for active, (_, _, ev_mu, ev_eff) in zip(key, self._events):
+            if active:
+                if ev_mu is not None:
+                    mu = ev_mu
+                if ev_eff is not None:
+                    eff = ev_eff
+        self._mu, self._eff = mu, eff
+        self._plain_rail = not self.actuator.adhesion_limited and bool(np.all(eff == 1.0))
+
+    def external_force_n(self, time_s: float) -> np.ndarray:
+        """Sum of the disturbance forces per car at ``time_s`` (N, + towards +x)."""
+        f = np.zeros(self.n_cars)
+        for start, end, amp, off, w, ph in self._dist:
+            if start <= time_s < end:
+                f = f + off + amp * math.sin(w * (time_s - start) + ph)
+        return f
+
+    def step(self, dt_s: float, brake_command_n: Sequence[float] | np.ndarray) -> None:
+        """Advance ``dt_s`` seconds holding ``brake_command_n`` (N per car, + = brake, − = traction)."""
+        cmd = np.asarray(brake_command_n, dtype=float)
+        if cmd.shape != (self.n_cars,):
+            raise ValueError(f"brake_command_n must have shape ({self.n_cars},)")
+        n_sub = 1 if dt_s <= self.max_substep_s * (1 + 1e-9) else int(math.ceil(dt_s / self.max_substep_s - 1e-9))
+        h = dt_s / n_sub
+        inv_m = self._inv_m
+        self._update_rail(self.time_s)
+        act = self._act
+        ideal = act.params.kind == "ideal"
+        plain_rail = self._plain_rail
+        spacing = self.coupler_spacing_m
+        kappa = self.coupler_stiffness_n_per_m
+        kappa_eps = self._kappa_eps
+        end_stop = self.end_stop_m is not None
+        c1 = self.resistance.c1_n_per_mps
+        c2 = self.resistance.c2_n_per_mps2
+        c_static = self._c_static
+        x, v = self.position_m, self.speed_mps
+        v_before = v
+        rail = self.applied_force_n
+        incidence = self._incidence
+        n_cars = self.n_cars
+        if ideal:
+            effort = act.advance(cmd, h)
+            rail = effort if plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
+        ideal_no_traction: bool | None = None
+        for _ in range(n_sub):
+            t = self.time_s
+            if not ideal:
+                effort = act.advance(cmd, h)
+                rail = effort if plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
+            # non-dissipative forces: couplers, traction, grade, disturbances
+            dl = x[:-1] - x[1:] - spacing
+            if end_stop:
+                phi = self.coupler_force_from_deflection(dl)
+            else:
+                phi = dl * (kappa + kappa_eps * (dl * dl))
+            f = incidence.dot(phi)  # f_i = Φ_{i-1} − Φ_i
+            brake = rail
+            if ideal_no_traction is None or not ideal_no_traction:
+                has_traction = rail.min() < 0.0
+                if ideal:
+                    ideal_no_traction = not has_traction
+            else:
+                has_traction = False
+            if has_traction:
+                f = f - np.minimum(rail, 0.0)  # traction pushes towards +x
+                brake = np.maximum(rail, 0.0)
+            if self._grade_fn is not None:
+                f = f - self.mass_kg * self.gravity_mps2 * np.sin(np.asarray(self._grade_fn(x), dtype=float))
+            elif self._has_grade:
+                f = f + self._grade_force
+            if self._dist:
+                f = f + self.external_force_n(t)
+            # dissipative forces: brake + resistance, Coulomb-like
+            speed = np.abs(v)
+            r = brake + c_static + speed * (c1 + c2 * speed)
+            if np.count_nonzero(v) == n_cars:  # every car moving
+                sgn = np.sign(v)
+                v_new = v + (h * inv_m) * (f - sgn * r)
+                if (sgn * v_new).min() < 0.0:  # friction stops a car, never reverses it
+                    v_new = np.where(sgn * v_new < 0.0, 0.0, v_new)
+            else:
+                moving = v != 0.0
+                sgn = np.where(moving, np.sign(v), np.sign(f))
+                breakaway = moving | (np.abs(f) > r)
+                v_new = v + np.where(breakaway, (h * inv_m) * (f - sgn * r), 0.0)
+                v_new = np.where(moving & (v_new * v < 0.0), 0.0, v_new)
+            x = x + h * v_new
+            v_before, v = v, v_new
+            self.time_s = t + h
+        self.accel_mps2 = (v - v_before) / h
+        self.position_m, self.speed_mps = x, v
+        self.applied_force_n = rail
