@@ -45,13 +45,13 @@ class CouplerConfig(_Model):
     """Nonlinear coupler Φ = κ (1 + ε Δl²) Δl between neighbouring cars."""
 
     stiffness_n_per_m: PerCar = Field(80000.0, description="κ per coupler (n-1 values or one)")
-    epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler")
-    spacing_m: PerCar = Field(10.0, description="nominal x_i - x_{i+1} (coupler at rest)")
-    damping_n_s_per_m: PerCar = Field(0.0, ge=0, description="optional viscous damping of the draft gear")
+    epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
+    spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
+    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear goes solid (none by default)")
 
 
 class DavisConfig(_Model):
-    """Running resistance per car: c0 + c1 v + c2 v² (N, v in m/s)."""
+    """Running resistance per car: c0 + c1 |v| + c2 v² (N, v in m/s)."""
 
     c0_n: PerCar = 0.0
     c1_n_s_per_m: PerCar = 0.0
@@ -60,9 +60,10 @@ class DavisConfig(_Model):
 
 class TrainConfig(_Model):
     mass_kg: list[float] = Field(..., min_length=1, max_length=63)
-    davis: DavisConfig = DavisConfig()
+    davis: DavisConfig | None = Field(None, description="default: Davis (1926) multiple-unit coefficients per mass")
     coupler: CouplerConfig = CouplerConfig()
-    grade_permille: float = Field(0.0, description="track grade, positive uphill (‰)")
+    grade_permille: float = Field(0.0, ge=-100, le=100, description="track grade, positive uphill (‰)")
+    curve_resistance_n: PerCar = Field(0.0, description="extra resistance per car, e.g. 0.004·m·D_c (N)")
 
     @field_validator("mass_kg")
     @classmethod
@@ -79,7 +80,7 @@ class TrainConfig(_Model):
 
 class InitialConfig(_Model):
     speed_kmh: PerCar
-    position_m: list[float] | None = Field(None, description="default: spaced by coupler.spacing_m, car 1 in front")
+    position_m: list[float] | None = Field(None, description="default: car 1 in front, spaced by coupler.spacing_m or 10 m")
 
 
 class ReferenceConfig(_Model):
@@ -106,11 +107,12 @@ class ActuatorConfig(_Model):
     """Brake actuator: ``ideal`` applies the command at once; ``realistic`` adds lag, jerk limit, saturation."""
 
     model: Literal["ideal", "realistic"] = "ideal"
-    lag_s: float = Field(0.3, ge=0, description="first-order brake lag time constant")
-    jerk_limit_mps3: float | None = Field(1.0, gt=0, description="max rate of change of force/mass")
-    max_brake_decel_mps2: float | None = Field(1.4, gt=0, description="brake rating as force/mass")
-    max_traction_accel_mps2: float | None = Field(1.0, ge=0, description="traction rating as force/mass")
-    adhesion_mu: PerCar = Field(0.15, description="wheel-rail adhesion limit μ (force ≤ μ m g)")
+    lag_s: float = Field(0.3, gt=0, description="first-order brake lag time constant (realistic)")
+    jerk_limit_mps3: float | None = Field(1.0, gt=0, description="max |dF/dt|/m (realistic; null = none)")
+    max_brake_decel_mps2: float | None = Field(None, gt=0, description="brake rating as force/mass (null = none)")
+    max_traction_accel_mps2: float | None = Field(None, ge=0, description="traction rating as force/mass (null = none)")
+    adhesion_limited: bool = Field(False, description="cap the rail force at μ·m·g")
+    adhesion_mu: PerCar = Field(0.3, description="base wheel-rail adhesion μ per car")
 
 
 class RailEvent(_Model):
@@ -130,14 +132,15 @@ class RailEvent(_Model):
 
 
 class DisturbanceEvent(_Model):
-    """Sinusoidal force on each car: F = amplitude sin(2π f (t - start) + phase), resisting when positive."""
+    """External force on each car, + along the direction of travel (+x):
+    F = bias + amplitude sin(2π f (t - start) + phase)."""
 
     type: Literal["disturbance"]
     start_s: float = Field(..., ge=0)
     stop_s: float | None = Field(None, ge=0)
     amplitude_n: PerCar = 0.0
     frequency_hz: float = Field(0.5, ge=0)
-    phase_rad: PerCar = 0.0
+    phase_rad: float = 0.0
     bias_n: PerCar = 0.0
 
 
@@ -187,21 +190,24 @@ class Scenario(_Model):
         n = self.train.n_cars
         checks: list[tuple[str, Any, int]] = [
             ("initial.speed_kmh", self.initial.speed_kmh, n),
-            ("train.davis.c0_n", self.train.davis.c0_n, n),
-            ("train.davis.c1_n_s_per_m", self.train.davis.c1_n_s_per_m, n),
-            ("train.davis.c2_n_s2_per_m2", self.train.davis.c2_n_s2_per_m2, n),
+            ("train.curve_resistance_n", self.train.curve_resistance_n, n),
             ("actuator.adhesion_mu", self.actuator.adhesion_mu, n),
         ]
+        if self.train.davis is not None:
+            d = self.train.davis
+            checks += [("train.davis.c0_n", d.c0_n, n), ("train.davis.c1_n_s_per_m", d.c1_n_s_per_m, n),
+                       ("train.davis.c2_n_s2_per_m2", d.c2_n_s2_per_m2, n)]
         if n > 1:
             c = self.train.coupler
             checks += [("train.coupler.stiffness_n_per_m", c.stiffness_n_per_m, n - 1),
                        ("train.coupler.epsilon_per_m2", c.epsilon_per_m2, n - 1),
-                       ("train.coupler.spacing_m", c.spacing_m, n - 1),
-                       ("train.coupler.damping_n_s_per_m", c.damping_n_s_per_m, n - 1)]
+                       ]
+            if c.spacing_m is not None:
+                checks.append(("train.coupler.spacing_m", c.spacing_m, n - 1))
         if self.initial.position_m is not None:
             checks.append(("initial.position_m", self.initial.position_m, n))
         for i, ev in enumerate(self.events):
-            for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "phase_rad", "bias_n"):
+            for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "bias_n"):
                 if hasattr(ev, fname) and getattr(ev, fname) is not None:
                     checks.append((f"events.{i}.{fname}", getattr(ev, fname), n))
         for name, value, k in checks:
@@ -226,7 +232,8 @@ class Scenario(_Model):
     def initial_position_m(self) -> np.ndarray:
         if self.initial.position_m is not None:
             return np.asarray(self.initial.position_m, dtype=float)
-        spacing = per_car(self.train.coupler.spacing_m, max(self.n_cars - 1, 0), "spacing")
+        sp = self.train.coupler.spacing_m
+        spacing = per_car(10.0 if sp is None else sp, max(self.n_cars - 1, 0), "spacing")
         # car 1 leads: x_1 > x_2 > ... with x_i - x_{i+1} = spacing_i
         x = np.zeros(self.n_cars)
         for i in range(1, self.n_cars):

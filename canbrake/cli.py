@@ -1,0 +1,186 @@
+"""Command line: a thin layer of subcommands over the library (cantools-style).
+
+Exit status: 0 success, 1 run failure (names the failed process), 2 bad input (one clear
+message, no traceback), 130 interrupted.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import yaml
+
+EXIT_OK, EXIT_FAIL, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+class InputError(Exception):
+    """Bad input from the user: printed as one line, exit status 2."""
+
+
+def _parse_set(items: Sequence[str]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise InputError(f"--set {item!r}: expected KEY=VALUE, e.g. --set controller.params.k=20")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = yaml.safe_load(v)
+        except yaml.YAMLError:
+            raise InputError(f"--set {item!r}: the value is not valid YAML") from None
+    return out
+
+
+def _cmd_run(a: argparse.Namespace) -> int:
+    from canbrake.run import run_scenario
+    from canbrake.scenario import load_scenario
+
+    overrides = _parse_set(a.set or [])
+    if a.seed is not None:
+        overrides["seed"] = a.seed
+    if a.duration is not None:
+        overrides["duration_s"] = a.duration
+    if a.mode is not None:
+        overrides["mode"] = a.mode
+    scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
+    out = Path(a.out) if a.out else Path("runs") / scn.name
+    print(f"canbrake: running {scn.name} ({scn.n_cars} cars, {scn.duration_s:g} s, {scn.mode}, "
+          f"bus {a.bus or scn.bus.backend}) -> {out}", file=sys.stderr)
+    summary = run_scenario(scn, out, backend=a.bus, channel=a.channel, interface=a.interface, dbc_path=a.dbc,
+                           plots=not a.no_plots)
+    _print_summary(summary, out)
+    if summary["status"] == "interrupted":
+        return EXIT_INTERRUPTED
+    if summary["status"] != "ok":
+        print(f"canbrake: run failed: {summary['message']} (logs kept in {out})", file=sys.stderr)
+        return EXIT_FAIL
+    return EXIT_OK
+
+
+def _print_summary(s: dict[str, Any], out: Path) -> None:
+    m = s.get("metrics", {})
+    lines = [f"status: {s['status']}  ticks: {s.get('ticks')}  wall: {s.get('wall_time_s') or 0:.1f} s"]
+    if m:
+        tc = m.get("convergence_time_s")
+        lines.append(f"convergence (±{m['band_kmh']} km/h): {'never' if tc is None else f'{tc:.3f} s'}  "
+                     f"max |deflection|: {m['max_abs_deflection_m'] * 100:.2f} cm  "
+                     f"speed RMSE: {max(m['speed_rmse_kmh']):.3f} km/h (worst car)")
+    bl = s.get("bus_load", {})
+    if bl.get("bus_load_mean") is not None:
+        lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "
+                     f"at {bl['bitrate_bps'] / 1000:g} kbit/s  frames: {s['frames']['on_bus']}")
+    lines.append(f"written: {out}/summary.json, signals.csv, frames.log, plots/")
+    print("\n".join(lines))
+
+
+def _cmd_dbc(a: argparse.Namespace) -> int:
+    from canbrake.bus.dbc import MAX_CARS, dbc_text
+
+    if not 1 <= a.cars <= MAX_CARS:
+        raise InputError(f"--cars: must be between 1 and {MAX_CARS}, got {a.cars}")
+    text = dbc_text(a.cars)
+    if a.output in (None, "-"):
+        sys.stdout.write(text)
+    else:
+        Path(a.output).write_text(text)
+        print(f"wrote {a.output} ({a.cars} cars)", file=sys.stderr)
+    return EXIT_OK
+
+
+def _cmd_decode(a: argparse.Namespace) -> int:
+    from canbrake.analysis.decode import decode_log
+
+    return decode_log(a.log, a.dbc, sys.stdout, only=a.only)
+
+
+def _cmd_vcan(a: argparse.Namespace) -> int:
+    from canbrake.bus.vcan import VcanError, vcan_down, vcan_up
+
+    try:
+        if a.action == "up":
+            print(vcan_up(a.name))
+        else:
+            vcan_down(a.name)
+            print(f"{a.name} removed")
+    except VcanError as e:
+        raise InputError(str(e)) from None
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="canbrake", description="CAN-bus-in-the-loop emulator for distributed train braking")
+    p.add_argument("--version", action="version", version=f"canbrake {__import__('canbrake').__version__}")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    r = sub.add_parser("run", help="run a scenario", description="Run a scenario: one process per ECU, a plant, a recorder.")
+    r.add_argument("scenario", help="scenario YAML file")
+    r.add_argument("--bus", choices=["memory", "socketcan", "virtual", "inprocess"],
+                   help="memory (default): in-memory cross-process bus; socketcan: Linux SocketCAN (e.g. vcan0); "
+                        "virtual: python-can virtual bus in one process; inprocess: fast single-process engine")
+    r.add_argument("--channel", help="bus channel (vcan0, can0, or an in-memory channel name)")
+    r.add_argument("--interface", help="any python-can interface name (overrides --bus), e.g. pcan, kvaser")
+    r.add_argument("--mode", choices=["lockstep", "realtime"])
+    r.add_argument("--profile", help="a profile defined in the scenario's profiles: section (e.g. paper, realistic)")
+    r.add_argument("--seed", type=int)
+    r.add_argument("--duration", type=float, help="simulated seconds")
+    r.add_argument("--out", help="run directory (default runs/<scenario name>)")
+    r.add_argument("--dbc", help="DBC to use (checked against the scenario); default: generated")
+    r.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a scenario field, dotted path, YAML value (repeatable)")
+    r.add_argument("--no-plots", action="store_true")
+    r.set_defaults(func=_cmd_run)
+
+    d = sub.add_parser("dbc", help="generate the CAN database", description="Generate the canbrake DBC with cantools.")
+    d.add_argument("--cars", type=int, default=6)
+    d.add_argument("-o", "--output", help="output file (default stdout)")
+    d.set_defaults(func=_cmd_dbc)
+
+    de = sub.add_parser("decode", help="decode a frame log with the DBC",
+                        description="Decode a frame log (candump -L .log, .asc, .blf, ... or - for stdin).")
+    de.add_argument("log")
+    de.add_argument("--dbc", help="default: canbrake.dbc next to the log, else the 6-car database")
+    de.add_argument("--only", help="only messages whose name starts with this")
+    de.set_defaults(func=_cmd_decode)
+
+    v = sub.add_parser("vcan", help="create/remove a virtual CAN interface (needs root)")
+    v.add_argument("action", choices=["up", "down"])
+    v.add_argument("name", nargs="?", default="vcan0")
+    v.set_defaults(func=_cmd_vcan)
+
+    for extra in ("sweep", "report", "bench"):
+        _register_optional(sub, extra)
+    return p
+
+
+def _register_optional(sub: Any, name: str) -> None:
+    """Subcommands that live in their own modules register themselves if present."""
+    import importlib
+
+    try:
+        mod = importlib.import_module(f"canbrake.cli_{name}")
+    except ImportError:
+        return
+    mod.register(sub)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from canbrake.scenario import ScenarioError
+
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (InputError, ScenarioError) as e:
+        print(f"canbrake: error: {e}", file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        print("canbrake: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        return EXIT_OK
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,87 @@
+"""Node state machines: transport-agnostic, event-driven.
+
+A node never touches a bus. A driver (:mod:`canbrake.nodes.driver`) feeds it received frames
+and sends the frames it returns, whether the driver is an OS process on the in-memory bus or
+SocketCAN, or the in-process engine. The same node objects therefore produce the same frames on
+every backend in lockstep mode.
+
+Lockstep protocol, per control period k (T = control period)::
+
+    plant : SYNC(k), REFERENCE, [COUPLER_Ci], SENSOR_Ci ...          (phase 0)
+    ECU i : on SENSOR_Ci -> STATE_Ci, STATE_DONE_Ci(k)                (phase 1)
+    ECU i : when STATE_DONE_Cj(k) seen for every peer j -> compute,
+            BRAKE_CMD_Ci, CMD_DONE_Ci(k)                              (phase 2)
+    plant : when CMD_DONE_Ci(k) seen for every i -> integrate to k+1
+
+The *_DONE frames are the barrier: a CAN bus delivers frames in one order to every listener and
+each sender's frames stay in order, so once STATE_DONE_Cj(k) is seen, every frame ECU j released
+in phase 1 of tick k has been seen as well (including none, if its state frame was lost). They
+are exempt from impairments. Frames whose latency (impairment delay, bus timing) reaches one
+control period are held by the sender's send path and released in the same phase of a later
+tick, so loss and delay are decided in simulated ticks and runs stay deterministic.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, Protocol
+
+import can
+
+
+class SendPath(Protocol):
+    """What a node's outgoing frames pass through (impairments, bus timing)."""
+
+    def submit(self, msg: can.Message, t_s: float) -> list[can.Message]:
+        """Frames to send now (possibly none, possibly duplicates)."""
+
+    def release(self, t_s: float) -> list[can.Message]:
+        """Held frames that are due at simulated/wall time ``t_s``."""
+
+
+class PassThrough:
+    """Send path without impairments."""
+
+    def submit(self, msg: can.Message, t_s: float) -> list[can.Message]:
+        return [msg]
+
+    def release(self, t_s: float) -> list[can.Message]:
+        return []
+
+
+class Node(ABC):
+    """A bus participant."""
+
+    name: str = "node"
+    finished: bool = False
+
+    def filters(self) -> list[dict[str, Any]] | None:
+        """python-can filters for the frames this node needs (None = all)."""
+        return None
+
+    def start(self, now: float) -> list[can.Message]:
+        """Frames to send when the run starts (``now``: wall time, s)."""
+        return []
+
+    @abstractmethod
+    def handle(self, msg: can.Message, now: float) -> list[can.Message]:
+        """React to one received frame; return frames to send."""
+
+    def next_deadline(self) -> float | None:
+        """Wall time (s) at which :meth:`on_timer` must run, or None (realtime mode only)."""
+        return None
+
+    def on_timer(self, now: float) -> list[can.Message]:
+        """Called at or after :meth:`next_deadline`."""
+        return []
+
+    def close(self, status: str = "ok") -> None:
+        """Flush traces and statistics; called once, also after an error."""
+
+
+def frame(arbitration_id: int, data: bytes) -> can.Message:
+    """A classic standard-id data frame."""
+    return can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+
+
+def exact_filter(arbitration_id: int) -> dict[str, Any]:
+    return {"can_id": arbitration_id, "can_mask": 0x7FF, "extended": False}

@@ -1,0 +1,141 @@
+"""Drivers: run node state machines over a real python-can bus or in one process.
+
+- :func:`drive` — the loop of one OS process: receive, handle, send; honours the node's
+  realtime deadlines; never busy-spins (blocking ``recv`` with a timeout).
+- :func:`run_inprocess` — every node in one process and one thread, frames delivered in one
+  global order; either straight from node to node (``medium="direct"``, the fast engine used
+  by sweeps) or through python-can ``virtual`` buses (``medium="virtual"``, one Bus object per
+  node, exercising python-can's own bus and filtering code). Lockstep only.
+"""
+from __future__ import annotations
+
+import os
+import time
+import uuid
+from collections import deque
+from typing import Callable, Sequence
+
+import can
+
+from canbrake.nodes.base import Node
+
+
+class NodeFailure(RuntimeError):
+    """A node's process failed; the message names the node."""
+
+
+def _matches(filters: list[dict] | None, msg: can.Message) -> bool:
+    if not filters:
+        return True
+    aid = msg.arbitration_id
+    for f in filters:
+        if (aid & f["can_mask"]) == (f["can_id"] & f["can_mask"]) and (
+                "extended" not in f or f["extended"] == msg.is_extended_id):
+            return True
+    return False
+
+
+def _send_all(bus: can.BusABC, msgs: Sequence[can.Message], retries: int = 200) -> None:
+    for m in msgs:
+        for attempt in range(retries):
+            try:
+                bus.send(m)
+                break
+            except can.CanOperationError:
+                # SocketCAN returns ENOBUFS when the interface queue is full: back off briefly.
+                if attempt == retries - 1:
+                    raise
+                time.sleep(0.0005)
+
+
+def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time,
+          idle_check_s: float = 0.5, parent_pid: int | None = None) -> None:
+    """Run ``node`` on ``bus`` until it finishes. Checks every ``idle_check_s`` of silence that the
+    parent process is still alive (so an orphaned node exits instead of waiting forever)."""
+    _send_all(bus, node.start(clock()))
+    while not node.finished:
+        deadline = node.next_deadline()
+        now = clock()
+        timeout = idle_check_s if deadline is None else max(0.0, min(idle_check_s, deadline - now))
+        msg = bus.recv(timeout=timeout)
+        now = clock()
+        if msg is not None:
+            _send_all(bus, node.handle(msg, now))
+        deadline = node.next_deadline()
+        if deadline is not None and now >= deadline:
+            _send_all(bus, node.on_timer(now))
+        if msg is None and parent_pid is not None and os.getppid() != parent_pid:
+            raise NodeFailure(f"{node.name}: parent process went away")
+
+
+def run_inprocess(nodes: Sequence[Node], *, medium: str = "direct", max_frames: int | None = None) -> int:
+    """Run all ``nodes`` in this process until every node has finished; returns frames moved.
+
+    Nodes start in the given order (put the plant, the time master, last).
+    """
+    if medium == "direct":
+        return _run_direct(nodes, max_frames)
+    if medium == "virtual":
+        return _run_virtual(nodes, max_frames)
+    raise ValueError(f"unknown in-process medium {medium!r}")
+
+
+def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
+    filters = [n.filters() for n in nodes]
+    # Precompute, per node, the set of exact ids it accepts when all filters are exact matches.
+    exact: list[set[int] | None] = []
+    for f in filters:
+        if f and all(x["can_mask"] == 0x7FF for x in f):
+            exact.append({x["can_id"] for x in f})
+        else:
+            exact.append(None)
+    queue: deque[tuple[int, can.Message]] = deque()
+    for idx, node in enumerate(nodes):
+        queue.extend((idx, m) for m in node.start(0.0))
+    moved = 0
+    while queue:
+        sender, msg = queue.popleft()
+        moved += 1
+        if max_frames is not None and moved > max_frames:
+            raise NodeFailure(f"in-process run exceeded {max_frames} frames")
+        aid = msg.arbitration_id
+        for idx, node in enumerate(nodes):
+            if idx == sender or node.finished:
+                continue
+            ex = exact[idx]
+            if (aid in ex and not msg.is_extended_id) if ex is not None else _matches(filters[idx], msg):
+                out = node.handle(msg, 0.0)
+                if out:
+                    queue.extend((idx, m) for m in out)
+    unfinished = [n.name for n in nodes if not n.finished]
+    if unfinished:
+        raise NodeFailure(f"in-process run stalled; unfinished nodes: {', '.join(unfinished)}")
+    return moved
+
+
+def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
+    channel = f"canbrake-{uuid.uuid4().hex[:8]}"
+    buses = [can.Bus(interface="virtual", channel=channel, can_filters=n.filters(), receive_own_messages=False)
+             for n in nodes]
+    moved = 0
+    try:
+        for node, bus in zip(nodes, buses):
+            _send_all(bus, node.start(0.0))
+        progress = True
+        while progress:
+            progress = False
+            for node, bus in zip(nodes, buses):
+                while (msg := bus.recv(timeout=0)) is not None:
+                    progress = True
+                    moved += 1
+                    if max_frames is not None and moved > max_frames:
+                        raise NodeFailure(f"in-process run exceeded {max_frames} frames")
+                    if not node.finished:
+                        _send_all(bus, node.handle(msg, 0.0))
+    finally:
+        for bus in buses:
+            bus.shutdown()
+    unfinished = [n.name for n in nodes if not n.finished]
+    if unfinished:
+        raise NodeFailure(f"virtual-bus run stalled; unfinished nodes: {', '.join(unfinished)}")
+    return moved

@@ -1,0 +1,228 @@
+"""The ECU node: one carriage's brake controller on the bus.
+
+It turns frames into an :class:`~canbrake.control.base.Observation`, calls the controller,
+and turns the result into frames. Peer values carry their age, derived from the E2E alive
+counter: every sender's counter is its tick modulo 15, so a frame received at tick k with
+counter c was sent at tick k - ((k - c) mod 15) (valid while frames are less than 15 periods
+old; older ones are indistinguishable and the peer is reported stale anyway).
+"""
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import can
+import numpy as np
+
+from canbrake.bus import dbc
+from canbrake.bus.codec import FrameCodec
+from canbrake.bus.e2e import COUNTER_MODULO, E2EStatus, E2EReceiver, counter_of
+from canbrake.control.base import Controller, Observation
+from canbrake.nodes.base import Node, PassThrough, SendPath, exact_filter, frame
+
+
+@dataclass
+class EcuStats:
+    ticks: int = 0
+    peer_frames: int = 0
+    peer_corrupted: int = 0
+    peer_stale_or_duplicate: int = 0
+    peer_missing: int = 0        # (tick, peer) pairs computed without a value from that tick
+    deadline_misses: int = 0     # realtime: computed before every peer's state arrived
+    status: str = "running"
+
+
+class EcuNode(Node):
+    """Brake ECU of car ``car`` (1-based)."""
+
+    def __init__(self, car: int, n_cars: int, controller: Controller, codec: FrameCodec, *, dt_s: float,
+                 mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
+                 compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000) -> None:
+        self.car = car
+        self.i = car - 1
+        self.n = n_cars
+        self.name = f"ecu{car}"
+        self.controller = controller
+        self.codec = codec
+        self.dt = dt_s
+        self.mode = mode
+        self.send_path = send_path or PassThrough()
+        self.heartbeat_every = max(1, int(round(heartbeat_period_s / dt_s)))
+        self.compute_deadline = compute_deadline
+        self.out_dir = Path(out_dir) if out_dir else None
+        self.flush_every = flush_every
+        self.stats = EcuStats()
+        self.k = -1
+        self.phase = 0  # 0 waiting for sensor, 1 waiting for peers, 2 done for this tick
+        self.speed = np.nan
+        self.position = np.nan
+        self.defl_front: float | None = None
+        self.defl_rear: float | None = None
+        self.v_ref = 0.0
+        self.a_ref = 0.0
+        self.peer_speed = np.full(n_cars, np.nan)
+        self.peer_pos = np.full(n_cars, np.nan)
+        self.peer_origin = np.full(n_cars, -(10 ** 12), dtype=np.int64)
+        self._peers = [j for j in range(n_cars) if j != self.i]
+        self._all_done = (1 << n_cars) - 1  # bit j set: STATE_DONE of car j seen this tick
+        self._done = 1 << self.i
+        self._e2e = {dbc.STATE_BASE + j + 1: E2EReceiver(dbc.STATE_BASE + j + 1) for j in self._peers}
+        self._state_codec = codec[f"STATE_C{car}"]
+        self._cmd_codec = codec[f"BRAKE_CMD_C{car}"]
+        self._sdone = codec[f"STATE_DONE_C{car}"]
+        self._cdone = codec[f"CMD_DONE_C{car}"]
+        self._hb = codec[f"HEARTBEAT_C{car}"]
+        self._sensor_id = dbc.SENSOR_BASE + car
+        self._coupler_id = dbc.COUPLER_BASE + car
+        self._deadline: float | None = None
+        self._rows: list[list[float]] = []
+        self._csv_file = None
+        self._csv = None
+
+    def filters(self) -> list[dict]:
+        ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, self._sensor_id, self._coupler_id]
+        for j in self._peers:
+            ids += [dbc.STATE_BASE + j + 1, dbc.STATE_DONE_BASE + j + 1]
+        return [exact_filter(i) for i in ids]
+
+    def start(self, now: float) -> list[can.Message]:
+        if self.out_dir is not None:
+            self._csv_file = open(self.out_dir / f"ecu_c{self.car}.csv", "w", newline="")
+            self._csv = csv.writer(self._csv_file)
+            self._csv.writerow(["tick", "brake_cmd_n", *self.controller.diagnostic_names,
+                                "max_peer_age_s", "peers_fresh"])
+        return []
+
+    # ---------------------------------------------------------------- receive
+    def handle(self, msg: can.Message, now: float) -> list[can.Message]:
+        aid = msg.arbitration_id
+        if aid == dbc.SYNC_ID:
+            tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
+            if tick == dbc.SYNC_END_TICK:
+                self.finished = True
+                return []
+            self.k = int(tick)
+            self.phase = 0
+            self._done = 1 << self.i
+            return []
+        if aid == self._sensor_id:
+            d = self.codec.by_id[aid].decode(msg.data)
+            self.speed, self.position = d["Speed"], d["Position"]
+            return self._phase1(now)
+        if aid == dbc.REFERENCE_ID:
+            d = self.codec.by_id[aid].decode(msg.data)
+            self.v_ref, self.a_ref = d["RefSpeed"], d["RefDecel"]
+            return []
+        if aid == self._coupler_id:
+            d = self.codec.by_id[aid].decode(msg.data)
+            self.defl_front = d["DeflFront"] if self.i > 0 else None
+            self.defl_rear = d["DeflRear"] if self.i < self.n - 1 else None
+            return []
+        if dbc.STATE_BASE < aid <= dbc.STATE_BASE + self.n:
+            self._on_state(aid - dbc.STATE_BASE - 1, msg)
+            return []
+        if dbc.STATE_DONE_BASE < aid <= dbc.STATE_DONE_BASE + self.n:
+            tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
+            if tick == (self.k & 0xFFFF):
+                self._done |= 1 << (aid - dbc.STATE_DONE_BASE - 1)
+                if self.phase == 1 and self._done == self._all_done:
+                    return self._phase2(now)
+        return []
+
+    def _on_state(self, j: int, msg: can.Message) -> None:
+        status = self._e2e[msg.arbitration_id].check(msg.data)
+        if status is E2EStatus.WRONG_CRC:
+            self.stats.peer_corrupted += 1
+            return
+        lag = (self.k - counter_of(msg.data)) % COUNTER_MODULO
+        origin = self.k - lag
+        if origin <= self.peer_origin[j]:
+            self.stats.peer_stale_or_duplicate += 1
+            return
+        d = self.codec.by_id[msg.arbitration_id].decode(msg.data)
+        self.peer_speed[j], self.peer_pos[j], self.peer_origin[j] = d["Speed"], d["Position"], origin
+        self.stats.peer_frames += 1
+
+    # ---------------------------------------------------------------- send
+    def _emit(self, msg: can.Message, t_s: float, out: list[can.Message]) -> None:
+        out.extend(self.send_path.submit(msg, t_s))
+
+    def _sim_time(self, now: float) -> float:
+        return self.k * self.dt if self.mode == "lockstep" else now
+
+    def _phase1(self, now: float) -> list[can.Message]:
+        if self.phase != 0 or self.k < 0:
+            return []
+        t = self._sim_time(now)
+        out = list(self.send_path.release(t))
+        if self.k % self.heartbeat_every == 0:
+            self._emit(frame(dbc.HEARTBEAT_BASE + self.car, self._hb.encode({"NodeState": 5})), t, out)
+        state = self._state_codec.encode({"Speed": self.speed, "Position": self.position},
+                                         counter=self.k % COUNTER_MODULO)
+        self._emit(frame(dbc.STATE_BASE + self.car, state), t, out)
+        out.append(frame(dbc.STATE_DONE_BASE + self.car, self._sdone.encode({"Tick": self.k & 0xFFFF})))
+        self.phase = 1
+        if self.mode == "realtime":
+            self._deadline = now + self.compute_deadline * self.dt
+        if self._done == self._all_done:
+            out += self._phase2(now)
+        return out
+
+    def _phase2(self, now: float) -> list[can.Message]:
+        self.phase = 2
+        self._deadline = None
+        t = self._sim_time(now)
+        speed = self.peer_speed.copy()
+        pos = self.peer_pos.copy()
+        speed[self.i], pos[self.i] = self.speed, self.position
+        origin = self.peer_origin.copy()
+        origin[self.i] = self.k
+        age = np.where(np.isnan(speed), np.inf, (self.k - origin) * self.dt)
+        fresh = int((origin == self.k).sum())
+        self.stats.peer_missing += self.n - fresh
+        obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=self.speed, position_m=self.position,
+                          ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
+                          peer_position_m=pos, peer_age_s=age, deflection_front_m=self.defl_front,
+                          deflection_rear_m=self.defl_rear)
+        result = self.controller.step(obs)
+        out: list[can.Message] = list(self.send_path.release(t))
+        cmd = self._cmd_codec.encode({"Status": 0, "BrakeForce": result.brake_force_n},
+                                     counter=self.k % COUNTER_MODULO)
+        self._emit(frame(dbc.BRAKE_CMD_BASE + self.car, cmd), t, out)
+        out.append(frame(dbc.CMD_DONE_BASE + self.car, self._cdone.encode({"Tick": self.k & 0xFFFF})))
+        self.stats.ticks += 1
+        finite_age = age[np.isfinite(age)]
+        self._rows.append([self.k, result.brake_force_n,
+                           *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
+                           float(finite_age.max()) if finite_age.size else np.inf, fresh])
+        if len(self._rows) >= self.flush_every:
+            self._flush()
+        return out
+
+    # ---------------------------------------------------------------- realtime
+    def next_deadline(self) -> float | None:
+        return self._deadline if self.phase == 1 else None
+
+    def on_timer(self, now: float) -> list[can.Message]:
+        if self.phase != 1:
+            return []
+        self.stats.deadline_misses += 1
+        return self._phase2(now)
+
+    # ---------------------------------------------------------------- trace
+    def _flush(self) -> None:
+        if self._csv is not None and self._rows:
+            self._csv.writerows([[f"{v:.9g}" if isinstance(v, float) else v for v in r] for r in self._rows])
+            self._csv_file.flush()  # type: ignore[union-attr]
+        self._rows.clear()
+
+    def close(self, status: str = "ok") -> None:
+        self._flush()
+        if self._csv_file is not None:
+            self._csv_file.close()
+            self._csv_file = None
+        self.stats.status = "ok" if self.finished else status
+        if self.out_dir is not None:
+            (self.out_dir / f"ecu_c{self.car}_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))

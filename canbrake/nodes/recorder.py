@@ -1,0 +1,185 @@
+"""The recorder node: writes every frame on the bus to ``frames.log`` and measures bus load.
+
+The log is written by python-can's own writer (``can.Logger`` picks .log/.asc/.blf/... by
+suffix), so candump/canplayer, python-can and ``cantools decode`` read it.
+
+Lockstep mode: frames of one control period are written in the order a CAN bus would carry
+them if every node queued its frames of a phase at the same instant (phase by phase, then by
+identifier — arbitration), stamped with simulated time: t_k plus the wire time of the frames
+before them at the scenario's bit rate (actual bit stuffing). That makes frames.log identical
+byte for byte between runs and backends for the same seed. Simulation-control frames
+(*_DONE) take no wire time in this accounting. When a period's traffic does not fit in the
+period, the bus stays busy into the next one and the timestamps show it.
+
+Realtime mode: frames are written as received, with their wall-clock receive timestamps.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import can
+import numpy as np
+
+from canbrake.bus import dbc
+from canbrake.bus.timing import frame_bits
+from canbrake.nodes.base import Node
+
+_PLANT_IDS = None
+
+
+def _is_plant_frame(aid: int, n: int) -> bool:
+    return (aid in (dbc.SYNC_ID, dbc.REFERENCE_ID, dbc.HEARTBEAT_BASE)
+            or dbc.SENSOR_BASE < aid <= dbc.SENSOR_BASE + n or dbc.COUPLER_BASE < aid <= dbc.COUPLER_BASE + n)
+
+
+def is_sim_control(aid: int) -> bool:
+    """True for the lockstep barrier frames (STATE_DONE/CMD_DONE), which carry no train data."""
+    return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
+
+
+class RecorderNode(Node):
+    """Listens to everything; writes ``frames.log`` and ``bus_stats.json``."""
+
+    name = "recorder"
+
+    def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
+                 log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0) -> None:
+        self.n = n_cars
+        self.dt = dt_s
+        self.bitrate = float(bitrate_bps)
+        self.mode = mode
+        self.log_path = Path(log_path) if log_path else None
+        self.channel = channel
+        self.epoch = epoch_s
+        self._writer: can.Listener | None = None
+        self._k = -1
+        self._tick_frames: list[can.Message] = []
+        self._done_seen = 0
+        self._bus_free_s = 0.0
+        self.frames = 0
+        self.frames_by_kind: dict[str, int] = {}
+        self._busy_per_tick: list[float] = []
+        self._latency: list[float] = []
+        self._rt_bits = 0
+        self._rt_tick_start: float | None = None
+
+    def start(self, now: float) -> list[can.Message]:
+        if self.log_path is not None:
+            self._writer = can.Logger(str(self.log_path))
+        return []
+
+    # ---------------------------------------------------------------- receive
+    def handle(self, msg: can.Message, now: float) -> list[can.Message]:
+        self.frames += 1
+        aid = msg.arbitration_id
+        kind = self._kind(aid)
+        self.frames_by_kind[kind] = self.frames_by_kind.get(kind, 0) + 1
+        if self.mode == "realtime":
+            self._realtime(msg, now)
+            return []
+        if aid == dbc.SYNC_ID and not msg.is_extended_id:
+            self._flush_tick()
+            tick = int.from_bytes(msg.data[:4], "little")
+            if tick == dbc.SYNC_END_TICK:
+                self._write([self._stamp(msg, self._k + 1, 0.0)])
+                self.finished = True
+                return []
+            self._k = tick
+            self._done_seen = 0
+        # phase: 0 plant frames, 1 until the last STATE_DONE of the tick, 2 after it
+        if dbc.STATE_DONE_BASE < aid <= dbc.STATE_DONE_BASE + self.n:
+            self._done_seen += 1
+            phase = 1
+        elif self._done_seen >= self.n:
+            phase = 2
+        else:
+            phase = 0 if _is_plant_frame(aid, self.n) else 1
+        self._tick_frames.append((phase, aid, bytes(msg.data), msg))  # type: ignore[arg-type]
+        return []
+
+    def _kind(self, aid: int) -> str:
+        for base, kind in ((dbc.CMD_DONE_BASE, "cmd_done"), (dbc.STATE_DONE_BASE, "state_done"),
+                           (dbc.HEARTBEAT_BASE, "heartbeat"), (dbc.STATE_BASE, "state"),
+                           (dbc.COUPLER_BASE, "coupler"), (dbc.SENSOR_BASE, "sensor"),
+                           (dbc.BRAKE_CMD_BASE, "brake_cmd")):
+            if base <= aid <= base + self.n and (base != dbc.HEARTBEAT_BASE or aid <= base + self.n):
+                return kind
+        return {dbc.SYNC_ID: "sync", dbc.REFERENCE_ID: "reference"}.get(aid, "other")
+
+    def _flush_tick(self) -> None:
+        if self._k < 0 or not self._tick_frames:
+            self._tick_frames = []
+            return
+        t_k = self._k * self.dt
+        t = max(t_k, self._bus_free_s)
+        ordered = sorted(self._tick_frames, key=lambda f: (f[0], f[1], f[2]))
+        out = []
+        busy = 0.0
+        for _phase, aid, data, msg in ordered:
+            if not is_sim_control(aid):
+                dur = frame_bits(aid, msg.is_extended_id, msg.dlc, data, stuffing="actual") / self.bitrate
+                t += dur
+                busy += dur
+                self._latency.append(t - t_k)
+            out.append(self._stamp(msg, None, t))
+        self._bus_free_s = t
+        self._busy_per_tick.append(busy / self.dt)
+        self._write(out)
+        self._tick_frames = []
+
+    def _stamp(self, msg: can.Message, tick: int | None, t_s: float) -> can.Message:
+        if tick is not None:
+            t_s = max(tick * self.dt, self._bus_free_s)
+        return can.Message(timestamp=self.epoch + t_s, arbitration_id=msg.arbitration_id,
+                           is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
+                           is_error_frame=msg.is_error_frame, dlc=msg.dlc, data=msg.data,
+                           channel=self.channel, is_rx=True)
+
+    def _realtime(self, msg: can.Message, now: float) -> None:
+        m = self._stamp(msg, None, 0.0)
+        m.timestamp = msg.timestamp or now
+        self._write([m])
+        aid = msg.arbitration_id
+        if aid == dbc.SYNC_ID:
+            if self._rt_tick_start is not None:
+                self._busy_per_tick.append(self._rt_bits / self.bitrate / self.dt)
+            self._rt_bits = 0
+            self._rt_tick_start = m.timestamp
+            if int.from_bytes(msg.data[:4], "little") == dbc.SYNC_END_TICK:
+                self.finished = True
+        if not is_sim_control(aid):
+            self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual")
+
+    def _write(self, msgs: list[can.Message]) -> None:
+        if self._writer is not None:
+            for m in msgs:
+                self._writer.on_message_received(m)
+
+    # ---------------------------------------------------------------- results
+    def bus_stats(self) -> dict:
+        load = np.asarray(self._busy_per_tick) if self._busy_per_tick else np.zeros(1)
+        lat = np.asarray(self._latency) if self._latency else np.zeros(1)
+        return {
+            "frames": self.frames,
+            "frames_by_kind": self.frames_by_kind,
+            "bitrate_bps": self.bitrate,
+            "bus_load_mean": float(load.mean()),
+            "bus_load_peak": float(load.max()),
+            "latency_model": "lockstep: all frames of a phase queued at t_k, arbitration order, actual stuffing"
+            if self.mode == "lockstep" else "not modelled in realtime mode",
+            "latency_p50_s": float(np.percentile(lat, 50)),
+            "latency_p99_s": float(np.percentile(lat, 99)),
+            "latency_max_s": float(lat.max()),
+        }
+
+    def close(self, status: str = "ok") -> None:
+        if self.mode == "lockstep" and not self.finished:
+            self._flush_tick()
+        if self._writer is not None:
+            self._writer.stop()
+            self._writer = None
+        if self.log_path is not None:
+            stats = self.bus_stats()
+            stats["status"] = "ok" if self.finished else status
+            (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))

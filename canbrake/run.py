@@ -1,0 +1,320 @@
+"""Run orchestration: prepare the run directory, start and supervise the node processes (or run
+them in process), then collect traces into signals.csv, summary.json and plots.
+
+Run directory contract (docs/architecture.md): frames.log, signals.csv, summary.json,
+scenario.yaml (resolved), canbrake.dbc, plots/*.png, plus per-node traces (ecu_c*.csv,
+*_stats.json) and logs/<node>.log for a failed node.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import multiprocessing.connection
+import os
+import signal
+import sys
+import time
+import traceback
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import can
+
+from canbrake.scenario import Scenario, ScenarioError
+
+BACKENDS = ("memory", "socketcan", "virtual", "inprocess")
+
+
+class RunFailure(RuntimeError):
+    """The run failed after it started (exit status 1); the message names the failed process."""
+
+
+@dataclass
+class BusChoice:
+    """Which bus a run uses. ``interface`` is a python-can interface name."""
+
+    backend: str
+    interface: str | None
+    channel: str | None
+
+    #: channel name written into frames.log (stable across backends so logs compare byte for byte)
+    log_channel: str = "canbrake0"
+
+    def describe(self) -> str:
+        return f"{self.interface or self.backend}:{self.channel}"
+
+
+def choose_bus(scn: Scenario, backend: str | None = None, channel: str | None = None,
+               interface: str | None = None) -> BusChoice:
+    """Resolve backend/interface/channel from the command line and the scenario."""
+    backend = backend or scn.bus.backend
+    interface = interface or scn.bus.interface
+    if backend not in BACKENDS:
+        raise ScenarioError(f"--bus: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
+    channel = channel or scn.bus.channel
+    log_channel = channel or "canbrake0"
+    if backend == "memory":
+        interface = interface or "canbrake"
+        channel = channel or f"cb{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    elif backend == "socketcan":
+        interface = interface or "socketcan"
+        channel = channel or "vcan0"
+        log_channel = channel
+    elif backend in ("virtual", "inprocess"):
+        interface = None
+        channel = channel or "virtual0"
+    if backend in ("virtual", "inprocess") and scn.mode != "lockstep":
+        raise ScenarioError(f"--bus {backend}: runs in one process and supports --mode lockstep only")
+    return BusChoice(backend, interface, channel, log_channel)
+
+
+def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | None = None) -> Path:
+    """Create ``out_dir`` and write the resolved scenario and the DBC used (checked against the scenario)."""
+    from canbrake.bus import dbc
+
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ScenarioError(f"--out {out}: cannot create the run directory: {e.strerror}") from None
+    if dbc_path is not None:
+        check_dbc_matches(scn, dbc_path)
+        (out / "canbrake.dbc").write_text(Path(dbc_path).read_text())
+    else:
+        dbc.write_dbc(scn.n_cars, out / "canbrake.dbc")
+    (out / "scenario.yaml").write_text(scn.to_yaml())
+    (out / "plots").mkdir(exist_ok=True)
+    return out
+
+
+def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
+    """A user-supplied DBC must describe the scenario's train with canbrake's layout."""
+    from canbrake.bus import dbc
+
+    p = Path(dbc_path)
+    try:
+        db = dbc.load_dbc(p)
+    except FileNotFoundError:
+        raise ScenarioError(f"{p}: no such DBC file") from None
+    except Exception as e:  # cantools raises several parse error types
+        raise ScenarioError(f"{p}: not a readable DBC file: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+    n = dbc.n_cars_of(db)
+    if n != scn.n_cars:
+        raise ScenarioError(f"{p}: the DBC describes {n} cars but the scenario has {scn.n_cars} (train.mass_kg)")
+    ref = dbc.build_database(scn.n_cars)
+    for m in ref.messages:
+        try:
+            got = db.get_message_by_frame_id(m.frame_id)
+        except KeyError:
+            raise ScenarioError(f"{p}: message {m.name} ({m.frame_id:#x}) is missing") from None
+        a = [(s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.byte_order) for s in m.signals]
+        b = [(s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.byte_order) for s in got.signals]
+        if got.name != m.name or got.length != m.length or sorted(a) != sorted(b):
+            raise ScenarioError(f"{p}: message {m.frame_id:#x} does not match canbrake's layout for {m.name} "
+                                f"(regenerate with `canbrake dbc --cars {scn.n_cars}`)")
+
+
+# ----------------------------------------------------------------------------- child processes
+def _open_bus(choice: BusChoice, filters: list[dict] | None) -> can.BusABC:
+    if choice.backend == "socketcan" and choice.interface == "socketcan":
+        from canbrake.bus.vcan import open_socketcan_bus
+
+        return open_socketcan_bus(choice.channel or "vcan0", can_filters=filters, receive_own_messages=False)
+    return can.Bus(interface=choice.interface, channel=choice.channel, can_filters=filters,
+                   receive_own_messages=False)
+
+
+def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, choice: BusChoice,
+                barrier: Any, progress: Any, parent_pid: int) -> None:
+    """Entry point of one node process."""
+    from canbrake.build import build_node
+    from canbrake.nodes.driver import drive
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the orchestrator decides how a run ends
+
+    def _term(signum: int, frame: Any) -> None:
+        raise SystemExit(143)
+
+    signal.signal(signal.SIGTERM, _term)
+    name = role if role != "ecu" else f"ecu{car}"
+    node = None
+    bus = None
+    status = "failed"
+    try:
+        scn = Scenario.model_validate(scenario)
+        node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
+                          progress=progress)
+        bus = _open_bus(choice, node.filters())
+        barrier.wait(timeout=120)
+        drive(node, bus, parent_pid=parent_pid)
+        status = "ok"
+    except SystemExit:
+        status = "terminated"
+        raise
+    except BaseException as e:  # noqa: BLE001 - report any failure of this process, then exit 1
+        logs = Path(run_dir) / "logs"
+        logs.mkdir(exist_ok=True)
+        (logs / f"{name}.log").write_text(traceback.format_exc())
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        print(f"canbrake: {name} failed: {first}", file=sys.stderr, flush=True)
+        sys.exit(1)
+    finally:
+        if node is not None:
+            try:
+                node.close(status)
+            except Exception:  # noqa: BLE001 - closing must not hide the original failure
+                pass
+        if bus is not None:
+            bus.shutdown()
+
+
+def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_timeout_s: float = 60.0,
+                  start_timeout_s: float = 120.0) -> dict[str, Any]:
+    """Run plant, ECUs and recorder as separate OS processes; supervise until done."""
+    ctx = mp.get_context("spawn")
+    roles = [("recorder", 0)] + [("ecu", c) for c in range(1, scn.n_cars + 1)] + [("plant", 0)]
+    barrier = ctx.Barrier(len(roles))
+    progress = ctx.Value("q", -1, lock=False)
+    data = scn.model_dump(mode="json")
+    procs: dict[str, mp.process.BaseProcess] = {}
+    t_start = time.time()
+    outcome: dict[str, Any] = {"status": "ok", "message": ""}
+    try:
+        for role, car in roles:
+            name = role if role != "ecu" else f"ecu{car}"
+            p = ctx.Process(target=_child_main, name=f"canbrake-{name}",
+                            args=(role, car, data, str(run_dir), choice, barrier, progress, os.getpid()))
+            p.start()
+            procs[name] = p
+        last_tick, last_change = -1, time.time()
+        while True:
+            alive = [p for p in procs.values() if p.exitcode is None]
+            failed = [(n, p) for n, p in procs.items() if p.exitcode not in (None, 0)]
+            if failed:
+                n, p = failed[0]
+                detail = _failure_detail(run_dir, n)
+                raise RunFailure(f"{n} (pid {p.pid}) exited with status {p.exitcode}{detail}")
+            if not alive:
+                break
+            plant = procs["plant"]
+            if plant.exitcode == 0:
+                # The plant sent the end-of-run SYNC; the others stop on it.
+                deadline = time.time() + 10.0
+                for p in alive:
+                    p.join(max(0.0, deadline - time.time()))
+                stuck = [n for n, p in procs.items() if p.exitcode is None]
+                if stuck:
+                    raise RunFailure(f"{', '.join(stuck)} did not stop after the end of the run")
+                continue
+            mp.connection.wait([p.sentinel for p in alive], timeout=0.5)
+            tick = progress.value
+            now = time.time()
+            if tick != last_tick:
+                last_tick, last_change = tick, now
+            limit = start_timeout_s if tick < 0 else stall_timeout_s
+            if now - last_change > limit:
+                where = "before the first tick" if tick < 0 else f"at tick {tick}"
+                raise RunFailure(f"run stalled {where}: no progress for {limit:.0f} s (a node is waiting for "
+                                 f"frames that never came; see frames.log)")
+    except KeyboardInterrupt:
+        outcome = {"status": "interrupted", "message": "interrupted by the user (Ctrl-C)"}
+    except RunFailure as e:
+        outcome = {"status": "failed", "message": str(e)}
+    finally:
+        _reap(procs)
+        barrier.abort()
+    outcome["wall_time_s"] = time.time() - t_start
+    return outcome
+
+
+def _failure_detail(run_dir: Path, name: str) -> str:
+    log = run_dir / "logs" / f"{name}.log"
+    if log.exists():
+        lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
+        if lines:
+            return f": {lines[-1].strip()} (traceback in {log})"
+    return ""
+
+
+def _reap(procs: dict[str, mp.process.BaseProcess]) -> None:
+    """Terminate and join every child; kill the ones that ignore SIGTERM."""
+    for p in procs.values():
+        if p.exitcode is None:
+            p.terminate()
+    deadline = time.time() + 5.0
+    for p in procs.values():
+        p.join(max(0.0, deadline - time.time()))
+    for p in procs.values():
+        if p.exitcode is None:
+            p.kill()
+            p.join(2.0)
+
+
+# ----------------------------------------------------------------------------- in-process
+def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> dict[str, Any]:
+    """All nodes in this process (python-can virtual buses, or direct delivery)."""
+    from canbrake.build import build_nodes
+    from canbrake.nodes.driver import NodeFailure, run_inprocess
+
+    nodes = build_nodes(scn, run_dir, channel=choice.log_channel)
+    t0 = time.time()
+    status = "failed"
+    try:
+        run_inprocess(nodes, medium="virtual" if choice.backend == "virtual" else "direct")
+        status = "ok"
+        return {"status": "ok", "message": "", "wall_time_s": time.time() - t0}
+    except NodeFailure as e:
+        return {"status": "failed", "message": str(e), "wall_time_s": time.time() - t0}
+    finally:
+        for n in nodes:
+            n.close(status)
+
+
+# ----------------------------------------------------------------------------- entry
+def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = None, channel: str | None = None,
+                 interface: str | None = None, dbc_path: str | Path | None = None, plots: bool = True,
+                 stall_timeout_s: float = 60.0) -> dict[str, Any]:
+    """Run ``scn`` and write the run directory. Returns the summary (also in summary.json).
+
+    Raises :class:`ScenarioError` for bad input (before anything runs); a failure during the run
+    is reported in the summary's ``status``/``message`` (and all logs written so far are kept).
+    """
+    from canbrake.analysis.summary import finalize_run
+
+    choice = choose_bus(scn, backend, channel, interface)
+    if choice.backend == "socketcan" and choice.interface == "socketcan":
+        from canbrake.bus.vcan import VcanError, check_socketcan_channel
+
+        try:
+            check_socketcan_channel(choice.channel or "vcan0")
+        except VcanError as e:
+            raise ScenarioError(str(e)) from None
+    run_dir = prepare_run_dir(scn, out_dir, dbc_path)
+    try:
+        if choice.backend in ("virtual", "inprocess"):
+            outcome = run_in_process(scn, run_dir, choice)
+        else:
+            outcome = run_processes(scn, run_dir, choice, stall_timeout_s=stall_timeout_s)
+    finally:
+        if choice.backend == "memory":
+            _remove_memory_channel(choice.channel)
+    return finalize_run(scn, run_dir, choice.describe(), outcome, plots=plots)
+
+
+def _remove_memory_channel(channel: str | None) -> None:
+    if not channel:
+        return
+    try:
+        from canbrake.bus import memory
+
+        remove = getattr(memory, "remove_channel", None) or getattr(memory.MemoryBus, "remove_channel", None)
+        if remove is not None:
+            remove(channel)
+    except Exception:  # noqa: BLE001 - cleanup of a temporary channel is best effort
+        pass
+
+
+def write_json(path: Path, data: Any) -> None:
+    path.write_text(json.dumps(data, indent=1, sort_keys=False))
