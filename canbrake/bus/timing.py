@@ -299,8 +299,8 @@ def frame_bits(arbitration_id: int, is_extended: bool, dlc: int,
     elif stuffing == "actual":
         payload = b"" if is_remote else _payload(data, int(dlc))
         total += _actual_stuff_bits(arbitration_id, is_extended, dlc, payload, is_remote)
-    elif data is not None and not is_remote:
-        _payload(data, int(dlc))  # validate the length even when it does not matter
+    if data is not None and not is_remote and stuffing != "actual" and len(data) != dlc:
+        raise ValueError(f"data has {len(data)} bytes but dlc is {dlc}")
     return total
 
 
@@ -422,38 +422,21 @@ def _arbitration_key(arbitration_id: int, is_extended: bool, is_remote: bool) ->
 
 
 class _Pending:
-    __slots__ = ("ticket", "is_remote", "dlc", "data", "tag", "arb")
+    """A submitted frame: ``bus_key`` orders arbitration between nodes, ``node_key`` the
+    node's own queue (priority or FIFO)."""
+
+    __slots__ = ("ticket", "is_remote", "dlc", "data", "tag", "bus_key", "node_key")
 
     def __init__(self, ticket: Ticket, is_remote: bool, dlc: int, data: bytes | None,
-                 tag: Any) -> None:
+                 tag: Any, fifo: bool) -> None:
         self.ticket = ticket
         self.is_remote = is_remote
         self.dlc = dlc
         self.data = data
         self.tag = tag
-        self.arb = _arbitration_key(ticket.arbitration_id, ticket.is_extended, is_remote)
-
-
-class _NodeQueue:
-    """Transmit queue of one node: frames not yet queued (future) and ready to send."""
-
-    __slots__ = ("future", "ready", "fifo")
-
-    def __init__(self, fifo: bool) -> None:
-        self.future: list[tuple[float, int, _Pending]] = []
-        self.ready: list[tuple[Any, ...]] = []
-        self.fifo = fifo
-
-    def promote(self, t: float) -> None:
-        future = self.future
-        while future and future[0][0] <= t:
-            _, seq, p = heapq.heappop(future)
-            key = ((p.ticket.t_queue_s, seq) if self.fifo
-                   else (p.arb, p.ticket.t_queue_s, seq))
-            heapq.heappush(self.ready, (key, p))
-
-    def __len__(self) -> int:
-        return len(self.future) + len(self.ready)
+        self.bus_key = (_arbitration_key(ticket.arbitration_id, ticket.is_extended, is_remote),
+                        ticket.t_queue_s, ticket.seq)
+        self.node_key = (ticket.t_queue_s, ticket.seq) if fifo else self.bus_key
 
 
 class BusTimingModel:
@@ -490,7 +473,9 @@ class BusTimingModel:
         self.queue_policy: QueuePolicy = queue_policy
         self.include_ifs = bool(include_ifs)
         self.record_history = bool(record_history)
-        self._queues: dict[str, _NodeQueue] = {}
+        self._future: list[tuple[float, int, _Pending]] = []  # not yet queued, by t_queue
+        self._ready: dict[str, list[tuple[Any, _Pending]]] = {}  # per node, by node_key
+        self._n_ready = 0
         self._seq = 0
         self._now = -math.inf
         self._bus_free_at = -math.inf
@@ -524,18 +509,16 @@ class BusTimingModel:
         return frame_bits(arbitration_id, is_extended, dlc, data, self.stuffing,
                           is_remote=is_remote, include_ifs=self.include_ifs) / self.bitrate_bps
 
+    def _pending(self) -> list[_Pending]:
+        return [e[-1] for e in self._future] + [e[-1] for q in self._ready.values() for e in q]
+
     def pending_count(self, node: str | None = None, msg_id: int | None = None) -> int:
         """Frames submitted but not yet started, optionally for one node and/or identifier."""
-        n = 0
-        for name, q in self._queues.items():
-            if node is not None and name != node:
-                continue
-            if msg_id is None:
-                n += len(q)
-            else:
-                n += sum(1 for *_, p in q.future if p.ticket.arbitration_id == msg_id)
-                n += sum(1 for _, p in q.ready if p.ticket.arbitration_id == msg_id)
-        return n
+        if node is None and msg_id is None:
+            return len(self._future) + self._n_ready
+        return sum(1 for p in self._pending()
+                   if (node is None or p.ticket.node == node)
+                   and (msg_id is None or p.ticket.arbitration_id == msg_id))
 
     # -- input --------------------------------------------------------------------------------
     def submit(self, node: str, msg_id: int, is_extended: bool, dlc: int,
@@ -557,11 +540,9 @@ class BusTimingModel:
                           is_remote=is_remote, include_ifs=self.include_ifs)
         ticket = Ticket(self._seq, node, int(msg_id), bool(is_extended), bits, t_q)
         self._seq += 1
-        q = self._queues.get(node)
-        if q is None:
-            q = self._queues[node] = _NodeQueue(self.queue_policy == "fifo")
-        heapq.heappush(q.future, (t_q, ticket.seq, _Pending(ticket, bool(is_remote), int(dlc),
-                                                             payload, tag)))
+        pending = _Pending(ticket, bool(is_remote), int(dlc), payload, tag,
+                           self.queue_policy == "fifo")
+        heapq.heappush(self._future, (t_q, ticket.seq, pending))
         if self.record_history:
             self._offered_t.append(t_q)
             self._offered_dur.append(bits / self.bitrate_bps)
@@ -588,29 +569,34 @@ class BusTimingModel:
         if until < self._now - TIME_EPS_S:
             raise ValueError(f"until_s={until!r} is before now_s={self._now!r}; time only moves on")
         until = max(until, self._now)
-        queues = list(self._queues.values())
+        future, ready = self._future, self._ready
+        heappush, heappop = heapq.heappush, heapq.heappop
         while True:
-            ready_any = any(q.ready for q in queues)
             t = self._bus_free_at
-            if not ready_any:
-                heads = [q.future[0][0] for q in queues if q.future]
-                if not heads:
+            if not self._n_ready:
+                if not future:
                     break
-                t = max(t, min(heads))
+                t = max(t, future[0][0])
             if t >= until - 2 * TIME_EPS_S:
                 break
-            best: tuple[Any, ...] | None = None
-            best_q: _NodeQueue | None = None
-            for q in queues:
-                q.promote(t + TIME_EPS_S)  # queued "at the same instant" within rounding
-                if not q.ready:
-                    continue
-                p = q.ready[0][1]
-                key = (p.arb, p.ticket.t_queue_s, p.ticket.seq)
-                if best is None or key < best:
-                    best, best_q = key, q
+            # everything queued by t (within rounding) joins its node's queue ...
+            limit = t + TIME_EPS_S
+            while future and future[0][0] <= limit:
+                p = heappop(future)[2]
+                q = ready.get(p.ticket.node)
+                if q is None:
+                    q = ready[p.ticket.node] = []
+                heappush(q, (p.node_key, p))
+                self._n_ready += 1
+            # ... and the heads of the node queues arbitrate
+            best_q: list[tuple[Any, _Pending]] | None = None
+            best_key: Any = None
+            for q in ready.values():
+                if q and (best_q is None or q[0][1].bus_key < best_key):
+                    best_q, best_key = q, q[0][1].bus_key
             assert best_q is not None
-            _, p = heapq.heappop(best_q.ready)
+            p = heappop(best_q)[1]
+            self._n_ready -= 1
             self._transmit(p, t)
         self._now = until
         done = [d for d in self._committed if d.t_end_s <= until]
@@ -716,15 +702,11 @@ class BusTimingModel:
             values.extend(lats)
         oldest = math.inf
         n_pending = 0
-        for name, q in self._queues.items():
-            if node is not None and name != node:
-                continue
-            for p in [e[-1] for e in q.future] + [e[-1] for e in q.ready]:
-                tk = p.ticket
-                if msg_id is not None and tk.arbitration_id != msg_id:
-                    continue
-                if is_extended is not None and tk.is_extended != is_extended:
-                    continue
+        for p in self._pending():
+            tk = p.ticket
+            if ((node is None or tk.node == node)
+                    and (msg_id is None or tk.arbitration_id == msg_id)
+                    and (is_extended is None or tk.is_extended == is_extended)):
                 n_pending += 1
                 oldest = min(oldest, tk.t_queue_s)
         for d in self._committed:  # on the wire, not finished by now_s
@@ -740,9 +722,8 @@ class BusTimingModel:
         """:meth:`latency_stats` for every (arbitration_id, is_extended) seen, sorted by id."""
         self._need_history()
         keys = set(self._lat)
-        for q in self._queues.values():
-            for p in [e[-1] for e in q.future] + [e[-1] for e in q.ready]:
-                keys.add((p.ticket.arbitration_id, p.ticket.is_extended))
+        keys.update((p.ticket.arbitration_id, p.ticket.is_extended) for p in self._pending())
+        keys.update((d.arbitration_id, d.is_extended) for d in self._committed)
         return {k: self.latency_stats(k[0], is_extended=k[1])
                 for k in sorted(keys, key=lambda k: (k[0], k[1]))}
 
