@@ -36,15 +36,19 @@ Example::
                               {"type": "delay", "delay_s": 0.002}], seed=42, node="ecu1")
     path.submit(TxFrame(0x101, False, b"\\x01\\x02", 2, "ecu1", t, t))
     for f in path.release(t_now):  ...  # put f on the bus / in the BusTimingModel
+
+With the timing model, per step: ``release(t)``, ``BusTimingModel.submit(..., t_queue_s=
+f.t_release_s)`` for each frame, then ``BusTimingModel.advance(t)``. Nodes that speak
+``can.Message`` (``canbrake.nodes.base.SendPath``) wrap the chain in :class:`MessageSendPath`.
 """
 from __future__ import annotations
 
 import heapq
 import math
 import zlib
-from dataclasses import dataclass, field
-from typing import Annotated, Any, ClassVar, Iterable, Literal, Protocol, Sequence, Union, \
-    runtime_checkable
+from dataclasses import dataclass
+from typing import (Annotated, Any, ClassVar, Iterable, Literal, Protocol, Sequence, Union,
+                    runtime_checkable)
 
 import numpy as np
 from pydantic import (AfterValidator, BaseModel, ConfigDict, Field, TypeAdapter,
