@@ -125,69 +125,69 @@ def simulate_ideal(
     x_out = np.empty((rows, n))
     v_out = np.empty((rows, n))
     a_out = np.empty((rows, n))
-    dl_out = np.empty((rows, nc))
-    phi_out = np.empty((rows, nc))
     cmd_out = np.empty((rows, n))
     app_out = np.empty((rows, n))
-    obs_out = np.full((rows, n), np.nan)
     ref_out = np.empty(rows)
     diag_names: list[str] = []
     for c in controllers:
         for name in c.diagnostic_names:
             if name not in diag_names:
                 diag_names.append(name)
-    diag = {name: np.full((rows, n), np.nan) for name in diag_names}
+    diag_rows: list[list[dict[str, float]]] = []
 
     zero_age = np.zeros(n)
     zero_age.setflags(write=False)
     cmd = np.zeros(n)
     t0 = plant.time_s
+    car_range = range(n)
     for k in range(rows):
         t = t0 + k * dt_s
         x = plant.position_m.copy()
         v = plant.speed_mps.copy()
         x.setflags(write=False)
         v.setflags(write=False)
-        dl = plant.deflection_m
         vref = reference.speed_mps(t)
         aref = reference.decel_mps2_at(t)
         t_out[k] = t
         x_out[k] = x
         v_out[k] = v
         a_out[k] = plant.accel_mps2
-        dl_out[k] = dl
-        phi_out[k] = plant.coupler_force_from_deflection(dl)
         app_out[k] = plant.applied_force_n
         ref_out[k] = vref
-        dl_list = dl.tolist()
+        dl_list = [None, *plant.deflection_m.tolist(), None]
         xs = x.tolist()
         vs = v.tolist()
-        for i, ctrl in enumerate(controllers):
-            ob = Observation(
-                tick=k,
-                time_s=t,
-                speed_mps=vs[i],
-                position_m=xs[i],
-                ref_speed_mps=vref,
-                ref_decel_mps2=aref,
-                peer_speed_mps=v,
-                peer_position_m=x,
-                peer_age_s=zero_age,
-                deflection_front_m=dl_list[i - 1] if i > 0 else None,
-                deflection_rear_m=dl_list[i] if i < nc else None,
+        diags = []
+        for i in car_range:
+            out = controllers[i].step(
+                Observation(
+                    k, t, vs[i], xs[i], vref, aref, v, x, zero_age,
+                    dl_list[i],  # deflection_front_m: coupler to car i-1
+                    dl_list[i + 1],  # deflection_rear_m: coupler to car i+1
+                )
             )
-            out = ctrl.step(ob)
             cmd[i] = out.brake_force_n
-            d = out.diagnostics
-            for name, val in d.items():
-                arr = diag.get(name)
-                if arr is not None:
-                    arr[k, i] = val
+            diags.append(out.diagnostics)
+        diag_rows.append(diags)
         cmd_out[k] = cmd
         if k < steps:
             plant.step(dt_s, cmd)
-    if "observer_accel_mps2" in diag:
-        obs_out = diag["observer_accel_mps2"]
+    dl_out = x_out[:, :-1] - x_out[:, 1:] - plant.coupler_spacing_m
+    phi_out = plant.coupler_force_from_deflection(dl_out)
+    diag = {name: np.full((rows, n), np.nan) for name in diag_names}
+    for i in car_range:
+        names = tuple(controllers[i].diagnostic_names)
+        col = [row[i] for row in diag_rows]
+        if names and all(tuple(d) == names for d in col):  # fast path: fixed key order
+            block = np.array([list(d.values()) for d in col], dtype=float)
+            for j, name in enumerate(names):
+                diag[name][:, i] = block[:, j]
+        else:
+            for k, d in enumerate(col):
+                for name, val in d.items():
+                    if name in diag:
+                        diag[name][k, i] = val
+    obs_out = diag.get("observer_accel_mps2", np.full((rows, n), np.nan))
     return IdealResult(
         t_s=t_out,
         position_m=x_out,

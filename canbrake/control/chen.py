@@ -193,6 +193,8 @@ class ChenConsensusController(Controller):
             adj[max(i - 1, 0): i + 2] = True
         adj[i] = False
         self._adj_a = adj
+        self._adj_f = adj.astype(float)
+        self._n_adj = int(np.count_nonzero(adj))
         self._spacing_cfg = nominal_spacing_m
         self._z_lower = self.theta_lower_m / self.barrier_unit_m
         self._z_upper = self.theta_upper_m / self.barrier_unit_m
@@ -247,6 +249,15 @@ class ChenConsensusController(Controller):
             return obs.deflection_front_m, obs.deflection_rear_m
         i, n = self.car_index, self.n_cars
         x = obs.position_m
+        if self._latched and self.stale_policy == "hold":  # fast path
+            px = obs.peer_position_m
+            front = px[i - 1] - x - self._spacing_front if i > 0 else None  # type: ignore[operator]
+            rear = x - px[i + 1] - self._spacing_rear if i < n - 1 else None  # type: ignore[operator]
+            if front is not None:
+                front = float(front) if front == front else None
+            if rear is not None:
+                rear = float(rear) if rear == rear else None
+            return front, rear
         if not self._latched:
             ok_f = i == 0 or self._peer_ok(i - 1, obs)
             ok_r = i == n - 1 or self._peer_ok(i + 1, obs)
@@ -267,6 +278,10 @@ class ChenConsensusController(Controller):
     def _speed_disagreement(self, obs: Observation) -> float:
         """Σ_j a_ij (v_i − v_j) over the usable peers (m/s)."""
         pv = obs.peer_speed_mps
+        if self.stale_policy == "hold":
+            total = float(self._adj_f.dot(pv))
+            if total == total:  # fast path: every peer known
+                return self._n_adj * obs.speed_mps - total
         ok = self._adj_a & (pv == pv)
         if self.stale_policy == "drop":
             ok &= obs.peer_age_s <= self.stale_timeout_s

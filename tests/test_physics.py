@@ -1,0 +1,198 @@
+"""Plant tests against closed-form physics (canbrake.physics)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from canbrake.physics import (
+    BrakeActuator,
+    DavisResistance,
+    DisturbanceForce,
+    RailConditions,
+    RailEvent,
+    TrainPlant,
+    davis_1926,
+)
+
+DT = 1e-3
+
+
+def run(plant: TrainPlant, cmd, seconds: float, dt: float = DT) -> None:
+    cmd = np.asarray(cmd, dtype=float)
+    for _ in range(int(round(seconds / dt))):
+        plant.step(dt, cmd)
+
+
+def test_single_car_constant_brake_matches_analytic_solution():
+    # m dv/dt = -(F + c0 + c1 v)  ->  v(t) = (v0 + b/a) e^{-a t} - b/a,  a = c1/m, b = (F + c0)/m
+    m, v0, F, c0, c1 = 20_000.0, 25.0, 20_000.0, 650.0, 40.0
+    plant = TrainPlant([m], [0.0], [v0], resistance=DavisResistance.uniform(1, c0, c1, 0.0))
+    run(plant, [F], 5.0)
+    a, b = c1 / m, (F + c0) / m
+    v_exact = (v0 + b / a) * math.exp(-a * 5.0) - b / a
+    x_exact = (v0 + b / a) * (1 - math.exp(-a * 5.0)) / a - b / a * 5.0
+    assert plant.speed_mps[0] == pytest.approx(v_exact, abs=2e-3)
+    assert plant.position_m[0] == pytest.approx(x_exact, abs=2e-2)
+    # instantaneous acceleration = -(F + f(v))/m
+    assert plant.accel_mps2[0] == pytest.approx(-(F + c0 + c1 * plant.speed_mps[0]) / m, rel=1e-3)
+
+
+def test_quadratic_resistance_and_grade_in_acceleration():
+    m, v0 = 20_000.0, 20.0
+    res = davis_1926([m])
+    theta = 0.01  # uphill towards +x
+    plant = TrainPlant([m], [0.0], [v0], resistance=res, grade_rad=theta)
+    plant.step(DT, [5_000.0])
+    v = plant.speed_mps[0]
+    expected = -(5_000.0 + res.magnitude_n(np.array([v0]))[0] + m * 9.81 * math.sin(theta)) / m
+    assert (v - v0) / DT == pytest.approx(expected, rel=1e-6)
+
+
+@pytest.mark.parametrize("front_is_higher_index", [True, False])
+def test_coupler_force_sign_and_symmetry(front_is_higher_index):
+    m = np.array([18_000.0, 22_000.0])
+    if front_is_higher_index:  # Chen Table 2: car 1 at x=10, car 2 at x=20, travelling to +x
+        x_nom = np.array([10.0, 20.0])
+        x = np.array([10.0, 20.05])  # gap 5 cm longer than nominal: stretched
+        rear, front = 0, 1
+    else:
+        x_nom = np.array([20.0, 10.0])
+        x = np.array([20.05, 10.0])
+        rear, front = 1, 0
+    plant = TrainPlant(
+        m, x, [10.0, 10.0], coupler_spacing_m=x_nom[0] - x_nom[1], resistance=DavisResistance.zero(2)
+    )
+    dl = 0.05 if not front_is_higher_index else -0.05
+    assert plant.deflection_m[0] == pytest.approx(dl)
+    phi = plant.coupler_force_n[0]
+    assert phi == pytest.approx(80_000 * (1 - 0.5 * 0.05**2) * dl)
+    plant.step(DT, [0.0, 0.0])
+    acc = plant.accel_mps2
+    assert acc[rear] > 0.0, "stretched coupler pulls the rear car forward"
+    assert acc[front] < 0.0, "and the front car back"
+    assert m[0] * acc[0] == pytest.approx(-m[1] * acc[1], rel=1e-9), "equal and opposite"
+    assert abs(m[0] * acc[0]) == pytest.approx(abs(phi), rel=1e-3)
+
+
+def test_initial_deflection_zero_for_table2_positions():
+    plant = TrainPlant([2e4] * 6, [10, 20, 30, 40, 50, 60], [25.0] * 6)
+    np.testing.assert_allclose(plant.coupler_spacing_m, -10.0)
+    np.testing.assert_allclose(plant.deflection_m, 0.0)
+
+
+@pytest.mark.parametrize("brake_n", [0.0, 30_000.0])
+def test_two_cars_at_rest_stay_at_rest(brake_n):
+    plant = TrainPlant([20_000.0, 21_000.0], [10.0, 20.0], [0.0, 0.0], actuator=BrakeActuator.realistic())
+    run(plant, [brake_n, brake_n], 2.0)
+    assert np.all(plant.speed_mps == 0.0)
+    np.testing.assert_array_equal(plant.position_m, [10.0, 20.0])
+
+
+def test_brake_holds_against_grade_and_compressed_coupler_but_not_beyond_its_capacity():
+    m = 20_000.0
+    theta = -0.02  # downhill towards +x: gravity pushes forward, 3.9 kN
+    held = TrainPlant([m], [0.0], [0.0], grade_rad=theta)
+    run(held, [10_000.0], 1.0)
+    assert held.speed_mps[0] == 0.0
+    free = TrainPlant([m], [0.0], [0.0], grade_rad=theta)
+    run(free, [0.0], 1.0)  # c0 ≈ 640 N < 3.9 kN: rolls forward, never backward
+    assert free.speed_mps[0] > 0.0
+    expected = (m * 9.81 * math.sin(-theta) - free.resistance.c0_n[0]) / m
+    assert free.speed_mps[0] == pytest.approx(expected * 1.0, rel=0.02)
+
+
+def test_braking_to_standstill_stops_exactly_no_reverse():
+    plant = TrainPlant([20_000.0, 20_000.0], [0.0, -10.0], [1.0, 1.0])
+    run(plant, [40_000.0, 40_000.0], 2.0)
+    assert np.all(plant.speed_mps == 0.0)
+    x_stop = plant.position_m.copy()
+    run(plant, [40_000.0, 40_000.0], 1.0)
+    np.testing.assert_array_equal(plant.position_m, x_stop)
+    # traction at standstill does start the car
+    run(plant, [-10_000.0, -10_000.0], 0.5)
+    assert np.all(plant.speed_mps > 0.0)
+
+
+def test_internal_forces_conserve_momentum_and_energy():
+    m = np.array([18_000.0, 21_000.0, 19_500.0, 20_000.0])
+    v0 = np.array([25.0, 26.0, 24.0, 25.5])
+    plant = TrainPlant(m, [10, 20, 30, 40], v0, resistance=DavisResistance.zero(4))
+    p0 = float(m @ v0)
+    e0 = 0.5 * float(m @ v0**2) + plant.coupler_energy_j()
+    run(plant, np.zeros(4), 5.0)
+    assert float(m @ plant.speed_mps) == pytest.approx(p0, rel=1e-12)
+    e1 = 0.5 * float(m @ plant.speed_mps**2) + plant.coupler_energy_j()
+    assert e1 == pytest.approx(e0, rel=1e-5)
+    assert np.max(np.abs(plant.deflection_m)) > 0.05  # the couplers did work
+
+
+def test_realistic_lag_reaches_63_percent_in_one_time_constant():
+    m, tau, F = 20_000.0, 0.3, 5_000.0
+    act = BrakeActuator.realistic(time_constant_s=tau, jerk_limit_mps3=math.inf)
+    plant = TrainPlant([m], [0.0], [20.0], actuator=act, resistance=DavisResistance.zero(1))
+    run(plant, [F], tau)
+    assert plant.brake_effort_n[0] / F == pytest.approx(1 - math.exp(-1), abs=2e-3)
+    assert plant.applied_force_n[0] == pytest.approx(plant.brake_effort_n[0])
+
+
+def test_realistic_jerk_limit_respected():
+    m, jerk = 20_000.0, 1.0
+    act = BrakeActuator.realistic(jerk_limit_mps3=jerk)
+    plant = TrainPlant([m], [0.0], [20.0], actuator=act)
+    efforts = []
+    for _ in range(1500):
+        plant.step(DT, [1.5 * m])
+        efforts.append(plant.brake_effort_n[0])
+    rate = np.diff(np.concatenate([[0.0], efforts])) / DT / m
+    assert rate.max() <= jerk + 1e-9
+    assert rate.max() == pytest.approx(jerk, rel=1e-9)  # and it binds for a 1.5 m/s² step
+    assert efforts[999] == pytest.approx(1.0 * m, rel=1e-6)  # linear ramp for the first second
+
+
+def test_saturation_at_rating_and_adhesion():
+    m = 20_000.0
+    act = BrakeActuator.realistic(time_constant_s=0.01, jerk_limit_mps3=math.inf, brake_rating_mps2=1.5)
+    rail = RailConditions(base_adhesion_mu=0.3, events=[RailEvent(1.0, 2.0, adhesion_mu=0.05)])
+    plant = TrainPlant([m], [0.0], [25.0], actuator=act, rail=rail)
+    run(plant, [5 * m], 0.5)
+    assert plant.applied_force_n[0] == pytest.approx(1.5 * m, rel=1e-6)  # rating below μ m g = 2.94 m
+    run(plant, [5 * m], 1.0)  # now in the skid
+    assert plant.applied_force_n[0] == pytest.approx(0.05 * m * 9.81, rel=1e-9)
+    run(plant, [5 * m], 1.0)  # recovered
+    assert plant.applied_force_n[0] == pytest.approx(1.5 * m, rel=1e-6)
+
+
+def test_brake_effectiveness_and_disturbance():
+    m = 20_000.0
+    rail = RailConditions(events=[RailEvent(0.0, 1.0, brake_effectiveness=[0.5, 1.0])])
+    dist = [DisturbanceForce(amplitude_n=[1000.0, 0.0], frequency_hz=0.0, offset_n=[0.0, 2000.0])]
+    plant = TrainPlant([m, m], [0.0, -1000.0], [20.0, 20.0], coupler_stiffness_n_per_m=0.0,
+                       resistance=DavisResistance.zero(2), rail=rail, disturbances=dist)
+    plant.step(DT, [10_000.0, 10_000.0])
+    np.testing.assert_allclose(plant.applied_force_n, [5_000.0, 10_000.0])
+    np.testing.assert_allclose(plant.accel_mps2, [-5_000.0 / m, (-10_000.0 + 2000.0) / m], rtol=1e-9)
+    d = DisturbanceForce(amplitude_n=3.0, frequency_hz=2.0, start_s=6.0)
+    assert d.force_n(6.125, 2) == pytest.approx([3.0, 3.0])
+    assert d.force_n(5.9, 2) == pytest.approx([0.0, 0.0])
+
+
+def test_ideal_actuator_passes_any_sign_and_davis_values():
+    plant = TrainPlant([20_000.0], [0.0], [20.0])
+    plant.step(DT, [-4_000.0])
+    assert plant.applied_force_n[0] == -4_000.0
+    r = davis_1926([20_000.0])
+    assert r.c0_n[0] == pytest.approx(643.5, abs=1.0)
+    assert r.c1_n_per_mps[0] == pytest.approx(6.58, abs=0.01)
+    assert r.c2_n_per_mps2[0] == pytest.approx(0.896, abs=0.005)
+
+
+def test_ten_second_six_car_run_is_fast():
+    import time
+
+    plant = TrainPlant([2e4] * 6, [10, 20, 30, 40, 50, 60], [25.0] * 6)
+    cmd = np.full(6, 2e4)
+    t0 = time.perf_counter()
+    run(plant, cmd, 10.0)
+    assert time.perf_counter() - t0 < 4.0  # ~0.4 s on an idle core
