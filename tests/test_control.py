@@ -1,0 +1,206 @@
+"""Controller unit tests: chen2023, pi and the sliding-mode observer (no plant loop)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from canbrake.control.base import Observation, available, make_controller
+from canbrake.control.chen import ChenConsensusController, barrier_gradient
+from canbrake.control.observer import SlidingModeObserver
+from canbrake.control.pi import PISpeedController
+
+M = 20_000.0
+A_REF = 3.5 / 3.6
+V_REF = 25.0
+
+
+def obs(i: int, v: np.ndarray, x: np.ndarray, age=None, *, tick=0, front=None, rear=None) -> Observation:
+    n = len(v)
+    return Observation(
+        tick=tick,
+        time_s=tick * 1e-3,
+        speed_mps=float(v[i]),
+        position_m=float(x[i]),
+        ref_speed_mps=V_REF,
+        ref_decel_mps2=A_REF,
+        peer_speed_mps=np.asarray(v, dtype=float),
+        peer_position_m=np.asarray(x, dtype=float),
+        peer_age_s=np.zeros(n) if age is None else np.asarray(age, dtype=float),
+        deflection_front_m=front,
+        deflection_rear_m=rear,
+    )
+
+
+X_NOM = np.array([10.0, 20.0, 30.0, 40.0])
+
+
+def chen(i: int = 1, n: int = 4, **kw) -> ChenConsensusController:
+    kw.setdefault("nominal_spacing_m", -10.0)
+    return ChenConsensusController(car_index=i, n_cars=n, mass_kg=M, dt_s=1e-3, **kw)
+
+
+def test_registry_builds_both_controllers():
+    assert {"chen2023", "pi"} <= set(available())
+    c = make_controller("chen2023", {"k": 10.0}, car_index=0, n_cars=6, mass_kg=M, dt_s=1e-3)
+    assert isinstance(c, ChenConsensusController) and c.k == 10.0
+    p = make_controller("pi", {}, car_index=0, n_cars=6, mass_kg=M, dt_s=1e-3)
+    assert isinstance(p, PISpeedController)
+    with pytest.raises(TypeError):
+        make_controller("chen2023", {"no_such_gain": 1.0}, car_index=0, n_cars=6, mass_kg=M, dt_s=1e-3)
+    with pytest.raises(ValueError):
+        chen(deflection_source="telepathy")
+
+
+def test_on_reference_and_undeflected_the_command_is_the_feedforward():
+    v = np.full(4, V_REF)
+    out = chen().step(obs(1, v, X_NOM))
+    assert out.brake_force_n == pytest.approx(M * A_REF)
+    assert set(out.diagnostics) == set(ChenConsensusController.diagnostic_names)
+
+
+def test_consensus_and_tracking_signs():
+    v = np.full(4, V_REF)
+    v_fast = v.copy()
+    v_fast[1] += 0.1  # car 1 faster than the reference and its peers
+    out = chen().step(obs(1, v_fast, X_NOM + np.array([0, 0.1e-3, 0, 0]) * 0))
+    # u1 = m α1 Σ(v_i − v_j) = m·120·3·0.1; u3 = m(36·0.1 + a*)
+    assert out.diagnostics["u_consensus_n"] == pytest.approx(M * 120 * 0.3)
+    assert out.diagnostics["u_tracking_n"] == pytest.approx(M * (36 * 0.1 + A_REF))
+    v_slow_peers = v.copy()
+    v_slow_peers[[0, 2, 3]] -= 0.1
+    assert chen().step(obs(1, v_slow_peers, X_NOM)).diagnostics["u_consensus_n"] > 0  # brake harder
+
+
+def test_deflection_from_peer_positions_acts_like_the_coupler():
+    # Table 2 orientation: Δl_1 = x_1 − x_2 − (−10). Car 1 closer to car 2 by 2 mm: Δl_1 = +2 mm
+    x = X_NOM.copy()
+    x[1] += 0.002
+    v = np.full(4, V_REF)
+    c = chen()
+    out = c.step(obs(1, v, x))
+    front, rear = out.diagnostics["deflection_front_m"], out.diagnostics["deflection_rear_m"]
+    assert front == pytest.approx(-0.002) and rear == pytest.approx(0.002)
+    # Σ_j b_ij (x_i − x_j − θ_ij) = Δl_1 − Δl_0 = 4 mm; the coupler pushes car 1 back by κ·4 mm too
+    assert out.diagnostics["u_consensus_n"] == pytest.approx(M * 100 * 0.004)
+    assert out.diagnostics["u_potential_n"] > 0
+    # local deflection source gives the same result
+    c_local = chen(deflection_source="local")
+    out_local = c_local.step(obs(1, v, x, front=-0.002, rear=0.002))
+    assert out_local.brake_force_n == pytest.approx(out.brake_force_n)
+
+
+def test_spacing_is_latched_when_not_given():
+    c = ChenConsensusController(car_index=1, n_cars=4, mass_kg=M, dt_s=1e-3)
+    v = np.full(4, V_REF)
+    assert c.step(obs(1, v, X_NOM)).diagnostics["deflection_rear_m"] == 0.0
+    x = X_NOM.copy()
+    x[2] += 0.003
+    assert c.step(obs(1, v, x, tick=1)).diagnostics["deflection_rear_m"] == pytest.approx(-0.003)
+
+
+def test_barrier_is_zero_at_origin_odd_and_unbounded():
+    for kind in ("inverse_square", "log"):
+        assert barrier_gradient(0.0, -1.0, 1.0, kind) == 0.0
+        assert barrier_gradient(0.5, -1.0, 1.0, kind) == pytest.approx(-barrier_gradient(-0.5, -1.0, 1.0, kind))
+        assert barrier_gradient(0.5, -1.0, 1.0, kind) > 0
+        near = barrier_gradient(0.998, -1.0, 1.0, kind, clip=0.999)
+        assert near > 100 * barrier_gradient(0.5, -1.0, 1.0, kind)  # grows without bound at the limit
+        # beyond the bound it stays at the clipped (large, finite, right-signed) value
+        assert barrier_gradient(3.0, -1.0, 1.0, kind) == barrier_gradient(0.99, -1.0, 1.0, kind)
+    # asymmetric bounds still give ∇U(0) = 0
+    assert barrier_gradient(0.0, -0.5, 2.0) == 0.0
+
+
+def test_literal_readings_are_available():
+    v = np.full(4, V_REF)
+    out = chen(feedforward="velocity").step(obs(1, v, X_NOM))
+    assert out.brake_force_n == pytest.approx(M * V_REF)  # the printed m(k v_e + v*)
+    v2 = v.copy()
+    v2[0] += 0.1
+    scaled = chen().step(obs(1, v2, X_NOM)).diagnostics["u_consensus_n"]
+    raw = chen(mass_scaled=False).step(obs(1, v2, X_NOM)).diagnostics["u_consensus_n"]
+    assert scaled == pytest.approx(M * raw)
+
+
+def test_ablation_flags_remove_their_terms():
+    x = X_NOM.copy()
+    x[1] += 0.002
+    v = np.full(4, V_REF)
+    v[0] += 0.1
+    out = chen(potential_field=False, consensus=False, observer=False).step(obs(1, v, x))
+    assert out.diagnostics["u_potential_n"] == 0.0
+    assert out.diagnostics["u_consensus_n"] == 0.0
+    assert out.diagnostics["u_observer_n"] == 0.0
+    assert out.brake_force_n == pytest.approx(M * A_REF)
+
+
+def test_stale_policies():
+    v = np.full(4, V_REF)
+    v[3] += 1.0
+    age = np.array([0.0, 0.0, 0.0, 0.5])
+    hold = chen(stale_policy="hold").step(obs(1, v, X_NOM, age)).diagnostics["u_consensus_n"]
+    drop = chen(stale_policy="drop", stale_timeout_s=0.1).step(obs(1, v, X_NOM, age)).diagnostics["u_consensus_n"]
+    assert hold == pytest.approx(M * 120 * -1.0)
+    assert drop == 0.0
+    ext = chen(stale_policy="extrapolate").step(obs(1, v, X_NOM, age)).diagnostics["u_consensus_n"]
+    assert ext == pytest.approx(M * 120 * -(1.0 - A_REF * 0.5))
+    # NaN = never received: ignored by every policy, also for deflection
+    v_nan = np.full(4, V_REF)
+    v_nan[3] = math.nan
+    x_nan = X_NOM.copy()
+    x_nan[2] = math.nan
+    out = chen().step(obs(1, v_nan, x_nan, [0, 0, math.inf, math.inf]))
+    assert math.isnan(out.diagnostics["deflection_rear_m"])
+    assert np.isfinite(out.brake_force_n)
+
+
+def test_observer_converges_to_a_constant_disturbance():
+    m, dt, d = 20_000.0, 1e-3, 3_000.0  # +3 kN pushing forward: φ/m = 0.15 m/s²
+    ob = SlidingModeObserver(m, dt)
+    v, x, force = 25.0, 0.0, 15_000.0
+    est = []
+    for _ in range(100):
+        ob.update(x, v)
+        est.append(ob.phi_hat_mps2)
+        ob.predict(force)
+        v += dt * (-force + d) / m
+        x += dt * v
+    est = np.array(est)
+    assert est[-1] == pytest.approx(d / m, rel=0.01)
+    assert np.all(np.abs(est[30:] - d / m) < 0.02 * d / m)  # within 2 % after 30 ms
+
+
+def test_observer_anti_windup_after_a_skid():
+    m, dt = 20_000.0, 1e-3
+    ob = SlidingModeObserver(m, dt)
+    v = 25.0
+    for k in range(1500):  # 1 s skid: commanded 50 kN, rail takes 5 kN; then 0.5 s normal
+        ob.update(0.0, v)
+        ob.predict(50_000.0)
+        applied = 5_000.0 if k < 1000 else 50_000.0
+        v += dt * (-applied) / m
+    assert abs(ob.phi_hat_mps2) < 0.01  # not pinned at +γ2 after adhesion returns
+    with pytest.raises(ValueError):
+        SlidingModeObserver(m, dt, gamma2_mps2=50.0, boundary_vel_mps=0.01)  # unstable when sampled
+
+
+def test_saturation_limits_the_command_and_drives_the_observer():
+    v = np.full(4, V_REF + 1.0)
+    c = chen(brake_force_max_n=1.5 * M)
+    assert c.step(obs(1, v, X_NOM)).brake_force_n == 1.5 * M
+
+
+def test_pi_feedforward_and_antiwindup():
+    p = PISpeedController(0, 1, M, 1e-3, kp=2.0, ki=1.0, brake_force_max_n=1.5 * M)
+    o = obs(0, np.array([V_REF]), np.array([0.0]))
+    assert p.step(o).brake_force_n == pytest.approx(M * A_REF)
+    fast = obs(0, np.array([V_REF + 5.0]), np.array([0.0]))
+    for _ in range(1000):
+        out = p.step(fast)
+    assert out.brake_force_n == 1.5 * M
+    assert p.integral_m == 0.0  # frozen while saturated in the error's direction
+    slow = obs(0, np.array([V_REF - 0.1]), np.array([0.0]))
+    p.step(slow)
+    assert p.integral_m == pytest.approx(-0.1e-3)
