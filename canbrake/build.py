@@ -94,6 +94,17 @@ def build_send_path(scn: Scenario, node: str) -> SendPath:
     return _build(scn, node)
 
 
+def hosted_babblers(scn: Scenario) -> list[SendPath]:
+    """Send paths of babbling nodes that are not ECUs (e.g. a rogue device): the plant hosts them,
+    releasing their frames at each tick start."""
+    if not scn.bus.impairments:
+        return []
+    from canbrake.bus.impair import babbling_nodes
+
+    real = {f"ecu{c}" for c in range(1, scn.n_cars + 1)}
+    return [build_send_path(scn, name) for name in babbling_nodes(scn.bus.impairments) if name not in real]
+
+
 class PlantAdapter:
     """Presents a :class:`TrainPlant` as the plant node's :class:`~canbrake.nodes.plant.PlantModel`."""
 
@@ -121,14 +132,17 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
         return PlantNode(PlantAdapter(build_plant_model(scn)), codec, dt_s=scn.control_period_s,
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                          coupler_sensors=scn.plant.coupler_sensors, heartbeat_period_s=scn.ecu.heartbeat_period_s,
-                         out_dir=run_dir, progress=progress)
+                         out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn))
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 
         return EcuNode(car, scn.n_cars, build_controller(scn, car), codec, dt_s=scn.control_period_s,
                        mode=scn.mode, send_path=build_send_path(scn, f"ecu{car}"),
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
-                       compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir)
+                       compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
+                       lockstep_deadline=scn.ecu.lockstep_deadline,
+                       crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
+                                      if scn.ecu.crash is not None and scn.ecu.crash.car == car else None))
     if role == "recorder":
         from canbrake.nodes.recorder import RecorderNode
 

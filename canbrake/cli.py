@@ -34,7 +34,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
-    from canbrake.run import run_scenario
+    from canbrake.run import check_buildable, run_scenario
     from canbrake.scenario import load_scenario
 
     overrides = _parse_set(a.set or [])
@@ -45,6 +45,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
     if a.mode is not None:
         overrides["mode"] = a.mode
     scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
+    check_buildable(scn)
     out = Path(a.out) if a.out else Path("runs") / scn.name
     print(f"canbrake: running {scn.name} ({scn.n_cars} cars, {scn.duration_s:g} s, {scn.mode}, "
           f"bus {a.bus or scn.bus.backend}) -> {out}", file=sys.stderr)

@@ -13,6 +13,7 @@ import multiprocessing.connection
 import os
 import signal
 import sys
+import threading
 import time
 import traceback
 import uuid
@@ -181,6 +182,12 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     procs: dict[str, mp.process.BaseProcess] = {}
     t_start = time.time()
     outcome: dict[str, Any] = {"status": "ok", "message": ""}
+    old_term = None
+    if threading.current_thread() is threading.main_thread():
+        def _on_term(signum: int, frame: Any) -> None:
+            raise KeyboardInterrupt
+
+        old_term = signal.signal(signal.SIGTERM, _on_term)  # `kill` ends a run as cleanly as Ctrl-C
     try:
         for role, car in roles:
             name = role if role != "ecu" else f"ecu{car}"
@@ -225,6 +232,8 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     finally:
         _reap(procs)
         barrier.abort()
+        if old_term is not None:
+            signal.signal(signal.SIGTERM, old_term)
     outcome["wall_time_s"] = time.time() - t_start
     return outcome
 
@@ -284,6 +293,7 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
     from canbrake.analysis.summary import finalize_run
 
     choice = choose_bus(scn, backend, channel, interface)
+    check_buildable(scn)
     if choice.backend == "socketcan" and choice.interface == "socketcan":
         from canbrake.bus.vcan import VcanError, check_socketcan_channel
 
@@ -301,6 +311,33 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
         if choice.backend == "memory":
             _remove_memory_channel(choice.channel)
     return finalize_run(scn, run_dir, choice.describe(), outcome, plots=plots)
+
+
+def check_buildable(scn: Scenario) -> None:
+    """Build the plant and every controller once in this process, so that parameters the schema
+    passes through (``controller.params``) fail here with exit 2 rather than in a child."""
+    from canbrake.build import build_controller, build_plant_model
+    from canbrake.control.base import available
+
+    if scn.controller.name not in available():
+        raise ScenarioError(f"controller.name: unknown controller {scn.controller.name!r} "
+                            f"(available: {', '.join(available())})")
+    try:
+        for car in range(1, scn.n_cars + 1):
+            build_controller(scn, car)
+    except TypeError as e:
+        msg = str(e)
+        if "unexpected keyword argument" in msg:
+            key = msg.split("unexpected keyword argument")[-1].strip(" '\"")
+            raise ScenarioError(f"controller.params.{key}: unknown parameter of controller "
+                                f"{scn.controller.name!r}") from None
+        raise ScenarioError(f"controller.params: {msg}") from None
+    except ValueError as e:
+        raise ScenarioError(f"controller.params: {e}") from None
+    try:
+        build_plant_model(scn)
+    except ValueError as e:
+        raise ScenarioError(f"train/actuator/events: {e}") from None
 
 
 def _remove_memory_channel(channel: str | None) -> None:

@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal, Union
 
 import numpy as np
 import yaml
+from canbrake.bus.impair import ImpairmentSpec
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 KMH = 1.0 / 3.6  # m/s per km/h
@@ -152,7 +153,8 @@ class BusConfig(_Model):
     channel: str | None = Field(None, description="default: a fresh in-memory channel, or vcan0 for socketcan")
     interface: str | None = Field(None, description="any python-can interface name; overrides backend")
     bitrate_bps: int = Field(500000, gt=0)
-    impairments: list[dict[str, Any]] = Field(default_factory=list)
+    impairments: list[ImpairmentSpec] = Field(default_factory=list,
+                                              description="see canbrake.bus.impair (delay, jitter, loss, ...)")
 
 
 class PlantConfig(_Model):
@@ -160,10 +162,21 @@ class PlantConfig(_Model):
     substeps: int = Field(1, ge=1, le=1000, description="integration sub-steps per control period")
 
 
+class CrashFault(_Model):
+    """Fault injection: the ECU process of ``car`` raises an error at ``at_s`` (tests supervision)."""
+
+    car: int = Field(..., ge=1)
+    at_s: float = Field(..., ge=0)
+
+
 class EcuConfig(_Model):
     heartbeat_period_s: float = Field(0.1, gt=0)
+    crash: CrashFault | None = Field(None, description="inject a crash of one ECU process")
     realtime_compute_deadline: float = Field(0.5, gt=0, lt=1,
                                              description="realtime: fraction of the period an ECU waits for peers")
+    lockstep_deadline: float = Field(0.5, gt=0, lt=1,
+                                     description="lockstep: fraction of the period within which a state frame "
+                                                 "must arrive to be used in the same tick")
 
 
 class Scenario(_Model):
@@ -258,12 +271,23 @@ def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any
 
 def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
     keys = dotted.split(".")
-    cur = data
-    for k in keys[:-1]:
-        cur = cur.setdefault(k, {})
-        if not isinstance(cur, dict):
-            raise ScenarioError(f"--set {dotted}: {k} is not a mapping")
-    cur[keys[-1]] = value
+    cur: Any = data
+    for depth, k in enumerate(keys):
+        last = depth == len(keys) - 1
+        if isinstance(cur, list):
+            if not k.isdigit() or int(k) >= len(cur):
+                raise ScenarioError(f"--set {dotted}: {k!r} is not an index of a list of {len(cur)}")
+            if last:
+                cur[int(k)] = value
+            else:
+                cur = cur[int(k)]
+        elif isinstance(cur, dict):
+            if last:
+                cur[k] = value
+            else:
+                cur = cur.setdefault(k, {})
+        else:
+            raise ScenarioError(f"--set {dotted}: {'.'.join(keys[:depth])} is not a mapping or list")
 
 
 def format_validation_error(source: str, err: ValidationError) -> str:
@@ -274,7 +298,9 @@ def format_validation_error(source: str, err: ValidationError) -> str:
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
             msg = "unknown key"
-        lines.append(f"{source}: {loc or '(top level)'}: {msg}")
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        lines.append(f"{source}: {loc}: {msg}" if loc else f"{source}: {msg}")
     return "\n".join(lines)
 
 

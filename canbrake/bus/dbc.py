@@ -23,8 +23,9 @@ All signals are little-endian (Intel) so a frame is one little-endian integer; t
 lets :mod:`canbrake.bus.codec` encode without cantools on the hot path.
 
 Scaling (why): speed 1e-4 m/s (0.00036 km/h, >1000x below the 0.5 km/h tracking tolerance),
-position 1e-4 m (0.1 mm, 100x below the +-1 cm coupler bound), force 1 N (a metro car brakes
-with ~20 kN; 1 N is 5e-5 of it), deflection 5e-5 m.
+position 1e-4 m (0.1 mm, 100x below the +-1 cm coupler bound), force 10 N (a metro car brakes
+with ~20 kN, 10 N is 5e-4 of it; the range of +-84 MN covers the ideal-actuator "paper" profile,
+whose first commands reach ~10 MN), deflection 5e-5 m.
 """
 from __future__ import annotations
 
@@ -102,7 +103,7 @@ def _layout(n_cars: int) -> list[tuple[int, str, int, str, list[str], list[Signa
                 _CRC, _COUNTER,
                 SignalSpec("Status", 12, 4, minimum=0, maximum=15,
                            comment="0 normal, 1 degraded (stale peers), 2 fail-safe"),
-                SignalSpec("BrakeForce", 16, 24, signed=True, scale=1.0, minimum=-8388608, maximum=8388607,
+                SignalSpec("BrakeForce", 16, 24, signed=True, scale=10.0, minimum=-83886080, maximum=83886070,
                            unit="N", comment="demanded braking force; positive decelerates, negative is traction"),
             ], f"Brake command of car {c}.", None),
             (SENSOR_BASE + c, f"SENSOR_C{c}", 7, PLANT, [ecu], [

@@ -5,7 +5,7 @@
 - :func:`run_inprocess` — every node in one process and one thread, frames delivered in one
   global order; either straight from node to node (``medium="direct"``, the fast engine used
   by sweeps) or through python-can ``virtual`` buses (``medium="virtual"``, one Bus object per
-  node, exercising python-can's own bus and filtering code). Lockstep only.
+  node, exercising python-can's own bus, copying and queueing code). Lockstep only.
 """
 from __future__ import annotations
 
@@ -115,8 +115,10 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
 
 def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
     channel = f"canbrake-{uuid.uuid4().hex[:8]}"
-    buses = [can.Bus(interface="virtual", channel=channel, can_filters=n.filters(), receive_own_messages=False)
-             for n in nodes]
+    # Filters are applied here rather than in the Bus: BusABC.recv(timeout=0) returns None as soon
+    # as the frame at the head of the queue is filtered out, which would hide the frames behind it.
+    buses = [can.Bus(interface="virtual", channel=channel, receive_own_messages=False) for n in nodes]
+    filters = [n.filters() for n in nodes]
     moved = 0
     try:
         for node, bus in zip(nodes, buses):
@@ -124,13 +126,13 @@ def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
         progress = True
         while progress:
             progress = False
-            for node, bus in zip(nodes, buses):
+            for node, bus, flt in zip(nodes, buses, filters):
                 while (msg := bus.recv(timeout=0)) is not None:
                     progress = True
                     moved += 1
                     if max_frames is not None and moved > max_frames:
                         raise NodeFailure(f"in-process run exceeded {max_frames} frames")
-                    if not node.finished:
+                    if not node.finished and _matches(flt, msg):
                         _send_all(bus, node.handle(msg, 0.0))
     finally:
         for bus in buses:

@@ -39,7 +39,8 @@ class EcuNode(Node):
 
     def __init__(self, car: int, n_cars: int, controller: Controller, codec: FrameCodec, *, dt_s: float,
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
-                 compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000) -> None:
+                 compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
+                 crash_at_tick: int | None = None, lockstep_deadline: float = 0.5) -> None:
         self.car = car
         self.i = car - 1
         self.n = n_cars
@@ -54,6 +55,9 @@ class EcuNode(Node):
         self.out_dir = Path(out_dir) if out_dir else None
         self.flush_every = flush_every
         self.stats = EcuStats()
+        self.crash_at_tick = crash_at_tick
+        self.lockstep_deadline = lockstep_deadline
+        self._t0_wall: float | None = None
         self.k = -1
         self.phase = 0  # 0 waiting for sensor, 1 waiting for peers, 2 done for this tick
         self.speed = np.nan
@@ -149,19 +153,31 @@ class EcuNode(Node):
     def _emit(self, msg: can.Message, t_s: float, out: list[can.Message]) -> None:
         out.extend(self.send_path.submit(msg, t_s))
 
-    def _sim_time(self, now: float) -> float:
-        return self.k * self.dt if self.mode == "lockstep" else now
+    def _times(self, now: float, phase: int) -> tuple[float, float]:
+        """(submit time, release horizon) of a phase, in simulated seconds (lockstep) or seconds
+        since the first SYNC (realtime). See canbrake.bus.sendpath for the lockstep rule."""
+        if self.mode == "lockstep":
+            t_k = self.k * self.dt
+            c = self.lockstep_deadline * self.dt
+            return (t_k, t_k + c) if phase == 1 else (t_k + c, t_k + self.dt * (1 - 1e-9))
+        if self._t0_wall is None:
+            self._t0_wall = now
+        t = now - self._t0_wall
+        return t, t
 
     def _phase1(self, now: float) -> list[can.Message]:
         if self.phase != 0 or self.k < 0:
             return []
-        t = self._sim_time(now)
-        out = list(self.send_path.release(t))
+        if self.crash_at_tick is not None and self.k >= self.crash_at_tick:
+            raise RuntimeError(f"injected crash of {self.name} at tick {self.k} (ecu.crash in the scenario)")
+        t, horizon = self._times(now, 1)
+        out: list[can.Message] = []
         if self.k % self.heartbeat_every == 0:
             self._emit(frame(dbc.HEARTBEAT_BASE + self.car, self._hb.encode({"NodeState": 5})), t, out)
         state = self._state_codec.encode({"Speed": self.speed, "Position": self.position},
                                          counter=self.k % COUNTER_MODULO)
         self._emit(frame(dbc.STATE_BASE + self.car, state), t, out)
+        out += self.send_path.release(horizon)
         out.append(frame(dbc.STATE_DONE_BASE + self.car, self._sdone.encode({"Tick": self.k & 0xFFFF})))
         self.phase = 1
         if self.mode == "realtime":
@@ -173,7 +189,7 @@ class EcuNode(Node):
     def _phase2(self, now: float) -> list[can.Message]:
         self.phase = 2
         self._deadline = None
-        t = self._sim_time(now)
+        t, horizon = self._times(now, 2)
         speed = self.peer_speed.copy()
         pos = self.peer_pos.copy()
         speed[self.i], pos[self.i] = self.speed, self.position
@@ -187,10 +203,11 @@ class EcuNode(Node):
                           peer_position_m=pos, peer_age_s=age, deflection_front_m=self.defl_front,
                           deflection_rear_m=self.defl_rear)
         result = self.controller.step(obs)
-        out: list[can.Message] = list(self.send_path.release(t))
+        out: list[can.Message] = []
         cmd = self._cmd_codec.encode({"Status": 0, "BrakeForce": result.brake_force_n},
                                      counter=self.k % COUNTER_MODULO)
         self._emit(frame(dbc.BRAKE_CMD_BASE + self.car, cmd), t, out)
+        out += self.send_path.release(horizon)
         out.append(frame(dbc.CMD_DONE_BASE + self.car, self._cdone.encode({"Tick": self.k & 0xFFFF})))
         self.stats.ticks += 1
         finite_age = age[np.isfinite(age)]

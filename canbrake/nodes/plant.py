@@ -60,7 +60,7 @@ class PlantNode(Node):
     def __init__(self, model: PlantModel, codec: FrameCodec, *, dt_s: float, n_ticks: int,
                  reference: Reference, mode: str = "lockstep", coupler_sensors: bool = False,
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
-                 flush_every: int = 500, progress: Any = None) -> None:
+                 flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None) -> None:
         self.model = model
         self.codec = codec
         self.n = model.n_cars
@@ -73,6 +73,8 @@ class PlantNode(Node):
         self.out_dir = Path(out_dir) if out_dir else None
         self.flush_every = flush_every
         self.progress = progress  # optional shared value (``.value``) the supervisor watches
+        # send paths of traffic sources the plant hosts (babbling nodes that are not real nodes)
+        self.hosted = list(hosted or [])
         self.k = 0
         self.stats = PlantStats()
         self.cmd_n = np.zeros(self.n)
@@ -118,6 +120,8 @@ class PlantNode(Node):
         for i in range(self.n):
             out.append(frame(dbc.SENSOR_BASE + i + 1,
                              self._sensor[i].encode({"Speed": float(v[i]), "Position": float(x[i])})))
+        for sp in self.hosted:
+            out += sp.release(t)
         return out
 
     def _end_frames(self) -> list[can.Message]:
