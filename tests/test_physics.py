@@ -196,3 +196,17 @@ def test_ten_second_six_car_run_is_fast():
     t0 = time.perf_counter()
     run(plant, cmd, 10.0)
     assert time.perf_counter() - t0 < 4.0  # ~0.4 s on an idle core
+
+
+def test_softening_coupler_past_its_reversal_point_raises_instead_of_nan():
+    from canbrake.physics import PlantDiverged
+
+    plant = TrainPlant([20_000.0, 20_000.0], [0.0, 10.0], [20.0, 25.0], resistance=DavisResistance.zero(2))
+    with pytest.raises(PlantDiverged), np.errstate(over="ignore", invalid="ignore"):
+        run(plant, [0.0, 0.0], 20.0)
+    # with an end stop the same impact is survivable
+    stopped = TrainPlant([20_000.0, 20_000.0], [0.0, 10.0], [20.0, 25.0], resistance=DavisResistance.zero(2),
+                         end_stop_m=0.1)
+    run(stopped, [0.0, 0.0], 5.0)
+    assert np.all(np.isfinite(stopped.speed_mps))
+    assert np.max(np.abs(stopped.deflection_m)) < 0.3  # 0.1 m + ≈ v·sqrt(μ/k_stop) = 0.11 m overrun

@@ -5,13 +5,14 @@ Knows nothing of CAN or controllers. SI units inside; see :mod:`canbrake.physics
 from canbrake.physics.actuator import BrakeActuator
 from canbrake.physics.rail import DisturbanceForce, RailConditions, RailEvent
 from canbrake.physics.resistance import DavisResistance, davis_1926
-from canbrake.physics.train import GRAVITY_MPS2, PlantState, TrainPlant
+from canbrake.physics.train import GRAVITY_MPS2, PlantDiverged, PlantState, TrainPlant
 
 __all__ = [
     "BrakeActuator",
     "DavisResistance",
     "DisturbanceForce",
     "GRAVITY_MPS2",
+    "PlantDiverged",
     "PlantState",
     "RailConditions",
     "RailEvent",

@@ -45,6 +45,10 @@ from canbrake.physics.resistance import DavisResistance, davis_1926
 
 GRAVITY_MPS2 = 9.81
 
+class PlantDiverged(FloatingPointError):
+    """The state became non-finite (e.g. a softening coupler was driven past its force peak)."""
+
+
 GradeSpec = float | Sequence[float] | np.ndarray | Callable[[np.ndarray], np.ndarray]
 
 
@@ -319,6 +323,12 @@ class TrainPlant:
             x = x + h * v_new
             v_before, v = v, v_new
             self.time_s = t + h
+        if not math.isfinite(float(v.sum())):
+            raise PlantDiverged(
+                f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = "
+                f"{float(np.max(np.abs(dl))) if dl.size else 0.0:.3g} m (a softening coupler, ε < 0, "
+                "reverses beyond |Δl| = sqrt(-1/ε); consider end_stop_m)"
+            )
         self.accel_mps2 = (v - v_before) / h
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
