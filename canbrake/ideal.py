@@ -120,7 +120,6 @@ def simulate_ideal(
         raise ValueError(f"need one controller per car ({n}), got {len(controllers)}")
     steps = int(round(duration_s / dt_s))
     rows = steps + 1
-    nc = n - 1
     t_out = np.empty(rows)
     x_out = np.empty((rows, n))
     v_out = np.empty((rows, n))

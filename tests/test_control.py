@@ -64,7 +64,7 @@ def test_consensus_and_tracking_signs():
     v = np.full(4, V_REF)
     v_fast = v.copy()
     v_fast[1] += 0.1  # car 1 faster than the reference and its peers
-    out = chen().step(obs(1, v_fast, X_NOM + np.array([0, 0.1e-3, 0, 0]) * 0))
+    out = chen().step(obs(1, v_fast, X_NOM))
     # u1 = m α1 Σ(v_i − v_j) = m·120·3·0.1; u3 = m(36·0.1 + a*)
     assert out.diagnostics["u_consensus_n"] == pytest.approx(M * 120 * 0.3)
     assert out.diagnostics["u_tracking_n"] == pytest.approx(M * (36 * 0.1 + A_REF))
