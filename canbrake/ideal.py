@@ -160,9 +160,17 @@ def simulate_ideal(
         for i in car_range:
             out = controllers[i].step(
                 Observation(
-                    k, t, vs[i], xs[i], vref, aref, v, x, zero_age,
-                    dl_list[i],  # deflection_front_m: coupler to car i-1
-                    dl_list[i + 1],  # deflection_rear_m: coupler to car i+1
+                    tick=k,
+                    time_s=t,
+                    speed_mps=vs[i],
+                    position_m=xs[i],
+                    ref_speed_mps=vref,
+                    ref_decel_mps2=aref,
+                    peer_speed_mps=v,
+                    peer_position_m=x,
+                    peer_age_s=zero_age,
+                    deflection_front_m=dl_list[i],  # coupler to car i-1
+                    deflection_rear_m=dl_list[i + 1],  # coupler to car i+1
                 )
             )
             cmd[i] = out.brake_force_n
