@@ -204,3 +204,11 @@ def test_pi_feedforward_and_antiwindup():
     slow = obs(0, np.array([V_REF - 0.1]), np.array([0.0]))
     p.step(slow)
     assert p.integral_m == pytest.approx(-0.1e-3)
+
+
+def test_observer_defaults_adapt_to_a_10ms_period():
+    c = ChenConsensusController(car_index=0, n_cars=4, mass_kg=M, dt_s=0.01, nominal_spacing_m=-10.0)
+    assert c._obs.dt_s * c._obs.gamma2_mps2 / c._obs.boundary_vel_mps <= 0.5
+    assert c._obs.error_limit_mps == pytest.approx(5 * c._obs.boundary_vel_mps)
+    out = c.step(obs(0, np.full(4, V_REF), X_NOM))
+    assert out.brake_force_n == pytest.approx(M * A_REF)

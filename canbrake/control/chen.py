@@ -77,8 +77,9 @@ class ChenConsensusController(Controller):
     ``k_d`` (kg, used with ``observer_cancellation="kd"``), ``delta`` (m/s² or N per unit ∇U).
     Safety bounds ``theta_lower_m``, ``theta_upper_m`` (m) on the deflection.
     Observer: ``gamma1_mps`` (m/s), ``gamma2_mps2`` (m/s²), ``observer_boundary_pos_m`` (m),
-    ``observer_boundary_vel_mps`` (m/s), ``observer_filter_s`` (s), ``observer_limit_mps2`` (m/s²),
-    ``observer_error_limit_mps`` (m/s, anti-windup clamp of |v − v̂|),
+    ``observer_boundary_vel_mps`` (m/s; ``None`` = max(0.01, 2·dt·γ2): 0.01 at 1 ms, 0.1 at 10 ms),
+    ``observer_filter_s`` (s), ``observer_limit_mps2`` (m/s²),
+    ``observer_error_limit_mps`` (m/s, anti-windup clamp of |v − v̂|; ``None`` = 5 × the boundary),
     ``observer_actuator_lag_s`` (s, first-order model of the brake lag the observer is driven with;
     0 = the command acts at once).
     Saturation: ``brake_force_max_n``, ``traction_force_max_n`` (N; inf = none).
@@ -124,10 +125,10 @@ class ChenConsensusController(Controller):
         gamma1_mps: float = 1.0,
         gamma2_mps2: float = 5.0,
         observer_boundary_pos_m: float = 1e-3,
-        observer_boundary_vel_mps: float = 0.01,
+        observer_boundary_vel_mps: float | None = None,
         observer_filter_s: float = 0.005,
         observer_limit_mps2: float = 5.0,
-        observer_error_limit_mps: float = 0.05,
+        observer_error_limit_mps: float | None = None,
         observer_actuator_lag_s: float = 0.0,
         deflection_source: str = "peer_position",
         nominal_spacing_m: float | Sequence[float] | None = None,
@@ -176,6 +177,10 @@ class ChenConsensusController(Controller):
         self.stale_timeout_s = float(stale_timeout_s)
         self.brake_force_max_n = float(brake_force_max_n)
         self.traction_force_max_n = float(traction_force_max_n)
+        if observer_boundary_vel_mps is None:  # keep dt·γ2/b ≤ 0.5 whatever the period
+            observer_boundary_vel_mps = max(0.01, 2.0 * float(dt_s) * float(gamma2_mps2))
+        if observer_error_limit_mps is None:
+            observer_error_limit_mps = 5.0 * float(observer_boundary_vel_mps)
         self._obs = SlidingModeObserver(
             self.mass_kg,
             self.dt_s,
