@@ -212,3 +212,10 @@ def test_observer_defaults_adapt_to_a_10ms_period():
     assert c._obs.error_limit_mps == pytest.approx(5 * c._obs.boundary_vel_mps)
     out = c.step(obs(0, np.full(4, V_REF), X_NOM))
     assert out.brake_force_n == pytest.approx(M * A_REF)
+
+
+def test_per_mass_ratings_scale_with_the_car():
+    c = chen(brake_rating_mps2=1.4, traction_rating_mps2=1.0)
+    assert c.brake_force_max_n == pytest.approx(1.4 * M) and c.traction_force_max_n == pytest.approx(M)
+    p = PISpeedController(0, 1, 18_000.0, 1e-3, brake_rating_mps2=1.4, brake_force_max_n=20_000.0)
+    assert p.brake_force_max_n == 20_000.0  # the tighter limit wins

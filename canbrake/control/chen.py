@@ -82,7 +82,8 @@ class ChenConsensusController(Controller):
     ``observer_error_limit_mps`` (m/s, anti-windup clamp of |v − v̂|; ``None`` = 5 × the boundary),
     ``observer_actuator_lag_s`` (s, first-order model of the brake lag the observer is driven with;
     0 = the command acts at once).
-    Saturation: ``brake_force_max_n``, ``traction_force_max_n`` (N; inf = none).
+    Saturation: ``brake_force_max_n``, ``traction_force_max_n`` (N; inf = none), or per unit mass
+    ``brake_rating_mps2``, ``traction_rating_mps2`` (m/s², × this car's mass; the tighter one wins).
     ``nominal_spacing_m``: nominal x_i − x_{i+1} (m), scalar or n−1 values; ``None`` = latched from
     the first observation that has the neighbours' positions (assumes the train starts undeflected).
     ``velocity_graph``: ``"all"`` (L_a, eq. 6) or ``"neighbours"``.
@@ -137,6 +138,8 @@ class ChenConsensusController(Controller):
         stale_timeout_s: float = math.inf,
         brake_force_max_n: float = math.inf,
         traction_force_max_n: float = math.inf,
+        brake_rating_mps2: float = math.inf,
+        traction_rating_mps2: float = math.inf,
     ) -> None:
         super().__init__(car_index, n_cars, mass_kg, dt_s)
         for name, val, allowed in (
@@ -177,6 +180,9 @@ class ChenConsensusController(Controller):
         self.stale_timeout_s = float(stale_timeout_s)
         self.brake_force_max_n = float(brake_force_max_n)
         self.traction_force_max_n = float(traction_force_max_n)
+        # per-mass ratings (one value for a whole train in a scenario) tighten the force limits
+        self.brake_force_max_n = min(self.brake_force_max_n, float(brake_rating_mps2) * self.mass_kg)
+        self.traction_force_max_n = min(self.traction_force_max_n, float(traction_rating_mps2) * self.mass_kg)
         if observer_boundary_vel_mps is None:  # keep dt·γ2/b ≤ 0.5 whatever the period
             observer_boundary_vel_mps = max(0.01, 2.0 * float(dt_s) * float(gamma2_mps2))
         if observer_error_limit_mps is None:

@@ -16,7 +16,8 @@ from canbrake.control.base import ControlOutput, Controller, Observation, regist
 @register("pi")
 class PISpeedController(Controller):
     """Parameters: ``kp`` (1/s), ``ki`` (1/s²), ``feedforward`` (bool, add m·a*),
-    ``brake_force_max_n``, ``traction_force_max_n`` (N, inf = unlimited).
+    ``brake_force_max_n``, ``traction_force_max_n`` (N, inf = unlimited), ``brake_rating_mps2``,
+    ``traction_rating_mps2`` (m/s², × this car's mass; the tighter limit wins).
 
     Defaults ``kp = 36`` (Chen's k) and ``ki = 0`` make it Chen's u_i3 without observer, consensus or
     potential field; for a realistic (0.3 s lag) brake use e.g. kp = 1.5, ki = 0.3.
@@ -36,6 +37,8 @@ class PISpeedController(Controller):
         feedforward: bool = True,
         brake_force_max_n: float = math.inf,
         traction_force_max_n: float = math.inf,
+        brake_rating_mps2: float = math.inf,
+        traction_rating_mps2: float = math.inf,
     ) -> None:
         super().__init__(car_index, n_cars, mass_kg, dt_s)
         self.kp = float(kp)
@@ -43,6 +46,9 @@ class PISpeedController(Controller):
         self.feedforward = bool(feedforward)
         self.brake_force_max_n = float(brake_force_max_n)
         self.traction_force_max_n = float(traction_force_max_n)
+        # per-mass ratings (one value for a whole train in a scenario) tighten the force limits
+        self.brake_force_max_n = min(self.brake_force_max_n, float(brake_rating_mps2) * self.mass_kg)
+        self.traction_force_max_n = min(self.traction_force_max_n, float(traction_rating_mps2) * self.mass_kg)
         self.reset()
 
     def reset(self) -> None:
