@@ -1,0 +1,848 @@
+"""The default canbrake bus: an in-memory, cross-process CAN bus, python-can interface ``canbrake``.
+
+    with can.Bus(interface="canbrake", channel="train0") as bus:   # any process on this machine
+        bus.send(can.Message(arbitration_id=0x123, data=b"\\x01", is_extended_id=False))
+
+``python -m can.logger -i canbrake -c train0`` and ``python -m can.player -i canbrake -c train0 f.log``
+work as on any python-can interface. Loopback only: shared memory and FIFOs, no network.
+
+Design
+  * One shared ring per channel (``/dev/shm/canbrake-<channel>.bus``, see
+    :mod:`canbrake.bus.memory_shm`). A sender takes the writer lock (``flock``, released by the
+    kernel if the process dies), copies its frame(s) into the ring and publishes ``write_seq``
+    with an aligned 8-byte store. The ring is the bus medium: every reader sees one global
+    order, so runs are reproducible.
+  * Each bus registers a reader entry with its filters (pushed down by ``_apply_filters``).
+    A reader with nothing to read marks itself *sleeping* under the writer lock (after
+    re-checking ``write_seq`` under that lock) and blocks in ``poll`` on its own FIFO. A writer,
+    under the same lock, clears the flag of each sleeping reader whose filters accept one of its
+    frames, records where that frame is (``wake_seq``) and, after unlocking, writes one byte to
+    that reader's FIFO. Check-and-sleep and publish-and-wake are both done under the one lock and
+    the FIFO keeps the byte until it is read, so a wake-up cannot be lost; a frame that a
+    reader's filters reject never wakes it; a burst wakes a sleeping reader once.
+  * Frames that went by while a reader slept were checked against its filters by the writers,
+    so on waking it starts at ``wake_seq`` (or at ``write_seq`` after a timeout) and never
+    scans, or overruns on, traffic it does not want.
+
+Slow readers (choice: per bus, default overrun)
+  * ``backpressure=False`` (default, like a CAN controller's receive FIFO): writers never wait.
+    A reader that falls a whole ring (``ring_size`` frames, default 16384) behind loses the
+    oldest frames; its next ``recv`` raises :class:`can.CanOperationError` saying how many
+    were lost (also in :meth:`MemoryBus.stats`), then continues with the oldest frame still in
+    the ring. Frames are never dropped silently.
+  * ``backpressure=True`` (for recorders that must see every frame): a writer that would
+    overwrite a frame this reader has not read waits (blocking, woken by the reader) for up to
+    ``send`` ``timeout`` or else ``send_timeout`` seconds, then raises
+    :class:`can.CanTimeoutError` naming the slow reader's pid. Every wait slice (0.1 s) checks
+    whether that reader's process is still alive; a dead one is reaped and the writer goes on.
+
+Lifecycle: the first bus on a channel creates its file, the last ``shutdown`` removes it.
+Entries of crashed processes are found by pid and process start time and reaped (on open,
+shutdown, a failed wake-up, a blocked send, :func:`channel_pids`, :func:`remove_channel`).
+:func:`remove_channel` cleans up after a run. A bus must not be used across ``fork()``: open a
+new one in the child (``spawn`` start method is fine).
+
+Memory ordering relies on x86-64's total store order for the lock-free reads of ``write_seq``
+and the frame slots (readers re-check ``write_seq`` after copying, a seqlock-style check).
+"""
+from __future__ import annotations
+
+import atexit
+import collections
+import fcntl
+import math
+import mmap
+import os
+import select
+import struct
+import sys
+import threading
+import time
+import weakref
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import can
+from can import BusABC, BusState, CanProtocol, Message
+from can.exceptions import CanInitializationError, CanOperationError, CanTimeoutError
+from can.typechecking import AutoDetectedConfig, CanFilters
+
+from canbrake.bus import memory_shm as shm
+from canbrake.bus.memory_shm import (
+    DATA_OFFSET,
+    DEFAULT_RING_SIZE,
+    E_FILTERS,
+    E_FLAGS,
+    E_NFILT,
+    E_PID,
+    E_READ_SEQ,
+    E_SLEEPING,
+    E_START,
+    E_TOKEN,
+    E_TX_WAITING,
+    E_WAKE_SEQ,
+    E_WAKEUPS,
+    F_ACCEPT_ALL,
+    F_BACKPRESSURE,
+    F_OWN,
+    H_CLOSED,
+    H_READER_GEN,
+    H_TOKEN,
+    H_TX_WAITERS,
+    H_WRITE_SEQ,
+    M_BRS,
+    M_ERR,
+    M_ESI,
+    M_EXT,
+    M_FD,
+    M_RTR,
+    MAX_DATA,
+    SLOT_BYTES,
+    SLOT_HEAD,
+    Layout,
+    accepts,
+    channel_pids,
+    list_channels,
+    remove_channel,
+)
+
+__all__ = ["MemoryBus", "MemoryBusStats", "remove_channel", "list_channels", "channel_pids"]
+
+_SLOT_PEEK = struct.Struct("<IIB")  # arbitration id, sender token, flags (at slot offset 8)
+_WAIT_SLICE_S = 0.1  # a writer blocked by a backpressure reader re-checks that reader's pid this often
+_open_buses: "weakref.WeakSet[MemoryBus]" = weakref.WeakSet()
+
+
+def _after_fork_in_child() -> None:
+    for bus in list(_open_buses):
+        bus._forked = True
+        bus._is_shutdown = True  # the parent owns the shared entry; never free it from here
+
+
+def _shutdown_all() -> None:
+    """At interpreter exit, leave every channel still open (the last bus removes its files)."""
+    for bus in list(_open_buses):
+        try:
+            bus.shutdown()
+        except Exception:  # best effort while the interpreter goes down
+            pass
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+atexit.register(_shutdown_all)
+
+
+@dataclass(frozen=True)
+class MemoryBusStats:
+    """Counters of one :class:`MemoryBus` (this process's view)."""
+
+    frames_sent: int
+    frames_received: int  #: returned by recv (after filtering)
+    wakeups: int  #: times a writer woke this bus's blocked recv (counted in shared memory)
+    sleeps: int  #: times recv blocked waiting for a frame
+    spurious_wakeups: int  #: wake-ups that found nothing to read
+    frames_lost: int  #: frames overwritten before this (non-backpressure) reader read them
+    overruns: int  #: times recv raised CanOperationError for lost frames
+    send_waits: int  #: times send waited for a backpressure reader to make room
+
+
+class MemoryBus(BusABC):
+    """A CAN bus shared by every process on this machine that opens the same ``channel``.
+
+    :param channel: channel name, 1-64 characters from ``A-Za-z0-9_.-`` (an int is accepted).
+    :param can_filters: python-can filters; pushed down so rejected frames never wake this bus.
+    :param receive_own_messages: also receive the frames this bus sends (``is_rx`` False).
+    :param preserve_timestamps: keep ``msg.timestamp`` on send (e.g. replaying a log) instead
+        of stamping ``time.time()`` (s).
+    :param backpressure: writers wait for this reader instead of overrunning it (recorders).
+    :param send_timeout: upper bound (s) of a ``send(timeout=None)`` blocked by a backpressure
+        reader; then :class:`can.CanTimeoutError`.
+    :param ring_size: frames in the shared ring (power of two), used by the bus creating the channel.
+    :param shm_dir: directory of the channel files (default ``$CANBRAKE_SHM_DIR`` or ``/dev/shm``).
+    :param fd: report :attr:`protocol` as CAN FD (CAN FD frames are carried either way).
+    :param yield_before_sleep: before blocking in ``recv``, give the CPU to runnable processes
+        once (``sched_yield``) and look again: fewer wake-ups when processes outnumber cores.
+    :raises can.CanInitializationError: bad channel name, incompatible channel file, table full.
+    """
+
+    def __init__(
+        self,
+        channel: Any = "canbrake0",
+        can_filters: Optional[CanFilters] = None,
+        receive_own_messages: bool = False,
+        preserve_timestamps: bool = False,
+        backpressure: bool = False,
+        send_timeout: float = 5.0,
+        ring_size: int = DEFAULT_RING_SIZE,
+        shm_dir: Optional[str] = None,
+        fd: bool = False,
+        yield_before_sleep: bool = False,
+        **kwargs: Any,
+    ) -> None:
+        self._open = False
+        self._forked = False
+        self._name = shm.validate_channel(channel)
+        self._dir = shm.resolve_dir(shm_dir)
+        self._path = shm.bus_path(self._dir, self._name)
+        self._own = bool(receive_own_messages)
+        self._preserve_ts = bool(preserve_timestamps)
+        self._backpressure = bool(backpressure)
+        self._send_timeout = float(send_timeout)
+        self._yield = bool(yield_before_sleep) and hasattr(os, "sched_yield")
+        self._can_protocol = CanProtocol.CAN_FD if fd else CanProtocol.CAN_20
+        self._state = BusState.ACTIVE
+        self._tlock = threading.Lock()  # flock is per open file: also exclude our own threads
+        self._txlock = threading.Lock()
+        self._rxbuf: collections.deque[Message] = collections.deque()
+        self._filters_c: Optional[tuple[shm.Filter, ...]] = None
+        self._accept_cache: dict[int, bool] = {}  # (id | ext << 32) -> accepted by our filters
+        #: readers to consider waking: (entry word, token, filters or None = all, accept cache)
+        self._peers: list[tuple[int, int, Optional[tuple[shm.Filter, ...]], dict[int, bool]]] = []
+        self._bp_peers: list[int] = []
+        self._peers_gen = -1
+        self._wake_fds: dict[tuple[int, str], int] = {}
+        self._in_recv = False
+        self._fifo_dirty = False  # True when a stale wake-up byte may sit in our rx FIFO
+        self._n_sent = self._n_recv = self._n_sleeps = self._n_spurious = 0
+        self._n_lost = self._n_overruns = self._n_send_waits = 0
+        self._token = 0
+        self._rx_fd = self._tx_fd = -1
+
+        try:
+            os.makedirs(self._dir, exist_ok=True)
+            self._fd = shm.open_locked(self._path, ring_size)
+        except OSError as e:
+            raise CanInitializationError(f"cannot open canbrake channel file {self._path}: {e}") from e
+        assert self._fd is not None
+        try:
+            self._layout = Layout(shm.ring_size_of(self._fd))
+            self._mm = mmap.mmap(self._fd, self._layout.total_bytes)
+            self._mv = memoryview(self._mm)
+            self._q = self._mv.cast("Q")
+            self._register()
+        except BaseException:
+            self._close_local()
+            raise
+        finally:
+            if self._fd >= 0:
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
+        self._ring_off = self._layout.ring_offset
+        self._ring_mask = self._layout.mask
+        self._ring_n = self._layout.ring_size
+        self._poll = select.poll()
+        self._poll.register(self._rx_fd, select.POLLIN)
+        self._tx_poll = select.poll()
+        self._tx_poll.register(self._tx_fd, select.POLLIN)
+        self._open = True
+        _open_buses.add(self)
+        self.channel_info = f"canbrake memory bus {self._name!r} ({self._path})"
+        try:
+            super().__init__(channel=self._name, can_filters=can_filters, **kwargs)
+        except BaseException:
+            self.shutdown()
+            raise
+
+    # ------------------------------------------------------------ registration (lock held)
+    def _register(self) -> None:
+        q = self._q
+        shm.reap_dead(q, self._dir, self._name)
+        free = [i for i in range(shm.MAX_READERS) if not q[Layout.entry_word(i) + E_TOKEN]]
+        if not free:
+            raise CanInitializationError(
+                f"canbrake channel {self._name!r} already has {shm.MAX_READERS} open buses "
+                f"(pids {sorted({q[e + E_PID] for e in shm.live_entries(q)})}); shut some down"
+            )
+        b = Layout.entry_word(free[0])
+        token = (q[H_TOKEN] % 0xFFFFFFFF) + 1
+        q[H_TOKEN] = token
+        fds: dict[str, int] = {}
+        try:
+            for kind in ("rx", "tx"):
+                path = shm.fifo_path(self._dir, self._name, token, kind)
+                try:
+                    os.unlink(path)
+                except FileNotFoundError:
+                    pass
+                os.mkfifo(path, 0o600)
+                fds[kind] = os.open(path, os.O_RDWR | os.O_NONBLOCK)
+        except BaseException:
+            for kind, fd in fds.items():
+                os.close(fd)
+            for kind in ("rx", "tx"):
+                try:
+                    os.unlink(shm.fifo_path(self._dir, self._name, token, kind))
+                except FileNotFoundError:
+                    pass
+            raise
+        self._rx_fd, self._tx_fd = fds["rx"], fds["tx"]
+        w = q[H_WRITE_SEQ]
+        q[b + E_PID] = os.getpid()
+        q[b + E_START] = shm.proc_start_time(os.getpid())
+        q[b + E_FLAGS] = (F_OWN if self._own else 0) | (F_BACKPRESSURE if self._backpressure else 0) | F_ACCEPT_ALL
+        q[b + E_NFILT] = 0
+        q[b + E_READ_SEQ] = w
+        q[b + E_SLEEPING] = 0
+        q[b + E_WAKE_SEQ] = w
+        q[b + E_WAKEUPS] = 0
+        q[b + E_TX_WAITING] = 0
+        q[b + E_TOKEN] = token
+        q[H_READER_GEN] = q[H_READER_GEN] + 1
+        self._eb = b
+        self._token = token
+        self._seq = w
+
+    def _apply_filters(self, filters: Optional[CanFilters]) -> None:
+        """Push ``filters`` into this bus's shared entry so writers wake it only for accepted frames."""
+        compiled = shm.compile_filters(filters)
+        self._filters_c = compiled
+        self._accept_cache = {}
+        if not self._open:
+            return
+        self._lock()
+        try:
+            q, b = self._q, self._eb
+            flags = q[b + E_FLAGS] & ~F_ACCEPT_ALL
+            if shm.pushable(compiled):
+                assert compiled is not None
+                for i, (cid, mask, mode) in enumerate(compiled):
+                    base = b + E_FILTERS + 3 * i
+                    q[base], q[base + 1], q[base + 2] = cid, mask, mode
+                q[b + E_NFILT] = len(compiled)
+            else:  # no filters, or too many to push: writers wake us for every frame
+                flags |= F_ACCEPT_ALL
+                q[b + E_NFILT] = 0
+            q[b + E_FLAGS] = flags
+            q[H_READER_GEN] = q[H_READER_GEN] + 1
+        finally:
+            self._unlock()
+
+    # ------------------------------------------------------------ lock
+    def _lock(self) -> None:
+        self._tlock.acquire()
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_EX)
+        except BaseException:
+            self._tlock.release()
+            raise
+
+    def _unlock(self) -> None:
+        try:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+        finally:
+            self._tlock.release()
+
+    def _check_open(self) -> None:
+        if not self._open or self._forked:
+            if self._forked:
+                raise CanOperationError(
+                    "this canbrake MemoryBus was opened before fork(); open a new bus in the child"
+                )
+            raise CanOperationError(f"canbrake bus {self._name!r} is shut down")
+
+    def _closed_error(self) -> CanOperationError:
+        return CanOperationError(
+            f"canbrake channel {self._name!r} was removed (remove_channel) while this bus was open"
+        )
+
+    # ------------------------------------------------------------ send
+    def send(self, msg: Message, timeout: Optional[float] = None) -> None:
+        """Put ``msg`` on the bus (stamped with ``time.time()`` unless ``preserve_timestamps``).
+
+        :param timeout: s to wait for ring space if a backpressure reader is a full ring behind;
+            ``None`` waits up to ``send_timeout``.
+        :raises can.CanTimeoutError: no room within the timeout.
+        :raises can.CanOperationError: bus shut down, passive, or the frame is malformed.
+        """
+        self._send_frames((msg,), timeout)
+
+    def send_many(self, msgs: Iterable[Message], timeout: Optional[float] = None) -> None:
+        """Send ``msgs`` as one burst: consecutive in the global order, one wake-up per reader.
+
+        Same parameters and errors as :meth:`send`; bursts longer than half the ring are split.
+        """
+        msgs = list(msgs)
+        step = max(1, self._ring_n // 2)
+        for i in range(0, len(msgs), step):
+            self._send_frames(msgs[i : i + step], timeout)
+
+    def _encode(self, msgs: Sequence[Message]) -> list[tuple[float, int, int, int, bytes]]:
+        now = time.time()
+        out = []
+        for m in msgs:
+            data = bytes(m.data) if m.data is not None else b""
+            if m.is_remote_frame:
+                data = b""
+            limit = MAX_DATA if m.is_fd else 8
+            if len(data) > limit:
+                raise CanOperationError(
+                    f"{'CAN FD' if m.is_fd else 'classic CAN'} frame 0x{m.arbitration_id:X} "
+                    f"has {len(data)} data bytes (at most {limit})"
+                )
+            if not 0 <= m.arbitration_id <= 0x1FFFFFFF or not 0 <= m.dlc <= 255:
+                raise CanOperationError(f"frame id 0x{m.arbitration_id:X} / dlc {m.dlc} out of range")
+            flags = (
+                (M_EXT if m.is_extended_id else 0)
+                | (M_RTR if m.is_remote_frame else 0)
+                | (M_ERR if m.is_error_frame else 0)
+                | (M_FD if m.is_fd else 0)
+                | (M_BRS if m.bitrate_switch else 0)
+                | (M_ESI if m.error_state_indicator else 0)
+            )
+            ts = m.timestamp if self._preserve_ts else now
+            out.append((ts, m.arbitration_id, flags, m.dlc, data))
+        return out
+
+    def _send_frames(self, msgs: Sequence[Message], timeout: Optional[float]) -> None:
+        self._check_open()
+        if self._state is BusState.PASSIVE:
+            raise CanOperationError(f"canbrake bus {self._name!r} is passive (listen only)")
+        if not msgs:
+            return
+        frames = self._encode(msgs)
+        n = len(frames)
+        q, mv, pack = self._q, self._mv, SLOT_HEAD.pack_into
+        token, eb = self._token, self._eb
+        deadline: Optional[float] = None
+        with self._txlock:
+            while True:
+                wake: list[int] = []
+                blocker = 0
+                self._lock()
+                try:
+                    if q[H_CLOSED]:
+                        raise self._closed_error()
+                    if q[H_READER_GEN] != self._peers_gen:
+                        self._refresh_peers()
+                    w = q[H_WRITE_SEQ]
+                    if self._bp_peers:
+                        blocker = self._blocking_reader(w + n)
+                    if blocker:
+                        if not q[eb + E_TX_WAITING]:
+                            q[eb + E_TX_WAITING] = 1
+                            q[H_TX_WAITERS] = q[H_TX_WAITERS] + 1
+                        b_pid, b_start = q[blocker + E_PID], q[blocker + E_START]
+                        b_lag = w + n - self._bp_position(blocker, w)
+                    else:
+                        if q[eb + E_TX_WAITING]:
+                            q[eb + E_TX_WAITING] = 0
+                            q[H_TX_WAITERS] = q[H_TX_WAITERS] - 1
+                        base, mask = self._ring_off, self._ring_mask
+                        for i, (ts, aid, flags, dlc, data) in enumerate(frames):
+                            off = base + ((w + i) & mask) * SLOT_BYTES
+                            ln = len(data)
+                            pack(mv, off, ts, aid, token, flags, dlc, ln, 0)
+                            if ln:
+                                mv[off + DATA_OFFSET : off + DATA_OFFSET + ln] = data
+                        q[H_WRITE_SEQ] = w + n  # publish: aligned 8-byte store
+                        if not self._own and not self._in_recv and self._seq == w:
+                            # our reader is caught up and never receives its own frames: skip
+                            # them, so a bus that mostly sends is not overrun by itself
+                            self._seq = w + n
+                            q[eb + E_READ_SEQ] = w + n
+                        for pb, ptok, pfilt, pcache in self._peers:
+                            if not q[pb + E_SLEEPING]:
+                                continue  # awake readers find the frames themselves
+                            if pfilt is None:
+                                hit = w
+                            else:
+                                hit = -1
+                                for i, fr in enumerate(frames):
+                                    key = fr[1] | (fr[2] & M_EXT) << 32
+                                    ok = pcache.get(key)
+                                    if ok is None:
+                                        ok = pcache[key] = accepts(pfilt, fr[1], bool(fr[2] & M_EXT))
+                                    if ok:
+                                        hit = w + i
+                                        break
+                                if hit < 0:
+                                    continue
+                            q[pb + E_WAKE_SEQ] = hit
+                            q[pb + E_SLEEPING] = 0
+                            q[pb + E_WAKEUPS] = q[pb + E_WAKEUPS] + 1
+                            wake.append(ptok)
+                finally:
+                    self._unlock()
+                if not blocker:
+                    for ptok in wake:
+                        self._notify(ptok, "rx")
+                    self._n_sent += n
+                    return
+                # --- a backpressure reader is a full ring behind: wait for it (bounded)
+                now = time.monotonic()
+                if deadline is None:
+                    self._n_send_waits += 1
+                    deadline = now + (self._send_timeout if timeout is None else max(0.0, timeout))
+                if blocker == eb and not self._in_recv:
+                    self._clear_tx_waiting()
+                    raise CanOperationError(
+                        f"this bus (backpressure=True) has {b_lag} unread frames on channel "
+                        f"{self._name!r}: recv them before sending more"
+                    )
+                if not shm.pid_alive(b_pid, b_start):
+                    self._reap()
+                    continue
+                if now >= deadline:
+                    self._clear_tx_waiting()
+                    raise CanTimeoutError(
+                        f"send on canbrake channel {self._name!r} timed out: reader pid {b_pid} "
+                        f"(backpressure=True) is {b_lag} frames behind a ring of {self._ring_n}"
+                    )
+                self._tx_poll.poll(math.ceil(min(deadline - now, _WAIT_SLICE_S) * 1000))
+                self._drain(self._tx_fd)
+
+    def _bp_position(self, b: int, w: int) -> int:
+        """Oldest ring position backpressure reader ``b`` may still need (lock held)."""
+        q = self._q
+        if q[b + E_SLEEPING]:
+            return w  # everything published while it slept was checked against its filters
+        return max(q[b + E_READ_SEQ], q[b + E_WAKE_SEQ])
+
+    def _blocking_reader(self, end: int) -> int:
+        w = self._q[H_WRITE_SEQ]
+        for b in self._bp_peers:
+            if end - self._bp_position(b, w) > self._ring_n:
+                return b
+        return 0
+
+    def _clear_tx_waiting(self) -> None:
+        self._lock()
+        try:
+            q = self._q
+            if q[self._eb + E_TX_WAITING]:
+                q[self._eb + E_TX_WAITING] = 0
+                q[H_TX_WAITERS] = q[H_TX_WAITERS] - 1
+        finally:
+            self._unlock()
+
+    def _refresh_peers(self) -> None:
+        """Re-read the reader table after a registration/filter change (lock held)."""
+        q = self._q
+        peers, bp, live = [], [], set()
+        for b in shm.live_entries(q):
+            tok, flags = q[b + E_TOKEN], q[b + E_FLAGS]
+            live.add(tok)
+            if flags & F_ACCEPT_ALL:
+                filt = None
+            else:
+                f0 = b + E_FILTERS
+                filt = tuple((q[f0 + 3 * i], q[f0 + 3 * i + 1], q[f0 + 3 * i + 2]) for i in range(q[b + E_NFILT]))
+            if tok != self._token or flags & F_OWN:  # our own frames never wake our own reader
+                peers.append((b, tok, filt, {}))  # unless it receives its own messages
+            if flags & F_BACKPRESSURE:
+                bp.append(b)
+        for key in [k for k in self._wake_fds if k[0] not in live]:
+            os.close(self._wake_fds.pop(key))
+        self._peers, self._bp_peers, self._peers_gen = peers, bp, q[H_READER_GEN]
+
+    def _notify(self, token: int, kind: str) -> None:
+        """Write one wake-up byte to the ``kind`` FIFO of the bus with ``token``."""
+        fd = self._wake_fds.get((token, kind))
+        try:
+            if fd is None:
+                fd = os.open(shm.fifo_path(self._dir, self._name, token, kind), os.O_WRONLY | os.O_NONBLOCK)
+                self._wake_fds[(token, kind)] = fd
+            os.write(fd, b"\x01")
+        except BlockingIOError:
+            pass  # FIFO full: a wake-up is pending anyway
+        except OSError as e:
+            if not shm.is_enxio(e):
+                raise CanOperationError(f"cannot wake a reader on {self._name!r}: {e}") from e
+            if fd is not None:
+                os.close(self._wake_fds.pop((token, kind)))
+            self._reap()  # its process is gone
+
+    def _reap(self) -> None:
+        self._lock()
+        try:
+            shm.reap_dead(self._q, self._dir, self._name)
+        finally:
+            self._unlock()
+
+    # ------------------------------------------------------------ receive
+    @staticmethod
+    def _drain(fd: int) -> bool:
+        try:
+            return bool(os.read(fd, 4096))
+        except BlockingIOError:
+            return False
+
+    def _fetch(self) -> None:
+        """Copy every new frame this bus accepts into the local queue.
+
+        :raises can.CanOperationError: frames were overwritten before they were read (overrun).
+        """
+        q = self._q
+        if q[H_CLOSED]:
+            raise self._closed_error()
+        w = q[H_WRITE_SEQ]
+        s = self._seq
+        if w == s:
+            return
+        n, mask, base = self._ring_n, self._ring_mask, self._ring_off
+        # Seq x lives in slot x % n until seq x + n is written, which an overrun-mode writer may
+        # be doing as soon as write_seq == x + n. A backpressure reader is safe one seq longer:
+        # writers do not start seq x + n before it has read x.
+        slack = 0 if self._backpressure else 1
+        start = max(s, w - n + slack)
+        mv, unpack, peek = self._mv, SLOT_HEAD.unpack_from, _SLOT_PEEK.unpack_from
+        own, token, filt, cache, ch = self._own, self._token, self._filters_c, self._accept_cache, self._name
+        got: list[tuple[int, Message]] = []
+        for seq in range(start, w):
+            off = base + (seq & mask) * SLOT_BYTES
+            aid, tok, flags = peek(mv, off + 8)
+            if tok == token:
+                if not own:
+                    continue
+                is_rx = False
+            else:
+                is_rx = True
+            if filt is not None:
+                key = aid | (flags & M_EXT) << 32
+                ok = cache.get(key)
+                if ok is None:
+                    ok = cache[key] = accepts(filt, aid, bool(flags & M_EXT))
+                    if len(cache) > 4096:
+                        cache.clear()
+                if not ok:
+                    continue
+            ts, _, _, _, dlc, ln, _ = unpack(mv, off)
+            if ln > MAX_DATA:
+                ln = MAX_DATA
+            got.append(
+                (
+                    seq,
+                    Message(
+                        ts,
+                        aid,
+                        bool(flags & M_EXT),
+                        bool(flags & M_RTR),
+                        bool(flags & M_ERR),
+                        ch,
+                        dlc,
+                        bytearray(mv[off + DATA_OFFSET : off + DATA_OFFSET + ln]),
+                        bool(flags & M_FD),
+                        is_rx,
+                        bool(flags & M_BRS),
+                        bool(flags & M_ESI),
+                    ),
+                )
+            )
+        # seqlock-style check: a slot may have been overwritten while we copied it
+        valid_from = q[H_WRITE_SEQ] - n + slack
+        lost = 0
+        if valid_from > s:
+            lost = valid_from - s
+            got = [g for g in got if g[0] >= valid_from]
+            w = max(w, valid_from)
+        self._seq = w
+        self._rxbuf.extend(m for _, m in got)
+        self._publish_read_seq()
+        if lost:
+            self._n_lost += lost
+            self._n_overruns += 1
+            raise CanOperationError(
+                f"canbrake bus {self._name!r} overrun: this reader fell more than a ring "
+                f"({n} frames) behind and {lost} frame(s) were overwritten unread "
+                "(read faster, enlarge ring_size, or open the bus with backpressure=True)"
+            )
+
+    def _publish_read_seq(self) -> None:
+        q, b = self._q, self._eb
+        if not self._backpressure:
+            q[b + E_READ_SEQ] = self._seq  # informative only
+            return
+        waiters: list[int] = []
+        self._lock()
+        try:
+            q[b + E_READ_SEQ] = self._seq
+            if q[H_TX_WAITERS]:
+                for eb in shm.live_entries(q):
+                    if q[eb + E_TX_WAITING]:
+                        q[eb + E_TX_WAITING] = 0
+                        q[H_TX_WAITERS] = q[H_TX_WAITERS] - 1
+                        waiters.append(q[eb + E_TOKEN])
+        finally:
+            self._unlock()
+        for tok in waiters:
+            self._notify(tok, "tx")
+
+    def _recv_internal(self, timeout: Optional[float]) -> tuple[Optional[Message], bool]:
+        """Next accepted frame, or ``None`` after ``timeout`` s (``None``: wait forever, 0: poll)."""
+        self._check_open()
+        buf = self._rxbuf
+        if not buf:
+            self._fetch()
+        if buf:
+            self._n_recv += 1
+            return buf.popleft(), True
+        if timeout is not None and timeout <= 0:
+            return None, True
+        deadline = None if timeout is None else time.monotonic() + timeout
+        q, sleep_w = self._q, self._eb + E_SLEEPING
+        self._in_recv = True
+        try:
+            if self._yield:  # let runnable peers on this CPU produce first: often no sleep needed
+                os.sched_yield()
+                self._fetch()
+                if buf:
+                    self._n_recv += 1
+                    return buf.popleft(), True
+            while True:
+                if self._fifo_dirty:  # a wake-up byte may still be on its way from a past sleep
+                    self._drain(self._rx_fd)
+                    self._fifo_dirty = False
+                self._lock()
+                try:
+                    idle = q[H_WRITE_SEQ] == self._seq
+                    if idle:
+                        q[sleep_w] = 1
+                finally:
+                    self._unlock()
+                if idle:
+                    self._n_sleeps += 1
+                    try:
+                        self._sleep(deadline)
+                    except BaseException:
+                        q[sleep_w] = 0
+                        self._fifo_dirty = True
+                        raise
+                self._fetch()
+                if buf:
+                    self._n_recv += 1
+                    return buf.popleft(), True
+                if deadline is not None and time.monotonic() >= deadline:
+                    return None, True
+        finally:
+            self._in_recv = False
+
+    def _sleep(self, deadline: Optional[float]) -> None:
+        """Block until a writer wakes us or ``deadline`` passes; then position ``self._seq``."""
+        q, b = self._q, self._eb
+        got_byte = False
+        while True:
+            if deadline is None:
+                ms = -1
+            else:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                ms = math.ceil(left * 1000)
+            events = self._poll.poll(ms)
+            if events:
+                got_byte = self._drain(self._rx_fd) or got_byte
+            if not q[b + E_SLEEPING]:
+                # woken: the writer stored wake_seq before clearing the flag
+                self._seq = max(self._seq, q[b + E_WAKE_SEQ])
+                self._fifo_dirty = not got_byte
+                return
+            if q[H_CLOSED]:
+                break
+            if events:
+                self._n_spurious += 1
+        self._lock()
+        try:
+            if q[b + E_SLEEPING]:  # never woken: nothing published meanwhile concerns us
+                q[b + E_SLEEPING] = 0
+                self._seq = max(self._seq, q[H_WRITE_SEQ])
+            else:  # woken just now: its byte may still be on its way
+                self._seq = max(self._seq, q[b + E_WAKE_SEQ])
+                self._fifo_dirty = True
+        finally:
+            self._unlock()
+
+    # ------------------------------------------------------------ state, stats
+    @property
+    def state(self) -> BusState:
+        """ACTIVE, or PASSIVE (listen only: ``send`` raises)."""
+        return self._state
+
+    @state.setter
+    def state(self, new_state: BusState) -> None:
+        if new_state not in (BusState.ACTIVE, BusState.PASSIVE):
+            raise ValueError(f"canbrake bus supports ACTIVE and PASSIVE, not {new_state}")
+        self._state = new_state
+
+    @property
+    def channel_name(self) -> str:
+        return self._name
+
+    @property
+    def path(self) -> str:
+        """The channel's shared-memory file."""
+        return self._path
+
+    def stats(self) -> MemoryBusStats:
+        """Counters of this bus; ``wakeups`` comes from shared memory (counted by writers)."""
+        wakeups = self._q[self._eb + E_WAKEUPS] if self._open and not self._forked else 0
+        return MemoryBusStats(
+            frames_sent=self._n_sent,
+            frames_received=self._n_recv,
+            wakeups=wakeups,
+            sleeps=self._n_sleeps,
+            spurious_wakeups=self._n_spurious,
+            frames_lost=self._n_lost,
+            overruns=self._n_overruns,
+            send_waits=self._n_send_waits,
+        )
+
+    remove_channel = staticmethod(remove_channel)
+
+    @staticmethod
+    def _detect_available_configs() -> list[AutoDetectedConfig]:
+        """The channels that currently have a file in the shared-memory directory."""
+        return [{"interface": "canbrake", "channel": name} for name in list_channels()]
+
+    # ------------------------------------------------------------ shutdown
+    def shutdown(self) -> None:
+        """Leave the channel; the last bus on it removes its files. Safe to call twice."""
+        super().shutdown()
+        if not self._open:
+            return
+        self._open = False
+        _open_buses.discard(self)
+        if not self._forked:
+            try:
+                self._lock()
+            except OSError:
+                pass
+            else:
+                try:
+                    q = self._q
+                    if q[self._eb + E_TOKEN] == self._token:
+                        shm.free_entry(q, self._eb, self._dir, self._name)
+                    if not sys.is_finalizing():
+                        shm.reap_dead(q, self._dir, self._name)
+                    if not shm.live_entries(q):
+                        q[H_CLOSED] = 1
+                        try:
+                            st, cur = os.fstat(self._fd), os.stat(self._path)
+                            ours = (st.st_ino, st.st_dev) == (cur.st_ino, cur.st_dev)
+                        except FileNotFoundError:
+                            ours = False  # already removed (remove_channel)
+                        if ours:  # not a newer channel of the same name
+                            os.unlink(self._path)
+                            shm.remove_fifos(self._dir, self._name)
+                finally:
+                    self._unlock()
+        self._close_local()
+
+    def _close_local(self) -> None:
+        for fd in self._wake_fds.values():
+            os.close(fd)
+        self._wake_fds.clear()
+        for attr in ("_q", "_mv"):
+            view = getattr(self, attr, None)
+            if view is not None:
+                view.release()
+                setattr(self, attr, None)
+        mm = getattr(self, "_mm", None)
+        if mm is not None:
+            mm.close()
+            self._mm = None
+        for attr in ("_rx_fd", "_tx_fd", "_fd"):
+            fd = getattr(self, attr, -1)
+            if fd is not None and fd >= 0:
+                os.close(fd)
+                setattr(self, attr, -1)

@@ -1,0 +1,440 @@
+"""Shared-memory layout and channel files of the canbrake in-memory bus (:mod:`canbrake.bus.memory`).
+
+A channel ``NAME`` is one file, ``<dir>/canbrake-NAME.bus``, that every bus on the channel maps
+with ``mmap``, plus two FIFOs per open bus, ``<dir>/canbrake-NAME@<token>.rx`` and ``.tx``, used
+only to wake a process blocked in ``recv`` (rx) or in a ``send`` waiting for ring space (tx).
+``<dir>`` is the ``shm_dir`` argument, else ``$CANBRAKE_SHM_DIR``, else ``/dev/shm``.
+
+The writer lock is ``flock(LOCK_EX)`` on the channel file: the kernel releases it when a
+process dies, so a crashed writer can never wedge the channel.
+
+File layout (little endian; every shared index is an aligned 8-byte word, read and written
+through a ``memoryview`` cast to ``'Q'`` so no reader ever sees a torn value)::
+
+    [0, 4096)            header: magic, layout version, geometry, write_seq (own cache line),
+                         reader_gen, token counter, tx-waiter count, closed flag
+    [4096, +64*512)      reader table: one 512-byte entry per open bus (token, pid, process
+                         start time, flags, read_seq, sleeping, wake_seq, wake-up counter,
+                         tx_waiting, pushed-down filters)
+    [ring_off, ...)      ring of ``ring_size`` 96-byte frame slots: timestamp (f64, s),
+                         arbitration id (u32), sender token (u32), flags, dlc, length, data[64]
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import re
+import struct
+from dataclasses import dataclass
+from typing import Optional
+
+import can
+from can.exceptions import CanInitializationError, CanOperationError
+
+# ---------------------------------------------------------------- geometry
+MAGIC = int.from_bytes(b"CANBRAKE", "little")
+LAYOUT_VERSION = 1
+HEADER_BYTES = 4096
+ENTRY_BYTES = 512
+MAX_READERS = 64
+MAX_PUSHED_FILTERS = 16
+SLOT_BYTES = 96
+DATA_OFFSET = 24
+MAX_DATA = 64
+DEFAULT_RING_SIZE = 16384
+
+#: frame slot head: timestamp (s), arbitration id, sender token, flags, dlc, data length, pad
+SLOT_HEAD = struct.Struct("<dIIBBBB")
+
+# header words (index into the 'Q' view)
+H_MAGIC, H_VERSION, H_RING, H_SLOT, H_READERS, H_ENTRY = 0, 1, 2, 3, 4, 5
+H_WRITE_SEQ = 8  # byte 64: its own cache line
+H_READER_GEN = 16  # byte 128
+H_TOKEN = 17
+H_TX_WAITERS = 18
+H_CLOSED = 19
+
+# reader-entry words (relative to the entry's first word)
+E_TOKEN, E_PID, E_START, E_FLAGS, E_NFILT = 0, 1, 2, 3, 4
+E_READ_SEQ = 8
+E_SLEEPING = 9
+E_WAKE_SEQ = 10
+E_WAKEUPS = 11
+E_TX_WAITING = 12
+E_FILTERS = 16  # MAX_PUSHED_FILTERS x (can_id & mask, mask, mode)
+
+# reader-entry flags
+F_OWN = 1  # receive_own_messages
+F_BACKPRESSURE = 2
+F_ACCEPT_ALL = 4  # no filters pushed down: every frame concerns this reader
+
+# frame flags
+M_EXT, M_RTR, M_ERR, M_FD, M_BRS, M_ESI = 1, 2, 4, 8, 16, 32
+
+_CHANNEL_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}\Z")
+
+#: A compiled filter: (can_id & can_mask, can_mask, mode); mode 0 any frame, 1 standard ids
+#: only, 2 extended ids only, 3 never (python-can's rule for an "extended" that is not a bool).
+Filter = tuple[int, int, int]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Byte geometry of a channel file with ``ring_size`` slots."""
+
+    ring_size: int
+
+    @property
+    def mask(self) -> int:
+        return self.ring_size - 1
+
+    @property
+    def ring_offset(self) -> int:
+        return HEADER_BYTES + MAX_READERS * ENTRY_BYTES
+
+    @property
+    def total_bytes(self) -> int:
+        return self.ring_offset + self.ring_size * SLOT_BYTES
+
+    @staticmethod
+    def entry_word(index: int) -> int:
+        """First 'Q' word of reader entry ``index``."""
+        return (HEADER_BYTES + index * ENTRY_BYTES) // 8
+
+
+# ---------------------------------------------------------------- names and paths
+def validate_channel(channel: object) -> str:
+    """Channel name as used in file names; raise :class:`can.CanInitializationError` if unsafe."""
+    if isinstance(channel, int) and not isinstance(channel, bool):
+        channel = str(channel)
+    if not isinstance(channel, str) or not _CHANNEL_RE.match(channel):
+        raise CanInitializationError(
+            f"invalid canbrake channel name {channel!r}: use 1-64 characters from "
+            "A-Z a-z 0-9 _ . - , not starting with '.' or '-' (the name becomes the file "
+            "canbrake-<channel>.bus in the shared-memory directory)"
+        )
+    return channel
+
+
+def resolve_dir(shm_dir: Optional[str] = None) -> str:
+    """Directory holding channel files: ``shm_dir``, ``$CANBRAKE_SHM_DIR``, or ``/dev/shm``."""
+    d = shm_dir or os.environ.get("CANBRAKE_SHM_DIR")
+    if d:
+        return os.fspath(d)
+    if os.path.isdir("/dev/shm"):
+        return "/dev/shm"
+    import tempfile
+
+    return tempfile.gettempdir()
+
+
+def bus_path(directory: str, name: str) -> str:
+    return os.path.join(directory, f"canbrake-{name}.bus")
+
+
+def fifo_path(directory: str, name: str, token: int, kind: str) -> str:
+    """FIFO of the bus with ``token``; ``kind`` is ``"rx"`` or ``"tx"``."""
+    return os.path.join(directory, f"canbrake-{name}@{token}.{kind}")
+
+
+# ---------------------------------------------------------------- processes
+def proc_start_time(pid: int) -> int:
+    """Start time of ``pid`` in clock ticks since boot (0 when /proc is unavailable)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            data = f.read()
+        return int(data[data.rindex(b")") + 2 :].split()[19])
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+def pid_alive(pid: int, start_time: int) -> bool:
+    """True if the process ``pid`` started at ``start_time`` still runs (zombies are dead)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            data = f.read()
+    except FileNotFoundError:
+        return False
+    except OSError:
+        data = b""
+    if data:
+        try:
+            rest = data[data.rindex(b")") + 2 :].split()
+            if rest[0] in (b"Z", b"X", b"x"):
+                return False
+            return start_time == 0 or int(rest[19]) == start_time
+        except (ValueError, IndexError):
+            pass
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+# ---------------------------------------------------------------- filters
+def compile_filters(filters: Optional[can.typechecking.CanFilters]) -> Optional[tuple[Filter, ...]]:
+    """python-can filter dicts to (id & mask, mask, mode) tuples; ``None`` accepts everything."""
+    if not filters:
+        return None
+    out = []
+    for f in filters:
+        mask = int(f["can_mask"])
+        cid = int(f["can_id"]) & mask
+        if "extended" in f:
+            ext = f["extended"]  # type: ignore[typeddict-item]
+            mode = 2 if ext is True else 1 if ext is False else 3
+        else:
+            mode = 0
+        out.append((cid, mask, mode))
+    return tuple(out)
+
+
+def accepts(filters: tuple[Filter, ...], arbitration_id: int, extended: bool) -> bool:
+    """python-can's ``_matches_filters`` rule on compiled filters."""
+    for cid, mask, mode in filters:
+        if mode:
+            if mode == 3 or (mode == 2) != extended:
+                continue
+        if arbitration_id & mask == cid:
+            return True
+    return False
+
+
+def pushable(filters: Optional[tuple[Filter, ...]]) -> bool:
+    """True if ``filters`` fit in a reader entry (else the entry says "accept all")."""
+    return (
+        filters is not None
+        and len(filters) <= MAX_PUSHED_FILTERS
+        and all(0 <= c < 2**64 and 0 <= m < 2**64 for c, m, _ in filters)
+    )
+
+
+# ---------------------------------------------------------------- channel file
+def _read_header(fd: int) -> tuple[int, ...]:
+    raw = os.pread(fd, 48, 0)
+    if len(raw) < 48:
+        return (0,) * 6
+    return struct.unpack("<6Q", raw)
+
+
+def open_locked(path: str, ring_size: int, create: bool = True) -> Optional[int]:
+    """Open the channel file at ``path`` and return its fd with ``flock(LOCK_EX)`` held.
+
+    Creates and initialises the file when missing (``create``) or half-initialised (its creator
+    died before writing the magic). Retries when the file was unlinked between open and lock
+    (the last bus of a previous run removing it). Returns ``None`` if ``create`` is false and
+    there is no file.
+    """
+    for _ in range(1000):
+        flags = os.O_RDWR | (os.O_CREAT if create else 0)
+        try:
+            fd = os.open(path, flags, 0o660)
+        except FileNotFoundError:
+            return None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            st = os.fstat(fd)
+            try:
+                cur = os.stat(path)
+            except FileNotFoundError:
+                cur = None
+            if st.st_nlink == 0 or cur is None or (cur.st_ino, cur.st_dev) != (st.st_ino, st.st_dev):
+                os.close(fd)
+                continue
+            magic, version, ring, slot, readers, entry = _read_header(fd)
+            if magic == 0:
+                if not create:
+                    return fd  # half-initialised: only good for removal
+                _initialise(fd, ring_size)
+            elif (magic, version, slot, readers, entry) != (
+                MAGIC,
+                LAYOUT_VERSION,
+                SLOT_BYTES,
+                MAX_READERS,
+                ENTRY_BYTES,
+            ) or st.st_size != Layout(ring).total_bytes:
+                raise CanInitializationError(
+                    f"{path} is not a canbrake channel of this version (layout {LAYOUT_VERSION}); "
+                    "if no simulation uses it, remove it with "
+                    "canbrake.bus.memory.remove_channel(name, force=True)"
+                )
+            return fd
+        except BaseException:
+            os.close(fd)
+            raise
+    raise CanInitializationError(f"could not open {path}: it keeps being removed and re-created")
+
+
+def _initialise(fd: int, ring_size: int) -> None:
+    if ring_size < 16 or ring_size & (ring_size - 1):
+        raise ValueError(f"ring_size must be a power of two >= 16, got {ring_size}")
+    layout = Layout(ring_size)
+    os.ftruncate(fd, 0)
+    os.ftruncate(fd, layout.total_bytes)  # zero-filled
+    head = struct.pack("<6Q", 0, LAYOUT_VERSION, ring_size, SLOT_BYTES, MAX_READERS, ENTRY_BYTES)
+    os.pwrite(fd, head, 0)
+    os.pwrite(fd, struct.pack("<Q", MAGIC), 0)  # magic last: the file is usable from here on
+
+
+def ring_size_of(fd: int) -> int:
+    return _read_header(fd)[H_RING]
+
+
+def live_entries(q: memoryview) -> list[int]:
+    """First words of the occupied reader entries (caller holds the lock)."""
+    out = []
+    for i in range(MAX_READERS):
+        b = Layout.entry_word(i)
+        if q[b + E_TOKEN]:
+            out.append(b)
+    return out
+
+
+def free_entry(q: memoryview, b: int, directory: str, name: str) -> None:
+    """Release reader entry ``b`` and its FIFOs (caller holds the lock)."""
+    token = q[b + E_TOKEN]
+    if q[b + E_TX_WAITING] and q[H_TX_WAITERS]:
+        q[H_TX_WAITERS] = q[H_TX_WAITERS] - 1
+    for w in range(ENTRY_BYTES // 8):
+        q[b + w] = 0
+    q[H_READER_GEN] = q[H_READER_GEN] + 1
+    for kind in ("rx", "tx"):
+        try:
+            os.unlink(fifo_path(directory, name, token, kind))
+        except FileNotFoundError:
+            pass
+
+
+def reap_dead(q: memoryview, directory: str, name: str) -> list[int]:
+    """Free the entries of processes that died without shutting down; return their pids."""
+    dead = []
+    for b in live_entries(q):
+        pid, start = q[b + E_PID], q[b + E_START]
+        if not pid_alive(pid, start):
+            dead.append(pid)
+            free_entry(q, b, directory, name)
+    return dead
+
+
+def channel_fifos(directory: str, name: str) -> list[str]:
+    """Paths of every FIFO of channel ``name`` (live or left behind by crashed processes)."""
+    prefix = f"canbrake-{name}@"
+    try:
+        return [os.path.join(directory, f) for f in os.listdir(directory) if f.startswith(prefix)]
+    except FileNotFoundError:
+        return []
+
+
+def remove_fifos(directory: str, name: str) -> None:
+    for p in channel_fifos(directory, name):
+        try:
+            os.unlink(p)
+        except FileNotFoundError:
+            pass
+
+
+def _wake_all_fifos(directory: str, name: str) -> None:
+    for p in channel_fifos(directory, name):
+        try:
+            wfd = os.open(p, os.O_WRONLY | os.O_NONBLOCK)
+        except OSError:
+            continue
+        try:
+            os.write(wfd, b"\x01")
+        except OSError:
+            pass
+        finally:
+            os.close(wfd)
+
+
+# ---------------------------------------------------------------- public helpers
+def remove_channel(channel: object, shm_dir: Optional[str] = None, force: bool = False) -> bool:
+    """Remove the files of ``channel`` (for the orchestrator, after a run).
+
+    Entries of dead processes are reaped first. If live processes still have the channel open,
+    raise :class:`can.CanOperationError` naming them, unless ``force``: then their buses see the
+    channel closed (``recv``/``send`` raise ``CanOperationError``). Returns True if anything was
+    removed. Raises :class:`can.CanInitializationError` for an invalid name.
+    """
+    name = validate_channel(channel)
+    directory = resolve_dir(shm_dir)
+    path = bus_path(directory, name)
+    fd = open_locked(path, DEFAULT_RING_SIZE, create=False)
+    removed = False
+    if fd is not None:
+        try:
+            size = os.fstat(fd).st_size
+            import mmap
+
+            if _read_header(fd)[H_MAGIC] == MAGIC and size >= HEADER_BYTES + MAX_READERS * ENTRY_BYTES:
+                mm = mmap.mmap(fd, size)
+                q = memoryview(mm).cast("Q")
+                try:
+                    reap_dead(q, directory, name)
+                    pids = sorted({q[b + E_PID] for b in live_entries(q)})
+                    if pids and not force:
+                        raise CanOperationError(
+                            f"canbrake channel {name!r} is still open in process(es) {pids}; "
+                            "shut those buses down first or pass force=True"
+                        )
+                    q[H_CLOSED] = 1
+                finally:
+                    q.release()
+                    mm.close()
+            os.unlink(path)
+            removed = True
+        finally:
+            os.close(fd)  # releases the lock
+    before = channel_fifos(directory, name)
+    if force:
+        _wake_all_fifos(directory, name)
+    remove_fifos(directory, name)
+    return removed or bool(before)
+
+
+def list_channels(shm_dir: Optional[str] = None) -> list[str]:
+    """Names of the channels that have a file in the shared-memory directory."""
+    directory = resolve_dir(shm_dir)
+    try:
+        files = os.listdir(directory)
+    except FileNotFoundError:
+        return []
+    out = []
+    for f in files:
+        if f.startswith("canbrake-") and f.endswith(".bus"):
+            name = f[len("canbrake-") : -len(".bus")]
+            if _CHANNEL_RE.match(name):
+                out.append(name)
+    return sorted(out)
+
+
+def channel_pids(channel: object, shm_dir: Optional[str] = None) -> list[int]:
+    """Pids of the live processes with a bus open on ``channel`` (one per bus); reaps dead ones."""
+    name = validate_channel(channel)
+    directory = resolve_dir(shm_dir)
+    fd = open_locked(bus_path(directory, name), DEFAULT_RING_SIZE, create=False)
+    if fd is None:
+        return []
+    try:
+        if _read_header(fd)[H_MAGIC] != MAGIC:
+            return []
+        import mmap
+
+        mm = mmap.mmap(fd, os.fstat(fd).st_size)
+        q = memoryview(mm).cast("Q")
+        try:
+            reap_dead(q, directory, name)
+            return sorted(q[b + E_PID] for b in live_entries(q))
+        finally:
+            q.release()
+            mm.close()
+    finally:
+        os.close(fd)
+
+
+def is_enxio(err: OSError) -> bool:
+    return err.errno in (errno.ENXIO, errno.EPIPE, errno.ENOENT)
