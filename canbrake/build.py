@@ -123,7 +123,7 @@ class PlantAdapter:
 
 
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
-               progress: Any = None, codec: FrameCodec | None = None) -> Node:
+               progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build") -> Node:
     """One node of the run: ``role`` is "plant", "ecu" (with ``car``) or "recorder"."""
     codec = codec or FrameCodec(dbc.build_database(scn.n_cars))
     if role == "plant":
@@ -136,7 +136,12 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 
+        if bus_timing == "build":
+            from canbrake.bus.schedule import build_bus_timing
+
+            bus_timing = build_bus_timing(scn)
         return EcuNode(car, scn.n_cars, build_controller(scn, car), codec, dt_s=scn.control_period_s,
+                       bus_timing=bus_timing,
                        mode=scn.mode, send_path=build_send_path(scn, f"ecu{car}"),
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
@@ -147,14 +152,19 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
         from canbrake.nodes.recorder import RecorderNode
 
         return RecorderNode(scn.n_cars, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
+                            plant_io_on_bus=scn.bus.plant_io_on_bus,
                             log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
     raise ValueError(f"unknown node role {role!r}")
 
 
 def build_nodes(scn: Scenario, run_dir: Path | None, channel: str = "can0") -> list[Node]:
     """Every node of a run, plant last (it starts the first tick)."""
+    from canbrake.bus.schedule import build_bus_timing
+
     codec = FrameCodec(dbc.build_database(scn.n_cars))
+    timing = build_bus_timing(scn)  # one replica serves every node of an in-process run
     nodes: list[Node] = [build_node(scn, "recorder", run_dir=run_dir, channel=channel, codec=codec)]
-    nodes += [build_node(scn, "ecu", car=c, run_dir=run_dir, codec=codec) for c in range(1, scn.n_cars + 1)]
+    nodes += [build_node(scn, "ecu", car=c, run_dir=run_dir, codec=codec, bus_timing=timing)
+              for c in range(1, scn.n_cars + 1)]
     nodes.append(build_node(scn, "plant", run_dir=run_dir, codec=codec))
     return nodes

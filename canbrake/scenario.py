@@ -152,7 +152,12 @@ class BusConfig(_Model):
     backend: Literal["memory", "socketcan", "virtual"] = "memory"
     channel: str | None = Field(None, description="default: a fresh in-memory channel, or vcan0 for socketcan")
     interface: str | None = Field(None, description="any python-can interface name; overrides backend")
-    bitrate_bps: int = Field(500000, gt=0)
+    bitrate_bps: int = Field(500000, gt=0, le=1_000_000, description="classic CAN bit rate")
+    timing: Literal["ideal", "model"] = Field(
+        "ideal", description="ideal: frames arrive within the period (the papers' assumption); model: the CAN "
+                             "timing model (stuffing, arbitration, queueing) decides when each frame arrives (lockstep)")
+    plant_io_on_bus: bool = Field(False, description="count the plant's sensor frames as bus traffic "
+                                                     "(false: they stand in for each car's local wiring)")
     impairments: list[ImpairmentSpec] = Field(default_factory=list,
                                               description="see canbrake.bus.impair (delay, jitter, loss, ...)")
 

@@ -146,6 +146,17 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
     summary["bus_load"] = {k: busst.get(k) for k in ("bitrate_bps", "bus_load_mean", "bus_load_peak",
                                                       "latency_p50_s", "latency_p99_s", "latency_max_s",
                                                       "latency_model")}
+    lat: dict[str, Any] = {}
+    for e in ecus:
+        for kind, st in (e.get("bus_latency") or {}).items():
+            agg = lat.setdefault(kind, {"n": 0, "starved": 0, "late_frames": 0, "p99_s": 0.0, "max_s": 0.0})
+            agg["n"] += st["n"]
+            agg["starved"] += st["starved"]
+            agg["late_frames"] += st["late_frames"]
+            agg["p99_s"] = max(agg["p99_s"], st["p99_s"] or 0.0)
+            agg["max_s"] = max(agg["max_s"], st["max_s"] or 0.0)
+    if lat:
+        summary["bus_latency_in_loop"] = {"model": scn.bus.timing, **lat}
     summary["deadline_misses"] = {"plant": plant.get("deadline_misses", 0),
                                   "ecus": sum(e.get("deadline_misses", 0) for e in ecus),
                                   "late_periods": plant.get("late_periods", 0),

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import csv
 import json
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
+from typing import Any
 from pathlib import Path
 
 import can
@@ -31,7 +33,19 @@ class EcuStats:
     peer_stale_or_duplicate: int = 0
     peer_missing: int = 0        # (tick, peer) pairs computed without a value from that tick
     deadline_misses: int = 0     # realtime: computed before every peer's state arrived
+    frames_starved: int = 0      # timing model: frames that never won arbitration
     status: str = "running"
+    bus_latency: dict = field(default_factory=dict)  # timing model: per kind p50/p99/max (s)
+
+
+def _kind(aid: int) -> str:
+    if dbc.STATE_BASE < aid <= dbc.STATE_BASE + dbc.MAX_CARS:
+        return "state"
+    if dbc.BRAKE_CMD_BASE < aid <= dbc.BRAKE_CMD_BASE + dbc.MAX_CARS:
+        return "brake_cmd"
+    if dbc.HEARTBEAT_BASE <= aid <= dbc.HEARTBEAT_BASE + dbc.MAX_CARS:
+        return "heartbeat"
+    return "other"
 
 
 class EcuNode(Node):
@@ -40,7 +54,7 @@ class EcuNode(Node):
     def __init__(self, car: int, n_cars: int, controller: Controller, codec: FrameCodec, *, dt_s: float,
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
-                 crash_at_tick: int | None = None, lockstep_deadline: float = 0.5) -> None:
+                 crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None) -> None:
         self.car = car
         self.i = car - 1
         self.n = n_cars
@@ -57,6 +71,8 @@ class EcuNode(Node):
         self.stats = EcuStats()
         self.crash_at_tick = crash_at_tick
         self.lockstep_deadline = lockstep_deadline
+        self.bus_timing = bus_timing  # canbrake.bus.schedule.LockstepBusTiming or None
+        self._latency: dict[str, list[float]] = {}
         self._t0_wall: float | None = None
         self.k = -1
         self.phase = 0  # 0 waiting for sensor, 1 waiting for peers, 2 done for this tick
@@ -151,6 +167,13 @@ class EcuNode(Node):
 
     # ---------------------------------------------------------------- send
     def _emit(self, msg: can.Message, t_s: float, out: list[can.Message]) -> None:
+        if self.bus_timing is not None:
+            lat = self.bus_timing.latency_s(self.k, self.name, msg.arbitration_id, t_s)
+            self._latency.setdefault(_kind(msg.arbitration_id), []).append(lat)
+            if not math.isfinite(lat):  # starved by higher-priority traffic: never gets on the bus
+                self.stats.frames_starved += 1
+                return
+            t_s += lat
         out.extend(self.send_path.submit(msg, t_s))
 
     def _times(self, now: float, phase: int) -> tuple[float, float]:
@@ -241,5 +264,14 @@ class EcuNode(Node):
             self._csv_file.close()
             self._csv_file = None
         self.stats.status = "ok" if self.finished else status
+        for kind, vals in self._latency.items():
+            a = np.asarray(vals)
+            fin = a[np.isfinite(a)]
+            self.stats.bus_latency[kind] = {
+                "n": int(a.size), "starved": int(a.size - fin.size),
+                "p50_s": float(np.percentile(fin, 50)) if fin.size else None,
+                "p99_s": float(np.percentile(fin, 99)) if fin.size else None,
+                "max_s": float(fin.max()) if fin.size else None,
+                "late_frames": int((fin >= self.lockstep_deadline * self.dt).sum())}
         if self.out_dir is not None:
             (self.out_dir / f"ecu_c{self.car}_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))

@@ -44,7 +44,8 @@ class RecorderNode(Node):
     name = "recorder"
 
     def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
-                 log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0) -> None:
+                 log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
+                 plant_io_on_bus: bool = False) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
@@ -52,6 +53,7 @@ class RecorderNode(Node):
         self.log_path = Path(log_path) if log_path else None
         self.channel = channel
         self.epoch = epoch_s
+        self.plant_io_on_bus = plant_io_on_bus
         self._writer: can.Listener | None = None
         self._k = -1
         self._tick_frames: list[can.Message] = []
@@ -117,7 +119,7 @@ class RecorderNode(Node):
         out = []
         busy = 0.0
         for _phase, aid, data, msg in ordered:
-            if not is_sim_control(aid):
+            if not self._untimed(aid):
                 dur = frame_bits(aid, msg.is_extended_id, msg.dlc, data, stuffing="actual") / self.bitrate
                 t += dur
                 busy += dur
@@ -148,8 +150,16 @@ class RecorderNode(Node):
             self._rt_tick_start = m.timestamp
             if int.from_bytes(msg.data[:4], "little") == dbc.SYNC_END_TICK:
                 self.finished = True
-        if not is_sim_control(aid):
+        if not self._untimed(aid):
             self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual")
+
+    def _untimed(self, aid: int) -> bool:
+        """Frames that take no bus time in the accounting: barrier frames, and the plant's sensor
+        frames unless they are declared bus traffic (they stand in for local wiring)."""
+        if is_sim_control(aid):
+            return True
+        return not self.plant_io_on_bus and (dbc.SENSOR_BASE < aid <= dbc.SENSOR_BASE + self.n
+                                             or dbc.COUPLER_BASE < aid <= dbc.COUPLER_BASE + self.n)
 
     def _write(self, msgs: list[can.Message]) -> None:
         if self._writer is not None:
@@ -166,6 +176,7 @@ class RecorderNode(Node):
             "bitrate_bps": self.bitrate,
             "bus_load_mean": float(load.mean()),
             "bus_load_peak": float(load.max()),
+            "plant_io_on_bus": self.plant_io_on_bus,
             "latency_model": "lockstep: all frames of a phase queued at t_k, arbitration order, actual stuffing"
             if self.mode == "lockstep" else "not modelled in realtime mode",
             "latency_p50_s": float(np.percentile(lat, 50)),
