@@ -54,6 +54,9 @@ def _cmd_run(a: argparse.Namespace) -> int:
     _print_summary(summary, out)
     if summary["status"] == "interrupted":
         return EXIT_INTERRUPTED
+    if summary["status"] == "diverged":
+        print(f"canbrake: {summary['message']} (results kept in {out})", file=sys.stderr)
+        return EXIT_FAIL
     if summary["status"] != "ok":
         print(f"canbrake: run failed: {summary['message']} (logs kept in {out})", file=sys.stderr)
         return EXIT_FAIL

@@ -47,6 +47,13 @@ def convergence_time_s(t: np.ndarray, err_kmh: np.ndarray, band_kmh: float = DEF
 
 def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
     """Tracking, coupler, comfort and braking metrics of one trace."""
+    finite = np.all(np.isfinite(tr.speed_mps), axis=1) & np.all(np.isfinite(tr.position_m), axis=1)
+    if not finite.all():  # a diverged run: judge the part that was still a number
+        keep = np.nonzero(finite)[0]
+        last = int(keep[-1]) + 1 if keep.size else 1
+        tr = Trace(*(getattr(tr, f)[:last] if getattr(tr, f) is not None else None
+                     for f in ("t_s", "ref_speed_mps", "position_m", "speed_mps", "accel_mps2", "brake_cmd_n",
+                               "brake_applied_n", "deflection_m", "coupler_force_n", "observer_accel_mps2")))
     t = tr.t_s
     err_kmh = (tr.speed_mps - tr.ref_speed_mps[:, None]) * KMH
     tc = convergence_time_s(t, err_kmh, band_kmh)

@@ -102,6 +102,10 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
     plant = _load_json(run_dir / "plant_stats.json")
     busst = _load_json(run_dir / "bus_stats.json")
     ecus = [_load_json(run_dir / f"ecu_c{c}_stats.json") for c in range(1, n + 1)]
+    if outcome.get("status") == "ok" and plant.get("status") == "diverged":
+        outcome = {**outcome, "status": "diverged",
+                   "message": f"the closed loop diverged at t = {plant['extra'].get('diverged_at_s', 0):.3f} s: "
+                              f"{plant['extra'].get('message', '')}"}
     summary: dict[str, Any] = {
         "scenario": scn.name,
         "profile": scn.profile,

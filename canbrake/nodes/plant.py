@@ -188,7 +188,15 @@ class PlantNode(Node):
     def _advance(self, now: float) -> list[can.Message]:
         self.stats.commands_missed += int((~self._fresh).sum())
         self._record()
-        self.model.step(self.dt, self.cmd_n.copy())
+        try:
+            self.model.step(self.dt, self.cmd_n.copy())
+        except FloatingPointError as e:
+            # The closed loop went unstable (a result, not a crash): end the run for every node.
+            self.finished = True
+            self.stats.status = "diverged"
+            self.stats.extra["diverged_at_s"] = self.k * self.dt
+            self.stats.extra["message"] = str(e)  # type: ignore[assignment]
+            return self._end_frames()
         self.k += 1
         self.stats.ticks = self.k
         if self.progress is not None:
