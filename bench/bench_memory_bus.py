@@ -11,8 +11,9 @@ this same run, so machine load cancels out as far as it can. No assertions: numb
 Rows:
   virtual, 1 process      python-can ``virtual``: plant + ECU buses in one process, driven in turn
   canbrake, 1 process     the same driver on canbrake MemoryBus objects (per-frame cost, no wake-ups)
-  canbrake, N+1 procs     1 plant + N ECU processes (spawn), ``send`` per frame
-  canbrake, batched       same, bursts sent with ``MemoryBus.send_many`` (one wake-up per reader)
+  canbrake, send          1 plant + N ECU processes (spawn), ``send`` per frame
+  canbrake, send_many     same, bursts sent with ``MemoryBus.send_many`` (one wake-up per reader)
+  yield_before_sleep=False  same, readers block at once instead of yielding the CPU first
 """
 from __future__ import annotations
 
@@ -106,11 +107,11 @@ def run_one_process(factory: Callable[..., can.BusABC], n: int, seconds: float) 
 
 
 # ---------------------------------------------------------------- 1 plant + n ECU processes
-def ecu_process(i: int, channel: str, shm_dir: str, batch: bool, ready: "mp.Queue", done: "mp.Queue") -> None:
+def ecu_process(i: int, channel: str, shm_dir: str, batch: bool, yield_: bool, ready: "mp.Queue", done: "mp.Queue") -> None:
     from canbrake.bus.memory import MemoryBus
 
     logic = EcuLogic(i)
-    with MemoryBus(channel, can_filters=ecu_filters(i), shm_dir=shm_dir) as bus:
+    with MemoryBus(channel, can_filters=ecu_filters(i), shm_dir=shm_dir, yield_before_sleep=yield_) as bus:
         ready.put(i)
         while not logic.stop:
             m = bus.recv(10.0)
@@ -126,15 +127,16 @@ def ecu_process(i: int, channel: str, shm_dir: str, batch: bool, ready: "mp.Queu
         done.put((i, logic.next_k, bus.stats()))
 
 
-def run_processes(n: int, seconds: float, batch: bool, shm_dir: str) -> tuple[float, float]:
-    """Returns (ticks/s, ECU wake-ups per tick per ECU)."""
+def run_processes(n: int, seconds: float, batch: bool, shm_dir: str, yield_: bool = True) -> tuple[float, float, float]:
+    """Returns (ticks/s, wake-ups per tick per ECU, wake-ups per tick of the plant)."""
     from canbrake.bus.memory import MemoryBus
 
     ctx = mp.get_context("spawn")
-    channel = f"bench{os.getpid()}{'b' if batch else 's'}"
+    channel = f"bench{os.getpid()}{'b' if batch else 's'}{'y' if yield_ else ''}"
     ready, done = ctx.Queue(), ctx.Queue()
-    with MemoryBus(channel, can_filters=PLANT_FILTERS, shm_dir=shm_dir) as plant:
-        procs = [ctx.Process(target=ecu_process, args=(i, channel, shm_dir, batch, ready, done)) for i in range(n)]
+    with MemoryBus(channel, can_filters=PLANT_FILTERS, shm_dir=shm_dir, yield_before_sleep=yield_) as plant:
+        procs = [ctx.Process(target=ecu_process, args=(i, channel, shm_dir, batch, yield_, ready, done))
+                 for i in range(n)]
         for p in procs:
             p.start()
         for _ in range(n):
@@ -155,12 +157,13 @@ def run_processes(n: int, seconds: float, batch: bool, shm_dir: str) -> tuple[fl
                 got += _TICK.unpack_from(m.data)[0] == k
             k += 1
         rate = k / (time.perf_counter() - t0)
+        plant_wakeups = plant.stats().wakeups / max(k, 1)
         send(plant_frames(k, n, stop=1))
         results = [done.get(timeout=30) for _ in range(n)]
         for p in procs:
             p.join(timeout=30)
     wakeups = statistics.mean(s.wakeups for _, _, s in results) / max(k, 1)
-    return rate, wakeups
+    return rate, wakeups, plant_wakeups
 
 
 def main(argv: Optional[list[str]] = None) -> None:
@@ -191,19 +194,21 @@ def main(argv: Optional[list[str]] = None) -> None:
         base = med(lambda: run_one_process(virtual_factory, n, secs))
         rows.append(("python-can virtual, 1 process (baseline)", base, ""))
         rows.append(("canbrake MemoryBus, 1 process", med(lambda: run_one_process(memory_factory, n, secs)), ""))
-        for batch in (False, True):
-            runs = [run_processes(n, secs, batch, shm_dir) for _ in range(args.repeat)]
-            rate = statistics.median(r for r, _ in runs)
-            wk = statistics.median(w for _, w in runs)
-            label = f"canbrake MemoryBus, 1 plant + {n} ECU processes" + (", send_many" if batch else ", send")
-            rows.append((label, rate, f"{wk:.2f} wake-ups/tick/ECU"))
+        for batch, yield_ in ((False, True), (True, True), (True, False)):
+            runs = [run_processes(n, secs, batch, shm_dir, yield_) for _ in range(args.repeat)]
+            rate = statistics.median(r[0] for r in runs)
+            wk = statistics.median(r[1] for r in runs)
+            wp = statistics.median(r[2] for r in runs)
+            label = (f"canbrake, 1 plant + {n} ECU procs" + (", send_many" if batch else ", send")
+                     + ("" if yield_ else ", yield_before_sleep=False"))
+            rows.append((label, rate, f"wake-ups/tick: {wk:.2f} per ECU, {wp:.2f} plant"))
     finally:
         shutil.rmtree(shm_dir, ignore_errors=True)
 
     print(f"lockstep tick = SYNC + {n} sensor frames, {n} state frames, {n} commands; "
           f"{secs:g} s per row, median of {args.repeat}; {os.cpu_count()} CPUs")
     for label, rate, extra in rows:
-        print(f"  {label:<58} {rate:8.0f} ticks/s  x{rate / base:5.2f}  {extra}")
+        print(f"  {label:<62} {rate:7.0f} ticks/s  x{rate / base:5.2f}  {extra}")
 
 
 if __name__ == "__main__":

@@ -89,8 +89,8 @@ def child_wakeups(channel: str, ready, out) -> None:
         out.put((1 + len(rest) if first else 0, b.stats()))
 
 
-def child_echo(channel: str, n: int, ready, out) -> None:
-    with bus(channel, can_filters=[{"can_id": 0x10, "can_mask": 0x7FF}]) as b:
+def child_echo(channel: str, n: int, yield_: bool, ready, out) -> None:
+    with bus(channel, can_filters=[{"can_id": 0x10, "can_mask": 0x7FF}], yield_before_sleep=yield_) as b:
         ready.put(os.getpid())
         for _ in range(n):
             m = b.recv(TIMEOUT)
@@ -219,14 +219,15 @@ def test_filtered_out_frames_do_not_wake_a_reader_and_a_burst_wakes_once(shm_dir
     assert stats.wakeups == 2, stats  # one for the burst
 
 
-def test_ping_pong_never_loses_a_wake_up(shm_dir: Path) -> None:
+@pytest.mark.parametrize("yield_", [True, False])
+def test_ping_pong_never_loses_a_wake_up(shm_dir: Path, yield_: bool) -> None:
     n = 400
     ready, out = SPAWN.Queue(), SPAWN.Queue()
-    p = SPAWN.Process(target=child_echo, args=("pp", n, ready, out))
+    p = SPAWN.Process(target=child_echo, args=("pp", n, yield_, ready, out))
     p.start()
     try:
         ready.get(timeout=TIMEOUT)
-        with bus("pp", can_filters=[{"can_id": 0x11, "can_mask": 0x7FF}]) as b:
+        with bus("pp", can_filters=[{"can_id": 0x11, "can_mask": 0x7FF}], yield_before_sleep=yield_) as b:
             for k in range(n):
                 b.send(frame(0x10, k.to_bytes(2, "little")))
                 m = b.recv(2.0)  # a lost wake-up would show as a 2 s stall and None
@@ -426,6 +427,19 @@ def test_periodic_send_from_a_thread(shm_dir: Path) -> None:
         got = [rx.recv(1.0) for _ in range(5)]
         task.stop()
         assert all(m is not None and m.arbitration_id == 0x42 for m in got)
+
+
+def test_notifier_thread_and_own_frames_from_another_thread(shm_dir: Path) -> None:
+    with bus("ntf", receive_own_messages=True) as b:
+        reader = can.BufferedReader()
+        notifier = can.Notifier(b, [reader], timeout=0.1)
+        try:
+            time.sleep(0.1)  # the notifier thread blocks in recv on this same bus
+            b.send(frame(0x77, b"self"))
+            m = reader.get_message(2.0)
+            assert m is not None and m.arbitration_id == 0x77 and not m.is_rx
+        finally:
+            notifier.stop()
 
 
 def test_logger_and_log_reader_over_the_bus(shm_dir: Path, tmp_path: Path) -> None:

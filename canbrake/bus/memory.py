@@ -23,6 +23,9 @@ Design
   * Frames that went by while a reader slept were checked against its filters by the writers,
     so on waking it starts at ``wake_seq`` (or at ``write_seq`` after a timeout) and never
     scans, or overruns on, traffic it does not want.
+  * Before blocking, ``recv`` yields the CPU once (``sched_yield``; ``yield_before_sleep``) and
+    looks again: with more node processes than cores, the frames are usually there by then,
+    which saves the expensive cross-core sleep/wake-up. Never a spin: one yield, then block.
 
 Slow readers (choice: per bus, default overrun)
   * ``backpressure=False`` (default, like a CAN controller's receive FIFO): writers never wait.
@@ -162,8 +165,10 @@ class MemoryBus(BusABC):
     :param ring_size: frames in the shared ring (power of two), used by the bus creating the channel.
     :param shm_dir: directory of the channel files (default ``$CANBRAKE_SHM_DIR`` or ``/dev/shm``).
     :param fd: report :attr:`protocol` as CAN FD (CAN FD frames are carried either way).
-    :param yield_before_sleep: before blocking in ``recv``, give the CPU to runnable processes
-        once (``sched_yield``) and look again: fewer wake-ups when processes outnumber cores.
+    :param yield_before_sleep: before blocking in ``recv``, give the CPU once to processes that
+        are ready to run (``sched_yield``, a no-op on an idle CPU) and look again: when nodes
+        outnumber cores, the frames a reader waits for are often there by then, which saves
+        a sleep and a cross-core wake-up. One yield per blocking call, never a spin.
     :raises can.CanInitializationError: bad channel name, incompatible channel file, table full.
     """
 
@@ -178,7 +183,7 @@ class MemoryBus(BusABC):
         ring_size: int = DEFAULT_RING_SIZE,
         shm_dir: Optional[str] = None,
         fd: bool = False,
-        yield_before_sleep: bool = False,
+        yield_before_sleep: bool = True,
         **kwargs: Any,
     ) -> None:
         self._open = False
