@@ -121,8 +121,9 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         "wall_time_s": outcome.get("wall_time_s"),
         "ticks": plant.get("ticks", 0),
     }
-    if summary["ticks"] and outcome.get("wall_time_s"):
-        summary["real_time_factor"] = summary["ticks"] * scn.control_period_s / outcome["wall_time_s"]
+    if summary["ticks"] and plant.get("wall_time_s"):
+        # simulated seconds per wall second of the plant's loop (start-up of the processes excluded)
+        summary["real_time_factor"] = summary["ticks"] * scn.control_period_s / plant["wall_time_s"]
     sig = run_dir / "signals.csv"
     if sig.exists():
         cols = read_signals(sig)

@@ -1,0 +1,103 @@
+"""Node state machines and modes: realtime pacing, divergence, the plant's command handling."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from canbrake.bus import dbc
+from canbrake.bus.codec import FrameCodec
+from canbrake.nodes.base import frame
+from canbrake.nodes.plant import PlantNode
+from canbrake.run import run_scenario
+from canbrake.scenario import load_scenario
+
+from conftest import CASE1
+
+
+class _Exploding:
+    """A plant model that diverges on its third step."""
+
+    n_cars = 2
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, dt_s, brake_force_cmd_n):
+        self.steps += 1
+        if self.steps == 3:
+            raise FloatingPointError("state not finite")
+
+    def measurements(self):
+        z = np.zeros(2)
+        return {"position_m": z, "speed_mps": z, "accel_mps2": z, "applied_brake_n": z,
+                "deflection_m": np.zeros(1), "coupler_force_n": np.zeros(1)}
+
+
+def _plant(model, n_ticks=10):
+    codec = FrameCodec(dbc.build_database(2))
+    return codec, PlantNode(model, codec, dt_s=0.01, n_ticks=n_ticks, reference=lambda t: (10.0, 1.0))
+
+
+def _finish_tick(codec, plant, k):
+    out = []
+    for c in (1, 2):
+        out += plant.handle(frame(dbc.CMD_DONE_BASE + c, codec[f"CMD_DONE_C{c}"].encode({"Tick": k})), 0.0)
+    return out
+
+
+def test_plant_waits_for_every_command_done_then_advances():
+    codec, plant = _plant(_Exploding(), n_ticks=5)
+    first = plant.start(0.0)
+    assert first[0].arbitration_id == dbc.SYNC_ID
+    assert plant.handle(frame(dbc.CMD_DONE_BASE + 1, codec["CMD_DONE_C1"].encode({"Tick": 0})), 0.0) == []
+    # a barrier frame of another tick does not count
+    assert plant.handle(frame(dbc.CMD_DONE_BASE + 2, codec["CMD_DONE_C2"].encode({"Tick": 7})), 0.0) == []
+    nxt = plant.handle(frame(dbc.CMD_DONE_BASE + 2, codec["CMD_DONE_C2"].encode({"Tick": 0})), 0.0)
+    assert codec["SYNC"].decode(nxt[0].data)["Tick"] == 1 and plant.k == 1
+
+
+def test_plant_uses_newest_valid_command_and_rejects_bad_crc_and_old_frames():
+    codec, plant = _plant(_Exploding(), n_ticks=50)
+    plant.start(0.0)
+    c1 = codec["BRAKE_CMD_C1"]
+    plant.handle(frame(dbc.BRAKE_CMD_BASE + 1, c1.encode({"BrakeForce": 1000.0}, counter=0)), 0.0)
+    assert plant.cmd_n[0] == 1000.0
+    bad = bytearray(c1.encode({"BrakeForce": 5000.0}, counter=0))
+    bad[3] ^= 0x10
+    plant.handle(frame(dbc.BRAKE_CMD_BASE + 1, bytes(bad)), 0.0)
+    assert plant.cmd_n[0] == 1000.0 and plant.stats.commands_corrupted == 1
+    _finish_tick(codec, plant, 0)
+    _finish_tick(codec, plant, 1)  # tick 1: car 1's command lost -> held (zero-order hold), counted
+    assert plant.stats.commands_missed == 1 + 2  # tick 0: car 2 missing; tick 1: both
+    # a delayed frame from tick 0 arriving in tick 2 is older than the one in hand: ignored
+    plant.handle(frame(dbc.BRAKE_CMD_BASE + 1, c1.encode({"BrakeForce": 9.0}, counter=0)), 0.0)
+    assert plant.cmd_n[0] == 1000.0
+
+
+def test_diverging_plant_ends_the_run_for_everyone():
+    codec, plant = _plant(_Exploding(), n_ticks=50)
+    plant.start(0.0)
+    _finish_tick(codec, plant, 0)
+    _finish_tick(codec, plant, 1)
+    out = _finish_tick(codec, plant, 2)
+    assert plant.finished and plant.stats.status == "diverged"
+    assert codec["SYNC"].decode(out[-1].data)["Tick"] == dbc.SYNC_END_TICK
+
+
+def test_realtime_mode_is_paced_by_the_wall_clock(tmp_path):
+    scn = load_scenario(CASE1, profile="realistic", overrides={"mode": "realtime", "duration_s": 0.5})
+    s = run_scenario(scn, tmp_path, backend="memory", plots=False)
+    assert s["status"] == "ok", s["message"]
+    assert s["ticks"] == 50
+    # never faster than real time (a lower bound is robust on a loaded machine)
+    assert s["real_time_factor"] <= 1.05
+    dm = s["deadline_misses"]
+    assert isinstance(dm["plant"], int) and isinstance(dm["ecus"], int) and dm["max_lateness_s"] >= 0
+
+
+def test_virtual_and_inprocess_refuse_realtime(tmp_path):
+    from canbrake.scenario import ScenarioError
+
+    scn = load_scenario(CASE1, overrides={"mode": "realtime", "duration_s": 0.1})
+    with pytest.raises(ScenarioError, match="lockstep only"):
+        run_scenario(scn, tmp_path, backend="virtual")
