@@ -45,6 +45,13 @@ def fields(m: can.Message) -> tuple:
             bytes(m.data), m.is_fd, m.bitrate_switch, m.error_state_indicator)
 
 
+def assert_sleepers_consistent(b: MemoryBus) -> None:
+    """The shared sleeper count (writers skip the wake scan when it is 0) matches the flags."""
+    q = b._q
+    flags = sum(q[e + shm.E_SLEEPING] for e in shm.live_entries(q))
+    assert q[shm.H_SLEEPERS] == flags
+
+
 def wait_for_pids(channel: str, n: int) -> None:
     end = time.monotonic() + TIMEOUT
     while len(channel_pids(channel)) < n:
@@ -233,7 +240,9 @@ def test_ping_pong_never_loses_a_wake_up(shm_dir: Path, yield_: bool) -> None:
                 m = b.recv(2.0)  # a lost wake-up would show as a 2 s stall and None
                 assert m is not None and int.from_bytes(m.data, "little") == k, f"round trip {k}"
             mine = b.stats()
-        theirs = out.get(timeout=TIMEOUT)
+            theirs = out.get(timeout=TIMEOUT)
+            p.join(TIMEOUT)
+            assert_sleepers_consistent(b)
     finally:
         p.join(TIMEOUT)
     # every blocking recv was ended by a wake-up, never by running out of time
@@ -353,9 +362,22 @@ def test_crashed_reader_and_crashed_lock_holder_do_not_block_writers(shm_dir: Pa
         time.sleep(0.2)
         os.kill(sleeper.pid, signal.SIGKILL)
         sleeper.join(TIMEOUT)
-        for k in range(100):
-            tx.send(frame(1, b"z"))  # wakes the dead reader: must not raise nor block
+        tx.send(frame(1, b"z"))  # wakes the dead reader: must not raise nor block
         assert channel_pids("crash") == [os.getpid()]
+        assert_sleepers_consistent(tx)
+
+    ready = SPAWN.Queue()
+    sleeper = SPAWN.Process(target=child_block_forever, args=("crash", ready, False))
+    sleeper.start()
+    ready.get(timeout=TIMEOUT)
+    with bus("crash") as tx:
+        time.sleep(0.2)
+        os.kill(sleeper.pid, signal.SIGKILL)
+        sleeper.join(TIMEOUT)
+        assert channel_pids("crash") == [os.getpid()]  # reaped while marked asleep
+        assert_sleepers_consistent(tx)
+        for k in range(100):
+            tx.send(frame(1, b"z"))
 
         locker = SPAWN.Process(target=child_die_holding_lock, args=("crash",))
         locker.start()

@@ -91,6 +91,7 @@ from canbrake.bus.memory_shm import (
     F_OWN,
     H_CLOSED,
     H_READER_GEN,
+    H_SLEEPERS,
     H_TOKEN,
     H_TX_WAITERS,
     H_WRITE_SEQ,
@@ -410,6 +411,7 @@ class MemoryBus(BusABC):
         q, mv, pack = self._q, self._mv, SLOT_HEAD.pack_into
         token, eb = self._token, self._eb
         deadline: Optional[float] = None
+        waiting = False  # our E_TX_WAITING flag is (or may be) set
         with self._txlock:
             while True:
                 wake: list[int] = []
@@ -427,10 +429,11 @@ class MemoryBus(BusABC):
                         if not q[eb + E_TX_WAITING]:
                             q[eb + E_TX_WAITING] = 1
                             q[H_TX_WAITERS] = q[H_TX_WAITERS] + 1
+                        waiting = True
                         b_pid, b_start = q[blocker + E_PID], q[blocker + E_START]
                         b_lag = w + n - self._bp_position(blocker, w)
                     else:
-                        if q[eb + E_TX_WAITING]:
+                        if waiting and q[eb + E_TX_WAITING]:
                             q[eb + E_TX_WAITING] = 0
                             q[H_TX_WAITERS] = q[H_TX_WAITERS] - 1
                         base, mask = self._ring_off, self._ring_mask
@@ -446,7 +449,7 @@ class MemoryBus(BusABC):
                             # them, so a bus that mostly sends is not overrun by itself
                             self._seq = w + n
                             q[eb + E_READ_SEQ] = w + n
-                        for pb, ptok, pfilt, pcache in self._peers:
+                        for pb, ptok, pfilt, pcache in self._peers if q[H_SLEEPERS] else ():
                             if not q[pb + E_SLEEPING]:
                                 continue  # awake readers find the frames themselves
                             if pfilt is None:
@@ -465,6 +468,7 @@ class MemoryBus(BusABC):
                                     continue
                             q[pb + E_WAKE_SEQ] = hit
                             q[pb + E_SLEEPING] = 0
+                            q[H_SLEEPERS] = q[H_SLEEPERS] - 1
                             q[pb + E_WAKEUPS] = q[pb + E_WAKEUPS] + 1
                             wake.append(ptok)
                 finally:
@@ -703,6 +707,7 @@ class MemoryBus(BusABC):
                     idle = q[H_WRITE_SEQ] == self._seq
                     if idle:
                         q[sleep_w] = 1
+                        q[H_SLEEPERS] = q[H_SLEEPERS] + 1
                 finally:
                     self._unlock()
                 if idle:
@@ -710,8 +715,14 @@ class MemoryBus(BusABC):
                     try:
                         self._sleep(deadline)
                     except BaseException:
-                        q[sleep_w] = 0
                         self._fifo_dirty = True
+                        self._lock()
+                        try:
+                            if q[sleep_w]:
+                                q[sleep_w] = 0
+                                q[H_SLEEPERS] = q[H_SLEEPERS] - 1
+                        finally:
+                            self._unlock()
                         raise
                 self._fetch()
                 if buf:
@@ -750,6 +761,7 @@ class MemoryBus(BusABC):
         try:
             if q[b + E_SLEEPING]:  # never woken: nothing published meanwhile concerns us
                 q[b + E_SLEEPING] = 0
+                q[H_SLEEPERS] = q[H_SLEEPERS] - 1
                 self._seq = max(self._seq, q[H_WRITE_SEQ])
             else:  # woken just now: its byte may still be on its way
                 self._seq = max(self._seq, q[b + E_WAKE_SEQ])

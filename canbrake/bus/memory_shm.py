@@ -12,7 +12,7 @@ File layout (little endian; every shared index is an aligned 8-byte word, read a
 through a ``memoryview`` cast to ``'Q'`` so no reader ever sees a torn value)::
 
     [0, 4096)            header: magic, layout version, geometry, write_seq (own cache line),
-                         reader_gen, token counter, tx-waiter count, closed flag
+                         reader_gen, token counter, tx-waiter count, closed flag, sleeper count
     [4096, +64*512)      reader table: one 512-byte entry per open bus (token, pid, process
                          start time, flags, read_seq, sleeping, wake_seq, wake-up counter,
                          tx_waiting, pushed-down filters)
@@ -54,6 +54,7 @@ H_READER_GEN = 16  # byte 128
 H_TOKEN = 17
 H_TX_WAITERS = 18
 H_CLOSED = 19
+H_SLEEPERS = 20  # number of entries with E_SLEEPING set: writers skip the wake scan when 0
 
 # reader-entry words (relative to the entry's first word)
 E_TOKEN, E_PID, E_START, E_FLAGS, E_NFILT = 0, 1, 2, 3, 4
@@ -299,6 +300,8 @@ def free_entry(q: memoryview, b: int, directory: str, name: str) -> None:
     token = q[b + E_TOKEN]
     if q[b + E_TX_WAITING] and q[H_TX_WAITERS]:
         q[H_TX_WAITERS] = q[H_TX_WAITERS] - 1
+    if q[b + E_SLEEPING] and q[H_SLEEPERS]:
+        q[H_SLEEPERS] = q[H_SLEEPERS] - 1
     for w in range(ENTRY_BYTES // 8):
         q[b + w] = 0
     q[H_READER_GEN] = q[H_READER_GEN] + 1
