@@ -16,8 +16,7 @@ import yaml
 EXIT_OK, EXIT_FAIL, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
-class InputError(Exception):
-    """Bad input from the user: printed as one line, exit status 2."""
+from canbrake.errors import InputError  # noqa: E402  (re-exported for callers)
 
 
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
@@ -34,7 +33,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
-    from canbrake.run import check_buildable, run_scenario
+    from canbrake.run import preflight, run_scenario
     from canbrake.scenario import load_scenario
 
     overrides = _parse_set(a.set or [])
@@ -45,7 +44,7 @@ def _cmd_run(a: argparse.Namespace) -> int:
     if a.mode is not None:
         overrides["mode"] = a.mode
     scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
-    check_buildable(scn)
+    preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
     print(f"canbrake: running {scn.name} ({scn.n_cars} cars, {scn.duration_s:g} s, {scn.mode}, "
           f"bus {a.bus or scn.bus.backend}) -> {out}", file=sys.stderr)

@@ -292,15 +292,7 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
     """
     from canbrake.analysis.summary import finalize_run
 
-    choice = choose_bus(scn, backend, channel, interface)
-    check_buildable(scn)
-    if choice.backend == "socketcan" and choice.interface == "socketcan":
-        from canbrake.bus.vcan import VcanError, check_socketcan_channel
-
-        try:
-            check_socketcan_channel(choice.channel or "vcan0")
-        except VcanError as e:
-            raise ScenarioError(str(e)) from None
+    choice = preflight(scn, backend, channel, interface)
     run_dir = prepare_run_dir(scn, out_dir, dbc_path)
     try:
         if choice.backend in ("virtual", "inprocess"):
@@ -311,6 +303,27 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
         if choice.backend == "memory":
             _remove_memory_channel(choice.channel)
     return finalize_run(scn, run_dir, choice.describe(), outcome, plots=plots)
+
+
+def preflight(scn: Scenario, backend: str | None = None, channel: str | None = None,
+              interface: str | None = None, source: str | None = None) -> BusChoice:
+    """Every check that can fail on bad input, before anything is written or started.
+    Raises :class:`ScenarioError` (exit 2); ``source`` (the scenario file) prefixes the message."""
+    try:
+        choice = choose_bus(scn, backend, channel, interface)
+        check_buildable(scn)
+        if choice.backend == "socketcan" and choice.interface == "socketcan":
+            from canbrake.bus.vcan import VcanError, check_socketcan_channel
+
+            try:
+                check_socketcan_channel(choice.channel or "vcan0")
+            except VcanError as e:
+                raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+    except ScenarioError as e:
+        if source and not str(e).startswith(source) and not str(e).startswith("--"):
+            raise ScenarioError(f"{source}: {e}") from None
+        raise
+    return choice
 
 
 def check_buildable(scn: Scenario) -> None:

@@ -32,7 +32,7 @@ def _iter_frames(log: str) -> Iterable[can.Message]:
 
 def decode_log(log: str, dbc_path: str | None, out: TextIO, only: str | None = None) -> int:
     """Print one decoded line per frame; returns the exit status."""
-    from canbrake.cli import InputError
+    from canbrake.errors import InputError
 
     if dbc_path is None and log != "-" and (Path(log).parent / "canbrake.dbc").exists():
         dbc_path = str(Path(log).parent / "canbrake.dbc")
