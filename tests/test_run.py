@@ -151,3 +151,16 @@ def test_ctrl_c_ends_run_cleanly_and_reaps_every_process(tmp_path):
     assert not [k for k in kids if alive(k)]
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["status"] == "interrupted" and s["ticks"] > 0
+
+
+def test_case1_acceptance_over_the_bus(tmp_path):
+    """Issue 3's bar, through the same node code and frames as `canbrake run`: every coupler
+    deflection within ±1 cm throughout, every car within 0.5 km/h of v* after convergence."""
+    scn = load_scenario(CASE1)
+    s = run_scenario(scn, tmp_path, backend="inprocess", plots=False)
+    assert s["status"] == "ok" and s["ticks"] == scn.n_ticks
+    m = s["metrics"]
+    assert m["max_abs_deflection_m"] <= 0.01
+    assert m["convergence_time_s"] is not None and m["convergence_time_s"] < 1.0
+    assert m["speed_max_abs_error_after_convergence_kmh"] <= 0.5
+    assert max(abs(e) for e in m["final_speed_error_kmh"]) < 0.5
