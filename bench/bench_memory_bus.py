@@ -13,7 +13,7 @@ Rows:
   canbrake, 1 process     the same driver on canbrake MemoryBus objects (per-frame cost, no wake-ups)
   canbrake, send          1 plant + N ECU processes (spawn), ``send`` per frame
   canbrake, send_many     same, bursts sent with ``MemoryBus.send_many`` (one wake-up per reader)
-  yield_before_sleep=False  same, readers block at once instead of yielding the CPU first
+  no yield                same, ``yield_before_sleep=False``: readers block at once
 """
 from __future__ import annotations
 
@@ -186,29 +186,44 @@ def main(argv: Optional[list[str]] = None) -> None:
     def memory_factory(filters: list[dict]) -> can.BusABC:
         return MemoryBus(f"inproc{os.getpid()}", can_filters=filters, shm_dir=shm_dir)
 
-    rows: list[tuple[str, float, str]] = []
-    try:
-        def med(f: Callable[[], float]) -> float:
-            return statistics.median(f() for _ in range(args.repeat))
+    def one_process(factory: Callable[..., can.BusABC]) -> Callable[[], tuple[float, str]]:
+        return lambda: (run_one_process(factory, n, secs), "")
 
-        base = med(lambda: run_one_process(virtual_factory, n, secs))
-        rows.append(("python-can virtual, 1 process (baseline)", base, ""))
-        rows.append(("canbrake MemoryBus, 1 process", med(lambda: run_one_process(memory_factory, n, secs)), ""))
-        for batch, yield_ in ((False, True), (True, True), (True, False)):
-            runs = [run_processes(n, secs, batch, shm_dir, yield_) for _ in range(args.repeat)]
-            rate = statistics.median(r[0] for r in runs)
-            wk = statistics.median(r[1] for r in runs)
-            wp = statistics.median(r[2] for r in runs)
-            label = (f"canbrake, 1 plant + {n} ECU procs" + (", send_many" if batch else ", send")
-                     + ("" if yield_ else ", yield_before_sleep=False"))
-            rows.append((label, rate, f"wake-ups/tick: {wk:.2f} per ECU, {wp:.2f} plant"))
+    def processes(batch: bool, yield_: bool) -> Callable[[], tuple[float, str]]:
+        def run() -> tuple[float, str]:
+            rate, wk, wp = run_processes(n, secs, batch, shm_dir, yield_)
+            return rate, f"wake-ups/tick: {wk:.2f} per ECU, {wp:.2f} plant"
+        return run
+
+    rows: list[tuple[str, Callable[[], tuple[float, str]]]] = [
+        ("python-can virtual, 1 process (baseline)", one_process(virtual_factory)),
+        ("canbrake MemoryBus, 1 process", one_process(memory_factory)),
+        (f"canbrake, 1 plant + {n} ECU procs, send", processes(False, True)),
+        (f"canbrake, 1 plant + {n} ECU procs, send_many", processes(True, True)),
+        (f"canbrake, 1 plant + {n} ECU procs, send_many, no yield", processes(True, False)),
+    ]
+    # rows run in turn, `repeat` rounds: each ratio is against the baseline of its own round,
+    # so a change of machine load between rounds cancels out
+    results: dict[str, list[tuple[float, float, str]]] = {label: [] for label, _ in rows}
+    load0 = os.getloadavg()[0]
+    try:
+        for _ in range(args.repeat):
+            base = 0.0
+            for label, run in rows:
+                rate, extra = run()
+                base = base or rate
+                results[label].append((rate, rate / base, extra))
     finally:
         shutil.rmtree(shm_dir, ignore_errors=True)
 
-    print(f"lockstep tick = SYNC + {n} sensor frames, {n} state frames, {n} commands; "
-          f"{secs:g} s per row, median of {args.repeat}; {os.cpu_count()} CPUs")
-    for label, rate, extra in rows:
-        print(f"  {label:<62} {rate:7.0f} ticks/s  x{rate / base:5.2f}  {extra}")
+    print(f"lockstep tick = SYNC + {n} sensor frames, {n} state frames, {n} commands; {secs:g} s per "
+          f"row, median of {args.repeat} rounds; {os.cpu_count()} CPUs, load average "
+          f"{load0:.1f} -> {os.getloadavg()[0]:.1f}")
+    for label, runs in results.items():
+        rate = statistics.median(r[0] for r in runs)
+        ratio = statistics.median(r[1] for r in runs)
+        extra = sorted(runs)[len(runs) // 2][2]
+        print(f"  {label:<50} {rate:7.0f} ticks/s  x{ratio:5.2f}  {extra}")
 
 
 if __name__ == "__main__":

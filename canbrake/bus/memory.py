@@ -39,11 +39,13 @@ Slow readers (choice: per bus, default overrun)
     :class:`can.CanTimeoutError` naming the slow reader's pid. Every wait slice (0.1 s) checks
     whether that reader's process is still alive; a dead one is reaped and the writer goes on.
 
-Lifecycle: the first bus on a channel creates its file, the last ``shutdown`` removes it.
+Lifecycle: the first bus on a channel creates its file (and fixes its ``ring_size``), the last
+``shutdown`` removes it.
 Entries of crashed processes are found by pid and process start time and reaped (on open,
 shutdown, a failed wake-up, a blocked send, :func:`channel_pids`, :func:`remove_channel`).
 :func:`remove_channel` cleans up after a run. A bus must not be used across ``fork()``: open a
-new one in the child (``spawn`` start method is fine).
+new one in the child (``spawn`` start method is fine). Any thread may send; one thread at a
+time may receive (python-can's ``Notifier`` thread is fine).
 
 Memory ordering relies on x86-64's total store order for the lock-free reads of ``write_seq``
 and the frame slots (readers re-check ``write_seq`` after copying, a seqlock-style check).
@@ -66,7 +68,6 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any, Optional
 
-import can
 from can import BusABC, BusState, CanProtocol, Message
 from can.exceptions import CanInitializationError, CanOperationError, CanTimeoutError
 from can.typechecking import AutoDetectedConfig, CanFilters
@@ -213,6 +214,7 @@ class MemoryBus(BusABC):
         self._fifo_dirty = False  # True when a stale wake-up byte may sit in our rx FIFO
         self._n_sent = self._n_recv = self._n_sleeps = self._n_spurious = 0
         self._n_lost = self._n_overruns = self._n_send_waits = 0
+        self._wakeups_seen = 0  # last E_WAKEUPS read, so stats() still works after shutdown
         self._token = 0
         self._rx_fd = self._tx_fd = -1
 
@@ -792,7 +794,9 @@ class MemoryBus(BusABC):
 
     def stats(self) -> MemoryBusStats:
         """Counters of this bus; ``wakeups`` comes from shared memory (counted by writers)."""
-        wakeups = self._q[self._eb + E_WAKEUPS] if self._open and not self._forked else 0
+        if self._open and not self._forked:
+            self._wakeups_seen = self._q[self._eb + E_WAKEUPS]
+        wakeups = self._wakeups_seen
         return MemoryBusStats(
             frames_sent=self._n_sent,
             frames_received=self._n_recv,
@@ -817,6 +821,8 @@ class MemoryBus(BusABC):
         super().shutdown()
         if not self._open:
             return
+        if not self._forked:
+            self.stats()  # keep the final shared counters
         self._open = False
         _open_buses.discard(self)
         if not self._forked:
