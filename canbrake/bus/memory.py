@@ -59,7 +59,6 @@ import math
 import mmap
 import os
 import select
-import struct
 import sys
 import threading
 import time
@@ -114,7 +113,10 @@ from canbrake.bus.memory_shm import (
 
 __all__ = ["MemoryBus", "MemoryBusStats", "remove_channel", "list_channels", "channel_pids"]
 
-_SLOT_PEEK = struct.Struct("<IIB")  # arbitration id, sender token, flags (at slot offset 8)
+#: frame flags -> (extended, remote, error, fd, bitrate switch, error state indicator)
+_FLAG_BITS = tuple(
+    tuple(bool(f & bit) for bit in (M_EXT, M_RTR, M_ERR, M_FD, M_BRS, M_ESI)) for f in range(64)
+)
 _WAIT_SLICE_S = 0.1  # a writer blocked by a backpressure reader re-checks that reader's pid this often
 _open_buses: "weakref.WeakSet[MemoryBus]" = weakref.WeakSet()
 
@@ -597,58 +599,43 @@ class MemoryBus(BusABC):
         # writers do not start seq x + n before it has read x.
         slack = 0 if self._backpressure else 1
         start = max(s, w - n + slack)
-        mv, unpack, peek = self._mv, SLOT_HEAD.unpack_from, _SLOT_PEEK.unpack_from
+        mv, unpack, flag_bits, slot_bytes = self._mv, SLOT_HEAD.unpack_from, _FLAG_BITS, SLOT_BYTES
         own, token, filt, cache, ch = self._own, self._token, self._filters_c, self._accept_cache, self._name
-        got: list[tuple[int, Message]] = []
+        msgs: list[Message] = []
+        seqs: list[int] = []
         for seq in range(start, w):
-            off = base + (seq & mask) * SLOT_BYTES
-            aid, tok, flags = peek(mv, off + 8)
+            off = base + (seq & mask) * slot_bytes
+            ts, aid, tok, flags, dlc, ln, _ = unpack(mv, off)
             if tok == token:
                 if not own:
                     continue
                 is_rx = False
             else:
                 is_rx = True
+            ext, rtr, err, fd, brs, esi = flag_bits[flags & 63]
             if filt is not None:
                 key = aid | (flags & M_EXT) << 32
                 ok = cache.get(key)
                 if ok is None:
-                    ok = cache[key] = accepts(filt, aid, bool(flags & M_EXT))
+                    ok = cache[key] = accepts(filt, aid, ext)
                     if len(cache) > 4096:
                         cache.clear()
                 if not ok:
                     continue
-            ts, _, _, _, dlc, ln, _ = unpack(mv, off)
             if ln > MAX_DATA:
                 ln = MAX_DATA
-            got.append(
-                (
-                    seq,
-                    Message(
-                        ts,
-                        aid,
-                        bool(flags & M_EXT),
-                        bool(flags & M_RTR),
-                        bool(flags & M_ERR),
-                        ch,
-                        dlc,
-                        bytearray(mv[off + DATA_OFFSET : off + DATA_OFFSET + ln]),
-                        bool(flags & M_FD),
-                        is_rx,
-                        bool(flags & M_BRS),
-                        bool(flags & M_ESI),
-                    ),
-                )
-            )
+            off += DATA_OFFSET
+            msgs.append(Message(ts, aid, ext, rtr, err, ch, dlc, bytearray(mv[off : off + ln]), fd, is_rx, brs, esi))
+            seqs.append(seq)
         # seqlock-style check: a slot may have been overwritten while we copied it
         valid_from = q[H_WRITE_SEQ] - n + slack
         lost = 0
         if valid_from > s:
             lost = valid_from - s
-            got = [g for g in got if g[0] >= valid_from]
+            msgs = [m for m, sq in zip(msgs, seqs) if sq >= valid_from]
             w = max(w, valid_from)
         self._seq = w
-        self._rxbuf.extend(m for _, m in got)
+        self._rxbuf.extend(msgs)
         self._publish_read_seq()
         if lost:
             self._n_lost += lost
