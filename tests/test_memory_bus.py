@@ -254,7 +254,7 @@ def test_recv_timeout_semantics(shm_dir: Path) -> None:
     with bus("to") as rx, bus("to") as tx, bus("to", can_filters=[{"can_id": 1, "can_mask": 0x7FF}]) as picky:
         t = time.monotonic()
         assert rx.recv(0) is None
-        assert time.monotonic() - t < 0.05
+        assert time.monotonic() - t < 0.1
         t = time.monotonic()
         assert rx.recv(0.2) is None
         assert 0.2 <= time.monotonic() - t < 1.0
