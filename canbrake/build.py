@@ -79,6 +79,11 @@ def build_plant_model(scn: Scenario):
     )
 
 
+def needs_barrier(scn: Scenario) -> bool:
+    """Lockstep needs the *_DONE barrier frames only when a frame can be lost, delayed or late."""
+    return bool(scn.bus.impairments) or scn.bus.timing == "model"
+
+
 def build_controller(scn: Scenario, car: int) -> Controller:
     """Controller of car ``car`` (1-based)."""
     return make_controller(scn.controller.name, scn.controller.params, car_index=car - 1, n_cars=scn.n_cars,
@@ -132,7 +137,8 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
         return PlantNode(PlantAdapter(build_plant_model(scn)), codec, dt_s=scn.control_period_s,
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                          coupler_sensors=scn.plant.coupler_sensors, heartbeat_period_s=scn.ecu.heartbeat_period_s,
-                         out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn))
+                         out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
+                         barrier=needs_barrier(scn))
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 
@@ -141,7 +147,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
 
             bus_timing = build_bus_timing(scn)
         return EcuNode(car, scn.n_cars, build_controller(scn, car), codec, dt_s=scn.control_period_s,
-                       bus_timing=bus_timing,
+                       bus_timing=bus_timing, barrier=needs_barrier(scn),
                        mode=scn.mode, send_path=build_send_path(scn, f"ecu{car}"),
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
@@ -152,7 +158,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
         from canbrake.nodes.recorder import RecorderNode
 
         return RecorderNode(scn.n_cars, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
-                            plant_io_on_bus=scn.bus.plant_io_on_bus,
+                            plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn),
                             log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
     raise ValueError(f"unknown node role {role!r}")
 

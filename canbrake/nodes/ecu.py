@@ -54,7 +54,8 @@ class EcuNode(Node):
     def __init__(self, car: int, n_cars: int, controller: Controller, codec: FrameCodec, *, dt_s: float,
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
-                 crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None) -> None:
+                 crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
+                 barrier: bool = True) -> None:
         self.car = car
         self.i = car - 1
         self.n = n_cars
@@ -72,6 +73,9 @@ class EcuNode(Node):
         self.crash_at_tick = crash_at_tick
         self.lockstep_deadline = lockstep_deadline
         self.bus_timing = bus_timing  # canbrake.bus.schedule.LockstepBusTiming or None
+        # barrier=False: nothing can lose or delay a state frame (no impairment, ideal timing), so
+        # the state frames themselves are the lockstep barrier and *_DONE frames are not sent.
+        self.barrier = barrier
         self._latency: dict[str, list[float]] = {}
         self._t0_wall: float | None = None
         self.k = -1
@@ -104,7 +108,9 @@ class EcuNode(Node):
     def filters(self) -> list[dict]:
         ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, self._sensor_id, self._coupler_id]
         for j in self._peers:
-            ids += [dbc.STATE_BASE + j + 1, dbc.STATE_DONE_BASE + j + 1]
+            ids.append(dbc.STATE_BASE + j + 1)
+            if self.barrier:
+                ids.append(dbc.STATE_DONE_BASE + j + 1)
         return [exact_filter(i) for i in ids]
 
     def start(self, now: float) -> list[can.Message]:
@@ -141,7 +147,11 @@ class EcuNode(Node):
             self.defl_rear = d["DeflRear"] if self.i < self.n - 1 else None
             return []
         if dbc.STATE_BASE < aid <= dbc.STATE_BASE + self.n:
-            self._on_state(aid - dbc.STATE_BASE - 1, msg)
+            j = aid - dbc.STATE_BASE - 1
+            if self._on_state(j, msg) and not self.barrier:
+                self._done |= 1 << j
+                if self.phase == 1 and self._done == self._all_done:
+                    return self._phase2(now)
             return []
         if dbc.STATE_DONE_BASE < aid <= dbc.STATE_DONE_BASE + self.n:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
@@ -151,19 +161,21 @@ class EcuNode(Node):
                     return self._phase2(now)
         return []
 
-    def _on_state(self, j: int, msg: can.Message) -> None:
+    def _on_state(self, j: int, msg: can.Message) -> bool:
+        """Take a peer's state frame; True if it is this tick's."""
         status = self._e2e[msg.arbitration_id].check(msg.data)
         if status is E2EStatus.WRONG_CRC:
             self.stats.peer_corrupted += 1
-            return
+            return False
         lag = (self.k - counter_of(msg.data)) % COUNTER_MODULO
         origin = self.k - lag
         if origin <= self.peer_origin[j]:
             self.stats.peer_stale_or_duplicate += 1
-            return
+            return False
         d = self.codec.by_id[msg.arbitration_id].decode(msg.data)
         self.peer_speed[j], self.peer_pos[j], self.peer_origin[j] = d["Speed"], d["Position"], origin
         self.stats.peer_frames += 1
+        return origin == self.k
 
     # ---------------------------------------------------------------- send
     def _emit(self, msg: can.Message, t_s: float, out: list[can.Message]) -> None:
@@ -201,7 +213,8 @@ class EcuNode(Node):
                                          counter=self.k % COUNTER_MODULO)
         self._emit(frame(dbc.STATE_BASE + self.car, state), t, out)
         out += self.send_path.release(horizon)
-        out.append(frame(dbc.STATE_DONE_BASE + self.car, self._sdone.encode({"Tick": self.k & 0xFFFF})))
+        if self.barrier:
+            out.append(frame(dbc.STATE_DONE_BASE + self.car, self._sdone.encode({"Tick": self.k & 0xFFFF})))
         self.phase = 1
         if self.mode == "realtime":
             self._deadline = now + self.compute_deadline * self.dt
@@ -231,7 +244,8 @@ class EcuNode(Node):
                                      counter=self.k % COUNTER_MODULO)
         self._emit(frame(dbc.BRAKE_CMD_BASE + self.car, cmd), t, out)
         out += self.send_path.release(horizon)
-        out.append(frame(dbc.CMD_DONE_BASE + self.car, self._cdone.encode({"Tick": self.k & 0xFFFF})))
+        if self.barrier:
+            out.append(frame(dbc.CMD_DONE_BASE + self.car, self._cdone.encode({"Tick": self.k & 0xFFFF})))
         self.stats.ticks += 1
         finite_age = age[np.isfinite(age)]
         self._rows.append([self.k, result.brake_force_n,

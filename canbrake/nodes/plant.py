@@ -60,7 +60,8 @@ class PlantNode(Node):
     def __init__(self, model: PlantModel, codec: FrameCodec, *, dt_s: float, n_ticks: int,
                  reference: Reference, mode: str = "lockstep", coupler_sensors: bool = False,
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
-                 flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None) -> None:
+                 flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None,
+                 barrier: bool = True) -> None:
         self.model = model
         self.codec = codec
         self.n = model.n_cars
@@ -75,6 +76,8 @@ class PlantNode(Node):
         self.progress = progress  # optional shared value (``.value``) the supervisor watches
         # send paths of traffic sources the plant hosts (babbling nodes that are not real nodes)
         self.hosted = list(hosted or [])
+        # barrier=False: commands cannot be lost or delayed, so the commands themselves close the tick
+        self.barrier = barrier
         self.k = 0
         self.stats = PlantStats()
         self.cmd_n = np.zeros(self.n)
@@ -98,7 +101,8 @@ class PlantNode(Node):
     # ---------------------------------------------------------------- frames
     def filters(self) -> list[dict]:
         ids = [dbc.BRAKE_CMD_BASE + c for c in range(1, self.n + 1)]
-        ids += [dbc.CMD_DONE_BASE + c for c in range(1, self.n + 1)]
+        if self.barrier:
+            ids += [dbc.CMD_DONE_BASE + c for c in range(1, self.n + 1)]
         return [exact_filter(i) for i in ids]
 
     def _tick_frames(self) -> list[can.Message]:
@@ -136,7 +140,11 @@ class PlantNode(Node):
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
         if dbc.BRAKE_CMD_BASE < aid <= dbc.BRAKE_CMD_BASE + self.n:
-            self._on_command(aid - dbc.BRAKE_CMD_BASE - 1, msg)
+            i = aid - dbc.BRAKE_CMD_BASE - 1
+            if self._on_command(i, msg) and not self.barrier and self.mode == "lockstep":
+                self._done |= 1 << i
+                if self._done == self._all_done:
+                    return self._advance(now)
             return []
         if self.mode == "lockstep" and dbc.CMD_DONE_BASE < aid <= dbc.CMD_DONE_BASE + self.n:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
@@ -146,11 +154,12 @@ class PlantNode(Node):
                     return self._advance(now)
         return []
 
-    def _on_command(self, i: int, msg: can.Message) -> None:
+    def _on_command(self, i: int, msg: can.Message) -> bool:
+        """Take a brake command; True if it is this tick's."""
         status = self._e2e[i].check(msg.data)
         if status is E2EStatus.WRONG_CRC:
             self.stats.commands_corrupted += 1
-            return
+            return False
         if status is E2EStatus.WRONG_SEQUENCE:
             self.stats.commands_out_of_sequence += 1
         # The sender's counter is its tick mod 15; accept only the frame of the current tick or a
@@ -158,15 +167,17 @@ class PlantNode(Node):
         c = counter_of(msg.data)
         lag = (self.k - c) % 15
         if lag > 7:  # from the future is impossible; treat as very old
-            return
+            return False
         origin = self.k - lag
         if origin <= self._last_counter[i]:
-            return
+            return False
         self._last_counter[i] = origin
         self.cmd_n[i] = self._cmd_codec[msg.arbitration_id].decode(msg.data)["BrakeForce"]
         self.stats.commands_received += 1
         if origin == self.k:
             self._fresh[i] = True
+            return True
+        return False
 
     # ---------------------------------------------------------------- time
     def next_deadline(self) -> float | None:

@@ -45,7 +45,7 @@ class RecorderNode(Node):
 
     def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
-                 plant_io_on_bus: bool = False) -> None:
+                 plant_io_on_bus: bool = False, barrier: bool = True) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
@@ -54,6 +54,7 @@ class RecorderNode(Node):
         self.channel = channel
         self.epoch = epoch_s
         self.plant_io_on_bus = plant_io_on_bus
+        self.barrier = barrier  # without barrier frames, the n-th STATE frame ends phase 1
         self._writer: can.Listener | None = None
         self._k = -1
         self._tick_frames: list[can.Message] = []
@@ -90,7 +91,8 @@ class RecorderNode(Node):
             self._k = tick
             self._done_seen = 0
         # phase: 0 plant frames, 1 until the last STATE_DONE of the tick, 2 after it
-        if dbc.STATE_DONE_BASE < aid <= dbc.STATE_DONE_BASE + self.n:
+        marker = dbc.STATE_DONE_BASE if self.barrier else dbc.STATE_BASE
+        if marker < aid <= marker + self.n:
             self._done_seen += 1
             phase = 1
         elif self._done_seen >= self.n:
