@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal, Union
 
 import numpy as np
 import yaml
+from canbrake.arrays import per_car
 from canbrake.bus.impair import ImpairmentSpec
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -32,14 +33,6 @@ class _Model(BaseModel):
 PerCar = Union[float, list[float]]
 
 
-def per_car(value: PerCar, n: int, name: str) -> np.ndarray:
-    """Broadcast a scalar or check a list of length ``n``; returns float array (n,)."""
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim == 0:
-        return np.full(n, float(arr))
-    if arr.shape != (n,):
-        raise ValueError(f"{name}: expected {n} values (one per car), got {arr.size}")
-    return arr
 
 
 class CouplerConfig(_Model):

@@ -22,7 +22,9 @@ tick, so loss and delay are decided in simulated ticks and runs stay determinist
 """
 from __future__ import annotations
 
+import csv
 from abc import ABC, abstractmethod
+from pathlib import Path
 from typing import Any, Protocol
 
 import can
@@ -76,6 +78,37 @@ class Node(ABC):
 
     def close(self, status: str = "ok") -> None:
         """Flush traces and statistics; called once, also after an error."""
+
+
+class CsvTrace:
+    """Rows buffered in memory and appended to a CSV file every ``flush_every`` rows, so a
+    crashed run keeps what it had traced. Floats are written with 9 significant digits."""
+
+    def __init__(self, path: Path | None, header: list[str], flush_every: int) -> None:
+        self.flush_every = flush_every
+        self._rows: list[list[Any]] = []
+        self._file = open(path, "w", newline="") if path is not None else None
+        self._writer = csv.writer(self._file) if self._file is not None else None
+        if self._writer is not None:
+            self._writer.writerow(header)
+
+    def append(self, row: list[Any]) -> None:
+        self._rows.append(row)
+        if len(self._rows) >= self.flush_every:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._writer is not None and self._rows:
+            self._writer.writerows([[f"{v:.9g}" if isinstance(v, float) else v for v in r] for r in self._rows])
+            self._file.flush()  # type: ignore[union-attr]
+        self._rows.clear()
+
+    def close(self) -> None:
+        self.flush()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+            self._writer = None
 
 
 def frame(arbitration_id: int, data: bytes) -> can.Message:

@@ -8,7 +8,6 @@ old; older ones are indistinguishable and the peer is reported stale anyway).
 """
 from __future__ import annotations
 
-import csv
 import json
 import math
 from dataclasses import dataclass, field
@@ -22,7 +21,7 @@ from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import COUNTER_MODULO, E2EStatus, E2EReceiver, counter_of
 from canbrake.control.base import Controller, Observation
-from canbrake.nodes.base import Node, PassThrough, SendPath, exact_filter, frame
+from canbrake.nodes.base import CsvTrace, Node, PassThrough, SendPath, exact_filter, frame
 
 
 @dataclass
@@ -101,9 +100,7 @@ class EcuNode(Node):
         self._sensor_id = dbc.SENSOR_BASE + car
         self._coupler_id = dbc.COUPLER_BASE + car
         self._deadline: float | None = None
-        self._rows: list[list[float]] = []
-        self._csv_file = None
-        self._csv = None
+        self._trace: CsvTrace | None = None
 
     def filters(self) -> list[dict]:
         ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, self._sensor_id, self._coupler_id]
@@ -114,11 +111,9 @@ class EcuNode(Node):
         return [exact_filter(i) for i in ids]
 
     def start(self, now: float) -> list[can.Message]:
-        if self.out_dir is not None:
-            self._csv_file = open(self.out_dir / f"ecu_c{self.car}.csv", "w", newline="")
-            self._csv = csv.writer(self._csv_file)
-            self._csv.writerow(["tick", "brake_cmd_n", *self.controller.diagnostic_names,
-                                "max_peer_age_s", "peers_fresh"])
+        self._trace = CsvTrace(None if self.out_dir is None else self.out_dir / f"ecu_c{self.car}.csv",
+                               ["tick", "brake_cmd_n", *self.controller.diagnostic_names,
+                                "max_peer_age_s", "peers_fresh"], self.flush_every)
         return []
 
     # ---------------------------------------------------------------- receive
@@ -247,12 +242,11 @@ class EcuNode(Node):
         if self.barrier:
             out.append(frame(dbc.CMD_DONE_BASE + self.car, self._cdone.encode({"Tick": self.k & 0xFFFF})))
         self.stats.ticks += 1
-        finite_age = age[np.isfinite(age)]
-        self._rows.append([self.k, result.brake_force_n,
-                           *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
-                           float(finite_age.max()) if finite_age.size else np.inf, fresh])
-        if len(self._rows) >= self.flush_every:
-            self._flush()
+        if self._trace is not None:
+            finite_age = age[np.isfinite(age)]
+            self._trace.append([self.k, result.brake_force_n,
+                                *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
+                                float(finite_age.max()) if finite_age.size else np.inf, fresh])
         return out
 
     # ---------------------------------------------------------------- realtime
@@ -266,17 +260,9 @@ class EcuNode(Node):
         return self._phase2(now)
 
     # ---------------------------------------------------------------- trace
-    def _flush(self) -> None:
-        if self._csv is not None and self._rows:
-            self._csv.writerows([[f"{v:.9g}" if isinstance(v, float) else v for v in r] for r in self._rows])
-            self._csv_file.flush()  # type: ignore[union-attr]
-        self._rows.clear()
-
     def close(self, status: str = "ok") -> None:
-        self._flush()
-        if self._csv_file is not None:
-            self._csv_file.close()
-            self._csv_file = None
+        if self._trace is not None:
+            self._trace.close()
         self.stats.status = "ok" if self.finished else status
         for kind, vals in self._latency.items():
             a = np.asarray(vals)

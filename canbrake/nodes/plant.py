@@ -6,7 +6,6 @@ It knows frames and timing, not train formulas: the physics is any object follow
 """
 from __future__ import annotations
 
-import csv
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,7 +17,7 @@ import numpy as np
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import E2EReceiver, E2EStatus, counter_of
-from canbrake.nodes.base import Node, exact_filter, frame
+from canbrake.nodes.base import CsvTrace, Node, exact_filter, frame
 
 
 class PlantModel(Protocol):
@@ -94,9 +93,7 @@ class PlantNode(Node):
         self._hb = codec["HEARTBEAT_PLANT"]
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
-        self._csv_file = None
-        self._csv = None
-        self._rows: list[list[float]] = []
+        self._trace: CsvTrace | None = None
 
     # ---------------------------------------------------------------- frames
     def filters(self) -> list[dict]:
@@ -234,11 +231,8 @@ class PlantNode(Node):
         return cols
 
     def _open_trace(self) -> None:
-        if self.out_dir is None:
-            return
-        self._csv_file = open(self.out_dir / "signals.csv", "w", newline="")
-        self._csv = csv.writer(self._csv_file)
-        self._csv.writerow(self.columns())
+        self._trace = CsvTrace(None if self.out_dir is None else self.out_dir / "signals.csv", self.columns(),
+                               self.flush_every)
 
     def _record(self, final: bool = False) -> None:
         m = self.model.measurements()
@@ -250,21 +244,14 @@ class PlantNode(Node):
             row += [m["position_m"][i], m["speed_mps"][i], m["accel_mps2"][i], cmd[i], m["applied_brake_n"][i]]
         for j in range(self.n - 1):
             row += [m["deflection_m"][j], m["coupler_force_n"][j]]
-        self._rows.append(row)
-        if len(self._rows) >= self.flush_every or final:
-            self._flush()
-
-    def _flush(self) -> None:
-        if self._csv is not None and self._rows:
-            self._csv.writerows([[f"{v:.9g}" if isinstance(v, float) else v for v in r] for r in self._rows])
-            self._csv_file.flush()  # type: ignore[union-attr]
-        self._rows.clear()
+        if self._trace is not None:
+            self._trace.append(row)
+            if final:
+                self._trace.flush()
 
     def close(self, status: str = "ok") -> None:
-        self._flush()
-        if self._csv_file is not None:
-            self._csv_file.close()
-            self._csv_file = None
+        if self._trace is not None:
+            self._trace.close()
         if self.stats.status == "running":
             self.stats.status = status
         if self.out_dir is not None:

@@ -21,16 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-ArrayLike = float | Sequence[float] | np.ndarray
-
-
-def _per_car(value: ArrayLike, n_cars: int, name: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if arr.ndim == 0:
-        return np.full(n_cars, float(arr))
-    if arr.shape != (n_cars,):
-        raise ValueError(f"{name}: expected a scalar or {n_cars} values, got shape {arr.shape}")
-    return arr.copy()
+from canbrake.arrays import ArrayLike
+from canbrake.arrays import per_car as _per_car
 
 
 @dataclass(frozen=True)
