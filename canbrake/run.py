@@ -118,13 +118,17 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
 
 
 # ----------------------------------------------------------------------------- child processes
-def _open_bus(choice: BusChoice, filters: list[dict] | None) -> can.BusABC:
+def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "") -> can.BusABC:
     if choice.backend == "socketcan" and choice.interface == "socketcan":
         from canbrake.bus.vcan import open_socketcan_bus
 
         return open_socketcan_bus(choice.channel or "vcan0", can_filters=filters, receive_own_messages=False)
+    kwargs: dict[str, Any] = {}
+    if choice.interface == "canbrake" and role == "recorder":
+        # the recorder must see every frame: senders wait for it rather than overrun its ring
+        kwargs["backpressure"] = True
     return can.Bus(interface=choice.interface, channel=choice.channel, can_filters=filters,
-                   receive_own_messages=False)
+                   receive_own_messages=False, **kwargs)
 
 
 def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, choice: BusChoice,
@@ -147,7 +151,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         scn = Scenario.model_validate(scenario)
         node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
                           progress=progress)
-        bus = _open_bus(choice, node.filters())
+        bus = _open_bus(choice, node.filters(), role)
         barrier.wait(timeout=120)
         drive(node, bus, parent_pid=parent_pid)
         status = "ok"
@@ -354,16 +358,15 @@ def check_buildable(scn: Scenario) -> None:
 
 
 def _remove_memory_channel(channel: str | None) -> None:
+    """Remove the run's temporary in-memory channel (every node has exited by now)."""
     if not channel:
         return
-    try:
-        from canbrake.bus import memory
+    from canbrake.bus.memory import remove_channel
 
-        remove = getattr(memory, "remove_channel", None) or getattr(memory.MemoryBus, "remove_channel", None)
-        if remove is not None:
-            remove(channel)
-    except Exception:  # noqa: BLE001 - cleanup of a temporary channel is best effort
-        pass
+    try:
+        remove_channel(channel)
+    except can.CanError as e:
+        print(f"canbrake: warning: in-memory channel {channel} not removed: {e}", file=sys.stderr)
 
 
 def write_json(path: Path, data: Any) -> None:

@@ -36,6 +36,13 @@ def _matches(filters: list[dict] | None, msg: can.Message) -> bool:
 
 
 def _send_all(bus: can.BusABC, msgs: Sequence[can.Message], retries: int = 200) -> None:
+    if not msgs:
+        return
+    send_many = getattr(bus, "send_many", None)
+    if send_many is not None and len(msgs) > 1:
+        # canbrake's in-memory bus puts a burst on the bus at once and wakes each reader once
+        send_many(list(msgs))
+        return
     for m in msgs:
         for attempt in range(retries):
             try:
