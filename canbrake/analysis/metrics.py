@@ -28,6 +28,7 @@ class Trace:
     deflection_m: np.ndarray   # (T, n-1)
     coupler_force_n: np.ndarray  # (T, n-1)
     observer_accel_mps2: np.ndarray | None = None  # (T, n) ECU estimates, if reported
+    mass_kg: np.ndarray | None = None  # (n,) car masses, if known (observer error, brake decel)
 
     @property
     def n_cars(self) -> int:
@@ -87,7 +88,129 @@ def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
     }
     if tr.observer_accel_mps2 is not None and np.isfinite(tr.observer_accel_mps2).any():
         out["observer_max_abs_estimate_mps2"] = float(np.nanmax(np.abs(tr.observer_accel_mps2)))
+    out.update(distance_metrics(tr))
+    if tr.mass_kg is not None:
+        out.update(brake_effort_metrics(tr))
+        if tr.observer_accel_mps2 is not None and np.isfinite(tr.observer_accel_mps2).any():
+            out.update(observer_metrics(tr))
     return out
+
+
+# ----------------------------------------------------------------------------- additional metrics
+#: tolerance (m/s²) within which an observer estimate counts as converged to the actual value
+OBSERVER_TOL_MPS2 = 0.01
+
+
+def settling_time_s(t: np.ndarray, err: np.ndarray, tol: float, t_from: float = 0.0,
+                    t_to: float = np.inf) -> float | None:
+    """First time ``t_s >= t_from`` after which every column of ``|err|`` stays ``<= tol`` up to ``t_to``.
+
+    ``err`` is (T,) or (T, k); NaN rows are ignored. Returns None if the window ends outside the band
+    (or is empty).
+    """
+    e = np.abs(err.reshape(len(t), -1))
+    win = (t >= t_from - 1e-12) & (t < t_to - 1e-12)
+    idx = np.nonzero(win)[0]
+    if idx.size == 0:
+        return None
+    with np.errstate(invalid="ignore"):
+        outside = np.any(e[idx] > tol, axis=1)
+    if not outside.any():
+        return float(t[idx[0]])
+    last = int(np.nonzero(outside)[0][-1])
+    if last + 1 >= idx.size:
+        return None
+    return float(t[idx[last + 1]])
+
+
+def convergence_time_in_window_s(tr: Trace, t_from: float, t_to: float = np.inf,
+                                 band_kmh: float = DEFAULT_BAND_KMH) -> float | None:
+    """Like :func:`convergence_time_s`, restricted to ``t_from <= t < t_to`` (absolute time, s)."""
+    err_kmh = (tr.speed_mps - tr.ref_speed_mps[:, None]) * KMH
+    return settling_time_s(tr.t_s, err_kmh, band_kmh, t_from, t_to)
+
+
+def lumped_disturbance_mps2(tr: Trace) -> np.ndarray:
+    """The actual lumped disturbance φ_i/m_i (couplers, resistance, grade, external forces; m/s²),
+    (T, n), from the plant's trace: m_i a_i = −F_rail,i + φ_i, so φ_i/m_i = a_i + F_rail,i/m_i
+    (cars moving forwards). Row k uses the acceleration and rail force of the period ending at
+    tick k — the same period the observer's estimate at tick k describes. Row 0 is NaN."""
+    if tr.mass_kg is None:
+        raise ValueError("lumped_disturbance_mps2 needs Trace.mass_kg")
+    phi = tr.accel_mps2 + tr.brake_applied_n / np.asarray(tr.mass_kg, dtype=float)[None, :]
+    phi = phi.astype(float, copy=True)
+    phi[0] = np.nan
+    return phi
+
+
+def observer_metrics(tr: Trace, tol_mps2: float = OBSERVER_TOL_MPS2, settle_s: float = 0.02) -> dict:
+    """Estimation error of the ECUs' disturbance observers against :func:`lumped_disturbance_mps2`."""
+    phi = lumped_disturbance_mps2(tr)
+    assert tr.observer_accel_mps2 is not None
+    err = tr.observer_accel_mps2 - phi
+    t = tr.t_s
+    after = t >= settle_s - 1e-12
+    with np.errstate(invalid="ignore"):
+        rms = np.sqrt(np.nanmean(err[1:] ** 2, axis=0))
+        mx = np.nanmax(np.abs(err[after]), axis=0) if after.any() else np.full(tr.n_cars, np.nan)
+    per_car_settle = [settling_time_s(t, err[:, i], tol_mps2, 0.0, _first_quiet_end(t, err[:, i], tol_mps2))
+                      for i in range(tr.n_cars)]
+    return {
+        "observer_tol_mps2": tol_mps2,
+        "observer_error_rms_mps2": [None if np.isnan(x) else float(x) for x in rms],
+        f"observer_error_max_after_{int(round(settle_s * 1000))}ms_mps2":
+            [None if np.isnan(x) else float(x) for x in mx],
+        "observer_settling_time_s": per_car_settle,
+    }
+
+
+def _first_quiet_end(t: np.ndarray, err: np.ndarray, tol: float, hold_s: float = 0.5) -> float:
+    """End of the first stretch of ``hold_s`` seconds inside the band (the initial convergence, before
+    any later event drives the estimate out again); inf if the run has none."""
+    with np.errstate(invalid="ignore"):
+        inside = np.abs(err) <= tol
+    inside[np.isnan(err)] = True
+    start = None
+    for k in range(len(t)):
+        if inside[k]:
+            if start is None:
+                start = k
+            if t[k] - t[start] >= hold_s:
+                return float(t[k])
+        else:
+            start = None
+    return float(np.inf)
+
+
+def brake_effort_metrics(tr: Trace) -> dict:
+    """Braking effort per unit mass: what the actuator was asked for and what reached the rail."""
+    m = np.asarray(tr.mass_kg, dtype=float)[None, :]
+    cmd = tr.brake_cmd_n / m
+    app = tr.brake_applied_n / m
+    return {
+        "peak_brake_cmd_decel_mps2": float(np.nanmax(cmd)) if np.isfinite(cmd).any() else None,
+        "peak_brake_applied_decel_mps2": float(np.nanmax(app)) if np.isfinite(app).any() else None,
+        "peak_traction_cmd_accel_mps2": float(max(0.0, -np.nanmin(cmd))) if np.isfinite(cmd).any() else None,
+    }
+
+
+def distance_metrics(tr: Trace) -> dict:
+    """Distance run against the reference's over the same window, and the stopping distance."""
+    t = tr.t_s
+    ref = float(np.sum(0.5 * (tr.ref_speed_mps[1:] + tr.ref_speed_mps[:-1]) * np.diff(t))) if len(t) > 1 else 0.0
+    d = np.abs(tr.position_m - tr.position_m[0])
+    dist = float(np.mean(d[-1]))
+    stopped = np.all(tr.speed_mps < 0.01, axis=1)
+    stop = None
+    if stopped.any():
+        k = int(np.argmax(stopped))
+        stop = float(np.mean(d[k]))
+    return {
+        "reference_distance_m": ref,
+        "distance_excess_m": dist - ref,
+        "stopping_distance_m": stop,
+        "stopping_time_s": float(t[int(np.argmax(stopped))]) if stopped.any() else None,
+    }
 
 
 def within_bound(tr: Trace, bound_m: float) -> bool:

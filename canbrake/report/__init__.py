@@ -1,0 +1,8 @@
+"""Generated reproduction reports (``canbrake report NAME``).
+
+Each report is a module with ``generate(out_dir, runs_dir, force=False, jobs=2, log=print) -> Path``
+that runs (or reuses) its runs and writes a Markdown document with figures.
+"""
+from __future__ import annotations
+
+REPORTS = {"chen2023": "canbrake.report.chen2023"}
