@@ -408,11 +408,7 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
             o = dict(ov)
             o["seed"] = seed
             where = ", ".join(f"{a.name}={a.display(params[a.name])}{a.unit}" for a in axes) or "the base point"
-            try:
-                scn = resolve(base_data, f"{scenario} ({where})", None, o)
-            except ScenarioError as e:
-                raise ScenarioError(str(e)) from None
-            resolved = scn.model_dump(mode="json")
+            resolved = resolve(base_data, f"{scenario} ({where})", None, o).model_dump(mode="json")
             pid = _point_id(axes, params, seed, resolved)
             tasks.append(PointTask(pid, params, seed, resolved, str(out / "points" / pid), keep))
     return SweepPlan(str(scenario), base.profile, axes, tasks, base, out, seeds, dur, sets)
@@ -672,6 +668,21 @@ def _progress_bar(total: int, enabled: bool) -> Any:
                 mininterval=0.5 if tty else 15.0, smoothing=0.05)
 
 
+def _probe_scheduler(address: str) -> None:
+    """Fail at once, with a clear message, when nothing listens at a tcp:// scheduler address
+    (the Dask client would retry for its whole timeout)."""
+    import socket
+
+    m = re.fullmatch(r"(?:tcp://)?\[?([^\]/]+?)\]?:(\d+)", address.strip())
+    if not m:
+        return
+    try:
+        socket.create_connection((m.group(1), int(m.group(2))), timeout=5).close()
+    except OSError as e:
+        raise GridError(f"--scheduler {address}: cannot connect to a Dask scheduler: "
+                        f"{e.strerror or e}") from None
+
+
 def _execute_dask(tasks: Sequence[PointTask], on_row: Callable[[dict[str, Any]], None], bar: Any, *,
                   workers: int, scheduler: str | None) -> None:
     try:
@@ -699,6 +710,7 @@ def _execute_dask(tasks: Sequence[PointTask], on_row: Callable[[dict[str, Any]],
                                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"})
             client = Client(cluster)
         else:
+            _probe_scheduler(scheduler)
             try:
                 client = Client(scheduler, timeout="20s")
             except (OSError, TimeoutError) as e:
@@ -822,7 +834,8 @@ def run_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, pr
 def _title(plan: SweepPlan) -> str:
     b = plan.base
     prof = f", profile {b.profile}" if b.profile else ""
-    return f"{b.name}{prof}, {b.controller.name}, {plan.duration_s:g} s"
+    ctrl = "" if any(a.name == "set:controller.name" for a in plan.axes) else f", {b.controller.name}"
+    return f"{b.name}{prof}{ctrl}, {plan.duration_s:g} s"
 
 
 def _write_manifest(plan: SweepPlan) -> None:
@@ -952,9 +965,9 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
         _bound_outline(ax, g, DEFLECTION_BOUND_M)
         decorate(ax, fv)
     cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
-    cb.set_label("max |deflection| (cm), worst seed; line = ±1 cm", fontsize=7)
+    cb.set_label("max |Δl| (cm), worst seed", fontsize=7)
     cb.ax.tick_params(labelsize=7)
-    fig.suptitle(f"max coupler deflection — {title}", fontsize=8)
+    fig.suptitle(f"max coupler deflection (white outline: within ±1 cm) — {title}", fontsize=8)
     paths.append(_save(fig, out_dir / f"{prefix}deflection.png"))
 
     # speed RMSE

@@ -127,7 +127,7 @@ def test_scenario_impairments_are_kept_and_random_points_get_seeds(tmp_path):
 
 
 # ----------------------------------------------------------------------------- tiny sweeps
-DUR = 0.04  # simulated seconds per run in these tests
+DUR = 0.02  # simulated seconds per run in these tests
 AXES = ("delay=0,2ms", "loss=0,0.2")
 
 
@@ -249,11 +249,24 @@ def test_dask_local_cluster_with_two_workers(tmp_path):
     assert left == [], [c.cmdline() for c in left]
 
 
+def test_existing_dask_scheduler_is_used_and_left_running(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, protocol="tcp://",
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        res = sw.run_sweep(CASE1, [sw.parse_grid("loss=0.1")], tmp_path, duration_s=0.02, seeds=2,
+                           scheduler=cluster.scheduler_address, progress=False, plots=False)
+        assert sorted(r["seed"] for r in res.rows) == [1, 2] and all(r["status"] == "ok" for r in res.rows)
+        assert cluster.status.name == "running" and len(cluster.workers) == 1  # not ours to close
+    with pytest.raises(sw.GridError, match="cannot connect"):
+        sw.run_sweep(CASE1, [sw.parse_grid("loss=0.2")], tmp_path, duration_s=0.02, progress=False,
+                     scheduler="tcp://127.0.0.1:9")
+
+
 def test_ctrl_c_stops_a_dask_sweep_and_leaves_no_process(tmp_path):
     pytest.importorskip("distributed")
     out = tmp_path / "sw"
     p = subprocess.Popen([sys.executable, "-m", "canbrake.cli", "sweep", str(CASE1), "--grid", "delay=0:10ms:11",
-                          "--workers", "2", "--duration", "0.5", "--out", str(out), "-q", "--no-plots"],
+                          "--workers", "2", "--duration", "0.2", "--out", str(out), "-q", "--no-plots"],
                          cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     deadline = time.time() + 60
     while time.time() < deadline and not list((out / "points").glob("*/summary.json")):
