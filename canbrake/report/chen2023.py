@@ -102,7 +102,7 @@ class RunSpec:
         """The ``canbrake run`` command line that makes the same run."""
         parts = [f"canbrake run scenarios/{CASE_FILES[self.case]} --profile {self.profile} --bus inprocess"]
         for k, v in self.override_dict.items():
-            val = yaml.safe_dump(v, default_flow_style=True, width=1000).strip()
+            val = yaml.safe_dump(v, default_flow_style=True, width=1000, sort_keys=False).strip()
             if val.endswith("\n...") or val.endswith("..."):
                 val = val.replace("\n...", "").rstrip(".").strip()
             parts.append(f"--set '{k}={val}'")
@@ -450,6 +450,9 @@ def divergence_text(r: RunResult) -> str:
 
 
 # --------------------------------------------------------------------------------------- formatting
+_SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
 def fmt(x: float | None, digits: int = 3, unit: str = "", none: str = "never") -> str:
     """``digits`` significant digits; thousands separated; ``none`` for None/NaN."""
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
@@ -461,7 +464,7 @@ def fmt(x: float | None, digits: int = 3, unit: str = "", none: str = "never") -
         s = "0"
     elif ax < 1e-4:
         mant, exp = f"{x:.{digits - 1}e}".split("e")
-        s = f"{mant}·10^{int(exp)}"
+        s = f"{mant}×10{str(int(exp)).translate(_SUPERSCRIPT)}"
     else:
         s = f"{x:.{digits}g}"
     return f"{s} {unit}".strip()
