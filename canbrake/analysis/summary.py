@@ -66,7 +66,9 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
         if not erows:
             continue
         names = [h for h in erows[0] if h != "tick"]
-        extra_header += [f"{h}_c{c}" for h in names]
+        # an ECU column named like a plant column (brake_cmd_n: what the ECU sent vs what the
+        # plant used) is prefixed ecu_
+        extra_header += [f"ecu_{h}_c{c}" if f"{h}_c{c}" in header else f"{h}_c{c}" for h in names]
         col = erows[0].index("tick")
         start = sum(widths)
         widths.append(len(names))
@@ -129,6 +131,7 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         cols = read_signals(sig)
         if cols.get("t_s") is not None and len(cols["t_s"]) > 1:
             tr = trace_from_columns(cols, n)
+            tr.mass_kg = np.asarray(scn.train.mass_kg, dtype=float)
             summary["metrics"] = compute_metrics(tr)
             if plots:
                 from canbrake.analysis.plots import plot_run
