@@ -89,13 +89,19 @@ def run_inprocess(nodes: Sequence[Node], *, medium: str = "direct", max_frames: 
 
 def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
     filters = [n.filters() for n in nodes]
-    # Precompute, per node, the set of exact ids it accepts when all filters are exact matches.
+    # Routing: nodes whose filters are all exact standard ids are looked up by id; the others
+    # (the recorder: no filter) are matched frame by frame. Order of delivery = order of `nodes`.
     exact: list[set[int] | None] = []
     for f in filters:
-        if f and all(x["can_mask"] == 0x7FF for x in f):
-            exact.append({x["can_id"] for x in f})
-        else:
-            exact.append(None)
+        exact.append({x["can_id"] for x in f} if f and all(x["can_mask"] == 0x7FF for x in f) else None)
+    routes: dict[int, list[int]] = {}
+
+    def route(aid: int) -> list[int]:
+        r = routes.get(aid)
+        if r is None:
+            r = routes[aid] = [i for i, ex in enumerate(exact) if ex is None or aid in ex]
+        return r
+
     queue: deque[tuple[int, can.Message]] = deque()
     for idx, node in enumerate(nodes):
         queue.extend((idx, m) for m in node.start(0.0))
@@ -105,15 +111,18 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
         moved += 1
         if max_frames is not None and moved > max_frames:
             raise NodeFailure(f"in-process run exceeded {max_frames} frames")
-        aid = msg.arbitration_id
-        for idx, node in enumerate(nodes):
+        targets = route(msg.arbitration_id) if not msg.is_extended_id else range(len(nodes))
+        for idx in targets:
+            node = nodes[idx]
             if idx == sender or node.finished:
                 continue
-            ex = exact[idx]
-            if (aid in ex and not msg.is_extended_id) if ex is not None else _matches(filters[idx], msg):
-                out = node.handle(msg, 0.0)
-                if out:
-                    queue.extend((idx, m) for m in out)
+            if exact[idx] is None and not _matches(filters[idx], msg):
+                continue
+            if msg.is_extended_id and exact[idx] is not None:
+                continue
+            out = node.handle(msg, 0.0)
+            if out:
+                queue.extend((idx, m) for m in out)
     unfinished = [n.name for n in nodes if not n.finished]
     if unfinished:
         raise NodeFailure(f"in-process run stalled; unfinished nodes: {', '.join(unfinished)}")

@@ -19,7 +19,7 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
-from canbrake.bus.e2e import COUNTER_MODULO, E2EStatus, E2EReceiver, counter_of
+from canbrake.bus.e2e import COUNTER_MODULO, counter_of, e2e_crc
 from canbrake.control.base import Controller, Observation
 from canbrake.nodes.base import CsvTrace, Node, PassThrough, SendPath, exact_filter, frame
 
@@ -91,7 +91,6 @@ class EcuNode(Node):
         self._peers = [j for j in range(n_cars) if j != self.i]
         self._all_done = (1 << n_cars) - 1  # bit j set: STATE_DONE of car j seen this tick
         self._done = 1 << self.i
-        self._e2e = {dbc.STATE_BASE + j + 1: E2EReceiver(dbc.STATE_BASE + j + 1) for j in self._peers}
         self._state_codec = codec[f"STATE_C{car}"]
         self._cmd_codec = codec[f"BRAKE_CMD_C{car}"]
         self._sdone = codec[f"STATE_DONE_C{car}"]
@@ -158,8 +157,8 @@ class EcuNode(Node):
 
     def _on_state(self, j: int, msg: can.Message) -> bool:
         """Take a peer's state frame; True if it is this tick's."""
-        status = self._e2e[msg.arbitration_id].check(msg.data)
-        if status is E2EStatus.WRONG_CRC:
+        data = msg.data
+        if len(data) < 2 or data[0] != e2e_crc(msg.arbitration_id, data):
             self.stats.peer_corrupted += 1
             return False
         lag = (self.k - counter_of(msg.data)) % COUNTER_MODULO
