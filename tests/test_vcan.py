@@ -1,0 +1,269 @@
+"""SocketCAN interoperability on a real vcan0: python-can, can-utils and canbrake's vcan helpers.
+
+Marked ``vcan``: skipped by default, run where vcan0 exists (root), e.g. through the VM:
+``../shared/tools/vcan-vm -- python -m pytest -m vcan -q tests/`` (what ``.ci/run-vcan`` does).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import can
+import pytest
+
+from canbrake.bus.vcan import (
+    VcanError,
+    check_socketcan_channel,
+    explain_socketcan_error,
+    open_socketcan_bus,
+    vcan_down,
+    vcan_up,
+)
+
+pytestmark = pytest.mark.vcan
+
+CHANNEL = "vcan0"
+PROBE_ID = 0x7FF  # readiness probe frames; never part of the checked traffic
+
+
+def _frames() -> list[can.Message]:
+    """A mix of classic frames: standard and extended ids, DLC 0..8, one remote frame."""
+    return [
+        can.Message(arbitration_id=0x123, data=bytes.fromhex("DEADBEEF"), is_extended_id=False),
+        can.Message(arbitration_id=0x010, data=b"", is_extended_id=False),
+        can.Message(arbitration_id=0x18FF50E5, data=bytes(range(8)), is_extended_id=True),
+        can.Message(arbitration_id=0x7A0, data=b"\x01\x02\x03", is_extended_id=False),
+        can.Message(arbitration_id=0x0C0FFEE, data=b"\xff" * 8, is_extended_id=True),
+        can.Message(arbitration_id=0x321, is_remote_frame=True, dlc=4, is_extended_id=False),
+    ]
+
+
+def _key(m: can.Message) -> tuple[int, bool, bool, bytes, int]:
+    return (m.arbitration_id, m.is_extended_id, m.is_remote_frame, bytes(m.data), m.dlc)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _vcan0_ready() -> None:
+    """Fail (not skip) with the helper's clear message if vcan0 is unusable: these must run."""
+    try:
+        check_socketcan_channel(CHANNEL)
+    except VcanError as err:
+        pytest.fail(f"vcan tests need {CHANNEL}: {err}")
+
+
+@pytest.fixture
+def bus() -> Iterator[can.BusABC]:
+    b = can.Bus(interface="socketcan", channel=CHANNEL)
+    yield b
+    b.shutdown()
+
+
+def _drain(bus: can.BusABC) -> None:
+    while bus.recv(timeout=0.05) is not None:
+        pass
+
+
+def _recv_n(
+    bus: can.BusABC, n: int, timeout: float, proc: subprocess.Popen[bytes] | None = None
+) -> list[can.Message]:
+    """Receive ``n`` frames (probe frames ignored) within ``timeout`` seconds."""
+    got: list[can.Message] = []
+    deadline = time.monotonic() + timeout
+    while len(got) < n and time.monotonic() < deadline:
+        m = bus.recv(timeout=0.5)
+        if m is not None and m.arbitration_id != PROBE_ID:
+            got.append(m)
+    return got
+
+
+def _tool(name: str) -> str:
+    path = shutil.which(name)
+    if path is None:
+        pytest.fail(f"{name} not found: install can-utils (`sudo apt-get install can-utils`)")
+    return path
+
+
+def test_python_can_round_trip(bus: can.BusABC) -> None:
+    with can.Bus(interface="socketcan", channel=CHANNEL) as rx:
+        _drain(rx)
+        sent = _frames()
+        for m in sent:
+            bus.send(m)
+        got = _recv_n(rx, len(sent), timeout=10)
+    assert [_key(m) for m in got] == [_key(m) for m in sent]
+    assert all(m.channel == CHANNEL for m in got)
+
+
+def test_open_socketcan_bus_round_trip() -> None:
+    with open_socketcan_bus(CHANNEL) as tx, open_socketcan_bus(CHANNEL) as rx:
+        _drain(rx)
+        tx.send(can.Message(arbitration_id=0x55, data=b"\xaa\x55", is_extended_id=False))
+        got = _recv_n(rx, 1, timeout=10)
+    assert [_key(m) for m in got] == [(0x55, False, False, b"\xaa\x55", 2)]
+
+
+def test_cansend_frames_reach_python_can(bus: can.BusABC) -> None:
+    _drain(bus)
+    cansend = _tool("cansend")
+    for spec in ("123#DEADBEEF", "18FF50E5#0001020304050607", "321#R4", "010#"):
+        subprocess.run([cansend, CHANNEL, spec], check=True, timeout=30)
+    got = _recv_n(bus, 4, timeout=10)
+    assert [_key(m) for m in got] == [
+        (0x123, False, False, bytes.fromhex("DEADBEEF"), 4),
+        (0x18FF50E5, True, False, bytes(range(8)), 8),
+        (0x321, False, True, b"", 4),
+        (0x010, False, False, b"", 0),
+    ]
+
+
+def _start_candump(out: Path) -> subprocess.Popen[bytes]:
+    """Start ``candump -L vcan0 > out`` and return once it provably records frames."""
+    candump = _tool("candump")
+    fh = out.open("wb")
+    proc = subprocess.Popen([candump, "-L", CHANNEL], stdout=fh, stderr=subprocess.PIPE)
+    fh.close()
+    with can.Bus(interface="socketcan", channel=CHANNEL) as probe:
+        deadline = time.monotonic() + 60
+        while f"{PROBE_ID:03X}#".encode() not in out.read_bytes():
+            if proc.poll() is not None or time.monotonic() > deadline:
+                proc.kill()
+                pytest.fail(f"candump did not start: {proc.stderr.read()!r}")  # type: ignore[union-attr]
+            probe.send(can.Message(arbitration_id=PROBE_ID, data=b"\x00", is_extended_id=False))
+            time.sleep(0.2)
+    return proc
+
+
+def _stop(proc: subprocess.Popen[bytes]) -> None:
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def test_candump_log_is_read_by_python_can(bus: can.BusABC, tmp_path: Path) -> None:
+    log = tmp_path / "candump.log"
+    proc = _start_candump(log)
+    try:
+        sent = _frames()
+        for m in sent:
+            bus.send(m)
+        end = can.Message(arbitration_id=0x7FE, data=b"END", is_extended_id=False)
+        bus.send(end)
+        deadline = time.monotonic() + 30
+        while b"7FE#454E44" not in log.read_bytes() and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        _stop(proc)
+    text = log.read_text()
+    first = next(line for line in text.splitlines() if "123#" in line)
+    # candump -L format: "(seconds.micros) vcan0 123#DEADBEEF"
+    assert first.startswith("(") and first.split()[1:] == [CHANNEL, "123#DEADBEEF"]
+    read = [m for m in can.LogReader(log) if m.arbitration_id not in (PROBE_ID, 0x7FE)]
+    assert [_key(m) for m in read] == [_key(m) for m in sent]
+    assert all(m.channel == CHANNEL for m in read)
+    stamps = [m.timestamp for m in read]
+    assert stamps == sorted(stamps) and abs(stamps[0] - time.time()) < 600
+
+
+def _after_python_can_log(m: can.Message) -> tuple[int, bool, bool, bytes, int]:
+    """What survives a python-can .log: its writer (4.6) drops a remote frame's DLC ("321#R")."""
+    key = _key(m)
+    return key[:4] + (0,) if m.is_remote_frame else key
+
+
+def _write_log(path: Path, frames: list[can.Message]) -> None:
+    """Write frames with python-can's own writer (.log = candump -L format), 1 ms apart."""
+    t0 = time.time()
+    with can.Logger(path) as writer:
+        for i, m in enumerate(frames):
+            m.timestamp = t0 + i * 0.001
+            m.channel = CHANNEL
+            writer.on_message_received(m)
+
+
+def test_canplayer_replays_python_can_log(bus: can.BusABC, tmp_path: Path) -> None:
+    log = tmp_path / "written.log"
+    sent = _frames()
+    _write_log(log, sent)
+    assert log.read_text().splitlines()[0].split()[1] == CHANNEL
+    _drain(bus)
+    subprocess.run([_tool("canplayer"), "-I", str(log)], check=True, timeout=60)
+    got = _recv_n(bus, len(sent), timeout=10)
+    assert [_key(m) for m in got] == [_after_python_can_log(m) for m in sent]
+
+
+def test_python_can_player_replays_log(bus: can.BusABC, tmp_path: Path) -> None:
+    log = tmp_path / "written.log"
+    sent = _frames()
+    _write_log(log, sent)
+    _drain(bus)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "can.player", "-i", "socketcan", "-c", CHANNEL, str(log)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    got: list[can.Message] = []
+    deadline = time.monotonic() + 240  # the emulated guest takes ~20 s just to import can
+    while len(got) < len(sent) and time.monotonic() < deadline:
+        got += _recv_n(bus, len(sent) - len(got), timeout=1)
+        if proc.poll() is not None:
+            got += _recv_n(bus, len(sent) - len(got), timeout=2)
+            break
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out.decode(errors="replace")
+    assert [_key(m) for m in got] == [_after_python_can_log(m) for m in sent]
+
+
+def test_vcan_up_creates_and_raises_vcan2() -> None:
+    assert os.geteuid() == 0, "run as root (the vcan VM does)"
+    vcan_down("vcan2")
+    try:
+        assert vcan_up("vcan2") == "vcan2 created and up"
+        check_socketcan_channel("vcan2")
+        assert vcan_up("vcan2") == "vcan2 is already up"
+        with can.Bus(interface="socketcan", channel="vcan2") as a, open_socketcan_bus("vcan2") as b:
+            a.send(can.Message(arbitration_id=0x42, data=b"\x42", is_extended_id=False))
+            assert [_key(m) for m in _recv_n(b, 1, timeout=10)] == [(0x42, False, False, b"\x42", 1)]
+        subprocess.run(["ip", "link", "set", "down", "vcan2"], check=True)
+        with pytest.raises(VcanError) as down:
+            check_socketcan_channel("vcan2")
+        assert down.value.kind == "down" and "ip link set up vcan2" in str(down.value)
+        assert vcan_up("vcan2") == "vcan2 raised"
+        check_socketcan_channel("vcan2")
+    finally:
+        vcan_down("vcan2")
+    assert not Path("/sys/class/net/vcan2").exists()
+
+
+def test_missing_channel_gives_clear_message() -> None:
+    with pytest.raises(VcanError) as missing:
+        check_socketcan_channel("vcan9")
+    assert missing.value.kind == "missing"
+    assert "vcan9 does not exist" in str(missing.value)
+    assert "canbrake vcan up vcan9" in str(missing.value)
+    with pytest.raises(VcanError) as opened:
+        open_socketcan_bus("vcan9")
+    assert opened.value.kind == "missing"
+    # python-can's own error for the same thing maps to the same message
+    with pytest.raises(OSError) as raw:
+        can.Bus(interface="socketcan", channel="vcan9")
+    assert explain_socketcan_error(raw.value, "vcan9").kind == "missing"
+
+
+def test_not_a_can_interface_gives_clear_message() -> None:
+    with pytest.raises(VcanError) as err:
+        check_socketcan_channel("lo")
+    assert err.value.kind == "not-can" and "--channel vcan0" in str(err.value)
+    with pytest.raises(VcanError) as up:
+        vcan_up("lo")
+    assert up.value.kind == "not-can"
+
