@@ -150,7 +150,10 @@ def observer_metrics(tr: Trace, tol_mps2: float = OBSERVER_TOL_MPS2, settle_s: f
     err = tr.observer_accel_mps2 - phi
     t = tr.t_s
     after = t >= settle_s - 1e-12
-    with np.errstate(invalid="ignore"):
+    import warnings
+
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns (no observer) give NaN, reported as None
         rms = np.sqrt(np.nanmean(err[1:] ** 2, axis=0))
         mx = np.nanmax(np.abs(err[after]), axis=0) if after.any() else np.full(tr.n_cars, np.nan)
     per_car_settle = [settling_time_s(t, err[:, i], tol_mps2, 0.0, _first_quiet_end(t, err[:, i], tol_mps2))
