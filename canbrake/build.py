@@ -99,6 +99,15 @@ def build_send_path(scn: Scenario, node: str) -> SendPath:
     return _build(scn, node)
 
 
+def build_rx_path(scn: Scenario, node: str) -> Any:
+    """Per-link impairments on what ``node`` receives (specs with ``receivers``), or None."""
+    if not any(getattr(s, "receivers", None) and node in s.receivers for s in scn.bus.impairments):
+        return None
+    from canbrake.bus.impair import build_impairments
+
+    return build_impairments(scn.bus.impairments, scn.seed, node, direction="rx")
+
+
 def hosted_babblers(scn: Scenario) -> list[SendPath]:
     """Send paths of babbling nodes that are not ECUs (e.g. a rogue device): the plant hosts them,
     releasing their frames at each tick start."""
@@ -147,7 +156,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
 
             bus_timing = build_bus_timing(scn)
         return EcuNode(car, scn.n_cars, build_controller(scn, car), codec, dt_s=scn.control_period_s,
-                       bus_timing=bus_timing, barrier=needs_barrier(scn),
+                       bus_timing=bus_timing, barrier=needs_barrier(scn), rx_path=build_rx_path(scn, f"ecu{car}"),
                        mode=scn.mode, send_path=build_send_path(scn, f"ecu{car}"),
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,

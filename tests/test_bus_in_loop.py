@@ -103,3 +103,25 @@ def test_overloaded_bus_delays_and_starves_frames(tmp_path):
     assert l2["state"]["late_frames"] == 0 and l2["state"]["starved"] == 0
     assert s2["frames"]["peer_values_missing"] == 0
     assert l2["state"]["max_s"] == pytest.approx((95 + 105 + 6 * 135) / 500_000)
+
+
+def test_per_link_impairment_hits_only_that_receiver(tmp_path):
+    """A link ecu3 -> ecu1 that loses everything: ecu1 never has car 3's state, ecu2 always does."""
+    scn = _scn(bus={"impairments": [{"type": "loss", "probability": 1.0, "senders": ["ecu3"],
+                                      "receivers": ["ecu1"]}]})
+    s = run_scenario(scn, tmp_path, backend="inprocess", plots=False)
+    assert s["status"] == "ok"
+    assert s["frames"]["by_kind"]["state"] == 6 * s["ticks"]  # on the bus: nothing lost at the sender
+    e1 = _ecu_trace(tmp_path, 1)
+    e2 = _ecu_trace(tmp_path, 2)
+    assert all(int(r["peers_fresh"]) == 5 for r in e1)
+    assert all(int(r["peers_fresh"]) == 6 for r in e2)
+
+
+def test_per_link_delay_is_taken_ticks_later(tmp_path):
+    scn = _scn(bus={"impairments": [{"type": "delay", "delay_s": 0.003, "senders": ["ecu2"],
+                                      "receivers": ["ecu5"]}]})
+    run_scenario(scn, tmp_path, backend="inprocess", plots=False)
+    ages = [float(r["max_peer_age_s"]) for r in _ecu_trace(tmp_path, 5)[5:]]
+    assert min(ages) == pytest.approx(0.003) and max(ages) == pytest.approx(0.003)
+    assert all(float(r["max_peer_age_s"]) == 0 for r in _ecu_trace(tmp_path, 4))

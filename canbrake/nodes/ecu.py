@@ -54,7 +54,7 @@ class EcuNode(Node):
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
                  crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
-                 barrier: bool = True) -> None:
+                 barrier: bool = True, rx_path: Any = None) -> None:
         self.car = car
         self.i = car - 1
         self.n = n_cars
@@ -75,6 +75,8 @@ class EcuNode(Node):
         # barrier=False: nothing can lose or delay a state frame (no impairment, ideal timing), so
         # the state frames themselves are the lockstep barrier and *_DONE frames are not sent.
         self.barrier = barrier
+        # per-link impairments on what this ECU receives (canbrake.bus.impair.SendPath, direction rx)
+        self.rx_path = rx_path
         self._latency: dict[str, list[float]] = {}
         self._t0_wall: float | None = None
         self.k = -1
@@ -142,6 +144,9 @@ class EcuNode(Node):
             return []
         if dbc.STATE_BASE < aid <= dbc.STATE_BASE + self.n:
             j = aid - dbc.STATE_BASE - 1
+            if self.rx_path is not None:
+                self._receive_linked(msg, j, now)
+                return []
             if self._on_state(j, msg) and not self.barrier:
                 self._done |= 1 << j
                 if self.phase == 1 and self._done == self._all_done:
@@ -154,6 +159,22 @@ class EcuNode(Node):
                 if self.phase == 1 and self._done == self._all_done:
                     return self._phase2(now)
         return []
+
+    def _receive_linked(self, msg: can.Message, j: int, now: float) -> None:
+        """A peer's state frame through this ECU's per-link impairments: frames the link delays
+        are taken in a later phase (see :meth:`_release_linked`). Peer frames arrive in phase 0/1."""
+        from canbrake.bus.impair import TxFrame
+
+        t, horizon = self._times(now, 1)
+        self.rx_path.submit(TxFrame.from_message(msg, f"ecu{j + 1}", t))
+        self._release_linked(horizon)
+
+    def _release_linked(self, horizon: float) -> None:
+        if self.rx_path is None:
+            return
+        for f in self.rx_path.release(horizon):
+            m = f.to_message()
+            self._on_state(m.arbitration_id - dbc.STATE_BASE - 1, m)
 
     def _on_state(self, j: int, msg: can.Message) -> bool:
         """Take a peer's state frame; True if it is this tick's."""
@@ -200,6 +221,7 @@ class EcuNode(Node):
         if self.crash_at_tick is not None and self.k >= self.crash_at_tick:
             raise RuntimeError(f"injected crash of {self.name} at tick {self.k} (ecu.crash in the scenario)")
         t, horizon = self._times(now, 1)
+        self._release_linked(horizon)
         out: list[can.Message] = []
         if self.k % self.heartbeat_every == 0:
             self._emit(frame(dbc.HEARTBEAT_BASE + self.car, self._hb.encode({"NodeState": 5})), t, out)
@@ -220,6 +242,7 @@ class EcuNode(Node):
         self.phase = 2
         self._deadline = None
         t, horizon = self._times(now, 2)
+        self._release_linked(self._times(now, 1)[1])
         speed = self.peer_speed.copy()
         pos = self.peer_pos.copy()
         speed[self.i], pos[self.i] = self.speed, self.position
