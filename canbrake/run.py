@@ -153,7 +153,14 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                           progress=progress)
         bus = _open_bus(choice, node.filters(), role)
         barrier.wait(timeout=120)
-        drive(node, bus, parent_pid=parent_pid)
+        prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
+        if prof_dir:  # developer aid: a cProfile of every node process
+            import cProfile
+
+            cProfile.runctx("drive(node, bus, parent_pid=parent_pid)", globals(), locals(),
+                            str(Path(prof_dir) / f"{name}.prof"))
+        else:
+            drive(node, bus, parent_pid=parent_pid)
         status = "ok"
     except SystemExit:
         status = "terminated"
