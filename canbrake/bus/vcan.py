@@ -35,6 +35,8 @@ __all__ = [
     "check_socketcan_channel",
     "explain_socketcan_error",
     "open_socketcan_bus",
+    "set_socket_rcvbuf",
+    "socket_rcvbuf",
 ]
 
 #: Root of sysfs; tests point this at a fake tree.
@@ -390,16 +392,44 @@ def explain_socketcan_error(exc: BaseException, channel: str) -> VcanError:
     )
 
 
-def open_socketcan_bus(channel: str = "vcan0", **kwargs: Any) -> can.BusABC:
+def open_socketcan_bus(
+    channel: str = "vcan0", *, rcvbuf_bytes: int | None = None, **kwargs: Any
+) -> can.BusABC:
     """Open ``can.Bus(interface="socketcan", channel=channel, **kwargs)``.
 
     Checks the channel first and turns python-can's ``OSError``/``CanError`` into
     :class:`VcanError` with a message that names the fix.
+
+    ``rcvbuf_bytes``: enlarge the socket's receive queue. The kernel silently drops frames
+    for a reader that falls behind once its queue (``net.core.rmem_default``, about 200 KB, a few
+    hundred frames) is full; a recorder that must see every frame wants several MB. Uses
+    ``SO_RCVBUFFORCE`` when allowed (CAP_NET_ADMIN), else ``SO_RCVBUF`` (capped at
+    ``net.core.rmem_max``). :func:`socket_rcvbuf` reports what the kernel granted.
     """
     import can
 
     check_socketcan_channel(channel)
     try:
-        return can.Bus(interface="socketcan", channel=channel, **kwargs)
+        bus = can.Bus(interface="socketcan", channel=channel, **kwargs)
     except (OSError, can.CanError) as exc:
         raise explain_socketcan_error(exc, channel) from exc
+    if rcvbuf_bytes:
+        sock = getattr(bus, "socket", None)
+        if isinstance(sock, socket.socket):
+            set_socket_rcvbuf(sock, rcvbuf_bytes)
+    return bus
+
+
+def set_socket_rcvbuf(sock: socket.socket, nbytes: int) -> int:
+    """Ask for a receive queue of ``nbytes`` (forced past rmem_max if privileged); return the grant."""
+    force = getattr(socket, "SO_RCVBUFFORCE", 33)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, force, nbytes)
+    except OSError:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, nbytes)
+    return socket_rcvbuf(sock)
+
+
+def socket_rcvbuf(sock: socket.socket) -> int:
+    """The socket's receive buffer size as the kernel reports it (twice the usable payload)."""
+    return int(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
