@@ -18,9 +18,9 @@ grid axes (NAME=START:STOP[UNIT]:COUNT or NAME=V1,V2,...):
   units: s, ms, us, % (loss), kbps; e.g. --grid delay=0:50ms:11 --grid loss=0:50%:11
          --grid set:controller.name=chen2023,chen2023_compensated   (a third axis: maps side by side)
 
-writes DIR/results.csv (one row per point and seed), DIR/heatmap_{deflection,speed_rmse,safety}.png,
+writes DIR/results.csv (one row per point and seed), DIR/heatmap_{deflection,speed_rmse,convergence,safety}.png,
 DIR/thresholds.md, DIR/sweep.json and DIR/points/<id>/summary.json. Rerunning the same command resumes: finished points
-are skipped. Classification: docs/delay-robustness.md.
+are skipped (use a new DIR after changing canbrake's code). Classification: docs/delay-robustness.md.
 """
 
 

@@ -30,7 +30,9 @@ plots=False)``); by default only ``summary.json``, ``scenario.yaml`` and the ``*
 kept (``keep="all"`` keeps the traces). The point id is readable (axis values, seed) plus a hash of
 the fully resolved scenario, so a point is only reused for exactly the same run. Resume: a point is
 skipped if ``results.csv`` already has its row with a final status (``ok``, ``diverged``,
-``invalid``) or its ``summary.json`` says ``ok``.
+``invalid``) or its ``summary.json`` says ``ok``. The id does not cover canbrake's own code: after
+changing a controller, sweep into a new directory. The classification below is reapplied to
+reused rows, so changing a threshold only needs a rerun of the same command.
 
 Classification of a run (columns of results.csv, and the safety map):
 
@@ -59,7 +61,6 @@ import json
 import math
 import os
 import re
-import shutil
 import signal
 import sys
 import threading
@@ -539,7 +540,8 @@ def classify(row: dict[str, Any]) -> dict[str, Any]:
     final_err = _num(row.get("final_speed_error_kmh_max"))
     finite = math.isfinite(defl)
     violation = (not finite) or defl > DEFLECTION_BOUND_M
-    degraded = tc in (None, "") or not math.isfinite(_num(tc)) or (math.isfinite(rmse_after) and rmse_after > TRACKING_RMSE_KMH)
+    degraded = (tc in (None, "") or not math.isfinite(_num(tc))
+                or (math.isfinite(rmse_after) and rmse_after > TRACKING_RMSE_KMH))
     unstable = (status != "ok" or not finite or defl >= UNSTABLE_DEFLECTION_M
                 or not math.isfinite(final_err) or final_err >= UNSTABLE_SPEED_ERROR_KMH)
     level = 3 if unstable else 2 if violation else 1 if degraded else 0
@@ -851,7 +853,8 @@ def _write_manifest(plan: SweepPlan) -> None:
 # ----------------------------------------------------------------------------- heatmaps
 def aggregate(rows: Sequence[dict[str, Any]], axes: Sequence[Axis]) -> dict[tuple, dict[str, Any]]:
     """Per point (tuple of axis values), over its seeds: worst max |deflection| (m), mean worst-car
-    speed RMSE (km/h), worst safety level and the share of seeds at that level."""
+    speed RMSE (km/h), latest convergence time (s, inf = never), worst safety level and the share of
+    seeds at that level."""
     cols = [a.column for a in axes]
     groups: dict[tuple, list[dict[str, Any]]] = {}
     for r in rows:
@@ -865,10 +868,13 @@ def aggregate(rows: Sequence[dict[str, Any]], axes: Sequence[Axis]) -> dict[tupl
         defl = [d if not math.isnan(d) else math.inf for d in defl]
         rmse = [_num(r.get("speed_rmse_kmh_max")) for r in rs]
         rmse_f = [x for x in rmse if math.isfinite(x)]
+        conv = [_num(r.get("convergence_time_s")) for r in rs]
+        conv = [c if math.isfinite(c) else math.inf for c in conv]
         levels = [int(r["safety_level"]) for r in rs if r.get("safety_level") is not None]
         worst = max(levels) if levels else None
         out[key] = {"deflection_m": max(defl), "rmse_kmh": float(np.mean(rmse_f)) if rmse_f else math.inf,
-                    "level": worst, "share": (levels.count(worst) / len(levels)) if levels else 0.0,
+                    "level": worst, "convergence_s": max(conv) if conv else math.inf,
+                    "share": (levels.count(worst) / len(levels)) if levels else 0.0,
                     "seeds": len(rs), "diverged": sum(1 for r in rs if r.get("status") == "diverged")}
     return out
 
@@ -881,7 +887,8 @@ def _key(v: Any) -> Any:
 
 def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir: str | Path, *,
                   title: str = "", prefix: str = "heatmap_") -> list[Path]:
-    """heatmap_deflection.png, heatmap_speed_rmse.png, heatmap_safety.png in ``out_dir``.
+    """heatmap_deflection.png, heatmap_speed_rmse.png, heatmap_convergence.png, heatmap_safety.png in
+    ``out_dir``.
 
     x = first axis, y = second axis (one row if there is one axis); further axes give one panel
     each, side by side."""
@@ -889,7 +896,7 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm
+    from matplotlib.colors import BoundaryNorm, ListedColormap, LogNorm, Normalize
 
     axes = list(axes)
     if not axes:
@@ -991,6 +998,29 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     cb.ax.tick_params(labelsize=7)
     fig.suptitle(f"speed tracking RMSE — {title}", fontsize=8)
     paths.append(_save(fig, out_dir / f"{prefix}speed_rmse.png"))
+
+    # convergence time
+    fig, axs = figure()
+    ccmap = matplotlib.colormaps["viridis"].with_extremes(over="#7f0000", bad="#dddddd")
+    for ax, fv, g in zip(axs, facets, grid("convergence_s")):
+        finite = g[np.isfinite(g)]
+        top = float(finite.max()) if finite.size else 1.0
+        im = ax.imshow(np.ma.masked_invalid(np.where(np.isinf(g), 1e9, g)), origin="lower", aspect="auto",
+                       cmap=ccmap, norm=Normalize(vmin=0.0, vmax=max(top, 1e-3)))
+        for iy in range(ny):
+            for ix in range(nx):
+                c = cell(fv, ix, iy)
+                if c is None:
+                    continue
+                v = c["convergence_s"]
+                ax.text(ix, iy, "never" if not math.isfinite(v) else f"{v:.2g}", ha="center", va="center",
+                        fontsize=fs - 1, color="white" if not math.isfinite(v) or v < 0.5 * top else "black")
+        decorate(ax, fv)
+    cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
+    cb.set_label("convergence to ±0.5 km/h (s), latest seed", fontsize=7)
+    cb.ax.tick_params(labelsize=7)
+    fig.suptitle(f"convergence time (never = not within the band at the end) — {title}", fontsize=8)
+    paths.append(_save(fig, out_dir / f"{prefix}convergence.png"))
 
     # safety
     fig, axs = figure()

@@ -4,7 +4,6 @@ and the delay-compensated controller."""
 from __future__ import annotations
 
 import csv
-import math
 import os
 import signal
 import subprocess
@@ -155,9 +154,12 @@ def test_serial_sweep_writes_one_row_per_point_and_seed_and_heatmaps(tiny):
     assert all(int(r["frames_peer_values_missing"]) > 0 for r in lossy)  # the loss reached the ECUs
     delayed = [r for r in rows if float(r["delay_s"]) > 0 and float(r["loss"]) == 0]
     assert int(delayed[0]["frames_commands_missed"]) > 0  # ... and the delay the plant
-    for name in ("heatmap_deflection.png", "heatmap_speed_rmse.png", "heatmap_safety.png"):
+    for name in ("heatmap_deflection.png", "heatmap_speed_rmse.png", "heatmap_convergence.png",
+                 "heatmap_safety.png"):
         p = out / name
         assert p.exists() and p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and p.stat().st_size < 150_000
+    th = (out / "thresholds.md").read_text()
+    assert "| delay | loss=0 |" in th and "| loss | delay=0ms |" in th
     # traces are trimmed by default, summaries kept
     pdir = out / "points" / rows[0]["point_id"]
     assert (pdir / "summary.json").exists() and not (pdir / "frames.log").exists()

@@ -28,13 +28,16 @@ This controller keeps the law and its gains, and changes what it is fed:
   see the same latency unless ``command_latency_s`` is given). With a loop dead time τ (the command
   latency plus the peer age the law acts on), the consensus, tracking and position gains are reduced so
   that bandwidth × τ ≤ ``delay_margin`` (rad): α1 ≤ margin/(n_eig·τ), k ≤ margin/τ, and α2, δ scaled
-  with the square of α1's reduction (the relative position mode keeps its damping). Without
-  latency the gains are Chen's.
+  with the square of α1's reduction (the relative position mode keeps its damping); the barrier is
+  clipped (``barrier_clip``) where it would give two coupled cars a relative stiffness above
+  (margin/τ)², so it cannot fire its 10⁶ m/s² relay into a loop with dead time. Without latency the
+  gains are Chen's, and so is every command.
 * **observer fed with the command in flight** (``observer_delay``): the sliding-mode observer is
   driven with the command issued one estimated command latency ago, the one acting on the car now.
 
 All of the parent's parameters are accepted (``stale_policy`` must stay ``"hold"``; this class does
-the age handling). Units: SI.
+the age handling). Units: SI. Limits: the ages come from the E2E alive counter, which aliases from 15
+periods on; a latency on the command path alone is invisible to the ECU (set ``command_latency_s``).
 """
 from __future__ import annotations
 
