@@ -16,3 +16,11 @@ def case1_short():
     from canbrake.scenario import load_scenario
 
     return load_scenario(CASE1, overrides={"duration_s": 0.3})
+
+
+def default_sigint() -> None:
+    """preexec_fn for children the tests interrupt: a shell that starts jobs in the background
+    hands them SIGINT ignored, and Python then never raises KeyboardInterrupt; restore it."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

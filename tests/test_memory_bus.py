@@ -14,6 +14,8 @@ from pathlib import Path
 import can
 import pytest
 
+from conftest import default_sigint
+
 from canbrake.bus import memory_shm as shm
 from canbrake.bus.memory import MemoryBus, channel_pids, list_channels, remove_channel
 
@@ -489,7 +491,8 @@ def test_can_logger_and_can_player_command_lines(shm_dir: Path, tmp_path: Path) 
     sent = [frame(0x200 + k, bytes([k, 0xAA])) for k in range(10)]
     out_log = tmp_path / "out.log"
     logger = subprocess.Popen([sys.executable, "-m", "can.logger", "-i", "canbrake", "-c", "cli",
-                               "-f", str(out_log)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                               "-f", str(out_log)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                              preexec_fn=default_sigint)
     try:
         wait_for_pids("cli", 1)
         with bus("cli") as tx:

@@ -18,7 +18,7 @@ from canbrake.analysis.summary import read_signals
 from canbrake.run import run_scenario
 from canbrake.scenario import load_scenario
 
-from conftest import CASE1, ROOT
+from conftest import CASE1, ROOT, default_sigint
 
 RUN_FILES = ["frames.log", "signals.csv", "summary.json", "scenario.yaml", "canbrake.dbc",
              "plots/speeds.png", "plots/errors.png", "plots/deflections.png"]
@@ -127,7 +127,8 @@ def _children(pid: int) -> list[int]:
 
 def test_ctrl_c_ends_run_cleanly_and_reaps_every_process(tmp_path):
     p = subprocess.Popen([sys.executable, "-m", "canbrake.cli", "run", str(CASE1), "--out", str(tmp_path),
-                          "--no-plots"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                          "--no-plots"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=default_sigint)
     deadline = time.time() + 60
     while time.time() < deadline and not (tmp_path / "signals.csv").exists():
         time.sleep(0.2)

@@ -17,7 +17,7 @@ from canbrake import sweep as sw
 from canbrake.bus import dbc
 from canbrake.scenario import load_scenario
 
-from conftest import CASE1, ROOT
+from conftest import CASE1, ROOT, default_sigint
 
 STATE_IDS = [dbc.STATE_BASE + c for c in range(1, 7)]
 CMD_IDS = [dbc.BRAKE_CMD_BASE + c for c in range(1, 7)]
@@ -269,7 +269,8 @@ def test_ctrl_c_stops_a_dask_sweep_and_leaves_no_process(tmp_path):
     out = tmp_path / "sw"
     p = subprocess.Popen([sys.executable, "-m", "canbrake.cli", "sweep", str(CASE1), "--grid", "delay=0:10ms:11",
                           "--workers", "2", "--duration", "0.2", "--out", str(out), "-q", "--no-plots"],
-                         cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                         cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         preexec_fn=default_sigint)
     deadline = time.time() + 60
     while time.time() < deadline and not list((out / "points").glob("*/summary.json")):
         time.sleep(0.1)  # workers up and through their first points
