@@ -70,9 +70,7 @@ def _drain(bus: can.BusABC) -> None:
         pass
 
 
-def _recv_n(
-    bus: can.BusABC, n: int, timeout: float, proc: subprocess.Popen[bytes] | None = None
-) -> list[can.Message]:
+def _recv_n(bus: can.BusABC, n: int, timeout: float) -> list[can.Message]:
     """Receive ``n`` frames (probe frames ignored) within ``timeout`` seconds."""
     got: list[can.Message] = []
     deadline = time.monotonic() + timeout

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import errno
 import shutil
-import sys
 import socket
 import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
