@@ -122,7 +122,11 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "") -> 
     if choice.backend == "socketcan" and choice.interface == "socketcan":
         from canbrake.bus.vcan import open_socketcan_bus
 
-        return open_socketcan_bus(choice.channel or "vcan0", can_filters=filters, receive_own_messages=False)
+        # The kernel silently drops frames for a socket whose receive queue is full: give the
+        # recorder, which must see every frame, a large one.
+        rcvbuf = 16 << 20 if role == "recorder" else None
+        return open_socketcan_bus(choice.channel or "vcan0", rcvbuf_bytes=rcvbuf, can_filters=filters,
+                                  receive_own_messages=False)
     kwargs: dict[str, Any] = {}
     if choice.interface == "canbrake" and role == "recorder":
         # the recorder must see every frame: senders wait for it rather than overrun its ring
@@ -152,7 +156,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
                           progress=progress)
         bus = _open_bus(choice, node.filters(), role)
-        barrier.wait(timeout=120)
+        barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
         if prof_dir:  # developer aid: a cProfile of every node process
             import cProfile
@@ -182,10 +186,21 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             bus.shutdown()
 
 
+def _start_timeout_s() -> float:
+    """How long node processes may take to start (s): CANBRAKE_START_TIMEOUT_S, default 120
+    (an emulated VM needs far more just to import numpy and friends)."""
+    try:
+        return float(os.environ.get("CANBRAKE_START_TIMEOUT_S", "120"))
+    except ValueError:
+        return 120.0
+
+
 def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_timeout_s: float = 60.0,
-                  start_timeout_s: float = 120.0) -> dict[str, Any]:
+                  start_timeout_s: float | None = None) -> dict[str, Any]:
     """Run plant, ECUs and recorder as separate OS processes; supervise until done."""
     ctx = mp.get_context("spawn")
+    if start_timeout_s is None:
+        start_timeout_s = _start_timeout_s()
     roles = [("recorder", 0)] + [("ecu", c) for c in range(1, scn.n_cars + 1)] + [("plant", 0)]
     barrier = ctx.Barrier(len(roles))
     progress = ctx.Value("q", -1, lock=False)
