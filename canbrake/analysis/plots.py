@@ -7,7 +7,6 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
 
 from canbrake.analysis.metrics import KMH, Trace  # noqa: E402
 
@@ -63,7 +62,3 @@ def _save(fig: plt.Figure, path: Path) -> str:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path.name
-
-
-def finite(a: np.ndarray) -> np.ndarray:
-    return a[np.isfinite(a)]

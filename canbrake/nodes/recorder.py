@@ -25,9 +25,6 @@ from canbrake.bus import dbc
 from canbrake.bus.timing import frame_bits
 from canbrake.nodes.base import Node
 
-_PLANT_IDS = None
-
-
 def _is_plant_frame(aid: int, n: int) -> bool:
     return (aid in (dbc.SYNC_ID, dbc.REFERENCE_ID, dbc.HEARTBEAT_BASE)
             or dbc.SENSOR_BASE < aid <= dbc.SENSOR_BASE + n or dbc.COUPLER_BASE < aid <= dbc.COUPLER_BASE + n)
@@ -107,7 +104,7 @@ class RecorderNode(Node):
                            (dbc.HEARTBEAT_BASE, "heartbeat"), (dbc.STATE_BASE, "state"),
                            (dbc.COUPLER_BASE, "coupler"), (dbc.SENSOR_BASE, "sensor"),
                            (dbc.BRAKE_CMD_BASE, "brake_cmd")):
-            if base <= aid <= base + self.n and (base != dbc.HEARTBEAT_BASE or aid <= base + self.n):
+            if base <= aid <= base + self.n:
                 return kind
         return {dbc.SYNC_ID: "sync", dbc.REFERENCE_ID: "reference"}.get(aid, "other")
 
