@@ -120,9 +120,18 @@ def test_crashed_ecu_ends_run_with_message_and_logs(tmp_path):
     assert len((tmp_path / "signals.csv").read_text().splitlines()) >= 41
 
 
-def _children(pid: int) -> list[int]:
+def _alive(pid: int) -> bool:
+    try:
+        return "zombie" not in open(f"/proc/{pid}/status").read().lower()
+    except FileNotFoundError:
+        return False
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (node processes are children of multiprocessing's forkserver)."""
     out = subprocess.run(["ps", "-o", "pid=", "--ppid", str(pid)], capture_output=True, text=True).stdout
-    return [int(x) for x in out.split()]
+    kids = [int(x) for x in out.split()]
+    return kids + [d for k in kids for d in _descendants(k)]
 
 
 def test_ctrl_c_ends_run_cleanly_and_reaps_every_process(tmp_path):
@@ -133,25 +142,39 @@ def test_ctrl_c_ends_run_cleanly_and_reaps_every_process(tmp_path):
     while time.time() < deadline and not (tmp_path / "signals.csv").exists():
         time.sleep(0.2)
     time.sleep(1.0)
-    kids = _children(p.pid)
-    assert len(kids) >= 8  # recorder, 6 ECUs, plant (+ resource tracker)
+    kids = _descendants(p.pid)
+    assert len(kids) >= 8  # recorder, 6 ECUs, plant (+ forkserver, resource tracker)
     p.send_signal(signal.SIGINT)
     out, err = p.communicate(timeout=180)
     assert p.returncode == 130, err
 
-    def alive(k: int) -> bool:
-        try:
-            return "zombie" not in open(f"/proc/{k}/status").read().lower()
-        except FileNotFoundError:
-            return False
-
-    # multiprocessing's resource tracker exits by itself once its last pipe closes: allow it a moment
+    # multiprocessing's forkserver and resource tracker exit by themselves once their last pipe
+    # closes: allow them a moment
     deadline = time.time() + 10
-    while time.time() < deadline and any(alive(k) for k in kids):
+    while time.time() < deadline and any(_alive(k) for k in kids):
         time.sleep(0.2)
-    assert not [k for k in kids if alive(k)]
+    assert not [k for k in kids if _alive(k)]
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["status"] == "interrupted" and s["ticks"] > 0
+
+
+def test_killed_orchestrator_leaves_no_process_behind(tmp_path):
+    """`kill -9` of `canbrake run` (no chance to clean up): the node processes notice that their
+    orchestrator is gone and exit, and so does multiprocessing's forkserver."""
+    p = subprocess.Popen([sys.executable, "-m", "canbrake.cli", "run", str(CASE1), "--out", str(tmp_path),
+                          "--no-plots"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 60
+    while time.time() < deadline and not (tmp_path / "signals.csv").exists():
+        time.sleep(0.2)
+    kids = _descendants(p.pid)
+    assert len(kids) >= 8
+    p.kill()
+    p.communicate(timeout=30)
+
+    deadline = time.time() + 30
+    while time.time() < deadline and any(_alive(k) for k in kids):
+        time.sleep(0.2)
+    assert not [k for k in kids if _alive(k)]
 
 
 def test_case1_acceptance_over_the_bus(tmp_path):

@@ -9,6 +9,7 @@
 """
 from __future__ import annotations
 
+import multiprocessing as mp
 import os
 import time
 import uuid
@@ -55,6 +56,16 @@ def _send_all(bus: can.BusABC, msgs: Sequence[can.Message], retries: int = 200) 
                 time.sleep(0.0005)
 
 
+def _parent_alive(parent_pid: int) -> bool:
+    """Is the orchestrator (``parent_pid``) still running? A node started by multiprocessing asks
+    its parent sentinel (under a forkserver, the node's OS parent is the server, not the
+    orchestrator); otherwise, the OS parent must still be ``parent_pid``."""
+    parent = mp.parent_process()
+    if parent is not None and parent.pid == parent_pid:
+        return parent.is_alive()
+    return os.getppid() == parent_pid
+
+
 def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time,
           idle_check_s: float = 0.5, parent_pid: int | None = None) -> None:
     """Run ``node`` on ``bus`` until it finishes. Checks every ``idle_check_s`` of silence that the
@@ -71,7 +82,7 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         deadline = node.next_deadline()
         if deadline is not None and now >= deadline:
             _send_all(bus, node.on_timer(now))
-        if msg is None and parent_pid is not None and os.getppid() != parent_pid:
+        if msg is None and parent_pid is not None and not _parent_alive(parent_pid):
             raise NodeFailure(f"{node.name}: parent process went away")
 
 
