@@ -74,7 +74,7 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
     if bl.get("bus_load_mean") is not None:
         lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "
                      f"at {bl['bitrate_bps'] / 1000:g} kbit/s  frames: {s['frames']['on_bus']}")
-    lines.append(f"written: {out}/summary.json, signals.csv, frames.log, plots/")
+    lines.append(f"written: {out}/summary.json, signals.csv, frames.log" + (", plots/" if s.get("plots") else ""))
     print("\n".join(lines))
 
 

@@ -17,7 +17,7 @@ import threading
 import time
 import traceback
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +42,8 @@ class BusChoice:
 
     #: channel name written into frames.log (stable across backends so logs compare byte for byte)
     log_channel: str = "canbrake0"
+    #: keyword arguments for ``can.Bus`` beyond interface/channel (an adapter's bit rate, options)
+    bus_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def describe(self) -> str:
         return f"{self.interface or self.backend}:{self.channel}"
@@ -56,6 +58,11 @@ def choose_bus(scn: Scenario, backend: str | None = None, channel: str | None = 
         raise ScenarioError(f"--bus: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
     channel = channel or scn.bus.channel
     log_channel = channel or "canbrake0"
+    if interface not in (None, "canbrake", "socketcan") and backend in ("memory", "socketcan"):
+        return _adapter_choice(scn, interface, channel)
+    if scn.bus.interface_args:
+        raise ScenarioError("bus.interface_args: only used with a python-can interface other than "
+                            "canbrake/socketcan (--interface NAME)")
     if backend == "memory":
         interface = interface or "canbrake"
         channel = channel or f"cb{os.getpid()}-{uuid.uuid4().hex[:6]}"
@@ -69,6 +76,29 @@ def choose_bus(scn: Scenario, backend: str | None = None, channel: str | None = 
     if backend in ("virtual", "inprocess") and scn.mode != "lockstep":
         raise ScenarioError(f"--bus {backend}: runs in one process and supports --mode lockstep only")
     return BusChoice(backend, interface, channel, log_channel)
+
+
+#: python-can interfaces that only connect buses inside one process: node processes would never
+#: hear each other
+_SINGLE_PROCESS_INTERFACES = ("virtual",)
+
+
+def _adapter_choice(scn: Scenario, interface: str, channel: str | None) -> BusChoice:
+    """Any other python-can interface (a CAN adapter: pcan, kvaser, vector, slcan, ...). Channel
+    and ``bus.interface_args`` go to ``can.Bus`` as given; ``bus.bitrate_bps`` is passed as
+    ``bitrate`` (python-can's adapters configure the controller with it) unless interface_args
+    names its own. Every node process opens the channel itself, so the driver must let several
+    processes share it and deliver each one's frames to the others, as SocketCAN does."""
+    import can.interfaces
+
+    if interface in _SINGLE_PROCESS_INTERFACES:
+        raise ScenarioError(f"--interface {interface}: python-can's {interface} bus connects buses inside "
+                            f"one process only; use --bus virtual (all nodes in one process) or --bus memory")
+    if interface not in can.interfaces.VALID_INTERFACES:
+        raise ScenarioError(f"--interface {interface}: not a python-can interface (installed: "
+                            f"{', '.join(sorted(can.interfaces.VALID_INTERFACES))})")
+    kwargs = {"bitrate": scn.bus.bitrate_bps, **scn.bus.interface_args}
+    return BusChoice("adapter", interface, channel, channel or interface, kwargs)
 
 
 def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | None = None) -> Path:
@@ -131,6 +161,7 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "") -> 
     if choice.interface == "canbrake" and role == "recorder":
         # the recorder must see every frame: senders wait for it rather than overrun its ring
         kwargs["backpressure"] = True
+    kwargs.update(choice.bus_kwargs)
     return can.Bus(interface=choice.interface, channel=choice.channel, can_filters=filters,
                    receive_own_messages=False, **kwargs)
 
@@ -373,11 +404,26 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
                 check_socketcan_channel(choice.channel or "vcan0")
             except VcanError as e:
                 raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+        elif choice.backend == "adapter":
+            _check_adapter(choice)
     except ScenarioError as e:
         if source and not str(e).startswith(source) and not str(e).startswith("--"):
             raise ScenarioError(f"{source}: {e}") from None
         raise
     return choice
+
+
+def _check_adapter(choice: BusChoice) -> None:
+    """Open and close the adapter once here, so that a missing driver, device or permission is one
+    message (exit 2) instead of every node process failing."""
+    try:
+        bus = can.Bus(interface=choice.interface, channel=choice.channel, **choice.bus_kwargs)
+    except (can.CanError, OSError, ImportError, ValueError, TypeError) as e:
+        first = str(e).splitlines()[0] if str(e) else type(e).__name__
+        where = f"--interface {choice.interface}" + (f" --channel {choice.channel}" if choice.channel else
+                                                     " (no --channel)")
+        raise ScenarioError(f"{where}: cannot open the python-can bus: {first}") from None
+    bus.shutdown()
 
 
 def check_buildable(scn: Scenario) -> None:

@@ -145,7 +145,13 @@ class BusConfig(_Model):
     backend: Literal["memory", "socketcan", "virtual"] = "memory"
     channel: str | None = Field(None, description="default: a fresh in-memory channel, or vcan0 for socketcan")
     interface: str | None = Field(None, description="any python-can interface name; overrides backend")
-    bitrate_bps: int = Field(500000, gt=0, le=1_000_000, description="classic CAN bit rate")
+    bitrate_bps: int = Field(500000, gt=0, le=1_000_000,
+                             description="classic CAN bit rate: the timing model's and bus load's; passed to a "
+                                         "python-can adapter interface as `bitrate` (a SocketCAN device's is set "
+                                         "with `ip link`)")
+    interface_args: dict[str, Any] = Field(
+        default_factory=dict, description="extra keyword arguments for can.Bus with --interface NAME "
+                                          "(python-can's interface options, e.g. {fd: false, serial: 123})")
     timing: Literal["ideal", "model"] = Field(
         "ideal", description="ideal: frames arrive within the period (the papers' assumption); model: the CAN "
                              "timing model (stuffing, arbitration, queueing) decides when each frame arrives (lockstep)")

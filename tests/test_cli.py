@@ -76,6 +76,39 @@ def test_missing_vcan_interface_is_explained(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("args, needles", [
+    (["--interface", "nosuch"], ["--interface nosuch", "not a python-can interface", "pcan"]),
+    (["--interface", "virtual"], ["--interface virtual", "--bus virtual"]),
+    # no PCAN driver on a test machine: python-can's own reason, after the option that caused it
+    (["--interface", "pcan", "--channel", "PCAN_USBBUS1"], ["--interface pcan --channel PCAN_USBBUS1",
+                                                           "cannot open the python-can bus"]),
+    (["--set", "bus.interface_args.fd=true"], ["bus.interface_args", "--interface NAME"]),
+])
+def test_bad_adapter_choice_is_explained(tmp_path, args, needles):
+    _bad(canbrake("run", str(CASE1), *args, "--out", str(tmp_path / "o")), *needles)
+    assert not (tmp_path / "o").exists()
+
+
+def test_adapter_gets_channel_bitrate_and_interface_args(monkeypatch):
+    """--interface NAME: channel, bus.bitrate_bps (as python-can's ``bitrate``) and
+    bus.interface_args reach ``can.Bus`` in every node process; interface_args wins."""
+    import can
+
+    from canbrake import run
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario(CASE1, overrides={"bus": {"bitrate_bps": 250000, "interface_args": {"fd": False}}})
+    choice = run.choose_bus(scn, interface="kvaser", channel="0")
+    assert (choice.backend, choice.interface, choice.channel, choice.log_channel) == ("adapter", "kvaser", "0", "0")
+    opened: list[dict] = []
+    monkeypatch.setattr(can, "Bus", lambda **kw: opened.append(kw) or "bus")
+    assert run._open_bus(choice, [{"can_id": 0x80, "can_mask": 0x7FF}], "ecu") == "bus"
+    assert opened == [{"interface": "kvaser", "channel": "0", "can_filters": [{"can_id": 0x80, "can_mask": 0x7FF}],
+                       "receive_own_messages": False, "bitrate": 250000, "fd": False}]
+    scn2 = load_scenario(CASE1, overrides={"bus": {"interface_args": {"bitrate": 125000}}})
+    assert run.choose_bus(scn2, interface="pcan").bus_kwargs == {"bitrate": 125000}
+
+
 def test_nothing_already_written_is_lost(tmp_path):
     out = tmp_path / "run"
     out.mkdir()
