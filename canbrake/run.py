@@ -249,6 +249,14 @@ def _mp_context() -> Any:
     ctx = mp.get_context(method)
     if method == "forkserver":
         ctx.set_forkserver_preload(_NODE_MODULES)  # takes effect when the server first starts
+        from multiprocessing import forkserver
+
+        try:
+            forkserver.ensure_running()
+        except OSError:
+            # The server listens on a unix socket under TMPDIR, which fails when TMPDIR is too
+            # long for a socket path or on a file system that cannot hold one (9p, some FUSE).
+            ctx = mp.get_context("spawn")
     return ctx
 
 

@@ -177,6 +177,18 @@ def test_killed_orchestrator_leaves_no_process_behind(tmp_path):
     assert not [k for k in kids if _alive(k)]
 
 
+def test_run_works_when_tmpdir_cannot_hold_a_socket(tmp_path):
+    """The forkserver listens on a unix socket under TMPDIR; a TMPDIR too long for a socket path
+    (or on 9p, as in the vcan VM) must not break a run: it falls back to ``spawn``."""
+    tmpdir = tmp_path / ("x" * 60) / ("y" * 50)
+    tmpdir.mkdir(parents=True)
+    r = subprocess.run([sys.executable, "-m", "canbrake", "run", str(CASE1), "--duration", "0.01",
+                        "--out", str(tmp_path / "out"), "--no-plots"], capture_output=True, text=True,
+                       timeout=300, env={**os.environ, "TMPDIR": str(tmpdir)})
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "out" / "summary.json").read_text())["ticks"] == 10
+
+
 def test_case1_acceptance_over_the_bus(tmp_path):
     """Issue 3's bar, through the same node code and frames as `canbrake run`: every coupler
     deflection within ±1 cm throughout, every car within 0.5 km/h of v* after convergence."""
