@@ -136,6 +136,18 @@ class PlantAdapter:
                 "coupler_force_n": s.coupler_force_n}
 
 
+def failsafe_of(scn: Scenario) -> Any:
+    """The plant's fail-safe reaction from ``safety`` (None when off)."""
+    from canbrake.nodes.plant import FailSafe
+
+    sf = scn.safety
+    if sf.command_timeout_s is None:
+        return None
+    mass = np.asarray(scn.train.mass_kg, dtype=float)
+    return FailSafe(timeout_ticks=max(1, int(round(sf.command_timeout_s / scn.control_period_s))),
+                    force_n=mass * sf.failsafe_decel_mps2, latch=sf.latch)
+
+
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
                progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build") -> Node:
     """One node of the run: ``role`` is "plant", "ecu" (with ``car``) or "recorder"."""
@@ -147,7 +159,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                          coupler_sensors=scn.plant.coupler_sensors, heartbeat_period_s=scn.ecu.heartbeat_period_s,
                          out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
-                         barrier=needs_barrier(scn))
+                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn))
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 

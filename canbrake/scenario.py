@@ -166,6 +166,19 @@ class PlantConfig(_Model):
     substeps: int = Field(1, ge=1, le=1000, description="integration sub-steps per control period")
 
 
+class SafetyConfig(_Model):
+    """What each car's brake unit does when its brake commands stop arriving intact (E2E checked):
+    after ``command_timeout_s`` without a valid command it brakes on its own at
+    ``failsafe_decel_mps2`` (force = that x the car's mass). Off by default: the papers assume
+    commands always arrive, and the plant then holds the last command however old it is."""
+
+    command_timeout_s: float | None = Field(None, gt=0, description="no valid command for this long "
+                                                                    "-> fail-safe brake (null: off)")
+    failsafe_decel_mps2: float = Field(1.2, gt=0, description="fail-safe braking force per unit mass (m/s^2)")
+    latch: bool = Field(True, description="true: a car stays in fail-safe until the end of the run; false: "
+                                          "the next valid command releases it")
+
+
 class CrashFault(_Model):
     """Fault injection: the ECU process of ``car`` raises an error at ``at_s`` (tests supervision)."""
 
@@ -201,6 +214,7 @@ class Scenario(_Model):
     bus: BusConfig = BusConfig()
     plant: PlantConfig = PlantConfig()
     ecu: EcuConfig = EcuConfig()
+    safety: SafetyConfig = SafetyConfig()
 
     @model_validator(mode="after")
     def _per_car_lengths(self) -> "Scenario":
@@ -229,6 +243,10 @@ class Scenario(_Model):
                     checks.append((f"events.{i}.{fname}", getattr(ev, fname), n))
         for name, value, k in checks:
             per_car(value, k, name)
+        t_out = self.safety.command_timeout_s
+        if t_out is not None and t_out < self.control_period_s:
+            raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
+                             f"({self.control_period_s} s)")
         if self.duration_s / self.control_period_s > 10_000_000:
             raise ValueError("duration_s / control_period_s exceeds 10 million ticks")
         return self

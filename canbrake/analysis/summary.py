@@ -165,6 +165,11 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
             agg["max_s"] = max(agg["max_s"], st["max_s"] or 0.0)
     if lat:
         summary["bus_latency_in_loop"] = {"model": scn.bus.timing, **lat}
+    if scn.safety.command_timeout_s is not None:
+        summary["failsafe"] = {"command_timeout_s": scn.safety.command_timeout_s,
+                               "activations": plant.get("failsafe_activations", 0),
+                               "car_ticks": plant.get("failsafe_ticks", 0),
+                               "first_activation_s": plant.get("failsafe_first_s", {})}
     summary["deadline_misses"] = {"plant": plant.get("deadline_misses", 0),
                                   "ecus": sum(e.get("deadline_misses", 0) for e in ecus),
                                   "late_periods": plant.get("late_periods", 0),

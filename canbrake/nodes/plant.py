@@ -37,6 +37,17 @@ Reference = Callable[[float], tuple[float, float]]  # t_s -> (v* m/s, a* m/s^2)
 
 
 @dataclass
+class FailSafe:
+    """Each car's brake unit reaction to lost commands: after ``timeout_ticks`` control periods
+    without a valid (E2E-checked, in-sequence) command, apply ``force_n`` (N per car, + = brake).
+    ``latch``: stay in fail-safe to the end of the run, else leave it on the next valid command."""
+
+    timeout_ticks: int
+    force_n: np.ndarray
+    latch: bool = True
+
+
+@dataclass
 class PlantStats:
     ticks: int = 0
     commands_received: int = 0
@@ -47,6 +58,9 @@ class PlantStats:
     late_periods: int = 0             # realtime: period started late by more than one period
     max_lateness_s: float = 0.0
     wall_time_s: float = 0.0
+    failsafe_activations: int = 0     # car entries into fail-safe braking
+    failsafe_ticks: int = 0           # ticks x cars spent in fail-safe braking
+    failsafe_first_s: dict[str, float] = field(default_factory=dict)  # car -> first activation (s)
     status: str = "running"
     extra: dict[str, float] = field(default_factory=dict)
 
@@ -60,7 +74,7 @@ class PlantNode(Node):
                  reference: Reference, mode: str = "lockstep", coupler_sensors: bool = False,
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
                  flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None,
-                 barrier: bool = True) -> None:
+                 barrier: bool = True, failsafe: FailSafe | None = None) -> None:
         self.model = model
         self.codec = codec
         self.n = model.n_cars
@@ -84,7 +98,9 @@ class PlantNode(Node):
         self._done = 0  # bit i set: CMD_DONE of car i seen this tick
         self._all_done = (1 << self.n) - 1
         self._e2e = [E2EReceiver(dbc.BRAKE_CMD_BASE + c) for c in range(1, self.n + 1)]
-        self._last_counter = [-1] * self.n
+        self._last_counter = [-1] * self.n  # tick of each car's newest accepted command
+        self.failsafe = failsafe
+        self._in_failsafe = np.zeros(self.n, dtype=bool)
         self._sync = codec["SYNC"]
         self._ref = codec["REFERENCE"]
         self._sensor = [codec[f"SENSOR_C{c}"] for c in range(1, self.n + 1)]
@@ -193,11 +209,29 @@ class PlantNode(Node):
             self.stats.late_periods += 1
         return self._advance(now)
 
+    def _applied_commands(self) -> np.ndarray:
+        """The force each car's brake unit applies this tick (N): the newest command, or the
+        fail-safe force for cars whose commands have stopped."""
+        fs = self.failsafe
+        if fs is None:
+            return self.cmd_n.copy()
+        age = self.k - np.asarray(self._last_counter)  # ticks since the newest valid command
+        if not fs.latch:
+            self._in_failsafe &= ~self._fresh
+        entering = (age > fs.timeout_ticks) & ~self._in_failsafe
+        for i in np.flatnonzero(entering):
+            self.stats.failsafe_activations += 1
+            self.stats.failsafe_first_s.setdefault(f"c{i + 1}", round(self.k * self.dt, 9))
+        self._in_failsafe |= entering
+        self.stats.failsafe_ticks += int(self._in_failsafe.sum())
+        return np.where(self._in_failsafe, fs.force_n, self.cmd_n)
+
     def _advance(self, now: float) -> list[can.Message]:
         self.stats.commands_missed += int((~self._fresh).sum())
+        applied = self._applied_commands()
         self._record()
         try:
-            self.model.step(self.dt, self.cmd_n.copy())
+            self.model.step(self.dt, applied)
         except FloatingPointError as e:
             # The closed loop went unstable (a result, not a crash): end the run for every node.
             self.finished = True
@@ -228,6 +262,8 @@ class PlantNode(Node):
                      f"brake_cmd_n_c{c}", f"brake_applied_n_c{c}"]
         for c in range(1, self.n):
             cols += [f"deflection_m_k{c}", f"coupler_force_n_k{c}"]
+        if self.failsafe is not None:
+            cols += [f"failsafe_c{c}" for c in range(1, self.n + 1)]
         return cols
 
     def _open_trace(self) -> None:
@@ -244,6 +280,8 @@ class PlantNode(Node):
             row += [m["position_m"][i], m["speed_mps"][i], m["accel_mps2"][i], cmd[i], m["applied_brake_n"][i]]
         for j in range(self.n - 1):
             row += [m["deflection_m"][j], m["coupler_force_n"][j]]
+        if self.failsafe is not None:
+            row += [int(f) for f in self._in_failsafe]
         if self._trace is not None:
             self._trace.append(row)
             if final:
