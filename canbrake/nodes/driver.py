@@ -68,9 +68,11 @@ def _parent_alive(parent_pid: int) -> bool:
 
 def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time,
           idle_check_s: float = 0.5, parent_pid: int | None = None) -> None:
-    """Run ``node`` on ``bus`` until it finishes. Checks every ``idle_check_s`` of silence that the
-    parent process is still alive (so an orphaned node exits instead of waiting forever)."""
+    """Run ``node`` on ``bus`` until it finishes. Checks every ``idle_check_s`` (s, busy or idle)
+    that the parent process is still alive, so an orphaned node exits instead of running on or
+    waiting forever."""
     _send_all(bus, node.start(clock()))
+    next_check = time.monotonic() + idle_check_s
     while not node.finished:
         deadline = node.next_deadline()
         now = clock()
@@ -82,8 +84,10 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         deadline = node.next_deadline()
         if deadline is not None and now >= deadline:
             _send_all(bus, node.on_timer(now))
-        if msg is None and parent_pid is not None and not _parent_alive(parent_pid):
-            raise NodeFailure(f"{node.name}: parent process went away")
+        if parent_pid is not None and (msg is None or time.monotonic() >= next_check):
+            next_check = time.monotonic() + idle_check_s
+            if not _parent_alive(parent_pid):
+                raise NodeFailure(f"{node.name}: parent process went away")
 
 
 def run_inprocess(nodes: Sequence[Node], *, medium: str = "direct", max_frames: int | None = None) -> int:
