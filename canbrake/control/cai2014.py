@@ -21,6 +21,10 @@ Readings (see docs/reproduction/cai2014.md):
   and eq. 25 have ``+``, and with ``−`` the command is opposite to the needed tractive force, so
   the train is driven backwards. ``sigma = +1`` (default, "corrected") follows eq. 20;
   ``sigma = −1`` reproduces the printed sign.
+* ``β ė`` in eq. 8/43–46: the same printed β, read in kN per m/s (1000 N·s/m, ``edot_gain``).
+  Eq. 7 should read ``m β ė``, so this term does not cancel it and the loop
+  ``m ë + (k0 + edot_gain) ė + k0 β e = 0`` is under-damped (ζ ≈ 0.37, period ≈ 9 s); the
+  settled errors do not depend on it.
 * eq. 39 prints ``T = (1/p)[…]`` without R; eq. 46 (the same control in section 4) has ``R/p``,
   which is dimensionally right (N → N·m). We use ``R/p``.
 """
@@ -42,12 +46,18 @@ CASE_NAMES = {
 
 @dataclass(frozen=True)
 class CaiGains:
-    """Control parameters in SI: ``k0`` N·s/m, ``ka`` m, ``beta`` 1/s, observer cut-off ``g`` 1/s."""
+    """Control parameters in SI: ``k0`` N·s/m, ``ka`` m, ``beta`` 1/s, observer cut-off ``g`` 1/s.
+
+    ``edot_gain`` (N·s/m) is the coefficient of ė in ``u = −k0 s + m ẍ* − β ė + F``: printed as
+    the same β = 1, read in kN per m/s it is 1000 N·s/m. (Eq. 7 prints ``β ė`` where the
+    derivative of ``m s`` gives ``m β ė``; the exact cancellation would need ``m β`` = 96 000 N·s/m.)
+    """
 
     k0: float = 50.0e3
     ka: float = 2.0
     beta: float = 1.0
     g: float = 10.0
+    edot_gain: float = 1.0e3
 
 
 #: the paper's k0 = 50, ka = 2, β = 1, g_a = g_d = g_dw = 10, read in tonnes/kN and converted to SI
@@ -163,7 +173,7 @@ class CaiController:
         fd_hat = self.obs_resistance.estimate_n
         fdw_hat = self.obs_lumped.estimate_n
         f_comp = {1: resistance_n, 2: resistance_n, 3: fd_hat, 4: fdw_hat}[self.case]
-        u = -gn.k0 * s + self.m * ref_accel_mps2 - gn.beta * de + f_comp
+        u = -gn.k0 * s + self.m * ref_accel_mps2 - gn.edot_gain * de + f_comp
         if self.case in (1, 4):
             torque = np.full(self.p, self.R / self.p * u)
             f_cmd = np.full(self.p, u / self.p)
