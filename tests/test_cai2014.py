@@ -182,3 +182,23 @@ def test_observers_track_the_plant_in_closed_loop(short_runs):
     tr4 = short_runs[4]
     sel4 = tr4.time_s >= 5.0
     np.testing.assert_allclose(tr4.lumped_hat_n[sel4], tr4.lumped_n[sel4], atol=30.0)
+
+
+# ------------------------------------------------------------------------------ report
+def test_generate_smoke(tmp_path):
+    from canbrake.report import REPORTS
+    from canbrake.report.cai2014 import generate, run_all, run_specs
+
+    assert REPORTS["cai2014"] == "canbrake.report.cai2014"
+    logs: list[str] = []
+    doc = generate(tmp_path / "out", tmp_path / "runs", jobs=1, log=logs.append, duration_s=21.0, dt_s=0.05)
+    text = doc.read_text(encoding="utf-8")
+    for heading in ("## Model and parameters", "## Readings of ambiguous", "## Claims", "## What could not be reproduced"):
+        assert heading in text
+    figs = sorted(p.name for p in (tmp_path / "out" / "figures").glob("cai2014_*.png"))
+    assert "cai2014_tracking.png" in figs and "cai2014_adhesion.png" in figs
+    assert "ran in" in " ".join(logs)
+    logs.clear()
+    res = run_all(run_specs(21.0, 0.05), tmp_path / "runs", False, 1, logs.append)
+    assert logs and all("reused" in line for line in logs)  # runs are cached
+    assert res["paper-case1"].time_s[-1] == pytest.approx(21.0)
