@@ -143,8 +143,8 @@ def test_controller_rejects_unknown_case():
 # ------------------------------------------------------------------------------ closed loop
 @pytest.fixture(scope="module")
 def short_runs():
-    """The four cases for 30 s at 10 ms (the report runs 200 s at 5 ms; the errors settle in ~20 s)."""
-    return {c: simulate(c, duration_s=30.0, dt_s=1e-2, record_every=10) for c in (1, 2, 3, 4)}
+    """The four cases for 26 s at 10 ms (the report runs 200 s at 5 ms; the errors settle in ~20 s)."""
+    return {c: simulate(c, duration_s=26.0, dt_s=1e-2, record_every=10) for c in (1, 2, 3, 4)}
 
 
 def test_case1_settled_error_equals_uncompensated_wheel_inertia(short_runs):
