@@ -52,7 +52,7 @@ class CaiParams:
     def resistance(self, v_mps: float) -> tuple[float, float]:
         """F_d(v) in N and dF_d/dv in N·s/m; the constant term opposes motion, zero at standstill."""
         a0, a1, a2 = self.davis_n
-        sgn = 1.0 if v_mps > 1e-6 else 0.0
+        sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
         return sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps), a1 + 2.0 * a2 * abs(v_mps)
 
     def reference(self, t_s: float) -> tuple[float, float, float]:
