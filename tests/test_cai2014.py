@@ -11,10 +11,21 @@ import numpy as np
 import pytest
 
 from canbrake.cai2014_sim import CaiParams, error_metrics, simulate
-from canbrake.control.cai2014 import (PAPER_GAINS, AdhesionForceObserver, CaiController,
-                                      LumpedDisturbanceObserver, ResistanceObserver)
-from canbrake.physics.wheel_adhesion import (DRY, WET, WheelSet, adhesion_coefficient, rail_condition,
-                                             slip_ratio)
+from canbrake.control.cai2014 import (
+    PAPER_GAINS,
+    AdhesionForceObserver,
+    CaiController,
+    LumpedDisturbanceObserver,
+    ResistanceObserver,
+)
+from canbrake.physics.wheel_adhesion import (
+    DRY,
+    WET,
+    WheelSet,
+    adhesion_coefficient,
+    rail_condition,
+    slip_ratio,
+)
 
 R, J, N = 0.495, 80.0, 117.6e3
 
@@ -95,6 +106,21 @@ def test_constant_torque_on_flat_track_matches_analytic_acceleration():
     # and the wheels roll with a small positive slip
     lam = slip_ratio(ws.omega_radps, v2, R)
     assert np.all((lam > 0) & (lam < 0.01))
+
+
+def test_implicit_step_solves_its_equations_from_standstill():
+    """One 5 ms step from rest with a large torque: the returned (ω, v) satisfy the backward-Euler equations."""
+    pr = CaiParams()
+    loads = pr.axle_load_n * (1 + np.asarray(pr.imbalance))
+    for variant in ("paper", "physical"):
+        ws = WheelSet(loads, J, R, np.zeros(4), variant=variant)
+        torque, dt = np.full(4, 8000.0), 5e-3
+        v, fa = ws.step_coupled(torque, 0.0, WET, dt, mass_kg=pr.mass_kg, resistance=pr.resistance)
+        res_w = J * ws.omega_radps - dt * (torque - fa * R)
+        res_v = pr.mass_kg * v - dt * (np.sum(fa) - pr.resistance(v)[0])
+        assert np.max(np.abs(res_w)) < 1e-6 * J * np.max(ws.omega_radps)
+        assert abs(res_v) < 1e-6 * pr.mass_kg * v
+        assert v > 0 and np.all(ws.omega_radps * R > v)
 
 
 # ------------------------------------------------------------------------------ observers

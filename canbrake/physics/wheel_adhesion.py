@@ -30,6 +30,7 @@ Two curve variants (``variant``):
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
@@ -144,12 +145,10 @@ class WheelSet:
 
         Returns F_a (N) per axle at the new ω. ``torque_nm`` has shape ``(p,)``.
         """
-        v_new, fa = self.step_coupled(torque_nm, v_mps, cond, dt_s, mass_kg=None,
-                                      newton_iters=newton_iters)
-        return fa
+        return self.step_coupled(torque_nm, v_mps, cond, dt_s, mass_kg=None, newton_iters=newton_iters)[1]
 
     def step_coupled(self, torque_nm: np.ndarray, v_mps: float, cond: RailCondition, dt_s: float,
-                     mass_kg: float | None, resistance: "callable | None" = None,
+                     mass_kg: float | None, resistance: Callable[[float], tuple[float, float]] | None = None,
                      newton_iters: int = 4) -> tuple[float, np.ndarray]:
         """One backward-Euler step of the wheels and (unless ``mass_kg`` is None) the train body.
 

@@ -14,9 +14,10 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -321,11 +322,11 @@ def _doc(res: dict[str, CaiTrace], specs: dict[str, tuple[int, CaiParams]], elap
          "0.407 + 0.2916 v + 0.0067 v² (units not given)"),
         ("reference", f"a* = {fmt(a_ref)} m/s² to {fmt(pr.v_final_mps / KMH)} km/h at {pr.ramp_s:g} s", "0 → 200 km/h in 200 s"),
         ("rail", f"dry (eq. 41) for {pr.dry_window_s[0]:g} s ≤ t ≤ {pr.dry_window_s[1]:g} s, wet (eq. 42) otherwise", "same"),
-        ("gains", f"k0 = {fmt(pr.gains.k0)} N·s/m, ka = {pr.gains.ka} m, β = {pr.gains.beta} 1/s, "
-                  f"g = {pr.gains.g} 1/s, ė gain = {fmt(pr.gains.edot_gain)} N·s/m", "k0 = 50, ka = 2, β = 1, g = 10"),
+        ("gains", (f"k0 = {fmt(pr.gains.k0)} N·s/m, ka = {pr.gains.ka} m, β = {pr.gains.beta} 1/s, "
+                   f"g = {pr.gains.g} 1/s, ė gain = {fmt(pr.gains.edot_gain)} N·s/m"), "k0 = 50, ka = 2, β = 1, g = 10"),
         ("slip floor", f"max(ωR, v, {pr.v_floor_mps} m/s)", "max(ωR, v)"),
-        ("step", f"{pr.dt_s * 1e3:g} ms fixed; wheels and body jointly backward Euler (Newton), observers exact for "
-                 "torque held and speeds linear over a step", "not given"),
+        ("step", (f"{pr.dt_s * 1e3:g} ms fixed; wheels and body jointly backward Euler (Newton), observers exact "
+                  "for torque held and speeds linear over a step"), "not given"),
     ]
     for r in rows:
         w(f"| {r[0]} | {r[1]} | {r[2]} |")
@@ -339,7 +340,6 @@ def _doc(res: dict[str, CaiTrace], specs: dict[str, tuple[int, CaiParams]], elap
 
     w("## Readings of ambiguous or incorrect equations\n")
     ps = res["paper-case2-printed-sign"]
-    lam = np.linspace(0, 1, 100001)
     w(f"1. **Units.** The gains only make sense with masses in tonnes and forces in kN: k0 = 50 kN per m/s "
       f"gives the loop a time constant m/k0 = {fmt(pr.mass_kg / pr.gains.k0, 3)} s; read in kg and N it would be "
       f"{fmt(pr.mass_kg / 50.0, 3)} s, i.e. almost no feedback. We therefore use k0 = 50 000 N·s/m, and the resistance "
@@ -402,9 +402,11 @@ def _doc(res: dict[str, CaiTrace], specs: dict[str, tuple[int, CaiParams]], elap
     def yn(b):
         return "**yes**" if b else "**no**"
 
+    def ratio(v, c):
+        return met[f"{v}-case1"]["mean_abs_pos_err_m"] / met[f"{v}-case{c}"]["mean_abs_pos_err_m"]
+
     for c in (2, 3, 4):
-        vals, ok = both(lambda v: met[f"{v}-case1"]["mean_abs_pos_err_m"] / met[f"{v}-case{c}"]["mean_abs_pos_err_m"],
-                        lambda v: lo <= met[f"{v}-case1"]["mean_abs_pos_err_m"] / met[f"{v}-case{c}"]["mean_abs_pos_err_m"] <= hi)
+        vals, ok = both(lambda v, c=c: ratio(v, c), lambda v, c=c: lo <= ratio(v, c) <= hi)
         w(f"| Case 1's average position error vs case {c}'s (Fig. 7) | about 10× | {fmt(vals[0], 3)}× | {fmt(vals[1], 3)}× "
           f"| {yn(ok[0])} / {yn(ok[1])} | ratio of mean \\|e\\| over the run in [{lo:g}, {hi:g}] |")
     vals, ok = both(lambda v: (met[f"{v}-case2"]["mean_abs_pos_err_m"], met[f"{v}-case3"]["mean_abs_pos_err_m"]),
