@@ -228,3 +228,12 @@ def test_generate_smoke(tmp_path):
     res = run_all(run_specs(21.0, 0.05), tmp_path / "runs", False, 1, logs.append)
     assert logs and all("reused" in line for line in logs)  # runs are cached
     assert res["paper-case1"].time_s[-1] == pytest.approx(21.0)
+
+
+def test_quasi_steady_errors_match_the_derivation(short_runs):
+    """The report's closed-form errors (wheel inertia, force loop, observer lag) against the runs at t = 25 s."""
+    from canbrake.report.cai2014 import error_at, predicted_error_m
+
+    for c, tr in short_runs.items():
+        v_ref = tr.params.reference(25.0)[1]
+        assert error_at(tr, 25.0) == pytest.approx(predicted_error_m(c, tr.params, v_ref), rel=0.1), c
