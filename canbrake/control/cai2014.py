@@ -1,0 +1,185 @@
+"""Cai et al. 2014: traction/braking control with force observers (eqs. 18, 22, 40, 43–46).
+
+Pure code, no I/O: explicit state, ``step(...)`` per control period. SI units: m, s, m/s, m/s²,
+N, N·m, kg, kg·m², rad/s. Arrays over driven axles have shape ``(p,)``.
+
+Tracking error (eqs. 5–6): ``e = x − x*``, ``ė = v − v*``, ``s = ė + β e``. All four cases build
+``u = −k0 s + m ẍ* − β ė + F`` (eq. 8/9) with ``F`` the true resistance ``F_d`` (cases 1, 2),
+the resistance observer's ``F̂_d`` (case 3) or the lumped-disturbance observer's ``F̂_dw`` (case 4):
+
+* case 1, model-based control (eq. 43): ``T_i = (R/p) u``
+* case 2, MBC + adhesion-force control (eq. 44): ``F_i^cmd = σ u/p``, ``T_i = ka (F_i^cmd − F̂_ai) + F̂_ai R``
+* case 3, double observer (eq. 45): as case 2 with ``F̂_d`` in ``u``
+* case 4, simplified observer (eq. 46): ``T_i = (R/p) u`` with ``F̂_dw`` in ``u``
+
+Readings (see docs/reproduction/cai2014.md):
+
+* units — the gains only make sense with masses in tonnes and forces in kN (k0 = 50 kN per m/s);
+  in SI that is ``k0 = 50 000 N·s/m``. β and g (1/s) and ka (m: N → N·m) do not depend on the
+  choice. :data:`PAPER_GAINS` holds the SI values.
+* sign of eqs. 44–45 — printed ``F^cmd = −(1/p)[…]``; eq. 20 (the same command in section 3.2)
+  and eq. 25 have ``+``, and with ``−`` the command is opposite to the needed tractive force, so
+  the train is driven backwards. ``sigma = +1`` (default, "corrected") follows eq. 20;
+  ``sigma = −1`` reproduces the printed sign.
+* ``β ė`` in eq. 8/43–46: the same printed β, read in kN per m/s (1000 N·s/m, ``edot_gain``).
+  Eq. 7 should read ``m β ė``, so this term does not cancel it and the loop
+  ``m ë + (k0 + edot_gain) ė + k0 β e = 0`` is under-damped (ζ ≈ 0.37, period ≈ 9 s); the
+  settled errors do not depend on it.
+* eq. 39 prints ``T = (1/p)[…]`` without R; eq. 46 (the same control in section 4) has ``R/p``,
+  which is dimensionally right (N → N·m). We use ``R/p``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+CASES = (1, 2, 3, 4)
+CASE_NAMES = {
+    1: "model-based control (eq. 43)",
+    2: "MBC + adhesion-force control (eq. 44)",
+    3: "double observer (eq. 45)",
+    4: "simplified observer (eq. 46)",
+}
+
+
+@dataclass(frozen=True)
+class CaiGains:
+    """Control parameters in SI: ``k0`` N·s/m, ``ka`` m, ``beta`` 1/s, observer cut-off ``g`` 1/s.
+
+    ``edot_gain`` (N·s/m) is the coefficient of ė in ``u = −k0 s + m ẍ* − β ė + F``: printed as
+    the same β = 1, read in kN per m/s it is 1000 N·s/m. (Eq. 7 prints ``β ė`` where the
+    derivative of ``m s`` gives ``m β ė``; the exact cancellation would need ``m β`` = 96 000 N·s/m.)
+    """
+
+    k0: float = 50.0e3
+    ka: float = 2.0
+    beta: float = 1.0
+    g: float = 10.0
+    edot_gain: float = 1.0e3
+
+
+#: the paper's k0 = 50, ka = 2, β = 1, g_a = g_d = g_dw = 10, read in tonnes/kN and converted to SI
+PAPER_GAINS = CaiGains()
+
+
+def filter_gain(g: float, dt_s: float) -> float:
+    """1 − e^{−g dt}: the exact step of ŷ̇ = g (u − ŷ) for an input held over ``dt_s``."""
+    return 1.0 - math.exp(-g * dt_s)
+
+
+# Discretisation of the observers. Each figure's structure is ``F̂ = g/(s+g)[g·M + U] − g·M`` with a
+# momentum-like signal M (J ω, m v, …) and a torque term U; it equals g/(s+g)[U − Ṁ] (eqs. 18, 22, 40).
+# A zero-order hold of the whole filter input ``g·M + U`` (M held over the period although it ramps)
+# leaves a bias of ≈ −Ṁ·g·dt/2: with dt = 1 ms and case 4, 2.7 mm of position error per ms of period.
+# We discretise exactly for U held and M varying linearly over the period:
+#     F̂_{n+1} = F̂_n + (1 − e^{−g dt}) (U_n − (M_{n+1} − M_n)/dt),
+# which uses only measured ω, v and the applied torques, like the figures.
+
+
+class AdhesionForceObserver:
+    """Eq. 18 (Fig. 2), per axle: F̂_a = (1/R)[g/(s+g)(T + g J ω) − g J ω] = g/(s+g) (T − J ω̇)/R.
+
+    Inputs: torque T (N·m) applied over the last period and wheel speeds ω (rad/s) at its ends,
+    shape ``(p,)``; estimate in N, starting at 0.
+    """
+
+    def __init__(self, g: float, inertia_kgm2: float, radius_m: float, n_axles: int) -> None:
+        self.g, self.J, self.R = float(g), float(inertia_kgm2), float(radius_m)
+        self.estimate_n = np.zeros(n_axles)
+
+    def update(self, torque_nm: np.ndarray, omega_prev: np.ndarray, omega_now: np.ndarray, dt_s: float) -> None:
+        u = (torque_nm - self.J * (omega_now - omega_prev) / dt_s) / self.R
+        self.estimate_n = self.estimate_n + filter_gain(self.g, dt_s) * (u - self.estimate_n)
+
+
+class ResistanceObserver:
+    """Eq. 22 (Fig. 3): F̂_d = g/(s+g)[g m v + (1/R) Σ(T + g J ω)] − g(m v + (J/R) Σ ω)
+    = g/(s+g)[(1/R) Σ T − m v̇ − (J/R) Σ ω̇]. Inputs v (m/s), ω and T per axle; estimate in N.
+    """
+
+    def __init__(self, g: float, mass_kg: float, inertia_kgm2: float, radius_m: float) -> None:
+        self.g, self.m, self.J, self.R = float(g), float(mass_kg), float(inertia_kgm2), float(radius_m)
+        self.estimate_n = 0.0
+
+    def update(self, torque_nm: np.ndarray, v_prev: float, v_now: float, omega_prev: np.ndarray,
+               omega_now: np.ndarray, dt_s: float) -> None:
+        dmom = self.m * (v_now - v_prev) + self.J / self.R * float(np.sum(omega_now - omega_prev))
+        u = float(np.sum(torque_nm)) / self.R - dmom / dt_s
+        self.estimate_n += filter_gain(self.g, dt_s) * (u - self.estimate_n)
+
+
+class LumpedDisturbanceObserver:
+    """Eq. 40 (Fig. 4): F̂_dw = g/(s+g)[g m v + (1/R) Σ T] − g m v = g/(s+g)[(1/R) Σ T − m v̇].
+
+    Estimates F_dw = (J/R) Σ ω̇ + F_d (eq. 36) from v (m/s) and the torques only; N.
+    """
+
+    def __init__(self, g: float, mass_kg: float, radius_m: float) -> None:
+        self.g, self.m, self.R = float(g), float(mass_kg), float(radius_m)
+        self.estimate_n = 0.0
+
+    def update(self, torque_nm: np.ndarray, v_prev: float, v_now: float, dt_s: float) -> None:
+        u = float(np.sum(torque_nm)) / self.R - self.m * (v_now - v_prev) / dt_s
+        self.estimate_n += filter_gain(self.g, dt_s) * (u - self.estimate_n)
+
+
+@dataclass
+class CaiOutput:
+    """One control period: torques per axle (N·m), shape ``(p,)``, and named SI diagnostics."""
+
+    torque_nm: np.ndarray
+    diagnostics: dict[str, float | np.ndarray]
+
+
+class CaiController:
+    """One of the four control cases for a train with ``p`` driven axles (one controller per train,
+    as in the paper's single-coordinate model eq. 3).
+
+    ``sigma`` is the sign of eqs. 44–45 (+1: eq. 20's reading, −1: as printed). All three observers
+    run in every case (their estimates are reported); only the case's own ones enter the control.
+    """
+
+    def __init__(self, case: int, *, mass_kg: float, n_axles: int, radius_m: float, inertia_kgm2: float,
+                 gains: CaiGains = PAPER_GAINS, sigma: float = 1.0) -> None:
+        if case not in CASES:
+            raise ValueError(f"case must be one of {CASES}, got {case!r}")
+        self.case, self.gains, self.sigma = case, gains, float(sigma)
+        self.m, self.p, self.R, self.J = float(mass_kg), int(n_axles), float(radius_m), float(inertia_kgm2)
+        self.obs_adhesion = AdhesionForceObserver(gains.g, self.J, self.R, self.p)
+        self.obs_resistance = ResistanceObserver(gains.g, self.m, self.J, self.R)
+        self.obs_lumped = LumpedDisturbanceObserver(gains.g, self.m, self.R)
+        self._prev: tuple[float, np.ndarray, np.ndarray, float] | None = None  # v, ω, T, dt of last period
+
+    def step(self, *, position_m: float, speed_mps: float, omega_radps: np.ndarray, ref_position_m: float,
+             ref_speed_mps: float, ref_accel_mps2: float, resistance_n: float, dt_s: float) -> CaiOutput:
+        """Advance the observers over the last period, then compute this period's torques.
+
+        ``resistance_n`` is the true F_d(·) (only cases 1 and 2, the "ideal MBC", use it).
+        ``dt_s`` is the length of the period that starts now.
+        """
+        gn = self.gains
+        omega_radps = np.asarray(omega_radps, dtype=float)
+        if self._prev is not None:
+            v0, w0, t0, dt0 = self._prev
+            self.obs_adhesion.update(t0, w0, omega_radps, dt0)
+            self.obs_resistance.update(t0, v0, speed_mps, w0, omega_radps, dt0)
+            self.obs_lumped.update(t0, v0, speed_mps, dt0)
+        e = position_m - ref_position_m
+        de = speed_mps - ref_speed_mps
+        s = de + gn.beta * e
+        fa_hat = self.obs_adhesion.estimate_n.copy()
+        fd_hat = self.obs_resistance.estimate_n
+        fdw_hat = self.obs_lumped.estimate_n
+        f_comp = {1: resistance_n, 2: resistance_n, 3: fd_hat, 4: fdw_hat}[self.case]
+        u = -gn.k0 * s + self.m * ref_accel_mps2 - gn.edot_gain * de + f_comp
+        if self.case in (1, 4):
+            torque = np.full(self.p, self.R / self.p * u)
+            f_cmd = np.full(self.p, u / self.p)
+        else:
+            f_cmd = np.full(self.p, self.sigma * u / self.p)
+            torque = gn.ka * (f_cmd - fa_hat) + fa_hat * self.R
+        self._prev = (float(speed_mps), omega_radps.copy(), torque, float(dt_s))
+        return CaiOutput(torque, {"s": s, "force_cmd_n": f_cmd, "adhesion_hat_n": fa_hat,
+                                  "resistance_hat_n": fd_hat, "lumped_hat_n": fdw_hat})
