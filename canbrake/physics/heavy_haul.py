@@ -26,7 +26,7 @@ What is modelled (paper equation numbers in brackets; MODELS.md section 2):
 * disturbance (40): :func:`disturbance_n` on the locomotive and wagons 10, 20, ..., 100.
 
 Integration: semi-implicit (symplectic) Euler with a fixed step, default 10 ms
-(:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m between two
+(:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8) stiffness, between two
 100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable. A step-halving
 convergence study has not been made.
 """
@@ -237,11 +237,11 @@ class DraftGear:
 
 #: MT-2 (C80): 83 mm stroke, ≈2.27 MN at full stroke, energy absorption ≈ 75 % (approximated)
 MT2 = DraftGear("MT-2", (0.0, 0.020, 0.050, 0.073, 0.083), (0.0, 3.0e5, 9.0e5, 1.8e6, 2.27e6),
-                unloading_ratio=0.25, slack_m=0.005, k_elastic_n_per_m=5e7, k_solid_n_per_m=2e8,
+                unloading_ratio=0.25, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
                 damping_n_s_per_m=1e5)
 #: QKX100 (HXD1): 100 mm stroke, ≈2.5 MN at full stroke (approximated)
 QKX100 = DraftGear("QKX100", (0.0, 0.020, 0.060, 0.090, 0.100), (0.0, 2.5e5, 9.0e5, 2.0e6, 2.5e6),
-                   unloading_ratio=0.35, slack_m=0.005, k_elastic_n_per_m=5e7, k_solid_n_per_m=2e8,
+                   unloading_ratio=0.35, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
                    damping_n_s_per_m=1e5)
 
 

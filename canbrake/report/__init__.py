@@ -5,4 +5,4 @@ that runs (or reuses) its runs and writes a Markdown document with figures.
 """
 from __future__ import annotations
 
-REPORTS = {"chen2023": "canbrake.report.chen2023"}
+REPORTS = {"chen2023": "canbrake.report.chen2023", "li2024": "canbrake.report.li2024"}
