@@ -212,19 +212,35 @@ def short_ref():
     return ref
 
 
+@pytest.fixture(scope="module")
+def short_runs(short_ref):
+    return {(n, d): simulate(n, short_ref, disturbance=d) for n in ("pid", "smc", "rbfnn-smc+ndo") for d in (False, True)}
+
+
 @pytest.mark.parametrize("name", ["pid", "smc", "rbfnn-smc+ndo"])
-def test_closed_loop_short_run_tracks(short_ref, name):
-    r = simulate(name, short_ref, disturbance=True)
-    assert r["rmse_kmh"] < 0.5
-    assert max(abs(r["err_min_kmh"]), abs(r["err_max_kmh"])) < 1.0
+@pytest.mark.parametrize("dist", [False, True])
+def test_closed_loop_short_run_tracks(short_runs, name, dist):
+    r = short_runs[(name, dist)]
+    assert r["rmse_kmh"] < 0.3
+    assert max(abs(r["err_min_kmh"]), abs(r["err_max_kmh"])) < 0.5
     assert np.all(np.isfinite(r["coupler_n"]))
+    assert r["max_tension_n"] < 2.27e6  # below the MT-2 gear's capacity (our curve)
+
+
+@pytest.mark.parametrize("dist", [False, True])
+def test_rmse_ordering_as_reported(short_runs, dist):
+    """docs/reproduction/li2024.md (full 2600 s runs, both eq. (21) readings) measures
+    RBFNN-SMC + NDO < SMC < PID with and without the disturbance, the paper's Table 2 order.
+    The same order holds on this 40 s traction segment, which is what is checked here."""
+    rm = {n: short_runs[(n, dist)]["rmse_kmh"] for n in ("pid", "smc", "rbfnn-smc+ndo")}
+    assert rm["rbfnn-smc+ndo"] < rm["smc"] < rm["pid"]
 
 
 def test_generate_smoke(tmp_path):
     from canbrake.report import li2024
     specs = [li2024.RunSpec("pid", False), li2024.RunSpec("smc", False), li2024.RunSpec("rbfnn-smc+ndo", False),
              li2024.RunSpec("pid", True), li2024.RunSpec("smc", True), li2024.RunSpec("rbfnn-smc+ndo", True)]
-    md = li2024.generate(tmp_path / "out", tmp_path / "runs", jobs=1, log=lambda s: None, duration_s=15.0, specs=specs)
+    md = li2024.generate(tmp_path / "out", tmp_path / "runs", jobs=1, log=lambda s: None, duration_s=10.0, specs=specs)
     text = md.read_text()
     assert "Table 2" in text and "| PID |" in text and "Coupler forces" in text
     assert (tmp_path / "out" / "figures" / "li2024_errors.png").exists()
