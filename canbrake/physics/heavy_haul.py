@@ -27,8 +27,8 @@ What is modelled (paper equation numbers in brackets; MODELS.md section 2):
 
 Integration: semi-implicit (symplectic) Euler with a fixed step, default 10 ms
 (:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8) stiffness, between two
-100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable. A step-halving
-convergence study has not been made.
+100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable. The report
+(:mod:`canbrake.report.li2024`) compares 10 ms with 5 ms over the first 1200 s.
 """
 from __future__ import annotations
 
