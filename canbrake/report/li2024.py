@@ -239,6 +239,30 @@ def make_figures(res: dict, refd: dict, fig_dir: Path) -> dict[str, str]:
         figs["couplers"] = "figures/li2024_couplers.png"
         fig.savefig(fig_dir / "li2024_couplers.png", dpi=110)
         plt.close(fig)
+    # sliding variable and estimates
+    keys = ["smc-listed-nodist", "rbfnn-smc-listed-nodist", "rbfnn-smc+ndo-listed-nodist"]
+    if all(k in res for k in keys):
+        fig, ax = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+        for k, lab in zip(keys, ("SMC", "RBFNN-SMC (no NDO)", "RBFNN-SMC + NDO")):
+            r = res[k]
+            ax[0].plot(r["t_s"], r["s"], lw=0.7, label=lab)
+        ax[0].set_ylabel("s (m/s)")
+        ax[0].legend(fontsize=8)
+        for k, lab in zip(keys[1:], ("RBFNN-SMC (no NDO)", "RBFNN-SMC + NDO")):
+            ax[1].plot(res[k]["t_s"], res[k]["delta_hat"], lw=0.7, label=lab)
+        ax[1].set_ylabel("δ̂ = Ŵᵀh (m/s²)")
+        ax[1].legend(fontsize=8)
+        r = res[keys[2]]
+        ax[2].plot(r["t_s"], r["d_hat"], lw=0.7, color="g", label="NDO d̂ (RBFNN-SMC + NDO)")
+        ax[2].set_ylabel("d̂ (m/s²)")
+        ax[2].set_xlabel("time (s)")
+        ax[2].legend(fontsize=8)
+        for a in ax:
+            a.grid(alpha=0.3)
+        fig.tight_layout()
+        figs["sliding"] = "figures/li2024_sliding.png"
+        fig.savefig(fig_dir / "li2024_sliding.png", dpi=110)
+        plt.close(fig)
     return figs
 
 
@@ -284,6 +308,10 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
       "trains*, J. East China Jiaotong University 41(5) (2024) 94–104. A 1+105 heavy-haul train (HXD1 + C80) "
       "follows a recorded driver's speed on the Daqin line; the locomotive force comes from PID, SMC or an RBF "
       "neural-network SMC with a nonlinear disturbance observer (NDO). Table 2 compares the speed RMSE.")
+    w("")
+    w("Regenerate with `canbrake report li2024` (runs cached in `runs/report-li2024/`; about 11 minutes on two "
+      "cores from scratch). Code: `canbrake/physics/heavy_haul.py` (plant), `canbrake/control/li2024.py` "
+      "(controllers), `canbrake/li2024_sim.py` (driver reference and closed-loop runs), `canbrake/report/li2024.py`.")
     w("")
     # headline
     pr = {s: ordering(res, "listed", s) for s in ("nodist", "dist")}
@@ -352,7 +380,7 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
     except KeyError:
         pass
     w("")
-    for k in ("errors", "force"):
+    for k in ("errors", "force", "sliding"):
         if k in figs:
             w(f"![{k}]({figs[k]})")
             w("")
