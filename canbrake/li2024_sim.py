@@ -155,7 +155,7 @@ def simulate(controller: str, ref: Reference, *, disturbance: bool = False, read
     infeasible for the locomotive alone (see the report).
 
     Returns a dict of arrays (decimated): ``t_s, v_ref_mps, v_mps, x_err_m, u_n, airbrake_fill_mean,
-    airbrake_signal_loco, coupler_n`` (n_rec, len(record_couplers)), ``coupler_max_tension_n`` /
+    airbrake_command`` (driver's valve: 1 applied, 0 released), ``coupler_n`` (n_rec, len(record_couplers)), ``coupler_max_tension_n`` /
     ``coupler_max_compression_n`` (over the train, per record), ``s``, ``delta_hat``, ``d_hat``; and
     scalars ``rmse_kmh`` (every step), ``err_min_kmh``, ``err_max_kmh``, ``max_tension_n``,
     ``max_compression_n`` (every step), ``u_sat_fraction``.
@@ -170,7 +170,7 @@ def simulate(controller: str, ref: Reference, *, disturbance: bool = False, read
     n = ref.t_s.size if duration_s is None else min(ref.t_s.size, int(round(duration_s / dt)))
     every = max(1, int(round(record_every_s / dt)))
     rec: dict[str, list] = {k: [] for k in ("t_s", "v_ref_mps", "v_mps", "x_err_m", "u_n", "airbrake_fill_mean",
-                                            "airbrake_signal_loco", "coupler_n", "coupler_max_tension_n",
+                                            "airbrake_command", "coupler_n", "coupler_max_tension_n",
                                             "coupler_max_compression_n", "s", "delta_hat", "d_hat", "x_m")}
     sq = 0.0
     emin, emax = np.inf, -np.inf
@@ -199,7 +199,7 @@ def simulate(controller: str, ref: Reference, *, disturbance: bool = False, read
             rec["x_m"].append(o.x_m)
             rec["u_n"].append(u)
             rec["airbrake_fill_mean"].append(float(plant.ab.fill.mean()))
-            rec["airbrake_signal_loco"].append(float(plant.ab.applied))
+            rec["airbrake_command"].append(float(plant.ab.applied))
             rec["coupler_n"].append(fc[cols].copy())
             rec["coupler_max_tension_n"].append(fmx)
             rec["coupler_max_compression_n"].append(fmn)
