@@ -910,26 +910,51 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     out_dir = Path(out_dir)
     paths: list[Path] = []
 
-    def grid(field_: str) -> list[np.ndarray]:
-        gs = []
-        for fv in facets:
-            g = np.full((ny, nx), np.nan)
-            for ix, xv in enumerate(xa.values):
-                for iy, yv in enumerate(ya.values if ya else [None]):
-                    key = tuple(_key(v) for v in ((xv,) + ((yv,) if ya else ()) + tuple(fv)))
-                    a = agg.get(key)
-                    if a is not None and a[field_] is not None:
-                        g[iy, ix] = a[field_]
-            gs.append(g)
-        return gs
-
     def cell(fv: tuple, ix: int, iy: int) -> dict[str, Any] | None:
         xv = xa.values[ix]
         yv = ya.values[iy] if ya else None
         key = tuple(_key(v) for v in ((xv,) + ((yv,) if ya else ()) + tuple(fv)))
         return agg.get(key)
 
+    def grid(field_: str) -> list[np.ndarray]:
+        gs = []
+        for fv in facets:
+            g = np.full((ny, nx), np.nan)
+            for iy in range(ny):
+                for ix in range(nx):
+                    a = cell(fv, ix, iy)
+                    if a is not None and a[field_] is not None:
+                        g[iy, ix] = a[field_]
+            gs.append(g)
+        return gs
+
     fs = 6 if max(nx, ny) > 8 else 8
+
+    def annotate(ax: Any, fv: tuple, label: Callable[[dict[str, Any]], tuple[str, str] | None]) -> None:
+        """Write ``label(cell) -> (text, colour)`` into every cell that has results (None: leave empty)."""
+        for iy in range(ny):
+            for ix in range(nx):
+                c = cell(fv, ix, iy)
+                t = None if c is None else label(c)
+                if t is not None:
+                    ax.text(ix, iy, t[0], ha="center", va="center", fontsize=fs - 1, color=t[1])
+
+    def deflection_label(c: dict[str, Any]) -> tuple[str, str]:
+        v = c["deflection_m"] * 100.0
+        txt = "div" if c["diverged"] and c["diverged"] == c["seeds"] else _short_cm(v)
+        return txt, "white" if not math.isfinite(v) or v < 3 or v > 100 else "black"
+
+    def rmse_label(c: dict[str, Any]) -> tuple[str, str]:
+        v = c["rmse_kmh"]
+        txt = "∞" if not math.isfinite(v) or v >= 1e4 else f"{v:.2g}" if v < 100 else f"{v:.0f}"
+        return txt, "white" if not math.isfinite(v) or v < 0.3 or v > 100 else "black"
+
+    def safety_label(c: dict[str, Any]) -> tuple[str, str] | None:
+        if c["seeds"] <= 1 or c["share"] >= 1.0:
+            return None
+        k = int(round(c["share"] * c["seeds"]))
+        return f"{k}/{c['seeds']}", "white" if c["level"] == 3 else "black"
+
     panel_w = max(3.0, 0.36 * nx + 1.0)
     panel_h = max(2.4, 0.3 * ny + 1.4)
 
@@ -960,15 +985,7 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     for ax, fv, g in zip(axs, facets, grid("deflection_m")):
         cm = np.where(np.isfinite(g), np.clip(g * 100.0, 0.01, None), np.where(np.isnan(g), np.nan, 1e9))
         im = ax.imshow(np.ma.masked_invalid(cm), origin="lower", aspect="auto", cmap=cmap, norm=norm)
-        for iy in range(ny):
-            for ix in range(nx):
-                c = cell(fv, ix, iy)
-                if c is None:
-                    continue
-                v = c["deflection_m"] * 100.0
-                txt = "div" if c["diverged"] and c["diverged"] == c["seeds"] else _short_cm(v)
-                ax.text(ix, iy, txt, ha="center", va="center", fontsize=fs - 1,
-                        color="white" if not math.isfinite(v) or v < 3 or v > 100 else "black")
+        annotate(ax, fv, deflection_label)
         _bound_outline(ax, g, DEFLECTION_BOUND_M)
         decorate(ax, fv)
     cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
@@ -983,15 +1000,7 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     for ax, fv, g in zip(axs, facets, grid("rmse_kmh")):
         gm = np.where(np.isfinite(g), np.clip(g, 0.01, None), np.where(np.isnan(g), np.nan, 1e9))
         im = ax.imshow(np.ma.masked_invalid(gm), origin="lower", aspect="auto", cmap=cmap, norm=norm)
-        for iy in range(ny):
-            for ix in range(nx):
-                c = cell(fv, ix, iy)
-                if c is None:
-                    continue
-                v = c["rmse_kmh"]
-                txt = "∞" if not math.isfinite(v) or v >= 1e4 else f"{v:.2g}" if v < 100 else f"{v:.0f}"
-                ax.text(ix, iy, txt, ha="center", va="center", fontsize=fs - 1,
-                        color="white" if not math.isfinite(v) or v < 0.3 or v > 100 else "black")
+        annotate(ax, fv, rmse_label)
         decorate(ax, fv)
     cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
     cb.set_label("speed RMSE (km/h), worst car, mean of seeds", fontsize=7)
@@ -1007,14 +1016,12 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
         top = float(finite.max()) if finite.size else 1.0
         im = ax.imshow(np.ma.masked_invalid(np.where(np.isinf(g), 1e9, g)), origin="lower", aspect="auto",
                        cmap=ccmap, norm=Normalize(vmin=0.0, vmax=max(top, 1e-3)))
-        for iy in range(ny):
-            for ix in range(nx):
-                c = cell(fv, ix, iy)
-                if c is None:
-                    continue
-                v = c["convergence_s"]
-                ax.text(ix, iy, "never" if not math.isfinite(v) else f"{v:.2g}", ha="center", va="center",
-                        fontsize=fs - 1, color="white" if not math.isfinite(v) or v < 0.5 * top else "black")
+        def convergence_label(c: dict[str, Any], top: float = top) -> tuple[str, str]:
+            v = c["convergence_s"]
+            return ("never" if not math.isfinite(v) else f"{v:.2g}",
+                    "white" if not math.isfinite(v) or v < 0.5 * top else "black")
+
+        annotate(ax, fv, convergence_label)
         decorate(ax, fv)
     cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
     cb.set_label("convergence to ±0.5 km/h (s), latest seed", fontsize=7)
@@ -1029,14 +1036,7 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     snorm = BoundaryNorm([-0.5, 0.5, 1.5, 2.5, 3.5], 4)
     for ax, fv, g in zip(axs, facets, grid("level")):
         im = ax.imshow(np.ma.masked_invalid(g), origin="lower", aspect="auto", cmap=scmap, norm=snorm)
-        for iy in range(ny):
-            for ix in range(nx):
-                c = cell(fv, ix, iy)
-                if c is None or c["seeds"] <= 1 or c["share"] >= 1.0:
-                    continue
-                k = int(round(c["share"] * c["seeds"]))
-                ax.text(ix, iy, f"{k}/{c['seeds']}", ha="center", va="center", fontsize=fs - 1,
-                        color="white" if c["level"] == 3 else "black")
+        annotate(ax, fv, safety_label)
         decorate(ax, fv)
     cb = fig.colorbar(im, ax=axs, ticks=[0, 1, 2, 3], shrink=0.9)
     cb.ax.set_yticklabels(["ok", "tracking\ndegraded", "|Δl| > 1 cm", "unstable"], fontsize=7)
