@@ -6,13 +6,13 @@ eqs. 44–45, in process (:func:`canbrake.cai2014_sim.simulate`), then writes ``
 ``figures/cai2014_*.png``. Every number in the document is computed here from the runs; the only
 hand-typed numbers are the paper's claims (:data:`PAPER`) and the criteria that decide "holds?".
 
-Runs live in ``runs_dir/<key>.npz`` with ``<key>.json`` (the parameters); a run is reused when its
-parameters equal the ones this code would use and :data:`TRACE_VERSION` matches; ``force`` reruns.
+Runs live in ``runs_dir/<key>.npz`` (:mod:`canbrake.report.cache`, the parameters in its header); a
+run is reused when its parameters equal the ones this code would use and :data:`TRACE_VERSION`
+matches; ``force`` reruns.
 """
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -24,6 +24,7 @@ import numpy as np
 from canbrake.cai2014_sim import KMH, CaiParams, CaiTrace, error_metrics, simulate
 from canbrake.control.cai2014 import CASE_NAMES, CASES
 from canbrake.physics.wheel_adhesion import DRY, WET, adhesion_coefficient
+from canbrake.report.cache import is_cached, load_npz, save_npz
 
 TRACE_VERSION = 2  # bump when the simulation changes (the cache key is the parameters)
 #: the paper's claims and our criteria (the only hand-typed numbers)
@@ -62,28 +63,26 @@ def run_specs(duration_s: float = 200.0, dt_s: float = 5e-3) -> dict[str, tuple[
     return specs
 
 
-def _params_json(case: int, pr: CaiParams) -> str:
-    return json.dumps({"case": case, "trace_version": TRACE_VERSION, "params": dataclasses.asdict(pr)},
-                      sort_keys=True)
+def _header(case: int, pr: CaiParams) -> dict[str, Any]:
+    return {"case": case, "trace_version": TRACE_VERSION, "params": dataclasses.asdict(pr)}
 
 
 def _run(args: tuple[str, int, CaiParams, str, bool]) -> tuple[str, bool, float]:
     key, case, pr, runs_dir, force = args
-    d = Path(runs_dir)
-    pj, pz = d / f"{key}.json", d / f"{key}.npz"
-    want = _params_json(case, pr)
-    if not force and pj.exists() and pz.exists() and pj.read_text() == want:
+    path = Path(runs_dir) / f"{key}.npz"
+    if not force and is_cached(path, _header(case, pr)):
         return key, True, 0.0
     t0 = time.perf_counter()
     tr = simulate(case, pr)
-    np.savez_compressed(pz, **tr.to_npz())
-    pj.write_text(want)
+    save_npz(path, _header(case, pr), tr.to_npz())
     return key, False, time.perf_counter() - t0
 
 
 def _load(key: str, case: int, pr: CaiParams, runs_dir: Path) -> CaiTrace:
-    z = np.load(runs_dir / f"{key}.npz")
-    return CaiTrace(case=case, params=pr, **{k: z[k] for k in z.files})
+    z = load_npz(runs_dir / f"{key}.npz", _header(case, pr))
+    if z is None:
+        raise RuntimeError(f"{runs_dir / key}.npz: the run just made cannot be read back")
+    return CaiTrace(case=case, params=pr, **z)
 
 
 def run_all(specs: dict[str, tuple[int, CaiParams]], runs_dir: Path, force: bool, jobs: int,

@@ -10,7 +10,6 @@ Runs are cached as ``runs_dir/<key>.npz`` with a JSON header; a run is reused wh
 """
 from __future__ import annotations
 
-import json
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -19,8 +18,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from canbrake.li2024_sim import CRUISE_KMH, UNCERTAINTY, V0_KMH, Reference, driver_reference, simulate
+from canbrake.li2024_sim import (
+    CRUISE_KMH,
+    UNCERTAINTY,
+    V0_KMH,
+    Reference,
+    driver_reference,
+    simulate,
+)
 from canbrake.physics import heavy_haul as hh
+from canbrake.report.cache import load_npz, save_npz
 
 REPORT_VERSION = 1
 DEFAULT_DURATION_S = 2600.0
@@ -69,29 +76,10 @@ def _header(kind: str, duration_s: float) -> dict:
     return {"report_version": REPORT_VERSION, "kind": kind, "duration_s": duration_s}
 
 
-def _load_npz(path: Path, header: dict) -> dict | None:
-    if not path.exists():
-        return None
-    try:
-        z = np.load(path, allow_pickle=False)
-        if json.loads(str(z["header"])) != header:
-            return None
-        return {k: z[k] for k in z.files if k != "header"}
-    except Exception:  # unreadable cache: rerun
-        return None
-
-
-def _save_npz(path: Path, header: dict, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, header=json.dumps(header), **{k: np.asarray(v) for k, v in data.items()})
-    tmp.replace(path)
-
-
 def reference(runs_dir: Path, duration_s: float, force: bool, log) -> tuple[Reference, dict]:
     path = runs_dir / "reference.npz"
     hdr = _header("reference", duration_s)
-    d = None if force else _load_npz(path, hdr)
+    d = None if force else load_npz(path, hdr)
     if d is None:
         log(f"  driver reference ({duration_s:.0f} s) ...")
         ref, raw = driver_reference(duration_s=duration_s)
@@ -99,7 +87,7 @@ def reference(runs_dir: Path, duration_s: float, force: bool, log) -> tuple[Refe
         d = {"t_s": ref.t_s, "x_m": ref.x_m, "v_mps": ref.v_mps, "a_mps2": ref.a_mps2,
              "raw_x_m": raw["x_m"], "raw_v_mps": raw["v_mps"], "raw_u_n": raw["u_n"],
              "ab_t_s": np.array([t for t, _ in ev]), "ab_apply": np.array([e == "apply" for _, e in ev])}
-        _save_npz(path, hdr, d)
+        save_npz(path, hdr, d)
     events = [(float(t), bool(a)) for t, a in zip(d["ab_t_s"], d["ab_apply"])]
     ref = Reference(d["t_s"], d["x_m"], d["v_mps"], d["a_mps2"], float(d["t_s"][1] - d["t_s"][0]), events)
     return ref, d
@@ -117,7 +105,7 @@ def run_all(specs: Sequence[RunSpec], ref: Reference, runs_dir: Path, duration_s
     todo = []
     for sp in specs:
         hdr = {**_header("run", duration_s), "key": sp.key}
-        d = None if force else _load_npz(runs_dir / f"{sp.key}.npz", hdr)
+        d = None if force else load_npz(runs_dir / f"{sp.key}.npz", hdr)
         if d is None:
             todo.append(sp)
         else:
@@ -131,7 +119,7 @@ def run_all(specs: Sequence[RunSpec], ref: Reference, runs_dir: Path, duration_s
         else:
             outs = [_run((sp, ref)) for sp in todo]
         for key, r in outs:
-            _save_npz(runs_dir / f"{key}.npz", {**_header("run", duration_s), "key": key}, r)
+            save_npz(runs_dir / f"{key}.npz", {**_header("run", duration_s), "key": key}, r)
             res[key] = {k: np.asarray(v) for k, v in r.items()}
         log(f"  runs done in {time.time() - t0:.0f} s")
     return res
@@ -143,7 +131,7 @@ def step_check(runs_dir: Path, duration_s: float, force: bool, log) -> dict:
     for dt in (0.01, 0.005):
         path = runs_dir / f"stepcheck-{int(round(dt * 1e4))}.npz"
         hdr = {**_header("stepcheck", duration_s), "dt": dt}
-        d = None if force else _load_npz(path, hdr)
+        d = None if force else load_npz(path, hdr)
         if d is None:
             log(f"  step check dt = {dt} s ({duration_s:.0f} s) ...")
             ref, _ = driver_reference(duration_s=duration_s, dt_s=dt)
@@ -151,7 +139,7 @@ def step_check(runs_dir: Path, duration_s: float, force: bool, log) -> dict:
             d = {k: np.asarray(r[k]) for k in ("rmse_kmh", "max_tension_n", "max_compression_n", "err_min_kmh",
                                                "err_max_kmh")}
             d["ref_v_end_kmh"] = np.asarray(ref.v_mps[-1] / hh.KMH)
-            _save_npz(path, hdr, d)
+            save_npz(path, hdr, d)
         out[dt] = d
     return out
 
