@@ -38,6 +38,14 @@ class Observation:
     # front: coupler to car i-1 (Δl_{i-1} = x_{i-1} - x_i - spacing), rear: to car i+1 (Δl_i).
     deflection_front_m: float | None = None
     deflection_rear_m: float | None = None
+    #: reference position x*(t_k) (m); NaN when the scenario's reference has none
+    ref_position_m: float = float("nan")
+    #: every local sensor signal of the ECU by name (SI, names as in
+    #: :mod:`canbrake.physics.contract`, e.g. ``speed_mps``, ``passive_force_n``, ``axle1_speed_radps``)
+    sensors: Mapping[str, float] = field(default_factory=dict)
+    #: broadcast signals received from peers by name, each shape ``(n_ecus,)`` indexed by ECU
+    #: (NaN where never received); ages in ``peer_age_s``
+    peer_signals: Mapping[str, np.ndarray] = field(default_factory=dict)
 
 
 @dataclass
@@ -50,6 +58,11 @@ class ControlOutput:
 
     brake_force_n: float
     diagnostics: dict[str, float] = field(default_factory=dict)
+    #: further actuator commands by name (see :mod:`canbrake.physics.contract`), e.g.
+    #: ``{"axle1_torque_nm": ...}``, ``{"airbrake_apply": 1.0}``
+    commands: dict[str, float] = field(default_factory=dict)
+    #: values this ECU broadcasts to its peers in its next STATE frame, by name
+    broadcast: dict[str, float] = field(default_factory=dict)
 
 
 class Controller(ABC):
@@ -57,6 +70,16 @@ class Controller(ABC):
 
     #: names of the diagnostics this controller reports, in a stable order
     diagnostic_names: tuple[str, ...] = ()
+    #: local sensor signals this controller reads (its ECU's SENSOR frames carry them)
+    sensor_names: tuple[str, ...] = ("speed_mps", "position_m")
+    #: actuator commands it sends (its ECU's command frames carry them); ``brake_force_n`` is
+    #: ``ControlOutput.brake_force_n``, the others come from ``ControlOutput.commands``
+    command_names: tuple[str, ...] = ("brake_force_n",)
+    #: signals it broadcasts to peers in its STATE frame: sensor names (sent as measured) or
+    #: names of ``ControlOutput.broadcast`` (sent one period later)
+    broadcast_names: tuple[str, ...] = ("speed_mps", "position_m")
+    #: whether it needs the reference position x* (a REFERENCE_POS frame)
+    needs_ref_position: bool = False
 
     def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float) -> None:
         self.car_index = car_index
