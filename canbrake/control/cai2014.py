@@ -32,8 +32,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from canbrake.control.base import ControlOutput, Controller, Observation, register
 
 CASES = (1, 2, 3, 4)
 CASE_NAMES = {
@@ -183,3 +187,84 @@ class CaiController:
         self._prev = (float(speed_mps), omega_radps.copy(), torque, float(dt_s))
         return CaiOutput(torque, {"s": s, "force_cmd_n": f_cmd, "adhesion_hat_n": fa_hat,
                                   "resistance_hat_n": fd_hat, "lumped_hat_n": fdw_hat})
+
+
+# ------------------------------------------------------------------------------ engine controller
+class Cai2014Params(BaseModel):
+    """Parameters of the ``cai2014`` controller (SI). The controller's own model of the train
+    (``train_mass_kg``, ``wheel_radius_m``, ``wheel_inertia_kgm2``, ``davis``) is given here, not taken from the plant:
+    the paper's controller is centralised over the whole train (m = 96 t), while its ECU sits on the
+    powered vehicle. Gains default to the paper's readings (:data:`PAPER_GAINS`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    case: Literal[1, 2, 3, 4]
+    axles: int = Field(ge=1, le=16, description="driven axles this ECU commands (axle1..axle<p>)")
+    train_mass_kg: float = Field(gt=0, description="train mass of the controller's model (kg)")
+    wheel_radius_m: float = Field(gt=0, description="wheel radius of the model (m)")
+    wheel_inertia_kgm2: float = Field(gt=0, description="wheel inertia of the model (kg·m²)")
+    davis: tuple[float, float, float] = Field(description="resistance of the model: c0 (N), c1 (N·s/m), c2 (N·s²/m²)")
+    k0: float = Field(PAPER_GAINS.k0, gt=0, description="N·s/m")
+    ka: float = Field(PAPER_GAINS.ka, gt=0, description="m")
+    beta: float = Field(PAPER_GAINS.beta, gt=0, description="1/s")
+    g: float = Field(PAPER_GAINS.g, gt=0, description="observer cut-off, 1/s")
+    edot_gain: float = Field(PAPER_GAINS.edot_gain, ge=0, description="N·s/m")
+    sigma: Literal[1, -1] = Field(1, description="sign of eqs. 44–45: +1 as eq. 20, −1 as printed")
+
+
+@register("cai2014")
+class Cai2014Controller(Controller):
+    """Cai et al. 2014's traction ECU: the four control cases (eqs. 43–46) with their observers
+    (eqs. 18, 22, 40), one ECU for the powered vehicle's ``axles`` driven axles.
+
+    Reads ``speed_mps``, ``position_m`` and ``axle<j>_speed_radps`` (its vehicle's sensors) and the
+    reference x*, v*, a*; commands ``axle<j>_torque_nm`` (N·m). Cases 1–2 (the "ideal MBC") use the
+    resistance of its own model F_d(v) = c0 sgn v + c1 v + c2 v|v| at the measured speed; with the
+    model equal to the plant (as in the paper) that is the true resistance.
+    """
+
+    needs_ref_position = True
+    broadcast_names: tuple[str, ...] = ()
+
+    def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float, **params: Any) -> None:
+        super().__init__(car_index, n_cars, mass_kg, dt_s)
+        self.params = Cai2014Params(**params)
+        p = self.params.axles
+        self.sensor_names = ("speed_mps", "position_m") + tuple(f"axle{j}_speed_radps" for j in range(1, p + 1))
+        self.command_names = tuple(f"axle{j}_torque_nm" for j in range(1, p + 1))
+        self.diagnostic_names = (("s_mps", "resistance_model_n", "resistance_hat_n", "lumped_hat_n")
+                                 + tuple(f"axle{j}_force_cmd_n" for j in range(1, p + 1))
+                                 + tuple(f"axle{j}_adhesion_hat_n" for j in range(1, p + 1)))
+        self.reset()
+
+    def reset(self) -> None:
+        """Observers at zero, no previous period."""
+        pr = self.params
+        self.law = CaiController(pr.case, mass_kg=pr.train_mass_kg, n_axles=pr.axles, radius_m=pr.wheel_radius_m,
+                                 inertia_kgm2=pr.wheel_inertia_kgm2,
+                                 gains=CaiGains(k0=pr.k0, ka=pr.ka, beta=pr.beta, g=pr.g, edot_gain=pr.edot_gain),
+                                 sigma=float(pr.sigma))
+
+    def model_resistance_n(self, v_mps: float) -> float:
+        """F_d(v) of the controller's model (N)."""
+        a0, a1, a2 = self.params.davis
+        sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
+        return sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps)
+
+    def step(self, obs: Observation) -> ControlOutput:
+        """Axle torques (N·m) for this period."""
+        p = self.params.axles
+        omega = np.array([obs.sensors[f"axle{j}_speed_radps"] for j in range(1, p + 1)], dtype=float)
+        fd = self.model_resistance_n(obs.speed_mps)
+        out = self.law.step(position_m=obs.position_m, speed_mps=obs.speed_mps, omega_radps=omega,
+                            ref_position_m=obs.ref_position_m, ref_speed_mps=obs.ref_speed_mps,
+                            ref_accel_mps2=-obs.ref_decel_mps2, resistance_n=fd, dt_s=self.dt_s)
+        d = out.diagnostics
+        diag = {"s_mps": float(d["s"]), "resistance_model_n": fd, "resistance_hat_n": float(d["resistance_hat_n"]),
+                "lumped_hat_n": float(d["lumped_hat_n"])}
+        for j in range(p):
+            diag[f"axle{j + 1}_force_cmd_n"] = float(d["force_cmd_n"][j])
+            diag[f"axle{j + 1}_adhesion_hat_n"] = float(d["adhesion_hat_n"][j])
+        torque = out.torque_nm
+        return ControlOutput(brake_force_n=-float(np.sum(torque)) / self.params.wheel_radius_m, diagnostics=diag,
+                             commands={f"axle{j + 1}_torque_nm": float(torque[j]) for j in range(p)})

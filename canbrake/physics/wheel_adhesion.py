@@ -30,11 +30,13 @@ Two curve variants (``variant``):
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+
+from canbrake.physics.contract import PlantDiverged
 
 G0 = 9.8  # m/s², the paper's g0 (117.6 kN = 12 t · 9.8 m/s²)
 
@@ -200,3 +202,177 @@ class WheelSet:
             v = v + dv
         self.omega_radps = w
         return v, self.adhesion(v, cond, w)[2]
+
+
+# ------------------------------------------------------------------------------ the plant model
+@dataclass(frozen=True)
+class RailWindow:
+    """Rail surface ``condition`` for ``start_s ≤ t ≤ stop_s`` (s, both inclusive, as eqs. 41–42)."""
+
+    condition: RailCondition
+    start_s: float
+    stop_s: float
+
+
+@dataclass(frozen=True)
+class RailSchedule:
+    """The rail surface over time: ``base`` outside every window, the first matching window inside."""
+
+    base: RailCondition
+    windows: tuple[RailWindow, ...] = ()
+
+    def at(self, t_s: float) -> RailCondition:
+        """The rail condition at time ``t_s`` (s)."""
+        for w in self.windows:
+            if w.start_s <= t_s <= w.stop_s:
+                return w.condition
+        return self.base
+
+
+@dataclass(frozen=True)
+class DrivenAxles:
+    """The driven axles of one vehicle, front first, arrays of shape ``(p_i,)``: axle load N (N),
+    wheel(set) inertia J (kg·m², incl. transmission and motor), wheel radius R (m). ``p_i`` may be 0."""
+
+    normal_load_n: np.ndarray
+    inertia_kgm2: np.ndarray
+    radius_m: np.ndarray
+
+
+class AdhesionTrain:
+    """Cai et al. 2014's train as a plant model (:class:`canbrake.physics.contract.PlantModel`).
+
+    Single-coordinate body (eq. 3: the vehicles are rigidly coupled, in-train forces cancel in the
+    sum): one position x and speed v for the whole train, ``m v̇ = Σ F_a − Σ F_d,i(v)`` with
+    ``m = Σ m_i`` and per-vehicle Davis resistance ``F_d,i = c0_i sgn v + c1_i v + c2_i v|v|`` (N).
+    Every driven axle k has its own wheel speed, ``J_k ω̇_k = T_k − F_a,k R_k`` (eq. 12) with
+    ``F_a,k = μ(λ_k, v) N_k`` (eqs. 10–15) on the rail condition of the moment (:class:`RailSchedule`).
+
+    Integration, as the paper's reference run needs it: each sub-step (``dt_s / substeps``) solves
+    wheels and body jointly by backward Euler (:meth:`WheelSet.step_coupled`, the rail condition of
+    the sub-step's start) and advances x by the trapezoid rule.
+
+    Commands: ``axle<j>_torque_nm`` (N·m, + drives forward) per vehicle, for its j-th driven axle
+    (1-based); NaN (not commanded) or a missing name is zero torque.
+
+    Measurements (per vehicle, shape (n,)): ``position_m`` (the train's coordinate x, the same for
+    every vehicle: rigid coupling, no lengths), ``speed_mps``, ``accel_mps2`` (over the last control
+    step), ``applied_brake_n`` (−Σ F_a of its axles: traction is negative), ``resistance_n`` (F_d,i),
+    ``wheel_inertia_force_n`` (Σ J_k ω̇_k / R_k of its axles over the last step: with Σ F_d,i the
+    lumped disturbance F_dw of eq. 36), and per driven axle j ``axle<j>_speed_radps``,
+    ``axle<j>_slip``, ``axle<j>_mu``, ``axle<j>_adhesion_n`` (N), ``axle<j>_applied_torque_nm``
+    (NaN where the vehicle has fewer than j driven axles). Per coupler (n−1,): ``deflection_m`` (0:
+    rigid) and ``coupler_force_n`` (the force the rigid coupling carries, + compression:
+    ``C_j = m_{1..j} a − Σ_{i≤j} (F_a,i − F_d,i)`` at the end of the last sub-step).
+    """
+
+    def __init__(self, mass_kg: np.ndarray, axles: list[DrivenAxles], davis_n: np.ndarray, rail: RailSchedule,
+                 *, variant: Variant = "paper", v_floor_mps: float = 0.1, speed_mps: float = 0.0,
+                 position_m: float = 0.0, substeps: int = 1) -> None:
+        """``mass_kg`` (n,) kg; ``axles`` one :class:`DrivenAxles` per vehicle; ``davis_n`` (n, 3):
+        c0 (N), c1 (N·s/m), c2 (N·s²/m²) per vehicle; ``speed_mps`` and ``position_m`` the initial
+        state (wheels start rolling without slip)."""
+        self.mass_kg = np.asarray(mass_kg, dtype=float)
+        self.n_vehicles = int(self.mass_kg.size)
+        if len(axles) != self.n_vehicles:
+            raise ValueError(f"axles: {len(axles)} entries for {self.n_vehicles} vehicles")
+        self.davis_n = np.asarray(davis_n, dtype=float).reshape(self.n_vehicles, 3)
+        self._davis_sum = self.davis_n.sum(axis=0)
+        self.total_mass_kg = float(self.mass_kg.sum())
+        self.rail = rail
+        self.substeps = int(substeps)
+        veh, num = [], []
+        for i, ax in enumerate(axles):
+            veh += [i] * len(ax.normal_load_n)
+            num += list(range(1, len(ax.normal_load_n) + 1))
+        self.axle_vehicle = np.asarray(veh, dtype=int)      # (P,) vehicle of each axle, 0-based
+        self.axle_number = np.asarray(num, dtype=int)       # (P,) axle number within its vehicle, 1-based
+        self.max_axles = int(self.axle_number.max()) if num else 0
+        self.command_names = tuple(f"axle{j}_torque_nm" for j in range(1, self.max_axles + 1))
+
+        def cat(attr: str) -> np.ndarray:
+            return np.concatenate([np.asarray(getattr(a, attr), dtype=float) for a in axles]) if num else np.zeros(0)
+
+        radius = cat("radius_m")
+        self.wheels = WheelSet(cat("normal_load_n"), cat("inertia_kgm2"), radius, np.full(len(num), speed_mps / radius)
+                               if num else np.zeros(0), variant=variant, v_floor_mps=v_floor_mps)
+        self._sel = {j: np.flatnonzero(self.axle_number == j) for j in range(1, self.max_axles + 1)}
+        self.position_m = float(position_m)
+        self.speed_mps = float(speed_mps)
+        self.torque_nm = np.zeros(len(num))
+        self.time_s = 0.0
+        self._t0, self._k, self._h = 0.0, 0, 0.0
+        self._accel = 0.0
+        self._inertia_force = np.zeros(len(num))
+        self._fa_step: np.ndarray | None = None
+
+    # ---------------------------------------------------------------- physics
+    def resistance(self, v_mps: float) -> tuple[float, float]:
+        """Train resistance Σ F_d,i(v) (N) and its slope (N·s/m); the constant term opposes motion."""
+        a0, a1, a2 = self._davis_sum
+        sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
+        return sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps), a1 + 2.0 * a2 * abs(v_mps)
+
+    def vehicle_resistance_n(self, v_mps: float) -> np.ndarray:
+        """F_d,i(v) per vehicle (N), shape (n,)."""
+        c0, c1, c2 = self.davis_n.T
+        sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
+        return sgn * c0 + c1 * v_mps + c2 * v_mps * abs(v_mps)
+
+    def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
+        """Advance by ``dt_s`` (s) holding the axle torque commands (see the class docstring)."""
+        torque = np.zeros(len(self.axle_vehicle))
+        for j, sel in self._sel.items():
+            cmd = commands.get(f"axle{j}_torque_nm")
+            if cmd is not None:
+                torque[sel] = np.nan_to_num(np.asarray(cmd, dtype=float)[self.axle_vehicle[sel]], nan=0.0)
+        self.torque_nm = torque
+        h = dt_s / self.substeps
+        if h != self._h:
+            self._t0, self._k, self._h = self.time_s, 0, h
+        v_start, w_start = self.speed_mps, self.wheels.omega_radps
+        for _ in range(self.substeps):
+            cond = self.rail.at(self.time_s)
+            v_new, fa = self.wheels.step_coupled(torque, self.speed_mps, cond, h, mass_kg=self.total_mass_kg,
+                                                 resistance=self.resistance)
+            self._a_last = (v_new - self.speed_mps) / h
+            self.position_m += 0.5 * h * (self.speed_mps + v_new)
+            self.speed_mps = v_new
+            self._fa_step = fa
+            self._k += 1
+            self.time_s = self._t0 + self._k * h
+        self._accel = (self.speed_mps - v_start) / dt_s
+        w = self.wheels
+        self._inertia_force = w.inertia_kgm2 * (w.omega_radps - w_start) / dt_s / w.radius_m
+        if not (np.isfinite(self.speed_mps) and np.isfinite(self.position_m) and np.all(np.isfinite(w.omega_radps))):
+            raise PlantDiverged(f"adhesion train: non-finite state at t = {self.time_s:g} s")
+
+    # ---------------------------------------------------------------- outputs
+    def _per_vehicle(self, per_axle: np.ndarray) -> np.ndarray:
+        """Σ over each vehicle's axles, shape (n,)."""
+        return np.bincount(self.axle_vehicle, weights=per_axle, minlength=self.n_vehicles).astype(float)
+
+    def measurements(self) -> dict[str, np.ndarray]:
+        """Current state by name (see the class docstring)."""
+        n, v = self.n_vehicles, self.speed_mps
+        lam, mu, fa = self.wheels.adhesion(v, self.rail.at(self.time_s))
+        fd = self.vehicle_resistance_n(v)
+        out = {"position_m": np.full(n, self.position_m), "speed_mps": np.full(n, v),
+               "accel_mps2": np.full(n, self._accel), "applied_brake_n": -self._per_vehicle(fa),
+               "resistance_n": fd, "wheel_inertia_force_n": self._per_vehicle(self._inertia_force),
+               "deflection_m": np.zeros(max(n - 1, 0))}
+        if self._fa_step is None:
+            net = self._per_vehicle(fa) - fd
+            a = 0.0
+        else:
+            net = self._per_vehicle(self._fa_step) - fd
+            a = self._a_last
+        out["coupler_force_n"] = (np.cumsum(self.mass_kg) * a - np.cumsum(net))[:-1]
+        for j, sel in self._sel.items():
+            veh = self.axle_vehicle[sel]
+            for name, val in (("speed_radps", self.wheels.omega_radps), ("slip", lam), ("mu", mu),
+                              ("adhesion_n", fa), ("applied_torque_nm", self.torque_nm)):
+                arr = np.full(n, np.nan)
+                arr[veh] = val[sel]
+                out[f"axle{j}_{name}"] = arr
+        return out

@@ -1,0 +1,179 @@
+"""Train family ``adhesion``: Cai et al. 2014's high-speed train with driven axles and wheel–rail
+adhesion (:class:`canbrake.physics.wheel_adhesion.AdhesionTrain`).
+
+Edge units as in the field names (SI). Example (the paper's train, ``scenarios/cai2014_case1.yaml``)::
+
+    train:
+      model: adhesion
+      vehicle_types:
+        locomotive:
+          mass_kg: 48000
+          davis: {c0_n: 203.5, c1_n_s_per_m: 145.8, c2_n_s2_per_m2: 3.35}
+          wheel: {radius_m: 0.495, inertia_kgm2: 80}
+          axles: [{load_n: 117600, imbalance: 0.015}, {load_n: 117600, imbalance: -0.015}, ...]
+        carriage: {mass_kg: 48000, davis: {...}}
+      vehicles: [{type: locomotive}, {type: carriage}]
+      adhesion:
+        variant: paper
+        conditions: {dry: {b1: 1.786, ...}, wet: {b1: 2.046, ...}}
+        base: wet
+        windows: [{condition: dry, start_s: 50, stop_s: 100}]
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from canbrake.consist.base import StrictModel, VehicleEntry, expand_vehicles
+
+
+class AdhesionDavis(StrictModel):
+    """Running resistance of one vehicle: c0 sgn(v) + c1 v + c2 v|v| (N, v in m/s)."""
+
+    c0_n: float = Field(0.0, ge=0)
+    c1_n_s_per_m: float = Field(0.0, ge=0)
+    c2_n_s2_per_m2: float = Field(0.0, ge=0)
+
+
+class Wheel(StrictModel):
+    """A driven wheelset: rolling radius (m) and moment of inertia of the drive (wheels, gear, motor; kg·m²)."""
+
+    radius_m: float = Field(gt=0)
+    inertia_kgm2: float = Field(gt=0)
+
+
+class Axle(StrictModel):
+    """One driven axle: nominal axle load N_0 (N), imbalance ΔN/N_0 (load N = N_0 (1 + imbalance)); the
+    wheel, when given, overrides the vehicle type's."""
+
+    load_n: float = Field(gt=0)
+    imbalance: float = Field(0.0, gt=-1, lt=1)
+    wheel: Wheel | None = None
+
+
+class AdhesionVehicleType(StrictModel):
+    """A vehicle: mass (kg), resistance, driven axles (none for a trailer) and their default wheel."""
+
+    mass_kg: float = Field(gt=0)
+    davis: AdhesionDavis = AdhesionDavis()
+    wheel: Wheel | None = None
+    axles: list[Axle] = []
+
+    @model_validator(mode="after")
+    def _wheels_known(self) -> "AdhesionVehicleType":
+        for k, a in enumerate(self.axles):
+            if a.wheel is None and self.wheel is None:
+                raise ValueError(f"axles.{k}: no wheel (give the axle's or the vehicle type's `wheel`)")
+        return self
+
+
+class RailConditionSpec(StrictModel):
+    """Coefficients of the slip curve (eq. 13: b1, b2, b3) and its speed scaling (eq. 15: c1, c2 in
+    m/s, c3 in m/s), and the standstill peak μ used by the ``physical`` curve variant."""
+
+    b1: float = Field(gt=0)
+    b2: float = Field(gt=0)
+    b3: float = Field(gt=0)
+    c1: float = Field(ge=0)
+    c2: float = Field(ge=0)
+    c3: float = Field(gt=0)
+    peak_mu0: float = Field(0.3, gt=0, le=1)
+
+
+class RailWindowSpec(StrictModel):
+    """Rail condition ``condition`` for start_s ≤ t ≤ stop_s (s, inclusive)."""
+
+    condition: str
+    start_s: float = Field(ge=0)
+    stop_s: float
+
+    @model_validator(mode="after")
+    def _order(self) -> "RailWindowSpec":
+        if self.stop_s < self.start_s:
+            raise ValueError(f"stop_s ({self.stop_s}) is before start_s ({self.start_s})")
+        return self
+
+
+class AdhesionSpec(StrictModel):
+    """Wheel–rail adhesion: curve variant (``paper``: eqs. 13–15 as printed; ``physical``: the same
+    shapes scaled to ``peak_mu0``), the slip denominator's floor (m/s), the rail conditions by name,
+    the one in force by default and the time windows of the others."""
+
+    variant: Literal["paper", "physical"] = "paper"
+    v_floor_mps: float = Field(0.1, gt=0)
+    conditions: dict[str, RailConditionSpec]
+    base: str
+    windows: list[RailWindowSpec] = []
+
+    @model_validator(mode="after")
+    def _names(self) -> "AdhesionSpec":
+        known = ", ".join(sorted(self.conditions)) or "none"
+        if self.base not in self.conditions:
+            raise ValueError(f"base: unknown rail condition {self.base!r} (conditions: {known})")
+        for k, w in enumerate(self.windows):
+            if w.condition not in self.conditions:
+                raise ValueError(f"windows.{k}.condition: unknown rail condition {w.condition!r} (conditions: {known})")
+        return self
+
+    def schedule(self) -> Any:
+        """The :class:`~canbrake.physics.wheel_adhesion.RailSchedule` of this spec."""
+        from canbrake.physics.wheel_adhesion import RailCondition, RailSchedule, RailWindow
+
+        conds = {k: RailCondition(**c.model_dump()) for k, c in self.conditions.items()}
+        return RailSchedule(conds[self.base], tuple(RailWindow(conds[w.condition], w.start_s, w.stop_s)
+                                                    for w in self.windows))
+
+
+class AdhesionTrainConfig(StrictModel):
+    """A train of rigidly coupled vehicles (Cai 2014, eq. 3) with driven axles and wheel–rail adhesion."""
+
+    model: Literal["adhesion"]
+    vehicle_types: dict[str, AdhesionVehicleType]
+    vehicles: list[VehicleEntry] = Field(min_length=1)
+    adhesion: AdhesionSpec
+
+    @model_validator(mode="after")
+    def _types_known(self) -> "AdhesionTrainConfig":
+        expand_vehicles(self.vehicle_types, self.vehicles)
+        return self
+
+    def expanded(self) -> list[AdhesionVehicleType]:
+        """One vehicle type per vehicle, front first."""
+        return [t for _, t in expand_vehicles(self.vehicle_types, self.vehicles)]
+
+    def vehicle_count(self) -> int:
+        return sum(v.count for v in self.vehicles)
+
+    def vehicle_masses_kg(self) -> np.ndarray:
+        return np.array([t.mass_kg for t in self.expanded()], dtype=float)
+
+    def axle_counts(self) -> list[int]:
+        """Driven axles per vehicle, front first."""
+        return [len(t.axles) for t in self.expanded()]
+
+    def make_plant(self, *, speed_mps: float = 0.0, position_m: float = 0.0, substeps: int = 1) -> Any:
+        """The :class:`~canbrake.physics.wheel_adhesion.AdhesionTrain` of this consist (SI)."""
+        from canbrake.physics.wheel_adhesion import AdhesionTrain, DrivenAxles
+
+        vts = self.expanded()
+        axles = []
+        for t in vts:
+            wheels = [a.wheel or t.wheel for a in t.axles]
+            axles.append(DrivenAxles(
+                normal_load_n=np.array([a.load_n * (1.0 + a.imbalance) for a in t.axles], dtype=float),
+                inertia_kgm2=np.array([w.inertia_kgm2 for w in wheels], dtype=float),  # type: ignore[union-attr]
+                radius_m=np.array([w.radius_m for w in wheels], dtype=float)))  # type: ignore[union-attr]
+        davis = np.array([[t.davis.c0_n, t.davis.c1_n_s_per_m, t.davis.c2_n_s2_per_m2] for t in vts], dtype=float)
+        return AdhesionTrain(self.vehicle_masses_kg(), axles, davis, self.adhesion.schedule(),
+                             variant=self.adhesion.variant, v_floor_mps=self.adhesion.v_floor_mps,
+                             speed_mps=speed_mps, position_m=position_m, substeps=substeps)
+
+    def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
+        """The plant of scenario ``scn``: the train starts at the front vehicle's initial speed and
+        position (one coordinate for the rigid train)."""
+        v0 = float(np.asarray(scn.initial_speed_mps(), dtype=float).reshape(-1)[0])
+        x0 = float(np.asarray(scn.initial_position_m(), dtype=float).reshape(-1)[0])
+        return self.make_plant(speed_mps=v0, position_m=x0, substeps=scn.plant.substeps)
