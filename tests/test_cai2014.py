@@ -237,3 +237,123 @@ def test_quasi_steady_errors_match_the_derivation(short_runs):
     for c, tr in short_runs.items():
         v_ref = tr.params.reference(25.0)[1]
         assert error_at(tr, 25.0) == pytest.approx(predicted_error_m(c, tr.params, v_ref), rel=0.1), c
+
+
+# ------------------------------------------------------------------------------ plant model, consist, controller
+def _paper_yaml(case: int = 1) -> dict:
+    import yaml
+    from pathlib import Path
+
+    return yaml.safe_load((Path(__file__).parent.parent / f"scenarios/cai2014_case{case}.yaml").read_text())
+
+
+def _paper_train(**adhesion):
+    from canbrake.consist.adhesion import AdhesionTrainConfig
+
+    d = _paper_yaml()["train"]
+    d["adhesion"].update(adhesion)
+    return AdhesionTrainConfig(**d)
+
+
+def test_consist_describes_the_papers_train():
+    cfg = _paper_train()
+    assert cfg.vehicle_count() == 2 and cfg.axle_counts() == [4, 0]
+    np.testing.assert_array_equal(cfg.vehicle_masses_kg(), [48e3, 48e3])
+    plant = cfg.make_plant()
+    assert plant.command_names == tuple(f"axle{j}_torque_nm" for j in range(1, 5))
+    np.testing.assert_allclose(plant.wheels.normal_load_n, 117.6e3 * (1 + np.array([0.015, -0.015, 0.025, -0.025])))
+    # the train's resistance is the paper's 407 + 291.6 v + 6.7 v² N, split over two vehicles
+    assert plant.resistance(10.0)[0] == pytest.approx(407 + 2916 + 670, rel=1e-12)
+    assert plant.rail.at(49.999).b2 == 15.0 and plant.rail.at(50.0).b2 == 40.0 and plant.rail.at(100.001).b2 == 15.0
+
+
+def test_consist_errors_name_the_field():
+    from pydantic import ValidationError
+
+    from canbrake.consist.adhesion import AdhesionTrainConfig
+
+    d = _paper_yaml()["train"]
+    d["adhesion"]["windows"][0]["condition"] = "icy"
+    with pytest.raises(ValidationError, match="windows.0.condition: unknown rail condition 'icy'"):
+        AdhesionTrainConfig(**d)
+    d = _paper_yaml()["train"]
+    del d["vehicle_types"]["locomotive"]["wheel"]
+    with pytest.raises(ValidationError, match="axles.0: no wheel"):
+        AdhesionTrainConfig(**d)
+
+
+def test_plant_measurements_per_vehicle_and_rigid_coupler_force():
+    """Constant torque on the locomotive: the trailer has no axles (NaN), NaN commands are no torque,
+    and the rigid coupling carries what the carriage needs, C = −(m₂ a + F_d,2) (tension < 0)."""
+    plant = _paper_train().make_plant(speed_mps=20.0)
+    dt = 5e-3
+    for _ in range(400):
+        plant.step(dt, {f"axle{j}_torque_nm": np.array([5000.0, np.nan]) for j in range(1, 5)})
+    m = plant.measurements()
+    assert np.isnan(m["axle1_speed_radps"][1]) and np.isfinite(m["axle4_slip"][0])
+    assert m["position_m"][0] == m["position_m"][1] and m["speed_mps"][0] == m["speed_mps"][1]
+    fa = np.array([m[f"axle{j}_adhesion_n"][0] for j in range(1, 5)])
+    assert m["applied_brake_n"][0] == pytest.approx(-fa.sum()) and m["applied_brake_n"][1] == 0.0
+    a = m["accel_mps2"][0]
+    assert m["coupler_force_n"][0] == pytest.approx(-(48e3 * a + m["resistance_n"][1]), rel=1e-3)
+    assert m["deflection_m"].tolist() == [0.0]
+    # settled wheels: the adhesion force equals T/R minus the wheel's inertia force
+    np.testing.assert_allclose(fa, 5000.0 / R - J * a / R ** 2, rtol=2e-3)
+
+
+def test_plant_step_count_time_and_substeps():
+    plant = _paper_train().make_plant()
+    for _ in range(10_000):
+        plant.step(5e-3, {})
+    assert plant.time_s == 50.0  # counted, not summed: the rail switch falls on the step of t = 50 s
+    fine = _paper_train().make_plant(speed_mps=30.0, substeps=5)
+    coarse = _paper_train().make_plant(speed_mps=30.0)
+    cmd = {"axle1_torque_nm": np.array([4000.0, np.nan])}
+    for _ in range(200):
+        fine.step(5e-3, cmd)
+        coarse.step(5e-3, cmd)
+    assert fine.speed_mps == pytest.approx(coarse.speed_mps, rel=1e-4) and fine.speed_mps != coarse.speed_mps
+
+
+def test_controller_params_are_validated_by_name():
+    from pydantic import ValidationError
+
+    from canbrake.control.base import make_controller
+
+    params = _paper_yaml()["ecus"][0]["controller"]["params"]
+    c = make_controller("cai2014", params, car_index=0, n_cars=1, mass_kg=48e3, dt_s=1e-3)
+    assert c.sensor_names == ("speed_mps", "position_m", "axle1_speed_radps", "axle2_speed_radps",
+                              "axle3_speed_radps", "axle4_speed_radps")
+    assert c.command_names[-1] == "axle4_torque_nm" and c.needs_ref_position
+    with pytest.raises(ValidationError, match="case"):
+        make_controller("cai2014", {**params, "case": 5}, car_index=0, n_cars=1, mass_kg=48e3, dt_s=1e-3)
+    with pytest.raises(ValidationError, match="kp"):
+        make_controller("cai2014", {**params, "kp": 1}, car_index=0, n_cars=1, mass_kg=48e3, dt_s=1e-3)
+
+
+def _direct_loop(case: int, duration_s: float, dt_s: float):
+    """Plant model and engine controller joined without a bus (ideal sensors and actuators)."""
+    from canbrake.control.base import Observation, make_controller
+
+    plant = _paper_train().make_plant()
+    ctrl = make_controller("cai2014", {**_paper_yaml()["ecus"][0]["controller"]["params"], "case": case},
+                           car_index=0, n_cars=1, mass_kg=48e3, dt_s=dt_s)
+    a = 200 / 3.6 / 200.0
+    for k in range(int(round(duration_s / dt_s))):
+        t = k * dt_s
+        m = plant.measurements()
+        obs = Observation(tick=k, time_s=t, speed_mps=m["speed_mps"][0], position_m=m["position_m"][0],
+                          ref_speed_mps=a * t, ref_decel_mps2=-a, peer_speed_mps=np.zeros(1),
+                          peer_position_m=np.zeros(1), peer_age_s=np.zeros(1), ref_position_m=0.5 * a * t * t,
+                          sensors={f"axle{j}_speed_radps": m[f"axle{j}_speed_radps"][0] for j in range(1, 5)})
+        out = ctrl.step(obs)
+        plant.step(dt_s, {n: np.array([v, np.nan]) for n, v in out.commands.items()})
+    return plant
+
+
+@pytest.mark.parametrize("case", [1, 2, 3, 4])
+def test_plant_model_and_engine_controller_reproduce_the_reference_loop(case):
+    pl = _direct_loop(case, 3.0, 1e-2)
+    tr = simulate(case, duration_s=3.0, dt_s=1e-2, record_every=1)
+    assert pl.position_m == tr.position_m[-1] and pl.speed_mps == tr.speed_mps[-1]
+    np.testing.assert_array_equal(pl.wheels.omega_radps, tr.omega_radps[-1])

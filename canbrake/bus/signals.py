@@ -53,8 +53,22 @@ CATALOGUE: dict[str, SignalFormat] = {
     "deflection_rear_m": _signed("DeflRear", 16, 5e-5, "m", "deflection of the coupler to the vehicle behind"),
 }
 
+def _axle_signal(m: re.Match[str]) -> SignalFormat:
+    """``axle<j>_speed_radps`` and ``axle<j>_torque_nm`` (Cai 2014's traction ECU)."""
+    j, quantity = int(m.group(1)), m.group(2)
+    if quantity == "speed_radps":
+        # 1e-4 rad/s: 0.05 mm/s at a 0.495 m wheel, ~1/1000 of the creep speeds; the adhesion observer
+        # differentiates it: J q/(R dt) = 16 N per 1 ms sample, ~0.2 N after its 10 1/s filter, against
+        # ~7 kN per axle. +-839 rad/s covers 200 km/h (112 rad/s) with any slip, forwards and backwards.
+        return _signed(f"Axle{j}Speed", 24, 1e-4, "rad/s", f"angular speed of driven axle {j}")
+    # 0.1 N.m: 0.2 N of force at the rail (a traction axle gives ~7 kN); +-839 kN.m, far above any drive
+    return _signed(f"Axle{j}Torque", 24, 0.1, "N.m", f"torque demand on driven axle {j}; positive drives forward")
+
+
 #: indexed names: (regex, factory(match) -> SignalFormat)
-PATTERNS: list[tuple[re.Pattern[str], "object"]] = []
+PATTERNS: list[tuple[re.Pattern[str], "object"]] = [
+    (re.compile(r"axle([1-9][0-9]?)_(speed_radps|torque_nm)"), _axle_signal),
+]
 
 
 def signal_format(name: str) -> SignalFormat:
