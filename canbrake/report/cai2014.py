@@ -1,32 +1,36 @@
 """Reproduction report of Cai et al. 2014 (high-speed train traction with adhesion and force observers).
 
-``generate()`` runs (or reuses) the four control cases with the paper's printed adhesion curve and
-with the physically scaled one (:mod:`canbrake.physics.wheel_adhesion`), plus the printed sign of
-eqs. 44–45, in process (:func:`canbrake.cai2014_sim.simulate`), then writes ``cai2014.md`` and
-``figures/cai2014_*.png``. Every number in the document is computed here from the runs; the only
-hand-typed numbers are the paper's claims (:data:`PAPER`) and the criteria that decide "holds?".
+``generate()`` runs (or reuses) the four control cases of ``scenarios/cai2014_case<c>.yaml`` with the
+paper's printed adhesion curve (profile ``paper``) and with the physically scaled one (profile
+``physical``), plus step-size checks, a larger ka and the printed sign of eqs. 44–45 (profile
+``printed_sign``), every one a ``canbrake run`` through the node engine (in-process driver, the
+traction ECU on the bus), then writes ``cai2014.md`` and ``figures/cai2014_*.png``. Every number in
+the document is computed here from the runs; the only hand-typed numbers are the paper's claims
+(:data:`PAPER`) and the criteria that decide "holds?".
 
-Runs live in ``runs_dir/<key>.npz`` (:mod:`canbrake.report.cache`, the parameters in its header); a
-run is reused when its parameters equal the ones this code would use and :data:`TRACE_VERSION`
-matches; ``force`` reruns.
+Runs live in ``runs_dir/<key>/`` (an ordinary run directory plus ``trace.npz``, the columns this
+report reads); a run is reused when its resolved scenario equals the one this code would run and
+:data:`TRACE_VERSION` matches; ``force`` reruns.
 """
 from __future__ import annotations
 
-import dataclasses
+import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 
-from canbrake.cai2014_sim import KMH, CaiParams, CaiTrace, error_metrics, simulate
-from canbrake.control.cai2014 import CASE_NAMES, CASES
-from canbrake.physics.wheel_adhesion import DRY, WET, adhesion_coefficient
-from canbrake.report.cache import is_cached, load_npz, save_npz
+from canbrake.control.cai2014 import CASE_NAMES, CASES, CaiGains
+from canbrake.physics.wheel_adhesion import RailCondition, adhesion_coefficient
+from canbrake.scenario import Scenario, load_scenario
 
-TRACE_VERSION = 2  # bump when the simulation changes (the cache key is the parameters)
+KMH = 1.0 / 3.6  # m/s per km/h
+TRACE_VERSION = 3  # bump when what a run records changes (runs are reused by their resolved scenario)
 #: the paper's claims and our criteria (the only hand-typed numbers)
 PAPER = {
     "ratio_case1": 10.0,          # "the average position tracking error of Case 1 is about ten times larger"
@@ -39,64 +43,264 @@ SETTLE_S = 20.0  # the loop's transient (period ≈ 9 s, ζ ≈ 0.37) has decaye
 VARIANTS = ("paper", "physical")
 SIGN_RUN_S = 10.0
 DT_CHECK_S = 30.0
+STEP_S = 5e-3  # the report's control period (the scenarios' own is 1 ms; the step-size check compares)
+CASE_FILE = "cai2014_case{}.yaml"
 
 
-def run_specs(duration_s: float = 200.0, dt_s: float = 5e-3) -> dict[str, tuple[int, CaiParams]]:
-    """key -> (case, params) of every run the report needs."""
-    specs: dict[str, tuple[int, CaiParams]] = {}
+# ------------------------------------------------------------------------------------ runs
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: case ``case``'s scenario file, a profile and dotted overrides (JSON values)."""
+
+    key: str
+    case: int
+    profile: str = "paper"
+    overrides: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def override_dict(self) -> dict[str, Any]:
+        return {k: json.loads(v) for k, v in self.overrides}
+
+    def command(self) -> str:
+        """The ``canbrake run`` command line that makes the same run."""
+        parts = [f"canbrake run scenarios/{CASE_FILE.format(self.case)} --profile {self.profile} --bus inprocess"]
+        ov = self.override_dict
+        if "duration_s" in ov:
+            parts.append(f"--duration {ov.pop('duration_s'):g}")
+        for k, v in ov.items():
+            val = yaml.safe_dump(v, default_flow_style=True, width=1000).strip().removesuffix("...").strip()
+            parts.append(f"--set {k}={val}")
+        return " ".join(parts)
+
+
+def _spec(key: str, case: int, profile: str = "paper", **overrides: Any) -> RunSpec:
+    return RunSpec(key, case, profile, tuple((k.replace("__", "."), json.dumps(v)) for k, v in overrides.items()))
+
+
+def scenario_dir() -> Path:
+    """The repository's scenarios/ (next to the package in a checkout), else ./scenarios."""
+    here = Path(__file__).resolve().parents[2] / "scenarios"
+    return here if (here / CASE_FILE.format(1)).exists() else Path("scenarios")
+
+
+def resolve_spec(spec: RunSpec, scen_dir: Path | None = None) -> Scenario:
+    return load_scenario((scen_dir or scenario_dir()) / CASE_FILE.format(spec.case), profile=spec.profile,
+                         overrides=spec.override_dict)
+
+
+def run_specs(duration_s: float = 200.0, dt_s: float = STEP_S) -> list[RunSpec]:
+    """Every run the report needs (``duration_s``/``dt_s`` shorten or coarsen them for tests)."""
+    full = {"duration_s": duration_s} if duration_s != 200.0 else {}
+    specs: list[RunSpec] = []
     for variant in VARIANTS:
         for case in CASES:
-            specs[f"{variant}-case{case}"] = (case, CaiParams(duration_s=duration_s, dt_s=dt_s, variant=variant,
-                                                              record_every=max(1, int(round(0.05 / dt_s)))))
+            specs.append(_spec(f"{variant}-case{case}", case, variant, control_period_s=dt_s, **full))
     for case in (1, 4):  # step-size check: the main step divided by 5 and doubled, first 30 s
         for label, dt in (("fine", dt_s / 5), ("coarse", dt_s * 2)):
-            specs[f"paper-case{case}-dt-{label}"] = (case, CaiParams(
-                duration_s=min(DT_CHECK_S, 0.5 * duration_s), dt_s=dt, record_every=max(1, int(round(0.05 / dt)))))
+            specs.append(_spec(f"paper-case{case}-dt-{label}", case, control_period_s=dt,
+                               duration_s=min(DT_CHECK_S, 0.5 * duration_s)))
     # what ka the paper's "about ten times" would need: ka = 10 R by the settled-error derivation
-    base = CaiParams()
-    specs["paper-case2-ka-for-10x"] = (2, CaiParams(
-        duration_s=duration_s, dt_s=dt_s, record_every=max(1, int(round(0.05 / dt_s))),
-        gains=dataclasses.replace(base.gains, ka=PAPER["ratio_case1"] * base.radius_m)))
+    radius = CaiSetup.of(resolve_spec(specs[0])).radius_m
+    specs.append(_spec("paper-case2-ka-for-10x", 2, control_period_s=dt_s,
+                       ecus__0__controller__params__ka=round(PAPER["ratio_case1"] * radius, 9), **full))
     for case in (2, 3):
-        specs[f"paper-case{case}-printed-sign"] = (case, CaiParams(
-            duration_s=min(SIGN_RUN_S, duration_s), dt_s=dt_s, sigma=-1.0, record_every=max(1, int(round(0.05 / dt_s)))))
+        specs.append(_spec(f"paper-case{case}-printed-sign", case, "printed_sign", control_period_s=dt_s,
+                           duration_s=min(SIGN_RUN_S, duration_s)))
     return specs
 
 
-def _header(case: int, pr: CaiParams) -> dict[str, Any]:
-    return {"case": case, "trace_version": TRACE_VERSION, "params": dataclasses.asdict(pr)}
+@dataclass(frozen=True)
+class CaiSetup:
+    """The numbers of one resolved scenario the report needs (SI): the train, the reference, the
+    rail, and the traction ECU's controller parameters."""
+
+    mass_kg: float
+    n_vehicles: int
+    axle_load_n: float
+    imbalance: tuple[float, ...]
+    inertia_kgm2: float
+    radius_m: float
+    davis_n: tuple[float, float, float]
+    v0_mps: float
+    v_final_mps: float
+    accel_mps2: float
+    x0_m: float
+    duration_s: float
+    dt_s: float
+    dry_window_s: tuple[float, float]
+    variant: str
+    v_floor_mps: float
+    gains: CaiGains
+    sigma: float
+    conditions: dict[str, RailCondition] = field(default_factory=dict)
+
+    @property
+    def n_axles(self) -> int:
+        return len(self.imbalance)
+
+    @property
+    def ramp_s(self) -> float:
+        return (self.v_final_mps - self.v0_mps) / self.accel_mps2
+
+    @classmethod
+    def of(cls, scn: Scenario) -> "CaiSetup":
+        tr = scn.train
+        types = tr.expanded()
+        loco = next(t for t in types if t.axles)
+        wheel = loco.axles[0].wheel or loco.wheel
+        params = scn.ecus[0].controller.params
+        ref = scn.reference
+        a = -ref.decel_kmh_per_s * KMH
+        davis = tuple(float(sum(getattr(t.davis, f) for t in types))
+                      for f in ("c0_n", "c1_n_s_per_m", "c2_n_s2_per_m2"))
+        win = tr.adhesion.windows[0]
+        return cls(mass_kg=float(sum(t.mass_kg for t in types)), n_vehicles=len(types),
+                   axle_load_n=loco.axles[0].load_n, imbalance=tuple(x.imbalance for x in loco.axles),
+                   inertia_kgm2=wheel.inertia_kgm2, radius_m=wheel.radius_m, davis_n=davis,  # type: ignore[arg-type]
+                   v0_mps=ref.speed_kmh * KMH, v_final_mps=ref.target_kmh * KMH, accel_mps2=a,
+                   x0_m=float(ref.position_m or 0.0), duration_s=scn.duration_s, dt_s=scn.control_period_s,
+                   dry_window_s=(win.start_s, win.stop_s), variant=tr.adhesion.variant,
+                   v_floor_mps=tr.adhesion.v_floor_mps,
+                   gains=CaiGains(**{k: float(params[k]) for k in ("k0", "ka", "beta", "g", "edot_gain") if k in params}),
+                   sigma=float(params.get("sigma", 1)),
+                   conditions={k: RailCondition(**c.model_dump()) for k, c in tr.adhesion.conditions.items()})
+
+    def resistance(self, v_mps: float) -> tuple[float, float]:
+        """F_d(v) in N and dF_d/dv in N·s/m of the whole train."""
+        a0, a1, a2 = self.davis_n
+        sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
+        return sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps), a1 + 2.0 * a2 * abs(v_mps)
+
+    def reference(self, t_s: float) -> tuple[float, float, float]:
+        """x* (m), v* (m/s), a* (m/s², + accelerates): the ramp to v_final, then cruise."""
+        a, v0, t1 = self.accel_mps2, self.v0_mps, self.ramp_s
+        if t_s <= t1:
+            return self.x0_m + v0 * t_s + 0.5 * a * t_s * t_s, v0 + a * t_s, a
+        return self.x0_m + v0 * t1 + 0.5 * a * t1 * t1 + self.v_final_mps * (t_s - t1), self.v_final_mps, 0.0
 
 
-def _run(args: tuple[str, int, CaiParams, str, bool]) -> tuple[str, bool, float]:
-    key, case, pr, runs_dir, force = args
-    path = Path(runs_dir) / f"{key}.npz"
-    if not force and is_cached(path, _header(case, pr)):
-        return key, True, 0.0
-    t0 = time.perf_counter()
-    tr = simulate(case, pr)
-    save_npz(path, _header(case, pr), tr.to_npz())
-    return key, False, time.perf_counter() - t0
+@dataclass
+class CaiTrace:
+    """A run as the report reads it, SI. Per-axle arrays have shape ``(n_samples, p)``; others ``(n_samples,)``."""
+
+    case: int
+    params: CaiSetup
+    time_s: np.ndarray
+    position_m: np.ndarray
+    ref_position_m: np.ndarray
+    speed_mps: np.ndarray
+    ref_speed_mps: np.ndarray
+    omega_radps: np.ndarray
+    slip: np.ndarray
+    mu: np.ndarray
+    adhesion_n: np.ndarray
+    torque_nm: np.ndarray
+    adhesion_hat_n: np.ndarray
+    resistance_n: np.ndarray
+    resistance_hat_n: np.ndarray
+    lumped_n: np.ndarray  # F_dw = (J/R) Σ ω̇ + F_d (eq. 36), from the plant
+    lumped_hat_n: np.ndarray
+    command: str = ""
+
+    @property
+    def position_error_m(self) -> np.ndarray:
+        return self.position_m - self.ref_position_m
+
+    @property
+    def speed_error_mps(self) -> np.ndarray:
+        return self.speed_mps - self.ref_speed_mps
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {k: v for k, v in self.__dict__.items() if isinstance(v, np.ndarray)}
 
 
-def _load(key: str, case: int, pr: CaiParams, runs_dir: Path) -> CaiTrace:
-    z = load_npz(runs_dir / f"{key}.npz", _header(case, pr))
-    if z is None:
-        raise RuntimeError(f"{runs_dir / key}.npz: the run just made cannot be read back")
-    return CaiTrace(case=case, params=pr, **z)
+def trace_from_signals(cols: dict[str, np.ndarray], setup: CaiSetup, case: int) -> dict[str, np.ndarray]:
+    """The report's arrays from a run's signals.csv columns (the traction ECU is on vehicle 1).
+
+    Rows where the ECU has no diagnostics (the final state after the last period) are dropped.
+    """
+    p = setup.n_axles
+    n = setup.n_vehicles
+
+    def axles(name: str) -> np.ndarray:
+        return np.column_stack([cols[f"axle{j}_{name}_c1"] for j in range(1, p + 1)])
+
+    t = cols["t_s"]
+    keep = np.isfinite(cols["lumped_hat_n_c1"])
+    ref = np.array([setup.reference(ti)[0] for ti in t]) if "ref_position_m" not in cols else cols["ref_position_m"]
+    fd = sum(cols[f"resistance_n_c{i}"] for i in range(1, n + 1))
+    out = {"time_s": t, "position_m": cols["position_m_c1"], "ref_position_m": ref, "speed_mps": cols["speed_mps_c1"],
+           "ref_speed_mps": cols["ref_speed_mps"], "omega_radps": axles("speed_radps"), "slip": axles("slip"),
+           "mu": axles("mu"), "adhesion_n": axles("adhesion_n"), "torque_nm": axles("applied_torque_nm"),
+           "adhesion_hat_n": np.column_stack([cols[f"axle{j}_adhesion_hat_n_c1"] for j in range(1, p + 1)]),
+           "resistance_n": fd, "resistance_hat_n": cols["resistance_hat_n_c1"],
+           "lumped_n": fd + sum(cols[f"wheel_inertia_force_n_c{i}"] for i in range(1, n + 1)),
+           "lumped_hat_n": cols["lumped_hat_n_c1"]}
+    return {k: v[keep] for k, v in out.items()}
 
 
-def run_all(specs: dict[str, tuple[int, CaiParams]], runs_dir: Path, force: bool, jobs: int,
-            log: Callable[[str], Any]) -> dict[str, CaiTrace]:
+def _reusable(scn: Scenario, run_dir: Path) -> bool:
+    try:
+        if (run_dir / "scenario.yaml").read_text() != scn.to_yaml():
+            return False
+        s = json.loads((run_dir / "summary.json").read_text())
+        if s.get("status") != "ok" or s.get("report_trace_version") != TRACE_VERSION:
+            return False
+        with np.load(run_dir / "trace.npz") as z:
+            return int(z["version"]) == TRACE_VERSION
+    except (OSError, ValueError, KeyError):
+        return False
+
+
+def execute(spec: RunSpec, runs_dir: str | Path, force: bool = False,
+            scen_dir: str | Path | None = None) -> tuple[str, bool, float]:
+    """Run (or reuse) one spec; returns (key, reused, wall seconds). Safe to call in a worker process."""
+    from canbrake.analysis.summary import read_signals
+    from canbrake.run import run_scenario
+
+    t0 = time.time()
+    scn = resolve_spec(spec, Path(scen_dir) if scen_dir else None)
+    run_dir = Path(runs_dir) / spec.key
+    if not force and _reusable(scn, run_dir):
+        return spec.key, True, time.time() - t0
+    summary = run_scenario(scn, run_dir, backend="inprocess", plots=False)
+    if summary.get("status") != "ok":
+        raise RuntimeError(f"{spec.command()}: status {summary.get('status')}: {summary.get('message', '')}")
+    arrays = trace_from_signals(read_signals(run_dir / "signals.csv"), CaiSetup.of(scn), spec.case)
+    summary["report_trace_version"] = TRACE_VERSION
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    np.savez(run_dir / "trace.npz", version=np.array(TRACE_VERSION), **arrays)
+    return spec.key, False, time.time() - t0
+
+
+def load_trace(spec: RunSpec, runs_dir: str | Path) -> CaiTrace:
+    scn = resolve_spec(spec)
+    with np.load(Path(runs_dir) / spec.key / "trace.npz") as z:
+        arrays = {k: z[k] for k in z.files if k != "version"}
+    return CaiTrace(case=spec.case, params=CaiSetup.of(scn), command=spec.command(), **arrays)
+
+
+def _execute_star(args: tuple) -> tuple[str, bool, float]:
+    return execute(*args)
+
+
+def run_all(specs: Sequence[RunSpec], runs_dir: str | Path, force: bool = False, jobs: int = 2,
+            log: Callable[[str], Any] = print) -> dict[str, CaiTrace]:
+    """Execute every spec (longest first, ``jobs`` worker processes) and load the results."""
+    runs_dir = Path(runs_dir)
     runs_dir.mkdir(parents=True, exist_ok=True)
-    tasks = [(k, c, p, str(runs_dir), force) for k, (c, p) in specs.items()]
+    ticks = {s.key: resolve_spec(s).n_ticks for s in specs}
+    tasks = [(s, str(runs_dir), force, str(scenario_dir())) for s in sorted(specs, key=lambda s: -ticks[s.key])]
     if jobs > 1:
-        with ProcessPoolExecutor(max_workers=jobs) as ex:
-            done = list(ex.map(_run, tasks))
+        import multiprocessing as mp
+
+        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
+            done = list(ex.map(_execute_star, tasks))
     else:
-        done = [_run(t) for t in tasks]
+        done = [_execute_star(t) for t in tasks]
     for key, reused, secs in done:
         log(f"  {key}: {'reused' if reused else f'ran in {secs:.1f} s'}")
-    return {k: _load(k, c, p, runs_dir) for k, (c, p) in specs.items()}
+    return {s.key: load_trace(s, runs_dir) for s in specs}
 
 
 # ------------------------------------------------------------------------------------ numbers
@@ -113,7 +317,7 @@ def mm(x_m: float) -> str:
 T_PRED_S = 90.0  # where predictions are compared: 40 s after the 50 s switch, before the 100 s one
 
 
-def predicted_error_m(case: int, pr: CaiParams, v_mps: float) -> float:
+def predicted_error_m(case: int, pr: CaiSetup, v_mps: float) -> float:
     """Closed-form quasi-steady position error at speed ``v_mps`` on the constant-acceleration ramp.
 
     Our derivation (slip rate neglected, ω̇ = a*/R; Ḟ_d = (a1 + 2 a2 v) a* the resistance's growth):
@@ -124,7 +328,7 @@ def predicted_error_m(case: int, pr: CaiParams, v_mps: float) -> float:
       case 3 also lags F_d by Ḟ_d/g in F̂_d. e = −shortfall/(k0 β);
     * case 4: F̂_dw lags F_dw (which includes the wheels' inertia force) by Ḟ_d/g: e = −Ḟ_d/(g k0 β).
     """
-    a = pr.v_final_mps / pr.ramp_s
+    a = pr.accel_mps2
     g = pr.gains
     fd_rate = (pr.davis_n[1] + 2 * pr.davis_n[2] * v_mps) * a
     if case == 1:
@@ -145,6 +349,15 @@ def error_at(tr: CaiTrace, t_s: float) -> float:
 
 def window(tr: CaiTrace, t0: float, t1: float = np.inf) -> np.ndarray:
     return (tr.time_s >= t0) & (tr.time_s <= t1)
+
+
+def error_metrics(tr: CaiTrace, t0_s: float = 0.0) -> dict[str, float]:
+    """Mean and max |position error| (m), mean and max |speed error| (m/s) for t ≥ ``t0_s``."""
+    sel = tr.time_s >= t0_s
+    e, de = np.abs(tr.position_error_m[sel]), np.abs(tr.speed_error_mps[sel])
+    return {"mean_abs_pos_err_m": float(np.mean(e)), "max_abs_pos_err_m": float(np.max(e)),
+            "mean_abs_speed_err_mps": float(np.mean(de)), "max_abs_speed_err_mps": float(np.max(de)),
+            "rms_pos_err_m": float(np.sqrt(np.mean(e * e)))}
 
 
 def case_metrics(tr: CaiTrace) -> dict[str, float]:
@@ -205,8 +418,9 @@ def _figures(res: dict[str, CaiTrace], fig_dir: Path) -> list[str]:
     # Fig. 1: adhesion curves
     lam = np.linspace(0, 0.6, 1201)
     fig, axs = plt.subplots(1, 2, figsize=(11, 4))
+    conds = res["paper-case1"].params.conditions
     for ax, variant in zip(axs, VARIANTS):
-        for cond, label, ls in ((DRY, "dry (eq. 41)", "-"), (WET, "wet (eq. 42)", "--")):
+        for cond, label, ls in ((conds["dry"], "dry (eq. 41)", "-"), (conds["wet"], "wet (eq. 42)", "--")):
             for v_kmh, col in ((0, "k"), (100, "tab:blue"), (200, "tab:red")):
                 ax.plot(lam, adhesion_coefficient(lam, v_kmh * KMH, cond, variant), ls, color=col,
                         label=f"{label}, {v_kmh} km/h")
@@ -300,11 +514,12 @@ def _figures(res: dict[str, CaiTrace], fig_dir: Path) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------ document
-def _doc(res: dict[str, CaiTrace], specs: dict[str, tuple[int, CaiParams]], elapsed: float) -> str:
+def _doc(res: dict[str, CaiTrace], specs: Sequence[RunSpec], elapsed: float) -> str:
     met = {k: case_metrics(tr) for k, tr in res.items() if "printed" not in k and "-dt-" not in k}
     m_ka = met.pop("paper-case2-ka-for-10x")
     pr = res["paper-case1"].params
-    a_ref = pr.v_final_mps / pr.ramp_s
+    a_ref = pr.accel_mps2
+    DRY, WET = pr.conditions["dry"], pr.conditions["wet"]
     L: list[str] = []
     w = L.append
     w("# Cai et al. 2014 reproduced in canbrake\n")
@@ -355,8 +570,9 @@ def _doc(res: dict[str, CaiTrace], specs: dict[str, tuple[int, CaiParams]], elap
     w("The train body is the paper's single-coordinate model (eq. 3): the two vehicles' in-train forces cancel in "
       "the sum, so the simulation has one body speed and four wheel speeds (the locomotive's axles). Wheel "
       "dynamics J ω̇ = T − F_a R (eq. 12), F_a = μ(λ, v) N (eq. 10), λ = (ωR − v)/max(ωR, v, v_floor) (eq. 11), "
-      "μ from eqs. 13–15. Code: `canbrake/physics/wheel_adhesion.py`, `canbrake/control/cai2014.py`, "
-      f"`canbrake/cai2014_sim.py`; the readings are summarised in [models-cai2014.md](../models-cai2014.md). {len(res)} runs, {fmt(sum(tr.time_s[-1] for tr in res.values()))} s simulated.\n")
+      "μ from eqs. 13–15. Code: `canbrake/physics/wheel_adhesion.py` (`AdhesionTrain`), "
+      "`canbrake/consist/adhesion.py` (the train as data), `canbrake/control/cai2014.py` (the `cai2014` controller), "
+      f"scenarios `scenarios/cai2014_case1.yaml` … `case4.yaml`; the readings are summarised in [models-cai2014.md](../models-cai2014.md). {len(res)} runs, {fmt(sum(tr.time_s[-1] for tr in res.values()))} s simulated.\n")
     w("![adhesion curves](figures/cai2014_adhesion.png)\n")
 
     w("## Readings of ambiguous or incorrect equations\n")
@@ -400,9 +616,9 @@ def _doc(res: dict[str, CaiTrace], specs: dict[str, tuple[int, CaiParams]], elap
         tr = res[key]
         return mm(float(np.interp(t_chk, tr.time_s, tr.position_error_m)))
 
-    chk = "; ".join(f"case {c}: {e_at(f'paper-case{c}-dt-fine')} at {fmt(specs[f'paper-case{c}-dt-fine'][1].dt_s * 1e3, 2)} ms, "
+    chk = "; ".join(f"case {c}: {e_at(f'paper-case{c}-dt-fine')} at {fmt(res[f'paper-case{c}-dt-fine'].params.dt_s * 1e3, 2)} ms, "
                     f"{e_at(f'paper-case{c}')} at {fmt(pr.dt_s * 1e3, 2)} ms, "
-                    f"{e_at(f'paper-case{c}-dt-coarse')} at {fmt(specs[f'paper-case{c}-dt-coarse'][1].dt_s * 1e3, 2)} ms"
+                    f"{e_at(f'paper-case{c}-dt-coarse')} at {fmt(res[f'paper-case{c}-dt-coarse'].params.dt_s * 1e3, 2)} ms"
                     for c in (1, 4))
     w("7. **Observer discretisation.** Figs. 2–4 filter g·M + U (M a momentum such as m v) and subtract g·M. Holding "
       "that input constant over a step (M ramps) biases the estimate by about −g·dt/2 times the inertial force m a*; "
@@ -533,14 +749,20 @@ def _doc(res: dict[str, CaiTrace], specs: dict[str, tuple[int, CaiParams]], elap
       f"The paper's ordering of the cases {order_txt[order_ok['paper']].split(' (')[0]} with the printed curve and "
       f"{order_txt[order_ok['physical']].split(' (')[0]} with the physical one.")
     w("- **Two vehicles.** The paper's simulation is the single-coordinate model; coupler dynamics between the two "
-      "vehicles are not part of it, and not of ours. This reproduction runs in process and does not yet go over "
-      "canbrake's CAN bus (no wheel-speed/torque frames exist in the DBC).")
+      "vehicles are not part of it, and not of ours (the rigid coupling's force is in `signals.csv` as "
+      "`coupler_force_n_k1`).")
     w("")
     w("## Runs\n")
-    w("| run | case | curve | sign of eqs. 44–45 | duration | step | ka |\n|---|---|---|---|---|---|---|")
-    for k, (c, p) in specs.items():
-        w(f"| `{k}` | {c} | {p.variant} | {'as printed (−)' if p.sigma < 0 else 'eq. 20 (+)'} | {p.duration_s:g} s | "
-          f"{p.dt_s * 1e3:g} ms | {p.gains.ka:g} m |")
+    w("Every run is a `canbrake run` through the node engine (the in-process driver: the same plant, ECU and "
+      "recorder nodes and CAN frames as on the in-memory bus or vcan, delivered in one thread); the command "
+      "repeats it (add `--out DIR`). The report's control period is "
+      f"{fmt(STEP_S * 1e3, 2)} ms; the scenarios' own is 1 ms (`canbrake run scenarios/cai2014_case4.yaml`).\n")
+    w("| run | case | curve | sign of eqs. 44–45 | duration | step | ka | command |\n|---|---|---|---|---|---|---|---|")
+    for spec in specs:
+        tr = res[spec.key]
+        p = tr.params
+        w(f"| `{spec.key}` | {spec.case} | {p.variant} | {'as printed (−)' if p.sigma < 0 else 'eq. 20 (+)'} | "
+          f"{p.duration_s:g} s | {p.dt_s * 1e3:g} ms | {p.gains.ka:g} m | `{spec.command()}` |")
     w("")
     w("Regenerate with `python -m canbrake report cai2014` (runs are cached in `runs/report-cai2014`).")
     return "\n".join(L) + "\n"
