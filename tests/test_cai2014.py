@@ -357,3 +357,41 @@ def test_plant_model_and_engine_controller_reproduce_the_reference_loop(case):
     tr = simulate(case, duration_s=3.0, dt_s=1e-2, record_every=1)
     assert pl.position_m == tr.position_m[-1] and pl.speed_mps == tr.speed_mps[-1]
     np.testing.assert_array_equal(pl.wheels.omega_radps, tr.omega_radps[-1])
+
+
+@pytest.mark.parametrize("case", [1, 2, 3, 4])
+def test_one_ecu_per_powered_vehicle_sums_to_the_centralised_law(case):
+    """Two ECUs with share 1/2 over axles 1–2 and 3–4 (the same measurements) against the one-ECU law
+    driving the plant: equal axle torques in cases 1, 2, 4; in case 3 the total force command is equal
+    (the derivation is in Cai2014Controller's docstring)."""
+    from canbrake.control.base import Observation, make_controller
+
+    dt = 1e-2
+    params = {**_paper_yaml()["ecus"][0]["controller"]["params"], "case": case}
+    central = make_controller("cai2014", params, car_index=0, n_cars=1, mass_kg=48e3, dt_s=dt)
+    split = [make_controller("cai2014", {**params, "axles": 2, "share": 0.5}, car_index=i, n_cars=2, mass_kg=48e3,
+                             dt_s=dt) for i in range(2)]
+    plant = _paper_train().make_plant()
+    a = 200 / 3.6 / 200.0
+    for k in range(300):
+        t = k * dt
+        m = plant.measurements()
+        w = [m[f"axle{j}_speed_radps"][0] for j in range(1, 5)]
+
+        def obs(omegas):
+            return Observation(tick=k, time_s=t, speed_mps=m["speed_mps"][0], position_m=m["position_m"][0],
+                               ref_speed_mps=a * t, ref_decel_mps2=-a, peer_speed_mps=np.zeros(1),
+                               peer_position_m=np.zeros(1), peer_age_s=np.zeros(1), ref_position_m=0.5 * a * t * t,
+                               sensors={f"axle{j + 1}_speed_radps": x for j, x in enumerate(omegas)})
+
+        out = central.step(obs(w))
+        parts = [split[0].step(obs(w[:2])), split[1].step(obs(w[2:]))]
+        t_central = [out.commands[f"axle{j}_torque_nm"] for j in range(1, 5)]
+        t_split = [p.commands[f"axle{j}_torque_nm"] for p in parts for j in (1, 2)]
+        f_central = sum(out.diagnostics[f"axle{j}_force_cmd_n"] for j in range(1, 5))
+        f_split = sum(p.diagnostics[f"axle{j}_force_cmd_n"] for p in parts for j in (1, 2))
+        assert f_split == pytest.approx(f_central, rel=1e-9, abs=1e-6)
+        if case != 3:
+            np.testing.assert_allclose(t_split, t_central, rtol=1e-9, atol=1e-6)
+        plant.step(dt, {f"axle{j}_torque_nm": np.array([t_central[j - 1], np.nan]) for j in range(1, 5)})
+    assert plant.speed_mps > 0.5  # the train did accelerate under the centralised law

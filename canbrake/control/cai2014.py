@@ -210,6 +210,8 @@ class Cai2014Params(BaseModel):
     g: float = Field(PAPER_GAINS.g, gt=0, description="observer cut-off, 1/s")
     edot_gain: float = Field(PAPER_GAINS.edot_gain, ge=0, description="N·s/m")
     sigma: Literal[1, -1] = Field(1, description="sign of eqs. 44–45: +1 as eq. 20, −1 as printed")
+    share: float = Field(1.0, gt=0, le=1, description="fraction w of the train's traction this ECU provides "
+                                                       "(its driven axles / all driven axles)")
 
 
 @register("cai2014")
@@ -221,6 +223,17 @@ class Cai2014Controller(Controller):
     reference x*, v*, a*; commands ``axle<j>_torque_nm`` (N·m). Cases 1–2 (the "ideal MBC") use the
     resistance of its own model F_d(v) = c0 sgn v + c1 v + c2 v|v| at the measured speed; with the
     model equal to the plant (as in the paper) that is the true resistance.
+
+    **One ECU per powered vehicle** (``share`` = w_i = p_i/p < 1): ECU i runs the same law on a model
+    scaled by w_i — mass w_i m, resistance w_i F_d, k0 and the ė gain × w_i (ka, β, g unchanged) — over
+    its own p_i axles, so u_i = w_i(−k0 s − k_ė ė) + w_i m ẍ* + F_i. Every ECU measures the same s and
+    ė (one rigid body), and the observers are linear filters of their inputs with Σ_i m_i = m, so
+    Σ_i u_i = u of the centralised law whenever Σ_i F_i = F: for F_d (cases 1, 2) by construction;
+    for F̂_d and F̂_dw (cases 3, 4) because their inputs (1/R) Σ_own T − m_i v̇ (− (J/R) Σ_own ω̇) sum to
+    the centralised inputs as long as the total torque does, which holds by induction from the first
+    period. The torque per axle (R/p_i) u_i (cases 1, 4) and the force command σ u_i/p_i (case 2) then
+    equal the centralised (R/p) u and σ u/p; in case 3 only their sum does (F̂_d,i follows the ECU's
+    own axles). ``tests/test_cai2014.py`` checks this against the one-ECU law.
     """
 
     needs_ref_position = True
@@ -240,16 +253,17 @@ class Cai2014Controller(Controller):
     def reset(self) -> None:
         """Observers at zero, no previous period."""
         pr = self.params
-        self.law = CaiController(pr.case, mass_kg=pr.train_mass_kg, n_axles=pr.axles, radius_m=pr.wheel_radius_m,
+        w = pr.share
+        self.law = CaiController(pr.case, mass_kg=w * pr.train_mass_kg, n_axles=pr.axles, radius_m=pr.wheel_radius_m,
                                  inertia_kgm2=pr.wheel_inertia_kgm2,
-                                 gains=CaiGains(k0=pr.k0, ka=pr.ka, beta=pr.beta, g=pr.g, edot_gain=pr.edot_gain),
+                                 gains=CaiGains(k0=w * pr.k0, ka=pr.ka, beta=pr.beta, g=pr.g, edot_gain=w * pr.edot_gain),
                                  sigma=float(pr.sigma))
 
     def model_resistance_n(self, v_mps: float) -> float:
-        """F_d(v) of the controller's model (N)."""
+        """F_d(v) of the controller's model (N), × ``share``."""
         a0, a1, a2 = self.params.davis
         sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
-        return sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps)
+        return self.params.share * (sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps))
 
     def step(self, obs: Observation) -> ControlOutput:
         """Axle torques (N·m) for this period."""
