@@ -130,7 +130,7 @@ class AdhesionSpec(StrictModel):
 class AdhesionTrainConfig(StrictModel):
     """A train of rigidly coupled vehicles (Cai 2014, eq. 3) with driven axles and wheel–rail adhesion."""
 
-    model: Literal["adhesion"]
+    model: Literal["adhesion"] = "adhesion"
     vehicle_types: dict[str, AdhesionVehicleType]
     vehicles: list[VehicleEntry] = Field(min_length=1)
     adhesion: AdhesionSpec
@@ -175,5 +175,6 @@ class AdhesionTrainConfig(StrictModel):
         """The plant of scenario ``scn``: the train starts at the front vehicle's initial speed and
         position (one coordinate for the rigid train)."""
         v0 = float(np.asarray(scn.initial_speed_mps(), dtype=float).reshape(-1)[0])
-        x0 = float(np.asarray(scn.initial_position_m(), dtype=float).reshape(-1)[0])
+        x = scn.initial.position_m
+        x0 = 0.0 if x is None else float(np.asarray(x, dtype=float).reshape(-1)[0])
         return self.make_plant(speed_mps=v0, position_m=x0, substeps=scn.plant.substeps)

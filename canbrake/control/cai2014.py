@@ -32,10 +32,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Literal
+from types import SimpleNamespace
+from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field, validate_call
 
 from canbrake.control.base import ControlOutput, Controller, Observation, register
 
@@ -190,28 +191,8 @@ class CaiController:
 
 
 # ------------------------------------------------------------------------------ engine controller
-class Cai2014Params(BaseModel):
-    """Parameters of the ``cai2014`` controller (SI). The controller's own model of the train
-    (``train_mass_kg``, ``wheel_radius_m``, ``wheel_inertia_kgm2``, ``davis``) is given here, not taken from the plant:
-    the paper's controller is centralised over the whole train (m = 96 t), while its ECU sits on the
-    powered vehicle. Gains default to the paper's readings (:data:`PAPER_GAINS`)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    case: Literal[1, 2, 3, 4]
-    axles: int = Field(ge=1, le=16, description="driven axles this ECU commands (axle1..axle<p>)")
-    train_mass_kg: float = Field(gt=0, description="train mass of the controller's model (kg)")
-    wheel_radius_m: float = Field(gt=0, description="wheel radius of the model (m)")
-    wheel_inertia_kgm2: float = Field(gt=0, description="wheel inertia of the model (kg·m²)")
-    davis: tuple[float, float, float] = Field(description="resistance of the model: c0 (N), c1 (N·s/m), c2 (N·s²/m²)")
-    k0: float = Field(PAPER_GAINS.k0, gt=0, description="N·s/m")
-    ka: float = Field(PAPER_GAINS.ka, gt=0, description="m")
-    beta: float = Field(PAPER_GAINS.beta, gt=0, description="1/s")
-    g: float = Field(PAPER_GAINS.g, gt=0, description="observer cut-off, 1/s")
-    edot_gain: float = Field(PAPER_GAINS.edot_gain, ge=0, description="N·s/m")
-    sigma: Literal[1, -1] = Field(1, description="sign of eqs. 44–45: +1 as eq. 20, −1 as printed")
-    share: float = Field(1.0, gt=0, le=1, description="fraction w of the train's traction this ECU provides "
-                                                       "(its driven axles / all driven axles)")
+#: a positive real parameter (the controller's schema is its constructor's signature)
+Positive = Annotated[float, Field(gt=0)]
 
 
 @register("cai2014")
@@ -239,10 +220,32 @@ class Cai2014Controller(Controller):
     needs_ref_position = True
     broadcast_names: tuple[str, ...] = ()
 
-    def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float, **params: Any) -> None:
+    @validate_call
+    def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float, *,
+                 case: Literal[1, 2, 3, 4],
+                 axles: Annotated[int, Field(ge=1, le=16)],
+                 train_mass_kg: Positive,
+                 wheel_radius_m: Positive,
+                 wheel_inertia_kgm2: Positive,
+                 davis: tuple[float, float, float],
+                 k0: Positive = PAPER_GAINS.k0,
+                 ka: Positive = PAPER_GAINS.ka,
+                 beta: Positive = PAPER_GAINS.beta,
+                 g: Positive = PAPER_GAINS.g,
+                 edot_gain: Annotated[float, Field(ge=0)] = PAPER_GAINS.edot_gain,
+                 sigma: Literal[1, -1] = 1,
+                 share: Annotated[float, Field(gt=0, le=1)] = 1.0) -> None:
+        """``case`` 1–4; ``axles`` p driven axles it commands (axle1..axle<p>); the controller's model of
+        the train: ``train_mass_kg`` (kg), ``wheel_radius_m`` (m), ``wheel_inertia_kgm2`` (kg·m²),
+        ``davis`` (c0 N, c1 N·s/m, c2 N·s²/m²); gains ``k0`` (N·s/m), ``ka`` (m), ``beta`` (1/s), observer
+        cut-off ``g`` (1/s), ``edot_gain`` (N·s/m), all defaulting to the paper's readings
+        (:data:`PAPER_GAINS`); ``sigma`` the sign of eqs. 44–45 (+1 as eq. 20, −1 as printed); ``share``
+        the fraction of the train's traction this ECU provides (see above)."""
         super().__init__(car_index, n_cars, mass_kg, dt_s)
-        self.params = Cai2014Params(**params)
-        p = self.params.axles
+        self.params = SimpleNamespace(case=case, axles=axles, train_mass_kg=train_mass_kg, wheel_radius_m=wheel_radius_m,
+                                      wheel_inertia_kgm2=wheel_inertia_kgm2, davis=davis, k0=k0, ka=ka, beta=beta, g=g,
+                                      edot_gain=edot_gain, sigma=sigma, share=share)
+        p = axles
         self.sensor_names = ("speed_mps", "position_m") + tuple(f"axle{j}_speed_radps" for j in range(1, p + 1))
         self.command_names = tuple(f"axle{j}_torque_nm" for j in range(1, p + 1))
         self.diagnostic_names = (("s_mps", "resistance_model_n", "resistance_hat_n", "lumped_hat_n")
