@@ -305,6 +305,7 @@ class AdhesionTrain:
         self._accel = 0.0
         self._inertia_force = np.zeros(len(num))
         self._fa_step: np.ndarray | None = None
+        self._meas: dict[str, np.ndarray] | None = None  # measurements of the current state (cached)
 
     # ---------------------------------------------------------------- physics
     def resistance(self, v_mps: float) -> tuple[float, float]:
@@ -325,8 +326,10 @@ class AdhesionTrain:
         for j, sel in self._sel.items():
             cmd = commands.get(f"axle{j}_torque_nm")
             if cmd is not None:
-                torque[sel] = np.nan_to_num(np.asarray(cmd, dtype=float)[self.axle_vehicle[sel]], nan=0.0)
+                t = np.asarray(cmd, dtype=float)[self.axle_vehicle[sel]]
+                torque[sel] = np.where(np.isnan(t), 0.0, t)
         self.torque_nm = torque
+        self._meas = None
         h = dt_s / self.substeps
         if h != self._h:
             self._t0, self._k, self._h = self.time_s, 0, h
@@ -353,7 +356,12 @@ class AdhesionTrain:
         return np.bincount(self.axle_vehicle, weights=per_axle, minlength=self.n_vehicles).astype(float)
 
     def measurements(self) -> dict[str, np.ndarray]:
-        """Current state by name (see the class docstring)."""
+        """Current state by name (see the class docstring); arrays are shared, do not modify them."""
+        if self._meas is None:
+            self._meas = self._measure()
+        return dict(self._meas)
+
+    def _measure(self) -> dict[str, np.ndarray]:
         n, v = self.n_vehicles, self.speed_mps
         lam, mu, fa = self.wheels.adhesion(v, self.rail.at(self.time_s))
         fd = self.vehicle_resistance_n(v)
