@@ -49,6 +49,11 @@ CATALOGUE: dict[str, SignalFormat] = {
                                "position along the track"),
     "brake_force_n": SignalFormat("BrakeForce", 24, 10.0, 0.0, True, -83886080.0, 83886070.0, "N",
                                   "demanded force; positive decelerates, negative is traction"),
+    # Cai 2014's traction ECU: speed over ground as a Doppler radar gives it (the wheels slip, so
+    # their speed is not the train's). 1e-6 m/s because the force observers differentiate it:
+    # g m q = 10 1/s x 96 t x 1e-6 m/s ~ 1 N of estimation noise (1e-4 m/s would give ~100 N, a few
+    # % of the resistance); signed, +-134 m/s, because a wrong-signed control drives the train backwards.
+    "ground_speed_mps": _signed("GroundSpeed", 28, 1e-6, "m/s", "speed of the train over ground (radar)"),
     "deflection_front_m": _signed("DeflFront", 16, 5e-5, "m", "deflection of the coupler to the vehicle ahead"),
     "deflection_rear_m": _signed("DeflRear", 16, 5e-5, "m", "deflection of the coupler to the vehicle behind"),
 }

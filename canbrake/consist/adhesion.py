@@ -13,8 +13,8 @@ Edge units as in the field names (SI). Example (the paper's train, ``scenarios/c
           axles: [{load_n: 117600, imbalance: 0.015}, {load_n: 117600, imbalance: -0.015}, ...]
         carriage: {mass_kg: 48000, davis: {...}}
       vehicles: [{type: locomotive}, {type: carriage}]
-      adhesion:
-        variant: paper
+      wheel_rail:
+        curve: paper
         conditions: {dry: {b1: 1.786, ...}, wet: {b1: 2.046, ...}}
         base: wet
         windows: [{condition: dry, start_s: 50, stop_s: 100}]
@@ -98,11 +98,11 @@ class RailWindowSpec(StrictModel):
 
 
 class AdhesionSpec(StrictModel):
-    """Wheel–rail adhesion: curve variant (``paper``: eqs. 13–15 as printed; ``physical``: the same
+    """Wheel–rail adhesion: the curve (``paper``: eqs. 13–15 as printed; ``physical``: the same
     shapes scaled to ``peak_mu0``), the slip denominator's floor (m/s), the rail conditions by name,
     the one in force by default and the time windows of the others."""
 
-    variant: Literal["paper", "physical"] = "paper"
+    curve: Literal["paper", "physical"] = "paper"
     v_floor_mps: float = Field(0.1, gt=0)
     conditions: dict[str, RailConditionSpec]
     base: str
@@ -133,7 +133,7 @@ class AdhesionTrainConfig(StrictModel):
     model: Literal["adhesion"] = "adhesion"
     vehicle_types: dict[str, AdhesionVehicleType]
     vehicles: list[VehicleEntry] = Field(min_length=1)
-    adhesion: AdhesionSpec
+    wheel_rail: AdhesionSpec
 
     @model_validator(mode="after")
     def _types_known(self) -> "AdhesionTrainConfig":
@@ -167,8 +167,8 @@ class AdhesionTrainConfig(StrictModel):
                 inertia_kgm2=np.array([w.inertia_kgm2 for w in wheels], dtype=float),  # type: ignore[union-attr]
                 radius_m=np.array([w.radius_m for w in wheels], dtype=float)))  # type: ignore[union-attr]
         davis = np.array([[t.davis.c0_n, t.davis.c1_n_s_per_m, t.davis.c2_n_s2_per_m2] for t in vts], dtype=float)
-        return AdhesionTrain(self.vehicle_masses_kg(), axles, davis, self.adhesion.schedule(),
-                             variant=self.adhesion.variant, v_floor_mps=self.adhesion.v_floor_mps,
+        return AdhesionTrain(self.vehicle_masses_kg(), axles, davis, self.wheel_rail.schedule(),
+                             variant=self.wheel_rail.curve, v_floor_mps=self.wheel_rail.v_floor_mps,
                              speed_mps=speed_mps, position_m=position_m, substeps=substeps)
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:

@@ -200,7 +200,8 @@ class Cai2014Controller(Controller):
     """Cai et al. 2014's traction ECU: the four control cases (eqs. 43–46) with their observers
     (eqs. 18, 22, 40), one ECU for the powered vehicle's ``axles`` driven axles.
 
-    Reads ``speed_mps``, ``position_m`` and ``axle<j>_speed_radps`` (its vehicle's sensors) and the
+    Reads ``ground_speed_mps`` (the train's speed over ground, a radar: the wheels slip, so their speed
+    is not the train's), ``position_m`` and ``axle<j>_speed_radps`` (its vehicle's sensors) and the
     reference x*, v*, a*; commands ``axle<j>_torque_nm`` (N·m). Cases 1–2 (the "ideal MBC") use the
     resistance of its own model F_d(v) = c0 sgn v + c1 v + c2 v|v| at the measured speed; with the
     model equal to the plant (as in the paper) that is the true resistance.
@@ -246,7 +247,7 @@ class Cai2014Controller(Controller):
                                       wheel_inertia_kgm2=wheel_inertia_kgm2, davis=davis, k0=k0, ka=ka, beta=beta, g=g,
                                       edot_gain=edot_gain, sigma=sigma, share=share)
         p = axles
-        self.sensor_names = ("speed_mps", "position_m") + tuple(f"axle{j}_speed_radps" for j in range(1, p + 1))
+        self.sensor_names = ("ground_speed_mps", "position_m") + tuple(f"axle{j}_speed_radps" for j in range(1, p + 1))
         self.command_names = tuple(f"axle{j}_torque_nm" for j in range(1, p + 1))
         self.diagnostic_names = (("s_mps", "resistance_model_n", "resistance_hat_n", "lumped_hat_n")
                                  + tuple(f"axle{j}_force_cmd_n" for j in range(1, p + 1))
@@ -272,8 +273,9 @@ class Cai2014Controller(Controller):
         """Axle torques (N·m) for this period."""
         p = self.params.axles
         omega = np.array([obs.sensors[f"axle{j}_speed_radps"] for j in range(1, p + 1)], dtype=float)
-        fd = self.model_resistance_n(obs.speed_mps)
-        out = self.law.step(position_m=obs.position_m, speed_mps=obs.speed_mps, omega_radps=omega,
+        v = obs.sensors["ground_speed_mps"]
+        fd = self.model_resistance_n(v)
+        out = self.law.step(position_m=obs.sensors["position_m"], speed_mps=v, omega_radps=omega,
                             ref_position_m=obs.ref_position_m, ref_speed_mps=obs.ref_speed_mps,
                             ref_accel_mps2=-obs.ref_decel_mps2, resistance_n=fd, dt_s=self.dt_s)
         d = out.diagnostics

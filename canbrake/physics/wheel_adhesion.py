@@ -256,7 +256,8 @@ class AdhesionTrain:
     (1-based); NaN (not commanded) or a missing name is zero torque.
 
     Measurements (per vehicle, shape (n,)): ``position_m`` (the train's coordinate x, the same for
-    every vehicle: rigid coupling, no lengths), ``speed_mps``, ``accel_mps2`` (over the last control
+    every vehicle: rigid coupling, no lengths), ``speed_mps`` (and the same as ``ground_speed_mps``,
+    the speed over ground a radar gives, which has a finer CAN format), ``accel_mps2`` (over the last control
     step), ``applied_brake_n`` (−Σ F_a of its axles: traction is negative), ``resistance_n`` (F_d,i),
     ``wheel_inertia_force_n`` (Σ J_k ω̇_k / R_k of its axles over the last step: with Σ F_d,i the
     lumped disturbance F_dw of eq. 36), and per driven axle j ``axle<j>_speed_radps``,
@@ -365,7 +366,7 @@ class AdhesionTrain:
         n, v = self.n_vehicles, self.speed_mps
         lam, mu, fa = self.wheels.adhesion(v, self.rail.at(self.time_s))
         fd = self.vehicle_resistance_n(v)
-        out = {"position_m": np.full(n, self.position_m), "speed_mps": np.full(n, v),
+        out = {"position_m": np.full(n, self.position_m), "speed_mps": np.full(n, v), "ground_speed_mps": np.full(n, v),
                "accel_mps2": np.full(n, self._accel), "applied_brake_n": -self._per_vehicle(fa),
                "resistance_n": fd, "wheel_inertia_force_n": self._per_vehicle(self._inertia_force),
                "deflection_m": np.zeros(max(n - 1, 0))}
