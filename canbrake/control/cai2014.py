@@ -138,9 +138,9 @@ class CaiOutput:
     diagnostics: dict[str, float | np.ndarray]
 
 
-class CaiController:
-    """One of the four control cases for a train with ``p`` driven axles (one controller per train,
-    as in the paper's single-coordinate model eq. 3).
+class CaiLaw:
+    """The control law of :class:`Cai2014Controller`: one of the four cases for ``p`` driven axles
+    (one law per train, as in the paper's single-coordinate model eq. 3), in plain arrays.
 
     ``sigma`` is the sign of eqs. 44–45 (+1: eq. 20's reading, −1: as printed). All three observers
     run in every case (their estimates are reported); only the case's own ones enter the control.
@@ -258,7 +258,7 @@ class Cai2014Controller(Controller):
         """Observers at zero, no previous period."""
         pr = self.params
         w = pr.share
-        self.law = CaiController(pr.case, mass_kg=w * pr.train_mass_kg, n_axles=pr.axles, radius_m=pr.wheel_radius_m,
+        self.law = CaiLaw(pr.case, mass_kg=w * pr.train_mass_kg, n_axles=pr.axles, radius_m=pr.wheel_radius_m,
                                  inertia_kgm2=pr.wheel_inertia_kgm2,
                                  gains=CaiGains(k0=w * pr.k0, ka=pr.ka, beta=pr.beta, g=pr.g, edot_gain=w * pr.edot_gain),
                                  sigma=float(pr.sigma))

@@ -12,8 +12,9 @@ Model
   (λ < 0) gives a braking force.
 * speed dependence (eqs. 14–15): ``μ(λ, v) = μ_max(v) / μ_max(0) · μ(λ)`` with
   ``μ_max(v) = c1 + c2 / (c3 + v)``.
-* rail condition (eqs. 41–42): "dry" parameters while ``t`` is in the dry window (50–100 s in the
-  paper), "wet" otherwise.
+* rail condition (eqs. 41–42): the coefficients of a rail surface (:class:`RailCondition`) change
+  over time (:class:`RailSchedule`; the paper: "dry" for 50–100 s, "wet" otherwise). The paper's
+  values are data, in ``scenarios/cai2014_case*.yaml``.
 * adhesion force (eq. 10): ``F_a = μ N`` with ``N`` the axle's normal load (N).
 * wheel (eq. 12): ``J ω̇ = T − F_a R``.
 
@@ -70,11 +71,6 @@ class RailCondition:
         return float(self.b1 * (1.0 - np.exp(-self.b2 * lam)) - lam / self.b3)
 
 
-#: eq. 41, 50 s ≤ t ≤ 100 s
-DRY = RailCondition(b1=1.786, b2=40.0, b3=10.0, c1=0.040, c2=3.78, c3=33.3, peak_mu0=0.35)
-#: eq. 42, otherwise
-WET = RailCondition(b1=2.046, b2=15.0, b3=10.0, c1=0.060, c2=12.9, c3=72.2, peak_mu0=0.25)
-
 Variant = Literal["paper", "physical"]
 
 
@@ -112,11 +108,6 @@ def adhesion_coefficient(lam: np.ndarray, v_mps: np.ndarray | float, cond: RailC
                          variant: Variant = "paper") -> np.ndarray:
     """μ(λ, v) of eqs. 13–15 for the chosen variant (dimensionless)."""
     return _scale(v_mps, cond, variant) * mu_curve(lam, cond)
-
-
-def rail_condition(t_s: float, dry_window_s: tuple[float, float] = (50.0, 100.0)) -> RailCondition:
-    """Eqs. 41–42: the dry coefficients inside ``dry_window_s`` (inclusive), wet otherwise."""
-    return DRY if dry_window_s[0] <= t_s <= dry_window_s[1] else WET
 
 
 @dataclass
