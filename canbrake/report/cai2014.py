@@ -624,8 +624,9 @@ def _doc(res: dict[str, CaiTrace], specs: Sequence[RunSpec], elapsed: float) -> 
         ("gains", (f"k0 = {fmt(pr.gains.k0)} N·s/m, ka = {pr.gains.ka} m, β = {pr.gains.beta} 1/s, "
                    f"g = {pr.gains.g} 1/s, ė gain = {fmt(pr.gains.edot_gain)} N·s/m"), "k0 = 50, ka = 2, β = 1, g = 10"),
         ("slip floor", f"max(ωR, v, {pr.v_floor_mps} m/s)", "max(ωR, v)"),
-        ("step", (f"{pr.dt_s * 1e3:g} ms fixed; wheels and body jointly backward Euler (Newton), observers exact "
-                  "for torque held and speeds linear over a step"), "not given"),
+        ("step", (f"control period {pr.dt_s * 1e3:g} ms (the scenarios' own: 1 ms), one plant step per period: wheels "
+                  "and body jointly backward Euler (Newton), position by the trapezoid rule; observers exact for torque "
+                  "held and speeds linear over a period"), "not given"),
     ]
     for r in rows:
         w(f"| {r[0]} | {r[1]} | {r[2]} |")
