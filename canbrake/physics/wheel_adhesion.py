@@ -31,6 +31,7 @@ Two curve variants (``variant``):
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal
@@ -110,6 +111,12 @@ def adhesion_coefficient(lam: np.ndarray, v_mps: np.ndarray | float, cond: RailC
     return _scale(v_mps, cond, variant) * mu_curve(lam, cond)
 
 
+def _floats(x: np.ndarray | float, p: int) -> list[float]:
+    """``x`` (a scalar or shape ``(p,)``) as a list of ``p`` floats."""
+    a = np.asarray(x, dtype=float)
+    return [float(a)] * p if a.ndim == 0 else a.tolist()
+
+
 @dataclass
 class WheelSet:
     """Driven axles of a train: parameters and state, all arrays of shape ``(p,)``.
@@ -157,42 +164,60 @@ class WheelSet:
         step; the speed-dependence of μ_max is left out of the Jacobian (it only slows Newton).
         Returns (v_new in m/s, F_a in N per axle); ω is updated in place.
         """
-        J, R, N = self.inertia_kgm2, self.radius_m, self.normal_load_n
-        w0 = self.omega_radps
-        v0 = float(v_mps)
-        w, v = w0.copy(), v0
-        torque = np.asarray(torque_nm, dtype=float)
+        # Plain floats over the axles: a train has a handful of driven axles, where numpy's per-call
+        # overhead would cost ~10x the arithmetic (this runs once per control period per plant).
+        w0 = np.asarray(self.omega_radps, dtype=float).tolist()
+        p = len(w0)
+        J, R, N, T = (_floats(x, p) for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
+        w = list(w0)
+        v0 = v = float(v_mps)
+        b1, b2, b3 = cond.b1, cond.b2, cond.b3
+        peak = 1.0 if self.variant == "paper" else float(_scale(0.0, cond, self.variant))
+        mu0 = float(cond.mu_max(0.0))
+        floor = self.v_floor_mps
+        exp = math.exp
         for _ in range(newton_iters):
-            scale = _scale(v, cond, self.variant)
-            wr = w * R
-            awr, av = np.abs(wr), abs(v)
-            den = np.maximum(np.maximum(awr, av), self.v_floor_mps)
-            lam = (wr - v) / den
-            on_wr = (awr >= av) & (awr >= self.v_floor_mps)
-            on_v = ~on_wr & (av >= self.v_floor_mps)
-            safe = np.where(on_wr, wr * wr, 1.0)
-            dlam_dw = np.where(on_wr, R * av / safe, R / den)
-            dlam_dv = np.where(on_wr, -1.0 / den, np.where(on_v, -wr / (den * den), -1.0 / den))
-            dmu = scale * dmu_curve_dlam(lam, cond) * N
-            fa = scale * mu_curve(lam, cond) * N
-            fw = dmu * dlam_dw
-            fv = dmu * dlam_dv
-            r_w = J * (w - w0) - dt_s * (torque - fa * R)
-            a = J + dt_s * R * fw
-            a = np.where(a > 0.1 * J, a, J)  # past the adhesion peak the slope is negative: damped step
+            av = abs(v)
+            scale = (cond.c1 + cond.c2 / (cond.c3 + av)) / mu0 * peak  # eq. 14 (× the variant's peak)
+            r_w, a, b, c, fa = [0.0] * p, [0.0] * p, [0.0] * p, [0.0] * p, [0.0] * p
+            sum_fa = sum_fv = 0.0
+            for k in range(p):
+                wr = w[k] * R[k]
+                awr = abs(wr)
+                den = max(awr, av, floor)
+                lam = (wr - v) / den
+                if awr >= av and awr >= floor:       # denominator ωR
+                    dlam_dw, dlam_dv = R[k] * av / (wr * wr), -1.0 / den
+                elif av >= floor:                      # denominator v
+                    dlam_dw, dlam_dv = R[k] / den, -wr / (den * den)
+                else:                                  # floored denominator
+                    dlam_dw, dlam_dv = R[k] / den, -1.0 / den
+                alam = abs(lam)
+                ex = exp(-b2 * alam)
+                sN = scale * N[k]
+                dmu = sN * (b1 * b2 * ex - 1.0 / b3)   # dμ/dλ (eq. 13) × N
+                f = sN * (b1 * (1.0 - ex) - alam / b3)
+                f = f if lam > 0 else (-f if lam < 0 else 0.0)
+                fa[k] = f
+                fw, fv = dmu * dlam_dw, dmu * dlam_dv
+                r_w[k] = J[k] * (w[k] - w0[k]) - dt_s * (T[k] - f * R[k])
+                ak = J[k] + dt_s * R[k] * fw
+                a[k] = ak if ak > 0.1 * J[k] else J[k]  # past the adhesion peak the slope is negative: damped step
+                b[k] = dt_s * R[k] * fv
+                c[k] = -dt_s * fw
+                sum_fa += f
+                sum_fv += fv
             if mass_kg is None:
-                w = w - r_w / a
+                w = [w[k] - r_w[k] / a[k] for k in range(p)]
                 continue
             fd, dfd = resistance(v) if resistance is not None else (0.0, 0.0)
-            b = dt_s * R * fv
-            c = -dt_s * fw
-            r_v = mass_kg * (v - v0) - dt_s * (float(np.sum(fa)) - fd)
-            d = mass_kg - dt_s * (float(np.sum(fv)) - dfd)
-            dv = (-r_v + float(np.sum(c * r_w / a))) / (d - float(np.sum(c * b / a)))
-            w = w + (-r_w - b * dv) / a
+            r_v = mass_kg * (v - v0) - dt_s * (sum_fa - fd)
+            d = mass_kg - dt_s * (sum_fv - dfd)
+            dv = (-r_v + sum(c[k] * r_w[k] / a[k] for k in range(p))) / (d - sum(c[k] * b[k] / a[k] for k in range(p)))
+            w = [w[k] + (-r_w[k] - b[k] * dv) / a[k] for k in range(p)]
             v = v + dv
-        self.omega_radps = w
-        return v, self.adhesion(v, cond, w)[2]
+        self.omega_radps = np.asarray(w, dtype=float)
+        return v, self.adhesion(v, cond, self.omega_radps)[2]
 
 
 # ------------------------------------------------------------------------------ the plant model
@@ -318,8 +343,8 @@ class AdhesionTrain:
         for j, sel in self._sel.items():
             cmd = commands.get(f"axle{j}_torque_nm")
             if cmd is not None:
-                t = np.asarray(cmd, dtype=float)[self.axle_vehicle[sel]]
-                torque[sel] = np.where(np.isnan(t), 0.0, t)
+                torque[sel] = np.asarray(cmd, dtype=float)[self.axle_vehicle[sel]]
+        torque[np.isnan(torque)] = 0.0  # not commanded: no torque
         self.torque_nm = torque
         self._meas = None
         h = dt_s / self.substeps
@@ -368,11 +393,11 @@ class AdhesionTrain:
             net = self._per_vehicle(self._fa_step) - fd
             a = self._a_last
         out["coupler_force_n"] = (np.cumsum(self.mass_kg) * a - np.cumsum(net))[:-1]
-        for j, sel in self._sel.items():
-            veh = self.axle_vehicle[sel]
-            for name, val in (("speed_radps", self.wheels.omega_radps), ("slip", lam), ("mu", mu),
-                              ("adhesion_n", fa), ("applied_torque_nm", self.torque_nm)):
-                arr = np.full(n, np.nan)
-                arr[veh] = val[sel]
-                out[f"axle{j}_{name}"] = arr
+        names = ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")
+        per_axle = np.full((len(names), self.max_axles, n), np.nan)  # [quantity, axle j-1, vehicle]
+        per_axle[:, self.axle_number - 1, self.axle_vehicle] = np.stack(
+            [self.wheels.omega_radps, lam, mu, fa, self.torque_nm])
+        for q, name in enumerate(names):
+            for j in range(1, self.max_axles + 1):
+                out[f"axle{j}_{name}"] = per_axle[q, j - 1]
         return out
