@@ -259,9 +259,9 @@ class Cai2014Controller(Controller):
         pr = self.params
         w = pr.share
         self.law = CaiLaw(pr.case, mass_kg=w * pr.train_mass_kg, n_axles=pr.axles, radius_m=pr.wheel_radius_m,
-                                 inertia_kgm2=pr.wheel_inertia_kgm2,
-                                 gains=CaiGains(k0=w * pr.k0, ka=pr.ka, beta=pr.beta, g=pr.g, edot_gain=w * pr.edot_gain),
-                                 sigma=float(pr.sigma))
+                          inertia_kgm2=pr.wheel_inertia_kgm2,
+                          gains=CaiGains(k0=w * pr.k0, ka=pr.ka, beta=pr.beta, g=pr.g, edot_gain=w * pr.edot_gain),
+                          sigma=float(pr.sigma))
 
     def model_resistance_n(self, v_mps: float) -> float:
         """F_d(v) of the controller's model (N), × ``share``."""
@@ -285,5 +285,6 @@ class Cai2014Controller(Controller):
             diag[f"axle{j + 1}_force_cmd_n"] = float(d["force_cmd_n"][j])
             diag[f"axle{j + 1}_adhesion_hat_n"] = float(d["adhesion_hat_n"][j])
         torque = out.torque_nm
+        # brake_force_n: the equivalent force at the rail (N, + brakes), for the trace only
         return ControlOutput(brake_force_n=-float(np.sum(torque)) / self.params.wheel_radius_m, diagnostics=diag,
                              commands={f"axle{j + 1}_torque_nm": float(torque[j]) for j in range(p)})
