@@ -401,6 +401,28 @@ def test_printed_sign_of_eq_44_drives_the_train_backwards(tmp_path, short_runs):
     assert short_runs[2].speed_mps[300] > 0.5  # the same case with eq. 20's sign, at 3 s
 
 
+@pytest.mark.slow
+def test_crh3_with_an_ecu_per_locomotive_moves_as_the_papers_train(tmp_path, short_runs):
+    """scenarios/cai2014_crh3_case4.yaml: four locomotive-carriage pairs, a traction ECU (share 1/4) on
+    each locomotive, gains × 4 for the 4× mass: every pair is the paper's train, so the run equals the
+    paper's case 4 (the sum of the four ECUs' laws is the centralised law, see Cai2014Controller)."""
+    from canbrake.run import run_scenario
+
+    scn = load_scenario(SCENARIOS / "cai2014_crh3_case4.yaml", overrides={"duration_s": 3.0, "control_period_s": 1e-2})
+    assert [p.vehicle for p in scn.placement()] == [1, 3, 5, 7]
+    s = run_scenario(scn, tmp_path, backend="inprocess", plots=False)
+    assert s["status"] == "ok", s.get("message")
+    from canbrake.analysis.summary import read_signals
+
+    cols = read_signals(tmp_path / "signals.csv")
+    ref = short_runs[4]
+    n = len(cols["t_s"]) - 1
+    np.testing.assert_allclose(cols["position_m_c1"][:n] - cols["ref_position_m"][:n], ref.position_error_m[:n],
+                               rtol=0, atol=1e-6)
+    for v in (3, 5, 7):  # the four ECUs command the same torques
+        np.testing.assert_allclose(cols[f"cmd_axle2_torque_nm_c{v}"][:n], cols["cmd_axle2_torque_nm_c1"][:n], rtol=1e-9)
+
+
 # ------------------------------------------------------------------------------ on the bus
 @pytest.mark.slow
 def test_case4_identical_frames_and_signals_on_every_backend(tmp_path):
