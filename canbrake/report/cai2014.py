@@ -150,7 +150,7 @@ class CaiSetup:
         types = tr.expanded()
         loco = next(t for t in types if t.axles)
         wheel = loco.axles[0].wheel or loco.wheel
-        params = scn.ecus[0].controller.params
+        params = scn.placement()[0].controller.params
         ref = scn.reference
         a = -ref.decel_kmh_per_s * KMH
         davis = tuple(float(sum(getattr(t.davis, f) for t in types))
