@@ -156,8 +156,6 @@ def needs_barrier(scn: Scenario) -> bool:
 
 def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
     """The placement as the bus sees it: per ECU its sensors, commands, broadcasts and listeners."""
-    from canbrake.control.base import controller_class
-
     placed = scn.placement()
     index = {p.name: i for i, p in enumerate(placed, start=1)}
     listens: dict[int, tuple[int, ...]] = {}
@@ -170,14 +168,14 @@ def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
             listens[i] = tuple(sorted(index[x] for x in p.listens if index[x] != i))
     specs = []
     for i, p in enumerate(placed, start=1):
-        cls = controller_class(p.controller.name)
-        sensors = tuple(getattr(cls, "sensor_names", ("speed_mps", "position_m")))
+        ctrl = build_controller(scn, i)  # its signal names may depend on its parameters (e.g. cai2014's axles)
+        sensors = tuple(getattr(ctrl, "sensor_names", ("speed_mps", "position_m")))
         if scn.plant.coupler_sensors and isinstance(scn.train, TrainConfig):
             sensors += tuple(x for x in ("deflection_front_m", "deflection_rear_m") if x not in sensors)
         listeners = tuple(j for j in range(1, len(placed) + 1) if i in listens[j])
         specs.append(dbc.EcuSpec(p.name, i, p.vehicle, sensors=sensors,
-                                 commands=tuple(getattr(cls, "command_names", ("brake_force_n",))),
-                                 broadcast=tuple(getattr(cls, "broadcast_names", ("speed_mps", "position_m"))),
+                                 commands=tuple(getattr(ctrl, "command_names", ("brake_force_n",))),
+                                 broadcast=tuple(getattr(ctrl, "broadcast_names", ("speed_mps", "position_m"))),
                                  listeners=listeners, listens=listens[i]))
     return specs
 

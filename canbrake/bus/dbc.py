@@ -265,8 +265,8 @@ class BusLayout:
             MessageSpec(REFERENCE_ID, "REFERENCE", 5, PLANT, tuple(names), (
                 ("ref_speed_mps", SignalSpec("RefSpeed", 0, 20, scale=1e-4, minimum=0.0, maximum=104.8575, unit="m/s",
                                              comment="reference speed v*(t_k)")),
-                ("ref_decel_mps2", SignalSpec("RefDecel", 20, 16, signed=True, scale=1e-4, minimum=-3.2768,
-                                              maximum=3.2767, unit="m/s^2",
+                ("ref_decel_mps2", SignalSpec("RefDecel", 20, 20, signed=True, scale=1e-5, minimum=-5.24288,
+                                              maximum=5.24287, unit="m/s^2",
                                               comment="reference deceleration a* (positive slows down)"))),
                 "Braking reference of the virtual leader.", cyc, False, "reference"),
             MessageSpec(HEARTBEAT_BASE, "HEARTBEAT_PLANT", 1, PLANT, tuple(names),
@@ -275,9 +275,9 @@ class BusLayout:
         ]
         self.ref_position = ref_position
         if ref_position:
-            msgs.append(MessageSpec(REFERENCE_POS_ID, "REFERENCE_POS", 4, PLANT, tuple(names), (
-                ("ref_position_m", SignalSpec("RefPosition", 0, 32, signed=True, scale=1e-3, minimum=-2147483.648,
-                                              maximum=2147483.647, unit="m", comment="reference position x*(t_k)")),),
+            msgs.append(MessageSpec(REFERENCE_POS_ID, "REFERENCE_POS", 5, PLANT, tuple(names), (
+                ("ref_position_m", SignalSpec("RefPosition", 0, 40, signed=True, scale=1e-5, minimum=-5497558.13888,
+                                              maximum=5497558.13887, unit="m", comment="reference position x*(t_k)")),),
                 "Reference position of the virtual leader.", cyc, False, "reference_pos"))
         for e in self.ecus:
             node, tag = e.dbc_node, e.tag
