@@ -40,21 +40,57 @@ class BabbleSource:
     stop_s: float
 
 
+@dataclass(frozen=True)
+class Stream:
+    """One periodic frame of the nominal schedule: ``sender`` queues ``arbitration_id`` at
+    ``t_k + offset_s`` of every tick k with ``k % every_ticks == 0``."""
+
+    sender: str
+    arbitration_id: int
+    dlc: int
+    every_ticks: int = 1
+    offset_s: float = 0.0
+    is_extended: bool = False
+
+
+def nominal_streams(n_cars: int, *, decision_offset_s: float, heartbeat_every: int,
+                    plant_io_on_bus: bool = False, coupler_sensors: bool = False) -> list[Stream]:
+    """The nominal traffic of one control period, in submission order: SYNC, REFERENCE and the
+    plant's heartbeat at t_k; per car (sensor frames if ``plant_io_on_bus``) STATE and heartbeat
+    at t_k and BRAKE_CMD at the decision instant t_k + ``decision_offset_s``. The timing model
+    (:class:`LockstepBusTiming`) and the response-time analysis (:func:`message_set`) both read it."""
+    hb = max(1, heartbeat_every)
+    out = [Stream("plant", dbc.SYNC_ID, 4), Stream("plant", dbc.REFERENCE_ID, 5),
+           Stream("plant", dbc.HEARTBEAT_BASE, 1, hb)]
+    for c in range(1, n_cars + 1):
+        if plant_io_on_bus:
+            if coupler_sensors:
+                out.append(Stream("plant", dbc.COUPLER_BASE + c, 4))
+            out.append(Stream("plant", dbc.SENSOR_BASE + c, 7))
+        ecu = f"ecu{c}"
+        out += [Stream(ecu, dbc.STATE_BASE + c, 8), Stream(ecu, dbc.HEARTBEAT_BASE + c, 1, hb),
+                Stream(ecu, dbc.BRAKE_CMD_BASE + c, 5, 1, decision_offset_s)]
+    return out
+
+
 class LockstepBusTiming:
     """Replicated deterministic bus timing for lockstep runs (simulated seconds)."""
 
     def __init__(self, n_cars: int, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
                  heartbeat_every: int, plant_io_on_bus: bool = False, coupler_sensors: bool = False,
-                 babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000) -> None:
+                 babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000,
+                 record_history: bool = False) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.c = decision_offset_s
         self.hb_every = max(1, heartbeat_every)
         self.plant_io = plant_io_on_bus
         self.coupler_sensors = coupler_sensors
+        self.streams = nominal_streams(n_cars, decision_offset_s=decision_offset_s, heartbeat_every=heartbeat_every,
+                                       plant_io_on_bus=plant_io_on_bus, coupler_sensors=coupler_sensors)
         self.babblers = list(babblers or [])
         self.max_wait_ticks = max_wait_ticks
-        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=False)
+        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history)
         self._next_tick = 0
         self._done: dict[tuple[int, str, int], float] = {}
         self._babble_next = [0] * len(self.babblers)
@@ -62,23 +98,11 @@ class LockstepBusTiming:
 
     def _submit_tick(self, k: int) -> None:
         t = k * self.dt
-        m = self.model
-        sub = m.submit
-        sub("plant", dbc.SYNC_ID, False, 4, None, t, tag=(k, "plant", dbc.SYNC_ID))
-        sub("plant", dbc.REFERENCE_ID, False, 5, None, t, tag=(k, "plant", dbc.REFERENCE_ID))
-        hb = k % self.hb_every == 0
-        if hb:
-            sub("plant", dbc.HEARTBEAT_BASE, False, 1, None, t, tag=(k, "plant", dbc.HEARTBEAT_BASE))
-        for c in range(1, self.n + 1):
-            if self.plant_io:
-                if self.coupler_sensors:
-                    sub("plant", dbc.COUPLER_BASE + c, False, 4, None, t, tag=(k, "plant", dbc.COUPLER_BASE + c))
-                sub("plant", dbc.SENSOR_BASE + c, False, 7, None, t, tag=(k, "plant", dbc.SENSOR_BASE + c))
-            ecu = f"ecu{c}"
-            sub(ecu, dbc.STATE_BASE + c, False, 8, None, t, tag=(k, ecu, dbc.STATE_BASE + c))
-            if hb:
-                sub(ecu, dbc.HEARTBEAT_BASE + c, False, 1, None, t, tag=(k, ecu, dbc.HEARTBEAT_BASE + c))
-            sub(ecu, dbc.BRAKE_CMD_BASE + c, False, 5, None, t + self.c, tag=(k, ecu, dbc.BRAKE_CMD_BASE + c))
+        sub = self.model.submit
+        for s in self.streams:
+            if k % s.every_ticks == 0:
+                sub(s.sender, s.arbitration_id, s.is_extended, s.dlc, None, t + s.offset_s,
+                    tag=(k, s.sender, s.arbitration_id))
         t_end = t + self.dt
         for i, b in enumerate(self.babblers):
             j = self._babble_next[i]
@@ -90,6 +114,13 @@ class LockstepBusTiming:
                     sub(b.sender, b.arbitration_id, b.is_extended, b.dlc, None, te, tag=(k, b.sender, -1))
                 j += 1
             self._babble_next[i] = j
+
+    def run_ticks(self, n_ticks: int) -> None:
+        """Simulate the nominal traffic of ticks 0..n_ticks-1 (for statistics; needs
+        ``record_history=True`` to keep latencies)."""
+        while self._next_tick < n_ticks:
+            self._step()
+            self._done.clear()
 
     def _step(self) -> None:
         k = self._next_tick
@@ -115,17 +146,47 @@ class LockstepBusTiming:
         return self._done.pop(key) - t_queue_s
 
 
-def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
-    """The in-loop timing model of ``scn`` (None unless lockstep with ``bus.timing: model``)."""
-    if scn.mode != "lockstep" or scn.bus.timing != "model":
-        return None
+def _babblers_of(scn: Any) -> list[BabbleSource]:
     from canbrake.bus.impair import BabbleSpec
 
-    babblers = [BabbleSource(s.sender, s.arbitration_id, s.rate_hz, s.dlc, s.is_extended, s.start_s,
-                             math.inf if getattr(s, "stop_s", None) is None else s.stop_s)
-                for s in scn.bus.impairments if isinstance(s, BabbleSpec)]
+    return [BabbleSource(s.sender, s.arbitration_id, s.rate_hz, s.dlc, s.is_extended, s.start_s,
+                         math.inf if getattr(s, "stop_s", None) is None else s.stop_s)
+            for s in scn.bus.impairments if isinstance(s, BabbleSpec)]
+
+
+def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
+    """The nominal-traffic timing model of ``scn``, whatever its mode and ``bus.timing``."""
     dt = scn.control_period_s
     return LockstepBusTiming(scn.n_cars, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
                              heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
                              plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
-                             babblers=babblers)
+                             babblers=_babblers_of(scn), record_history=record_history)
+
+
+def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
+    """The in-loop timing model of ``scn`` (None unless lockstep with ``bus.timing: model``)."""
+    if scn.mode != "lockstep" or scn.bus.timing != "model":
+        return None
+    return timing_of(scn)
+
+
+def message_set(scn: Any) -> list[Any]:
+    """The periodic messages of ``scn``'s nominal schedule as :class:`canbrake.bus.rta.CanMessage`
+    (names from the scenario's DBC; period = ``every_ticks`` control periods, deadline = period;
+    a babbler is a message with period 1/rate_hz). Lockstep barrier frames take no bus time and
+    are not listed."""
+    from canbrake.bus.rta import CanMessage
+
+    names = {m.frame_id: m.name for m in dbc.build_database(scn.n_cars).messages}
+    t = timing_of(scn)
+    dt = scn.control_period_s
+    out = [CanMessage(names.get(s.arbitration_id, f"0x{s.arbitration_id:X}"), s.arbitration_id, s.dlc,
+                      s.every_ticks * dt, is_extended=s.is_extended, sender=s.sender) for s in t.streams]
+    out += [CanMessage(f"BABBLE_{b.sender}_0x{b.arbitration_id:X}", b.arbitration_id, b.dlc, 1.0 / b.rate_hz,
+                       is_extended=b.is_extended, sender=b.sender) for b in t.babblers]
+    return out
+
+
+def dbc_cycle_times_s(scn: Any) -> dict[int, float]:
+    """Cycle times (s) the scenario's DBC declares (``GenMsgCycleTime``), by frame id."""
+    return {m.frame_id: m.cycle_time / 1000.0 for m in dbc.build_database(scn.n_cars).messages if m.cycle_time}
