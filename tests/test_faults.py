@@ -1,0 +1,139 @@
+"""Error frames, retransmission and fault confinement (ISO 11898-1) in the timing model."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from canbrake.bus.faults import BitErrorSource, FaultConfinement, FaultyTransceiver
+from canbrake.bus.timing import IFS_BITS, BusTimingModel, frame_bits
+
+RATE = 500_000
+BIT = 1 / RATE
+
+
+def _model(**kw) -> tuple[BusTimingModel, FaultConfinement]:
+    fc = FaultConfinement(**kw)
+    return BusTimingModel(RATE, faults=fc), fc
+
+
+def test_faulty_transceiver_goes_error_passive_after_16_and_bus_off_after_32_errors() -> None:
+    # TEC += 8 per failed attempt: 16 x 8 = 128 (passive), 32 x 8 = 256 > 255 (bus-off)
+    m, fc = _model(faulty=[FaultyTransceiver("bad", 1.0)], seed=1)
+    m.submit("ok", 0x100, False, 8, None, 0.0)
+    m.submit("bad", 0x050, False, 8, None, 0.0)
+    m.submit("bad", 0x060, False, 8, None, 0.0)
+    done = m.advance(0.1)
+    assert [e.tec for e in fc.events] == [8 * k for k in range(1, 33)]
+    assert [e.state for e in fc.events][14:17] == ["active", "passive", "passive"]
+    assert fc.events[-1].state == "bus_off"
+    assert [s.state for s in fc.changes if s.node == "bad"][:2] == ["passive", "bus_off"]
+    # both of bad's frames are dropped at bus-off; ok's frame goes out after the 32 error frames
+    dropped = m.pop_dropped()
+    assert sorted(d.arbitration_id for d in dropped) == [0x050, 0x060]
+    assert [d.arbitration_id for d in done] == [0x100]
+    assert done[0].t_start_s == pytest.approx(fc.events[-1].t_end_s)
+    # ok counted one receive error per error frame; its own successful transmission does not
+    # lower its REC (rule 8 is for receivers)
+    assert fc.nodes["ok"].rec == 32 and fc.nodes["ok"].tec == 0
+
+
+def test_error_frame_bus_time_and_immediate_retransmission() -> None:
+    m, fc = _model(faulty=[FaultyTransceiver("n", 1.0, stop_s=1e-3)], seed=3)
+    m.submit("n", 0x123, False, 8, None, 0.0)
+    (d,) = m.advance(0.1)
+    assert fc.events, "the frame must have been hit at least once before 1 ms"
+    t = 0.0
+    for e in fc.events:  # each attempt starts where the previous error frame ended
+        assert e.t_start_s == pytest.approx(t)
+        assert 0 <= e.error_bit < frame_bits(0x123, False, 8) - IFS_BITS
+        # the error bit, then error flag (6) + delimiter (8) + intermission (3)
+        assert e.t_end_s - e.t_start_s == pytest.approx((e.error_bit + 1 + 6 + 8 + 3) * BIT)
+        t = e.t_end_s
+    assert d.t_start_s == pytest.approx(t) and d.t_start_s >= 1e-3 - 300 * BIT
+    assert d.latency_s == pytest.approx(t + 135 * BIT)
+
+
+def test_bus_off_recovery_on_an_idle_bus_takes_128_x_11_bits() -> None:
+    m, fc = _model(faulty=[FaultyTransceiver("bad", 1.0, stop_s=0.01)], seed=2)
+    m.submit("bad", 0x050, False, 8, None, 0.0)
+    m.advance(0.05)
+    off = [s for s in fc.changes if s.node == "bad"]
+    assert [s.state for s in off] == ["passive", "bus_off", "active"]
+    assert off[2].t_s - off[1].t_s == pytest.approx(128 * 11 * BIT)
+    assert fc.nodes["bad"].tec == 0 and fc.nodes["bad"].bus_off_s == pytest.approx(128 * 11 * BIT)
+    # recovered and the fault is gone: the next frame goes through
+    m.submit("bad", 0x050, False, 8, None, 0.05)
+    (d,) = m.advance(0.1)
+    assert not d.dropped and d.t_start_s == pytest.approx(0.05)
+
+
+def test_bus_off_recovery_on_a_busy_bus_takes_128_frames() -> None:
+    """Each frame ends with 11 recessive bits (ACK delimiter, EOF, intermission): on a bus with
+    back-to-back frames, recovery needs 128 of them."""
+    m, fc = _model(faulty=[FaultyTransceiver("bad", 1.0)], seed=4)
+    m.submit("bad", 0x001, False, 8, None, 0.0)
+    for _ in range(300):
+        m.submit("busy", 0x200, False, 8, None, 0.0)
+    done = m.advance(1.0)
+    ch = [s for s in fc.changes if s.node == "bad"]
+    t_off, t_on = ch[1].t_s, ch[2].t_s
+    assert ch[1].state == "bus_off" and ch[2].state == "active"
+    ends = [d.t_end_s for d in done if d.node == "busy" and d.t_end_s > t_off + 1e-12]
+    assert t_on == pytest.approx(ends[127])  # the 128th frame end after bus-off
+    assert len(done) == 300 and len(m.pop_dropped()) == 1
+
+
+def test_without_auto_recovery_a_bus_off_node_stays_off_and_its_frames_are_dropped() -> None:
+    m, fc = _model(faulty=[FaultyTransceiver("bad", 1.0, stop_s=0.05)], auto_recovery=False, seed=5)
+    for k in range(10):
+        m.submit("bad", 0x050, False, 8, None, k * 0.01)
+    assert m.advance(0.2) == []
+    assert fc.state("bad") == "bus_off" and len(m.pop_dropped()) == 10
+    assert fc.summary(0.2)["nodes"]["bad"]["bus_off_s"] == pytest.approx(0.2 - fc.changes[-1].t_s)
+
+
+def test_bit_error_rate_frame_error_probability_and_all_frames_delivered() -> None:
+    """ber = 5e-4 on 8-byte frames of 132 bits (SOF..EOF, worst stuffing): each attempt fails with
+    1 - (1 - 5e-4)^132 = 6.4 %; a sender's TEC drifts down (+8 x 0.064 - 0.936 < 0): no bus-off."""
+    m, fc = _model(bit_errors=[BitErrorSource(5e-4)], seed=11)
+    n = 4000
+    for k in range(n):
+        m.submit(f"n{k % 3}", 0x100 + k % 3, False, 8, None, k * 1e-3)
+    done = m.advance(n * 1e-3 + 1)
+    assert len(done) == n and not m.pop_dropped()
+    p = 1 - (1 - 5e-4) ** 132
+    attempts = n + len(fc.events)
+    sd = math.sqrt(attempts * p * (1 - p))
+    assert abs(len(fc.events) - attempts * p) < 4 * sd
+    assert all(s.state != "bus_off" for s in fc.changes)
+    assert fc.summary(m.now_s)["by_cause"] == {"bit_error": len(fc.events)}
+
+
+def test_bit_error_rate_above_the_tec_drift_limit_drives_senders_bus_off() -> None:
+    """ber = 2e-3: 1 - (1 - 2e-3)^132 = 23.2 % of attempts fail, TEC drifts up by
+    8 x 0.232 - 0.768 = +1.09 per frame: every sender goes bus-off (expected within ~250 frames)."""
+    m, fc = _model(bit_errors=[BitErrorSource(2e-3)], seed=11)
+    for k in range(6000):
+        m.submit(f"n{k % 3}", 0x100 + k % 3, False, 8, None, k * 1e-3)
+    m.advance(7.0)
+    assert {s.node for s in fc.changes if s.state == "bus_off"} == {"n0", "n1", "n2"}
+    assert m.pop_dropped()
+
+
+def test_faults_are_deterministic_and_independent_of_advance_steps() -> None:
+    def run(step: float | None) -> tuple:
+        m, fc = _model(bit_errors=[BitErrorSource(3e-3)], faulty=[FaultyTransceiver("n1", 0.4, 0.01, 0.05)], seed=9)
+        out = []
+        for k in range(100):
+            t = k * 1e-3
+            if step is not None:
+                out += m.advance(t)
+            for i in range(3):
+                m.submit(f"n{i}", 0x100 + i, False, 8, None, t)
+        out += m.advance(1.0)
+        return ([(d.node, d.t_end_s) for d in out], [(d.node, d.t_end_s) for d in m.pop_dropped()],
+                [(s.t_s, s.node, s.state) for s in fc.changes])
+
+    assert run(None) == run(1e-3)
+    assert run(None)[2], "the faulty window must produce state changes"
