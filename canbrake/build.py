@@ -148,6 +148,13 @@ def failsafe_of(scn: Scenario) -> Any:
                     force_n=mass * sf.failsafe_decel_mps2, latch=sf.latch)
 
 
+def _error_timing(scn: Scenario) -> Any:
+    """The recorder's own timing-model replica when the scenario has bus errors (else None)."""
+    from canbrake.bus.schedule import faults_of, timing_of
+
+    return timing_of(scn) if scn.mode == "lockstep" and faults_of(scn) is not None else None
+
+
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
                progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build") -> Node:
     """One node of the run: ``role`` is "plant", "ecu" (with ``car``) or "recorder"."""
@@ -180,7 +187,8 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
 
         return RecorderNode(scn.n_cars, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
                             plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn),
-                            log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
+                            log_path=None if run_dir is None else run_dir / "frames.log", channel=channel,
+                            bus_timing=_error_timing(scn))
     raise ValueError(f"unknown node role {role!r}")
 
 

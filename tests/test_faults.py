@@ -137,3 +137,85 @@ def test_faults_are_deterministic_and_independent_of_advance_steps() -> None:
 
     assert run(None) == run(1e-3)
     assert run(None)[2], "the faulty window must produce state changes"
+
+
+# --------------------------------------------------------------------------------------------
+# in the loop: a lockstep run with a faulty transceiver and a bit error rate
+
+
+def _error_scenario(**bus):
+    from canbrake.scenario import load_scenario
+
+    from conftest import CASE1
+
+    return load_scenario(CASE1, overrides={
+        "duration_s": 0.2, "control_period_s": 0.005,
+        "bus": {"timing": "model", "bitrate_bps": 500_000, "impairments": [
+            {"type": "faulty_transceiver", "node": "ecu3", "probability": 1.0, "start_s": 0.05, "stop_s": 0.1},
+            {"type": "bit_error_rate", "ber": 1e-5}], **bus}})
+
+
+def f_state_c1(lines: list[str]) -> int:
+    return sum(1 for ln in lines if " 141#" in ln)
+
+
+@pytest.mark.slow
+def test_run_with_bus_errors_logs_error_frames_and_error_states(tmp_path, monkeypatch, capsys) -> None:
+    import csv
+    import io
+    import re
+    import sys
+
+    import can
+
+    from canbrake.run import run_scenario
+
+    scn = _error_scenario()
+    s = run_scenario(scn, tmp_path / "a", backend="inprocess", plots=False)
+    assert s["status"] == "ok"
+    err = s["can_errors"]
+    assert err["nodes"]["ecu3"]["bus_off_episodes"] >= 1 and err["nodes"]["ecu3"]["max_tec"] > 255
+    assert err["by_cause"]["faulty_transceiver"] >= 32
+    # every error frame is in frames.log, in candump -L notation (python-can's CanutilsLogWriter)
+    lines = (tmp_path / "a" / "frames.log").read_text().splitlines()
+    errs = [ln for ln in lines if " 20000080#" in ln]
+    assert len(errs) == err["error_frames"] == err["error_frames_logged"]
+    assert all(re.fullmatch(r"\(\d+\.\d{6}\) \S+ 20000080#[0-9A-F]{16}", ln) for ln in errs)
+    msgs = list(can.LogReader(str(tmp_path / "a" / "frames.log")))
+    assert len(msgs) == len(lines) and sum(m.is_error_frame for m in msgs) == len(errs)
+    assert [m.timestamp for m in msgs] == sorted(m.timestamp for m in msgs)
+    # `cantools decode` (its CLI entry point, in this process) reads the log from stdin and
+    # passes the error frames through
+    import cantools
+
+    monkeypatch.setattr(sys, "argv", ["cantools", "decode", str(tmp_path / "a" / "canbrake.dbc")])
+    monkeypatch.setattr(sys, "stdin", io.StringIO("\n".join(lines) + "\n"))
+    capsys.readouterr()
+    cantools._main()
+    out = capsys.readouterr().out
+    assert out.count("20000080#") == len(errs) and out.count("STATE_C1(") == f_state_c1(lines)
+    # while bus-off, ecu3's frames never reach the bus: its peers miss exactly its state frames
+    f = s["frames"]
+    missing_states = 6 * s["ticks"] - f["by_kind"]["state"]
+    assert missing_states > 0 and f["peer_values_missing"] == 5 * missing_states
+    # the error state per control period is in signals.csv
+    with open(tmp_path / "a" / "signals.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    states = [int(r["can_state_c3"]) for r in rows if r["can_state_c3"] != ""]  # the final row has no period
+    assert len(states) == len(rows) - 1
+    assert 2 in states and states[0] == 0 and states[-1] == 0  # bus-off, recovered by the end
+    assert {r["can_state_c1"] for r in rows} <= {"0", "1", ""}
+    # deterministic and the same on another backend
+    run_scenario(scn, tmp_path / "b", backend="virtual", plots=False)
+    assert (tmp_path / "a" / "frames.log").read_bytes() == (tmp_path / "b" / "frames.log").read_bytes()
+
+
+def test_bus_errors_need_the_timing_model(tmp_path) -> None:
+    from canbrake.run import preflight
+    from canbrake.scenario import ScenarioError
+
+    with pytest.raises(ScenarioError, match="bus.timing: model"):
+        preflight(_error_scenario(timing="ideal"), "inprocess")
+    bad = _error_scenario(impairments=[{"type": "faulty_transceiver", "node": "ecu9"}])
+    with pytest.raises(ScenarioError, match="ecu9"):
+        preflight(bad, "inprocess")

@@ -79,7 +79,7 @@ class LockstepBusTiming:
     def __init__(self, n_cars: int, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
                  heartbeat_every: int, plant_io_on_bus: bool = False, coupler_sensors: bool = False,
                  babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000,
-                 record_history: bool = False) -> None:
+                 record_history: bool = False, faults: Any = None) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.c = decision_offset_s
@@ -90,7 +90,8 @@ class LockstepBusTiming:
                                        plant_io_on_bus=plant_io_on_bus, coupler_sensors=coupler_sensors)
         self.babblers = list(babblers or [])
         self.max_wait_ticks = max_wait_ticks
-        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history)
+        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history, faults=faults)
+        self.faults = faults
         self._next_tick = 0
         self._done: dict[tuple[int, str, int], float] = {}
         self._babble_next = [0] * len(self.babblers)
@@ -115,6 +116,11 @@ class LockstepBusTiming:
                 j += 1
             self._babble_next[i] = j
 
+    def simulate_through(self, t_s: float) -> None:
+        """Simulate every tick that starts before ``t_s`` (keeps the latencies for ``latency_s``)."""
+        while self._next_tick * self.dt < t_s - 1e-12:
+            self._step()
+
     def run_ticks(self, n_ticks: int) -> None:
         """Simulate the nominal traffic of ticks 0..n_ticks-1 (for statistics; needs
         ``record_history=True`` to keep latencies)."""
@@ -129,6 +135,10 @@ class LockstepBusTiming:
             tag = d.tag
             if tag[2] >= 0:
                 self._done[tag] = d.t_end_s
+        if self.faults is not None:  # frames of bus-off nodes never make it to the bus
+            for d in self.model.pop_dropped():
+                if d.tag[2] >= 0:
+                    self._done[d.tag] = math.inf
         self._next_tick = k + 1
         if k % 256 == 0:  # forget deliveries nobody will ask for (other nodes' frames of past ticks)
             old = self._query_tick - 2
@@ -154,13 +164,48 @@ def _babblers_of(scn: Any) -> list[BabbleSource]:
             for s in scn.bus.impairments if isinstance(s, BabbleSpec)]
 
 
+def faults_of(scn: Any) -> Any:
+    """The :class:`~canbrake.bus.faults.FaultConfinement` of ``scn``'s ``bit_error_rate`` and
+    ``faulty_transceiver`` impairments (None if it has none). Seeded from the run seed with a
+    stable hash, so every process of a run draws the same errors."""
+    from canbrake.bus.faults import BitErrorSource, FaultConfinement, FaultyTransceiver
+    from canbrake.bus.impair import BitErrorRateSpec, FaultyTransceiverSpec, derive_seed
+
+    specs = [s for s in scn.bus.impairments if isinstance(s, (BitErrorRateSpec, FaultyTransceiverSpec))]
+    if not specs:
+        return None
+    stop = [math.inf if s.stop_s is None else s.stop_s for s in specs]
+    seed = int(derive_seed(scn.seed, "bus_errors").generate_state(1)[0])
+    return FaultConfinement(
+        bit_errors=[BitErrorSource(s.ber, s.start_s, e) for s, e in zip(specs, stop) if isinstance(s, BitErrorRateSpec)],
+        faulty=[FaultyTransceiver(s.node, s.probability, s.start_s, e) for s, e in zip(specs, stop)
+                if isinstance(s, FaultyTransceiverSpec)],
+        seed=seed, auto_recovery=all(s.auto_recovery for s in specs), bitrate_bps=float(scn.bus.bitrate_bps))
+
+
+def check_faults(scn: Any) -> None:
+    """Bus errors are modelled in simulated time only: refuse them elsewhere (one clear message)."""
+    from canbrake.scenario import ScenarioError as InputError
+
+    if faults_of(scn) is None:
+        return
+    if scn.mode != "lockstep" or scn.bus.timing != "model":
+        raise InputError("bus.impairments: bit_error_rate / faulty_transceiver act in the CAN timing model and need "
+                         f"mode: lockstep and bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
+    names = {"plant"} | {f"ecu{c}" for c in range(1, scn.n_cars + 1)} | {b.sender for b in _babblers_of(scn)}
+    for s in scn.bus.impairments:
+        if getattr(s, "type", None) == "faulty_transceiver" and s.node not in names:
+            raise InputError(f"bus.impairments: faulty_transceiver node {s.node!r} is not a node of this train "
+                             f"(plant, ecu1..ecu{scn.n_cars})")
+
+
 def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
     """The nominal-traffic timing model of ``scn``, whatever its mode and ``bus.timing``."""
     dt = scn.control_period_s
     return LockstepBusTiming(scn.n_cars, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
                              heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
                              plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
-                             babblers=_babblers_of(scn), record_history=record_history)
+                             babblers=_babblers_of(scn), record_history=record_history, faults=faults_of(scn))
 
 
 def build_bus_timing(scn: Any) -> LockstepBusTiming | None:

@@ -12,11 +12,20 @@ byte for byte between runs and backends for the same seed. Simulation-control fr
 period, the bus stays busy into the next one and the timestamps show it.
 
 Realtime mode: frames are written as received, with their wall-clock receive timestamps.
+
+Bus errors (``bit_error_rate`` / ``faulty_transceiver``, lockstep with the timing model): the
+recorder keeps its own replica of the timing model (:mod:`canbrake.bus.schedule`), writes every
+failed attempt as a python-can error frame (``is_error_frame=True``; SocketCAN error-frame
+layout of ``linux/can/error.h``: protocol violation, controller state, TEC in byte 6 and REC
+in byte 7) stamped with the replica's time of the attempt, and samples each node's error state
+and counters at the end of every control period into ``can_errors.csv``.
 """
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -24,6 +33,31 @@ import numpy as np
 from canbrake.bus import dbc
 from canbrake.bus.timing import frame_bits
 from canbrake.nodes.base import Node
+
+# SocketCAN error frame layout (linux/can/error.h)
+CAN_ERR_FLAG = 0x20000000
+CAN_ERR_CRTL = 0x00000004
+CAN_ERR_PROT = 0x00000008
+CAN_ERR_BUSOFF = 0x00000040
+CAN_ERR_CNT = 0x00000200
+CAN_ERR_CRTL_RX_PASSIVE = 0x10
+CAN_ERR_CRTL_TX_PASSIVE = 0x20
+CAN_ERR_PROT_BIT = 0x01
+
+
+def error_frame(event: Any, t_s: float, channel: str, rec: int = 0) -> can.Message:
+    """A :class:`canbrake.bus.faults.ErrorEvent` as a python-can error frame (SocketCAN layout)."""
+    aid = CAN_ERR_FLAG | CAN_ERR_PROT | CAN_ERR_CNT
+    ctrl = 0
+    if event.state == "passive":
+        aid |= CAN_ERR_CRTL
+        ctrl = CAN_ERR_CRTL_TX_PASSIVE
+    elif event.state == "bus_off":
+        aid |= CAN_ERR_BUSOFF
+    data = bytes([0, ctrl, CAN_ERR_PROT_BIT, 0, 0, 0, min(event.tec, 255), min(rec, 255)])
+    return can.Message(timestamp=t_s, arbitration_id=aid, is_extended_id=True, is_error_frame=True, dlc=8,
+                       data=data, channel=channel, is_rx=True)
+
 
 def _is_plant_frame(aid: int, n: int) -> bool:
     return (aid in (dbc.SYNC_ID, dbc.REFERENCE_ID, dbc.HEARTBEAT_BASE)
@@ -42,7 +76,7 @@ class RecorderNode(Node):
 
     def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
-                 plant_io_on_bus: bool = False, barrier: bool = True) -> None:
+                 plant_io_on_bus: bool = False, barrier: bool = True, bus_timing: Any = None) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
@@ -63,6 +97,12 @@ class RecorderNode(Node):
         self._latency: list[float] = []
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
+        # bus errors: own replica of the timing model (canbrake.bus.schedule.LockstepBusTiming)
+        self.timing = bus_timing if bus_timing is not None and getattr(bus_timing, "faults", None) else None
+        self._ev_i = 0
+        self.error_frames = 0
+        self._err_nodes = ["plant"] + [f"ecu{c}" for c in range(1, n_cars + 1)]
+        self._err_rows: list[list[int]] = []
 
     def start(self, now: float) -> list[can.Message]:
         if self.log_path is not None:
@@ -126,8 +166,43 @@ class RecorderNode(Node):
             out.append(self._stamp(msg, None, t))
         self._bus_free_s = t
         self._busy_per_tick.append(busy / self.dt)
+        if self.timing is not None:
+            out = self._with_errors(out)
         self._write(out)
         self._tick_frames = []
+
+    def _with_errors(self, out: list[can.Message]) -> list[can.Message]:
+        """Add the error frames of tick ``self._k`` (in time order) and sample the error states."""
+        fc = self.timing.faults
+        t_next = (self._k + 1) * self.dt
+        self.timing.simulate_through(t_next)
+        events = fc.events
+        new = []
+        while self._ev_i < len(events) and events[self._ev_i].t_start_s < t_next:
+            ev = events[self._ev_i]
+            new.append(error_frame(ev, self.epoch + ev.t_start_s, self.channel))
+            self._ev_i += 1
+        self.error_frames += len(new)
+        row = [self._k]
+        for name in self._err_nodes:
+            c = fc.nodes.get(name)
+            row += [0, 0, 0] if c is None else [{"active": 0, "passive": 1, "bus_off": 2}[c.state], c.tec, c.rec]
+        self._err_rows.append(row)
+        if not new:
+            return out
+        return sorted(out + new, key=lambda m: m.timestamp)
+
+    def _write_error_states(self) -> None:
+        if self.log_path is None or not self._err_rows:
+            return
+        header = ["tick"]
+        for name in self._err_nodes:
+            sfx = "plant" if name == "plant" else f"c{name[3:]}"
+            header += [f"can_state_{sfx}", f"tec_{sfx}", f"rec_{sfx}"]
+        with open(self.log_path.parent / "can_errors.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows(self._err_rows)
 
     def _stamp(self, msg: can.Message, tick: int | None, t_s: float) -> can.Message:
         if tick is not None:
@@ -181,6 +256,10 @@ class RecorderNode(Node):
             "latency_p50_s": float(np.percentile(lat, 50)),
             "latency_p99_s": float(np.percentile(lat, 99)),
             "latency_max_s": float(lat.max()),
+            **({"errors": {**self.timing.faults.summary(self.timing.model.now_s),
+                           "error_frames_logged": self.error_frames,
+                           "state_codes": {"active": 0, "passive": 1, "bus_off": 2}}}
+               if self.timing is not None else {}),
         }
 
     def close(self, status: str = "ok") -> None:
@@ -190,6 +269,7 @@ class RecorderNode(Node):
             self._writer.stop()
             self._writer = None
         if self.log_path is not None:
+            self._write_error_states()
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
             (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
