@@ -23,9 +23,11 @@ def simulate_latencies(scn: Any, n_ticks: int) -> dict[tuple[int, bool], Any]:
 def analyze_scenario(scn: Any, *, method: str = "davis2007", sim_ticks: int = 0) -> dict[str, Any]:
     """The analysis of ``scn`` as a JSON-ready dict (plus simulated latencies if ``sim_ticks``)."""
     from canbrake.bus.rta import analyze
-    from canbrake.bus.schedule import dbc_cycle_times_s, message_set
+    from canbrake.bus.schedule import dbc_cycle_times_s, fifo_like_nodes, message_set
 
-    res = analyze(message_set(scn), scn.bus.bitrate_bps, method=method)  # type: ignore[arg-type]
+    msgs = message_set(scn)
+    res = analyze(msgs, scn.bus.bitrate_bps, method=method,  # type: ignore[arg-type]
+                  fifo_nodes=fifo_like_nodes(scn, msgs))
     out = {"scenario": scn.name, "profile": scn.profile, "n_cars": scn.n_cars,
            "control_period_s": scn.control_period_s, **res.as_dict()}
     cycles = dbc_cycle_times_s(scn)

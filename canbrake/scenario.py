@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 from canbrake.arrays import per_car
 from canbrake.bus.impair import ImpairmentSpec
+from canbrake.bus.txbuffer import TxBufferConfig
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 KMH = 1.0 / 3.6  # m/s per km/h
@@ -159,6 +160,9 @@ class BusConfig(_Model):
                                                      "(false: they stand in for each car's local wiring)")
     impairments: list[ImpairmentSpec] = Field(default_factory=list,
                                               description="see canbrake.bus.impair (delay, jitter, loss, ...)")
+    tx_buffers: list[TxBufferConfig] = Field(default_factory=list,
+                                             description="transmit buffer per node for the timing model and the "
+                                                         "analysis (canbrake.bus.txbuffer); default: priority-ordered")
 
 
 class PlantConfig(_Model):

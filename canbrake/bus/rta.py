@@ -29,8 +29,9 @@ Network (CAN) schedulability analysis with FIFO queues", ECRTS) is used in a sim
 form: every message of a FIFO node is analysed at the priority of that node's *lowest*-priority
 message (it may wait behind any of its own node's frames), while it still interferes with other
 nodes at its own identifier. Mailboxes with abort behave like a priority queue; without abort a message
-may wait until a lower-priority frame of its own node leaves a mailbox, so it is analysed as
-if its node had a FIFO (safe, pessimistic).
+may wait until a lower-priority frame of its own node leaves a mailbox, so — when the node has
+more messages than mailboxes — it is analysed as if its node had a FIFO (safe, pessimistic;
+:func:`canbrake.bus.txbuffer.inverting_nodes` picks these nodes).
 """
 from __future__ import annotations
 

@@ -79,7 +79,7 @@ class LockstepBusTiming:
     def __init__(self, n_cars: int, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
                  heartbeat_every: int, plant_io_on_bus: bool = False, coupler_sensors: bool = False,
                  babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000,
-                 record_history: bool = False, faults: Any = None) -> None:
+                 record_history: bool = False, faults: Any = None, tx_buffers: Any = None) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.c = decision_offset_s
@@ -90,7 +90,8 @@ class LockstepBusTiming:
                                        plant_io_on_bus=plant_io_on_bus, coupler_sensors=coupler_sensors)
         self.babblers = list(babblers or [])
         self.max_wait_ticks = max_wait_ticks
-        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history, faults=faults)
+        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history, faults=faults,
+                                    tx_buffers=tx_buffers)
         self.faults = faults
         self._next_tick = 0
         self._done: dict[tuple[int, str, int], float] = {}
@@ -205,7 +206,8 @@ def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
     return LockstepBusTiming(scn.n_cars, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
                              heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
                              plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
-                             babblers=_babblers_of(scn), record_history=record_history, faults=faults_of(scn))
+                             babblers=_babblers_of(scn), record_history=record_history, faults=faults_of(scn),
+                             tx_buffers=getattr(scn.bus, "tx_buffers", None))
 
 
 def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
@@ -230,6 +232,17 @@ def message_set(scn: Any) -> list[Any]:
     out += [CanMessage(f"BABBLE_{b.sender}_0x{b.arbitration_id:X}", b.arbitration_id, b.dlc, 1.0 / b.rate_hz,
                        is_extended=b.is_extended, sender=b.sender) for b in t.babblers]
     return out
+
+
+def fifo_like_nodes(scn: Any, messages: list[Any]) -> list[str]:
+    """Senders whose transmit buffer (``bus.tx_buffers``) can invert priorities: the analysis
+    treats their messages at the node's lowest priority (:func:`canbrake.bus.rta.analyze`)."""
+    from canbrake.bus.txbuffer import inverting_nodes
+
+    per_node: dict[str, int] = {}
+    for m in messages:
+        per_node[m.sender] = per_node.get(m.sender, 0) + 1
+    return inverting_nodes(list(getattr(scn.bus, "tx_buffers", []) or []), per_node)
 
 
 def dbc_cycle_times_s(scn: Any) -> dict[int, float]:

@@ -464,11 +464,16 @@ class BusTimingModel:
         faults: error sources and fault confinement (:mod:`canbrake.bus.faults`): failed
             attempts become error frames on the bus and are retransmitted; a bus-off node's
             frames are dropped (see :meth:`pop_dropped`). None = an error-free bus.
+        tx_buffers: per-node transmit buffers (:class:`canbrake.bus.txbuffer.TxBufferConfig`:
+            priority / FIFO of a depth / mailboxes with or without abort); the first config that
+            applies to a node is its buffer, other nodes follow ``queue_policy``. A frame
+            submitted to a full buffer is dropped (see :meth:`pop_dropped`).
     """
 
     def __init__(self, bitrate_bps: float, *, stuffing: Stuffing = "worst",
                  queue_policy: QueuePolicy = "priority", include_ifs: bool = True,
-                 record_history: bool = True, faults: Any = None) -> None:
+                 record_history: bool = True, faults: Any = None,
+                 tx_buffers: Sequence[Any] | None = None) -> None:
         self.bitrate_bps = _check_bitrate(bitrate_bps)
         _check_stuffing(stuffing)
         if queue_policy not in ("priority", "fifo"):
@@ -495,6 +500,9 @@ class BusTimingModel:
         if faults is not None:
             faults.bitrate_bps = self.bitrate_bps
         self._dropped: list[Delivery] = []
+        self._buffer_cfgs = list(tx_buffers or [])
+        self._buffers: dict[str, Any] = {}  # node -> TxBuffer, for nodes with a configured buffer
+        self._buffer_of: dict[str, Any] = {}  # node -> TxBuffer or None (cache)
 
     # -- properties ---------------------------------------------------------------------------
     @property
@@ -518,7 +526,24 @@ class BusTimingModel:
                           is_remote=is_remote, include_ifs=self.include_ifs) / self.bitrate_bps
 
     def _pending(self) -> list[_Pending]:
-        return [e[-1] for e in self._future] + [e[-1] for q in self._ready.values() for e in q]
+        return ([e[-1] for e in self._future] + [e[-1] for q in self._ready.values() for e in q]
+                + [p for b in self._buffers.values() for p in b.pending()])
+
+    def _buffer(self, node: str) -> Any:
+        b = self._buffer_of.get(node, False)
+        if b is False:
+            from canbrake.bus.txbuffer import make_tx_buffer
+
+            cfg = next((c for c in self._buffer_cfgs if c.applies_to(node)), None)
+            b = None if cfg is None else make_tx_buffer(cfg)
+            self._buffer_of[node] = b
+            if b is not None:
+                self._buffers[node] = b
+        return b
+
+    def buffer_counters(self) -> dict[str, dict[str, int]]:
+        """Per node with a configured buffer: frames dropped on overflow, mailbox aborts."""
+        return {n: {"overflow": b.n_overflow, "aborted": b.n_aborted} for n, b in sorted(self._buffers.items())}
 
     def pending_count(self, node: str | None = None, msg_id: int | None = None) -> int:
         """Frames submitted but not yet started, optionally for one node and/or identifier."""
@@ -599,20 +624,38 @@ class BusTimingModel:
                 if fc is not None and fc.is_bus_off(p.ticket.node):
                     self._drop(p, t)
                     continue
+                if self._buffer_cfgs:
+                    b = self._buffer(p.ticket.node)
+                    if b is not None:
+                        lost = b.push(p)
+                        if lost is not None:
+                            self._drop(lost, t)
+                        else:
+                            self._n_ready += 1
+                        continue
                 q = ready.get(p.ticket.node)
                 if q is None:
                     q = ready[p.ticket.node] = []
                 heappush(q, (p.node_key, p))
                 self._n_ready += 1
             # ... and the heads of the node queues arbitrate
-            best_q: list[tuple[Any, _Pending]] | None = None
+            best_q: Any = None  # a node heap or a TxBuffer
             best_key: Any = None
             for q in ready.values():
                 if q and (best_q is None or q[0][1].bus_key < best_key):
                     best_q, best_key = q, q[0][1].bus_key
-            if best_q is None:  # everything that was due belonged to bus-off nodes
+            best_b = None
+            for b in self._buffers.values():
+                h = b.head()
+                if h is not None and (best_key is None or h.bus_key < best_key):
+                    best_b, best_key = b, h.bus_key
+            if best_b is not None:
+                p = best_b.pop_head()
+                best_q = best_b
+            elif best_q is None:  # everything that was due belonged to bus-off nodes
                 continue
-            p = heappop(best_q)[1]
+            else:
+                p = heappop(best_q)[1]
             self._n_ready -= 1
             if fc is None:
                 self._transmit(p, t)
@@ -641,7 +684,7 @@ class BusTimingModel:
         out, self._dropped = self._dropped, []
         return out
 
-    def _attempt(self, p: _Pending, t_start: float, queue: list[tuple[Any, _Pending]]) -> None:
+    def _attempt(self, p: _Pending, t_start: float, queue: Any) -> None:
         """One transmission attempt under the fault model: success, or an error frame and a
         retransmission (or, if the sender went bus-off, the loss of its whole queue)."""
         from canbrake.bus.faults import ERROR_FRAME_BITS, ErrorEvent
@@ -667,11 +710,19 @@ class BusTimingModel:
                                     c.tec, c.state))
         if c.state == "bus_off":
             self._drop(p, t_end)
-            while queue:
-                self._drop(heapq.heappop(queue)[1], t_end)
-                self._n_ready -= 1
-        else:
+            if isinstance(queue, list):
+                while queue:
+                    self._drop(heapq.heappop(queue)[1], t_end)
+                    self._n_ready -= 1
+            else:  # a TxBuffer
+                for x in queue.drain():
+                    self._drop(x, t_end)
+                    self._n_ready -= 1
+        elif isinstance(queue, list):
             heapq.heappush(queue, (p.node_key, p))  # automatic retransmission
+            self._n_ready += 1
+        else:
+            queue.requeue(p)
             self._n_ready += 1
 
     def _transmit(self, p: _Pending, t_start: float) -> None:
