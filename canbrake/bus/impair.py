@@ -659,8 +659,12 @@ class MessageSendPath:
         self.path = path
         self.node = node if node is not None else path.node
 
-    def submit(self, msg: Any, t_s: float) -> list[Any]:
-        self.path.submit(TxFrame.from_message(msg, self.node, t_s))
+    def submit(self, msg: Any, t_s: float, delay_s: float = 0.0) -> list[Any]:
+        """Submit at ``t_s``; the frame may go to the bus from ``t_s + delay_s`` on (s) plus what
+        the impairments add. Returns the frames due at ``t_s``."""
+        frame = TxFrame.from_message(msg, self.node, t_s)
+        frame.t_release_s += delay_s
+        self.path.submit(frame)
         return self.release(t_s)
 
     def release(self, t_s: float) -> list[Any]:

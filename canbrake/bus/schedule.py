@@ -79,7 +79,8 @@ class LockstepBusTiming:
     def __init__(self, n_cars: int, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
                  heartbeat_every: int, plant_io_on_bus: bool = False, coupler_sensors: bool = False,
                  babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000,
-                 record_history: bool = False, faults: Any = None, tx_buffers: Any = None) -> None:
+                 record_history: bool = False, faults: Any = None, tx_buffers: Any = None,
+                 clocks: dict[str, Any] | None = None) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.c = decision_offset_s
@@ -93,6 +94,7 @@ class LockstepBusTiming:
         self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history, faults=faults,
                                     tx_buffers=tx_buffers)
         self.faults = faults
+        self.clocks = dict(clocks or {})  # node -> canbrake.bus.clock.EcuClock
         self._next_tick = 0
         self._done: dict[tuple[int, str, int], float] = {}
         self._babble_next = [0] * len(self.babblers)
@@ -101,9 +103,10 @@ class LockstepBusTiming:
     def _submit_tick(self, k: int) -> None:
         t = k * self.dt
         sub = self.model.submit
+        drift = {node: c.offset_s(k) for node, c in self.clocks.items()}
         for s in self.streams:
             if k % s.every_ticks == 0:
-                sub(s.sender, s.arbitration_id, s.is_extended, s.dlc, None, t + s.offset_s,
+                sub(s.sender, s.arbitration_id, s.is_extended, s.dlc, None, t + s.offset_s + drift.get(s.sender, 0.0),
                     tag=(k, s.sender, s.arbitration_id))
         t_end = t + self.dt
         for i, b in enumerate(self.babblers):
@@ -185,9 +188,17 @@ def faults_of(scn: Any) -> Any:
 
 
 def check_faults(scn: Any) -> None:
-    """Bus errors are modelled in simulated time only: refuse them elsewhere (one clear message)."""
+    """Bus errors and ECU clock drift are modelled in simulated time only: refuse them elsewhere,
+    and refuse clocks of cars the train does not have (one clear message, exit 2)."""
     from canbrake.scenario import ScenarioError as InputError
 
+    clocks = getattr(scn.ecu, "clocks", []) or []
+    for c in clocks:
+        if c.car > scn.n_cars:
+            raise InputError(f"ecu.clocks: car {c.car} does not exist (the train has {scn.n_cars} cars)")
+    if clocks and (scn.mode != "lockstep" or scn.bus.timing != "model"):
+        raise InputError("ecu.clocks: clock drift is modelled in simulated time and needs mode: lockstep and "
+                         f"bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
     if faults_of(scn) is None:
         return
     if scn.mode != "lockstep" or scn.bus.timing != "model":
@@ -207,7 +218,19 @@ def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
                              heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
                              plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
                              babblers=_babblers_of(scn), record_history=record_history, faults=faults_of(scn),
-                             tx_buffers=getattr(scn.bus, "tx_buffers", None))
+                             tx_buffers=getattr(scn.bus, "tx_buffers", None), clocks=clocks_of(scn))
+
+
+def clocks_of(scn: Any) -> dict[str, Any]:
+    """``ecu.clocks`` as :class:`~canbrake.bus.clock.EcuClock` per node, seeded from the run seed."""
+    from canbrake.bus.clock import EcuClock
+    from canbrake.bus.impair import derive_seed
+
+    out = {}
+    for c in getattr(scn.ecu, "clocks", []) or []:
+        node = f"ecu{c.car}"
+        out[node] = EcuClock(c, scn.control_period_s, int(derive_seed(scn.seed, "clock", node).generate_state(1)[0]))
+    return out
 
 
 def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
@@ -221,14 +244,20 @@ def message_set(scn: Any) -> list[Any]:
     """The periodic messages of ``scn``'s nominal schedule as :class:`canbrake.bus.rta.CanMessage`
     (names from the scenario's DBC; period = ``every_ticks`` control periods, deadline = period;
     a babbler is a message with period 1/rate_hz). Lockstep barrier frames take no bus time and
-    are not listed."""
+    are not listed. An ECU with a clock (``ecu.clocks``) gets release jitter: its timer jitter
+    plus its phase, or a whole period if it drifts (the send instant slides over the period)."""
     from canbrake.bus.rta import CanMessage
 
     names = {m.frame_id: m.name for m in dbc.build_database(scn.n_cars).messages}
     t = timing_of(scn)
     dt = scn.control_period_s
+    jitter: dict[str, float] = {}
+    for node, clk in t.clocks.items():  # drift slides the send instant over a whole period
+        c = clk.cfg
+        jitter[node] = (dt if c.ppm else c.phase_s) + c.jitter_s
     out = [CanMessage(names.get(s.arbitration_id, f"0x{s.arbitration_id:X}"), s.arbitration_id, s.dlc,
-                      s.every_ticks * dt, is_extended=s.is_extended, sender=s.sender) for s in t.streams]
+                      s.every_ticks * dt, is_extended=s.is_extended, sender=s.sender,
+                      jitter_s=jitter.get(s.sender, 0.0)) for s in t.streams]
     out += [CanMessage(f"BABBLE_{b.sender}_0x{b.arbitration_id:X}", b.arbitration_id, b.dlc, 1.0 / b.rate_hz,
                        is_extended=b.is_extended, sender=b.sender) for b in t.babblers]
     return out
