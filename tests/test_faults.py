@@ -220,3 +220,27 @@ def test_bus_errors_need_the_timing_model(tmp_path) -> None:
     bad = _error_scenario(impairments=[{"type": "faulty_transceiver", "node": "ecu9"}])
     with pytest.raises(ScenarioError, match="ecu9"):
         preflight(bad, "inprocess")
+
+
+@pytest.mark.slow
+def test_bus_statistics_and_bus_plot(tmp_path) -> None:
+    """0.2 s at 5 ms = 40 periods; each ECU sends 40 states + 40 commands + 2 heartbeats (every
+    100 ms): 82 frames / 0.2 s = 410 frames/s; the plant 40 SYNC + 40 REFERENCE + 2 heartbeats +
+    the SYNC that ends the run = 83 frames."""
+    import csv
+
+    from canbrake.run import run_scenario
+
+    s = run_scenario(_error_scenario(), tmp_path, backend="inprocess", plots=True)
+    assert "bus.png" in s["plots"] and (tmp_path / "plots" / "bus.png").stat().st_size > 10_000
+    bl = s["bus_load"]
+    assert bl["frames_per_s_by_sender"]["plant"] == pytest.approx(83 / 0.2)
+    # ecu3 is bus-off part of the time: fewer frames than its peers
+    assert bl["frames_per_s_by_sender"]["ecu1"] == pytest.approx(410)
+    assert bl["frames_per_s_by_sender"]["ecu3"] < 410
+    assert bl["error_frames_per_s"] == pytest.approx(s["can_errors"]["error_frames"] / 0.2)
+    with open(tmp_path / "bus_load.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == s["ticks"]
+    assert sum(int(r["error_frames"]) for r in rows) == s["can_errors"]["error_frames"]
+    assert bl["bus_load_mean"] == pytest.approx(sum(float(r["bus_load"]) for r in rows) / len(rows), rel=1e-4)

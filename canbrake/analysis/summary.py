@@ -165,6 +165,9 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
 
                 try:
                     summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name)
+                    from canbrake.analysis.plots import plot_bus
+
+                    summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
                 except Exception as e:  # noqa: BLE001 - a plotting problem must not lose the run's results
                     summary["plots_error"] = str(e)
     summary["frames"] = {
@@ -179,6 +182,8 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         "peer_values_missing": sum(e.get("peer_missing", 0) for e in ecus),
     }
     summary["bus_load"] = {k: busst.get(k) for k in ("bitrate_bps", "bus_load_mean", "bus_load_peak",
+                                                      "bus_load_peak_window", "bus_load_window_s",
+                                                      "error_frames_per_s", "frames_per_s_by_sender",
                                                       "latency_p50_s", "latency_p99_s", "latency_max_s",
                                                       "latency_model")}
     lat: dict[str, Any] = {}

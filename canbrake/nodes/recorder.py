@@ -93,6 +93,9 @@ class RecorderNode(Node):
         self._bus_free_s = 0.0
         self.frames = 0
         self.frames_by_kind: dict[str, int] = {}
+        self.frames_by_id: dict[int, int] = {}
+        self._frames_per_tick: list[int] = []
+        self._errors_per_tick: list[int] = []
         self._busy_per_tick: list[float] = []
         self._latency: list[float] = []
         self._rt_bits = 0
@@ -115,6 +118,7 @@ class RecorderNode(Node):
         aid = msg.arbitration_id
         kind = self._kind(aid)
         self.frames_by_kind[kind] = self.frames_by_kind.get(kind, 0) + 1
+        self.frames_by_id[aid] = self.frames_by_id.get(aid, 0) + 1
         if self.mode == "realtime":
             self._realtime(msg, now)
             return []
@@ -166,8 +170,11 @@ class RecorderNode(Node):
             out.append(self._stamp(msg, None, t))
         self._bus_free_s = t
         self._busy_per_tick.append(busy / self.dt)
+        self._frames_per_tick.append(sum(1 for f in ordered if not self._untimed(f[1])))
+        n_out = len(out)
         if self.timing is not None:
             out = self._with_errors(out)
+        self._errors_per_tick.append(len(out) - n_out)
         self._write(out)
         self._tick_frames = []
 
@@ -191,6 +198,24 @@ class RecorderNode(Node):
         if not new:
             return out
         return sorted(out + new, key=lambda m: m.timestamp)
+
+    def _write_load_series(self) -> None:
+        """bus_load.csv: per control period the busy fraction, frames and error frames on the bus."""
+        if self.log_path is None or not self._busy_per_tick:
+            return
+        n = len(self._busy_per_tick)
+        with open(self.log_path.parent / "bus_load.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
+            for k in range(n):
+                fr = self._frames_per_tick[k] if k < len(self._frames_per_tick) else ""
+                er = self._errors_per_tick[k] if k < len(self._errors_per_tick) else 0
+                w.writerow([k, f"{k * self.dt:.9g}", f"{self._busy_per_tick[k]:.6g}", fr, er])
+
+    def _windows(self, load: np.ndarray, window_s: float = 0.1) -> list[float]:
+        per = max(1, int(round(window_s / self.dt)))
+        n = len(load) // per
+        return [float(load[i * per:(i + 1) * per].mean()) for i in range(n)] or [float(load.mean())]
 
     def _write_error_states(self) -> None:
         if self.log_path is None or not self._err_rows:
@@ -256,11 +281,31 @@ class RecorderNode(Node):
             "latency_p50_s": float(np.percentile(lat, 50)),
             "latency_p99_s": float(np.percentile(lat, 99)),
             "latency_max_s": float(lat.max()),
+            "bus_load_window_s": 0.1,
+            "bus_load_windows": self._windows(load),
+            "bus_load_peak_window": max(self._windows(load)),
+            "frames_per_s_by_id": {f"0x{aid:03X}": n / max(self.dt * max(len(self._busy_per_tick), 1), 1e-12)
+                                   for aid, n in sorted(self.frames_by_id.items()) if not self._untimed(aid)},
+            "frames_per_s_by_sender": self._fps_by_sender(),
+            "error_frames_per_s": float(sum(self._errors_per_tick)) / max(self.dt * max(len(self._busy_per_tick), 1), 1e-12),
             **({"errors": {**self.timing.faults.summary(self.timing.model.now_s),
                            "error_frames_logged": self.error_frames,
                            "state_codes": {"active": 0, "passive": 1, "bus_off": 2}}}
                if self.timing is not None else {}),
         }
+
+    def _fps_by_sender(self) -> dict[str, float]:
+        """Frames per second by sending node (the DBC's sender of each identifier)."""
+        span = max(self.dt * max(len(self._busy_per_tick), 1), 1e-12)
+        senders = {m.frame_id: (m.senders[0].lower() if m.senders else "other")
+                   for m in dbc.build_database(self.n).messages}
+        out: dict[str, float] = {}
+        for aid, n in self.frames_by_id.items():
+            if self._untimed(aid):
+                continue
+            who = senders.get(aid, "other")
+            out[who] = out.get(who, 0.0) + n / span
+        return dict(sorted(out.items()))
 
     def close(self, status: str = "ok") -> None:
         if self.mode == "lockstep" and not self.finished:
@@ -270,6 +315,7 @@ class RecorderNode(Node):
             self._writer = None
         if self.log_path is not None:
             self._write_error_states()
+            self._write_load_series()
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
             (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
