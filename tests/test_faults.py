@@ -244,3 +244,12 @@ def test_bus_statistics_and_bus_plot(tmp_path) -> None:
     assert len(rows) == s["ticks"]
     assert sum(int(r["error_frames"]) for r in rows) == s["can_errors"]["error_frames"]
     assert bl["bus_load_mean"] == pytest.approx(sum(float(r["bus_load"]) for r in rows) / len(rows), rel=1e-4)
+
+
+def test_recovery_delay_postpones_the_128_x_11_bits() -> None:
+    m, fc = _model(faulty=[FaultyTransceiver("bad", 1.0, stop_s=0.01)], seed=2, recovery_delay_s=0.02)
+    m.submit("bad", 0x050, False, 8, None, 0.0)
+    m.advance(0.05)
+    off = [s for s in fc.changes if s.node == "bad"]
+    assert [s.state for s in off] == ["passive", "bus_off", "active"]
+    assert off[2].t_s - off[1].t_s == pytest.approx(0.02 + 128 * 11 * BIT)

@@ -7,7 +7,8 @@ What happens on the wire when a frame is hit by a bit error (global error: every
   intermission. Bus time of the failed attempt: ``error_bit + 1 + 6 + 8 + 3`` bit times;
 * the frame is **retransmitted automatically**: it re-enters arbitration at once;
 * **fault confinement** per node: transmit and receive error counters (TEC, REC). Rules
-  modelled (ISO 11898-1 §12.1.4 numbering in comments): transmitter error TEC += 8 (rule 3),
+  modelled (rule numbers as in the fault-confinement rules of ISO 11898-1 / Bosch CAN 2.0):
+  transmitter error TEC += 8 (rule 3),
   receiver error REC += 1 (rule 1), successful transmission TEC −= 1 (rule 7), successful
   reception REC −= 1, or back to 119 from above 127 (rule 8). A node is *error-active* with
   both counters ≤ 127, *error-passive* from 128, *bus-off* when TEC > 255; a bus-off node
@@ -16,6 +17,8 @@ What happens on the wire when a frame is hit by a bit error (global error: every
   ends with one (ACK delimiter + EOF + intermission, or error delimiter + intermission), an
   idle bus gives one every 11 bit times — then it restarts error-active with TEC = REC = 0
   (``auto_recovery``; otherwise it stays bus-off, as a controller waiting for its host).
+  ``recovery_delay_s`` models the host's restart delay (e.g. AUTOSAR CanSM's bus-off recovery
+  time): the node only starts counting the 128 sequences that long after going bus-off.
 
 Error sources: a bit error rate on the bus (each bit of each frame flipped independently with
 probability ``ber`` → a frame of n bits is hit with 1 − (1 − ber)^n), and a faulty transceiver
@@ -116,6 +119,8 @@ class NodeCounters:
     n_tx_errors: int = 0
     bus_off_s: float = 0.0          # total time spent bus-off (closed episodes)
     bus_off_since: float = math.nan
+    idle_anchor: float = math.nan   # start of the idle stretch being counted for recovery
+    idle_counted: int = 0
 
 
 @dataclass
@@ -127,14 +132,13 @@ class FaultConfinement:
     seed: int = 0
     auto_recovery: bool = True
     bitrate_bps: float = 500_000.0
+    recovery_delay_s: float = 0.0
 
     def __post_init__(self) -> None:
         self._rng = random.Random(self.seed)
         self.nodes: dict[str, NodeCounters] = {}
         self.events: list[ErrorEvent] = []
         self.changes: list[StateChange] = []
-        self._stretch_start = math.nan
-        self._stretch_counted = 0
 
     # -- nodes ------------------------------------------------------------------------------
     def register(self, node: str) -> NodeCounters:
@@ -215,40 +219,53 @@ class FaultConfinement:
                 self._update(name, r, t_end)
 
     # -- bus-off recovery -------------------------------------------------------------------
-    def _sequences(self, n: int, t_of: "callable") -> None:  # type: ignore[valid-type]
-        if n <= 0:
-            return
-        for name, c in self.nodes.items():
-            if c.state != "bus_off" or not self.auto_recovery:
-                continue
-            need = RECOVERY_SEQUENCES - c.recovery_sequences
-            if n >= need:
-                t = t_of(need)
-                c.tec = c.rec = 0
-                c.recovery_sequences = 0
-                c.bus_off_s += t - c.bus_off_since
-                c.bus_off_since = math.nan
-                c.state = "active"
-                self.changes.append(StateChange(t, name, "active", 0, 0))
-            else:
-                c.recovery_sequences += n
+    def _recover(self, name: str, c: NodeCounters, t: float) -> None:
+        c.tec = c.rec = 0
+        c.recovery_sequences = 0
+        c.bus_off_s += t - c.bus_off_since
+        c.bus_off_since = math.nan
+        c.state = "active"
+        self.changes.append(StateChange(t, name, "active", 0, 0))
+
+    def _monitoring(self, c: NodeCounters, t: float) -> bool:
+        """Is this bus-off node counting recessive sequences at ``t`` (after its restart delay)?"""
+        return (c.state == "bus_off" and self.auto_recovery
+                and t >= c.bus_off_since + self.recovery_delay_s - 1e-12)
 
     def frame_end(self, t_end: float) -> None:
         """A frame or error frame ended at ``t_end``: one sequence of 11 recessive bits."""
-        self._sequences(1, lambda _k: t_end)
+        for name, c in self.nodes.items():
+            if self._monitoring(c, t_end):
+                c.recovery_sequences += 1
+                if c.recovery_sequences >= RECOVERY_SEQUENCES:
+                    self._recover(name, c, t_end)
 
     def idle(self, stretch_start: float, t: float) -> None:
-        """The bus has been idle since ``stretch_start`` (end of the last frame) up to ``t``."""
+        """The bus has been idle since ``stretch_start`` (end of the last frame) up to ``t``:
+        one sequence per 11 bit times, counted from the later of the stretch start and the end
+        of a node's restart delay."""
         if not t > stretch_start or not math.isfinite(stretch_start):
             return
-        if stretch_start != self._stretch_start:
-            self._stretch_start, self._stretch_counted = stretch_start, 0
         seq_s = RECESSIVE_SEQUENCE_BITS / self.bitrate_bps
-        total = int(math.floor((t - stretch_start) / seq_s + 1e-9))
-        n = total - self._stretch_counted
-        base = self._stretch_counted
-        self._stretch_counted = total
-        self._sequences(n, lambda k: stretch_start + (base + k) * seq_s)
+        for name, c in self.nodes.items():
+            if c.state != "bus_off" or not self.auto_recovery:
+                continue
+            a = max(stretch_start, c.bus_off_since + self.recovery_delay_s)
+            if not t > a:
+                continue
+            if c.idle_anchor != a:
+                c.idle_anchor, c.idle_counted = a, 0
+            total = int(math.floor((t - a) / seq_s + 1e-9))
+            n = total - c.idle_counted
+            if n <= 0:
+                continue
+            need = RECOVERY_SEQUENCES - c.recovery_sequences
+            if n >= need:
+                self._recover(name, c, a + (c.idle_counted + need) * seq_s)
+                c.idle_anchor, c.idle_counted = math.nan, 0
+            else:
+                c.recovery_sequences += n
+                c.idle_counted = total
 
     # -- summaries --------------------------------------------------------------------------
     def summary(self, t_now: float) -> dict:

@@ -923,6 +923,8 @@ class BitErrorRateSpec(_SpecBase):
     type: Literal["bit_error_rate"] = "bit_error_rate"
     ber: float = Field(ge=0.0, lt=1.0, description="probability that one bit is corrupted")
     auto_recovery: bool = Field(True, description="bus-off nodes restart after 128 x 11 recessive bits")
+    recovery_delay_s: float = Field(0.0, ge=0.0, description="host restart delay before a bus-off node starts its "
+                                                              "recovery (s; e.g. AUTOSAR CanSM bus-off time)")
 
 
 class FaultyTransceiverSpec(_SpecBase):
@@ -933,6 +935,8 @@ class FaultyTransceiverSpec(_SpecBase):
     node: str = Field(min_length=1, description="the faulty node, e.g. ecu3")
     probability: Probability = Field(1.0, description="probability that a frame it sends is corrupted")
     auto_recovery: bool = Field(True, description="bus-off nodes restart after 128 x 11 recessive bits")
+    recovery_delay_s: float = Field(0.0, ge=0.0, description="host restart delay before a bus-off node starts its "
+                                                              "recovery (s; e.g. AUTOSAR CanSM bus-off time)")
 
 
 #: spec types that act in the timing model's fault confinement, not on a send path

@@ -184,7 +184,8 @@ def faults_of(scn: Any) -> Any:
         bit_errors=[BitErrorSource(s.ber, s.start_s, e) for s, e in zip(specs, stop) if isinstance(s, BitErrorRateSpec)],
         faulty=[FaultyTransceiver(s.node, s.probability, s.start_s, e) for s, e in zip(specs, stop)
                 if isinstance(s, FaultyTransceiverSpec)],
-        seed=seed, auto_recovery=all(s.auto_recovery for s in specs), bitrate_bps=float(scn.bus.bitrate_bps))
+        seed=seed, auto_recovery=all(s.auto_recovery for s in specs), bitrate_bps=float(scn.bus.bitrate_bps),
+        recovery_delay_s=max(s.recovery_delay_s for s in specs))
 
 
 def check_faults(scn: Any) -> None:

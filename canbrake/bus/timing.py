@@ -40,6 +40,8 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 
+from canbrake.bus.faults import ERROR_FRAME_BITS, ErrorEvent
+
 __all__ = [
     "Stuffing",
     "QueuePolicy",
@@ -687,8 +689,6 @@ class BusTimingModel:
     def _attempt(self, p: _Pending, t_start: float, queue: Any) -> None:
         """One transmission attempt under the fault model: success, or an error frame and a
         retransmission (or, if the sender went bus-off, the loss of its whole queue)."""
-        from canbrake.bus.faults import ERROR_FRAME_BITS, ErrorEvent
-
         fc = self.faults
         tk = p.ticket
         ifs = IFS_BITS if self.include_ifs else 0

@@ -12,8 +12,8 @@
   the lowest-priority pending mailbox frame is aborted and put back at the head of the
   software queue to make room.
 
-References: Davis, Kollmann, Pollex, Slomka 2011 (FIFO queues); Khan, Davis, Navet 2010
-("Schedulability analysis of CAN with non-abortable transmission requests").
+References: Davis, Kollmann, Pollex, Slomka 2011 (FIFO queues); Khan, Davis, Navet
+("Schedulability analysis of CAN with non-abortable transmission requests", ETFA).
 """
 from __future__ import annotations
 
