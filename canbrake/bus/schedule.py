@@ -51,44 +51,58 @@ class Stream:
     every_ticks: int = 1
     offset_s: float = 0.0
     is_extended: bool = False
+    name: str = ""
 
 
-def nominal_streams(n_cars: int, *, decision_offset_s: float, heartbeat_every: int,
-                    plant_io_on_bus: bool = False, coupler_sensors: bool = False) -> list[Stream]:
-    """The nominal traffic of one control period, in submission order: SYNC, REFERENCE and the
-    plant's heartbeat at t_k; per car (sensor frames if ``plant_io_on_bus``) STATE and heartbeat
-    at t_k and BRAKE_CMD at the decision instant t_k + ``decision_offset_s``. The timing model
-    (:class:`LockstepBusTiming`) and the response-time analysis (:func:`message_set`) both read it."""
+def nominal_streams(layout: Any, *, decision_offset_s: float, heartbeat_every: int,
+                    plant_io_on_bus: bool = False) -> list[Stream]:
+    """The nominal traffic of one control period, in the layout's identifier order: SYNC,
+    REFERENCE(_POS) and the plant's heartbeat at t_k; per ECU STATE and heartbeat at t_k and its
+    commands at the decision instant t_k + ``decision_offset_s``; sensor frames at t_k if
+    ``plant_io_on_bus``. The timing model (:class:`LockstepBusTiming`) and the response-time
+    analysis (:func:`message_set`) both read it."""
     hb = max(1, heartbeat_every)
-    out = [Stream("plant", dbc.SYNC_ID, 4), Stream("plant", dbc.REFERENCE_ID, 5),
-           Stream("plant", dbc.HEARTBEAT_BASE, 1, hb)]
-    for c in range(1, n_cars + 1):
-        if plant_io_on_bus:
-            if coupler_sensors:
-                out.append(Stream("plant", dbc.COUPLER_BASE + c, 4))
-            out.append(Stream("plant", dbc.SENSOR_BASE + c, 7))
-        ecu = f"ecu{c}"
-        out += [Stream(ecu, dbc.STATE_BASE + c, 8), Stream(ecu, dbc.HEARTBEAT_BASE + c, 1, hb),
-                Stream(ecu, dbc.BRAKE_CMD_BASE + c, 5, 1, decision_offset_s)]
+    out: list[Stream] = []
+    for msg in layout.messages:
+        sender = "plant" if msg.ecu == 0 else layout.by_index[msg.ecu].name
+        s = dict(sender=sender, arbitration_id=msg.frame_id, dlc=msg.length, is_extended=msg.extended, name=msg.name)
+        if msg.kind in ("sync", "reference", "reference_pos") or (msg.kind == "sensor" and plant_io_on_bus):
+            out.append(Stream(**s))
+        elif msg.kind == "heartbeat":
+            out.append(Stream(**s, every_ticks=hb))
+        elif msg.kind == "state":
+            out.append(Stream(**s))
+        elif msg.kind == "cmd":
+            out.append(Stream(**s, offset_s=decision_offset_s))
     return out
 
 
 class LockstepBusTiming:
-    """Replicated deterministic bus timing for lockstep runs (simulated seconds)."""
+    """Replicated deterministic bus timing for lockstep runs (simulated seconds).
 
-    def __init__(self, n_cars: int, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
+    Optional: ``faults`` (:class:`canbrake.bus.faults.FaultConfinement`: error frames,
+    retransmissions, bus-off — a dropped frame's latency is ``math.inf``), ``tx_buffers``
+    (per-node transmit buffers, :mod:`canbrake.bus.txbuffer`), ``clocks`` (node name ->
+    :class:`canbrake.bus.clock.EcuClock`: the node's frames of tick k are queued at its drifting
+    timer instant), ``record_history`` (latency statistics, for ``canbrake analyze``).
+    """
+
+    def __init__(self, layout: Any, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
                  heartbeat_every: int, plant_io_on_bus: bool = False, coupler_sensors: bool = False,
                  babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000,
                  record_history: bool = False, faults: Any = None, tx_buffers: Any = None,
                  clocks: dict[str, Any] | None = None) -> None:
-        self.n = n_cars
+        if isinstance(layout, int):  # a number of cars: Chen's default placement
+            layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=coupler_sensors))
+        self.layout = layout
+        self.n = len(layout.ecus)
         self.dt = dt_s
         self.c = decision_offset_s
         self.hb_every = max(1, heartbeat_every)
         self.plant_io = plant_io_on_bus
         self.coupler_sensors = coupler_sensors
-        self.streams = nominal_streams(n_cars, decision_offset_s=decision_offset_s, heartbeat_every=heartbeat_every,
-                                       plant_io_on_bus=plant_io_on_bus, coupler_sensors=coupler_sensors)
+        self.streams = nominal_streams(layout, decision_offset_s=decision_offset_s, heartbeat_every=heartbeat_every,
+                                       plant_io_on_bus=plant_io_on_bus)
         self.babblers = list(babblers or [])
         self.max_wait_ticks = max_wait_ticks
         self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history, faults=faults,
@@ -139,7 +153,7 @@ class LockstepBusTiming:
             tag = d.tag
             if tag[2] >= 0:
                 self._done[tag] = d.t_end_s
-        if self.faults is not None:  # frames of bus-off nodes never make it to the bus
+        if self.faults is not None or self.model._buffer_cfgs:  # frames of bus-off nodes / full buffers
             for d in self.model.pop_dropped():
                 if d.tag[2] >= 0:
                     self._done[d.tag] = math.inf
@@ -150,7 +164,8 @@ class LockstepBusTiming:
 
     def latency_s(self, k: int, node: str, msg_id: int, t_queue_s: float) -> float:
         """Bus latency (queueing + transmission, s) of ``node``'s frame ``msg_id`` of tick ``k``;
-        ``math.inf`` if it would wait more than ``max_wait_ticks`` periods (starved)."""
+        ``math.inf`` if it would wait more than ``max_wait_ticks`` periods (starved) or never
+        reaches the bus (its node is bus-off, its transmit buffer was full)."""
         key = (k, node, msg_id)
         self._query_tick = max(self._query_tick, k)
         while key not in self._done:
@@ -193,10 +208,13 @@ def check_faults(scn: Any) -> None:
     and refuse clocks of cars the train does not have (one clear message, exit 2)."""
     from canbrake.scenario import ScenarioError as InputError
 
+    from canbrake.build import bus_layout
+
+    layout = bus_layout(scn)
     clocks = getattr(scn.ecu, "clocks", []) or []
     for c in clocks:
-        if c.car > scn.n_cars:
-            raise InputError(f"ecu.clocks: car {c.car} does not exist (the train has {scn.n_cars} cars)")
+        if c.car not in layout.by_index:
+            raise InputError(f"ecu.clocks: car {c.car} has no ECU (ECU indices 1..{len(layout.ecus)})")
     if clocks and (scn.mode != "lockstep" or scn.bus.timing != "model"):
         raise InputError("ecu.clocks: clock drift is modelled in simulated time and needs mode: lockstep and "
                          f"bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
@@ -205,31 +223,37 @@ def check_faults(scn: Any) -> None:
     if scn.mode != "lockstep" or scn.bus.timing != "model":
         raise InputError("bus.impairments: bit_error_rate / faulty_transceiver act in the CAN timing model and need "
                          f"mode: lockstep and bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
-    names = {"plant"} | {f"ecu{c}" for c in range(1, scn.n_cars + 1)} | {b.sender for b in _babblers_of(scn)}
+    names = {"plant"} | {e.name for e in layout.ecus} | {b.sender for b in _babblers_of(scn)}
     for s in scn.bus.impairments:
         if getattr(s, "type", None) == "faulty_transceiver" and s.node not in names:
             raise InputError(f"bus.impairments: faulty_transceiver node {s.node!r} is not a node of this train "
-                             f"(plant, ecu1..ecu{scn.n_cars})")
+                             f"(plant, {', '.join(e.name for e in layout.ecus[:3])}, ...)")
 
 
 def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
     """The nominal-traffic timing model of ``scn``, whatever its mode and ``bus.timing``."""
+    from canbrake.build import bus_layout
+
     dt = scn.control_period_s
-    return LockstepBusTiming(scn.n_cars, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
+    layout = bus_layout(scn)
+    return LockstepBusTiming(layout, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
                              heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
                              plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
                              babblers=_babblers_of(scn), record_history=record_history, faults=faults_of(scn),
-                             tx_buffers=getattr(scn.bus, "tx_buffers", None), clocks=clocks_of(scn))
+                             tx_buffers=getattr(scn.bus, "tx_buffers", None), clocks=clocks_of(scn, layout))
 
 
-def clocks_of(scn: Any) -> dict[str, Any]:
-    """``ecu.clocks`` as :class:`~canbrake.bus.clock.EcuClock` per node, seeded from the run seed."""
+def clocks_of(scn: Any, layout: Any) -> dict[str, Any]:
+    """``ecu.clocks`` as :class:`~canbrake.bus.clock.EcuClock` per ECU node name (``car`` is the
+    ECU's index in the placement), seeded from the run seed."""
     from canbrake.bus.clock import EcuClock
     from canbrake.bus.impair import derive_seed
 
     out = {}
     for c in getattr(scn.ecu, "clocks", []) or []:
-        node = f"ecu{c.car}"
+        if c.car not in layout.by_index:
+            continue  # refused by check_faults before a run
+        node = layout.by_index[c.car].name
         out[node] = EcuClock(c, scn.control_period_s, int(derive_seed(scn.seed, "clock", node).generate_state(1)[0]))
     return out
 
@@ -249,14 +273,13 @@ def message_set(scn: Any) -> list[Any]:
     plus its phase, or a whole period if it drifts (the send instant slides over the period)."""
     from canbrake.bus.rta import CanMessage
 
-    names = {m.frame_id: m.name for m in dbc.build_database(scn.n_cars).messages}
     t = timing_of(scn)
     dt = scn.control_period_s
     jitter: dict[str, float] = {}
     for node, clk in t.clocks.items():  # drift slides the send instant over a whole period
         c = clk.cfg
         jitter[node] = (dt if c.ppm else c.phase_s) + c.jitter_s
-    out = [CanMessage(names.get(s.arbitration_id, f"0x{s.arbitration_id:X}"), s.arbitration_id, s.dlc,
+    out = [CanMessage(s.name or f"0x{s.arbitration_id:X}", s.arbitration_id, s.dlc,
                       s.every_ticks * dt, is_extended=s.is_extended, sender=s.sender,
                       jitter_s=jitter.get(s.sender, 0.0)) for s in t.streams]
     out += [CanMessage(f"BABBLE_{b.sender}_0x{b.arbitration_id:X}", b.arbitration_id, b.dlc, 1.0 / b.rate_hz,
@@ -277,4 +300,6 @@ def fifo_like_nodes(scn: Any, messages: list[Any]) -> list[str]:
 
 def dbc_cycle_times_s(scn: Any) -> dict[int, float]:
     """Cycle times (s) the scenario's DBC declares (``GenMsgCycleTime``), by frame id."""
-    return {m.frame_id: m.cycle_time / 1000.0 for m in dbc.build_database(scn.n_cars).messages if m.cycle_time}
+    from canbrake.build import bus_layout
+
+    return {m.frame_id: m.cycle_ms / 1000.0 for m in bus_layout(scn).messages if m.cycle_ms}

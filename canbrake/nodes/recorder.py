@@ -19,6 +19,9 @@ failed attempt as a python-can error frame (``is_error_frame=True``; SocketCAN e
 layout of ``linux/can/error.h``: protocol violation, controller state, TEC in byte 6 and REC
 in byte 7) stamped with the replica's time of the attempt, and samples each node's error state
 and counters at the end of every control period into ``can_errors.csv``.
+
+Statistics (``bus_stats.json``, ``bus_load.csv``): bus load per control period and per 100 ms
+window, frames per second by identifier and by sender, error frames per second.
 """
 from __future__ import annotations
 
@@ -34,13 +37,18 @@ from canbrake.bus import dbc
 from canbrake.bus.timing import frame_bits
 from canbrake.nodes.base import Node
 
+#: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
+#: 2 their command phase (frames a sender held back are written with the phase of their kind)
+_PHASE = {"sync": 0, "reference": 0, "reference_pos": 0, "sensor": 0, "heartbeat": 1, "state": 1,
+          "state_done": 1, "cmd": 2, "cmd_done": 2}
+_KIND_NAME = {"cmd": "brake_cmd"}
+
 # SocketCAN error frame layout (linux/can/error.h)
 CAN_ERR_FLAG = 0x20000000
 CAN_ERR_CRTL = 0x00000004
 CAN_ERR_PROT = 0x00000008
 CAN_ERR_BUSOFF = 0x00000040
 CAN_ERR_CNT = 0x00000200
-CAN_ERR_CRTL_RX_PASSIVE = 0x10
 CAN_ERR_CRTL_TX_PASSIVE = 0x20
 CAN_ERR_PROT_BIT = 0x01
 
@@ -59,13 +67,11 @@ def error_frame(event: Any, t_s: float, channel: str, rec: int = 0) -> can.Messa
                        data=data, channel=channel, is_rx=True)
 
 
-def _is_plant_frame(aid: int, n: int) -> bool:
-    return (aid in (dbc.SYNC_ID, dbc.REFERENCE_ID, dbc.HEARTBEAT_BASE)
-            or dbc.SENSOR_BASE < aid <= dbc.SENSOR_BASE + n or dbc.COUPLER_BASE < aid <= dbc.COUPLER_BASE + n)
-
-
-def is_sim_control(aid: int) -> bool:
+def is_sim_control(aid: int, layout: Any = None) -> bool:
     """True for the lockstep barrier frames (STATE_DONE/CMD_DONE), which carry no train data."""
+    if layout is not None:
+        m = layout.by_id.get(aid)
+        return m is not None and m.kind in ("state_done", "cmd_done")
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
 
 
@@ -74,10 +80,13 @@ class RecorderNode(Node):
 
     name = "recorder"
 
-    def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
+    def __init__(self, layout: Any, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
                  plant_io_on_bus: bool = False, barrier: bool = True, bus_timing: Any = None) -> None:
-        self.n = n_cars
+        if isinstance(layout, int):  # a number of cars: Chen's default placement
+            layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
+        self.layout = layout
+        self._kinds = {m.frame_id: m.kind for m in layout.messages}
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
         self.mode = mode
@@ -89,22 +98,21 @@ class RecorderNode(Node):
         self._writer: can.Listener | None = None
         self._k = -1
         self._tick_frames: list[can.Message] = []
-        self._done_seen = 0
         self._bus_free_s = 0.0
         self.frames = 0
         self.frames_by_kind: dict[str, int] = {}
-        self.frames_by_id: dict[int, int] = {}
-        self._frames_per_tick: list[int] = []
-        self._errors_per_tick: list[int] = []
         self._busy_per_tick: list[float] = []
         self._latency: list[float] = []
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
+        self.frames_by_id: dict[int, int] = {}
+        self._frames_per_tick: list[int] = []
+        self._errors_per_tick: list[int] = []
         # bus errors: own replica of the timing model (canbrake.bus.schedule.LockstepBusTiming)
         self.timing = bus_timing if bus_timing is not None and getattr(bus_timing, "faults", None) else None
         self._ev_i = 0
         self.error_frames = 0
-        self._err_nodes = ["plant"] + [f"ecu{c}" for c in range(1, n_cars + 1)]
+        self._err_nodes = ["plant"] + [e.name for e in layout.ecus]
         self._err_rows: list[list[int]] = []
 
     def start(self, now: float) -> list[can.Message]:
@@ -116,8 +124,9 @@ class RecorderNode(Node):
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         self.frames += 1
         aid = msg.arbitration_id
-        kind = self._kind(aid)
-        self.frames_by_kind[kind] = self.frames_by_kind.get(kind, 0) + 1
+        kind = self._kinds.get(aid, "other") if not msg.is_error_frame else "error"
+        name = _KIND_NAME.get(kind, kind)
+        self.frames_by_kind[name] = self.frames_by_kind.get(name, 0) + 1
         self.frames_by_id[aid] = self.frames_by_id.get(aid, 0) + 1
         if self.mode == "realtime":
             self._realtime(msg, now)
@@ -130,27 +139,9 @@ class RecorderNode(Node):
                 self.finished = True
                 return []
             self._k = tick
-            self._done_seen = 0
-        # phase: 0 plant frames, 1 until the last STATE_DONE of the tick, 2 after it
-        marker = dbc.STATE_DONE_BASE if self.barrier else dbc.STATE_BASE
-        if marker < aid <= marker + self.n:
-            self._done_seen += 1
-            phase = 1
-        elif self._done_seen >= self.n:
-            phase = 2
-        else:
-            phase = 0 if _is_plant_frame(aid, self.n) else 1
+        phase = 0 if aid == dbc.HEARTBEAT_BASE and not msg.is_extended_id else _PHASE.get(kind, 1)
         self._tick_frames.append((phase, aid, bytes(msg.data), msg))  # type: ignore[arg-type]
         return []
-
-    def _kind(self, aid: int) -> str:
-        for base, kind in ((dbc.CMD_DONE_BASE, "cmd_done"), (dbc.STATE_DONE_BASE, "state_done"),
-                           (dbc.HEARTBEAT_BASE, "heartbeat"), (dbc.STATE_BASE, "state"),
-                           (dbc.COUPLER_BASE, "coupler"), (dbc.SENSOR_BASE, "sensor"),
-                           (dbc.BRAKE_CMD_BASE, "brake_cmd")):
-            if base <= aid <= base + self.n:
-                return kind
-        return {dbc.SYNC_ID: "sync", dbc.REFERENCE_ID: "reference"}.get(aid, "other")
 
     def _flush_tick(self) -> None:
         if self._k < 0 or not self._tick_frames:
@@ -199,35 +190,52 @@ class RecorderNode(Node):
             return out
         return sorted(out + new, key=lambda m: m.timestamp)
 
-    def _write_load_series(self) -> None:
-        """bus_load.csv: per control period the busy fraction, frames and error frames on the bus."""
-        if self.log_path is None or not self._busy_per_tick:
-            return
-        n = len(self._busy_per_tick)
-        with open(self.log_path.parent / "bus_load.csv", "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
-            for k in range(n):
-                fr = self._frames_per_tick[k] if k < len(self._frames_per_tick) else ""
-                er = self._errors_per_tick[k] if k < len(self._errors_per_tick) else 0
-                w.writerow([k, f"{k * self.dt:.9g}", f"{self._busy_per_tick[k]:.6g}", fr, er])
-
-    def _windows(self, load: np.ndarray, window_s: float = 0.1) -> list[float]:
-        per = max(1, int(round(window_s / self.dt)))
-        n = len(load) // per
-        return [float(load[i * per:(i + 1) * per].mean()) for i in range(n)] or [float(load.mean())]
+    def _col_suffix(self, name: str) -> str:
+        """Column suffix of a node: ``plant``, ``c3`` for the default ECU of car 3, else its name."""
+        if name == "plant":
+            return "plant"
+        e = next((e for e in self.layout.ecus if e.name == name), None)
+        return e.tag.lower() if e is not None else name
 
     def _write_error_states(self) -> None:
         if self.log_path is None or not self._err_rows:
             return
         header = ["tick"]
         for name in self._err_nodes:
-            sfx = "plant" if name == "plant" else f"c{name[3:]}"
+            sfx = self._col_suffix(name)
             header += [f"can_state_{sfx}", f"tec_{sfx}", f"rec_{sfx}"]
         with open(self.log_path.parent / "can_errors.csv", "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(header)
             w.writerows(self._err_rows)
+
+    def _write_load_series(self) -> None:
+        """bus_load.csv: per control period the busy fraction, frames and error frames on the bus."""
+        if self.log_path is None or not self._busy_per_tick:
+            return
+        with open(self.log_path.parent / "bus_load.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
+            for k, load in enumerate(self._busy_per_tick):
+                fr = self._frames_per_tick[k] if k < len(self._frames_per_tick) else ""
+                er = self._errors_per_tick[k] if k < len(self._errors_per_tick) else 0
+                w.writerow([k, f"{k * self.dt:.9g}", f"{load:.6g}", fr, er])
+
+    def _windows(self, load: np.ndarray, window_s: float = 0.1) -> list[float]:
+        per = max(1, int(round(window_s / self.dt)))
+        n = len(load) // per
+        return [float(load[i * per:(i + 1) * per].mean()) for i in range(n)] or [float(load.mean())]
+
+    def _fps_by_sender(self, span: float) -> dict[str, float]:
+        """Frames per second by sending node (the layout's sender of each identifier)."""
+        out: dict[str, float] = {}
+        for aid, n in self.frames_by_id.items():
+            if self._untimed(aid):
+                continue
+            m = self.layout.by_id.get(aid)
+            who = "other" if m is None else ("plant" if m.ecu == 0 else self.layout.by_index[m.ecu].name)
+            out[who] = out.get(who, 0.0) + n / span
+        return dict(sorted(out.items()))
 
     def _stamp(self, msg: can.Message, tick: int | None, t_s: float) -> can.Message:
         if tick is not None:
@@ -255,10 +263,10 @@ class RecorderNode(Node):
     def _untimed(self, aid: int) -> bool:
         """Frames that take no bus time in the accounting: barrier frames, and the plant's sensor
         frames unless they are declared bus traffic (they stand in for local wiring)."""
-        if is_sim_control(aid):
+        kind = self._kinds.get(aid)
+        if kind in ("state_done", "cmd_done"):
             return True
-        return not self.plant_io_on_bus and (dbc.SENSOR_BASE < aid <= dbc.SENSOR_BASE + self.n
-                                             or dbc.COUPLER_BASE < aid <= dbc.COUPLER_BASE + self.n)
+        return not self.plant_io_on_bus and kind == "sensor"
 
     def _write(self, msgs: list[can.Message]) -> None:
         if self._writer is not None:
@@ -269,6 +277,7 @@ class RecorderNode(Node):
     def bus_stats(self) -> dict:
         load = np.asarray(self._busy_per_tick) if self._busy_per_tick else np.zeros(1)
         lat = np.asarray(self._latency) if self._latency else np.zeros(1)
+        span = max(self.dt * max(len(self._busy_per_tick), 1), 1e-12)
         return {
             "frames": self.frames,
             "frames_by_kind": self.frames_by_kind,
@@ -284,28 +293,15 @@ class RecorderNode(Node):
             "bus_load_window_s": 0.1,
             "bus_load_windows": self._windows(load),
             "bus_load_peak_window": max(self._windows(load)),
-            "frames_per_s_by_id": {f"0x{aid:03X}": n / max(self.dt * max(len(self._busy_per_tick), 1), 1e-12)
-                                   for aid, n in sorted(self.frames_by_id.items()) if not self._untimed(aid)},
-            "frames_per_s_by_sender": self._fps_by_sender(),
-            "error_frames_per_s": float(sum(self._errors_per_tick)) / max(self.dt * max(len(self._busy_per_tick), 1), 1e-12),
+            "frames_per_s_by_id": {f"0x{aid:03X}": n / span for aid, n in sorted(self.frames_by_id.items())
+                                   if not self._untimed(aid)},
+            "frames_per_s_by_sender": self._fps_by_sender(span),
+            "error_frames_per_s": float(sum(self._errors_per_tick)) / span,
             **({"errors": {**self.timing.faults.summary(self.timing.model.now_s),
                            "error_frames_logged": self.error_frames,
                            "state_codes": {"active": 0, "passive": 1, "bus_off": 2}}}
                if self.timing is not None else {}),
         }
-
-    def _fps_by_sender(self) -> dict[str, float]:
-        """Frames per second by sending node (the DBC's sender of each identifier)."""
-        span = max(self.dt * max(len(self._busy_per_tick), 1), 1e-12)
-        senders = {m.frame_id: (m.senders[0].lower() if m.senders else "other")
-                   for m in dbc.build_database(self.n).messages}
-        out: dict[str, float] = {}
-        for aid, n in self.frames_by_id.items():
-            if self._untimed(aid):
-                continue
-            who = senders.get(aid, "other")
-            out[who] = out.get(who, 0.0) + n / span
-        return dict(sorted(out.items()))
 
     def close(self, status: str = "ok") -> None:
         if self.mode == "lockstep" and not self.finished:
