@@ -90,7 +90,13 @@ def _cmd(a: argparse.Namespace) -> int:
 
     scn = load_scenario(a.scenario, profile=a.profile, overrides=_parse_set(a.set or []))
     ticks = a.ticks if a.ticks is not None else min(scn.n_ticks, 2000)
-    out = analyze_scenario(scn, method=a.method, sim_ticks=max(0, ticks))
+    from canbrake.control.base import ControllerError
+    from canbrake.errors import InputError
+
+    try:
+        out = analyze_scenario(scn, method=a.method, sim_ticks=max(0, ticks))
+    except ControllerError as e:  # the bus layout needs each ECU's controller class
+        raise InputError(f"{a.scenario}: {e}") from None
     print(format_table(out))
     if a.json:
         Path(a.json).write_text(json.dumps(out, indent=1))

@@ -29,19 +29,20 @@ def test_timer_jitter_is_bounded_and_seeded() -> None:
 
 
 def test_a_drifting_ecu_state_frame_slides_out_of_the_arbitration_window() -> None:
-    """1 car, 5 ms, 500 kbit/s: SYNC (95 bits, 0-190 us) and REFERENCE (105 bits, 190-400 us) at
-    t_k; ecu1's STATE (135 bits = 270 us) queued at t_k + 10 us x k. While its offset is below
-    400 us it waits for the plant's frames and ends at 670 us; afterwards it starts at its offset."""
-    t = LockstepBusTiming(1, 0.005, 500_000, decision_offset_s=0.0025, heartbeat_every=1000,
+    """2 cars, 5 ms, 500 kbit/s: SYNC (95 bits, 0-190 us), REFERENCE (105 bits, 190-400 us) and
+    STATE_C2 (135 bits = 270 us) at t_k; ecu1's STATE_C1 (0x141, beats 0x142) queued at
+    t_k + 10 us x k. While its offset is at most 400 us it goes first after REFERENCE and ends at
+    670 us; from 410 us on STATE_C2 has taken the bus at 400 us (no pre-emption) and STATE_C1
+    ends at 670 + 270 = 940 us, until its offset passes 670 us and it starts at its offset."""
+    t = LockstepBusTiming(2, 0.005, 500_000, decision_offset_s=0.0025, heartbeat_every=1000,
                           clocks={"ecu1": EcuClock(ClockConfig(car=1, ppm=-2000), 0.005)})
-    lat = {k: t.latency_s(k, "ecu1", dbc.STATE_BASE + 1, k * 0.005) for k in (1, 10, 39, 41, 60, 499, 500)}
-    assert lat[1] == pytest.approx(670 * US) and lat[10] == pytest.approx(670 * US)
-    assert lat[39] == pytest.approx(670 * US)  # offset 390 us, still waits
-    assert lat[41] == pytest.approx(410 * US + 270 * US)
-    assert lat[60] == pytest.approx(600 * US + 270 * US)
+    lat = {k: t.latency_s(k, "ecu1", dbc.STATE_BASE + 1, k * 0.005) for k in (1, 10, 39, 40, 41, 60, 70, 499, 500)}
+    assert [lat[k] for k in (1, 10, 39, 40)] == pytest.approx([670 * US] * 4)
+    assert lat[41] == pytest.approx(940 * US) and lat[60] == pytest.approx(940 * US)
+    assert lat[70] == pytest.approx(700 * US + 270 * US)
     assert lat[499] == pytest.approx(4990 * US + 270 * US)
     # wrapped: tick 499's state ends 260 us into tick 500 (no pre-emption), then SYNC 260-450,
-    # REFERENCE 450-660 and tick 500's state 660-930 us
+    # REFERENCE 450-660 and tick 500's STATE_C1 660-930 us
     assert lat[500] == pytest.approx(930 * US)
 
 

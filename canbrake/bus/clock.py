@@ -11,7 +11,8 @@ for tick k are queued at ``t_k + offset_i(k)`` with
 ``offset_i(k) = (phase_s − k·T·ppm·1e-6) mod T + U[0, jitter_s)``, the controller's data still
 sampled at t_k. The extra queueing shows up as latency: a state frame whose offset passes the
 lockstep deadline c·T is used one tick late, so periodic frames of different ECUs slide against
-each other, in and out of the deadline window and of each other's arbitration.
+each other, in and out of the deadline window and of each other's arbitration. A fast clock
+(``ppm > 0``) with ``phase_s = 0`` starts just below a whole period late and slides earlier.
 
 Limits: the data are not resampled at the ECU's own instant, slips do not skip or double a
 control step (the ECU still computes once per plant tick), and realtime runs use the host clock.
