@@ -21,7 +21,8 @@ US = 1e-6
 
 
 # --------------------------------------------------------------------------------------------
-# the example of Davis et al. 2007, section 3, where the original analysis is optimistic
+# a three-message example of the kind Davis et al. 2007 use in section 3 to show that the
+# original analysis is optimistic (parameters ours, worked by hand below)
 #
 # 125 kbit/s (tau_bit = 8 us); three 7-byte standard frames: worst case 34 + 56 = 90 stuffable
 # bits + 13 + (90 - 1)//4 = 22 stuff bits = 125 bits = 1 ms each. Priority A > B > C.

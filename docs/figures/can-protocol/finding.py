@@ -57,7 +57,7 @@ def main(runs: Path) -> None:
         with open(out / "signals.csv") as f:
             cols = list(csv.DictReader(f))
         traces[label] = {k: np.array([float(r[k]) if r.get(k) not in ("", None) else np.nan for r in cols])
-                         for k in ("t_s", "deflection_m_k2", "deflection_m_k3", "speed_mps_c3", "brake_applied_n_c3",
+                         for k in ("t_s", "deflection_m_k2", "deflection_m_k4", "speed_mps_c3", "brake_applied_n_c3",
                                    "can_state_c3")
                          if k in cols[0]}
     head = ["variant", "max abs deflection (cm)", "max coupler force (kN)", "max speed error after conv. (km/h)",
@@ -65,16 +65,18 @@ def main(runs: Path) -> None:
             "ecu3 bus-off time (s)", "commands missed", "peer values missing", "fail-safe car-ticks"]
     table = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
     (HERE / "table.md").write_text("\n".join(table) + "\n")
-    fig, axes = plt.subplots(3, 1, figsize=(9, 9), sharex=True)
+    fig, axes = plt.subplots(4, 1, figsize=(9, 11), sharex=True)
     for i, (label, tr) in enumerate(traces.items()):
         t = tr["t_s"]
-        axes[0].plot(t, tr["deflection_m_k2"] * 100, lw=1, color=f"C{i}", label=label)
-        axes[1].plot(t, tr["brake_applied_n_c3"] / 1000, lw=1, color=f"C{i}", label=label)
+        axes[0].plot(t, tr["deflection_m_k4"] * 100, lw=1, color=f"C{i}", label=label)
+        axes[1].plot(t, tr["deflection_m_k2"] * 100, lw=1, color=f"C{i}", label=label)
+        axes[2].plot(t, tr["brake_applied_n_c3"] / 1000, lw=1, color=f"C{i}", label=label)
         if "can_state_c3" in tr:
-            axes[2].step(t, tr["can_state_c3"] + 0.03 * i, where="post", lw=1, color=f"C{i}", label=label)
-    axes[0].set(ylabel="coupler 2-3 deflection (cm)", title="car 3's ECU drifts into bus-off (2-5 s) and recovers")
-    axes[1].set(ylabel="car 3 applied brake force (kN)")
-    axes[2].set(ylabel="ecu3 CAN state", xlabel="time (s)", yticks=[0, 1, 2],
+            axes[3].step(t, tr["can_state_c3"] + 0.03 * i, where="post", lw=1, color=f"C{i}", label=label)
+    axes[0].set(ylabel="coupler 4-5 deflection (cm)", title="car 3's ECU drifts into bus-off (2-5 s) and recovers")
+    axes[1].set(ylabel="coupler 2-3 deflection (cm)")
+    axes[2].set(ylabel="car 3 applied brake force (kN)")
+    axes[3].set(ylabel="ecu3 CAN state", xlabel="time (s)", yticks=[0, 1, 2],
                 yticklabels=["active", "passive", "bus-off"])
     for ax in axes:
         ax.grid(alpha=0.3)
