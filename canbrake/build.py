@@ -151,7 +151,10 @@ def failsafe_of(scn: Scenario) -> Any:
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
                progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build") -> Node:
     """One node of the run: ``role`` is "plant", "ecu" (with ``car``) or "recorder"."""
-    codec = codec or FrameCodec(dbc.build_database(scn.n_cars))
+    from canbrake.bus.secoc import build_database, secoc_of
+
+    codec = codec or FrameCodec(build_database(scn))
+    secoc = secoc_of(scn)  # None unless `security:` is set
     if role == "plant":
         from canbrake.nodes.plant import PlantNode
 
@@ -159,7 +162,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                          coupler_sensors=scn.plant.coupler_sensors, heartbeat_period_s=scn.ecu.heartbeat_period_s,
                          out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
-                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn))
+                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn), secoc=secoc)
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 
@@ -173,13 +176,14 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
                        lockstep_deadline=scn.ecu.lockstep_deadline,
+                       secoc=secoc, peer_hold_periods=scn.safety.peer_hold_periods,
                        crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
                                       if scn.ecu.crash is not None and scn.ecu.crash.car == car else None))
     if role == "recorder":
         from canbrake.nodes.recorder import RecorderNode
 
         return RecorderNode(scn.n_cars, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
-                            plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn),
+                            plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn), secoc=secoc,
                             log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
     raise ValueError(f"unknown node role {role!r}")
 
@@ -188,7 +192,9 @@ def build_nodes(scn: Scenario, run_dir: Path | None, channel: str = "can0") -> l
     """Every node of a run, plant last (it starts the first tick)."""
     from canbrake.bus.schedule import build_bus_timing
 
-    codec = FrameCodec(dbc.build_database(scn.n_cars))
+    from canbrake.bus.secoc import build_database
+
+    codec = FrameCodec(build_database(scn))
     timing = build_bus_timing(scn)  # one replica serves every node of an in-process run
     nodes: list[Node] = [build_node(scn, "recorder", run_dir=run_dir, channel=channel, codec=codec)]
     nodes += [build_node(scn, "ecu", car=c, run_dir=run_dir, codec=codec, bus_timing=timing)

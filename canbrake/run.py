@@ -114,7 +114,9 @@ def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | N
         check_dbc_matches(scn, dbc_path)
         (out / "canbrake.dbc").write_text(Path(dbc_path).read_text())
     else:
-        dbc.write_dbc(scn.n_cars, out / "canbrake.dbc")
+        from canbrake.bus.secoc import build_database
+
+        (out / "canbrake.dbc").write_text(build_database(scn).as_dbc_string())
     (out / "scenario.yaml").write_text(scn.to_yaml())
     (out / "plots").mkdir(exist_ok=True)
     return out
@@ -134,7 +136,9 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
     n = dbc.n_cars_of(db)
     if n != scn.n_cars:
         raise ScenarioError(f"{p}: the DBC describes {n} cars but the scenario has {scn.n_cars} (train.mass_kg)")
-    ref = dbc.build_database(scn.n_cars)
+    from canbrake.bus.secoc import build_database
+
+    ref = build_database(scn)
     for m in ref.messages:
         try:
             got = db.get_message_by_frame_id(m.frame_id)
@@ -405,6 +409,13 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
     try:
         choice = choose_bus(scn, backend, channel, interface)
         check_buildable(scn)
+        if scn.security is not None:
+            from canbrake.bus.secoc import KeyFileError, load_key
+
+            try:
+                load_key(scn.security.key_file)
+            except KeyFileError as e:
+                raise ScenarioError(f"security.key_file: {e}") from None
         if choice.backend == "socketcan" and choice.interface == "socketcan":
             from canbrake.bus.vcan import VcanError, check_socketcan_channel
 

@@ -19,7 +19,8 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
-from canbrake.bus.e2e import COUNTER_MODULO, counter_of, e2e_crc
+from canbrake.bus.e2e import COUNTER_MODULO
+from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.control.base import Controller, Observation
 from canbrake.nodes.base import CsvTrace, Node, PassThrough, SendPath, exact_filter, frame
 
@@ -35,6 +36,9 @@ class EcuStats:
     frames_starved: int = 0      # timing model: frames that never won arbitration
     status: str = "running"
     bus_latency: dict = field(default_factory=dict)  # timing model: per kind p50/p99/max (s)
+    guard: dict = field(default_factory=dict)    # canbrake.bus.guard: rejected frames by reason
+    fallback_entries: int = 0    # times peers were lost (older than safety.peer_hold_periods)
+    fallback_ticks: int = 0      # ticks computed on own sensors with at least one peer dropped
 
 
 def _kind(aid: int) -> str:
@@ -54,7 +58,8 @@ class EcuNode(Node):
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
                  crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
-                 barrier: bool = True, rx_path: Any = None) -> None:
+                 barrier: bool = True, rx_path: Any = None, secoc: Any = None,
+                 peer_hold_periods: int | None = None) -> None:
         self.car = car
         self.i = car - 1
         self.n = n_cars
@@ -77,6 +82,11 @@ class EcuNode(Node):
         self.barrier = barrier
         # per-link impairments on what this ECU receives (canbrake.bus.impair.SendPath, direction rx)
         self.rx_path = rx_path
+        # receiver checks (E2E, SecOC, protocol) and the peer-loss fallback (canbrake.bus.guard)
+        self.secoc = secoc
+        self.guard = FrameGuard(secoc)
+        self.peer_hold_periods = peer_hold_periods
+        self._in_fallback = False
         self._latency: dict[str, list[float]] = {}
         self._t0_wall: float | None = None
         self.k = -1
@@ -121,11 +131,14 @@ class EcuNode(Node):
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
         if aid == dbc.SYNC_ID:
-            tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
-            if tick == dbc.SYNC_END_TICK:
+            verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
+                                   tick_complete=self.phase == 2 or self.k < 0)
+            if verdict is None:
+                return []
+            if verdict == "end":
                 self.finished = True
                 return []
-            self.k = int(tick)
+            self.k = int(self.codec.by_id[aid].decode(msg.data)["Tick"])
             self.phase = 0
             self._done = 1 << self.i
             return []
@@ -154,7 +167,9 @@ class EcuNode(Node):
             return []
         if dbc.STATE_DONE_BASE < aid <= dbc.STATE_DONE_BASE + self.n:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
-            if tick == (self.k & 0xFFFF):
+            if tick != (self.k & 0xFFFF):
+                self.guard.reject("sync")
+            elif self.guard.control(aid, msg.data, self.k):
                 self._done |= 1 << (aid - dbc.STATE_DONE_BASE - 1)
                 if self.phase == 1 and self._done == self._all_done:
                     return self._phase2(now)
@@ -178,14 +193,12 @@ class EcuNode(Node):
 
     def _on_state(self, j: int, msg: can.Message) -> bool:
         """Take a peer's state frame; True if it is this tick's."""
-        data = msg.data
-        if len(data) < 2 or data[0] != e2e_crc(msg.arbitration_id, data):
-            self.stats.peer_corrupted += 1
-            return False
-        lag = (self.k - counter_of(msg.data)) % COUNTER_MODULO
-        origin = self.k - lag
-        if origin <= self.peer_origin[j]:
-            self.stats.peer_stale_or_duplicate += 1
+        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, int(self.peer_origin[j]))
+        if origin is None:
+            if self.guard.last_reason == "crc":
+                self.stats.peer_corrupted += 1
+            else:
+                self.stats.peer_stale_or_duplicate += 1
             return False
         d = self.codec.by_id[msg.arbitration_id].decode(msg.data)
         self.peer_speed[j], self.peer_pos[j], self.peer_origin[j] = d["Speed"], d["Position"], origin
@@ -230,7 +243,8 @@ class EcuNode(Node):
         self._emit(frame(dbc.STATE_BASE + self.car, state), t, out)
         out += self.send_path.release(horizon)
         if self.barrier:
-            out.append(frame(dbc.STATE_DONE_BASE + self.car, self._sdone.encode({"Tick": self.k & 0xFFFF})))
+            sid = dbc.STATE_DONE_BASE + self.car
+            out.append(frame(sid, sign_control(self.secoc, sid, self._sdone.encode({"Tick": self.k & 0xFFFF}), self.k)))
         self.phase = 1
         if self.mode == "realtime":
             self._deadline = now + self.compute_deadline * self.dt
@@ -248,6 +262,8 @@ class EcuNode(Node):
         speed[self.i], pos[self.i] = self.speed, self.position
         origin = self.peer_origin.copy()
         origin[self.i] = self.k
+        if self.peer_hold_periods is not None:
+            self._peer_fallback(origin, speed, pos)
         age = np.where(np.isnan(speed), np.inf, (self.k - origin) * self.dt)
         fresh = int((origin == self.k).sum())
         self.stats.peer_missing += self.n - fresh
@@ -257,12 +273,14 @@ class EcuNode(Node):
                           deflection_rear_m=self.defl_rear)
         result = self.controller.step(obs)
         out: list[can.Message] = []
-        cmd = self._cmd_codec.encode({"Status": 0, "BrakeForce": result.brake_force_n},
+        cmd = self._cmd_codec.encode({"Status": 1 if self._in_fallback else 0, "BrakeForce": result.brake_force_n},
                                      counter=self.k % COUNTER_MODULO)
-        self._emit(frame(dbc.BRAKE_CMD_BASE + self.car, cmd), t, out)
+        cid = dbc.BRAKE_CMD_BASE + self.car
+        self._emit(frame(cid, sign_protected(self.secoc, cid, cmd, self.k)), t, out)
         out += self.send_path.release(horizon)
         if self.barrier:
-            out.append(frame(dbc.CMD_DONE_BASE + self.car, self._cdone.encode({"Tick": self.k & 0xFFFF})))
+            did = dbc.CMD_DONE_BASE + self.car
+            out.append(frame(did, sign_control(self.secoc, did, self._cdone.encode({"Tick": self.k & 0xFFFF}), self.k)))
         self.stats.ticks += 1
         if self._trace is not None:
             finite_age = age[np.isfinite(age)]
@@ -270,6 +288,19 @@ class EcuNode(Node):
                                 *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
                                 float(finite_age.max()) if finite_age.size else np.inf, fresh])
         return out
+
+    def _peer_fallback(self, origin: np.ndarray, speed: np.ndarray, pos: np.ndarray) -> None:
+        """Peers whose newest value is older than ``peer_hold_periods`` are dropped (NaN: the
+        controller runs on its own sensors for them); counts entries and ticks in fallback."""
+        lost = (self.k - origin) > self.peer_hold_periods
+        lost[self.i] = False
+        speed[lost] = np.nan
+        pos[lost] = np.nan
+        now = bool(lost.any())
+        if now and not self._in_fallback:
+            self.stats.fallback_entries += 1
+        self.stats.fallback_ticks += int(now)
+        self._in_fallback = now
 
     # ---------------------------------------------------------------- realtime
     def next_deadline(self) -> float | None:
@@ -286,6 +317,7 @@ class EcuNode(Node):
         if self._trace is not None:
             self._trace.close()
         self.stats.status = "ok" if self.finished else status
+        self.stats.guard = self.guard.stats()
         for kind, vals in self._latency.items():
             a = np.asarray(vals)
             fin = a[np.isfinite(a)]

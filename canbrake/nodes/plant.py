@@ -16,7 +16,8 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
-from canbrake.bus.e2e import E2EReceiver, E2EStatus, counter_of
+from canbrake.bus.e2e import E2EReceiver, E2EStatus
+from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.nodes.base import CsvTrace, Node, exact_filter, frame
 
 
@@ -63,6 +64,7 @@ class PlantStats:
     failsafe_first_s: dict[str, float] = field(default_factory=dict)  # car -> first activation (s)
     status: str = "running"
     extra: dict[str, float] = field(default_factory=dict)
+    guard: dict = field(default_factory=dict)  # canbrake.bus.guard: rejected frames by reason
 
 
 class PlantNode(Node):
@@ -74,7 +76,7 @@ class PlantNode(Node):
                  reference: Reference, mode: str = "lockstep", coupler_sensors: bool = False,
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
                  flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None,
-                 barrier: bool = True, failsafe: FailSafe | None = None) -> None:
+                 barrier: bool = True, failsafe: FailSafe | None = None, secoc: Any = None) -> None:
         self.model = model
         self.codec = codec
         self.n = model.n_cars
@@ -100,6 +102,10 @@ class PlantNode(Node):
         self._e2e = [E2EReceiver(dbc.BRAKE_CMD_BASE + c) for c in range(1, self.n + 1)]
         self._last_counter = [-1] * self.n  # tick of each car's newest accepted command
         self.failsafe = failsafe
+        # brake-unit receive checks (E2E window of 7 periods, SecOC) and rejection counters
+        self.secoc = secoc
+        self.guard = FrameGuard(secoc, max_lag=7)
+        self._last_sync_k = -1
         self._in_failsafe = np.zeros(self.n, dtype=bool)
         self._sync = codec["SYNC"]
         self._ref = codec["REFERENCE"]
@@ -116,6 +122,8 @@ class PlantNode(Node):
         ids = [dbc.BRAKE_CMD_BASE + c for c in range(1, self.n + 1)]
         if self.barrier:
             ids += [dbc.CMD_DONE_BASE + c for c in range(1, self.n + 1)]
+        # brake commands of cars this train does not have: counted as frames of unknown senders
+        ids += [dbc.BRAKE_CMD_BASE + c for c in range(self.n + 1, dbc.MAX_CARS + 1)]
         return [exact_filter(i) for i in ids]
 
     def _tick_frames(self) -> list[can.Message]:
@@ -123,7 +131,8 @@ class PlantNode(Node):
         t = k * self.dt
         meas = self.model.measurements()
         v_ref, a_ref = self.reference(t)
-        out = [frame(dbc.SYNC_ID, self._sync.encode({"Tick": k})),
+        self._last_sync_k = k
+        out = [frame(dbc.SYNC_ID, sign_control(self.secoc, dbc.SYNC_ID, self._sync.encode({"Tick": k}), k)),
                frame(dbc.REFERENCE_ID, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
         if k % self.heartbeat_every == 0:
             out.append(frame(dbc.HEARTBEAT_BASE, self._hb.encode({"NodeState": 5})))
@@ -142,7 +151,8 @@ class PlantNode(Node):
         return out
 
     def _end_frames(self) -> list[can.Message]:
-        return [frame(dbc.SYNC_ID, self._sync.encode({"Tick": dbc.SYNC_END_TICK}))]
+        end = self._sync.encode({"Tick": dbc.SYNC_END_TICK})
+        return [frame(dbc.SYNC_ID, sign_control(self.secoc, dbc.SYNC_ID, end, self._last_sync_k))]
 
     def start(self, now: float) -> list[can.Message]:
         self._open_trace()
@@ -159,9 +169,14 @@ class PlantNode(Node):
                 if self._done == self._all_done:
                     return self._advance(now)
             return []
+        if dbc.BRAKE_CMD_BASE < aid <= dbc.BRAKE_CMD_BASE + dbc.MAX_CARS:
+            self.guard.unknown(aid)
+            return []
         if self.mode == "lockstep" and dbc.CMD_DONE_BASE < aid <= dbc.CMD_DONE_BASE + self.n:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
-            if tick == (self.k & 0xFFFF):
+            if tick != (self.k & 0xFFFF):
+                self.guard.reject("sync")
+            elif self.guard.control(aid, msg.data, self.k):
                 self._done |= 1 << (aid - dbc.CMD_DONE_BASE - 1)
                 if self._done == self._all_done:
                     return self._advance(now)
@@ -172,17 +187,15 @@ class PlantNode(Node):
         status = self._e2e[i].check(msg.data)
         if status is E2EStatus.WRONG_CRC:
             self.stats.commands_corrupted += 1
+            self.guard.reject("crc")
             return False
         if status is E2EStatus.WRONG_SEQUENCE:
             self.stats.commands_out_of_sequence += 1
         # The sender's counter is its tick mod 15; accept only the frame of the current tick or a
-        # newer-looking one, never an older (delayed/reordered) one.
-        c = counter_of(msg.data)
-        lag = (self.k - c) % 15
-        if lag > 7:  # from the future is impossible; treat as very old
-            return False
-        origin = self.k - lag
-        if origin <= self._last_counter[i]:
+        # newer-looking one, never an older (delayed/reordered) one; with SecOC only an authentic
+        # frame of exactly that tick (canbrake.bus.guard).
+        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, self._last_counter[i], authenticated=True)
+        if origin is None:
             return False
         self._last_counter[i] = origin
         self.cmd_n[i] = self._cmd_codec[msg.arbitration_id].decode(msg.data)["BrakeForce"]
@@ -292,5 +305,6 @@ class PlantNode(Node):
             self._trace.close()
         if self.stats.status == "running":
             self.stats.status = status
+        self.stats.guard = self.guard.stats()
         if self.out_dir is not None:
             (self.out_dir / "plant_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))

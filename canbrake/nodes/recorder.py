@@ -22,6 +22,7 @@ import can
 import numpy as np
 
 from canbrake.bus import dbc
+from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.timing import frame_bits
 from canbrake.nodes.base import Node
 
@@ -42,7 +43,7 @@ class RecorderNode(Node):
 
     def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
-                 plant_io_on_bus: bool = False, barrier: bool = True) -> None:
+                 plant_io_on_bus: bool = False, barrier: bool = True, secoc: object = None) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
@@ -56,6 +57,8 @@ class RecorderNode(Node):
         self._k = -1
         self._tick_frames: list[can.Message] = []
         self._done_seen = 0
+        self._cmd_seen = 0  # this tick's CMD_DONE (or, without barrier, BRAKE_CMD) frames: tick complete at n
+        self.guard = FrameGuard(secoc)  # SYNC checks: a forged SYNC/END neither ends nor re-times the log
         self._bus_free_s = 0.0
         self.frames = 0
         self.frames_by_kind: dict[str, int] = {}
@@ -78,7 +81,14 @@ class RecorderNode(Node):
         if self.mode == "realtime":
             self._realtime(msg, now)
             return []
+        done_base = dbc.CMD_DONE_BASE if self.barrier else dbc.BRAKE_CMD_BASE
+        if done_base < aid <= done_base + self.n:
+            self._cmd_seen += 1
+        verdict = None
         if aid == dbc.SYNC_ID and not msg.is_extended_id:
+            verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=True,
+                                   tick_complete=self._k < 0 or self._cmd_seen >= self.n)
+        if verdict is not None:
             self._flush_tick()
             tick = int.from_bytes(msg.data[:4], "little")
             if tick == dbc.SYNC_END_TICK:
@@ -87,6 +97,7 @@ class RecorderNode(Node):
                 return []
             self._k = tick
             self._done_seen = 0
+            self._cmd_seen = 0
         # phase: 0 plant frames, 1 until the last STATE_DONE of the tick, 2 after it
         marker = dbc.STATE_DONE_BASE if self.barrier else dbc.STATE_BASE
         if marker < aid <= marker + self.n:
@@ -147,8 +158,11 @@ class RecorderNode(Node):
                 self._busy_per_tick.append(self._rt_bits / self.bitrate / self.dt)
             self._rt_bits = 0
             self._rt_tick_start = m.timestamp
-            if int.from_bytes(msg.data[:4], "little") == dbc.SYNC_END_TICK:
+            verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=False, tick_complete=True)
+            if verdict == "end":
                 self.finished = True
+            elif verdict == "tick":
+                self._k = int.from_bytes(msg.data[:4], "little")
         if not self._untimed(aid):
             self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual")
 
@@ -192,4 +206,5 @@ class RecorderNode(Node):
         if self.log_path is not None:
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
+            stats["guard"] = self.guard.stats()
             (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
