@@ -45,7 +45,7 @@ from canbrake.bus.e2e import e2e_crc
 MAC_BYTES = 3
 KEY_BYTES = 16
 #: how many 15-tick aliases back a failing MAC is tried with to call it a stale (replayed) frame
-STALE_ALIASES = 4
+STALE_ALIASES = 8
 
 
 class KeyFileError(ValueError):

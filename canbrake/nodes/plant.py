@@ -147,8 +147,17 @@ class PlantNode(Node):
             out.append(frame(dbc.SENSOR_BASE + i + 1,
                              self._sensor[i].encode({"Speed": float(v[i]), "Position": float(x[i])})))
         for sp in self.hosted:
-            out += sp.release(t)
+            rogue = sp.release(t)
+            out += rogue
+            self._hear_hosted(rogue)
         return out
+
+    def _hear_hosted(self, frames: list[can.Message]) -> None:
+        """A hosted source is another node on the bus: the brake units hear its brake-command
+        frames too (a driver never hands a node the frames it sent itself)."""
+        for m in frames:
+            if dbc.BRAKE_CMD_BASE < m.arbitration_id <= dbc.BRAKE_CMD_BASE + dbc.MAX_CARS:
+                self.handle(m, 0.0)
 
     def _end_frames(self) -> list[can.Message]:
         end = self._sync.encode({"Tick": dbc.SYNC_END_TICK})
