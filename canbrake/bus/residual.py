@@ -30,7 +30,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any
 
 import numpy as np
 
@@ -63,14 +63,9 @@ def valid_frames(rng: np.random.Generator, n: int, data_id: int, length: int,
     return p
 
 
-def _bits_to_bytes(bits: np.ndarray) -> np.ndarray:
-    """(N, 8L) bool, bit 0 = MSB of byte 0 (wire order) -> (N, L) uint8."""
-    return np.packbits(bits, axis=1)
-
-
 def error_patterns(rng: np.random.Generator, n: int, length: int, model: str | int) -> np.ndarray:
-    """Error patterns (uint8 (n, length)): ``"random"`` (uniform, nonzero) or ``w`` bits flipped."""
-    nbits = 8 * length
+    """Error patterns (uint8 (n, length)): ``"random"`` (uniform, nonzero) or ``w`` distinct bits
+    flipped (bit 0 = MSB of byte 0, wire order)."""
     if model == "random":
         e = rng.integers(0, 256, size=(n, length), dtype=np.uint8)
         zero = ~e.any(axis=1)
@@ -78,13 +73,21 @@ def error_patterns(rng: np.random.Generator, n: int, length: int, model: str | i
             e[zero] = rng.integers(0, 256, size=(int(zero.sum()), length), dtype=np.uint8)
             zero = ~e.any(axis=1)
         return e
-    w = int(model)
-    # w distinct positions per row: the first w of a random permutation (argsort of uniforms)
-    pos = np.argpartition(rng.random((n, nbits)), w - 1, axis=1)[:, :w] if w < nbits else \
-        np.tile(np.arange(nbits), (n, 1))
-    bits = np.zeros((n, nbits), dtype=bool)
-    np.put_along_axis(bits, pos, True, axis=1)
-    return _bits_to_bytes(bits)
+    w, nbits = int(model), 8 * length
+    if not 1 <= w <= nbits:
+        raise ValueError(f"cannot flip {w} distinct bits of a {nbits}-bit frame")
+    pos = rng.integers(0, nbits, size=(n, w))
+    while True:  # redraw the rows with a repeated position: uniform over the w-subsets
+        srt = np.sort(pos, axis=1)
+        bad = (srt[:, 1:] == srt[:, :-1]).any(axis=1) if w > 1 else np.zeros(n, dtype=bool)
+        if not bad.any():
+            break
+        pos[bad] = rng.integers(0, nbits, size=(int(bad.sum()), w))
+    e = np.zeros((n, length), dtype=np.uint8)
+    rows = np.arange(n)
+    for j in range(w):
+        e[rows, pos[:, j] >> 3] ^= (0x80 >> (pos[:, j] & 7)).astype(np.uint8)
+    return e
 
 
 @dataclass
@@ -98,35 +101,34 @@ class ResidualCount:
 
 
 def count_passing(rng: np.random.Generator, n: int, data_id: int, length: int, model: str | int, *,
-                  verify_mac: Callable[[bytes, int], bool] | None = None, sign: Callable[[bytes, int], bytes] | None = None,
-                  mac_bytes: int = 0, chunk: int = 200_000) -> ResidualCount:
+                  secoc: Any = None, chunk: int = 250_000) -> ResidualCount:
     """Send ``n`` frames through the error ``model`` and count what passes (see module doc).
 
-    With ``sign``/``verify_mac`` (secured layout: the last ``mac_bytes`` bytes carry a MAC over the
-    rest, signed before the CRC is computed, freshness = the frame's tick), the frames that pass
-    E2E are verified with the MAC as well.
+    With ``secoc`` (a :class:`canbrake.bus.secoc.SecOC`; secured layout, MAC in the last three
+    bytes, freshness = the frame's tick) the frames that pass E2E are also MAC-verified. Whether
+    a frame passes the CRC depends only on the error pattern (the CRC is affine), so the MAC is
+    computed only for those frames: the sent frame is then signed for real and the same error
+    applied to it.
     """
-    out = ResidualCount(0, 0, 0, 0 if verify_mac is not None else None)
+    out = ResidualCount(0, 0, 0, 0 if secoc is not None else None)
     done = 0
     while done < n:
         m = min(chunk, n - done)
         ticks = rng.integers(0, 1 << 20, size=m)
         frames = valid_frames(rng, m, data_id, length, counter=ticks % COUNTER_MODULO)
-        if sign is not None:
-            for i in range(m):  # the MAC is over the payload without CRC and MAC (see secoc)
-                row = bytearray(frames[i])
-                row[length - mac_bytes:] = sign(bytes(row), int(ticks[i]))
-                frames[i] = np.frombuffer(bytes(row), dtype=np.uint8)
-            frames[:, 0] = crc8_batch(data_id, frames)
-        rx = frames ^ error_patterns(rng, m, length, model)
+        err = error_patterns(rng, m, length, model)
+        rx = frames ^ err
         crc_ok = rx[:, 0] == crc8_batch(data_id, rx)
         e2e_ok = crc_ok & ((rx[:, 1] & 0x0F) == (frames[:, 1] & 0x0F))
         out.frames += m
         out.pass_crc += int(crc_ok.sum())
         out.pass_e2e += int(e2e_ok.sum())
-        if verify_mac is not None:
+        if secoc is not None:
             for i in np.flatnonzero(e2e_ok):
-                out.pass_mac += int(verify_mac(rx[i].tobytes(), int(ticks[i])))  # type: ignore[operator]
+                sent = secoc.sign(data_id, frames[i].tobytes(), int(ticks[i]), has_crc=True)
+                got = bytes(a ^ b for a, b in zip(sent, err[i].tobytes()))
+                out.pass_mac += int(got[0] == crc8_batch(data_id, np.frombuffer(got, np.uint8)[None, :])[0]
+                                    and secoc.verify(data_id, got, int(ticks[i]), has_crc=True))
         done += m
     return out
 
@@ -193,3 +195,57 @@ def binomial_interval(n: int, p: float, z: float = 4.0) -> tuple[float, float]:
     mu = n * p
     sd = math.sqrt(n * p * (1 - p))
     return max(0.0, mu - z * sd), mu + z * sd
+
+
+# ----------------------------------------------------------------------------- the table
+#: (label, data ID, length in bytes, secured) of the frames measured
+FRAMES = (("STATE_C3 (8 B, E2E)", 0x143, 8, False),
+          ("BRAKE_CMD_C3 (5 B, E2E)", 0x083, 5, False),
+          ("BRAKE_CMD_C3 secured (8 B, E2E + CMAC)", 0x083, 8, True))
+MODELS: tuple[str | int, ...] = ("random", 1, 2, 3, 4)
+COUNTER_BITS = (4, 5, 6, 7)  # low nibble of byte 1, as positions in syndrome_columns (bit 0 = MSB of byte 1)
+
+
+@dataclass
+class ResidualRow:
+    frame: str
+    model: str
+    frames: int
+    pass_crc: int
+    expect_crc: float          # expected count from theory
+    pass_e2e: int
+    expect_e2e: float
+    pass_mac: int | None
+    expect_mac: float | None
+    hamming_distance: int | None
+
+
+def residual_table(n: int = 1_000_000, seed: int = 14, key: bytes | None = None,
+                   models: tuple[str | int, ...] = MODELS) -> list[ResidualRow]:
+    """Measured and expected residual errors for :data:`FRAMES` x ``models``, ``n`` frames each."""
+    import os
+
+    from canbrake.bus.secoc import SecOC
+
+    secoc = SecOC(key or os.urandom(16))
+    rng = np.random.default_rng(seed)
+    rows = []
+    max_w = max((m for m in models if m != "random"), default=1)
+    for label, data_id, length, secured in FRAMES:
+        cols = syndrome_columns(data_id, length)
+        a_crc = undetected_weights(cols, int(max_w))
+        a_e2e = undetected_weights(cols, int(max_w), exclude=COUNTER_BITS)
+        hd = hamming_distance(a_crc)
+        k, nbits = 8 * (length - 1), 8 * length
+        for model in models:
+            c = count_passing(rng, n, data_id, length, model, secoc=secoc if secured else None)
+            if model == "random":
+                p_crc, p_e2e = p_random(k, 8), (2.0 ** (k - 4) - 1) / (2.0 ** (k + 8) - 1)
+                name = "random (uniform frame)"
+            else:
+                w = int(model)
+                p_crc, p_e2e = p_weight(a_crc[w], nbits, w), p_weight(a_e2e[w], nbits, w)
+                name = f"{w} bit{'s' if w > 1 else ''} flipped"
+            rows.append(ResidualRow(label, name, c.frames, c.pass_crc, n * p_crc, c.pass_e2e, n * p_e2e,
+                                    c.pass_mac, n * p_e2e * 2.0 ** -24 if secured else None, hd))
+    return rows
