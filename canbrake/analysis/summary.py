@@ -209,6 +209,10 @@ def safety_counters(scn: Scenario, plant: dict[str, Any], ecus: list[dict[str, A
         verdict = "attack or fault detected"
     else:
         verdict = "clean"
-    return {"authenticated": scn.security is not None, "verdict": verdict, "rejected": total,
+    flood = {"frames_on_unknown_ids": busst.get("frames_by_unknown_id") or {},
+             "rx_frames_lost": {n: g.get("rx_frames_lost", 0) for n, g in nodes.items() if g.get("rx_frames_lost")}}
+    if verdict == "clean" and (flood["frames_on_unknown_ids"] or flood["rx_frames_lost"]):
+        verdict = "attack or fault detected"
+    return {"authenticated": scn.security is not None, "verdict": verdict, "rejected": total, "flood": flood,
             "rejected_by_node": {n: g.get("rejected", {}) for n, g in nodes.items() if sum((g.get("rejected") or {}).values())},
             "unknown_senders": unknown, "fallbacks": fallbacks}

@@ -38,6 +38,8 @@ class FrameGuard:
         self.rejected: dict[str, int] = {r: 0 for r in REASONS}
         self.unknown_ids: dict[str, int] = {}
         self.last_reason: str | None = None  # reason of the last rejection
+        self.rx_overruns = 0       # receive-queue overflows (flood), see Node.on_rx_overrun
+        self.rx_frames_lost = 0    # frames dropped by them
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -82,8 +84,14 @@ class FrameGuard:
         self.reject("authentication")
         return False
 
+    def overrun(self, frames_lost: int) -> None:
+        """Count a receive-queue overflow that dropped ``frames_lost`` frames."""
+        self.rx_overruns += 1
+        self.rx_frames_lost += int(frames_lost)
+
     def stats(self) -> dict[str, Any]:
-        return {"rejected": dict(self.rejected), "unknown_ids": dict(self.unknown_ids)}
+        return {"rejected": dict(self.rejected), "unknown_ids": dict(self.unknown_ids),
+                "rx_overruns": self.rx_overruns, "rx_frames_lost": self.rx_frames_lost}
 
 
 def sign_control(secoc: SecOC | None, data_id: int, payload: bytes, freshness_tick: int) -> bytes:

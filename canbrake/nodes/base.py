@@ -76,6 +76,13 @@ class Node(ABC):
         """Called at or after :meth:`next_deadline`."""
         return []
 
+    def on_rx_overrun(self, frames_lost: int) -> None:
+        """The receive queue overflowed and ``frames_lost`` frames were dropped (a flood): counted
+        by the node's receiver checks (``guard``, :mod:`canbrake.bus.guard`) when it has them."""
+        guard = getattr(self, "guard", None)
+        if guard is not None:
+            guard.overrun(frames_lost)
+
     def close(self, status: str = "ok") -> None:
         """Flush traces and statistics; called once, also after an error."""
 

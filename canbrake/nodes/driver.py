@@ -18,6 +18,7 @@ from typing import Callable, Sequence
 
 import can
 
+from canbrake.bus.memory import BusOverrunError
 from canbrake.nodes.base import Node
 
 
@@ -77,7 +78,12 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         deadline = node.next_deadline()
         now = clock()
         timeout = idle_check_s if deadline is None else max(0.0, min(idle_check_s, deadline - now))
-        msg = bus.recv(timeout=timeout)
+        try:
+            msg = bus.recv(timeout=timeout)
+        except BusOverrunError as e:
+            # a flood overran this node's receive ring: count what was lost and receive on
+            node.on_rx_overrun(e.frames_lost)
+            continue
         now = clock()
         if msg is not None:
             _send_all(bus, node.handle(msg, now))

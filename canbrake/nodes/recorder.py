@@ -62,6 +62,7 @@ class RecorderNode(Node):
         self._bus_free_s = 0.0
         self.frames = 0
         self.frames_by_kind: dict[str, int] = {}
+        self.other_ids: dict[str, int] = {}  # frames on identifiers outside the database, by id
         self._busy_per_tick: list[float] = []
         self._latency: list[float] = []
         self._rt_bits = 0
@@ -78,6 +79,9 @@ class RecorderNode(Node):
         aid = msg.arbitration_id
         kind = self._kind(aid)
         self.frames_by_kind[kind] = self.frames_by_kind.get(kind, 0) + 1
+        if kind == "other":  # identifiers outside the database: who flooded or inserted
+            key = f"{aid:#05x}" if not msg.is_extended_id else f"{aid:#010x}"
+            self.other_ids[key] = self.other_ids.get(key, 0) + 1
         if self.mode == "realtime":
             self._realtime(msg, now)
             return []
@@ -186,6 +190,7 @@ class RecorderNode(Node):
         return {
             "frames": self.frames,
             "frames_by_kind": self.frames_by_kind,
+            "frames_by_unknown_id": dict(sorted(self.other_ids.items(), key=lambda kv: -kv[1])[:20]),
             "bitrate_bps": self.bitrate,
             "bus_load_mean": float(load.mean()),
             "bus_load_peak": float(load.max()),
