@@ -176,7 +176,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
                        lockstep_deadline=scn.ecu.lockstep_deadline,
-                       secoc=secoc, peer_hold_periods=scn.safety.peer_hold_periods,
+                       secoc=secoc, peer_hold_periods=scn.safety.peer_hold_periods, n_ticks=scn.n_ticks,
                        crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
                                       if scn.ecu.crash is not None and scn.ecu.crash.car == car else None))
     if role == "recorder":
@@ -184,6 +184,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
 
         return RecorderNode(scn.n_cars, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
                             plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn), secoc=secoc,
+                            n_ticks=scn.n_ticks,
                             log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
     raise ValueError(f"unknown node role {role!r}")
 

@@ -304,11 +304,19 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
                 break
             plant = procs["plant"]
             if plant.exitcode == 0:
-                # The plant sent the end-of-run SYNC; the others stop on it.
-                deadline = time.time() + 10.0
+                # The plant sent the end-of-run SYNC; the others stop on it. After an early end
+                # (diverged), nodes without authentication do not trust that END (it could be
+                # forged, canbrake.bus.guard): the run is over, so they are stopped here.
+                early = _load_plant_status(run_dir) == "diverged"
+                deadline = time.time() + (2.0 if early else 10.0)
                 for p in alive:
                     p.join(max(0.0, deadline - time.time()))
                 stuck = [n for n, p in procs.items() if p.exitcode is None]
+                if stuck and early:
+                    for n in stuck:
+                        procs[n].terminate()
+                        procs[n].join(10.0)
+                    break
                 if stuck:
                     raise RunFailure(f"{', '.join(stuck)} did not stop after the end of the run")
                 continue
@@ -333,6 +341,14 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             signal.signal(signal.SIGTERM, old_term)
     outcome["wall_time_s"] = time.time() - t_start
     return outcome
+
+
+def _load_plant_status(run_dir: Path) -> str | None:
+    """Status the plant wrote in plant_stats.json when it closed (None if unreadable)."""
+    try:
+        return json.loads((run_dir / "plant_stats.json").read_text()).get("status")
+    except (OSError, ValueError):
+        return None
 
 
 def _failure_detail(run_dir: Path, name: str) -> str:

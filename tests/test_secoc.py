@@ -135,3 +135,41 @@ def test_peer_hold_then_fallback_on_own_sensors(tmp_path):
     status = [codec.decode(m.data)["Status"] for m in can.LogReader(str(tmp_path / "frames.log"))
               if m.arbitration_id == 0x081]
     assert status == [0] * 25 + [1] * 25
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("secured", [False, True], ids=["e2e", "secoc"])
+def test_forged_end_frames_from_a_foreign_process_cannot_end_a_run(tmp_path, secured):
+    """A rogue on the cross-process bus sends SYNC END (tick 0xFFFFFFFF) every 0.5 ms for the
+    whole run: no node ends early (without SecOC an END counts only after the last scheduled tick,
+    with SecOC only with its MAC), the run finishes every tick, the forgeries are counted."""
+    import threading
+    import time
+    import uuid
+
+    import can
+
+    key = write_key(tmp_path / "key.hex")
+    scn = load_scenario(CASE1, overrides={"duration_s": 0.05, "security": {"key_file": str(key)} if secured else None})
+    channel = f"cbrogue-{uuid.uuid4().hex[:6]}"
+    stop = threading.Event()
+    sent = []
+
+    def rogue() -> None:
+        with can.Bus(interface="canbrake", channel=channel, can_filters=[{"can_id": 0x7FF, "can_mask": 0x7FF}]) as b:
+            end = can.Message(arbitration_id=0x010, data=b"\xff\xff\xff\xff" + bytes(4 if secured else 0),
+                              is_extended_id=False)
+            while not stop.is_set():
+                b.send(end)
+                sent.append(1)
+                time.sleep(0.0005)
+
+    t = threading.Thread(target=rogue, daemon=True)
+    t.start()
+    try:
+        s = run_scenario(scn, tmp_path / "run", backend="memory", channel=channel, plots=False, stall_timeout_s=20)
+    finally:
+        stop.set()
+        t.join()
+    assert s["status"] == "ok" and s["ticks"] == 50, s["message"]
+    assert len(sent) > 0 and s["safety"]["rejected"]["sync"] + s["safety"]["rejected"]["authentication"] > 0

@@ -112,22 +112,28 @@ END_TICK = 0xFFFFFFFF
 
 
 def sync_verdict(guard: FrameGuard, data_id: int, payload: bytes | bytearray, own_k: int, *,
-                 tick_complete: bool, lockstep: bool) -> str | None:
+                 tick_complete: bool, lockstep: bool, final_tick: int | None = None) -> str | None:
     """Check a SYNC frame at a receiver whose last accepted tick is ``own_k``: "tick" (start the
     next period), "end" (end of the run) or None (rejected and counted).
 
     Lockstep: the time master sends SYNC(k+1), and the END frame, only once every node has
     finished tick k, so a SYNC is accepted only if it is the next tick and the receiver has
     finished its tick (``tick_complete``). With SecOC the frame's MAC must match (freshness = its
-    tick, for END the receiver's last tick); without it a forger who hits that window can still
-    end the run (documented in docs/safety.md). Realtime: any newer tick is accepted.
+    tick, for END the receiver's last tick), and an authentic END may come early (the closed loop
+    diverged). Without SecOC an END is accepted only after ``final_tick``, the last scheduled tick
+    (when given): a forged one cannot be told from the plant's early END, so an early end of the
+    run is left to the driver, which ends the other nodes once the time master has finished.
+    Realtime: any newer tick is accepted.
     """
     tick = int.from_bytes(bytes(payload[:4]).ljust(4, b"\0"), "little")
     end = tick == END_TICK
-    if lockstep and not tick_complete:
+    if (lockstep and not tick_complete) or (end and own_k < 0):  # no END before the first tick
         guard.reject("sync")
         return None
     if not end and (tick != own_k + 1 if lockstep else tick <= own_k):
+        guard.reject("sync")
+        return None
+    if end and guard.secoc is None and final_tick is not None and own_k != final_tick:
         guard.reject("sync")
         return None
     if not guard.control(data_id, payload, own_k if end else tick):

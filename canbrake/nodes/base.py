@@ -55,6 +55,9 @@ class Node(ABC):
 
     name: str = "node"
     finished: bool = False
+    #: the node whose end is the end of the run (the plant): once it has finished, a driver ends
+    #: the others that are still waiting (e.g. for an END frame they would not trust)
+    time_master: bool = False
 
     def filters(self) -> list[dict[str, Any]] | None:
         """python-can filters for the frames this node needs (None = all)."""

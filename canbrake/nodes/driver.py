@@ -108,6 +108,15 @@ def run_inprocess(nodes: Sequence[Node], *, medium: str = "direct", max_frames: 
     raise ValueError(f"unknown in-process medium {medium!r}")
 
 
+def _end_with_time_master(nodes: Sequence[Node]) -> None:
+    """Once the time master has finished and every frame is delivered, the run is over: nodes
+    still waiting (an unauthenticated END before the scheduled last tick is not trusted, see
+    :func:`canbrake.bus.guard.sync_verdict`) are finished too."""
+    if any(n.time_master and n.finished for n in nodes):
+        for n in nodes:
+            n.finished = True
+
+
 def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
     filters = [n.filters() for n in nodes]
     # Routing: nodes whose filters are all exact standard ids are looked up by id; the others
@@ -144,6 +153,7 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
             out = node.handle(msg, 0.0)
             if out:
                 queue.extend((idx, m) for m in out)
+    _end_with_time_master(nodes)
     unfinished = [n.name for n in nodes if not n.finished]
     if unfinished:
         raise NodeFailure(f"in-process run stalled; unfinished nodes: {', '.join(unfinished)}")
@@ -174,6 +184,7 @@ def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
     finally:
         for bus in buses:
             bus.shutdown()
+    _end_with_time_master(nodes)
     unfinished = [n.name for n in nodes if not n.finished]
     if unfinished:
         raise NodeFailure(f"virtual-bus run stalled; unfinished nodes: {', '.join(unfinished)}")

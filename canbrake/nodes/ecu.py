@@ -59,7 +59,7 @@ class EcuNode(Node):
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
                  crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
                  barrier: bool = True, rx_path: Any = None, secoc: Any = None,
-                 peer_hold_periods: int | None = None) -> None:
+                 peer_hold_periods: int | None = None, n_ticks: int | None = None) -> None:
         self.car = car
         self.i = car - 1
         self.n = n_cars
@@ -86,6 +86,7 @@ class EcuNode(Node):
         self.secoc = secoc
         self.guard = FrameGuard(secoc)
         self.peer_hold_periods = peer_hold_periods
+        self.final_tick = None if n_ticks is None else n_ticks - 1  # unauthenticated END only after it
         self._in_fallback = False
         self._latency: dict[str, list[float]] = {}
         self._t0_wall: float | None = None
@@ -132,7 +133,7 @@ class EcuNode(Node):
         aid = msg.arbitration_id
         if aid == dbc.SYNC_ID:
             verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
-                                   tick_complete=self.phase == 2 or self.k < 0)
+                                   tick_complete=self.phase == 2 or self.k < 0, final_tick=self.final_tick)
             if verdict is None:
                 return []
             if verdict == "end":

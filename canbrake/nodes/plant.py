@@ -71,6 +71,7 @@ class PlantNode(Node):
     """Time master and physics host."""
 
     name = "plant"
+    time_master = True
 
     def __init__(self, model: PlantModel, codec: FrameCodec, *, dt_s: float, n_ticks: int,
                  reference: Reference, mode: str = "lockstep", coupler_sensors: bool = False,

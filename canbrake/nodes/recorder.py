@@ -43,7 +43,8 @@ class RecorderNode(Node):
 
     def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
-                 plant_io_on_bus: bool = False, barrier: bool = True, secoc: object = None) -> None:
+                 plant_io_on_bus: bool = False, barrier: bool = True, secoc: object = None,
+                 n_ticks: int | None = None) -> None:
         self.n = n_cars
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
@@ -59,6 +60,7 @@ class RecorderNode(Node):
         self._done_seen = 0
         self._cmd_seen = 0  # this tick's CMD_DONE (or, without barrier, BRAKE_CMD) frames: tick complete at n
         self.guard = FrameGuard(secoc)  # SYNC checks: a forged SYNC/END neither ends nor re-times the log
+        self.final_tick = None if n_ticks is None else n_ticks - 1
         self._bus_free_s = 0.0
         self.frames = 0
         self.frames_by_kind: dict[str, int] = {}
@@ -91,7 +93,7 @@ class RecorderNode(Node):
         verdict = None
         if aid == dbc.SYNC_ID and not msg.is_extended_id:
             verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=True,
-                                   tick_complete=self._k < 0 or self._cmd_seen >= self.n)
+                                   tick_complete=self._k < 0 or self._cmd_seen >= self.n, final_tick=self.final_tick)
         if verdict is not None:
             self._flush_tick()
             tick = int.from_bytes(msg.data[:4], "little")
@@ -162,7 +164,8 @@ class RecorderNode(Node):
                 self._busy_per_tick.append(self._rt_bits / self.bitrate / self.dt)
             self._rt_bits = 0
             self._rt_tick_start = m.timestamp
-            verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=False, tick_complete=True)
+            verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=False, tick_complete=True,
+                                   final_tick=self.final_tick)
             if verdict == "end":
                 self.finished = True
             elif verdict == "tick":

@@ -173,11 +173,18 @@ Status = 1 (degraded); a brake unit with no valid command for `command_timeout_s
 
 **Simulation control.** A SYNC is accepted only if it is the next tick and the receiver has
 finished its current tick (ECU: command sent; recorder: every CMD_DONE seen) — the only moment the
-time master sends one — and the END frame (tick 0xFFFFFFFF) only then too. A forged SYNC or END
-arriving at any other moment is counted (`sync`) and ignored, so it neither ends nor re-times the
-run. Without authentication a forger who hits the window between a node's last frame of a tick and
-the next SYNC can still end the run; with `security:` SYNC and barrier frames carry a MAC and a
-forged one never passes. Barrier frames with a wrong tick are counted (`sync`).
+time master sends one. The END frame (tick 0xFFFFFFFF) is accepted only then too, never before the
+first tick, and, without authentication, only after the last scheduled tick: an early END (the
+closed loop diverged) cannot be told from a forged one, so the drivers end the other nodes once the
+plant, the time master, has finished (in-process engine: when every frame is delivered; separate
+processes: the orchestrator stops them when the plant reports "diverged"). With `security:` SYNC,
+END and the barrier frames carry a MAC and a forged one never passes. A forged SYNC or END is
+counted (`sync` or `authentication`) and ignored, so it neither ends, stalls nor re-times the run
+(`tests/test_secoc.py::test_forged_end_frames_from_a_foreign_process_cannot_end_a_run`: a foreign
+process sending END every 0.5 ms on the cross-process bus, with and without SecOC). A forged
+barrier frame (CMD_DONE/STATE_DONE with the right tick) can still close a phase early without
+SecOC — the effect of a late frame, met by the counter and the time-out; barrier frames with a
+wrong tick are counted (`sync`).
 
 **Counters** (`summary.json`, `safety`): `rejected` by reason (total and per node),
 `unknown_senders` by identifier, `fallbacks` (ECU peer-loss entries and time, fail-safe entries and
