@@ -172,4 +172,20 @@ def test_forged_end_frames_from_a_foreign_process_cannot_end_a_run(tmp_path, sec
         stop.set()
         t.join()
     assert s["status"] == "ok" and s["ticks"] == 50, s["message"]
-    assert len(sent) > 0 and s["safety"]["rejected"]["sync"] + s["safety"]["rejected"]["authentication"] > 0
+    sf = s["safety"]
+    assert len(sent) > 0 and sf["rejected"]["sync"] + sf["rejected"]["authentication"] + sf["end_frames_ignored"] > 0
+    assert sf["verdict"] == "attack or fault detected"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["inprocess", "memory"])
+def test_a_diverged_run_still_ends_though_its_early_end_frame_is_not_trusted(tmp_path, backend):
+    """The paper's gains with a realistic brake diverge at ~4.1 s (docs/reproduction/chen2023.md):
+    the plant's unauthenticated early END is ignored by the other nodes, and the driver or the
+    orchestrator ends them once the plant has finished; the run reports "diverged", safety clean."""
+    from canbrake.report.chen2023 import _PAPER_GAINS
+
+    scn = load_scenario(CASE1, profile="realistic", overrides={"duration_s": 5.0, **_PAPER_GAINS})
+    s = run_scenario(scn, tmp_path, backend=backend, plots=False)
+    assert s["status"] == "diverged" and s["ticks"] < 500
+    assert s["safety"]["end_frames_ignored"] == scn.n_cars + 1 and s["safety"]["verdict"] == "clean"

@@ -211,8 +211,13 @@ def safety_counters(scn: Scenario, plant: dict[str, Any], ecus: list[dict[str, A
         verdict = "clean"
     flood = {"frames_on_unknown_ids": busst.get("frames_by_unknown_id") or {},
              "rx_frames_lost": {n: g.get("rx_frames_lost", 0) for n, g in nodes.items() if g.get("rx_frames_lost")}}
-    if verdict == "clean" and (flood["frames_on_unknown_ids"] or flood["rx_frames_lost"]):
+    # unauthenticated END frames before the last tick: the plant's own after a divergence (one per
+    # listening node) or forged ones
+    end_ignored = sum(g.get("end_ignored", 0) for g in nodes.values())
+    own_end = len(nodes) - 1 if plant.get("status") == "diverged" else 0
+    if verdict == "clean" and (flood["frames_on_unknown_ids"] or flood["rx_frames_lost"] or end_ignored > own_end):
         verdict = "attack or fault detected"
     return {"authenticated": scn.security is not None, "verdict": verdict, "rejected": total, "flood": flood,
+            "end_frames_ignored": end_ignored,
             "rejected_by_node": {n: g.get("rejected", {}) for n, g in nodes.items() if sum((g.get("rejected") or {}).values())},
             "unknown_senders": unknown, "fallbacks": fallbacks}

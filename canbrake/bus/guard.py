@@ -40,6 +40,7 @@ class FrameGuard:
         self.last_reason: str | None = None  # reason of the last rejection
         self.rx_overruns = 0       # receive-queue overflows (flood), see Node.on_rx_overrun
         self.rx_frames_lost = 0    # frames dropped by them
+        self.end_ignored = 0       # unauthenticated END frames before the last scheduled tick
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -91,7 +92,8 @@ class FrameGuard:
 
     def stats(self) -> dict[str, Any]:
         return {"rejected": dict(self.rejected), "unknown_ids": dict(self.unknown_ids),
-                "rx_overruns": self.rx_overruns, "rx_frames_lost": self.rx_frames_lost}
+                "rx_overruns": self.rx_overruns, "rx_frames_lost": self.rx_frames_lost,
+                "end_ignored": self.end_ignored}
 
 
 def sign_control(secoc: SecOC | None, data_id: int, payload: bytes, freshness_tick: int) -> bytes:
@@ -134,7 +136,7 @@ def sync_verdict(guard: FrameGuard, data_id: int, payload: bytes | bytearray, ow
         guard.reject("sync")
         return None
     if end and guard.secoc is None and final_tick is not None and own_k != final_tick:
-        guard.reject("sync")
+        guard.end_ignored += 1  # forged, or the plant's own early END (diverged): not a rejection reason
         return None
     if not guard.control(data_id, payload, own_k if end else tick):
         return None
