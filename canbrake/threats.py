@@ -110,6 +110,12 @@ THREATS: list[Threat] = [
            "SYNC sequence check (only the next tick, only after the tick is complete); SecOC on SYNC",
            lambda ctx: [_rogue(SYNC_ID, _forged_end(ctx))],
            {False: Expect(reasons=("sync",), unchanged=True), True: Expect(reasons=("sync",), unchanged=True)}),
+    Threat("flood", "insertion (flooding)",
+           "rogue node floods identifier 0x001 (highest priority) at 100 kHz",
+           "receive queues drop and count on overflow; the recorder names the identifier",
+           lambda ctx: [{"type": "babble", "sender": "rogue", "arbitration_id": 1, "rate_hz": 100_000.0, "dlc": 8,
+                         "start_s": ATTACK_S}],
+           {False: Expect(unchanged=True), True: Expect(unchanged=True)}),
     Threat("resequencing", "resequencing",
            "half the commands held back 1-3 periods (impairment `reorder`)",
            "alive counter: an older frame after a newer one is dropped",
@@ -213,7 +219,7 @@ def run_threat(threat: Threat, base: Path, work: Path, key_file: Path | None) ->
         max_force_dev_n=float(dev.max()) if n > 0 else 0.0,
         max_deflection_m=float(max(np.abs(a[k]).max() for k in defl)),
         clean_max_deflection_m=float(max(np.abs(c[k]).max() for k in defl)),
-        extra={"unknown_senders": sf["unknown_senders"]})
+        extra={"unknown_senders": sf["unknown_senders"], "flood": sf["flood"]["frames_on_unknown_ids"]})
 
 
 def expected_failsafe_s(dt_s: float = 0.001) -> float:

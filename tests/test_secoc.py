@@ -178,6 +178,7 @@ def test_forged_end_frames_from_a_foreign_process_cannot_end_a_run(tmp_path, sec
 
 
 @pytest.mark.slow
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")
 @pytest.mark.parametrize("backend", ["inprocess", "memory"])
 def test_a_diverged_run_still_ends_though_its_early_end_frame_is_not_trusted(tmp_path, backend):
     """The paper's gains with a realistic brake diverge at ~4.1 s (docs/reproduction/chen2023.md):

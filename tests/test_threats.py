@@ -39,8 +39,8 @@ def test_threat_is_detected_and_met_safely(threat, secured, work):
     else:
         assert o.failsafe_first_s is None
     assert o.unchanged == exp.unchanged
-    if exp.unchanged:
-        assert o.ticks_changed == 0 and o.rejected  # dropped, counted, and braking as if clean
+    if exp.unchanged:  # dropped, counted, and braking as if clean
+        assert o.ticks_changed == 0 and o.verdict == "attack or fault detected"
     if exp.undetected:
         assert o.ticks_changed > 0 and o.failsafe_first_s is None
 

@@ -25,6 +25,8 @@ def _fmt_rejected(rej: dict[str, int]) -> str:
 
 def _cell(o, failsafe_expected: float) -> str:  # type: ignore[no-untyped-def]
     parts = [f"rejected: {_fmt_rejected(o.rejected)}"]
+    if o.extra.get("flood"):
+        parts.append("flood seen on " + ", ".join(f"{k} ×{v}" for k, v in o.extra["flood"].items()))
     if o.extra.get("unknown_senders"):
         parts.append("unknown ids: " + ", ".join(f"{k} ×{v}" for k, v in o.extra["unknown_senders"].items()))
     if o.failsafe_first_s is not None:
