@@ -53,9 +53,10 @@ class FrameGuard:
         self.unknown_ids[key] = self.unknown_ids.get(key, 0) + 1
 
     def origin(self, data_id: int, payload: bytes | bytearray, k: int, last_origin: int,
-               *, authenticated: bool = False) -> int | None:
+               *, authenticated: bool = False, same_tick_ok: bool = False) -> int | None:
         """Tick the frame was sent in, or None (rejected and counted). ``k``: the receiver's tick;
-        ``last_origin``: tick of the newest frame accepted from this sender."""
+        ``last_origin``: tick of the newest frame accepted from this sender (per data ID, or per
+        sender with ``same_tick_ok`` when it sends several pages per tick)."""
         if len(payload) < 2 or payload[0] != e2e_crc(data_id, payload):
             self.reject("crc")
             return None
@@ -65,7 +66,7 @@ class FrameGuard:
             return None
         lag = (k - c) % COUNTER_MODULO
         origin = k - lag
-        if lag > self.max_lag or origin <= last_origin:
+        if lag > self.max_lag or origin < last_origin or (origin == last_origin and not same_tick_ok):
             self.reject("counter")
             return None
         if authenticated and self.secoc is not None:

@@ -115,14 +115,14 @@ class SecOC:
         return bytes(payload[-MAC_BYTES:]) == self.mac(data_id, freshness_tick, self._body(payload, has_crc))
 
 
-#: messages secured, by name prefix: has an E2E CRC, secured length (bytes)
-SECURED = {"BRAKE_CMD_C": (True, 8), "SYNC": (False, 8), "STATE_DONE_C": (False, 5), "CMD_DONE_C": (False, 5)}
+#: messages secured, by name prefix ("SYNC": exactly): has an E2E CRC, secured length (bytes)
+SECURED = {"BRAKE_CMD_": (True, 8), "SYNC": (False, 8), "STATE_DONE_": (False, 5), "CMD_DONE_": (False, 5)}
 
 
 def secured_layout(name: str) -> tuple[bool, int] | None:
     """(has CRC, secured length) of message ``name``, or None if it is not authenticated."""
     for prefix, spec in SECURED.items():
-        if name == prefix or (prefix.endswith("_C") and name.startswith(prefix)):
+        if name == prefix or (prefix.endswith("_") and name.startswith(prefix)):
             return spec
     return None
 
@@ -139,9 +139,12 @@ def secure_database(db):  # type: ignore[no-untyped-def]
         if spec is None:
             continue
         _crc, length = spec
-        fresh = {"SYNC": "Tick (END frame: the last tick sent)",
-                 "BRAKE_CMD_C": "the sender's tick, rebuilt by the receiver from Counter (tick mod 15) and its own tick",
-                 }.get(m.name if m.name == "SYNC" else m.name.rstrip("0123456789"), "the receiver's tick k")
+        if m.length > length - MAC_BYTES:
+            raise ValueError(f"security: {m.name} uses {m.length} bytes; a {8 * MAC_BYTES}-bit MAC needs "
+                             f"{MAC_BYTES} free bytes of {length} (fewer command signals per page)")
+        fresh = ("Tick (END frame: the last tick sent)" if m.name == "SYNC" else
+                 "the sender's tick, rebuilt by the receiver from Counter (tick mod 15) and its own tick"
+                 if m.name.startswith("BRAKE_CMD_") else "the receiver's tick k")
         m.length = length
         m.signals.append(Signal(
             name="MAC", start=8 * (length - MAC_BYTES), length=8 * MAC_BYTES, byte_order="little_endian",
@@ -155,12 +158,9 @@ def secure_database(db):  # type: ignore[no-untyped-def]
 
 def build_database(scn):  # type: ignore[no-untyped-def]
     """The cantools database of scenario ``scn`` (secured layouts when ``security`` is set)."""
-    from canbrake.bus import dbc
+    from canbrake.build import bus_layout
 
-    db = dbc.build_database(scn.n_cars)
-    if getattr(scn, "security", None) is not None:
-        secure_database(db)
-    return db
+    return bus_layout(scn).database()
 
 
 def secoc_of(scn) -> SecOC | None:  # type: ignore[no-untyped-def]

@@ -114,7 +114,8 @@ def _end_with_time_master(nodes: Sequence[Node]) -> None:
     :func:`canbrake.bus.guard.sync_verdict`) are finished too."""
     if any(n.time_master and n.finished for n in nodes):
         for n in nodes:
-            n.finished = True
+            for m in getattr(n, "members", [n]):  # a NodeGroup finishes with its members
+                m.finished = True
 
 
 def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
