@@ -190,3 +190,14 @@ def test_a_diverged_run_still_ends_though_its_early_end_frame_is_not_trusted(tmp
     s = run_scenario(scn, tmp_path, backend=backend, plots=False)
     assert s["status"] == "diverged" and s["ticks"] < 500
     assert s["safety"]["end_frames_ignored"] == scn.n_cars + 1 and s["safety"]["verdict"] == "clean"
+
+
+def test_a_command_page_without_room_for_the_mac_is_refused():
+    from cantools.database.can import Database, Message, Signal
+
+    sig = Signal(name="Force", start=16, length=40, byte_order="little_endian")
+    db = Database(messages=[Message(frame_id=0x081, name="BRAKE_CMD_C1", length=7, signals=[sig])])
+    from canbrake.bus.secoc import secure_database
+
+    with pytest.raises(ValueError, match="BRAKE_CMD_C1 uses 7 bytes"):
+        secure_database(db)

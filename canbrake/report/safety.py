@@ -129,8 +129,8 @@ run, without and with authentication.
 
 ## Defences as built
 
-**E2E protection** (`canbrake/bus/e2e.py`, AUTOSAR E2E profile 1 style) on `BRAKE_CMD_Ci` and
-`STATE_Ci`: byte 0 is a CRC-8 SAE J1850 (polynomial 0x1D, init and xor-out 0xFF) over the 16-bit
+**E2E protection** (`canbrake/bus/e2e.py`, AUTOSAR E2E profile 1 style) on the command frames
+(`BRAKE_CMD_<ECU>`, and their pages `_P2`, ...) and the state frames (`STATE_<ECU>`): byte 0 is a CRC-8 SAE J1850 (polynomial 0x1D, init and xor-out 0xFF) over the 16-bit
 data ID (= frame identifier, low byte first) and bytes 1..DLC-1; the low nibble of byte 1 is an
 alive counter, the sender's tick mod 15 (15 is never sent and is rejected).
 
@@ -154,9 +154,12 @@ Secured layouts (also in the DBC written to each run directory, `MAC` signal com
 
 | message | DLC | bytes |
 |---|---|---|
-| BRAKE_CMD_Ci | 8 | 0 CRC · 1 counter/status · 2-4 BrakeForce · 5-7 MAC (freshness: sender's tick) |
+| BRAKE_CMD_<ECU> (each page) | 8 | 0 CRC · 1 counter/status · 2-4 command signals (BrakeForce) · 5-7 MAC (freshness: sender's tick) |
 | SYNC | 8 | 0-3 Tick · 4 reserved · 5-7 MAC (freshness: Tick; END frame: the last tick sent) |
-| STATE_DONE_Ci, CMD_DONE_Ci | 5 | 0-1 Tick (low 16 bits) · 2-4 MAC (freshness: the receiver's tick) |
+| STATE_DONE_<ECU>, CMD_DONE_<ECU> | 5 | 0-1 Tick (low 16 bits) · 2-4 MAC (freshness: the receiver's tick) |
+
+A command page whose signals use more than 5 bytes leaves no room for the MAC: such a placement
+with `security:` is refused before the run (one message naming the frame).
 
 A replayed frame of any earlier tick carries a MAC over that tick; its counter may alias to the
 current tick, its MAC does not, so it is rejected (counted as `freshness` when the MAC verifies for
@@ -242,6 +245,13 @@ stops all of them in these counts (expected ≈ 10^−4 per 10^6 frames).
 * Without `security:`, masquerade, replay and a 15·m-period delay are not detected (table).
 * Cross-run replay with the same key and `session` is accepted (same freshness): increase
   `session` per run.
-* The threat runs use the in-process engine. On the cross-process bus, a flood that overruns a
-  reader's ring is reported by the bus (`MemoryBus.stats`); see the notes in the issue report.
+* Floods: the in-memory bus raises a typed `BusOverrunError` (a `can.CanOperationError`) when a
+  reader falls a ring behind; `drive()` counts it (`rx_overruns`, `rx_frames_lost` in the node's
+  `guard` stats, `summary.json` `safety.flood.rx_frames_lost`) and receives on instead of failing
+  (`tests/test_flood.py`). Frames a node needed may be among those lost; a lockstep run then waits
+  for them and is reported as stalled — the flood is survived only as long as what it overwrites
+  is traffic the node filters out. SocketCAN drops silently in the kernel (not counted).
+* The replicated CAN timing model (`bus.timing: model`) uses the unsecured frame lengths.
+* The threat matrix runs on the in-process engine; the cross-process bus is covered by the
+  forged-END test and the authenticated run's byte-identity with the in-process one.
 """
