@@ -308,6 +308,18 @@ class SafetyConfig(_Model):
     failsafe_decel_mps2: float = Field(1.2, gt=0, description="fail-safe braking force per unit mass (m/s^2)")
     latch: bool = Field(True, description="true: a car stays in fail-safe until the end of the run; false: "
                                           "the next valid command releases it")
+    peer_hold_periods: int | None = Field(None, ge=1, description="an ECU holds a peer's last good value for "
+                                                                  "this many periods, then drops it and runs on its "
+                                                                  "own sensors (null: hold forever)")
+
+
+class SecurityConfig(_Model):
+    """SecOC-style authentication (canbrake.bus.secoc): 24-bit truncated AES-CMAC on brake commands
+    and simulation-control frames, freshness = (session, tick). The key never lives in the repository."""
+
+    key_file: str = Field(..., min_length=1, description="file with the AES-128 key (32 hex digits or 16 bytes)")
+    session: int = Field(0, ge=0, le=0xFFFFFFFF, description="trip counter in the freshness value; increase it "
+                                                            "per run so frames of earlier runs fail")
 
 
 class CrashFault(_Model):
@@ -364,6 +376,8 @@ class Scenario(_Model):
     plant: PlantConfig = PlantConfig()
     ecu: EcuConfig = EcuConfig()
     safety: SafetyConfig = SafetyConfig()
+    security: SecurityConfig | None = Field(None, description="authentication of commands and simulation control "
+                                                             "(null: off)")
 
     @model_validator(mode="after")
     def _per_car_lengths(self) -> "Scenario":
