@@ -413,7 +413,24 @@ class Scenario(_Model):
                     checks.append((f"events.{i}.{fname}", getattr(ev, fname), n))
         for name, value, k in checks:
             per_car(value, k, name)
+        self._check_spacing()
         return self._check_times()
+
+    def _check_spacing(self) -> None:
+        """Initial positions and a given coupler spacing must agree: a coupler that would start
+        deflected by more than its own spacing means the positions list the cars in the other order."""
+        sp, pos = self.train.coupler.spacing_m, self.initial.position_m  # type: ignore[union-attr]
+        if sp is None or pos is None or self.n_cars < 2:
+            return
+        s = per_car(sp, self.n_cars - 1, "train.coupler.spacing_m")
+        dl = np.asarray(pos[:-1], dtype=float) - np.asarray(pos[1:], dtype=float) - s
+        bad = np.flatnonzero(np.abs(dl) > np.abs(s))
+        if bad.size:
+            j = int(bad[0])
+            raise ValueError(f"initial.position_m: coupler {j + 1} (cars {j + 1}-{j + 2}) would start deflected by "
+                             f"{dl[j]:g} m, more than its spacing {s[j]:g} m (train.coupler.spacing_m, or the "
+                             f"vehicle types' length_m with car 1 leading); list the positions with car 1 in "
+                             f"front or set train.coupler.spacing_m")
 
     def _check_times(self) -> "Scenario":
         t_out = self.safety.command_timeout_s
