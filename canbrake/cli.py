@@ -33,16 +33,20 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
+    from canbrake.builtin import find_scenario
     from canbrake.run import preflight, run_scenario
     from canbrake.scenario import load_scenario
 
     overrides = _parse_set(a.set or [])
+    if a.log_format is not None:
+        overrides["bus.log_format"] = a.log_format
     if a.seed is not None:
         overrides["seed"] = a.seed
     if a.duration is not None:
         overrides["duration_s"] = a.duration
     if a.mode is not None:
         overrides["mode"] = a.mode
+    a.scenario = str(find_scenario(a.scenario))  # a file, else a built-in scenario's name
     scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
     preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
@@ -74,7 +78,8 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
     if bl.get("bus_load_mean") is not None:
         lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "
                      f"at {bl['bitrate_bps'] / 1000:g} kbit/s  frames: {s['frames']['on_bus']}")
-    lines.append(f"written: {out}/summary.json, signals.csv, frames.log" + (", plots/" if s.get("plots") else ""))
+    log = next((p.name for p in sorted(out.glob("frames.*"))), "frames.log")
+    lines.append(f"written: {out}/summary.json, signals.csv, {log}" + (", plots/" if s.get("plots") else ""))
     print("\n".join(lines))
 
 
@@ -95,7 +100,25 @@ def _cmd_dbc(a: argparse.Namespace) -> int:
 def _cmd_decode(a: argparse.Namespace) -> int:
     from canbrake.analysis.decode import decode_log
 
-    return decode_log(a.log, a.dbc, sys.stdout, only=a.only)
+    return decode_log(a.log, a.dbc, sys.stdout, only=a.only, hide_sim_control=a.hide_sim_control)
+
+
+def _cmd_scenarios(a: argparse.Namespace) -> int:
+    from canbrake.builtin import builtin_scenarios
+
+    items = builtin_scenarios()
+    width = max((len(b.name) for b in items), default=0)
+    for b in items:
+        print(f"{b.name:<{width}}  {b.description}".rstrip())
+    return EXIT_OK
+
+
+def _cmd_init(a: argparse.Namespace) -> int:
+    from canbrake.builtin import init_scenario
+
+    for p in init_scenario(a.name, a.dir):
+        print(p)
+    return EXIT_OK
 
 
 def _cmd_vcan(a: argparse.Namespace) -> int:
@@ -118,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     r = sub.add_parser("run", help="run a scenario", description="Run a scenario: one process per ECU, a plant, a recorder.")
-    r.add_argument("scenario", help="scenario YAML file")
+    r.add_argument("scenario", help="scenario YAML file, or the name of a built-in scenario (canbrake scenarios)")
     r.add_argument("--bus", choices=["memory", "socketcan", "virtual", "inprocess"],
                    help="memory (default): in-memory cross-process bus; socketcan: Linux SocketCAN (e.g. vcan0); "
                         "virtual: python-can virtual bus in one process; inprocess: fast single-process engine")
@@ -133,7 +156,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a scenario field, dotted path, YAML value (repeatable)")
     r.add_argument("--no-plots", action="store_true")
+    r.add_argument("--log-format", choices=["log", "asc", "blf", "trc", "mf4"],
+                   help="frame log format, written by python-can as frames.<FORMAT> (default log: candump -L; "
+                        "mf4 needs asammdf)")
     r.set_defaults(func=_cmd_run)
+
+    sc = sub.add_parser("scenarios", help="list the built-in scenarios",
+                        description="List the scenarios shipped with canbrake, one per line (name, description).")
+    sc.set_defaults(func=_cmd_scenarios)
+
+    ini = sub.add_parser("init", help="copy a built-in scenario to start from",
+                         description="Copy a built-in scenario (and the data files it names) into DIR.")
+    ini.add_argument("name", help="a built-in scenario (canbrake scenarios lists them)")
+    ini.add_argument("dir", nargs="?", default=".", help="destination folder (default: the current one)")
+    ini.set_defaults(func=_cmd_init)
 
     d = sub.add_parser("dbc", help="generate the CAN database", description="Generate the canbrake DBC with cantools.")
     d.add_argument("--cars", type=int, default=6)
@@ -145,6 +181,9 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("log")
     de.add_argument("--dbc", help="default: canbrake.dbc next to the log, else the 6-car database")
     de.add_argument("--only", help="only messages whose name starts with this")
+    de.add_argument("--hide-sim-control", action="store_true",
+                    help="leave out the lockstep barrier frames (STATE_DONE/CMD_DONE), e.g. in a candump capture "
+                         "of a run; a run's own log never has them")
     de.set_defaults(func=_cmd_decode)
 
     v = sub.add_parser("vcan", help="create/remove a virtual CAN interface (needs root)")

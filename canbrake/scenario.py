@@ -159,6 +159,10 @@ class BusConfig(_Model):
                                                      "(false: they stand in for each car's local wiring)")
     impairments: list[ImpairmentSpec] = Field(default_factory=list,
                                               description="see canbrake.bus.impair (delay, jitter, loss, ...)")
+    log_format: Literal["log", "asc", "blf", "trc", "mf4"] = Field(
+        "log", description="format of the run's frame log frames.<log_format>, written by python-can: "
+                           "log (candump -L), asc (Vector ASCII), blf (Vector binary), trc (PEAK), mf4 (ASAM MDF, "
+                           "needs asammdf: pip install 'canbrake[mf4]')")
 
 
 class PlantConfig(_Model):
