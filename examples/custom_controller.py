@@ -9,7 +9,7 @@ from canbrake.control.base import ControlOutput, Controller, register
 import my_controller  # noqa: F401  (registers "my_pd")
 
 r = canbrake.run("chen2023_case1_fine_rail", duration_s=0.2, controller__name="my_pd",
-                 controller__params={"kp": 20.0, "kc": 5.0})
+                 controller__params={"kp": 20.0, "kc": 5.0}, plots=False)
 print("my_pd on the in-memory bus:", r)
 
 
@@ -26,5 +26,5 @@ class BrakeHard(Controller):
 
 
 r2 = canbrake.run("chen2023_case1_fine_rail", bus="inprocess", duration_s=0.2, controller__name="brake_hard",
-                  controller__params={"decel_mps2": 1.0})
+                  controller__params={"decel_mps2": 1.0}, plots=False)
 print("brake_hard in process:", r2)

@@ -8,9 +8,11 @@ on the in-memory CAN bus with one OS process per ECU, 0.2 s of the fine-rail cas
 import canbrake
 
 scenario = canbrake.load_scenario("chen2023_case1_fine_rail", duration_s=0.2)
+# plots=False: no PNGs written (r.plot() still draws any of them on demand)
 runs = {
-    "chen2023 (consensus over CAN)": canbrake.run(scenario),
-    "pi (each car alone)": canbrake.run(scenario, controller__name="pi", controller__params={"kp": 36.0}),
+    "chen2023 (consensus over CAN)": canbrake.run(scenario, plots=False),
+    "pi (each car alone)": canbrake.run(scenario, controller__name="pi", controller__params={"kp": 36.0},
+                                        plots=False),
 }
 
 print(f"{'controller':32} {'max |Δl| (cm)':>14} {'worst RMSE (km/h)':>18} {'frames':>7}")

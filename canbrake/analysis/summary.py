@@ -134,10 +134,10 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
             tr.mass_kg = np.asarray(scn.train.mass_kg, dtype=float)
             summary["metrics"] = compute_metrics(tr)
             if plots:
-                from canbrake.analysis.plots import plot_run
+                from canbrake.analysis.plots import plot_meta, plot_run
 
                 try:
-                    summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name)
+                    summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name, meta=plot_meta(scn, bus))
                 except Exception as e:  # noqa: BLE001 - a plotting problem must not lose the run's results
                     summary["plots_error"] = str(e)
     summary["frames"] = {
