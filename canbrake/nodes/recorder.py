@@ -84,6 +84,9 @@ class RecorderNode(Node):
     def start(self, now: float) -> list[can.Message]:
         if self.log_path is not None:
             self._writer = can.Logger(str(self.log_path))
+            if self.mode == "lockstep" and isinstance(self._writer, can.ASCWriter):
+                # ASC stamps are relative to the start of measurement: make that simulated time 0
+                self._writer.log_event("canbrake: simulated time", timestamp=self.epoch)
         return []
 
     # ---------------------------------------------------------------- receive
