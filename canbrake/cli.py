@@ -48,11 +48,17 @@ def _cmd_run(a: argparse.Namespace) -> int:
         overrides["mode"] = a.mode
     a.scenario = str(find_scenario(a.scenario))  # a file, else a built-in scenario's name
     scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
-    preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
+    choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
     print(f"canbrake: running {scn.name} ({scn.n_cars} cars, {scn.duration_s:g} s, {scn.mode}, "
           f"bus {a.bus or scn.bus.backend}) -> {out}", file=sys.stderr)
-    summary = run_scenario(scn, out, backend=a.bus, channel=a.channel, interface=a.interface, dbc_path=a.dbc,
+    channel = a.channel
+    if choice.backend in ("memory", "socketcan"):
+        channel = choice.channel  # the same channel for the run and the hint
+        iface = "" if choice.backend == "memory" else " --interface socketcan"
+        print(f"canbrake: watch it live: canbrake monitor --channel {channel}{iface} --scenario "
+              f"{out / 'scenario.yaml'}", file=sys.stderr)
+    summary = run_scenario(scn, out, backend=a.bus, channel=channel, interface=a.interface, dbc_path=a.dbc,
                            plots=not a.no_plots)
     _print_summary(summary, out)
     if summary["status"] == "interrupted":
@@ -101,6 +107,31 @@ def _cmd_decode(a: argparse.Namespace) -> int:
     from canbrake.analysis.decode import decode_log
 
     return decode_log(a.log, a.dbc, sys.stdout, only=a.only, hide_sim_control=a.hide_sim_control)
+
+
+def _cmd_monitor(a: argparse.Namespace) -> int:
+    import can
+
+    from canbrake.monitor import MonitorState, load_database, monitor, open_monitor_bus, spacing_from_scenario
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario(a.scenario) if a.scenario else None
+    try:
+        db = load_database(a.dbc, scn)
+    except FileNotFoundError:
+        raise InputError(f"--dbc {a.dbc}: no such DBC file") from None
+    bitrate = a.bitrate or (scn.bus.bitrate_bps if scn is not None else 500_000)
+    state = MonitorState(db, bitrate_bps=bitrate, spacing_m=spacing_from_scenario(scn) if scn is not None else None)
+    try:
+        bus = open_monitor_bus(a.channel, a.interface)
+    except (can.CanError, OSError, ValueError, ImportError) as e:
+        raise InputError(f"--channel {a.channel}: cannot listen: {str(e).splitlines()[0] if str(e) else e}") from None
+    title = f"canbrake monitor — {a.channel}" + (f" — {scn.name}" if scn is not None else "")
+    try:
+        monitor(bus, state, title=title, duration_s=a.duration)
+    finally:
+        bus.shutdown()
+    return EXIT_OK
 
 
 def _cmd_scenarios(a: argparse.Namespace) -> int:
@@ -160,6 +191,17 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frame log format, written by python-can as frames.<FORMAT> (default log: candump -L; "
                         "mf4 needs asammdf)")
     r.set_defaults(func=_cmd_run)
+
+    mo = sub.add_parser("monitor", help="live view of a running train on a bus",
+                        description="Listen to a bus and show per car speed, brake force, coupler deflection and E2E "
+                                    "errors, per node frame rates and the bus load, as the run goes.")
+    mo.add_argument("--channel", default="vcan0", help="in-memory channel printed by canbrake run, or vcan0/can0")
+    mo.add_argument("--interface", help="python-can interface (default: socketcan for vcan*/can*, else canbrake)")
+    mo.add_argument("--scenario", help="the run's scenario.yaml: car count, bit rate, coupler spacing")
+    mo.add_argument("--dbc", help="DBC to decode with (default: from --scenario, else 6 cars)")
+    mo.add_argument("--bitrate", type=int, help="bit rate for the bus load (default: the scenario's, else 500000)")
+    mo.add_argument("--duration", type=float, help="stop after this many seconds (default: at the end of the run)")
+    mo.set_defaults(func=_cmd_monitor)
 
     sc = sub.add_parser("scenarios", help="list the built-in scenarios",
                         description="List the scenarios shipped with canbrake, one per line (name, description).")
