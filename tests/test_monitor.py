@@ -111,24 +111,36 @@ def test_attaches_to_a_live_run_on_the_memory_bus(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("tmux") is None, reason="tmux not installed")
-def test_monitor_in_tmux(tmp_path):
-    """`canbrake monitor` in a real terminal (tmux) while a run goes: the pane shows the train."""
+def test_monitor_can_viewer_and_cantools_monitor_in_tmux(tmp_path):
+    """In real terminals (tmux), while one run goes on an in-memory channel: `canbrake monitor`
+    shows the train, and python-can's `can.viewer` and `cantools monitor` show its frames."""
     channel = f"montmux-{uuid.uuid4().hex[:6]}"
-    session = f"cbmon{uuid.uuid4().hex[:6]}"
-    env = f"PYTHONPATH={ROOT}"
-    cmd = f"{env} {sys.executable} -m canbrake monitor --channel {channel} --duration 120; sleep 30"
-    subprocess.run(["tmux", "new-session", "-d", "-s", session, "-x", "130", "-y", "50", cmd], check=True)
+    tag = uuid.uuid4().hex[:6]
+    py = f"PYTHONPATH={ROOT} {sys.executable}"
+    cantools_cli = f"{py} -c 'import sys, cantools; sys.argv[0] = \"cantools\"; cantools._main()'"
+    views = {
+        f"cbmon{tag}": (f"{py} -m canbrake monitor --channel {channel} --duration 120",
+                        ["periods 49", "train — tick 49"]),
+        f"cbview{tag}": (f"{py} -m can.viewer -i canbrake -c {channel}", ["0x010", "0x011", "0x0C1"]),
+        f"cbcant{tag}": (f"{cantools_cli} monitor -i canbrake -c {channel} {ROOT / 'dbc' / 'canbrake.dbc'}",
+                         ["BRAKE_CMD_C1(", "Received:"]),
+    }
+    for session, (cmd, _) in views.items():
+        subprocess.run(["tmux", "new-session", "-d", "-s", session, "-x", "140", "-y", "50", cmd + "; sleep 60"],
+                       check=True)
     try:
-        time.sleep(3)
+        time.sleep(4)
         canbrake.run("chen2023_case1_fine_rail", out=tmp_path, channel=channel, duration_s=0.05, plots=False)
-        deadline = time.time() + 30
-        pane = ""
-        while time.time() < deadline:
-            pane = subprocess.run(["tmux", "capture-pane", "-p", "-t", session], capture_output=True,
-                                  text=True).stdout
-            if "periods 49" in pane:
-                break
-            time.sleep(0.5)
-        assert "periods 49" in pane and "train — tick 49" in pane, pane
+        for session, (_cmd, wanted) in views.items():
+            deadline = time.time() + 30
+            pane = ""
+            while time.time() < deadline:
+                pane = subprocess.run(["tmux", "capture-pane", "-p", "-t", session], capture_output=True,
+                                      text=True).stdout
+                if all(w in pane for w in wanted):
+                    break
+                time.sleep(0.5)
+            assert all(w in pane for w in wanted), f"{session}:\n{pane}"
     finally:
-        subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True)
+        for session in views:
+            subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True)
