@@ -159,3 +159,25 @@ def test_examples_run(tmp_path, name):
                        capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr[-3000:]
     assert EXAMPLES[name] in p.stdout, p.stdout
+
+
+@pytest.mark.slow
+def test_run_in_a_jupyter_kernel(tmp_path):
+    """canbrake.run on the memory bus from a Jupyter (ipykernel) kernel, as a notebook cell would."""
+    pytest.importorskip("ipykernel")
+    from jupyter_client.manager import start_new_kernel
+
+    out: list = []
+    km, kc = start_new_kernel(kernel_name="python3", cwd=str(tmp_path), env=_env())
+    try:
+        code = (f"import canbrake\nr = canbrake.run('chen2023_case1_fine_rail', out={str(tmp_path / 'run')!r}, "
+                f"duration_s=0.02, plots=False)\nprint('RESULT', r.status, r.summary['ticks'], "
+                f"canbrake.__file__)")
+        reply = kc.execute_interactive(code, timeout=300, output_hook=lambda msg: out.append(msg))
+    finally:
+        kc.stop_channels()
+        km.shutdown_kernel(now=True)
+    assert reply["content"]["status"] == "ok", reply["content"]
+    text = "".join(m["content"].get("text", "") for m in out if m["msg_type"] == "stream")
+    assert f"RESULT ok 20 {ROOT / 'canbrake' / '__init__.py'}" in text, text
+
