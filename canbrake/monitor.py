@@ -228,7 +228,11 @@ def load_database(dbc_path: str | None, scenario: Any = None) -> Any:
 
     if dbc_path:
         return cantools.database.load_file(dbc_path)
-    return dbc.build_database(scenario.n_cars if scenario is not None else 6)
+    if scenario is not None:
+        from canbrake.build import bus_layout
+
+        return bus_layout(scenario).database()
+    return dbc.build_database(6)
 
 
 def spacing_from_scenario(scn: Any) -> list[float]:
