@@ -181,3 +181,17 @@ def test_sweep_deflection_cells_use_the_colour_bar_unit():
     from canbrake.sweep import _short_cm
 
     assert _short_cm(160.0) == "160" and _short_cm(1.3) == "1.3" and _short_cm(2e4) == "∞"
+
+
+def test_init_copies_the_data_files_a_scenario_names(tmp_path, monkeypatch):
+    import canbrake.builtin as B
+
+    pkg = tmp_path / "pkg"
+    (pkg / "data").mkdir(parents=True)
+    (pkg / "data" / "wagons.csv").write_text("mass_kg\n25000\n")
+    (pkg / "data" / "unused.csv").write_text("x\n")
+    (pkg / "heavy.yaml").write_text("name: heavy\ndescription: a heavy train\ntable: data/wagons.csv\n")
+    monkeypatch.setattr(B, "builtin_dir", lambda: pkg)
+    written = B.init_scenario("heavy", tmp_path / "mine")
+    assert sorted(p.relative_to(tmp_path / "mine").as_posix() for p in written) == ["data/wagons.csv", "heavy.yaml"]
+    assert (tmp_path / "mine" / "data" / "wagons.csv").read_text() == "mass_kg\n25000\n"
