@@ -15,11 +15,11 @@ __all__ = ["load_scenario", "run", "sweep", "open_run", "RunResult", "RunFailure
 
 
 def __getattr__(name: str) -> Any:
-    if name == "run":  # the orchestrator module, made callable as the API's run()
+    if name in ("run", "sweep"):  # the modules, made callable as the API's run() and sweep()
         import importlib
 
-        return importlib.import_module("canbrake.run")
-    if name in ("load_scenario", "sweep", "open_run", "RunResult", "RunFailure"):
+        return importlib.import_module(f"canbrake.{name}")
+    if name in ("load_scenario", "open_run", "RunResult", "RunFailure"):
         from canbrake import api
 
         return getattr(api, name)

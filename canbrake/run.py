@@ -25,7 +25,7 @@ import can
 
 from canbrake.scenario import Scenario, ScenarioError
 from canbrake.startup import (PACKAGE_ENV, check_same_package, server_imports_this_canbrake,
-                              children_skip_main, controller_modules, make_run_module_callable)
+                              children_skip_main, controller_modules, make_module_callable)
 
 BACKENDS = ("memory", "socketcan", "virtual", "inprocess")
 
@@ -535,4 +535,4 @@ def write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(data, indent=1, sort_keys=False))
 
 
-make_run_module_callable(__name__)  # canbrake.run(...) is the API's run (canbrake/api.py)
+make_module_callable(__name__)  # canbrake.run(...) is the API's run (canbrake/api.py)

@@ -94,16 +94,17 @@ def controller_modules(scn: Scenario) -> list[str]:
     return [] if not mod or mod == "canbrake" or mod.startswith("canbrake.") else [mod]
 
 
-class _CallableRunModule(types.ModuleType):
-    """``canbrake.run`` is both the orchestrator module and the API function :func:`canbrake.api.run`
-    (importing the submodule rebinds the package attribute, so the module itself is made callable)."""
+class _CallableModule(types.ModuleType):
+    """A submodule that is also the API function of the same name (``canbrake.run``,
+    ``canbrake.sweep``): importing a submodule rebinds the package attribute to the module, so the
+    module itself is made callable and calls :mod:`canbrake.api`'s function."""
 
     def __call__(self, *args: object, **kwargs: object) -> object:
-        from canbrake.api import run
+        from canbrake import api
 
-        return run(*args, **kwargs)  # type: ignore[arg-type]
+        return getattr(api, self.__name__.rsplit(".", 1)[-1])(*args, **kwargs)
 
 
-def make_run_module_callable(name: str) -> None:
-    """Let ``canbrake.run(...)`` call the API whichever of module or function was imported first."""
-    sys.modules[name].__class__ = _CallableRunModule
+def make_module_callable(name: str) -> None:
+    """Let ``canbrake.<name>(...)`` call the API whichever of module or function was imported first."""
+    sys.modules[name].__class__ = _CallableModule

@@ -1139,3 +1139,8 @@ def threshold_table(rows: Sequence[dict[str, Any]], axes: Sequence[Axis]) -> str
                                                     fmt(th["deflection_violation"]), fmt(th["tracking_degraded"]),
                                                     fmt(th["unstable"])]) + " |")
     return "\n".join(lines) + "\n"
+
+
+from canbrake.startup import make_module_callable  # noqa: E402
+
+make_module_callable(__name__)  # canbrake.sweep(...) is the API's sweep (canbrake/api.py)

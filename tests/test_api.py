@@ -71,10 +71,13 @@ def test_run_result_reads_the_run(tmp_path):
         r.plot("nope")
 
 
-def test_run_module_is_the_api_function():
-    import canbrake.run as module
+def test_run_and_sweep_modules_are_the_api_functions():
+    import canbrake.run as run_module
+    import canbrake.sweep as sweep_module
+    from canbrake import sweep
 
-    assert canbrake.run is module and callable(module)
+    assert canbrake.run is run_module and callable(run_module)
+    assert canbrake.sweep is sweep_module is sweep and callable(sweep) and hasattr(sweep, "run_sweep")
 
 
 def test_controller_in_main_needs_an_inprocess_bus(tmp_path, monkeypatch):
