@@ -135,9 +135,10 @@ def controller_class(name: str) -> ControllerFactory:
         raise ControllerError(f"unknown controller {name!r}; available: {', '.join(available())}") from None
 
 
-def check_params(name: str, params: Mapping[str, Any]) -> None:
+def check_params(name: str, params: Mapping[str, Any]) -> dict[str, Any]:
     """Validate ``params`` against the controller's constructor (its schema): unknown names and
-    values of the wrong type are errors naming the parameter."""
+    values of the wrong type are errors naming the parameter. Returns the values converted to
+    the annotated types (e.g. the YAML string "2.0e5" to a float)."""
     import inspect
 
     import pydantic
@@ -166,14 +167,24 @@ def check_params(name: str, params: Mapping[str, Any]) -> None:
     if unknown and not accepts_any:
         raise ControllerError(f"unknown parameter of controller {name!r} "
                               f"(parameters: {', '.join(sorted(fields)) or 'none'})", unknown[0])
+    import math
+
+    for k, v in params.items():
+        vals = v if isinstance(v, (list, tuple)) else [v]
+        if any(isinstance(x, float) and math.isnan(x) for x in vals):
+            raise ControllerError(f"not a number (controller {name!r})", k)
     model = pydantic.create_model(f"{name}_params", __config__=pydantic.ConfigDict(
-        arbitrary_types_allowed=True, allow_inf_nan=False), **fields)  # type: ignore[call-overload]
+        arbitrary_types_allowed=True), **fields)  # type: ignore[call-overload]
+    given = {k: v for k, v in params.items() if k in fields}
     try:
-        model(**{k: v for k, v in params.items() if k in fields})
+        checked = model(**given)
     except pydantic.ValidationError as e:
         err = e.errors()[0]
         where = ".".join(str(x) for x in err["loc"])
         raise ControllerError(f"{err['msg']} (controller {name!r})", where) from None
+    out = dict(params)
+    out.update({k: getattr(checked, k) for k in given})
+    return out
 
 
 def make_controller(
@@ -188,7 +199,7 @@ def make_controller(
     """Build the controller registered as ``name`` for one ECU (``car_index``: the ECU's index,
     0-based; ``n_cars``: number of ECUs; ``mass_kg``: mass of its vehicle)."""
     cls = controller_class(name)
-    return cls(car_index=car_index, n_cars=n_cars, mass_kg=mass_kg, dt_s=dt_s, **dict(params))
+    return cls(car_index=car_index, n_cars=n_cars, mass_kg=mass_kg, dt_s=dt_s, **check_params(name, params))
 
 
 def _load_entry_point(name: str) -> None:
@@ -196,7 +207,15 @@ def _load_entry_point(name: str) -> None:
 
     for ep in entry_points(group="canbrake.controllers"):
         if ep.name == name:
-            cls = ep.load()
+            try:
+                cls = ep.load()
+            except Exception as e:  # noqa: BLE001 - a broken third-party package: say which
+                dist = getattr(getattr(ep, "dist", None), "name", "?")
+                raise ControllerError(f"controller {name!r} (entry point {ep.value!r} of package {dist}) "
+                                      f"cannot be loaded: {type(e).__name__}: {e}") from None
+            if not (isinstance(cls, type) and issubclass(cls, Controller)):
+                raise ControllerError(f"controller {name!r}: entry point {ep.value!r} is not a "
+                                      f"canbrake.control.base.Controller subclass")
             _REGISTRY.setdefault(name, cls)
 
 
