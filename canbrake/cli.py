@@ -252,7 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("name", nargs="?", default="vcan0")
     v.set_defaults(func=_cmd_vcan)
 
-    for extra in ("sweep", "report", "bench"):
+    for extra in ("sweep", "report", "bench", "analyze"):
         _register_optional(sub, extra)
     return p
 

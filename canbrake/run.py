@@ -447,6 +447,9 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
     try:
         choice = choose_bus(scn, backend, channel, interface)
         check_buildable(scn)
+        from canbrake.bus.schedule import check_faults
+
+        check_faults(scn)
         if choice.backend == "socketcan" and choice.interface == "socketcan":
             from canbrake.bus.vcan import VcanError, check_socketcan_channel
 
