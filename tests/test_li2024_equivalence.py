@@ -73,7 +73,7 @@ def test_plant_model_reproduces_heavy_haul_plant():
 
 
 def test_driver_controller_reproduces_driver_reference():
-    ref, raw = driver_reference(duration_s=30.0)
+    ref, raw = driver_reference(duration_s=10.0)
     v, _ = _loop("li2024_driver", {}, ref.t_s.size, _train(uncertainty=0.0))
     assert np.array_equal(v, raw["v_mps"])
 
@@ -81,8 +81,8 @@ def test_driver_controller_reproduces_driver_reference():
 @pytest.mark.parametrize("old_name, new_name", [("pid", "li2024_pid"), ("smc", "li2024_smc"),
                                                 ("rbfnn-smc+ndo", "li2024_rbfnn_smc_ndo")])
 def test_tracking_controllers_reproduce_simulate(old_name, new_name):
-    ref, _ = driver_reference(duration_s=20.0)
-    ref.airbrake_events[:] = [(_plant_time(200), True), (_plant_time(1200), False)]
+    ref, _ = driver_reference(duration_s=10.0)
+    ref.airbrake_events[:] = [(_plant_time(200), True), (_plant_time(600), False)]
     r = simulate(old_name, ref, record_every_s=0.01)
     v, m = _loop(new_name, {"airbrake_schedule": [[t, int(a)] for t, a in ref.airbrake_events]}, ref.t_s.size,
                  _train(), ref)
