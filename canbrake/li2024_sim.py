@@ -16,10 +16,80 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from canbrake.control.li2024 import Obs, make_controller
-from canbrake.physics.heavy_haul import (DEFAULT_DT_S, KMH, AirBrake, Consist, CouplerBank, Route, basic_resistance_n,
-                                         disturbance_n, electric_brake_envelope_n, li2024_consist, li2024_route,
-                                         traction_envelope_n)
+from canbrake.control.li2024 import (Obs, electric_brake_envelope_kn, electric_brake_envelope_n,  # noqa: F401
+                                     make_controller, saturate_control_n, traction_envelope_kn, traction_envelope_n)
+from canbrake.physics.heavy_haul import (DEFAULT_DT_S, G, KMH, AirBrake, Consist, CouplerBank,  # noqa: F401
+                                         DraftGear, Route, basic_resistance_n, disc_block_force_kn, disturbance_n,
+                                         friction_coefficient, shoe_block_force_kn)
+
+# ---- the paper's constants as they were before they moved to scenarios/li2024_*.yaml (transition only:
+# this module goes once the report runs through the node engine)
+N_WAGONS = 105
+LOCO_MASS_KG = 184_000.0
+LOCO_LENGTH_M = 35.222
+WAGON_MASS_KG = 100_000.0
+WAGON_LENGTH_M = 12.0
+DAVIS_HXD1 = (1.20, 0.0065, 0.000279)
+DAVIS_C80 = (0.92, 0.0048, 0.000125)
+MT2 = DraftGear("MT-2", (0.0, 0.020, 0.050, 0.073, 0.083), (0.0, 3.0e5, 9.0e5, 1.8e6, 2.27e6),
+                unloading_ratio=0.25, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
+                damping_n_s_per_m=1e5)
+QKX100 = DraftGear("QKX100", (0.0, 0.020, 0.060, 0.090, 0.100), (0.0, 2.5e5, 9.0e5, 2.0e6, 2.5e6),
+                   unloading_ratio=0.35, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
+                   damping_n_s_per_m=1e5)
+BETA_C = 0.19
+
+
+def hxd1_pad_force_kn() -> float:
+    return disc_block_force_kn(225.0, 450.0, 2.4, 0.9, 448.0, 1250.0)
+
+
+def c80_shoe_force_kn() -> float:
+    return shoe_block_force_kn(254.0, 430.0, 6.6, 0.9, 1, 8)
+
+
+def li2024_consist(n_wagons: int = N_WAGONS) -> Consist:
+    n = n_wagons + 1
+    loco = np.zeros(n, bool)
+    loco[0] = True
+    pick = lambda a, b: np.where(loco, a, b).astype(float)  # noqa: E731
+    return Consist(
+        mass_kg=pick(LOCO_MASS_KG, WAGON_MASS_KG), length_m=pick(LOCO_LENGTH_M, WAGON_LENGTH_M),
+        davis_a=pick(DAVIS_HXD1[0], DAVIS_C80[0]), davis_b=pick(DAVIS_HXD1[1], DAVIS_C80[1]),
+        davis_c=pick(DAVIS_HXD1[2], DAVIS_C80[2]), is_loco=loco)
+
+
+def li2024_route() -> Route:
+    km = 1000.0
+    seg = [(0, 0.0), (5, 3.0), (10, -2.0), (15, 1.0), (18, -10.0), (23.5, -3.0), (28, 4.0),
+           (31, -11.0), (36, -4.0), (37.5, -10.5), (41.5, 0.0)]
+    return Route(grade_start_m=np.array([a * km for a, _ in seg]), grade_permille=np.array([g for _, g in seg]),
+                 curve_start_m=np.array([12.0, 26.0, 33.0]) * km, curve_end_m=np.array([13.0, 27.0, 34.0]) * km,
+                 curve_radius_m=np.array([1000.0, 800.0, 1200.0]), length_m=45.0 * km)
+
+
+class _RuleAirBrake(AirBrake):
+    """The air brake with the section-1.2 rules inside the plant, as before."""
+
+    def __init__(self, consist: Consist, **kw):
+        loco = consist.is_loco
+        super().__init__(consist, apply_wave_mps=kw.pop("apply_wave_mps", 200.0),
+                         release_wave_mps=kw.pop("release_wave_mps", 36.0), cylinder_tau_s=kw.pop("cylinder_tau_s", 2.0),
+                         beta_c=BETA_C, block_force_kn=np.where(loco, hxd1_pad_force_kn(), c80_shoe_force_kn()),
+                         n_blocks=np.where(loco, 16, 8).astype(float), friction_coef=np.where(loco, 0.441, 0.481),
+                         cylinder_pressure_pa=np.where(loco, 450e3, 430e3))
+        self.apply_min, self.release_drop, self.release_floor, self.min_interval, self.lookahead = 60.0, 10.0, 35.0, 160.0, 2500.0
+        self.v_apply_kmh = 0.0
+
+    def rule_step(self, t_s: float, v_loco_mps: float, x_loco_m: float, route: Route) -> None:
+        v = v_loco_mps / KMH
+        if not self.applied:
+            if (v > self.apply_min and t_s - self.t_apply >= self.min_interval
+                    and route.long_downgrade_ahead(x_loco_m, x_loco_m - self.dist[-1], self.lookahead)):
+                self.command(t_s, True)
+                self.v_apply_kmh = v
+        elif v <= self.v_apply_kmh - self.release_drop and v >= self.release_floor:
+            self.command(t_s, False)
 
 UNCERTAINTY = 0.01  # δ = 1 % of the non-control force, on every vehicle (eq. 16's ΔF_i)
 V0_KMH = 50.0
@@ -41,8 +111,8 @@ class HeavyHaulPlant:
         # None: the section-1.2 rules decide; else replay these (time, apply?) driver's-valve commands
         self.schedule = None if airbrake_schedule is None else sorted(airbrake_schedule)
         self._sched_i = 0
-        self.cp = CouplerBank.li2024(self.c.n - 1)
-        self.ab = AirBrake(self.c, **airbrake_kw)
+        self.cp = CouplerBank([QKX100] + [MT2] * (self.c.n - 2))
+        self.ab = _RuleAirBrake(self.c, **airbrake_kw)
         self.t = 0.0
         self.v = np.full(self.c.n, float(v0_mps))
         # static initial tensions: each coupler carries the running + grade resistance behind it
@@ -81,7 +151,8 @@ class HeavyHaulPlant:
         total = fi * (1.0 + self.unc)
         total[0] += u_n
         if self.dist_on:
-            total += disturbance_n(self.c, self.t, self.v)
+            idx = np.arange(self.c.n)
+            total += disturbance_n(self.c, self.t, self.v, (idx == 0) | ((idx % 10 == 0) & (idx <= 100)), (0.002, 0.001, 0.0003))
         acc = total / self.c.mass_kg
         self.v = self.v + acc * self.dt
         self.x = self.x + self.v * self.dt

@@ -9,7 +9,6 @@ The physics is :class:`canbrake.physics.heavy_haul.HeavyHaulModel`.
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -85,10 +84,9 @@ class BrakeEquipment(StrictModel):
         """Force per shoe (shoe brake) or per cylinder referred to the tread (disc brake), kN, full pressure."""
         d, p = self.cylinder_diameter_mm, self.cylinder_pressure_kpa
         if self.kind == "disc":
-            k1 = math.pi / 4 * d ** 2 * p * 1.0 * self.lever_ratio * self.efficiency * 1e-6
-            return float(self.friction_radius_mm / self.wheel_radius_mm * k1)  # type: ignore[operator]
-        return float(math.pi / 4 * d ** 2 * p * 1.0 * self.efficiency * self.lever_ratio
-                     * (self.cylinders / self.shoes) * 1e-6)
+            return hh.disc_block_force_kn(d, p, self.lever_ratio, self.efficiency, self.friction_radius_mm,  # type: ignore[arg-type]
+                                          self.wheel_radius_mm)  # type: ignore[arg-type]
+        return hh.shoe_block_force_kn(d, p, self.lever_ratio, self.efficiency, self.cylinders, self.shoes)
 
     def blocks(self) -> int:
         return self.cylinders if self.kind == "disc" else self.shoes
@@ -231,8 +229,8 @@ class HeavyHaulTrain(StrictModel):
     def build_air_brake(self, consist: hh.Consist) -> hh.AirBrake:
         vs = [vt for _, vt in self._expanded()]
         ab = self.air_brake
-        return hh.AirBrake(consist, ab.apply_wave_mps, ab.release_wave_mps, ab.cylinder_tau_s, ab.service_factor,
-                           mode=ab.mode, block_force_kn=np.array([v.brake.block_force_kn() for v in vs]),
+        return hh.AirBrake(consist, apply_wave_mps=ab.apply_wave_mps, release_wave_mps=ab.release_wave_mps,
+                           cylinder_tau_s=ab.cylinder_tau_s, beta_c=ab.service_factor, mode=ab.mode, block_force_kn=np.array([v.brake.block_force_kn() for v in vs]),
                            n_blocks=np.array([v.brake.blocks() for v in vs], dtype=float),
                            friction_coef=np.array([v.brake.friction_coefficient for v in vs]),
                            cylinder_pressure_pa=np.array([1000.0 * v.brake.cylinder_pressure_kpa for v in vs]))

@@ -2,7 +2,7 @@
 
 Pure controllers, no I/O, SI units (m, m/s, m/s², N, kg). Each has explicit state and
 ``step(obs) -> (u_n, diagnostics)``; the command is saturated by the HXD1 envelope
-(:func:`canbrake.physics.heavy_haul.saturate_control_n`).
+(:func:`saturate_control_n`, HXD1's eqs. 1-2).
 
 * :class:`LiPID` — PID on the speed error, gains 1e7, 1, 1 (N per m/s, N per m, N per m/s²).
 * :class:`LiSlidingMode` — SMC (eq. 22), optionally with the RBF network (eqs. 23-29,
@@ -28,7 +28,37 @@ from typing import Any
 
 import numpy as np
 
-from canbrake.physics.heavy_haul import KMH, electric_brake_envelope_n, saturate_control_n, traction_envelope_n
+from canbrake.control.base import ControlOutput, Controller, Observation, register
+from canbrake.physics.heavy_haul import KMH, TractionEnvelope
+
+#: HXD1's envelopes, eqs. (1)-(2) (kN, km/h): the controllers' knowledge of their locomotive (they
+#: saturate their command with it). The plant takes its own envelope from the scenario's vehicle type.
+HXD1_ENVELOPE = TractionEnvelope(760.0, 5.0, 779.0, 3.8, 65.0, 92.2, 5.0, 461.0, 75.0, 34560.0)
+
+
+def traction_envelope_kn(v_kmh):
+    """Eq. (1): HXD1 maximum traction force in kN at speed ``v_kmh`` (km/h), array or scalar."""
+    return HXD1_ENVELOPE.traction_kn(v_kmh)
+
+
+def electric_brake_envelope_kn(v_kmh):
+    """Eq. (2): HXD1 maximum electric brake force in kN at speed ``v_kmh`` (km/h)."""
+    return HXD1_ENVELOPE.electric_brake_kn(v_kmh)
+
+
+def traction_envelope_n(v_mps):
+    """Maximum traction force (N) at speed ``v_mps`` (m/s)."""
+    return 1000.0 * traction_envelope_kn(np.asarray(v_mps, dtype=float) / KMH)
+
+
+def electric_brake_envelope_n(v_mps):
+    """Maximum electric brake force (N, positive) at speed ``v_mps`` (m/s)."""
+    return 1000.0 * electric_brake_envelope_kn(np.asarray(v_mps, dtype=float) / KMH)
+
+
+def saturate_control_n(u_n: float, v_mps: float) -> float:
+    """Clip a locomotive force command (N, > 0 traction) into HXD1's [−F_B(v), F_T(v)]."""
+    return HXD1_ENVELOPE.saturate_n(u_n, v_mps)
 
 READINGS = ("listed", "adaptive-power")
 #: NDO discretisation: "exact" (error dynamics integrated exactly over a step, zero-order hold) or
@@ -156,7 +186,6 @@ def make_controller(name: str, dt_s: float, m0_kg: float, reading: str = "listed
 # ------------------------------------------------------------------------------------ engine controllers
 # The same laws as engine controllers (canbrake.control.base.Controller), for the locomotive ECU.
 # Sign convention of the engine: brake_force_n > 0 brakes, so brake_force_n = −u.
-from canbrake.control.base import ControlOutput, Controller, Observation, register  # noqa: E402
 
 
 def _schedule(airbrake_schedule: Any) -> list[tuple[float, float]]:

@@ -1,34 +1,34 @@
-"""Heavy-haul 1+105 train of Li, Zeng & Yu 2024 (J. East China Jiaotong Univ. 41(5):94-104).
+"""Heavy-haul train physics of Li, Zeng & Yu 2024 (J. East China Jiaotong Univ. 41(5):94-104).
 
-One HXD1 locomotive (184 t, 35.222 m) and 105 C80 wagons (100 t, 12 m), all arrays of shape
-``(n_veh,) = (106,)`` indexed from the front (0 = locomotive); couplers have shape ``(n_veh-1,)``,
-coupler ``j`` joins vehicles ``j`` and ``j+1``. SI inside (m, s, kg, N); the paper's kN, km/h,
-N/kN and ‰ appear only in the published-parameter functions, converted at the edge.
+Generic over the consist: arrays of shape ``(n_veh,)`` indexed from the front (0 = locomotive);
+couplers have shape ``(n_veh-1,)``, coupler ``j`` joins vehicles ``j`` and ``j+1``. SI inside (m, s,
+kg, N); the paper's kN, km/h, N/kN and ‰ appear only where its formulas use them. The paper's train
+(HXD1 + 105 C80, Table 1, the draft-gear curves, the route) is data: ``scenarios/li2024_*.yaml`` and
+``scenarios/data/li2024_route.csv``, read by :mod:`canbrake.consist.heavy_haul`.
 
 What is modelled (paper equation numbers in brackets; MODELS.md section 2):
 
-* locomotive traction / electric-brake envelopes (1)-(2): :func:`traction_envelope_n`,
-  :func:`electric_brake_envelope_n`;
+* locomotive traction / electric-brake envelopes (1)-(2): :class:`TractionEnvelope`;
 * basic running resistance per unit weight w = A + B v + C v² N/kN (3), grade i ‰ = i N/kN (4),
   curve 600/R N/kN (5): :func:`basic_resistance_n`, :class:`Route`;
 * couplers with draft gears (7)-(9): :class:`CouplerBank` — a hysteretic spring with slack. The
   measured drop-hammer curves of Fig. 2 are not given as numbers, so the loading curve ``f_l`` and
-  the unloading curve ``f_u = r_u · f_l`` are piecewise-linear approximations (stroke and capacity of
-  MT-2 / QKX100 as catalogued; see :data:`MT2` / :data:`QKX100`). Eq. (8)'s trial force
-  ``F_prev + k Δd`` is clipped into ``[f_u, f_l]`` (eq. 9), which is eq. (7)'s branch choice. The
+  the unloading curve ``f_u = r_u · f_l`` are piecewise-linear (:class:`DraftGear`). Eq. (8)'s trial
+  force ``F_prev + k Δd`` is clipped into ``[f_u, f_l]`` (eq. 9), which is eq. (7)'s branch choice. The
   QKX100 velocity-switch form (6) is replaced by the same scheme with QKX100's curve. A small viscous
   damping acts while the gear is engaged (numerical and physical: it damps elastic ringing inside
   the hysteresis band).
-* air brake (10)-(15): :class:`AirBrake` — shoe force, friction coefficients φ_H, φ_C, the brake
-  signal travelling along the brake pipe at 200 m/s (apply) and 36 m/s (release), a first-order
-  cylinder fill after the signal arrives, and the application rules of section 1.2
-  (:meth:`AirBrake.rule_step`).
-* disturbance (40): :func:`disturbance_n` on the locomotive and wagons 10, 20, ..., 100.
+* air brake (10)-(15): :class:`AirBrake` — block forces (:func:`disc_block_force_kn`,
+  :func:`shoe_block_force_kn`), friction coefficients φ_H, φ_C, the brake signal travelling along the
+  brake pipe (apply and release waves), a first-order cylinder fill after the signal arrives; or ECP
+  (each cylinder follows its own demand). The application rules of section 1.2 are the driver's
+  (:class:`canbrake.control.li2024.LiDriver`).
+* disturbance (40): :func:`disturbance_n`.
+* the whole as a :class:`canbrake.physics.contract.PlantModel`: :class:`HeavyHaulModel`.
 
 Integration: semi-implicit (symplectic) Euler with a fixed step, default 10 ms
-(:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8) stiffness, between two
-100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable. The report
-(:mod:`canbrake.report.li2024`) compares 10 ms with 5 ms over the first 1200 s.
+(:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8)
+stiffness, between two 100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable.
 """
 from __future__ import annotations
 
@@ -43,15 +43,6 @@ G = 9.81
 KMH = 1.0 / 3.6  # m/s per km/h
 DEFAULT_DT_S = 0.01
 
-N_WAGONS = 105
-LOCO_MASS_KG = 184_000.0
-LOCO_LENGTH_M = 35.222
-WAGON_MASS_KG = 100_000.0
-WAGON_LENGTH_M = 12.0
-
-# basic resistance coefficients (N/kN with v in km/h), paper section 3.1
-DAVIS_HXD1 = (1.20, 0.0065, 0.000279)
-DAVIS_C80 = (0.92, 0.0048, 0.000125)
 
 
 # ------------------------------------------------------------------------------------ envelopes
@@ -112,36 +103,6 @@ class TractionEnvelope:
         return min(max(u_n, -1000.0 * lo), 1000.0 * hi)
 
 
-#: HXD1, eqs. (1)-(2) of the paper. The controllers' own knowledge of their locomotive (their
-#: command saturation); the plant takes its envelope from the scenario's vehicle type.
-HXD1_ENVELOPE = TractionEnvelope(760.0, 5.0, 779.0, 3.8, 65.0, 92.2, 5.0, 461.0, 75.0, 34560.0)
-
-
-def traction_envelope_kn(v_kmh):
-    """Eq. (1): HXD1 maximum traction force in kN at speed ``v_kmh`` (km/h), array or scalar."""
-    return HXD1_ENVELOPE.traction_kn(v_kmh)
-
-
-def electric_brake_envelope_kn(v_kmh):
-    """Eq. (2): HXD1 maximum electric brake force in kN at speed ``v_kmh`` (km/h)."""
-    return HXD1_ENVELOPE.electric_brake_kn(v_kmh)
-
-
-def traction_envelope_n(v_mps):
-    """Maximum traction force (N) at speed ``v_mps`` (m/s)."""
-    return 1000.0 * traction_envelope_kn(np.asarray(v_mps, dtype=float) / KMH)
-
-
-def electric_brake_envelope_n(v_mps):
-    """Maximum electric brake force (N, positive) at speed ``v_mps`` (m/s)."""
-    return 1000.0 * electric_brake_envelope_kn(np.asarray(v_mps, dtype=float) / KMH)
-
-
-def saturate_control_n(u_n: float, v_mps: float) -> float:
-    """Clip a locomotive force command (N, >0 traction) into HXD1's [-F_B(v), F_T(v)]."""
-    return HXD1_ENVELOPE.saturate_n(u_n, v_mps)
-
-
 # ------------------------------------------------------------------------------------ consist
 @dataclass(frozen=True)
 class Consist:
@@ -179,18 +140,6 @@ class Consist:
     @property
     def train_length_m(self) -> float:
         return float(self.length_m.sum())
-
-
-def li2024_consist(n_wagons: int = N_WAGONS) -> Consist:
-    """The paper's 1+105 HXD1 + C80 consist (or 1+``n_wagons``)."""
-    n = n_wagons + 1
-    loco = np.zeros(n, bool)
-    loco[0] = True
-    pick = lambda a, b: np.where(loco, a, b).astype(float)  # noqa: E731
-    return Consist(
-        mass_kg=pick(LOCO_MASS_KG, WAGON_MASS_KG), length_m=pick(LOCO_LENGTH_M, WAGON_LENGTH_M),
-        davis_a=pick(DAVIS_HXD1[0], DAVIS_C80[0]), davis_b=pick(DAVIS_HXD1[1], DAVIS_C80[1]),
-        davis_c=pick(DAVIS_HXD1[2], DAVIS_C80[2]), is_loco=loco)
 
 
 def basic_resistance_n(consist: Consist, v_mps: np.ndarray) -> np.ndarray:
@@ -287,21 +236,6 @@ class Route:
         return self.total_permille_at(x_m) * consist.weight_kn
 
 
-def li2024_route() -> Route:
-    """A synthesised 45 km route with long downgrades near 20, 34 and 39 km.
-
-    The paper's Datong South - Dongjingji profile (Fig. 3) is not published as numbers; this profile
-    is ours: level start (assumption 3), mild up/down grades, three long downgrades of 10-11 ‰
-    (Daqin's ruling grade is 12 ‰) and three curves.
-    """
-    km = 1000.0
-    seg = [(0, 0.0), (5, 3.0), (10, -2.0), (15, 1.0), (18, -10.0), (23.5, -3.0), (28, 4.0),
-           (31, -11.0), (36, -4.0), (37.5, -10.5), (41.5, 0.0)]
-    return Route(grade_start_m=np.array([a * km for a, _ in seg]), grade_permille=np.array([g for _, g in seg]),
-                 curve_start_m=np.array([12.0, 26.0, 33.0]) * km, curve_end_m=np.array([13.0, 27.0, 34.0]) * km,
-                 curve_radius_m=np.array([1000.0, 800.0, 1200.0]), length_m=45.0 * km)
-
-
 # ------------------------------------------------------------------------------------ couplers
 @dataclass(frozen=True)
 class DraftGear:
@@ -315,16 +249,6 @@ class DraftGear:
     k_elastic_n_per_m: float  # eq. (8) transition stiffness
     k_solid_n_per_m: float   # beyond the stroke (gear closed)
     damping_n_s_per_m: float  # viscous term while engaged
-
-
-#: MT-2 (C80): 83 mm stroke, ≈2.27 MN at full stroke, energy absorption ≈ 75 % (approximated)
-MT2 = DraftGear("MT-2", (0.0, 0.020, 0.050, 0.073, 0.083), (0.0, 3.0e5, 9.0e5, 1.8e6, 2.27e6),
-                unloading_ratio=0.25, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
-                damping_n_s_per_m=1e5)
-#: QKX100 (HXD1): 100 mm stroke, ≈2.5 MN at full stroke (approximated)
-QKX100 = DraftGear("QKX100", (0.0, 0.020, 0.060, 0.090, 0.100), (0.0, 2.5e5, 9.0e5, 2.0e6, 2.5e6),
-                   unloading_ratio=0.35, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
-                   damping_n_s_per_m=1e5)
 
 
 class CouplerBank:
@@ -350,11 +274,6 @@ class CouplerBank:
         self._rows = np.arange(self.n)
         self.force_state = np.zeros(self.n)
         self.defl_prev = np.zeros(self.n)
-
-    @classmethod
-    def li2024(cls, n_couplers: int) -> "CouplerBank":
-        """Coupler 0 (locomotive-wagon 1) with QKX100's curve, the others MT-2."""
-        return cls([QKX100] + [MT2] * (n_couplers - 1))
 
     def loading_n(self, d_abs: np.ndarray) -> np.ndarray:
         """f_l(|d|) (N) for gear deflections |d| (m), vectorised over couplers."""
@@ -405,60 +324,47 @@ class CouplerBank:
 
 
 # ------------------------------------------------------------------------------------ air brake
-# Table 1 (d_z mm, p_z kPa, γ_z, η_z, n_z, n_k; HXD1 also R_c, r_z mm)
-HXD1_BRAKE = dict(d_z=225.0, p_z=450.0, gamma_z=2.4, eta_z=0.9, n_z=16, n_k=32, R_c=1250.0, r_z=448.0)
-C80_BRAKE = dict(d_z=254.0, p_z=430.0, gamma_z=6.6, eta_z=0.9, n_z=1, n_k=8)
-#: common (service) braking factor β_c of eq. (10). NOT given in the paper; assumed value for a
-#: 50 kPa brake-pipe reduction (our assumption, documented in the report).
-BETA_C = 0.19
-
-
-def hxd1_pad_force_kn(p_fraction: float = 1.0) -> float:
-    """Eqs. (13)-(14): HXD1 force per brake cylinder referred to the wheel tread (kN).
+def disc_block_force_kn(cylinder_diameter_mm: float, cylinder_pressure_kpa: float, lever_ratio: float,
+                        efficiency: float, friction_radius_mm: float, wheel_radius_mm: float) -> float:
+    """Eqs. (13)-(14): disc-brake force per cylinder referred to the wheel tread (kN), full pressure.
 
     Eq. (13) is printed with the disc friction radius r_z; we read it as the lever ratio γ_z
-    (Table 1 gives γ_z = 2.4 for HXD1; r_z = 448 mm then enters eq. 14 as r_z / R_c).
+    (Table 1 gives γ_z = 2.4 for HXD1; r_z then enters eq. 14 as r_z / R_c).
     """
-    b = HXD1_BRAKE
-    k1 = np.pi / 4 * b["d_z"] ** 2 * b["p_z"] * p_fraction * b["gamma_z"] * b["eta_z"] * 1e-6
-    return float(b["r_z"] / b["R_c"] * k1)
+    k1 = np.pi / 4 * cylinder_diameter_mm ** 2 * cylinder_pressure_kpa * 1.0 * lever_ratio * efficiency * 1e-6
+    return float(friction_radius_mm / wheel_radius_mm * k1)
 
 
-def c80_shoe_force_kn(p_fraction: float = 1.0) -> float:
-    """Eq. (15): C80 force per brake shoe (kN)."""
-    b = C80_BRAKE
-    return float(np.pi / 4 * b["d_z"] ** 2 * b["p_z"] * p_fraction * b["eta_z"] * b["gamma_z"]
-                 * (b["n_z"] / b["n_k"]) * 1e-6)
+def shoe_block_force_kn(cylinder_diameter_mm: float, cylinder_pressure_kpa: float, lever_ratio: float,
+                        efficiency: float, cylinders: int, shoes: int) -> float:
+    """Eq. (15): tread-brake force per shoe (kN), full pressure."""
+    return float(np.pi / 4 * cylinder_diameter_mm ** 2 * cylinder_pressure_kpa * 1.0 * efficiency * lever_ratio
+                 * (cylinders / shoes) * 1e-6)
 
 
 def friction_coefficient(k_kn, v_kmh, coef):
     """Eqs. (11)-(12): φ = coef·(K + 200)/(4K + 200)·(2v + 150)/(3v + 150), K in kN, v in km/h;
-    ``coef`` is 0.441 for HXD1 (φ_H) and 0.481 for C80's high-friction shoe (φ_C); a bool array is
-    read as "is a locomotive" (0.441 where True, 0.481 elsewhere)."""
+    ``coef`` is 0.441 for HXD1 (φ_H) and 0.481 for C80's high-friction shoe (φ_C), per vehicle."""
     k = np.asarray(k_kn, dtype=float)
     v = np.abs(np.asarray(v_kmh, dtype=float))
-    coef = np.asarray(coef)
-    if coef.dtype == bool:
-        coef = np.where(coef, 0.441, 0.481)
     return coef * (k + 200.0) / (4.0 * k + 200.0) * (2.0 * v + 150.0) / (3.0 * v + 150.0)
 
 
 class AirBrake:
-    """Brake-pipe signal propagation, cylinder fill and the application rules (section 1.2).
+    """Brake-pipe signal propagation and cylinder fill (pneumatic), or per-vehicle demands (ECP).
 
     The locomotive's driver's valve issues apply/release; vehicle k (centre at distance D_k behind
     the locomotive's centre) sees an apply signal D_k / 200 m/s and a release signal D_k / 36 m/s
     after it was issued. After the signal arrives the cylinder fills/empties with a first-order lag
     ``cylinder_tau_s`` (assumed, not in the paper). ``fill`` in [0, 1] is the fraction of Table 1's
-    cylinder pressure p_z.
+    cylinder pressure p_z. In ``ecp`` mode each cylinder follows ``ecp_target`` with the same lag.
+    Per-vehicle arrays (n,): ``block_force_kn`` (K per block at full pressure, eqs. 13-15),
+    ``n_blocks``, ``friction_coef`` (eqs. 11-12), ``cylinder_pressure_pa``; ``beta_c`` is eq. (10)'s β_c.
     """
 
-    def __init__(self, consist: Consist, apply_wave_mps: float = 200.0, release_wave_mps: float = 36.0,
-                 cylinder_tau_s: float = 2.0, beta_c: float = BETA_C, apply_min_kmh: float = 60.0,
-                 release_drop_kmh: float = 10.0, release_floor_kmh: float = 35.0, min_interval_s: float = 160.0,
-                 lookahead_m: float = 2500.0, *, mode: str = "pneumatic", block_force_kn: np.ndarray | None = None,
-                 n_blocks: np.ndarray | None = None, friction_coef: np.ndarray | None = None,
-                 cylinder_pressure_pa: np.ndarray | None = None):
+    def __init__(self, consist: Consist, *, apply_wave_mps: float, release_wave_mps: float, cylinder_tau_s: float,
+                 beta_c: float, block_force_kn: np.ndarray, n_blocks: np.ndarray, friction_coef: np.ndarray,
+                 cylinder_pressure_pa: np.ndarray, mode: str = "pneumatic"):
         if mode not in ("pneumatic", "ecp"):
             raise ValueError(f"air brake mode must be 'pneumatic' or 'ecp', got {mode!r}")
         self.consist = consist
@@ -467,26 +373,18 @@ class AirBrake:
         self.apply_wave, self.release_wave = apply_wave_mps, release_wave_mps
         self.tau = cylinder_tau_s
         self.beta_c = beta_c
-        self.apply_min, self.release_drop, self.release_floor = apply_min_kmh, release_drop_kmh, release_floor_kmh
-        self.min_interval, self.lookahead = min_interval_s, lookahead_m
         self.applied = False
         self.t_apply = -np.inf
         self.t_release = -np.inf
-        self.v_apply_kmh = 0.0
         self.fill = np.zeros(consist.n)
         #: ECP mode: each vehicle's cylinder target (fraction of full service), held between demands
         self.ecp_target = np.zeros(consist.n)
         self.last_force_n = np.zeros(consist.n)
         self.events: list[tuple[float, str]] = []
-        loco = consist.is_loco
-        self.k_full_kn = (np.where(loco, hxd1_pad_force_kn(), c80_shoe_force_kn()) if block_force_kn is None
-                          else np.asarray(block_force_kn, dtype=float))
-        self.n_blocks = (np.where(loco, HXD1_BRAKE["n_z"], C80_BRAKE["n_k"]).astype(float) if n_blocks is None
-                         else np.asarray(n_blocks, dtype=float))
-        self.friction_coef = (np.where(loco, 0.441, 0.481) if friction_coef is None
-                              else np.asarray(friction_coef, dtype=float))
-        self.cylinder_pressure_pa = (1000.0 * np.where(loco, HXD1_BRAKE["p_z"], C80_BRAKE["p_z"])
-                                     if cylinder_pressure_pa is None else np.asarray(cylinder_pressure_pa, dtype=float))
+        self.k_full_kn = np.asarray(block_force_kn, dtype=float)
+        self.n_blocks = np.asarray(n_blocks, dtype=float)
+        self.friction_coef = np.asarray(friction_coef, dtype=float)
+        self.cylinder_pressure_pa = np.asarray(cylinder_pressure_pa, dtype=float)
 
     def command(self, t_s: float, apply: bool) -> None:
         """Driver's valve: issue an apply (True) or a release (False) at time ``t_s``."""
@@ -510,19 +408,6 @@ class AirBrake:
             return got_a
         return got_a & ~got_r
 
-    def rule_step(self, t_s: float, v_loco_mps: float, x_loco_m: float, route: Route) -> None:
-        """Section 1.2: apply above 60 km/h with a long (> 8 ‰, ≥ 500 m) downgrade within 2.5 km
-        ahead (or under the train), at least 160 s after the previous application; release once the
-        speed is 10 km/h below the applying speed, but never below 35 km/h."""
-        v = v_loco_mps / KMH
-        if not self.applied:
-            if (v > self.apply_min and t_s - self.t_apply >= self.min_interval
-                    and route.long_downgrade_ahead(x_loco_m, x_loco_m - self.dist[-1], self.lookahead)):
-                self.command(t_s, True)
-                self.v_apply_kmh = v
-        elif v <= self.v_apply_kmh - self.release_drop and v >= self.release_floor:
-            self.command(t_s, False)
-
     def step(self, t_s: float, dt_s: float, v_mps: np.ndarray) -> np.ndarray:
         """Advance cylinder fills by ``dt_s`` and return the air-brake force per vehicle (N, ≥ 0)."""
         if self.mode == "ecp":
@@ -543,14 +428,11 @@ class AirBrake:
 
 
 # ------------------------------------------------------------------------------------ disturbance
-def disturbance_n(consist: Consist, t_s: float, v_mps: np.ndarray, on: np.ndarray | None = None,
-                  coef: tuple[float, float, float] = (0.002, 0.001, 0.0003)) -> np.ndarray:
+def disturbance_n(consist: Consist, t_s: float, v_mps: np.ndarray, on: np.ndarray,
+                  coef: tuple[float, float, float]) -> np.ndarray:
     """Eq. (40), σ_i in N: m_i {c0 + c1 sin(t+1) + c2 ∛v [sin(2t+2) + cos(3t+1)]}, (c0, c1, c2) = ``coef``
-    (paper: 0.002, 0.001, 0.0003), on the vehicles where ``on`` is True (default: the locomotive and
-    wagons 10, 20, ..., 100; zero elsewhere); v in m/s (SI reading)."""
-    if on is None:
-        idx = np.arange(consist.n)
-        on = (idx == 0) | ((idx % 10 == 0) & (idx <= 100))
+    (paper: 0.002, 0.001, 0.0003), on the vehicles where ``on`` is True (paper: the locomotive and
+    wagons 10, 20, ..., 100), zero elsewhere; v in m/s (SI reading)."""
     v = np.abs(np.asarray(v_mps, dtype=float))
     c0, c1, c2 = coef
     acc = c0 + c1 * np.sin(t_s + 1.0) + c2 * np.cbrt(v) * (np.sin(2 * t_s + 2.0) + np.cos(3 * t_s + 1.0))
@@ -601,7 +483,7 @@ class HeavyHaulModel:
     def __init__(self, consist: Consist, route: Route, gears: list[DraftGear], airbrake: AirBrake, *,
                  envelopes: list[TractionEnvelope | None], v0_mps: float, x0_m: float = 0.0,
                  uncertainty: float = 0.0, disturbance_on: np.ndarray | None = None,
-                 disturbance_coef: tuple[float, float, float] = (0.002, 0.001, 0.0003),
+                 disturbance_coef: tuple[float, float, float] = (0.0, 0.0, 0.0),
                  integration_step_s: float = DEFAULT_DT_S, line_lookahead_m: float = 2500.0,
                  line_min_grade_permille: float = 8.0, line_min_length_m: float = 500.0):
         if len(gears) != consist.n - 1 or len(envelopes) != consist.n:

@@ -26,7 +26,7 @@ from canbrake.li2024_sim import (
     driver_reference,
     simulate,
 )
-from canbrake.physics import heavy_haul as hh
+from canbrake import li2024_sim as hh
 from canbrake.report.cache import load_npz, save_npz
 
 REPORT_VERSION = 1
@@ -284,7 +284,7 @@ def _rules_sentence(res: dict) -> str:
 def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s: float, elapsed_s: float,
                    steps: dict | None = None) -> Path:
     c = hh.li2024_consist()
-    ab = hh.AirBrake(c)
+    ab = hh._RuleAirBrake(c)
     route = hh.li2024_route()
     L = []
     w = L.append
@@ -408,7 +408,7 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
     w(f"- Air brake (eqs. 10–15, Table 1): per C80 shoe K = {hh.c80_shoe_force_kn():.2f} kN (eq. 15, 8 shoes), "
       f"HXD1 K = {hh.hxd1_pad_force_kn():.2f} kN per cylinder (eqs. 13–14, 16 cylinders), φ from eqs. (11)–(12); "
       f"β_c = {hh.BETA_C} (**assumed**: the paper does not give it). Full-service force of one C80 at 60 km/h: "
-      f"{1e-3 * float(hh.BETA_C * 8 * hh.friction_coefficient(hh.c80_shoe_force_kn(), 60, False) * hh.c80_shoe_force_kn() * 1000):.2f} kN. "
+      f"{1e-3 * float(hh.BETA_C * 8 * hh.friction_coefficient(hh.c80_shoe_force_kn(), 60, 0.481) * hh.c80_shoe_force_kn() * 1000):.2f} kN. "
       f"Signal along the brake pipe at {ab.apply_wave:.0f} m/s (apply) / {ab.release_wave:.0f} m/s (release): "
       f"it reaches the last wagon {ab.dist[-1] / ab.apply_wave:.1f} s / {ab.dist[-1] / ab.release_wave:.1f} s after "
       f"the locomotive (paper: about 6 s and 36.1 s); then a first-order cylinder fill, τ = {ab.tau} s (assumed). "
