@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -25,6 +26,10 @@ from canbrake.physics.contract import PlantModel
 KMH = hh.KMH
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 SCENARIO = SCENARIOS / "li2024_smc.yaml"
+
+
+#: what build_plant takes from the scenario
+SCN = SimpleNamespace(initial=SimpleNamespace(speed_kmh=50.0, position_m=None))
 
 
 def train_data() -> dict:
@@ -69,7 +74,7 @@ def test_scenario_envelope_is_the_controllers_eqs_1_2():
 
 
 def test_the_plant_clips_the_locomotive_force_to_its_envelope():
-    m = short_train(2).build_plant(None, SCENARIOS)
+    m = short_train(2).build_plant(SCN, SCENARIOS)
     v0 = float(m.v[0])
     m.step(0.01, {"brake_force_n": np.array([-1e9, np.nan, np.nan])})
     assert m.u[0] == pytest.approx(1000 * float(traction_envelope_kn(v0 / KMH)))
@@ -155,7 +160,7 @@ def test_steady_state_needs_exactly_resistance_plus_grade():
 
 def test_passive_forces_sum_to_the_external_forces():
     """Couplers are internal: Σ passive_force_n = −Σ(basic resistance + grade/curve + air brake)."""
-    m = train().build_plant(None, SCENARIOS)
+    m = train().build_plant(SCN, SCENARIOS)
     m.step(0.01, {"airbrake_apply": np.r_[1.0, np.full(105, np.nan)]})
     for _ in range(300):
         m.step(0.01, {})
@@ -166,7 +171,7 @@ def test_passive_forces_sum_to_the_external_forces():
 
 
 def test_plant_model_follows_the_contract():
-    m = short_train(4).build_plant(None, SCENARIOS)
+    m = short_train(4).build_plant(SCN, SCENARIOS)
     assert isinstance(m, PlantModel)
     me = m.measurements()
     for k in ("position_m", "speed_mps", "accel_mps2", "applied_brake_n", "passive_force_n",
@@ -180,9 +185,9 @@ def test_plant_model_follows_the_contract():
 
 
 def test_downgrade_ahead_is_line_data():
-    m = train(initial_position_m=10_000.0).build_plant(None, SCENARIOS)
+    m = train(start_position_m=10_000.0).build_plant(SCN, SCENARIOS)
     assert m.measurements()["downgrade_ahead"][0] == 0.0
-    m2 = train(initial_position_m=16_000.0).build_plant(None, SCENARIOS)
+    m2 = train(start_position_m=16_000.0).build_plant(SCN, SCENARIOS)
     assert np.all(m2.measurements()["downgrade_ahead"] == 1.0)
 
 
@@ -211,7 +216,7 @@ def test_air_brake_signal_reaches_wagon_k_at_distance_over_200():
 
 def test_valve_command_fills_the_cylinders_with_the_lag():
     t = short_train(3)
-    m = t.build_plant(None, SCENARIOS)
+    m = t.build_plant(SCN, SCENARIOS)
     dt, tau = 0.01, t.air_brake.cylinder_tau_s
     m.step(dt, {"airbrake_apply": np.array([1.0, np.nan, np.nan, np.nan])})
     p_full = m.ab.cylinder_pressure_pa
@@ -226,7 +231,7 @@ def test_valve_command_fills_the_cylinders_with_the_lag():
 
 def test_ecp_each_wagon_follows_its_own_demand_without_a_wave():
     t = short_train(3, air_brake={**train_data()["air_brake"], "mode": "ecp"})
-    m = t.build_plant(None, SCENARIOS)
+    m = t.build_plant(SCN, SCENARIOS)
     dt, tau = 0.01, t.air_brake.cylinder_tau_s
     a = 1.0 - math.exp(-dt / tau)
     m.step(dt, {"ecp_demand": np.array([np.nan, 1.0, 0.5, 2.0]), "airbrake_apply": np.array([1.0, np.nan, np.nan, np.nan])})
@@ -285,13 +290,13 @@ def test_coupler_compression_is_symmetric():
 
 
 def test_first_coupler_takes_the_locomotive_gear():
-    m = short_train(3).build_plant(None, SCENARIOS)
+    m = short_train(3).build_plant(SCN, SCENARIOS)
     assert m.cp.fmax == pytest.approx([2.5e6, 2.27e6, 2.27e6])  # QKX100 behind the HXD1, then MT-2
 
 
 def test_disturbance_eq40_only_on_listed_vehicles():
     t = train(disturbance={**train_data()["disturbance"], "enabled": True})
-    m = t.build_plant(None, SCENARIOS)
+    m = t.build_plant(SCN, SCENARIOS)
     v = np.full(106, 20.0)
     s = hh.disturbance_n(m.c, 1.5, v, m.dist_on, m.dist_coef)
     assert list(np.flatnonzero(s)) == [0] + list(range(10, 101, 10))

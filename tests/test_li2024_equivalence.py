@@ -4,6 +4,7 @@ Removed together with li2024_sim once the scenarios run through the node engine.
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -15,6 +16,10 @@ from canbrake.li2024_sim import HeavyHaulPlant, Reference, driver_reference, sim
 
 ROOT = Path(__file__).resolve().parents[1]
 TRAIN = ROOT / "tests" / "data" / "li2024_train.yaml"
+
+
+#: what build_plant takes from the scenario
+SCN = SimpleNamespace(initial=SimpleNamespace(speed_kmh=50.0, position_m=None))
 
 
 def _plant_time(k: int) -> float:
@@ -32,7 +37,7 @@ def _train(**over) -> HeavyHaulTrain:
 
 
 def _loop(name: str, params: dict, n: int, train: HeavyHaulTrain, ref: Reference | None = None):
-    m = train.build_plant(None, ROOT / "scenarios")
+    m = train.build_plant(SCN, ROOT / "scenarios")
     ctl = make_controller(name, params, car_index=0, n_cars=1, mass_kg=float(m.mass_kg[0]), dt_s=0.01)
     nan = np.full(m.n_vehicles, np.nan)
     v = []
@@ -57,8 +62,8 @@ def _loop(name: str, params: dict, n: int, train: HeavyHaulTrain, ref: Reference
 def test_plant_model_reproduces_heavy_haul_plant():
     sched = [(_plant_time(100), True), (_plant_time(1200), False)]
     old = HeavyHaulPlant(uncertainty=0.01, disturbance=True, airbrake_schedule=sched, x0_m=17000.0)
-    new = _train(uncertainty=0.01, initial_position_m=17000.0,
-                 disturbance={"enabled": True, "vehicles": [1] + list(range(11, 102, 10))}).build_plant(None, ROOT / "scenarios")
+    new = _train(uncertainty=0.01, start_position_m=17000.0,
+                 disturbance={"enabled": True, "vehicles": [1] + list(range(11, 102, 10))}).build_plant(SCN, ROOT / "scenarios")
     state = 0.0
     for k in range(2000):
         t = k * 0.01

@@ -174,10 +174,10 @@ class HeavyHaulTrain(StrictModel):
     #: δ: every vehicle's non-control force is (1 + δ) times the nominal one the controllers know
     uncertainty: float = Field(0.0, ge=-0.5, le=0.5)
     disturbance: Disturbance = Field(default_factory=Disturbance)
-    initial_speed_kmh: float = Field(ge=0)
-    #: position of the locomotive's centre at t = 0 (m along the route); the train starts in static
-    #: equilibrium (each coupler carries the resistance behind it)
-    initial_position_m: float = 0.0
+    #: position of the first vehicle's centre at t = 0 (m along the route). The train starts at the
+    #: scenario's ``initial.speed_kmh`` (one value) in static equilibrium: each coupler carries the
+    #: running and line resistance behind it
+    start_position_m: float = 0.0
     integration_step_s: float = Field(0.01, gt=0)
 
     @field_validator("vehicle_types")
@@ -235,8 +235,17 @@ class HeavyHaulTrain(StrictModel):
                            friction_coef=np.array([v.brake.friction_coefficient for v in vs]),
                            cylinder_pressure_pa=np.array([1000.0 * v.brake.cylinder_pressure_kpa for v in vs]))
 
-    def build_plant(self, scn: Any = None, base_dir: Path | None = None) -> hh.HeavyHaulModel:
-        """The plant model (``scn``, the whole scenario, is not needed: everything is in ``train``)."""
+    def build_plant(self, scn: Any, base_dir: Path | None = None) -> hh.HeavyHaulModel:
+        """The plant model; from the scenario ``scn`` it takes ``initial.speed_kmh`` (one value, or one per
+        vehicle all equal: the train starts in static equilibrium)."""
+        v0 = scn.initial.speed_kmh
+        if isinstance(v0, (list, tuple)):
+            if len(set(float(x) for x in v0)) != 1:
+                raise ValueError("initial.speed_kmh: a heavy-haul train starts with one speed for every vehicle")
+            v0 = v0[0]
+        if getattr(scn.initial, "position_m", None) is not None:
+            raise ValueError("initial.position_m: a heavy-haul train is placed by train.start_position_m "
+                             "(the couplers start in static equilibrium)")
         ex = self._expanded()
         c = self.consist()
         gears = {name: g.physics(name) for name, g in self.draft_gears.items()}
@@ -250,7 +259,7 @@ class HeavyHaulTrain(StrictModel):
         return hh.HeavyHaulModel(
             c, self.load_route(base_dir), cgears, self.build_air_brake(c),
             envelopes=[vt.traction.physics() if vt.traction is not None else None for _, vt in ex],
-            v0_mps=self.initial_speed_kmh * hh.KMH, x0_m=self.initial_position_m, uncertainty=self.uncertainty,
+            v0_mps=float(v0) * hh.KMH, x0_m=self.start_position_m, uncertainty=self.uncertainty,
             disturbance_on=on, disturbance_coef=(d.c0_mps2, d.c1_mps2, d.c2),
             integration_step_s=self.integration_step_s, line_lookahead_m=self.route.lookahead_m,
             line_min_grade_permille=self.route.long_downgrade_permille,
