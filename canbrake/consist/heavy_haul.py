@@ -165,7 +165,7 @@ class Disturbance(StrictModel):
 class HeavyHaulTrain(StrictModel):
     """``train:`` of a heavy-haul scenario (Li 2024)."""
 
-    model: Literal["heavy_haul"]
+    model: Literal["heavy_haul"] = "heavy_haul"
     vehicle_types: dict[str, VehicleType]
     draft_gears: dict[str, DraftGear]
     vehicles: list[VehicleEntry] = Field(min_length=1)

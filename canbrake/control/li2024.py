@@ -240,6 +240,7 @@ class _LiLocomotive(Controller):
 
     def step(self, obs: Observation) -> ControlOutput:
         u, diag = self.law.step(self._law_obs(obs))  # type: ignore[attr-defined]
+        diag = {**diag, "u_n": u, "speed_error_mps": obs.speed_mps - obs.ref_speed_mps}
         return ControlOutput(-u, {k: float(diag.get(k, float("nan"))) for k in self.diagnostic_names},
                              commands={"airbrake_apply": self.replay.at(obs.time_s)})
 
@@ -251,7 +252,9 @@ class _LiLocomotive(Controller):
 class LiPIDController(_LiLocomotive):
     """Li 2024's PID on the speed error (gains N per m/s, N per m, N per m/s²)."""
 
-    diagnostic_names = ("u_raw_n",)
+    #: u_raw_n / u_n: locomotive force before / after the envelope (N, + traction); speed_error_mps:
+    #: v − v* as the ECU sees it
+    diagnostic_names = ("u_raw_n", "u_n", "speed_error_mps")
     sensor_names = ("speed_mps", "position_m")
 
     def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float, *, kp: float = 1e7,
@@ -262,7 +265,7 @@ class LiPIDController(_LiLocomotive):
 
 
 class _LiSMCBase(_LiLocomotive):
-    diagnostic_names = ("s", "delta_hat", "d_hat", "u_raw_n")
+    diagnostic_names = ("s", "delta_hat", "d_hat", "u_raw_n", "u_n", "speed_error_mps")
     needs_ref_position = True
     _rbf = False
     _ndo = False
@@ -323,7 +326,9 @@ class LiDriver(Controller):
     sensor_names = ("speed_mps", "position_m", "downgrade_ahead")
     command_names = ("brake_force_n", "airbrake_apply")
     broadcast_names = ()
-    diagnostic_names = ("airbrake_apply", "traction_n")
+    #: recorded_speed_mps: the locomotive speed as the ECU measured it (the recorder's curve that
+    #: becomes the tracking reference)
+    diagnostic_names = ("airbrake_apply", "traction_n", "recorded_speed_mps")
 
     def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float, *, cruise_kmh: float = 70.0,
                  kp_n_per_mps: float = 3e6, envelope_share: float = 0.7, rate_n_per_s: float = 1e5,
@@ -364,7 +369,8 @@ class LiDriver(Controller):
                    self.share * float(traction_envelope_n(v0)))
         self.u += min(max(want - self.u, -self.rate * self.dt_s), self.rate * self.dt_s)
         ab = 1.0 if self.applied else 0.0
-        return ControlOutput(-self.u, {"airbrake_apply": ab, "traction_n": self.u}, commands={"airbrake_apply": ab})
+        return ControlOutput(-self.u, {"airbrake_apply": ab, "traction_n": self.u, "recorded_speed_mps": v0},
+                             commands={"airbrake_apply": ab})
 
     def reset(self) -> None:
         self.__init__(self.car_index, self.n_cars, self.mass_kg, self.dt_s, **self._params)  # type: ignore[misc]

@@ -513,6 +513,7 @@ class HeavyHaulModel:
         self.acc = np.zeros(consist.n)
         self.u = np.zeros(consist.n)  # applied traction (N, + forward) per vehicle
         self._fi: np.ndarray | None = None
+        self._meas: dict[str, np.ndarray] | None = None
         self._fill_before = self.ab.fill.copy()
 
     # -- state -----------------------------------------------------------------------------------
@@ -587,6 +588,7 @@ class HeavyHaulModel:
         n = int(round(dt_s / self.dt))
         if n < 1 or abs(n * self.dt - dt_s) > 1e-9 * max(1.0, dt_s):
             raise ValueError(f"step {dt_s} s is not a whole number of integration steps of {self.dt} s")
+        self._meas = None
         self._take_commands(commands)
         for _ in range(n):
             if self.powered.any() and _ > 0:
@@ -601,9 +603,12 @@ class HeavyHaulModel:
         return self.route.long_downgrade_ahead(x0, x0 - float(self.c.distance_from_loco_m[-1]), look, g, length)
 
     def measurements(self) -> dict[str, np.ndarray]:
+        """The contract's measurements (computed once per state; do not modify the arrays)."""
+        if self._meas is not None:
+            return self._meas
         fa = self.ab.last_force_n
         applied = fa - self.u
-        return {
+        self._meas = {
             "position_m": self.x.copy(),
             "speed_mps": self.v.copy(),
             "accel_mps2": self.acc.copy(),
@@ -614,3 +619,4 @@ class HeavyHaulModel:
             "brake_cylinder_pressure_pa": self.ab.fill * self.ab.cylinder_pressure_pa,
             "downgrade_ahead": np.full(self.n_vehicles, float(self.downgrade_ahead())),
         }
+        return self._meas
