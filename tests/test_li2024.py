@@ -408,3 +408,28 @@ def test_driver_commands_the_valve_and_a_rate_limited_force():
     assert out.commands["airbrake_apply"] == 1.0
     # aims 12 km/h below 65 km/h: wants to brake, limited to 100 kN/s · 10 ms
     assert out.brake_force_n == pytest.approx(1e5 * 0.01)
+
+
+# ------------------------------------------------------------------------------ ECP over CAN
+def test_ecp_wagon_applies_the_locomotive_broadcast():
+    w = make_controller("ecp_wagon", {}, car_index=3, n_cars=106, mass_kg=1e5, dt_s=0.05)
+    assert w.command_names == ("ecp_demand",) and w.broadcast_names == ()
+    base = _obs(0.0)
+    nothing = Observation(**{**base.__dict__, "peer_signals": {}})
+    assert w.step(nothing).commands == {"ecp_demand": 0.0}        # released until a demand arrives
+    got = np.full(106, np.nan)
+    got[0] = 0.7
+    out = w.step(Observation(**{**base.__dict__, "peer_signals": {"ecp_demand": got}}))
+    assert out.commands == {"ecp_demand": 0.7}
+    got[0] = np.nan                                                 # lost frame: hold the last demand
+    assert w.step(Observation(**{**base.__dict__, "peer_signals": {"ecp_demand": got}})).commands["ecp_demand"] == 0.7
+    with pytest.raises(ValueError, match="source_ecu"):
+        make_controller("ecp_wagon", {"source_ecu": 200}, car_index=3, n_cars=106, mass_kg=1e5, dt_s=0.05)
+
+
+def test_brake_test_demands_from_its_start_time():
+    b = make_controller("heavy_haul_brake_test", {"brake_at_s": 5.0, "demand": 0.8}, car_index=0, n_cars=106,
+                        mass_kg=184e3, dt_s=0.05)
+    assert b.step(_obs(4.95)).broadcast == {"ecp_demand": 0.0}
+    out = b.step(_obs(5.0))
+    assert out.broadcast == {"ecp_demand": 0.8} and out.commands == {"airbrake_apply": 1.0, "ecp_demand": 0.8}

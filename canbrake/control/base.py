@@ -135,4 +135,4 @@ def make_controller(
 
 def _load_builtin() -> None:
     # Importing the modules runs their @register decorators.
-    from canbrake.control import chen, chen_compensated, li2024, pi  # noqa: F401
+    from canbrake.control import chen, chen_compensated, ecp, li2024, pi  # noqa: F401
