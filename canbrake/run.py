@@ -114,7 +114,9 @@ def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | N
         check_dbc_matches(scn, dbc_path)
         (out / "canbrake.dbc").write_text(Path(dbc_path).read_text())
     else:
-        dbc.write_dbc(scn.n_cars, out / "canbrake.dbc")
+        from canbrake.build import bus_layout
+
+        (out / "canbrake.dbc").write_text(bus_layout(scn).database().as_dbc_string())
     (out / "scenario.yaml").write_text(scn.to_yaml())
     (out / "plots").mkdir(exist_ok=True)
     return out
@@ -131,10 +133,16 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
         raise ScenarioError(f"{p}: no such DBC file") from None
     except Exception as e:  # cantools raises several parse error types
         raise ScenarioError(f"{p}: not a readable DBC file: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
-    n = dbc.n_cars_of(db)
-    if n != scn.n_cars:
-        raise ScenarioError(f"{p}: the DBC describes {n} cars but the scenario has {scn.n_cars} (train.mass_kg)")
-    ref = dbc.build_database(scn.n_cars)
+    from canbrake.build import bus_layout
+
+    ref = bus_layout(scn).database()
+    n_db = dbc.n_cars_of(db)
+    if n_db != scn.n_ecus:
+        raise ScenarioError(f"{p}: the DBC describes {n_db} cars (ECUs) but the scenario has {scn.n_ecus} ECUs on "
+                            f"{scn.n_cars} vehicles (generate its DBC with `canbrake dbc SCENARIO`)")
+    if len(db.messages) != len(ref.messages):
+        raise ScenarioError(f"{p}: the DBC has {len(db.messages)} messages, the scenario's placement needs "
+                            f"{len(ref.messages)} (generate it with `canbrake dbc SCENARIO`)")
     for m in ref.messages:
         try:
             got = db.get_message_by_frame_id(m.frame_id)
@@ -144,7 +152,7 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
         b = [(s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.byte_order) for s in got.signals]
         if got.name != m.name or got.length != m.length or sorted(a) != sorted(b):
             raise ScenarioError(f"{p}: message {m.frame_id:#x} does not match canbrake's layout for {m.name} "
-                                f"(regenerate with `canbrake dbc --cars {scn.n_cars}`)")
+                                f"(generate it with `canbrake dbc SCENARIO`)")
 
 
 # ----------------------------------------------------------------------------- child processes
@@ -184,14 +192,26 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         raise SystemExit(143)
 
     signal.signal(signal.SIGTERM, _term)
-    name = role if role != "ecu" else f"ecu{car}"
+    names = scenario.get("_ecu_names", {})
+    name = role if role != "ecu" else _ecu_process_name([names.get(str(i), f"ecu{i}") for i in range(1, len(names) + 1)], car)
     node = None
     bus = None
     status = "failed"
     try:
-        scn = Scenario.model_validate(scenario)
-        node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
-                          progress=progress)
+        scn = Scenario.model_validate({k: v for k, v in scenario.items() if k != "_ecu_names"})
+        if isinstance(car, (tuple, list)):
+            from canbrake.build import bus_layout
+            from canbrake.bus.codec import FrameCodec
+            from canbrake.bus.schedule import build_bus_timing
+            from canbrake.nodes.group import NodeGroup
+
+            layout = bus_layout(scn)
+            codec, timing = FrameCodec(layout.database()), build_bus_timing(scn)
+            node = NodeGroup([build_node(scn, "ecu", car=c, run_dir=Path(run_dir), codec=codec, layout=layout,
+                                         bus_timing=timing) for c in car])
+        else:
+            node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
+                              progress=progress)
         bus = _open_bus(choice, node.filters(), role)
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
@@ -221,6 +241,14 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                 pass
         if bus is not None:
             bus.shutdown()
+
+
+def _ecu_process_name(placed: Any, car: Any) -> str:
+    """Name of an ECU process: the ECU's name, or "first..last" for a process hosting several."""
+    name = lambda i: placed[i - 1] if isinstance(placed[i - 1], str) else placed[i - 1].name  # noqa: E731
+    if isinstance(car, (tuple, list)):
+        return name(car[0]) if len(car) == 1 else f"{name(car[0])}..{name(car[-1])}"
+    return name(car)
 
 
 def _start_timeout_s() -> float:
@@ -267,10 +295,17 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
     if start_timeout_s is None:
         start_timeout_s = _start_timeout_s()
-    roles = [("recorder", 0)] + [("ecu", c) for c in range(1, scn.n_cars + 1)] + [("plant", 0)]
+    placed = scn.placement()
+    per = max(1, scn.ecu.per_process)
+    if per == 1:
+        ecu_roles: list[tuple[str, Any]] = [("ecu", i) for i in range(1, len(placed) + 1)]
+    else:  # several ECUs hosted per process (canbrake.nodes.group)
+        ecu_roles = [("ecu", tuple(range(i, min(i + per, len(placed) + 1)))) for i in range(1, len(placed) + 1, per)]
+    roles = [("recorder", 0)] + ecu_roles + [("plant", 0)]
     barrier = ctx.Barrier(len(roles))
     progress = ctx.Value("q", -1, lock=False)
     data = scn.model_dump(mode="json")
+    data["_ecu_names"] = {str(i): p.name for i, p in enumerate(placed, start=1)}
     procs: dict[str, mp.process.BaseProcess] = {}
     t_start = time.time()
     outcome: dict[str, Any] = {"status": "ok", "message": ""}
@@ -282,7 +317,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
         old_term = signal.signal(signal.SIGTERM, _on_term)  # `kill` ends a run as cleanly as Ctrl-C
     try:
         for role, car in roles:
-            name = role if role != "ecu" else f"ecu{car}"
+            name = role if role != "ecu" else _ecu_process_name(placed, car)
             p = ctx.Process(target=_child_main, name=f"canbrake-{name}",
                             args=(role, car, data, str(run_dir), choice, barrier, progress, os.getpid(),
                                   env))
@@ -435,30 +470,38 @@ def _check_adapter(choice: BusChoice) -> None:
 
 
 def check_buildable(scn: Scenario) -> None:
-    """Build the plant and every controller once in this process, so that parameters the schema
-    passes through (``controller.params``) fail here with exit 2 rather than in a child."""
-    from canbrake.build import build_controller, build_plant_model
-    from canbrake.control.base import available
+    """Build the plant, the bus layout and every controller once in this process, so that
+    parameters the schema passes through (``controller.params``, data files) fail here with
+    exit 2 rather than in a child."""
+    from canbrake.build import build_controller, build_plant_model, bus_layout, reference_fn
+    from canbrake.control.base import ControllerError, check_params
 
-    if scn.controller.name not in available():
-        raise ScenarioError(f"controller.name: unknown controller {scn.controller.name!r} "
-                            f"(available: {', '.join(available())})")
+    placed = scn.placement()
+    where = {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
+    for p in placed:
+        field = where.get(id(p.controller), "controller")
+        try:
+            check_params(p.controller.name, p.controller.params)
+        except ControllerError as e:
+            where = f"{field}.params.{e.param}" if e.param else f"{field}.name"
+            raise ScenarioError(f"{where}: {e}") from None
     try:
-        for car in range(1, scn.n_cars + 1):
-            build_controller(scn, car)
-    except TypeError as e:
-        msg = str(e)
-        if "unexpected keyword argument" in msg:
-            key = msg.split("unexpected keyword argument")[-1].strip(" '\"")
-            raise ScenarioError(f"controller.params.{key}: unknown parameter of controller "
-                                f"{scn.controller.name!r}") from None
-        raise ScenarioError(f"controller.params: {msg}") from None
-    except ValueError as e:
+        for i in range(1, len(placed) + 1):
+            build_controller(scn, i)
+    except (TypeError, ValueError) as e:
         raise ScenarioError(f"controller.params: {e}") from None
+    try:
+        bus_layout(scn)
+    except ValueError as e:
+        raise ScenarioError(f"ecus: {e}") from None
+    try:
+        reference_fn(scn)
+    except ValueError as e:
+        raise ScenarioError(str(e)) from None
     try:
         build_plant_model(scn)
     except ValueError as e:
-        raise ScenarioError(f"train/actuator/events: {e}") from None
+        raise ScenarioError(f"train: {e}") from None
 
 
 def _remove_memory_channel(channel: str | None) -> None:
