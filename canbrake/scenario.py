@@ -290,6 +290,8 @@ class BusConfig(_Model):
 class PlantConfig(_Model):
     coupler_sensors: bool = Field(False, description="send COUPLER_Ci frames (locally measured deflection)")
     substeps: int = Field(1, ge=1, le=1000, description="integration sub-steps per control period")
+    trace_every: int = Field(1, ge=1, description="write every n-th control period (and the last) to "
+                                                  "signals.csv; a long train's full trace is large")
 
 
 class SafetyConfig(_Model):

@@ -378,8 +378,10 @@ def test_bad_params_are_named(name, params, msg):
 
 
 def test_unknown_param_is_an_error():
-    with pytest.raises(TypeError, match="kp"):
+    from canbrake.control.base import ControllerError
+    with pytest.raises(ControllerError) as e:
         _ctl("li2024_smc", kp=1.0)
+    assert e.value.param == "kp"
 
 
 def test_driver_rules_section_1_2():

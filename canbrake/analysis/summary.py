@@ -131,7 +131,7 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         cols = read_signals(sig)
         if cols.get("t_s") is not None and len(cols["t_s"]) > 1:
             tr = trace_from_columns(cols, n)
-            tr.mass_kg = np.asarray(scn.train.mass_kg, dtype=float)
+            tr.mass_kg = scn.vehicle_masses_kg()
             summary["metrics"] = compute_metrics(tr)
             if plots:
                 from canbrake.analysis.plots import plot_run

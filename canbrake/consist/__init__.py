@@ -10,4 +10,8 @@ from __future__ import annotations
 #: the train model families besides "coupled" (defined in canbrake/scenario.py): each a pydantic
 #: class with ``model: Literal[...]``, ``vehicle_count()``, ``vehicle_masses_kg()`` and
 #: ``build_plant(scn, base_dir)``; one line per family.
-TRAIN_MODELS: tuple[type, ...] = ()
+from canbrake.consist.heavy_haul import HeavyHaulTrain  # noqa: E402
+
+TRAIN_MODELS: tuple[type, ...] = (
+    HeavyHaulTrain,
+)
