@@ -58,6 +58,11 @@ def test_rbfnn_smc_ndo_is_identical_on_every_backend(tmp_path):
         ref = (runs["inprocess"] / f).read_bytes()
         for b in ("virtual", "memory"):
             assert (runs[b] / f).read_bytes() == ref, (b, f)
+    import can
+    import cantools
+    db = cantools.database.load_file(str(runs["memory"] / "canbrake.dbc"))
+    decoded = [db.decode_message(m.arbitration_id, m.data) for m in can.LogReader(str(runs["memory"] / "frames.log"))]
+    assert len(decoded) > 200 and any("PassiveForce" in d for d in decoded)
     cols = _signals(runs["inprocess"], ("t_s", "speed_mps_c1", "ref_speed_mps", "passive_force_n_c1"))
     assert cols["t_s"][-1] == pytest.approx(2.0)
     assert np.all(np.isfinite(cols["passive_force_n_c1"]))
