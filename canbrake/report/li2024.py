@@ -51,8 +51,8 @@ PAPER = {
     "rmse": {"pid": (0.1402, 0.1436), "smc": (0.0432, 0.0443), "rbfnn-smc+ndo": (0.0314, 0.0315)},
     "band": {"pid": "−0.15 … 0.27", "smc": "±0.2", "rbfnn-smc+ndo": "±0.15"},
 }
-#: today's numbers before the engine (canbrake/li2024_sim.py closed loop, commit f340bf2, listed
-#: reading, no disturbance): the report says how the engine runs compare
+#: the numbers before the engine (canbrake/li2024_sim.py closed loop, commit f340bf2, 2600 s, listed
+#: reading, no disturbance), as the previous report printed them
 PREVIOUS = {"pid": 0.1218, "smc": 0.0235, "rbfnn-smc+ndo": 0.0094}
 LABEL = {"pid": "PID", "smc": "SMC", "rbfnn-smc": "RBFNN-SMC (no NDO)", "rbfnn-smc+ndo": "RBFNN-SMC + NDO"}
 SCENARIO_OF = {"pid": "li2024_pid.yaml", "smc": "li2024_smc.yaml", "rbfnn-smc": "li2024_rbfnn_smc.yaml",
@@ -637,9 +637,11 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
     w("## What changed with the node engine")
     w("")
     prev = [(k, PREVIOUS[k], res.get(f"{'pid' if k == 'pid' else k + '-listed'}-nodist")) for k in PREVIOUS]
-    w("The runs used to be a closed loop of their own (`canbrake/li2024_sim.py`, removed). Through the engine, "
-      "listed reading, no disturbance, RMSE in km/h: "
-      + "; ".join(f"{LABEL[k]} {p:.4f} before → {_f(r['rmse_kmh'])} now" for k, p, r in prev if r is not None) + ". "
+    w("The runs used to be a closed loop of their own (`canbrake/li2024_sim.py`, removed). RMSE in km/h, listed "
+      f"reading, no disturbance, the previous report's 2600 s runs → this report's {duration_s:.0f} s runs through "
+      "the engine (different windows: the later 1300 s hold four more air-brake cycles, so the numbers are not "
+      "like for like): "
+      + "; ".join(f"{LABEL[k]} {p:.4f} → {_f(r['rmse_kmh'])}" for k, p, r in prev if r is not None) + ". "
       "What differs, and why: (1) the locomotive ECU sees its sensors through CAN frames — speed quantised to "
       "1e-4 m/s (0.00036 km/h), position to 0.1 mm, the reference position x* to 1 mm, the passive force f(x)·m0 "
       "to 10 N (5e-5 m/s² on 184 t) — and commands the force in 10 N steps; (2) the reference is the driver run's "
