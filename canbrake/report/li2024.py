@@ -624,7 +624,9 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
       "`scenarios/data/li2024_reference.csv` (v_ref; the engine interpolates it, integrates x_ref and differentiates "
       f"a_ref). The driver run applied the air brake {int(np.sum(refd['ab_apply']))} times; the reference spans "
       f"{float(vs_ref.min()) / KMH:.1f}–{float(vs_ref.max()) / KMH:.1f} km/h (the commonly quoted Daqin limit for "
-      "these trains is 80 km/h; our synthetic driver slightly overshoots it on the first long downgrade). In the controller runs "
+      + ("these trains is 80 km/h; our synthetic driver slightly overshoots it on the first long downgrade). "
+         if float(vs_ref.max()) / KMH > 80.0 else "these trains is 80 km/h). ")
+      + "In the controller runs "
       "the driver's air-brake commands are **replayed** at the same times (the driver works the air brake, the "
       "controller only the locomotive force u_0, as in the paper): the locomotive ECU's `airbrake_schedule` "
       "holds them (the report writes them there from the driver run). The previous report also let the rules act "
