@@ -497,6 +497,11 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
     w("")
     w("## Measured RMSE against Table 2")
     w("")
+    missing = [sp.key for sp in run_specs() if sp.key not in res]
+    if missing:
+        w(f"*Not in this version of the document (a shorter run set was made): {', '.join(missing)}; "
+          "`canbrake report li2024` makes every run.*")
+        w("")
     w(f"Velocity RMSE of the locomotive (eq. 41) over every 10 ms step of the {duration_s:.0f} s run (v − v* as "
       "the locomotive ECU measures it, from its own trace), km/h; error band = min … max of v − v*. The "
       "previous in-process report ran 2600 s (four more air-brake cycles); see *What changed with the node engine*.")
