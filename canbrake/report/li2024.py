@@ -486,10 +486,12 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
     pa = {s: ordering(res, "adaptive-power", s) for s in ("nodist", "dist")}
     w("**In short.** " + (
         f"With eq. (21) read as listed ({READING_TEXT['listed']}) the measured order, best first, is "
-        f"{' < '.join(LABEL[x] for x in pr['nodist'])} without and {' < '.join(LABEL[x] for x in pr['dist'])} with "
-        + (f"the disturbance; with the other reading ({READING_TEXT['adaptive-power']}) it is "
+        f"{' < '.join(LABEL[x] for x in pr['nodist'])} without "
+        + (f"and {' < '.join(LABEL[x] for x in pr['dist'])} with the disturbance" if len(pr["dist"]) > 1 else
+           "the disturbance (with it only " + ", ".join(LABEL[x] for x in pr["dist"]) + " was run here)")
+        + (f"; with the other reading ({READING_TEXT['adaptive-power']}) it is "
            f"{' < '.join(LABEL[x] for x in pa['nodist'])} / {' < '.join(LABEL[x] for x in pa['dist'])}. "
-           if pa["nodist"] else "the disturbance (the other reading of eq. 21 is not rerun here: "
+           if len(pa["nodist"]) > 1 else "; the other reading of eq. 21 is not rerun here ("
            "`run_specs(('listed', 'adaptive-power'))` adds it; the previous in-process report found the same order "
            "with it). ")
         + "The paper's order is RBFNN-SMC + NDO < SMC < PID in both cases. The route and the driver's speed are "
@@ -646,7 +648,7 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
     prev = [(k, PREVIOUS[k], res.get(f"{'pid' if k == 'pid' else k + '-listed'}-nodist")) for k in PREVIOUS]
     w("The runs used to be a closed loop of their own (`canbrake/li2024_sim.py`, removed). RMSE in km/h, listed "
       f"reading, no disturbance, the previous report's 2600 s runs → this report's {duration_s:.0f} s runs through "
-      "the engine (different windows: the later 1300 s hold four more air-brake cycles, so the numbers are not "
+      "the engine (different windows: its later 1300 s hold six more air-brake applications, so the numbers are not "
       "like for like): "
       + "; ".join(f"{LABEL[k]} {p:.4f} → {_f(r['rmse_kmh'])}" for k, p, r in prev if r is not None) + ". "
       "What differs, and why: (1) the locomotive ECU sees its sensors through CAN frames — speed quantised to "
