@@ -191,6 +191,11 @@ def bus_layout(scn: Scenario) -> dbc.BusLayout:
     layout = dbc.BusLayout(specs, period_ms=scn.control_period_s * 1000.0, ref_position=ref_pos,
                            heartbeat_ms=int(round(scn.ecu.heartbeat_period_s * 1000)))
     layout.n_vehicles = scn.n_cars  # type: ignore[attr-defined]
+    if scn.security is not None:  # secured layouts: longer frames with a MAC (canbrake.bus.secoc)
+        from canbrake.bus.secoc import secure_database
+
+        plain = layout.database
+        layout.database = lambda: secure_database(plain())  # type: ignore[method-assign]
     return layout
 
 
@@ -202,8 +207,9 @@ def build_controller(scn: Scenario, ecu_index: int) -> Controller:
 
 
 def build_send_path(scn: Scenario, node: str) -> SendPath:
-    """The impairment chain of one sending node (pass-through when none applies)."""
-    if not scn.bus.impairments:
+    """The impairment chain of one sending node (pass-through when none applies and no timing
+    model latency has to be held back)."""
+    if not scn.bus.impairments and not (scn.mode == "lockstep" and scn.bus.timing == "model"):
         return PassThrough()
     from canbrake.bus.sendpath import build_send_path as _build
 
@@ -268,13 +274,23 @@ def failsafe_of(scn: Scenario) -> Any:
                     force_n=mass * sf.failsafe_decel_mps2, latch=sf.latch)
 
 
+def _error_timing(scn: Scenario) -> Any:
+    """The recorder's own timing-model replica when the scenario has bus errors (else None)."""
+    from canbrake.bus.schedule import faults_of, timing_of
+
+    return timing_of(scn) if scn.mode == "lockstep" and faults_of(scn) is not None else None
+
+
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
                progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build",
                layout: dbc.BusLayout | None = None) -> Node:
     """One node of the run: ``role`` is "plant", "ecu" (``car``: the ECU's index, 1-based, in
     placement order) or "recorder"."""
+    from canbrake.bus.secoc import secoc_of
+
     layout = layout or bus_layout(scn)
     codec = codec or FrameCodec(layout.database())
+    secoc = secoc_of(scn)  # None unless `security:` is set
     if role == "plant":
         from canbrake.nodes.plant import PlantNode
 
@@ -282,7 +298,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                          heartbeat_period_s=scn.ecu.heartbeat_period_s,
                          out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
-                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn),
+                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn), secoc=secoc,
                          trace_every=scn.plant.trace_every)
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
@@ -298,13 +314,15 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
                        lockstep_deadline=scn.ecu.lockstep_deadline,
+                       secoc=secoc, peer_hold_periods=scn.safety.peer_hold_periods, n_ticks=scn.n_ticks,
                        crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
                                       if scn.ecu.crash is not None and scn.ecu.crash.car == spec.vehicle else None))
     if role == "recorder":
         from canbrake.nodes.recorder import RecorderNode
 
         return RecorderNode(layout, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
-                            plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn),
+                            plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn), secoc=secoc,
+                            n_ticks=scn.n_ticks, bus_timing=_error_timing(scn),
                             log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
     raise ValueError(f"unknown node role {role!r}")
 

@@ -74,6 +74,11 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
     if bl.get("bus_load_mean") is not None:
         lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "
                      f"at {bl['bitrate_bps'] / 1000:g} kbit/s  frames: {s['frames']['on_bus']}")
+    sf = s.get("safety") or {}
+    if sf.get("verdict", "clean") != "clean":
+        rej = ", ".join(f"{k} {v}" for k, v in sf["rejected"].items() if v) or "none"
+        lines.append(f"safety: {sf['verdict']}  rejected: {rej}  "
+                     f"fail-safe: {sf['fallbacks']['failsafe_entries']} car(s), {sf['fallbacks']['failsafe_time_s']:g} s")
     lines.append(f"written: {out}/summary.json, signals.csv, frames.log" + (", plots/" if s.get("plots") else ""))
     print("\n".join(lines))
 
@@ -171,7 +176,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("name", nargs="?", default="vcan0")
     v.set_defaults(func=_cmd_vcan)
 
-    for extra in ("sweep", "report", "bench"):
+    for extra in ("sweep", "report", "bench", "analyze"):
         _register_optional(sub, extra)
     return p
 

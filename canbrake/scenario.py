@@ -17,6 +17,8 @@ import numpy as np
 import yaml
 from canbrake.arrays import per_car
 from canbrake.bus.impair import ImpairmentSpec
+from canbrake.bus.clock import ClockConfig
+from canbrake.bus.txbuffer import TxBufferConfig
 from canbrake.consist import TRAIN_MODELS
 from canbrake.consist.base import VehicleEntry, expand_vehicles
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
@@ -285,6 +287,9 @@ class BusConfig(_Model):
                                                      "(false: they stand in for each car's local wiring)")
     impairments: list[ImpairmentSpec] = Field(default_factory=list,
                                               description="see canbrake.bus.impair (delay, jitter, loss, ...)")
+    tx_buffers: list[TxBufferConfig] = Field(default_factory=list,
+                                             description="transmit buffer per node for the timing model and the "
+                                                         "analysis (canbrake.bus.txbuffer); default: priority-ordered")
 
 
 class PlantConfig(_Model):
@@ -305,6 +310,18 @@ class SafetyConfig(_Model):
     failsafe_decel_mps2: float = Field(1.2, gt=0, description="fail-safe braking force per unit mass (m/s^2)")
     latch: bool = Field(True, description="true: a car stays in fail-safe until the end of the run; false: "
                                           "the next valid command releases it")
+    peer_hold_periods: int | None = Field(None, ge=1, description="an ECU holds a peer's last good value for "
+                                                                  "this many periods, then drops it and runs on its "
+                                                                  "own sensors (null: hold forever)")
+
+
+class SecurityConfig(_Model):
+    """SecOC-style authentication (canbrake.bus.secoc): 24-bit truncated AES-CMAC on brake commands
+    and simulation-control frames, freshness = (session, tick). The key never lives in the repository."""
+
+    key_file: str = Field(..., min_length=1, description="file with the AES-128 key (32 hex digits or 16 bytes)")
+    session: int = Field(0, ge=0, le=0xFFFFFFFF, description="trip counter in the freshness value; increase it "
+                                                            "per run so frames of earlier runs fail")
 
 
 class CrashFault(_Model):
@@ -325,6 +342,9 @@ class EcuConfig(_Model):
     lockstep_deadline: float = Field(0.5, gt=0, lt=1,
                                      description="lockstep: fraction of the period within which a state frame "
                                                  "must arrive to be used in the same tick")
+    clocks: list[ClockConfig] = Field(default_factory=list,
+                                      description="clock drift (ppm) and timer jitter per ECU, simulated time with "
+                                                  "bus.timing: model (canbrake.bus.clock)")
 
 
 def _train_tag(v: Any) -> str:
@@ -358,6 +378,8 @@ class Scenario(_Model):
     plant: PlantConfig = PlantConfig()
     ecu: EcuConfig = EcuConfig()
     safety: SafetyConfig = SafetyConfig()
+    security: SecurityConfig | None = Field(None, description="authentication of commands and simulation control "
+                                                             "(null: off)")
 
     @model_validator(mode="after")
     def _per_car_lengths(self) -> "Scenario":
@@ -393,7 +415,24 @@ class Scenario(_Model):
                     checks.append((f"events.{i}.{fname}", getattr(ev, fname), n))
         for name, value, k in checks:
             per_car(value, k, name)
+        self._check_spacing()
         return self._check_times()
+
+    def _check_spacing(self) -> None:
+        """Initial positions and a given coupler spacing must agree: a coupler that would start
+        deflected by more than its own spacing means the positions list the cars in the other order."""
+        sp, pos = self.train.coupler.spacing_m, self.initial.position_m  # type: ignore[union-attr]
+        if sp is None or pos is None or self.n_cars < 2:
+            return
+        s = per_car(sp, self.n_cars - 1, "train.coupler.spacing_m")
+        dl = np.asarray(pos[:-1], dtype=float) - np.asarray(pos[1:], dtype=float) - s
+        bad = np.flatnonzero(np.abs(dl) > np.abs(s))
+        if bad.size:
+            j = int(bad[0])
+            raise ValueError(f"initial.position_m: coupler {j + 1} (cars {j + 1}-{j + 2}) would start deflected by "
+                             f"{dl[j]:g} m, more than its spacing {s[j]:g} m (train.coupler.spacing_m, or the "
+                             f"vehicle types' length_m with car 1 leading); list the positions with car 1 in "
+                             f"front or set train.coupler.spacing_m")
 
     def _check_times(self) -> "Scenario":
         t_out = self.safety.command_timeout_s

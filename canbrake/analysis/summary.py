@@ -90,6 +90,32 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
     os.replace(tmp, sig)
 
 
+def merge_tick_file(run_dir: Path, name: str) -> None:
+    """Append the columns of ``run_dir/name`` (a CSV with a ``tick`` column, e.g. the recorder's
+    can_errors.csv) to signals.csv, joined on tick; atomic like :func:`merge_ecu_columns`."""
+    sig, extra_p = run_dir / "signals.csv", run_dir / name
+    if not sig.exists() or not extra_p.exists():
+        return
+    with open(sig, newline="") as f:
+        rows = list(csv.reader(f))
+    with open(extra_p, newline="") as f:
+        erows = list(csv.reader(f))
+    if not rows or not erows:
+        return
+    col = erows[0].index("tick")
+    names = [h for j, h in enumerate(erows[0]) if j != col]
+    if set(names) & set(rows[0]):
+        return  # already merged
+    by_tick = {int(r[col]): [v for j, v in enumerate(r) if j != col] for r in erows[1:]}
+    tmp = sig.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(rows[0] + names)
+        for r in rows[1:]:
+            w.writerow(r + by_tick.get(int(float(r[0])), [""] * len(names)))
+    os.replace(tmp, sig)
+
+
 def _load_json(p: Path) -> dict[str, Any]:
     try:
         return json.loads(p.read_text())
@@ -101,6 +127,7 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
     """Write summary.json (and plots) for ``run_dir``; returns the summary."""
     n = scn.n_cars
     merge_ecu_columns(run_dir, n)
+    merge_tick_file(run_dir, "can_errors.csv")
     plant = _load_json(run_dir / "plant_stats.json")
     busst = _load_json(run_dir / "bus_stats.json")
     ecus = [_load_json(run_dir / f"ecu_c{c}_stats.json") for c in range(1, n + 1)]
@@ -138,6 +165,9 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
 
                 try:
                     summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name)
+                    from canbrake.analysis.plots import plot_bus
+
+                    summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
                 except Exception as e:  # noqa: BLE001 - a plotting problem must not lose the run's results
                     summary["plots_error"] = str(e)
     summary["frames"] = {
@@ -152,6 +182,8 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         "peer_values_missing": sum(e.get("peer_missing", 0) for e in ecus),
     }
     summary["bus_load"] = {k: busst.get(k) for k in ("bitrate_bps", "bus_load_mean", "bus_load_peak",
+                                                      "bus_load_peak_window", "bus_load_window_s",
+                                                      "error_frames_per_s", "frames_per_s_by_sender",
                                                       "latency_p50_s", "latency_p99_s", "latency_max_s",
                                                       "latency_model")}
     lat: dict[str, Any] = {}
@@ -165,14 +197,61 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
             agg["max_s"] = max(agg["max_s"], st["max_s"] or 0.0)
     if lat:
         summary["bus_latency_in_loop"] = {"model": scn.bus.timing, **lat}
+    if busst.get("errors"):
+        summary["can_errors"] = busst["errors"]
     if scn.safety.command_timeout_s is not None:
         summary["failsafe"] = {"command_timeout_s": scn.safety.command_timeout_s,
                                "activations": plant.get("failsafe_activations", 0),
                                "car_ticks": plant.get("failsafe_ticks", 0),
                                "first_activation_s": plant.get("failsafe_first_s", {})}
+    summary["safety"] = safety_counters(scn, plant, ecus, busst)
     summary["deadline_misses"] = {"plant": plant.get("deadline_misses", 0),
                                   "ecus": sum(e.get("deadline_misses", 0) for e in ecus),
                                   "late_periods": plant.get("late_periods", 0),
                                   "max_lateness_s": plant.get("max_lateness_s", 0.0)}
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def safety_counters(scn: Scenario, plant: dict[str, Any], ecus: list[dict[str, Any]],
+                    busst: dict[str, Any]) -> dict[str, Any]:
+    """Detections and reactions of a run (``summary.json`` ``safety``): frames rejected by reason
+    (:mod:`canbrake.bus.guard`) in total and per node, frames of unknown senders by identifier,
+    fallbacks entered (ECU: peers lost; brake unit: fail-safe) and time in fallback, and a verdict:
+    ``clean`` (nothing rejected, no fallback), ``attack or fault detected`` (frames rejected,
+    braking as commanded), ``detected, fail-safe engaged`` (a brake unit reacted)."""
+    from canbrake.bus.guard import REASONS
+
+    nodes = {"plant": plant.get("guard") or {}, "recorder": busst.get("guard") or {}}
+    for c, e in enumerate(ecus, start=1):
+        nodes[f"ecu{c}"] = e.get("guard") or {}
+    total = {r: sum((g.get("rejected") or {}).get(r, 0) for g in nodes.values()) for r in REASONS}
+    unknown: dict[str, int] = {}
+    for g in nodes.values():
+        for k, v in (g.get("unknown_ids") or {}).items():
+            unknown[k] = unknown.get(k, 0) + v
+    dt = scn.control_period_s
+    fb_ticks = sum(e.get("fallback_ticks", 0) for e in ecus)
+    fs_ticks = plant.get("failsafe_ticks", 0)
+    fallbacks = {"ecu_peer_loss_entries": sum(e.get("fallback_entries", 0) for e in ecus),
+                 "ecu_peer_loss_time_s": round(fb_ticks * dt, 9),
+                 "failsafe_entries": plant.get("failsafe_activations", 0),
+                 "failsafe_time_s": round(fs_ticks * dt, 9)}
+    if fallbacks["failsafe_entries"]:
+        verdict = "detected, fail-safe engaged"
+    elif sum(total.values()) or fallbacks["ecu_peer_loss_entries"]:
+        verdict = "attack or fault detected"
+    else:
+        verdict = "clean"
+    flood = {"frames_on_unknown_ids": busst.get("frames_by_unknown_id") or {},
+             "rx_frames_lost": {n: g.get("rx_frames_lost", 0) for n, g in nodes.items() if g.get("rx_frames_lost")}}
+    # unauthenticated END frames before the last tick: the plant's own after a divergence (one per
+    # listening node) or forged ones
+    end_ignored = sum(g.get("end_ignored", 0) for g in nodes.values())
+    own_end = len(nodes) - 1 if plant.get("status") == "diverged" else 0
+    if verdict == "clean" and (flood["frames_on_unknown_ids"] or flood["rx_frames_lost"] or end_ignored > own_end):
+        verdict = "attack or fault detected"
+    return {"authenticated": scn.security is not None, "verdict": verdict, "rejected": total, "flood": flood,
+            "end_frames_ignored": end_ignored,
+            "rejected_by_node": {n: g.get("rejected", {}) for n, g in nodes.items() if sum((g.get("rejected") or {}).values())},
+            "unknown_senders": unknown, "fallbacks": fallbacks}

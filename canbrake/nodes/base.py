@@ -33,8 +33,9 @@ import can
 class SendPath(Protocol):
     """What a node's outgoing frames pass through (impairments, bus timing)."""
 
-    def submit(self, msg: can.Message, t_s: float) -> list[can.Message]:
-        """Frames to send now (possibly none, possibly duplicates)."""
+    def submit(self, msg: can.Message, t_s: float, delay_s: float = 0.0) -> list[can.Message]:
+        """Frames to send now (possibly none, possibly duplicates); ``delay_s`` (s, e.g. the bus
+        latency of the timing model) holds the frame until ``t_s + delay_s``."""
 
     def release(self, t_s: float) -> list[can.Message]:
         """Held frames that are due at simulated/wall time ``t_s``."""
@@ -43,7 +44,7 @@ class SendPath(Protocol):
 class PassThrough:
     """Send path without impairments."""
 
-    def submit(self, msg: can.Message, t_s: float) -> list[can.Message]:
+    def submit(self, msg: can.Message, t_s: float, delay_s: float = 0.0) -> list[can.Message]:
         return [msg]
 
     def release(self, t_s: float) -> list[can.Message]:
@@ -55,6 +56,9 @@ class Node(ABC):
 
     name: str = "node"
     finished: bool = False
+    #: the node whose end is the end of the run (the plant): once it has finished, a driver ends
+    #: the others that are still waiting (e.g. for an END frame they would not trust)
+    time_master: bool = False
 
     def filters(self) -> list[dict[str, Any]] | None:
         """python-can filters for the frames this node needs (None = all)."""
@@ -75,6 +79,13 @@ class Node(ABC):
     def on_timer(self, now: float) -> list[can.Message]:
         """Called at or after :meth:`next_deadline`."""
         return []
+
+    def on_rx_overrun(self, frames_lost: int) -> None:
+        """The receive queue overflowed and ``frames_lost`` frames were dropped (a flood): counted
+        by the node's receiver checks (``guard``, :mod:`canbrake.bus.guard`) when it has them."""
+        guard = getattr(self, "guard", None)
+        if guard is not None:
+            guard.overrun(frames_lost)
 
     def close(self, status: str = "ok") -> None:
         """Flush traces and statistics; called once, also after an error."""
