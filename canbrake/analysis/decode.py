@@ -30,9 +30,12 @@ def _iter_frames(log: str) -> Iterable[can.Message]:
     return can.LogReader(str(p))
 
 
-def decode_log(log: str, dbc_path: str | None, out: TextIO, only: str | None = None) -> int:
-    """Print one decoded line per frame; returns the exit status."""
+def decode_log(log: str, dbc_path: str | None, out: TextIO, only: str | None = None,
+               hide_sim_control: bool = False) -> int:
+    """Print one decoded line per frame; returns the exit status. ``hide_sim_control``: leave out
+    the lockstep barrier frames (STATE_DONE/CMD_DONE)."""
     from canbrake.errors import InputError
+    from canbrake.nodes.recorder import is_sim_control
 
     if dbc_path is None and log != "-" and (Path(log).parent / "canbrake.dbc").exists():
         dbc_path = str(Path(log).parent / "canbrake.dbc")
@@ -47,6 +50,8 @@ def decode_log(log: str, dbc_path: str | None, out: TextIO, only: str | None = N
         count = 0
         for msg in frames:
             count += 1
+            if hide_sim_control and not msg.is_extended_id and is_sim_control(msg.arbitration_id):
+                continue
             out.write(format_frame(db, msg, only))
     except FileNotFoundError:
         raise InputError(f"{log}: no such log file") from None
