@@ -443,6 +443,9 @@ class Scenario(_Model):
         if t_out is not None and t_out < self.control_period_s:
             raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
                              f"({self.control_period_s} s)")
+        if self.duration_s < self.control_period_s:
+            raise ValueError(f"duration_s ({self.duration_s:g} s) is shorter than one control period "
+                             f"({self.control_period_s:g} s)")
         if self.duration_s / self.control_period_s > 10_000_000:
             raise ValueError("duration_s / control_period_s exceeds 10 million ticks")
         return self
