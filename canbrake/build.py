@@ -296,7 +296,8 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                          heartbeat_period_s=scn.ecu.heartbeat_period_s,
                          out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
-                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn), secoc=secoc)
+                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn), secoc=secoc,
+                         trace_every=scn.plant.trace_every)
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 

@@ -299,6 +299,8 @@ class BusConfig(_Model):
 class PlantConfig(_Model):
     coupler_sensors: bool = Field(False, description="send COUPLER_Ci frames (locally measured deflection)")
     substeps: int = Field(1, ge=1, le=1000, description="integration sub-steps per control period")
+    trace_every: int = Field(1, ge=1, description="write every n-th control period (and the last) to "
+                                                  "signals.csv; a long train's full trace is large")
 
 
 class SafetyConfig(_Model):
@@ -441,6 +443,9 @@ class Scenario(_Model):
         if t_out is not None and t_out < self.control_period_s:
             raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
                              f"({self.control_period_s} s)")
+        if self.duration_s < self.control_period_s:
+            raise ValueError(f"duration_s ({self.duration_s:g} s) is shorter than one control period "
+                             f"({self.control_period_s:g} s)")
         if self.duration_s / self.control_period_s > 10_000_000:
             raise ValueError("duration_s / control_period_s exceeds 10 million ticks")
         return self

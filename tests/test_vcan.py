@@ -480,13 +480,16 @@ def test_rogue_brake_command_is_rejected_by_the_plant(socketcan_run: dict[str, o
 
 @pytest.mark.parametrize("scenario", sorted(p.name for p in SCENARIO.parent.glob("*.yaml") if p != SCENARIO))
 def test_every_scenario_runs_on_vcan0(scenario: str, tmp_path: Path, memory_run: dict[str, object]) -> None:
-    """The other scenarios, briefly (0.02 s), through the CLI's main() on vcan0: exit 0, and the
+    """The other scenarios, briefly (0.02 s or two control periods), through the CLI's main() on vcan0: exit 0, and the
     same signals.csv as the in-process engine for the same seed. (``memory_run`` first: its
     forkserver is reused, so these runs do not pay the guest's import time again.)"""
     from canbrake.cli import main
 
+    from canbrake.scenario import load_scenario
+
     path = str(SCENARIO.parent / scenario)
-    common = ["--seed", SEED, "--duration", "0.02", "--no-plots"]
+    period = load_scenario(path).control_period_s  # at least two control periods
+    common = ["--seed", SEED, "--duration", f"{max(0.02, 2 * period):g}", "--no-plots"]
     assert main(["run", path, "--bus", "socketcan", "--channel", CHANNEL, "--out", str(tmp_path / "sc"),
                  *common]) == 0
     assert main(["run", path, "--bus", "inprocess", "--out", str(tmp_path / "ip"), *common]) == 0

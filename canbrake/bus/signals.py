@@ -49,6 +49,20 @@ CATALOGUE: dict[str, SignalFormat] = {
                                "position along the track"),
     "brake_force_n": SignalFormat("BrakeForce", 24, 10.0, 0.0, True, -83886080.0, 83886070.0, "N",
                                   "demanded force; positive decelerates, negative is traction"),
+    # Li 2024 heavy haul. passive_force_n: 10 N like BrakeForce (a locomotive's coupler carries up to
+    # ~2.5 MN; 10 N is 5e-5 m/s^2 on a 184 t locomotive, far below the eq. 40 disturbance).
+    "passive_force_n": _signed("PassiveForce", 24, 10.0, "N",
+                               "non-control force on the vehicle: measured coupler force + nominal resistances"),
+    # driver's brake valve and the line-data flag are on/off
+    "airbrake_apply": SignalFormat("AirBrakeApply", 1, 1.0, 0.0, False, 0.0, 1.0, None,
+                                   "driver's brake valve: 1 apply, 0 release"),
+    "downgrade_ahead": SignalFormat("DowngradeAhead", 1, 1.0, 0.0, False, 0.0, 1.0, None,
+                                    "line data: 1 = long downgrade under the train or within the look-ahead"),
+    # ECP demand: 0.1 % of a full service application (10 bits, 0..1.023)
+    "ecp_demand": SignalFormat("EcpDemand", 10, 0.001, 0.0, False, 0.0, 1.023, None,
+                               "ECP brake demand, fraction of full service"),
+    # cylinder pressure: 10 Pa (Table 1's cylinders run at 430-450 kPa; 16 bits reach 655 kPa)
+    "brake_cylinder_pressure_pa": _unsigned("CylPressure", 16, 10.0, "Pa", "brake cylinder pressure"),
     # Cai 2014's traction ECU: speed over ground as a Doppler radar gives it (the wheels slip, so
     # their speed is not the train's). 1e-6 m/s because the force observers differentiate it:
     # g m q = 10 1/s x 96 t x 1e-6 m/s ~ 1 N of estimation noise (1e-4 m/s would give ~100 N, a few

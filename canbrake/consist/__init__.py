@@ -11,7 +11,9 @@ from __future__ import annotations
 #: class with ``model: Literal[...]``, ``vehicle_count()``, ``vehicle_masses_kg()`` and
 #: ``build_plant(scn, base_dir)``; one line per family.
 from canbrake.consist.adhesion import AdhesionTrainConfig  # noqa: E402
+from canbrake.consist.heavy_haul import HeavyHaulTrain  # noqa: E402
 
 TRAIN_MODELS: tuple[type, ...] = (
+    HeavyHaulTrain,
     AdhesionTrainConfig,  # "adhesion": Cai 2014's high-speed train (driven axles, wheel-rail adhesion)
 )

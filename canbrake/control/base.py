@@ -221,4 +221,4 @@ def _load_entry_point(name: str) -> None:
 
 def _load_builtin() -> None:
     # Importing the modules runs their @register decorators.
-    from canbrake.control import cai2014, chen, chen_compensated, pi  # noqa: F401
+    from canbrake.control import cai2014, chen, chen_compensated, ecp, li2024, pi  # noqa: F401

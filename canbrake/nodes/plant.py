@@ -68,8 +68,10 @@ class PlantNode(Node):
                  reference: Reference, mode: str = "lockstep",
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
                  flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None,
-                 barrier: bool = True, failsafe: FailSafe | None = None, secoc: Any = None) -> None:
+                 barrier: bool = True, failsafe: FailSafe | None = None, secoc: Any = None,
+                 trace_every: int = 1) -> None:
         self.model = model
+        self.trace_every = max(1, int(trace_every))
         self.codec = codec
         self.layout = layout
         self.n = model.n_vehicles
@@ -292,7 +294,8 @@ class PlantNode(Node):
     def _advance(self, now: float) -> list[can.Message]:
         self.stats.commands_missed += int((~self._fresh).sum())
         applied = self._applied_commands()
-        self._record()
+        if self.k % self.trace_every == 0:
+            self._record()
         try:
             self.model.step(self.dt, applied)
         except FloatingPointError as e:

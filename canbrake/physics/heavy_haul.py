@@ -1,89 +1,106 @@
-"""Heavy-haul 1+105 train of Li, Zeng & Yu 2024 (J. East China Jiaotong Univ. 41(5):94-104).
+"""Heavy-haul train physics of Li, Zeng & Yu 2024 (J. East China Jiaotong Univ. 41(5):94-104).
 
-One HXD1 locomotive (184 t, 35.222 m) and 105 C80 wagons (100 t, 12 m), all arrays of shape
-``(n_veh,) = (106,)`` indexed from the front (0 = locomotive); couplers have shape ``(n_veh-1,)``,
-coupler ``j`` joins vehicles ``j`` and ``j+1``. SI inside (m, s, kg, N); the paper's kN, km/h,
-N/kN and ‰ appear only in the published-parameter functions, converted at the edge.
+Generic over the consist: arrays of shape ``(n_veh,)`` indexed from the front (0 = locomotive);
+couplers have shape ``(n_veh-1,)``, coupler ``j`` joins vehicles ``j`` and ``j+1``. SI inside (m, s,
+kg, N); the paper's kN, km/h, N/kN and ‰ appear only where its formulas use them. The paper's train
+(HXD1 + 105 C80, Table 1, the draft-gear curves, the route) is data: ``scenarios/li2024_*.yaml`` and
+``scenarios/data/li2024_route.csv``, read by :mod:`canbrake.consist.heavy_haul`.
 
 What is modelled (paper equation numbers in brackets; MODELS.md section 2):
 
-* locomotive traction / electric-brake envelopes (1)-(2): :func:`traction_envelope_n`,
-  :func:`electric_brake_envelope_n`;
+* locomotive traction / electric-brake envelopes (1)-(2): :class:`TractionEnvelope`;
 * basic running resistance per unit weight w = A + B v + C v² N/kN (3), grade i ‰ = i N/kN (4),
   curve 600/R N/kN (5): :func:`basic_resistance_n`, :class:`Route`;
 * couplers with draft gears (7)-(9): :class:`CouplerBank` — a hysteretic spring with slack. The
   measured drop-hammer curves of Fig. 2 are not given as numbers, so the loading curve ``f_l`` and
-  the unloading curve ``f_u = r_u · f_l`` are piecewise-linear approximations (stroke and capacity of
-  MT-2 / QKX100 as catalogued; see :data:`MT2` / :data:`QKX100`). Eq. (8)'s trial force
-  ``F_prev + k Δd`` is clipped into ``[f_u, f_l]`` (eq. 9), which is eq. (7)'s branch choice. The
+  the unloading curve ``f_u = r_u · f_l`` are piecewise-linear (:class:`DraftGear`). Eq. (8)'s trial
+  force ``F_prev + k Δd`` is clipped into ``[f_u, f_l]`` (eq. 9), which is eq. (7)'s branch choice. The
   QKX100 velocity-switch form (6) is replaced by the same scheme with QKX100's curve. A small viscous
   damping acts while the gear is engaged (numerical and physical: it damps elastic ringing inside
   the hysteresis band).
-* air brake (10)-(15): :class:`AirBrake` — shoe force, friction coefficients φ_H, φ_C, the brake
-  signal travelling along the brake pipe at 200 m/s (apply) and 36 m/s (release), a first-order
-  cylinder fill after the signal arrives, and the application rules of section 1.2
-  (:meth:`AirBrake.rule_step`).
-* disturbance (40): :func:`disturbance_n` on the locomotive and wagons 10, 20, ..., 100.
+* air brake (10)-(15): :class:`AirBrake` — block forces (:func:`disc_block_force_kn`,
+  :func:`shoe_block_force_kn`), friction coefficients φ_H, φ_C, the brake signal travelling along the
+  brake pipe (apply and release waves), a first-order cylinder fill after the signal arrives; or ECP
+  (each cylinder follows its own demand). The application rules of section 1.2 are the driver's
+  (:class:`canbrake.control.li2024.LiDriver`).
+* disturbance (40): :func:`disturbance_n`.
+* the whole as a :class:`canbrake.physics.contract.PlantModel`: :class:`HeavyHaulModel`.
 
 Integration: semi-implicit (symplectic) Euler with a fixed step, default 10 ms
-(:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8) stiffness, between two
-100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable. The report
-(:mod:`canbrake.report.li2024`) compares 10 ms with 5 ms over the first 1200 s.
+(:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8)
+stiffness, between two 100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Mapping
 
 import numpy as np
+
+from canbrake.physics.contract import PlantDiverged
 
 G = 9.81
 KMH = 1.0 / 3.6  # m/s per km/h
 DEFAULT_DT_S = 0.01
 
-N_WAGONS = 105
-LOCO_MASS_KG = 184_000.0
-LOCO_LENGTH_M = 35.222
-WAGON_MASS_KG = 100_000.0
-WAGON_LENGTH_M = 12.0
-
-# basic resistance coefficients (N/kN with v in km/h), paper section 3.1
-DAVIS_HXD1 = (1.20, 0.0065, 0.000279)
-DAVIS_C80 = (0.92, 0.0048, 0.000125)
 
 
 # ------------------------------------------------------------------------------------ envelopes
-def traction_envelope_kn(v_kmh):
-    """Eq. (1): HXD1 maximum traction force in kN at speed ``v_kmh`` (km/h), array or scalar."""
-    v = np.abs(np.asarray(v_kmh, dtype=float))
-    with np.errstate(divide="ignore"):
-        hi = 34560.0 / np.maximum(v, 1e-9)
-    return np.where(v <= 5.0, 760.0, np.where(v <= 65.0, 779.0 - 3.8 * v, hi))
+@dataclass(frozen=True)
+class TractionEnvelope:
+    """Locomotive force limits of eqs. (1)-(2), kN with v in km/h.
 
+    Traction F_T(v) = ``traction_start_kn`` for v ≤ ``traction_start_until_kmh``,
+    ``traction_intercept_kn`` − ``traction_slope_kn_per_kmh``·v up to ``traction_linear_until_kmh``,
+    ``power_kn_kmh``/v above. Electric brake F_B(v) = ``brake_slope_kn_per_kmh``·v for
+    v ≤ ``brake_linear_until_kmh``, ``brake_max_kn`` up to ``brake_constant_until_kmh``,
+    ``power_kn_kmh``/v above.
+    """
 
-def electric_brake_envelope_kn(v_kmh):
-    """Eq. (2): HXD1 maximum electric brake force in kN at speed ``v_kmh`` (km/h)."""
-    v = np.abs(np.asarray(v_kmh, dtype=float))
-    with np.errstate(divide="ignore"):
-        hi = 34560.0 / np.maximum(v, 1e-9)
-    return np.where(v <= 5.0, 92.2 * v, np.where(v <= 75.0, 461.0, hi))
+    traction_start_kn: float
+    traction_start_until_kmh: float
+    traction_intercept_kn: float
+    traction_slope_kn_per_kmh: float
+    traction_linear_until_kmh: float
+    brake_slope_kn_per_kmh: float
+    brake_linear_until_kmh: float
+    brake_max_kn: float
+    brake_constant_until_kmh: float
+    power_kn_kmh: float
 
+    def traction_kn(self, v_kmh):
+        """Maximum traction force (kN) at speed ``v_kmh`` (km/h), array or scalar."""
+        v = np.abs(np.asarray(v_kmh, dtype=float))
+        with np.errstate(divide="ignore"):
+            hi = self.power_kn_kmh / np.maximum(v, 1e-9)
+        return np.where(v <= self.traction_start_until_kmh, self.traction_start_kn,
+                        np.where(v <= self.traction_linear_until_kmh,
+                                 self.traction_intercept_kn - self.traction_slope_kn_per_kmh * v, hi))
 
-def traction_envelope_n(v_mps):
-    """Maximum traction force (N) at speed ``v_mps`` (m/s)."""
-    return 1000.0 * traction_envelope_kn(np.asarray(v_mps, dtype=float) / KMH)
+    def electric_brake_kn(self, v_kmh):
+        """Maximum electric brake force (kN, positive) at speed ``v_kmh`` (km/h)."""
+        v = np.abs(np.asarray(v_kmh, dtype=float))
+        with np.errstate(divide="ignore"):
+            hi = self.power_kn_kmh / np.maximum(v, 1e-9)
+        return np.where(v <= self.brake_linear_until_kmh, self.brake_slope_kn_per_kmh * v,
+                        np.where(v <= self.brake_constant_until_kmh, self.brake_max_kn, hi))
 
-
-def electric_brake_envelope_n(v_mps):
-    """Maximum electric brake force (N, positive) at speed ``v_mps`` (m/s)."""
-    return 1000.0 * electric_brake_envelope_kn(np.asarray(v_mps, dtype=float) / KMH)
-
-
-def saturate_control_n(u_n: float, v_mps: float) -> float:
-    """Clip a locomotive force command (N, >0 traction) into [-F_B(v), F_T(v)]."""
-    v = abs(v_mps) / KMH
-    hi = 760.0 if v <= 5.0 else (779.0 - 3.8 * v if v <= 65.0 else 34560.0 / v)
-    lo = 92.2 * v if v <= 5.0 else (461.0 if v <= 75.0 else 34560.0 / v)
-    return min(max(u_n, -1000.0 * lo), 1000.0 * hi)
+    def saturate_n(self, u_n: float, v_mps: float) -> float:
+        """Clip a force command (N, > 0 traction) into [−F_B(v), F_T(v)] (scalar fast path)."""
+        v = abs(v_mps) / KMH
+        if v <= self.traction_start_until_kmh:
+            hi = self.traction_start_kn
+        elif v <= self.traction_linear_until_kmh:
+            hi = self.traction_intercept_kn - self.traction_slope_kn_per_kmh * v
+        else:
+            hi = self.power_kn_kmh / v
+        if v <= self.brake_linear_until_kmh:
+            lo = self.brake_slope_kn_per_kmh * v
+        elif v <= self.brake_constant_until_kmh:
+            lo = self.brake_max_kn
+        else:
+            lo = self.power_kn_kmh / v
+        return min(max(u_n, -1000.0 * lo), 1000.0 * hi)
 
 
 # ------------------------------------------------------------------------------------ consist
@@ -125,18 +142,6 @@ class Consist:
         return float(self.length_m.sum())
 
 
-def li2024_consist(n_wagons: int = N_WAGONS) -> Consist:
-    """The paper's 1+105 HXD1 + C80 consist (or 1+``n_wagons``)."""
-    n = n_wagons + 1
-    loco = np.zeros(n, bool)
-    loco[0] = True
-    pick = lambda a, b: np.where(loco, a, b).astype(float)  # noqa: E731
-    return Consist(
-        mass_kg=pick(LOCO_MASS_KG, WAGON_MASS_KG), length_m=pick(LOCO_LENGTH_M, WAGON_LENGTH_M),
-        davis_a=pick(DAVIS_HXD1[0], DAVIS_C80[0]), davis_b=pick(DAVIS_HXD1[1], DAVIS_C80[1]),
-        davis_c=pick(DAVIS_HXD1[2], DAVIS_C80[2]), is_loco=loco)
-
-
 def basic_resistance_n(consist: Consist, v_mps: np.ndarray) -> np.ndarray:
     """Eq. (3): basic running resistance magnitude (N) of every vehicle, ``w · weight``.
 
@@ -169,6 +174,32 @@ class Route:
         mid = np.append(0.5 * (brk[1:] + brk[:-1]), brk[-1] + 1.0)
         object.__setattr__(self, "_brk", brk)
         object.__setattr__(self, "_val", self.grade_at(mid) + self.curve_permille_at(mid))
+
+    @classmethod
+    def from_table(cls, position_m, grade_permille, curve_radius_m) -> "Route":
+        """A route from a table of breakpoints (ascending ``position_m``, first 0): row r holds the grade
+        (‰, + uphill) and curve radius (m, 0 = straight) from its position to the next row's; the last row
+        marks the end of the route (its grade continues beyond it). Consecutive rows with equal grade
+        (equal radius) form one grade segment (one curve), so splitting a segment changes nothing."""
+        x = np.asarray(position_m, dtype=float)
+        g = np.asarray(grade_permille, dtype=float)
+        r = np.asarray(curve_radius_m, dtype=float)
+        if x.size < 2 or x[0] != 0.0 or np.any(np.diff(x) <= 0):
+            raise ValueError("route table: position_m must start at 0 and increase, with at least two rows")
+        if np.any(r < 0):
+            raise ValueError("route table: curve_radius_m must be >= 0 (0 = straight)")
+        keep = np.concatenate([[True], g[1:] != g[:-1]])
+        gs, gv = x[:-1][keep[:-1]], g[:-1][keep[:-1]]
+        cs, ce, cr = [], [], []
+        for i in range(x.size - 1):
+            if r[i] > 0:
+                if cs and ce[-1] == x[i] and cr[-1] == r[i]:
+                    ce[-1] = x[i + 1]
+                else:
+                    cs.append(x[i]); ce.append(x[i + 1]); cr.append(r[i])  # noqa: E702
+        return cls(grade_start_m=gs, grade_permille=gv, curve_start_m=np.asarray(cs, dtype=float),
+                   curve_end_m=np.asarray(ce, dtype=float), curve_radius_m=np.asarray(cr, dtype=float),
+                   length_m=float(x[-1]))
 
     def total_permille_at(self, x_m: np.ndarray) -> np.ndarray:
         """Grade + curve resistance per unit weight (N/kN) at positions ``x_m`` (table lookup)."""
@@ -205,21 +236,6 @@ class Route:
         return self.total_permille_at(x_m) * consist.weight_kn
 
 
-def li2024_route() -> Route:
-    """A synthesised 45 km route with long downgrades near 20, 34 and 39 km.
-
-    The paper's Datong South - Dongjingji profile (Fig. 3) is not published as numbers; this profile
-    is ours: level start (assumption 3), mild up/down grades, three long downgrades of 10-11 ‰
-    (Daqin's ruling grade is 12 ‰) and three curves.
-    """
-    km = 1000.0
-    seg = [(0, 0.0), (5, 3.0), (10, -2.0), (15, 1.0), (18, -10.0), (23.5, -3.0), (28, 4.0),
-           (31, -11.0), (36, -4.0), (37.5, -10.5), (41.5, 0.0)]
-    return Route(grade_start_m=np.array([a * km for a, _ in seg]), grade_permille=np.array([g for _, g in seg]),
-                 curve_start_m=np.array([12.0, 26.0, 33.0]) * km, curve_end_m=np.array([13.0, 27.0, 34.0]) * km,
-                 curve_radius_m=np.array([1000.0, 800.0, 1200.0]), length_m=45.0 * km)
-
-
 # ------------------------------------------------------------------------------------ couplers
 @dataclass(frozen=True)
 class DraftGear:
@@ -233,16 +249,6 @@ class DraftGear:
     k_elastic_n_per_m: float  # eq. (8) transition stiffness
     k_solid_n_per_m: float   # beyond the stroke (gear closed)
     damping_n_s_per_m: float  # viscous term while engaged
-
-
-#: MT-2 (C80): 83 mm stroke, ≈2.27 MN at full stroke, energy absorption ≈ 75 % (approximated)
-MT2 = DraftGear("MT-2", (0.0, 0.020, 0.050, 0.073, 0.083), (0.0, 3.0e5, 9.0e5, 1.8e6, 2.27e6),
-                unloading_ratio=0.25, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
-                damping_n_s_per_m=1e5)
-#: QKX100 (HXD1): 100 mm stroke, ≈2.5 MN at full stroke (approximated)
-QKX100 = DraftGear("QKX100", (0.0, 0.020, 0.060, 0.090, 0.100), (0.0, 2.5e5, 9.0e5, 2.0e6, 2.5e6),
-                   unloading_ratio=0.35, slack_m=0.005, k_elastic_n_per_m=2e8, k_solid_n_per_m=2e8,
-                   damping_n_s_per_m=1e5)
 
 
 class CouplerBank:
@@ -268,11 +274,6 @@ class CouplerBank:
         self._rows = np.arange(self.n)
         self.force_state = np.zeros(self.n)
         self.defl_prev = np.zeros(self.n)
-
-    @classmethod
-    def li2024(cls, n_couplers: int) -> "CouplerBank":
-        """Coupler 0 (locomotive-wagon 1) with QKX100's curve, the others MT-2."""
-        return cls([QKX100] + [MT2] * (n_couplers - 1))
 
     def loading_n(self, d_abs: np.ndarray) -> np.ndarray:
         """f_l(|d|) (N) for gear deflections |d| (m), vectorised over couplers."""
@@ -323,71 +324,67 @@ class CouplerBank:
 
 
 # ------------------------------------------------------------------------------------ air brake
-# Table 1 (d_z mm, p_z kPa, γ_z, η_z, n_z, n_k; HXD1 also R_c, r_z mm)
-HXD1_BRAKE = dict(d_z=225.0, p_z=450.0, gamma_z=2.4, eta_z=0.9, n_z=16, n_k=32, R_c=1250.0, r_z=448.0)
-C80_BRAKE = dict(d_z=254.0, p_z=430.0, gamma_z=6.6, eta_z=0.9, n_z=1, n_k=8)
-#: common (service) braking factor β_c of eq. (10). NOT given in the paper; assumed value for a
-#: 50 kPa brake-pipe reduction (our assumption, documented in the report).
-BETA_C = 0.19
-
-
-def hxd1_pad_force_kn(p_fraction: float = 1.0) -> float:
-    """Eqs. (13)-(14): HXD1 force per brake cylinder referred to the wheel tread (kN).
+def disc_block_force_kn(cylinder_diameter_mm: float, cylinder_pressure_kpa: float, lever_ratio: float,
+                        efficiency: float, friction_radius_mm: float, wheel_radius_mm: float) -> float:
+    """Eqs. (13)-(14): disc-brake force per cylinder referred to the wheel tread (kN), full pressure.
 
     Eq. (13) is printed with the disc friction radius r_z; we read it as the lever ratio γ_z
-    (Table 1 gives γ_z = 2.4 for HXD1; r_z = 448 mm then enters eq. 14 as r_z / R_c).
+    (Table 1 gives γ_z = 2.4 for HXD1; r_z then enters eq. 14 as r_z / R_c).
     """
-    b = HXD1_BRAKE
-    k1 = np.pi / 4 * b["d_z"] ** 2 * b["p_z"] * p_fraction * b["gamma_z"] * b["eta_z"] * 1e-6
-    return float(b["r_z"] / b["R_c"] * k1)
+    k1 = np.pi / 4 * cylinder_diameter_mm ** 2 * cylinder_pressure_kpa * 1.0 * lever_ratio * efficiency * 1e-6
+    return float(friction_radius_mm / wheel_radius_mm * k1)
 
 
-def c80_shoe_force_kn(p_fraction: float = 1.0) -> float:
-    """Eq. (15): C80 force per brake shoe (kN)."""
-    b = C80_BRAKE
-    return float(np.pi / 4 * b["d_z"] ** 2 * b["p_z"] * p_fraction * b["eta_z"] * b["gamma_z"]
-                 * (b["n_z"] / b["n_k"]) * 1e-6)
+def shoe_block_force_kn(cylinder_diameter_mm: float, cylinder_pressure_kpa: float, lever_ratio: float,
+                        efficiency: float, cylinders: int, shoes: int) -> float:
+    """Eq. (15): tread-brake force per shoe (kN), full pressure."""
+    return float(np.pi / 4 * cylinder_diameter_mm ** 2 * cylinder_pressure_kpa * 1.0 * efficiency * lever_ratio
+                 * (cylinders / shoes) * 1e-6)
 
 
-def friction_coefficient(k_kn, v_kmh, loco):
-    """Eqs. (11)-(12): φ_H (locomotive, 0.441) / φ_C (C80 high-friction shoe, 0.481)."""
+def friction_coefficient(k_kn, v_kmh, coef):
+    """Eqs. (11)-(12): φ = coef·(K + 200)/(4K + 200)·(2v + 150)/(3v + 150), K in kN, v in km/h;
+    ``coef`` is 0.441 for HXD1 (φ_H) and 0.481 for C80's high-friction shoe (φ_C), per vehicle."""
     k = np.asarray(k_kn, dtype=float)
     v = np.abs(np.asarray(v_kmh, dtype=float))
-    coef = np.where(loco, 0.441, 0.481)
     return coef * (k + 200.0) / (4.0 * k + 200.0) * (2.0 * v + 150.0) / (3.0 * v + 150.0)
 
 
 class AirBrake:
-    """Brake-pipe signal propagation, cylinder fill and the application rules (section 1.2).
+    """Brake-pipe signal propagation and cylinder fill (pneumatic), or per-vehicle demands (ECP).
 
     The locomotive's driver's valve issues apply/release; vehicle k (centre at distance D_k behind
     the locomotive's centre) sees an apply signal D_k / 200 m/s and a release signal D_k / 36 m/s
     after it was issued. After the signal arrives the cylinder fills/empties with a first-order lag
     ``cylinder_tau_s`` (assumed, not in the paper). ``fill`` in [0, 1] is the fraction of Table 1's
-    cylinder pressure p_z.
+    cylinder pressure p_z. In ``ecp`` mode each cylinder follows ``ecp_target`` with the same lag.
+    Per-vehicle arrays (n,): ``block_force_kn`` (K per block at full pressure, eqs. 13-15),
+    ``n_blocks``, ``friction_coef`` (eqs. 11-12), ``cylinder_pressure_pa``; ``beta_c`` is eq. (10)'s β_c.
     """
 
-    def __init__(self, consist: Consist, apply_wave_mps: float = 200.0, release_wave_mps: float = 36.0,
-                 cylinder_tau_s: float = 2.0, beta_c: float = BETA_C, apply_min_kmh: float = 60.0,
-                 release_drop_kmh: float = 10.0, release_floor_kmh: float = 35.0, min_interval_s: float = 160.0,
-                 lookahead_m: float = 2500.0):
+    def __init__(self, consist: Consist, *, apply_wave_mps: float, release_wave_mps: float, cylinder_tau_s: float,
+                 beta_c: float, block_force_kn: np.ndarray, n_blocks: np.ndarray, friction_coef: np.ndarray,
+                 cylinder_pressure_pa: np.ndarray, mode: str = "pneumatic"):
+        if mode not in ("pneumatic", "ecp"):
+            raise ValueError(f"air brake mode must be 'pneumatic' or 'ecp', got {mode!r}")
         self.consist = consist
+        self.mode = mode
         self.dist = consist.distance_from_loco_m
         self.apply_wave, self.release_wave = apply_wave_mps, release_wave_mps
         self.tau = cylinder_tau_s
         self.beta_c = beta_c
-        self.apply_min, self.release_drop, self.release_floor = apply_min_kmh, release_drop_kmh, release_floor_kmh
-        self.min_interval, self.lookahead = min_interval_s, lookahead_m
         self.applied = False
         self.t_apply = -np.inf
         self.t_release = -np.inf
-        self.v_apply_kmh = 0.0
         self.fill = np.zeros(consist.n)
+        #: ECP mode: each vehicle's cylinder target (fraction of full service), held between demands
+        self.ecp_target = np.zeros(consist.n)
         self.last_force_n = np.zeros(consist.n)
         self.events: list[tuple[float, str]] = []
-        loco = consist.is_loco
-        self.k_full_kn = np.where(loco, hxd1_pad_force_kn(), c80_shoe_force_kn())
-        self.n_blocks = np.where(loco, HXD1_BRAKE["n_z"], C80_BRAKE["n_k"]).astype(float)
+        self.k_full_kn = np.asarray(block_force_kn, dtype=float)
+        self.n_blocks = np.asarray(n_blocks, dtype=float)
+        self.friction_coef = np.asarray(friction_coef, dtype=float)
+        self.cylinder_pressure_pa = np.asarray(cylinder_pressure_pa, dtype=float)
 
     def command(self, t_s: float, apply: bool) -> None:
         """Driver's valve: issue an apply (True) or a release (False) at time ``t_s``."""
@@ -411,24 +408,14 @@ class AirBrake:
             return got_a
         return got_a & ~got_r
 
-    def rule_step(self, t_s: float, v_loco_mps: float, x_loco_m: float, route: Route) -> None:
-        """Section 1.2: apply above 60 km/h with a long (> 8 ‰, ≥ 500 m) downgrade within 2.5 km
-        ahead (or under the train), at least 160 s after the previous application; release once the
-        speed is 10 km/h below the applying speed, but never below 35 km/h."""
-        v = v_loco_mps / KMH
-        if not self.applied:
-            if (v > self.apply_min and t_s - self.t_apply >= self.min_interval
-                    and route.long_downgrade_ahead(x_loco_m, x_loco_m - self.dist[-1], self.lookahead)):
-                self.command(t_s, True)
-                self.v_apply_kmh = v
-        elif v <= self.v_apply_kmh - self.release_drop and v >= self.release_floor:
-            self.command(t_s, False)
-
     def step(self, t_s: float, dt_s: float, v_mps: np.ndarray) -> np.ndarray:
         """Advance cylinder fills by ``dt_s`` and return the air-brake force per vehicle (N, ≥ 0)."""
-        if self.t_apply == -np.inf:
+        if self.mode == "ecp":
+            target = self.ecp_target
+        elif self.t_apply == -np.inf:
             return self.last_force_n
-        target = self.signal(t_s).astype(float)
+        else:
+            target = self.signal(t_s).astype(float)
         self.fill += (target - self.fill) * (1.0 - np.exp(-dt_s / self.tau))
         self.last_force_n = self.force_n(v_mps)
         return self.last_force_n
@@ -436,16 +423,200 @@ class AirBrake:
     def force_n(self, v_mps: np.ndarray) -> np.ndarray:
         """Eq. (10): F_a = β_c Σ φ K over the blocks of each vehicle, at the current fills (N)."""
         k = self.k_full_kn * self.fill
-        phi = friction_coefficient(k, np.asarray(v_mps) / KMH, self.consist.is_loco)
+        phi = friction_coefficient(k, np.asarray(v_mps) / KMH, self.friction_coef)
         return 1000.0 * self.beta_c * self.n_blocks * phi * k
 
 
 # ------------------------------------------------------------------------------------ disturbance
-def disturbance_n(consist: Consist, t_s: float, v_mps: np.ndarray) -> np.ndarray:
-    """Eq. (40), σ_i in N: m_i {0.002 + 0.001 sin(t+1) + 0.0003 ∛v [sin(2t+2) + cos(3t+1)]}
-    on the locomotive and wagons 10, 20, ..., 100 (zero elsewhere); v in m/s (SI reading)."""
-    idx = np.arange(consist.n)
-    on = (idx == 0) | ((idx % 10 == 0) & (idx <= 100))
+def disturbance_n(consist: Consist, t_s: float, v_mps: np.ndarray, on: np.ndarray,
+                  coef: tuple[float, float, float]) -> np.ndarray:
+    """Eq. (40), σ_i in N: m_i {c0 + c1 sin(t+1) + c2 ∛v [sin(2t+2) + cos(3t+1)]}, (c0, c1, c2) = ``coef``
+    (paper: 0.002, 0.001, 0.0003), on the vehicles where ``on`` is True (paper: the locomotive and
+    wagons 10, 20, ..., 100), zero elsewhere; v in m/s (SI reading)."""
     v = np.abs(np.asarray(v_mps, dtype=float))
-    acc = 0.002 + 0.001 * np.sin(t_s + 1.0) + 0.0003 * np.cbrt(v) * (np.sin(2 * t_s + 2.0) + np.cos(3 * t_s + 1.0))
+    c0, c1, c2 = coef
+    acc = c0 + c1 * np.sin(t_s + 1.0) + c2 * np.cbrt(v) * (np.sin(2 * t_s + 2.0) + np.cos(3 * t_s + 1.0))
     return np.where(on, consist.mass_kg * acc, 0.0)
+
+
+# ------------------------------------------------------------------------------------ plant model
+class HeavyHaulModel:
+    """The heavy-haul consist as a :class:`canbrake.physics.contract.PlantModel` (eq. 16, SI).
+
+    ``m_i a_i = (1 + δ) F_i + u_i + σ_i(t)`` with F_i the non-control force (front coupler − rear
+    coupler − basic resistance − grade/curve − air brake), δ the model uncertainty, u the locomotive's
+    traction (= −``brake_force_n``, clipped to its envelope) and σ the eq. (40) disturbance; fixed-step
+    semi-implicit Euler (speeds, then positions, then couplers), ``integration_step_s`` per sub-step.
+
+    Commands (arrays (n,), NaN = not commanded):
+
+    * ``brake_force_n`` — on vehicles with a traction envelope (the locomotive): + electric brake,
+      − traction (N); NaN = 0. Ignored elsewhere (wagons have no force equipment).
+    * ``airbrake_apply`` — driver's valve, read on the first vehicle: ≥ 0.5 apply, < 0.5 release,
+      NaN = unchanged. Pneumatic mode only: the signal runs along the brake pipe (apply/release wave).
+    * ``ecp_demand`` — ECP mode only: each vehicle's cylinder target, fraction 0..1 of full service
+      (clipped), NaN = unchanged (a vehicle never commanded stays released). No brake-pipe wave.
+
+    Measurements: the contract's ``position_m, speed_mps, accel_mps2, applied_brake_n`` per vehicle
+    (applied = air brake + the locomotive's electric brake − traction, N), ``deflection_m`` (coupler
+    stretch x_j − x_{j+1} − spacing, + tension, m) and ``coupler_force_n`` (+ tension, N) per coupler, and
+    per vehicle:
+
+    * ``passive_force_n`` — the nominal non-control force F_i = F_C,i−1 − F_C,i − F_W,i − F_f,i − F_a,i (N),
+      without δ and σ: what Li's controller calls m0·f(x). On the locomotive it is a virtual sensor: the
+      coupler force measured by a load cell at the draft gear plus the onboard model's running
+      resistance, line resistance at the measured position and the known air-brake force.
+    * ``brake_cylinder_pressure_pa`` — brake cylinder pressure (fill × the type's full pressure).
+    * ``downgrade_ahead`` — line data (the onboard line database, e.g. LKJ): 1 when a long downgrade
+      (see :meth:`Route.long_downgrade_ahead`) lies under the train or within the look-ahead of its
+      front, else 0; the same value on every vehicle.
+
+    Timing of the air brake: the cylinder fill at t_k is computed at the end of the step that reaches
+    t_k with the commands then held; a new driver's-valve or ECP command issued at t_k (it arrives at
+    the start of the next step) recomputes that fill update with the new target, so a command acts on
+    the brake from t_k, as the old closed loop did (the ECU's ``passive_force_n`` of tick k shows the
+    brake before its own command of tick k).
+    """
+
+    command_names = ("brake_force_n", "airbrake_apply", "ecp_demand")
+
+    def __init__(self, consist: Consist, route: Route, gears: list[DraftGear], airbrake: AirBrake, *,
+                 envelopes: list[TractionEnvelope | None], v0_mps: float, x0_m: float = 0.0,
+                 uncertainty: float = 0.0, disturbance_on: np.ndarray | None = None,
+                 disturbance_coef: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 integration_step_s: float = DEFAULT_DT_S, line_lookahead_m: float = 2500.0,
+                 line_min_grade_permille: float = 8.0, line_min_length_m: float = 500.0):
+        if len(gears) != consist.n - 1 or len(envelopes) != consist.n:
+            raise ValueError("one draft gear per coupler and one envelope (or None) per vehicle")
+        self.c = consist
+        self.n_vehicles = consist.n
+        self.mass_kg = consist.mass_kg
+        self.route = route
+        self.dt = float(integration_step_s)
+        self.unc = float(uncertainty)
+        self.dist_on = None if disturbance_on is None else np.asarray(disturbance_on, dtype=bool)
+        self.dist_coef = tuple(disturbance_coef)
+        self.envelopes = list(envelopes)
+        self.powered = np.array([e is not None for e in envelopes])
+        self.line = (line_lookahead_m, line_min_grade_permille, line_min_length_m)
+        self.cp = CouplerBank(gears)
+        self.ab = airbrake
+        self.t = 0.0
+        self.v = np.full(consist.n, float(v0_mps))
+        # static initial tensions: each coupler carries the running + grade resistance behind it
+        xs = x0_m - consist.distance_from_loco_m
+        res = basic_resistance_n(consist, self.v) + route.force_n(consist, xs)
+        tension = np.cumsum(res[::-1])[::-1][1:]
+        stretch = self.cp.set_static(tension)
+        self.x = x0_m - np.concatenate([[0.0], np.cumsum(consist.spacing_m + stretch)])
+        self.fc = self._coupler_forces()
+        self.acc = np.zeros(consist.n)
+        self.u = np.zeros(consist.n)  # applied traction (N, + forward) per vehicle
+        self._fi: np.ndarray | None = None
+        self._meas: dict[str, np.ndarray] | None = None
+        self._fill_before = self.ab.fill.copy()
+
+    # -- state -----------------------------------------------------------------------------------
+    def _coupler_forces(self) -> np.ndarray:
+        stretch = self.x[:-1] - self.x[1:] - self.c.spacing_m
+        rate = self.v[:-1] - self.v[1:]
+        return self.cp.step(stretch, rate)
+
+    def passive_forces(self) -> np.ndarray:
+        """Non-control force per vehicle F_i (N) at the current state (nominal: no δ, no σ)."""
+        if self._fi is None:
+            sgn = np.sign(self.v)
+            fw = basic_resistance_n(self.c, self.v) * sgn
+            ff = self.route.force_n(self.c, self.x)
+            fa = self.ab.last_force_n * sgn
+            front = np.concatenate([[0.0], self.fc])
+            rear = np.concatenate([self.fc, [0.0]])
+            self._fi = front - rear - fw - ff - fa
+        return self._fi
+
+    # -- contract --------------------------------------------------------------------------------
+    def _take_commands(self, commands: Mapping[str, np.ndarray]) -> None:
+        bf = commands.get("brake_force_n")
+        u = np.zeros(self.n_vehicles)
+        if bf is not None:
+            bf = np.asarray(bf, dtype=float)
+            for i in np.flatnonzero(self.powered & np.isfinite(bf)):
+                u[i] = self.envelopes[i].saturate_n(-float(bf[i]), float(self.v[i]))  # type: ignore[union-attr]
+        self.u = u
+        changed = False
+        if self.ab.mode == "pneumatic":
+            ap = commands.get("airbrake_apply")
+            if ap is not None and np.isfinite(ap[0]):
+                want = bool(ap[0] >= 0.5)
+                if want != self.ab.applied:
+                    self.ab.command(self.t, want)
+                    changed = True
+        else:
+            dm = commands.get("ecp_demand")
+            if dm is not None:
+                dm = np.asarray(dm, dtype=float)
+                ok = np.isfinite(dm)
+                new = np.where(ok, np.clip(np.where(ok, dm, 0.0), 0.0, 1.0), self.ab.ecp_target)
+                if np.any(new != self.ab.ecp_target):
+                    self.ab.ecp_target = new
+                    changed = True
+        if changed:  # the command acts from now: redo the fill update that reached this instant
+            self.ab.fill = self._fill_before.copy()
+            self.ab.step(self.t, self.dt, self.v)
+            self._fi = None
+
+    def _substep(self) -> None:
+        fi = self.passive_forces()
+        total = fi * (1.0 + self.unc)
+        total += self.u
+        if self.dist_on is not None:
+            total += disturbance_n(self.c, self.t, self.v, self.dist_on, self.dist_coef)
+        acc = total / self.c.mass_kg
+        self.acc = acc
+        self.v = self.v + acc * self.dt
+        self.x = self.x + self.v * self.dt
+        self.t += self.dt
+        self.fc = self._coupler_forces()
+        self._fill_before = self.ab.fill.copy()
+        self.ab.step(self.t, self.dt, self.v)
+        self._fi = None
+        if not (np.all(np.isfinite(self.v)) and np.all(np.isfinite(self.x))):
+            raise PlantDiverged(f"heavy-haul state became non-finite at t = {self.t:.3f} s")
+
+    def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
+        """Advance by ``dt_s`` (a whole number of integration steps) holding ``commands``."""
+        n = int(round(dt_s / self.dt))
+        if n < 1 or abs(n * self.dt - dt_s) > 1e-9 * max(1.0, dt_s):
+            raise ValueError(f"step {dt_s} s is not a whole number of integration steps of {self.dt} s")
+        self._meas = None
+        self._take_commands(commands)
+        for _ in range(n):
+            if self.powered.any() and _ > 0:
+                self.u = np.array([e.saturate_n(float(u), float(v)) if e is not None else 0.0
+                                   for e, u, v in zip(self.envelopes, self.u, self.v)])
+            self._substep()
+
+    def downgrade_ahead(self) -> bool:
+        """Line data: a long downgrade under the train or within the look-ahead of its front."""
+        look, g, length = self.line
+        x0 = float(self.x[0])
+        return self.route.long_downgrade_ahead(x0, x0 - float(self.c.distance_from_loco_m[-1]), look, g, length)
+
+    def measurements(self) -> dict[str, np.ndarray]:
+        """The contract's measurements (computed once per state; do not modify the arrays)."""
+        if self._meas is not None:
+            return self._meas
+        fa = self.ab.last_force_n
+        applied = fa - self.u
+        self._meas = {
+            "position_m": self.x.copy(),
+            "speed_mps": self.v.copy(),
+            "accel_mps2": self.acc.copy(),
+            "applied_brake_n": applied,
+            "deflection_m": self.x[:-1] - self.x[1:] - self.c.spacing_m,
+            "coupler_force_n": self.fc.copy(),
+            "passive_force_n": self.passive_forces().copy(),
+            "brake_cylinder_pressure_pa": self.ab.fill * self.ab.cylinder_pressure_pa,
+            "downgrade_ahead": np.full(self.n_vehicles, float(self.downgrade_ahead())),
+        }
+        return self._meas

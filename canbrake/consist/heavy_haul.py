@@ -1,0 +1,266 @@
+"""The heavy-haul consist of Li, Zeng & Yu 2024 as data (``train: {model: heavy_haul, ...}``).
+
+One locomotive and many wagons, each a point mass (eq. 16) joined by couplers with hysteretic draft
+gears, running resistance per unit weight (eq. 3), a route from a CSV table (grade ‰ and curve radius
+by position), the automatic air brake with its brake-pipe waves or ECP, the locomotive's traction and
+electric-brake envelopes (eqs. 1-2), model uncertainty δ and the disturbance of eq. (40). Units are in
+the field names; the paper's N/kN, km/h, mm and kPa appear only where the paper gives them so.
+The physics is :class:`canbrake.physics.heavy_haul.HeavyHaulModel`.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from canbrake.consist.base import StrictModel, VehicleEntry, expand_vehicles, load_table
+from canbrake.physics import heavy_haul as hh
+
+
+class Resistance(StrictModel):
+    """Basic running resistance per unit weight, eq. (3): w = A + B·v + C·v² (N/kN, v in km/h)."""
+
+    a_n_per_kn: float = Field(ge=0)
+    b_n_per_kn_per_kmh: float = Field(ge=0)
+    c_n_per_kn_per_kmh2: float = Field(ge=0)
+
+
+class DraftGear(StrictModel):
+    """Hysteretic draft gear (eqs. 7-9): loading curve f_l (piecewise linear through the points),
+    unloading curve f_u = ``unloading_ratio``·f_l, free slack each side, eq. (8) stiffness, solid
+    stiffness beyond the stroke, viscous damping while engaged."""
+
+    curve_mm: list[float] = Field(min_length=3)
+    curve_kn: list[float] = Field(min_length=3)
+    unloading_ratio: float = Field(gt=0, le=1)
+    slack_mm: float = Field(ge=0)
+    k_elastic_n_per_m: float = Field(gt=0)
+    k_solid_n_per_m: float = Field(gt=0)
+    damping_n_s_per_m: float = Field(ge=0)
+
+    @model_validator(mode="after")
+    def _curve(self) -> "DraftGear":
+        if len(self.curve_mm) != len(self.curve_kn):
+            raise ValueError("curve_mm and curve_kn need the same number of points")
+        if self.curve_mm[0] != 0 or self.curve_kn[0] != 0 or any(b <= a for a, b in zip(self.curve_mm, self.curve_mm[1:])):
+            raise ValueError("the loading curve starts at (0 mm, 0 kN) with increasing deflections")
+        return self
+
+    def physics(self, name: str) -> hh.DraftGear:
+        return hh.DraftGear(name, tuple(x / 1000.0 for x in self.curve_mm), tuple(f * 1000.0 for f in self.curve_kn),
+                            unloading_ratio=self.unloading_ratio, slack_m=self.slack_mm / 1000.0,
+                            k_elastic_n_per_m=self.k_elastic_n_per_m, k_solid_n_per_m=self.k_solid_n_per_m,
+                            damping_n_s_per_m=self.damping_n_s_per_m)
+
+
+class BrakeEquipment(StrictModel):
+    """Air-brake rigging of a vehicle type (Table 1; eqs. 13-15).
+
+    ``shoe``: force per shoe K = π/4·d²·p·η·γ·(cylinders/shoes) (eq. 15), ``shoes`` blocks.
+    ``disc``: force per cylinder at the tread K = r/R·π/4·d²·p·γ·η (eqs. 13-14), ``cylinders`` blocks.
+    ``friction_coefficient``: the leading factor of eqs. (11)-(12) (0.441 HXD1, 0.481 C80 high-friction).
+    """
+
+    kind: Literal["shoe", "disc"]
+    cylinder_diameter_mm: float = Field(gt=0)
+    cylinder_pressure_kpa: float = Field(gt=0)
+    lever_ratio: float = Field(gt=0)
+    efficiency: float = Field(gt=0, le=1)
+    cylinders: int = Field(ge=1)
+    shoes: int = Field(ge=1)
+    friction_coefficient: float = Field(gt=0)
+    wheel_radius_mm: float | None = Field(None, gt=0)
+    friction_radius_mm: float | None = Field(None, gt=0)
+
+    @model_validator(mode="after")
+    def _disc(self) -> "BrakeEquipment":
+        if self.kind == "disc" and (self.wheel_radius_mm is None or self.friction_radius_mm is None):
+            raise ValueError("a disc brake needs wheel_radius_mm and friction_radius_mm")
+        return self
+
+    def block_force_kn(self) -> float:
+        """Force per shoe (shoe brake) or per cylinder referred to the tread (disc brake), kN, full pressure."""
+        d, p = self.cylinder_diameter_mm, self.cylinder_pressure_kpa
+        if self.kind == "disc":
+            return hh.disc_block_force_kn(d, p, self.lever_ratio, self.efficiency, self.friction_radius_mm,  # type: ignore[arg-type]
+                                          self.wheel_radius_mm)  # type: ignore[arg-type]
+        return hh.shoe_block_force_kn(d, p, self.lever_ratio, self.efficiency, self.cylinders, self.shoes)
+
+    def blocks(self) -> int:
+        return self.cylinders if self.kind == "disc" else self.shoes
+
+
+class Envelope(StrictModel):
+    """Traction and electric-brake envelopes, eqs. (1)-(2) (kN, km/h); see
+    :class:`canbrake.physics.heavy_haul.TractionEnvelope`."""
+
+    traction_start_kn: float = Field(gt=0)
+    traction_start_until_kmh: float = Field(ge=0)
+    traction_intercept_kn: float
+    traction_slope_kn_per_kmh: float
+    traction_linear_until_kmh: float = Field(gt=0)
+    brake_slope_kn_per_kmh: float = Field(ge=0)
+    brake_linear_until_kmh: float = Field(ge=0)
+    brake_max_kn: float = Field(ge=0)
+    brake_constant_until_kmh: float = Field(gt=0)
+    power_kn_kmh: float = Field(gt=0)
+
+    def physics(self) -> hh.TractionEnvelope:
+        return hh.TractionEnvelope(**self.model_dump())
+
+
+class VehicleType(StrictModel):
+    """One kind of vehicle; ``traction`` makes it a locomotive (it takes ``brake_force_n``)."""
+
+    mass_kg: float = Field(gt=0)
+    length_m: float = Field(gt=0)
+    resistance: Resistance
+    draft_gear: str
+    brake: BrakeEquipment
+    traction: Envelope | None = None
+
+
+class Route(StrictModel):
+    """Grade and curvature by position from a CSV file (columns ``position_m, grade_permille,
+    curve_radius_m``; 0 = straight; see :meth:`canbrake.physics.heavy_haul.Route.from_table`), and the
+    line-data rule of the ``downgrade_ahead`` sensor: a downgrade steeper than
+    ``long_downgrade_permille`` and at least ``long_downgrade_min_length_m`` long, under the train or
+    within ``lookahead_m`` ahead."""
+
+    file: str
+    lookahead_m: float = Field(2500.0, ge=0)
+    long_downgrade_permille: float = Field(8.0, gt=0)
+    long_downgrade_min_length_m: float = Field(500.0, ge=0)
+
+
+class AirBrake(StrictModel):
+    """Automatic air brake (eqs. 10-15, section 1.2) or ECP.
+
+    ``pneumatic``: the driver's valve (``airbrake_apply`` on vehicle 1) sends apply/release along the
+    brake pipe at ``apply_wave_mps``/``release_wave_mps``; after the signal arrives each cylinder fills
+    with a first-order lag ``cylinder_tau_s``. ``ecp``: each vehicle's cylinder follows its own
+    ``ecp_demand`` with the same lag, no wave. ``service_factor`` is β_c of eq. (10).
+    """
+
+    mode: Literal["pneumatic", "ecp"] = "pneumatic"
+    apply_wave_mps: float = Field(gt=0)
+    release_wave_mps: float = Field(gt=0)
+    cylinder_tau_s: float = Field(gt=0)
+    service_factor: float = Field(gt=0, le=1)
+
+
+class Disturbance(StrictModel):
+    """Eq. (40): σ_i = m_i {c0 + c1 sin(t+1) + c2 ∛v [sin(2t+2) + cos(3t+1)]} (N, v in m/s) on ``vehicles``
+    (1-based); off unless ``enabled``."""
+
+    enabled: bool = False
+    vehicles: list[int] = Field(default_factory=list)
+    c0_mps2: float = 0.002
+    c1_mps2: float = 0.001
+    c2: float = 0.0003
+
+
+class HeavyHaulTrain(StrictModel):
+    """``train:`` of a heavy-haul scenario (Li 2024)."""
+
+    model: Literal["heavy_haul"] = "heavy_haul"
+    vehicle_types: dict[str, VehicleType]
+    draft_gears: dict[str, DraftGear]
+    vehicles: list[VehicleEntry] = Field(min_length=1)
+    route: Route
+    air_brake: AirBrake
+    #: δ: every vehicle's non-control force is (1 + δ) times the nominal one the controllers know
+    uncertainty: float = Field(0.0, ge=-0.5, le=0.5)
+    disturbance: Disturbance = Field(default_factory=Disturbance)
+    #: position of the first vehicle's centre at t = 0 (m along the route). The train starts at the
+    #: scenario's ``initial.speed_kmh`` (one value) in static equilibrium: each coupler carries the
+    #: running and line resistance behind it
+    start_position_m: float = 0.0
+    integration_step_s: float = Field(0.01, gt=0)
+
+    @field_validator("vehicle_types")
+    @classmethod
+    def _types(cls, v: dict[str, VehicleType]) -> dict[str, VehicleType]:
+        if not v:
+            raise ValueError("at least one vehicle type")
+        return v
+
+    @model_validator(mode="after")
+    def _refs(self) -> "HeavyHaulTrain":
+        for name, vt in self.vehicle_types.items():
+            if vt.draft_gear not in self.draft_gears:
+                raise ValueError(f"vehicle_types.{name}.draft_gear: unknown draft gear {vt.draft_gear!r} "
+                                 f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
+        n = len(self._expanded())
+        if n < 2:
+            raise ValueError("vehicles: a heavy-haul train needs at least two vehicles")
+        bad = [v for v in self.disturbance.vehicles if not 1 <= v <= n]
+        if bad:
+            raise ValueError(f"disturbance.vehicles: {bad} outside 1..{n}")
+        return self
+
+    def _expanded(self) -> list[tuple[str, VehicleType]]:
+        return expand_vehicles(self.vehicle_types, self.vehicles)
+
+    def vehicle_count(self) -> int:
+        return len(self._expanded())
+
+    def vehicle_masses_kg(self) -> np.ndarray:
+        return np.array([vt.mass_kg for _, vt in self._expanded()], dtype=float)
+
+    def consist(self) -> hh.Consist:
+        """Vehicle arrays of the physics (front first)."""
+        vs = [vt for _, vt in self._expanded()]
+        arr = lambda f: np.array([f(v) for v in vs], dtype=float)  # noqa: E731
+        return hh.Consist(mass_kg=arr(lambda v: v.mass_kg), length_m=arr(lambda v: v.length_m),
+                          davis_a=arr(lambda v: v.resistance.a_n_per_kn), davis_b=arr(lambda v: v.resistance.b_n_per_kn_per_kmh),
+                          davis_c=arr(lambda v: v.resistance.c_n_per_kn_per_kmh2),
+                          is_loco=np.array([v.traction is not None for v in vs]))
+
+    def load_route(self, base_dir: Path | None) -> hh.Route:
+        t = load_table(self.route.file, ("position_m", "grade_permille", "curve_radius_m"), base_dir)
+        try:
+            return hh.Route.from_table(t["position_m"], t["grade_permille"], t["curve_radius_m"])
+        except ValueError as e:
+            raise ValueError(f"{self.route.file}: {e}") from None
+
+    def build_air_brake(self, consist: hh.Consist) -> hh.AirBrake:
+        vs = [vt for _, vt in self._expanded()]
+        ab = self.air_brake
+        return hh.AirBrake(consist, apply_wave_mps=ab.apply_wave_mps, release_wave_mps=ab.release_wave_mps,
+                           cylinder_tau_s=ab.cylinder_tau_s, beta_c=ab.service_factor, mode=ab.mode, block_force_kn=np.array([v.brake.block_force_kn() for v in vs]),
+                           n_blocks=np.array([v.brake.blocks() for v in vs], dtype=float),
+                           friction_coef=np.array([v.brake.friction_coefficient for v in vs]),
+                           cylinder_pressure_pa=np.array([1000.0 * v.brake.cylinder_pressure_kpa for v in vs]))
+
+    def build_plant(self, scn: Any, base_dir: Path | None = None) -> hh.HeavyHaulModel:
+        """The plant model; from the scenario ``scn`` it takes ``initial.speed_kmh`` (one value, or one per
+        vehicle all equal: the train starts in static equilibrium)."""
+        v0 = scn.initial.speed_kmh
+        if isinstance(v0, (list, tuple)):
+            if len(set(float(x) for x in v0)) != 1:
+                raise ValueError("initial.speed_kmh: a heavy-haul train starts with one speed for every vehicle")
+            v0 = v0[0]
+        if getattr(scn.initial, "position_m", None) is not None:
+            raise ValueError("initial.position_m: a heavy-haul train is placed by train.start_position_m "
+                             "(the couplers start in static equilibrium)")
+        ex = self._expanded()
+        c = self.consist()
+        gears = {name: g.physics(name) for name, g in self.draft_gears.items()}
+        # coupler j (behind vehicle j) takes vehicle j's draft gear
+        cgears = [gears[vt.draft_gear] for _, vt in ex[:-1]]
+        on = None
+        if self.disturbance.enabled:
+            on = np.zeros(c.n, bool)
+            on[[v - 1 for v in self.disturbance.vehicles]] = True
+        d = self.disturbance
+        return hh.HeavyHaulModel(
+            c, self.load_route(base_dir), cgears, self.build_air_brake(c),
+            envelopes=[vt.traction.physics() if vt.traction is not None else None for _, vt in ex],
+            v0_mps=float(v0) * hh.KMH, x0_m=self.start_position_m, uncertainty=self.uncertainty,
+            disturbance_on=on, disturbance_coef=(d.c0_mps2, d.c1_mps2, d.c2),
+            integration_step_s=self.integration_step_s, line_lookahead_m=self.route.lookahead_m,
+            line_min_grade_permille=self.route.long_downgrade_permille,
+            line_min_length_m=self.route.long_downgrade_min_length_m)

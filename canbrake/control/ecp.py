@@ -1,0 +1,73 @@
+"""Electronically controlled pneumatic (ECP) braking over CAN on a heavy-haul train.
+
+* :class:`EcpWagon` (``ecp_wagon``) — a wagon's brake ECU: applies the brake demand the locomotive
+  ECU broadcasts (``ecp_demand`` in its STATE frame) to its own cylinder (command ``ecp_demand``).
+  Before any demand has arrived it keeps the brake released.
+* :class:`BrakeTest` (``heavy_haul_brake_test``) — the locomotive ECU of a stop test: from
+  ``brake_at_s`` on it demands a brake application of ``demand`` (fraction of full service) — over
+  CAN to the wagons (broadcast ``ecp_demand``), through the brake pipe (``airbrake_apply``, for a
+  pneumatic train) and on its own cylinder (``ecp_demand``) — and holds the electric brake at
+  ``electric_brake_n`` (0: air brake only).
+
+Pure controllers (no I/O), SI units.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from canbrake.control.base import ControlOutput, Controller, Observation, register
+
+
+@register("ecp_wagon")
+class EcpWagon(Controller):
+    """Applies the broadcast ECP demand of ECU ``source_ecu`` (1-based index in the placement)."""
+
+    sensor_names = ("speed_mps",)
+    command_names = ("ecp_demand",)
+    broadcast_names = ()
+    diagnostic_names = ("ecp_demand",)
+
+    def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float, *, source_ecu: int = 1) -> None:
+        super().__init__(car_index, n_cars, mass_kg, dt_s)
+        if not 1 <= int(source_ecu) <= n_cars:
+            raise ValueError(f"source_ecu: must be an ECU index 1..{n_cars}, got {source_ecu!r}")
+        self.source = int(source_ecu) - 1
+        self.demand = 0.0
+
+    def step(self, obs: Observation) -> ControlOutput:
+        got = obs.peer_signals.get("ecp_demand")
+        if got is not None and self.source < len(got) and math.isfinite(float(got[self.source])):
+            self.demand = float(np.clip(got[self.source], 0.0, 1.0))
+        return ControlOutput(0.0, {"ecp_demand": self.demand}, commands={"ecp_demand": self.demand})
+
+    def reset(self) -> None:
+        self.demand = 0.0
+
+
+@register("heavy_haul_brake_test")
+class BrakeTest(Controller):
+    """Stop test on the locomotive: a brake application of ``demand`` from ``brake_at_s`` on."""
+
+    sensor_names = ("speed_mps",)
+    command_names = ("brake_force_n", "airbrake_apply", "ecp_demand")
+    broadcast_names = ("ecp_demand",)
+    diagnostic_names = ("ecp_demand",)
+
+    def __init__(self, car_index: int, n_cars: int, mass_kg: float, dt_s: float, *, brake_at_s: float = 5.0,
+                 demand: float = 1.0, electric_brake_n: float = 0.0) -> None:
+        super().__init__(car_index, n_cars, mass_kg, dt_s)
+        if not 0.0 <= float(demand) <= 1.0:
+            raise ValueError(f"demand: a fraction of full service 0..1, got {demand!r}")
+        if float(electric_brake_n) < 0:
+            raise ValueError(f"electric_brake_n: must be >= 0, got {electric_brake_n!r}")
+        self.brake_at, self.full, self.eb = float(brake_at_s), float(demand), float(electric_brake_n)
+
+    def step(self, obs: Observation) -> ControlOutput:
+        on = obs.time_s >= self.brake_at - 1e-9
+        d = self.full if on else 0.0
+        moving = obs.speed_mps > 0.05
+        return ControlOutput(self.eb if (on and moving) else 0.0, {"ecp_demand": d},
+                             commands={"airbrake_apply": 1.0 if on else 0.0, "ecp_demand": d},
+                             broadcast={"ecp_demand": d})
