@@ -132,6 +132,9 @@ def _fmt_s(x: float) -> str:
     return "—" if not np.isfinite(x) else f"{x:.2f} s"
 
 
+DEFAULT_OUT = "docs"  # `canbrake report ecp` writes docs/ecp-over-can.md
+
+
 def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-ecp", force: bool = False,
              jobs: int = 2, log: Callable[[str], None] = print, duration_s: float = DEFAULT_DURATION_S,
              specs: Sequence[Spec] = SPECS, scen_dir: str | Path | None = None) -> Path:
