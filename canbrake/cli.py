@@ -33,7 +33,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
-    from canbrake.run import preflight, run_scenario
+    from canbrake.run import preflight, run_scenario, stop_node_server
     from canbrake.scenario import load_scenario
 
     overrides = _parse_set(a.set or [])
@@ -44,36 +44,65 @@ def _cmd_run(a: argparse.Namespace) -> int:
     if a.mode is not None:
         overrides["mode"] = a.mode
     scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
-    preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
+    choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
+    from canbrake.run import check_out_dir
+
+    check_out_dir(out)
     print(f"canbrake: running {scn.name} ({scn.n_cars} cars, {scn.duration_s:g} s, {scn.mode}, "
           f"bus {a.bus or scn.bus.backend}) -> {out}", file=sys.stderr)
-    summary = run_scenario(scn, out, backend=a.bus, channel=a.channel, interface=a.interface, dbc_path=a.dbc,
-                           plots=not a.no_plots)
+    if choice.backend == "memory":
+        _print_attach(choice.channel, out)
+    try:
+        summary = run_scenario(scn, out, backend=a.bus, channel=choice.channel if choice.backend == "memory" else a.channel,
+                               interface=a.interface, dbc_path=a.dbc, plots=not a.no_plots)
+    finally:
+        stop_node_server()
     _print_summary(summary, out)
     if summary["status"] == "interrupted":
+        print(f"canbrake: {summary['message']} (results so far kept in {out})", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if summary["status"] == "diverged":
-        print(f"canbrake: {summary['message']} (results kept in {out})", file=sys.stderr)
-        return EXIT_FAIL
     if summary["status"] != "ok":
         print(f"canbrake: run failed: {summary['message']} (logs kept in {out})", file=sys.stderr)
+        return EXIT_FAIL
+    if summary.get("verdict") == "diverged":
+        print(f"canbrake: the closed loop diverged (results kept in {out})", file=sys.stderr)
         return EXIT_FAIL
     return EXIT_OK
 
 
+def _print_attach(channel: str | None, out: Path) -> None:
+    """The run's in-memory channel and the commands that attach to it (python-can, cantools)."""
+    print(f"canbrake: channel {channel}; to watch it while the run lasts:\n"
+          f"  python -m can.logger -i canbrake -c {channel}\n"
+          f"  python -m can.viewer -i canbrake -c {channel}\n"
+          f"  cantools monitor -b canbrake -c {channel} {out}/canbrake.dbc", file=sys.stderr)
+
+
 def _print_summary(s: dict[str, Any], out: Path) -> None:
+    from canbrake.analysis.verdict import fmt_quantity as q
+
     m = s.get("metrics", {})
-    lines = [f"status: {s['status']}  ticks: {s.get('ticks')}  wall: {s.get('wall_time_s') or 0:.1f} s"]
+    lines = [f"status: {s['status']}  verdict: {s.get('verdict')}  ticks: {s.get('ticks')}  "
+             f"wall: {s.get('wall_time_s') or 0:.1f} s"]
+    for f in s.get("findings") or []:
+        lines.append(f"  {f['kind']}: {f['message']}")
     if m:
         tc = m.get("convergence_time_s")
         lines.append(f"convergence (±{m['band_kmh']} km/h): {'never' if tc is None else f'{tc:.3f} s'}  "
-                     f"max |deflection|: {m['max_abs_deflection_m'] * 100:.2f} cm  "
-                     f"speed RMSE: {max(m['speed_rmse_kmh']):.3f} km/h (worst car)")
-    bl = s.get("bus_load", {})
+                     f"max |deflection|: {q(m['max_abs_deflection_m'] * 100, 'cm')}  "
+                     f"speed RMSE: {q(max(m['speed_rmse_kmh']), 'km/h')} (worst car)")
+    bl = s.get("bus_load", {}) or {}
     if bl.get("bus_load_mean") is not None:
         lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "
                      f"at {bl['bitrate_bps'] / 1000:g} kbit/s  frames: {s['frames']['on_bus']}")
+    dm = s.get("deadline_misses") or {}
+    if s.get("mode") == "realtime" and dm:
+        ticks = s.get("ticks") or 0
+        rate = f" ({dm.get('plant', 0) / ticks * 100:.1f} % of periods)" if ticks else ""
+        lines.append(f"deadline misses: plant {dm.get('plant', 0)}{rate}, ECUs {dm.get('ecus', 0)}")
+    if s.get("finalize_error"):
+        lines.append(f"summary incomplete: {s['finalize_error']}")
     lines.append(f"written: {out}/summary.json, signals.csv, frames.log" + (", plots/" if s.get("plots") else ""))
     print("\n".join(lines))
 
@@ -87,7 +116,10 @@ def _cmd_dbc(a: argparse.Namespace) -> int:
     if a.output in (None, "-"):
         sys.stdout.write(text)
     else:
-        Path(a.output).write_text(text)
+        try:
+            Path(a.output).write_text(text)
+        except OSError as e:
+            raise InputError(f"-o {a.output}: cannot write: {e.strerror or e}") from None
         print(f"wrote {a.output} ({a.cars} cars)", file=sys.stderr)
     return EXIT_OK
 
@@ -182,7 +214,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("canbrake: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:
+        _quiet_stdout()
         return EXIT_OK
+    except OSError as e:  # a full disk or an unwritable file while running: one line, no traceback
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"canbrake: error: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_FAIL
+
+
+def _quiet_stdout() -> None:
+    """After a closed stdout (``| head``), point stdout at /dev/null so the interpreter's final
+    flush does not complain (the Python docs' recipe for SIGPIPE)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -101,23 +101,73 @@ def _adapter_choice(scn: Scenario, interface: str, channel: str | None) -> BusCh
     return BusChoice("adapter", interface, channel, channel or interface, kwargs)
 
 
+#: files every run directory has from its start: what marks a directory as canbrake's to replace
+RUN_DIR_MARKERS = ("scenario.yaml", "canbrake.dbc")
+
+
+def check_out_dir(out_dir: str | Path) -> Path:
+    """``out_dir`` may be created or replaced: it does not exist, is empty, or is a canbrake run
+    directory (has scenario.yaml and canbrake.dbc), and it is not the current directory or one
+    of its parents. Raises :class:`ScenarioError` (exit 2) otherwise; writes nothing."""
+    out = Path(out_dir)
+    if not out.exists() and not out.is_symlink():
+        return out
+    if not out.is_dir() or out.is_symlink():
+        raise ScenarioError(f"--out {out}: exists and is not a directory")
+    here = Path.cwd().resolve()
+    if out.resolve() == here or out.resolve() in here.parents:
+        raise ScenarioError(f"--out {out}: is the current directory or one of its parents; choose a run directory")
+    try:
+        entries = {p.name for p in out.iterdir()}
+    except OSError as e:
+        raise ScenarioError(f"--out {out}: cannot read the directory: {e.strerror}") from None
+    if entries and not all(m in entries for m in RUN_DIR_MARKERS):
+        raise ScenarioError(f"--out {out}: exists and is not a canbrake run directory (no scenario.yaml/canbrake.dbc); "
+                            f"a run replaces its directory as a whole, so choose another --out or remove it")
+    return out
+
+
+def _clear_run_dir(out: Path) -> None:
+    """Replace an existing run directory by an empty one: the old one is renamed aside first (so no
+    file of it can mix with the new run's), then deleted."""
+    import shutil
+
+    if not out.exists():
+        return
+    if not any(out.iterdir()):
+        return
+    aside = out.with_name(f".{out.name}.old-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+    os.rename(out, aside)
+    shutil.rmtree(aside, ignore_errors=True)
+
+
 def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | None = None) -> Path:
-    """Create ``out_dir`` and write the resolved scenario and the DBC used (checked against the scenario)."""
+    """Create ``out_dir`` afresh (an earlier run there is replaced as a whole, see
+    :func:`check_out_dir`) and write the resolved scenario and the DBC used (checked against the
+    scenario). Raises :class:`ScenarioError` for bad input before anything is removed or written."""
     from canbrake.bus import dbc
 
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ScenarioError(f"--out {out}: cannot create the run directory: {e.strerror}") from None
+    out = check_out_dir(out_dir)
+    dbc_text = None
     if dbc_path is not None:
         check_dbc_matches(scn, dbc_path)
-        (out / "canbrake.dbc").write_text(Path(dbc_path).read_text())
-    else:
-        dbc.write_dbc(scn.n_cars, out / "canbrake.dbc")
-    (out / "scenario.yaml").write_text(scn.to_yaml())
-    (out / "plots").mkdir(exist_ok=True)
+        dbc_text = Path(dbc_path).read_text()  # before the old run (which may hold it) is removed
+    try:
+        _clear_run_dir(out)
+        out.mkdir(parents=True, exist_ok=True)
+        if dbc_text is not None:
+            (out / "canbrake.dbc").write_text(dbc_text)
+        else:
+            dbc.write_dbc(scn.n_cars, out / "canbrake.dbc")
+        (out / "scenario.yaml").write_text(scn.to_yaml())
+        (out / "plots").mkdir(exist_ok=True)
+    except OSError as e:
+        raise RunDirError(f"--out {out}: cannot write the run directory: {e.strerror or e}") from None
     return out
+
+
+class RunDirError(ScenarioError):
+    """The run directory cannot be written (permissions, full disk): one message, exit 2."""
 
 
 def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
@@ -185,6 +235,11 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
 
     signal.signal(signal.SIGTERM, _term)
     name = role if role != "ecu" else f"ecu{car}"
+    _set_title(f"canbrake {name} {scenario.get('name', '')}")
+    import warnings
+
+    # a diverging plant overflows before it notices; the verdict reports it, not numpy's warnings
+    warnings.simplefilter("ignore", RuntimeWarning)
     node = None
     bus = None
     status = "failed"
@@ -221,6 +276,60 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                 pass
         if bus is not None:
             bus.shutdown()
+
+
+def _set_title(title: str) -> None:
+    """Name this process for ps/top (``canbrake ecu3 chen2023_case1``), if setproctitle is there."""
+    try:
+        import setproctitle
+    except ImportError:
+        return
+    setproctitle.setproctitle(title)
+
+
+def stop_node_server() -> None:
+    """Stop multiprocessing's forkserver (started for the node processes), so that nothing of a
+    run outlives ``canbrake run``. The next run starts a new one."""
+    from multiprocessing import forkserver
+
+    try:
+        forkserver._forkserver._stop()  # noqa: SLF001 - the stdlib's only way to stop it
+    except Exception:  # noqa: BLE001 - best effort at exit
+        pass
+
+
+class Terminated(KeyboardInterrupt):
+    """The orchestrator got SIGTERM (ends the run as cleanly as Ctrl-C, and says so)."""
+
+
+def _signal_name(code: int | None) -> str:
+    """``exited with status 3`` / ``killed by SIGKILL`` for a process exit code."""
+    if code is not None and code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    if code == 143:
+        return "terminated (SIGTERM)"
+    return f"exited with status {code}"
+
+
+def _pid_start(pid: int | None) -> int:
+    from canbrake.bus.memory_shm import proc_start_time
+
+    return proc_start_time(pid) if pid else 0
+
+
+def _pid_running(pid: int | None, start: int) -> bool:
+    """Is process ``pid`` (started at ``start``, /proc ticks) still running (not a zombie)?"""
+    if not pid:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[0] != b"Z" and (not start or int(fields[19]) == start)
 
 
 def _start_timeout_s() -> float:
@@ -262,7 +371,11 @@ def _mp_context() -> Any:
 
 def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_timeout_s: float = 60.0,
                   start_timeout_s: float | None = None) -> dict[str, Any]:
-    """Run plant, ECUs and recorder as separate OS processes; supervise until done."""
+    """Run plant, ECUs and recorder as separate OS processes; supervise until done.
+
+    Returns the outcome: ``status`` ok / failed / interrupted, ``message`` (which process, which
+    signal or exit status), ``wall_time_s``, ``ticks`` (the plant's last progress) and
+    ``live_nodes`` (processes that could not be stopped; their files must not be touched)."""
     ctx = _mp_context()
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
     if start_timeout_s is None:
@@ -272,12 +385,14 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     progress = ctx.Value("q", -1, lock=False)
     data = scn.model_dump(mode="json")
     procs: dict[str, mp.process.BaseProcess] = {}
+    starts: dict[str, int] = {}
     t_start = time.time()
     outcome: dict[str, Any] = {"status": "ok", "message": ""}
-    old_term = None
-    if threading.current_thread() is threading.main_thread():
+    old_term = old_int = None
+    main = threading.current_thread() is threading.main_thread()
+    if main:
         def _on_term(signum: int, frame: Any) -> None:
-            raise KeyboardInterrupt
+            raise Terminated
 
         old_term = signal.signal(signal.SIGTERM, _on_term)  # `kill` ends a run as cleanly as Ctrl-C
     try:
@@ -288,14 +403,18 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
                                   env))
             p.start()
             procs[name] = p
+            starts[name] = _pid_start(p.pid)
         last_tick, last_change = -1, time.time()
         while True:
             alive = [p for p in procs.values() if p.exitcode is None]
             failed = [(n, p) for n, p in procs.items() if p.exitcode not in (None, 0)]
             if failed:
                 n, p = failed[0]
+                if _pid_running(p.pid, starts[n]):
+                    raise RunFailure(f"lost contact with {n} (pid {p.pid}), which is still running: "
+                                     f"multiprocessing's forkserver exited or was killed")
                 detail = _failure_detail(run_dir, n)
-                raise RunFailure(f"{n} (pid {p.pid}) exited with status {p.exitcode}{detail}")
+                raise RunFailure(f"{n} (pid {p.pid}) {_signal_name(p.exitcode)}{detail}")
             if not alive:
                 break
             plant = procs["plant"]
@@ -317,16 +436,32 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             if now - last_change > limit:
                 where = "before the first tick" if tick < 0 else f"at tick {tick}"
                 raise RunFailure(f"run stalled {where}: no progress for {limit:.0f} s (a node is waiting for "
-                                 f"frames that never came; see frames.log)")
+                                 f"frames that never came, or is stopped: see frames.log)")
+    except Terminated:
+        outcome = {"status": "interrupted", "message": "terminated by SIGTERM"}
     except KeyboardInterrupt:
         outcome = {"status": "interrupted", "message": "interrupted by the user (Ctrl-C)"}
     except RunFailure as e:
         outcome = {"status": "failed", "message": str(e)}
     finally:
-        _reap(procs)
-        barrier.abort()
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
+        again: list[int] = []
+        if main:  # a second Ctrl-C/SIGTERM must not cut the clean-up short (it is bounded: ~7 s)
+            old_int = signal.signal(signal.SIGINT, lambda s, f: again.append(s))
+            signal.signal(signal.SIGTERM, lambda s, f: again.append(s))
+        try:
+            live = _reap(procs, starts)
+            barrier.abort()
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, old_int)
+                signal.signal(signal.SIGTERM, old_term)
+    outcome["live_nodes"] = live
+    if live:
+        outcome["message"] = (outcome["message"] + "; " if outcome["message"] else "") + \
+            f"could not stop {', '.join(live)}: their files were left as they are"
+        if outcome["status"] == "ok":
+            outcome["status"] = "failed"
+    outcome["ticks"] = max(int(progress.value), 0)
     outcome["wall_time_s"] = time.time() - t_start
     return outcome
 
@@ -340,8 +475,11 @@ def _failure_detail(run_dir: Path, name: str) -> str:
     return ""
 
 
-def _reap(procs: dict[str, mp.process.BaseProcess]) -> None:
-    """Terminate and join every child; kill the ones that ignore SIGTERM."""
+def _reap(procs: dict[str, mp.process.BaseProcess], starts: dict[str, int] | None = None) -> list[str]:
+    """Terminate and join every child; kill the ones that ignore SIGTERM. Children whose exit
+    multiprocessing cannot see (their forkserver died) are found by pid and start time and
+    signalled directly. Returns the names of processes still running afterwards."""
+    starts = starts or {}
     for p in procs.values():
         if p.exitcode is None:
             p.terminate()
@@ -352,6 +490,20 @@ def _reap(procs: dict[str, mp.process.BaseProcess]) -> None:
         if p.exitcode is None:
             p.kill()
             p.join(2.0)
+    orphans = {n: p.pid for n, p in procs.items() if _pid_running(p.pid, starts.get(n, 0))}
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in orphans.values():
+            try:
+                os.kill(pid, sig)
+            except OSError:
+                pass
+        deadline = time.time() + (3.0 if sig == signal.SIGTERM else 2.0)
+        while time.time() < deadline and any(_pid_running(pid, starts.get(n, 0)) for n, pid in orphans.items()):
+            time.sleep(0.05)
+        orphans = {n: pid for n, pid in orphans.items() if _pid_running(pid, starts.get(n, 0))}
+        if not orphans:
+            break
+    return sorted(orphans)
 
 
 # ----------------------------------------------------------------------------- in-process
@@ -387,11 +539,15 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
 
     choice = preflight(scn, backend, channel, interface)
     run_dir = prepare_run_dir(scn, out_dir, dbc_path)
+    t0 = time.time()
     try:
         if choice.backend in ("virtual", "inprocess"):
             outcome = run_in_process(scn, run_dir, choice)
         else:
             outcome = run_processes(scn, run_dir, choice, stall_timeout_s=stall_timeout_s)
+    except KeyboardInterrupt:
+        outcome = {"status": "interrupted", "message": "interrupted by the user (Ctrl-C)",
+                   "wall_time_s": time.time() - t0}
     finally:
         if choice.backend == "memory":
             _remove_memory_channel(choice.channel)
@@ -405,6 +561,9 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
     try:
         choice = choose_bus(scn, backend, channel, interface)
         check_buildable(scn)
+        check_impairment_targets(scn)
+        if choice.backend == "memory":
+            _check_memory_channel(scn, choice, explicit=bool(channel or scn.bus.channel))
         if choice.backend == "socketcan" and choice.interface == "socketcan":
             from canbrake.bus.vcan import VcanError, check_socketcan_channel
 
@@ -419,6 +578,57 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
             raise ScenarioError(f"{source}: {e}") from None
         raise
     return choice
+
+
+def check_impairment_targets(scn: Scenario) -> None:
+    """Every impairment must match something of this train: its ``senders``/``receivers``/
+    ``sender`` name a node of the run (plant, ecu1..ecuN, or a babbling device it defines) and its
+    ``ids`` are frames of the run's DBC. An impairment that matches nothing is a typo, not a result."""
+    from canbrake.bus import dbc
+
+    nodes = {"plant"} | {f"ecu{c}" for c in range(1, scn.n_cars + 1)}
+    babblers = {getattr(s, "sender", None) for s in scn.bus.impairments if getattr(s, "type", "") == "babble"}
+    known_nodes = nodes | {b for b in babblers if b}
+    ids = {m.frame_id for m in dbc.build_database(scn.n_cars).messages}
+    for i, spec in enumerate(scn.bus.impairments):
+        for field_name in ("senders", "receivers"):
+            names = getattr(spec, field_name, None) or []
+            bad = [x for x in names if x not in known_nodes]
+            if bad:
+                raise ScenarioError(f"bus.impairments.{i}.{field_name}: {', '.join(map(str, bad))} is not a node of "
+                                    f"this {scn.n_cars}-car run (nodes: plant, ecu1..ecu{scn.n_cars})")
+        spec_ids = getattr(spec, "ids", None) or []
+        if getattr(spec, "type", "") != "babble":
+            bad_ids = [x for x in spec_ids if x not in ids]
+            if bad_ids:
+                raise ScenarioError(f"bus.impairments.{i}.ids: {', '.join(hex(x) for x in bad_ids)} is not a frame of "
+                                    f"this {scn.n_cars}-car run's DBC (`canbrake dbc --cars {scn.n_cars}` lists them)")
+
+
+def _check_memory_channel(scn: Scenario, choice: BusChoice, explicit: bool) -> None:
+    """The in-memory channel is usable: a valid name, room for every node, files owned by this
+    user and not writable by others, and not in use by another run (unless CANBRAKE_JOIN=1)."""
+    from canbrake.bus import memory_shm as shm
+
+    try:
+        shm.validate_channel(choice.channel)
+    except can.CanError as e:
+        raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+    need = scn.n_cars + 2  # ECUs, plant, recorder
+    if need > shm.MAX_READERS:
+        raise ScenarioError(f"train.mass_kg: {scn.n_cars} cars need {need} buses on the in-memory channel, "
+                            f"which holds {shm.MAX_READERS} (at most {shm.MAX_READERS - 2} cars; "
+                            f"use --bus socketcan or inprocess for longer trains)")
+    shm.clean_stale_channels()
+    try:
+        shm.check_channel_owner(choice.channel)
+    except can.CanError as e:
+        raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+    if explicit and os.environ.get("CANBRAKE_JOIN") != "1":
+        pids = shm.channel_pids(choice.channel)
+        if pids:
+            raise ScenarioError(f"--channel {choice.channel}: in use by pids {', '.join(map(str, pids))} (another run?); "
+                                f"choose another channel, or set CANBRAKE_JOIN=1 to join it on purpose")
 
 
 def _check_adapter(choice: BusChoice) -> None:

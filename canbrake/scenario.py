@@ -177,6 +177,9 @@ class SafetyConfig(_Model):
     failsafe_decel_mps2: float = Field(1.2, gt=0, description="fail-safe braking force per unit mass (m/s^2)")
     latch: bool = Field(True, description="true: a car stays in fail-safe until the end of the run; false: "
                                           "the next valid command releases it")
+    max_abs_deflection_m: float | None = Field(None, gt=0, description="coupler deflection bound for the verdict "
+                                               "(default: the controller's theta bounds, if any)")
+    max_speed_kmh: float | None = Field(None, gt=0, description="speed bound for the verdict (null: none)")
 
 
 class CrashFault(_Model):
