@@ -205,6 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    old_term = _term_as_interrupt()
     try:
         return int(args.func(args) or 0)
     except (InputError, ScenarioError) as e:
@@ -220,6 +221,27 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
         print(f"canbrake: error: {where}{e.strerror or e}", file=sys.stderr)
         return EXIT_FAIL
+    finally:
+        if old_term is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _term_as_interrupt() -> Any:
+    """SIGTERM ends a command as cleanly as Ctrl-C (and is named as such in a run's summary).
+    Returns the previous handler (None off the main thread)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    from canbrake.run import Terminated
+
+    def _raise(signum: int, frame: Any) -> None:
+        raise Terminated
+
+    return signal.signal(signal.SIGTERM, _raise)
 
 
 def _quiet_stdout() -> None:

@@ -187,9 +187,11 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         summary = _base_summary(scn, bus, {**outcome, "status": "interrupted",
                                            "message": outcome.get("message") or "interrupted while writing the summary"})
         summary["finalize_error"] = "interrupted while the summary was being computed: metrics and plots are missing"
+        summary["verdict"] = "unknown"
     except Exception as e:  # noqa: BLE001 - a damaged trace must not cost the run its summary
         summary = _base_summary(scn, bus, outcome)
         summary["finalize_error"] = f"{type(e).__name__}: {e}"
+        summary["verdict"] = "unknown"
     write_json_atomic(run_dir / "summary.json", _finite_json(summary))
     return summary
 
