@@ -131,16 +131,44 @@ def _cmd_decode(a: argparse.Namespace) -> int:
 
 
 def _cmd_vcan(a: argparse.Namespace) -> int:
-    from canbrake.bus.vcan import VcanError, vcan_down, vcan_up
+    from canbrake.bus.vcan import VcanError, _check_name, _iface_exists, vcan_down, vcan_up
 
     try:
         if a.action == "up":
             print(vcan_up(a.name))
         else:
+            _check_name(a.name)
+            if not _iface_exists(a.name):
+                raise InputError(f"{a.name}: no such network interface; nothing to remove "
+                                 f"(`ip -brief link` lists them)")
             vcan_down(a.name)
             print(f"{a.name} removed")
     except VcanError as e:
         raise InputError(str(e)) from None
+    return EXIT_OK
+
+
+def _cmd_channels(a: argparse.Namespace) -> int:
+    """List the in-memory channels in the shared-memory directory; remove stale ones."""
+    from canbrake.bus import memory_shm as shm
+
+    if a.remove_stale:
+        removed = shm.clean_stale_channels()
+        print(f"removed {len(removed)} stale channel(s)" + (f": {', '.join(removed)}" if removed else ""))
+        return EXIT_OK
+    items = shm.channel_info()
+    if not items:
+        print(f"no canbrake channels in {shm.resolve_dir()}")
+    for it in items:
+        if "owner" in it:
+            state = f"belongs to uid {it['owner']} (not yours: not touched)"
+        elif it.get("error"):
+            state = f"unreadable: {it['error']}"
+        elif it["stale"]:
+            state = "stale (no process has it open; `canbrake channels --remove-stale`)"
+        else:
+            state = f"in use by pids {', '.join(map(str, it['pids']))}"
+        print(f"{it['channel']}  {state}")
     return EXIT_OK
 
 
@@ -183,6 +211,12 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("action", choices=["up", "down"])
     v.add_argument("name", nargs="?", default="vcan0")
     v.set_defaults(func=_cmd_vcan)
+
+    ch = sub.add_parser("channels", help="list (or remove stale) in-memory bus channels",
+                        description="List the in-memory channels of this machine: in use (which pids) or "
+                                    "stale (left by killed runs). --remove-stale removes your stale ones.")
+    ch.add_argument("--remove-stale", action="store_true", help="remove the channels no process has open")
+    ch.set_defaults(func=_cmd_channels)
 
     for extra in ("sweep", "report", "bench"):
         _register_optional(sub, extra)

@@ -26,8 +26,47 @@ class ScenarioError(Exception):
     """A scenario cannot be used; the message names the file and the field."""
 
 
+#: fields where inf is meaningful ("unlimited"); NaN is refused everywhere
+_INF_OK = frozenset({"adhesion_mu"})
+
+
+def _non_finite(value: Any, path: str) -> str | None:
+    """Dotted sub-path of the first NaN/inf float in ``value`` (lists and mappings searched)."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return path
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            if (hit := _non_finite(v, f"{path}.{i}")) is not None:
+                return hit
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if (hit := _non_finite(v, f"{path}.{k}")) is not None:
+                return hit
+    return None
+
+
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True)
+    # strict: `duration_s: true` is not 1 s and "3" is not 3
+    model_config = ConfigDict(extra="forbid", validate_default=True, strict=True)
+
+    @model_validator(mode="after")
+    def _finite(self) -> "_Model":
+        """No NaN or inf in any field (a NaN mass or gain would fail inside a node, after the run
+        directory was replaced), except inf where it means unlimited (``adhesion_mu``)."""
+        for name in type(self).model_fields:
+            if name == "profiles":
+                continue
+            v = getattr(self, name)
+            if isinstance(v, BaseModel):
+                continue  # validated on its own
+            hit = _non_finite(v, name)
+            if hit is not None:
+                bad = v if hit == name else "a non-finite value"
+                if name in _INF_OK and not any(isinstance(x, float) and np.isnan(x)
+                                               for x in (v if isinstance(v, list) else [v])):
+                    continue
+                raise ValueError(f"@{hit}: must be a finite number, got {bad}")
+        return self
 
 
 PerCar = Union[float, list[float]]
@@ -42,6 +81,14 @@ class CouplerConfig(_Model):
     epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
     spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
     end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear goes solid (none by default)")
+
+    @field_validator("stiffness_n_per_m")
+    @classmethod
+    def _positive_stiffness(cls, v: PerCar) -> PerCar:
+        for x in (v if isinstance(v, list) else [v]):
+            if not x > 0:
+                raise ValueError(f"coupler stiffness must be > 0 N/m, got {x}")
+        return v
 
 
 class DavisConfig(_Model):
@@ -75,6 +122,14 @@ class TrainConfig(_Model):
 class InitialConfig(_Model):
     speed_kmh: PerCar
     position_m: list[float] | None = Field(None, description="default: car 1 in front, spaced by coupler.spacing_m or 10 m")
+
+    @field_validator("speed_kmh")
+    @classmethod
+    def _forward(cls, v: PerCar) -> PerCar:
+        for x in (v if isinstance(v, list) else [v]):
+            if x < 0:
+                raise ValueError(f"initial speeds must be >= 0 km/h (the train runs towards +x), got {x}")
+        return v
 
 
 class ReferenceConfig(_Model):
@@ -117,6 +172,14 @@ class RailEvent(_Model):
     stop_s: float | None = Field(None, ge=0)
     brake_factor: PerCar = Field(1.0, description="share of the braking force that reaches the rail (0..1)")
     adhesion_mu: PerCar | None = Field(None, description="adhesion limit μ during the event (realistic actuator)")
+
+    @field_validator("brake_factor")
+    @classmethod
+    def _share(cls, v: PerCar) -> PerCar:
+        for x in (v if isinstance(v, list) else [v]):
+            if not 0.0 <= x <= 1.0:
+                raise ValueError(f"brake_factor is a share of the braking force: 0..1, got {x}")
+        return v
 
     @model_validator(mode="after")
     def _order(self) -> "RailEvent":
@@ -244,8 +307,17 @@ class Scenario(_Model):
             for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "bias_n"):
                 if hasattr(ev, fname) and getattr(ev, fname) is not None:
                     checks.append((f"events.{i}.{fname}", getattr(ev, fname), n))
+        wrong = [(name, len(value)) for name, value, k in checks if isinstance(value, list) and len(value) != k]
+        lengths = {m for _, m in wrong}
+        if wrong and len(lengths) == 1 and len(wrong) >= 2:
+            # every per-car list agrees on another train length: the mass list is the odd one out
+            m = lengths.pop()
+            raise ValueError(f"@train.mass_kg: has {n} cars, but {', '.join(nm for nm, _ in wrong)} "
+                             f"{'have' if len(wrong) > 1 else 'has'} {m} values: fix the mass list or those")
         for name, value, k in checks:
             per_car(value, k, name)
+        if self.ecu.crash is not None and self.ecu.crash.car > n:
+            raise ValueError(f"@ecu.crash.car: car {self.ecu.crash.car} is beyond the train ({n} cars)")
         t_out = self.safety.command_timeout_s
         if t_out is not None and t_out < self.control_period_s:
             raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
@@ -325,6 +397,9 @@ def format_validation_error(source: str, err: ValidationError) -> str:
             msg = "unknown key"
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
+        if msg.startswith("@") and ": " in msg:  # a model validator naming the field it rejects
+            sub, msg = msg[1:].split(": ", 1)
+            loc = f"{loc}.{sub}" if loc else sub
         lines.append(f"{source}: {loc}: {msg}" if loc else f"{source}: {msg}")
     return "\n".join(lines)
 
@@ -350,7 +425,32 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
-        raise ScenarioError(format_validation_error(source, e)) from None
+        raise ScenarioError(_blame_overrides(format_validation_error(source, e), source, overrides or {})) from None
+
+
+def _blame_overrides(message: str, source: str, overrides: dict[str, Any]) -> str:
+    """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file."""
+    out = []
+    for line in message.splitlines():
+        rest = line[len(source) + 2:] if line.startswith(f"{source}: ") else line
+        field = rest.split(": ", 1)[0]
+        key = next((k for k in sorted(overrides, key=len, reverse=True)
+                    if field == k or field.startswith(k + ".") or k.startswith(field + ".")), None)
+        out.append(f"--set {key}: {rest}" if key is not None and key != field else
+                   f"--set {rest}" if key is not None else line)
+    return "\n".join(out)
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """YAML's safe loader without anchors/aliases: a few hundred bytes of nested aliases expand
+    to gigabytes (a "billion laughs"), and a scenario has no need for them."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:  # noqa: D102
+        if self.check_event(yaml.AliasEvent):
+            ev = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, f"YAML aliases (*{ev.anchor}) are not supported in "
+                                              "scenarios; write the values out", ev.start_mark)
+        return super().compose_node(parent, index)
 
 
 def load_scenario(path: str | Path, profile: str | None = None,
@@ -364,7 +464,7 @@ def load_scenario(path: str | Path, profile: str | None = None,
     except (OSError, UnicodeDecodeError) as e:
         raise ScenarioError(f"{p}: cannot read: {e}") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader without aliases
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
