@@ -626,11 +626,11 @@ def _check_memory_channel(scn: Scenario, choice: BusChoice, explicit: bool) -> N
         raise ScenarioError(f"train.mass_kg: {scn.n_cars} cars need {need} buses on the in-memory channel, "
                             f"which holds {shm.MAX_READERS} (at most {shm.MAX_READERS - 2} cars; "
                             f"use --bus socketcan or inprocess for longer trains)")
-    shm.clean_stale_channels()
-    try:
+    try:  # before cleaning: a file someone else could have planted is reported, not silently removed
         shm.check_channel_owner(choice.channel)
     except can.CanError as e:
         raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+    shm.clean_stale_channels()
     if explicit and os.environ.get("CANBRAKE_JOIN") != "1":
         pids = shm.channel_pids(choice.channel)
         if pids:

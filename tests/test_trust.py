@@ -307,3 +307,104 @@ def test_second_ctrl_c_and_sigterm_still_leave_a_summary(tmp_path):
     assert p.returncode == 130
     s = json.loads((tmp_path / "run2" / "summary.json").read_text())
     assert s["status"] == "interrupted" and "SIGTERM" in s["message"] and "Ctrl-C" not in s["message"]
+
+
+# ----------------------------------------------------------------------------- private channels
+@pytest.fixture
+def shm(tmp_path, monkeypatch):
+    d = tmp_path / "shm"
+    d.mkdir()
+    monkeypatch.setenv("CANBRAKE_SHM_DIR", str(d))
+    return d
+
+
+def test_channel_writable_by_others_is_refused(shm, tmp_path, capsys):
+    f = shm / "canbrake-train0.bus"
+    f.write_bytes(b"")
+    f.chmod(0o666)
+    rc = main(["run", str(CASE1), "--channel", "train0", "--duration", "0.01", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "writable by others" in err and not (tmp_path / "out").exists()
+    import can
+
+    with pytest.raises(can.CanInitializationError, match="writable by others"):
+        can.Bus(interface="canbrake", channel="train0")  # python-can tools are refused too
+
+
+def test_channel_of_another_user_is_refused(shm, tmp_path, capsys):
+    if os.geteuid() != 0:
+        pytest.skip("needs root to create a file owned by another user")
+    f = shm / "canbrake-train0.bus"
+    f.write_bytes(b"")
+    f.chmod(0o600)
+    os.chown(f, 4321, 4321)
+    rc = main(["run", str(CASE1), "--channel", "train0", "--duration", "0.01", "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "belongs to user" in err and "not to you" in err
+
+
+def test_second_run_on_a_channel_in_use_is_refused(shm, tmp_path, capsys, monkeypatch):
+    import can
+
+    with can.Bus(interface="canbrake", channel="train0"):  # another run (or a logger) has it open
+        rc = main(["run", str(CASE1), "--channel", "train0", "--duration", "0.01", "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"in use by pids {os.getpid()}" in err and "CANBRAKE_JOIN=1" in err
+        assert (shm / "canbrake-train0.bus").stat().st_mode & 0o777 == 0o600  # private from the start
+
+
+def _leave_stale_channel(name: str) -> None:
+    """A process opens a bus on ``name`` and dies with SIGKILL: its files stay behind."""
+    code = ("import can, os, signal; b = can.Bus(interface='canbrake', channel=%r); "
+            "os.kill(os.getpid(), signal.SIGKILL)" % name)
+    subprocess.run([sys.executable, "-c", code], env=os.environ.copy(), timeout=120)
+
+
+def test_stale_channels_are_listed_removed_and_cleaned_at_the_next_start(shm, tmp_path, capsys):
+    _leave_stale_channel("dead1")
+    _leave_stale_channel("dead2")
+    assert (shm / "canbrake-dead1.bus").exists() and list(shm.glob("canbrake-dead1@*"))
+    assert main(["channels"]) == 0
+    out = capsys.readouterr().out
+    assert "dead1  stale" in out and "dead2  stale" in out
+    assert main(["channels", "--remove-stale"]) == 0
+    assert "removed 2" in capsys.readouterr().out and not list(shm.iterdir())
+    _leave_stale_channel("dead3")
+    assert main(["run", str(CASE1), "--duration", "0.01", "--out", str(tmp_path / "out"), "--no-plots"]) == 0
+    assert not list(shm.iterdir())  # the run cleaned the stale channel at its start and its own at its end
+
+
+def test_run_prints_its_channel_and_how_to_attach(shm, tmp_path, capsys):
+    assert main(["run", str(CASE1), "--channel", "train7", "--duration", "0.01", "--out", str(tmp_path / "o"),
+                 "--no-plots"]) == 0
+    err = capsys.readouterr().err
+    assert "channel train7" in err
+    for cmd in ("python -m can.logger -i canbrake -c train7", "python -m can.viewer -i canbrake -c train7",
+                "cantools monitor -b canbrake -c train7"):
+        assert cmd in err
+
+
+def test_forkserver_is_stopped_when_canbrake_run_returns(shm, tmp_path):
+    from multiprocessing import forkserver
+
+    assert main(["run", str(CASE1), "--duration", "0.01", "--out", str(tmp_path / "o"), "--no-plots"]) == 0
+    assert forkserver._forkserver._forkserver_pid is None  # noqa: SLF001
+
+
+@pytest.mark.slow
+def test_stopped_ecu_shows_in_the_verdict(tmp_path):
+    """SIGSTOP of one ECU for 1 s of a realtime run: the plant holds its command; the run ends
+    ok but the verdict lists the deadline misses and names the car."""
+    p = _start(tmp_path, "--profile", "realistic", "--mode", "realtime", duration="4")
+    _wait_rows(tmp_path / "run" / "signals.csv", 20)
+    pid = _pid_of(p.pid, "canbrake ecu3 chen2023_case1_fine_rail")
+    os.kill(pid, signal.SIGSTOP)
+    time.sleep(1.0)
+    os.kill(pid, signal.SIGCONT)
+    out, err = p.communicate(timeout=120)
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert s["status"] == "ok", err
+    late = [f for f in s["findings"] if f["kind"] == "late"]
+    per_car = s["deadline_misses"]["missed_commands_per_car"]
+    assert late and per_car[2] > 0 and per_car[2] == max(per_car)  # (on a starved machine every car misses)
+    assert "deadline misses: plant" in out

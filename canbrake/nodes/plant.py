@@ -52,6 +52,7 @@ class PlantStats:
     ticks: int = 0
     commands_received: int = 0
     commands_missed: int = 0          # ticks x cars without a fresh command
+    commands_missed_per_car: list[int] = field(default_factory=list)  # the same per car (a stopped ECU shows)
     commands_corrupted: int = 0       # failed CRC
     commands_out_of_sequence: int = 0
     deadline_misses: int = 0          # realtime: periods that ended before every command arrived
@@ -92,7 +93,7 @@ class PlantNode(Node):
         # barrier=False: commands cannot be lost or delayed, so the commands themselves close the tick
         self.barrier = barrier
         self.k = 0
-        self.stats = PlantStats()
+        self.stats = PlantStats(commands_missed_per_car=[0] * self.n)
         self.cmd_n = np.zeros(self.n)
         self._fresh = np.zeros(self.n, dtype=bool)
         self._done = 0  # bit i set: CMD_DONE of car i seen this tick
@@ -228,6 +229,8 @@ class PlantNode(Node):
 
     def _advance(self, now: float) -> list[can.Message]:
         self.stats.commands_missed += int((~self._fresh).sum())
+        for i in np.flatnonzero(~self._fresh):
+            self.stats.commands_missed_per_car[i] += 1
         applied = self._applied_commands()
         self._record()
         try:
