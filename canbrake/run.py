@@ -552,6 +552,9 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
             outcome = run_in_process(scn, run_dir, choice)
         else:
             outcome = run_processes(scn, run_dir, choice, stall_timeout_s=stall_timeout_s)
+    except OSError as e:  # a full disk or a vanished run directory while a node writes
+        outcome = {"status": "failed", "wall_time_s": time.time() - t0,
+                   "message": f"cannot write the run directory {run_dir}: {e.strerror or e}"}
     except KeyboardInterrupt as e:
         outcome = {"status": "interrupted", "wall_time_s": time.time() - t0,
                    "message": "terminated by SIGTERM" if isinstance(e, Terminated) else "interrupted by the user (Ctrl-C)"}

@@ -234,8 +234,9 @@ def test_full_disk_gives_one_message_and_exit_1(tmp_path):
                        capture_output=True, text=True, timeout=300, preexec_fn=_fsize_limit(200_000))
     assert r.returncode in (1, 2), r.stderr
     assert "Traceback" not in r.stderr
-    errors = [ln for ln in r.stderr.splitlines() if "error" in ln]
-    assert len(errors) == 1 and ("too large" in errors[0] or "space" in errors[0]), r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if "too large" in ln or "space" in ln]
+    assert len(errors) == 1 and str(tmp_path / "run") in errors[0], r.stderr
+    assert len(r.stderr.splitlines()) == 2  # "running ..." and the one message
 
 
 # ----------------------------------------------------------------------------- processes (memory bus)

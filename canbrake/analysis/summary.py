@@ -192,7 +192,12 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         summary = _base_summary(scn, bus, outcome)
         summary["finalize_error"] = f"{type(e).__name__}: {e}"
         summary["verdict"] = "unknown"
-    write_json_atomic(run_dir / "summary.json", _finite_json(summary))
+    try:
+        write_json_atomic(run_dir / "summary.json", _finite_json(summary))
+    except OSError as e:  # a full disk: say which file (the CLI prints it as one line, exit 1)
+        raise OSError(e.errno, f"cannot write it: {e.strerror or e}"
+                      + (f" (the run: {summary['status']}: {summary['message']})" if summary.get("message") else ""),
+                      str(run_dir / "summary.json")) from None
     return summary
 
 

@@ -19,6 +19,7 @@ verdict (worst first)     when
 ``late``                  realtime: periods in which a command or a peer's state came too late
                           (deadline misses; a stopped or starved node shows here).
 ``ok``                    none of the above.
+``unknown``               no trace to judge (the run failed before its first ticks).
 ========================  ==========================================================================
 
 Every finding is listed in ``findings`` (kind, message, figures), so a run can be both unsafe
@@ -35,7 +36,7 @@ import numpy as np
 from canbrake.analysis.metrics import Trace
 
 #: verdicts, worst first
-VERDICTS = ("diverged", "unsafe", "overloaded", "late", "ok")
+VERDICTS = ("diverged", "unsafe", "overloaded", "late", "ok", "unknown")
 
 KMH = 3.6  # km/h per m/s
 
@@ -210,4 +211,6 @@ def judge(scn: Any, summary: dict[str, Any], trace: Trace | None,
                                     + f", ECUs {ecu_miss}{worst}"})
     kinds = {f["kind"] for f in findings}
     verdict = next((v for v in VERDICTS if v in kinds), "ok")
+    if verdict == "ok" and (trace is None or len(trace.t_s) < 2):
+        verdict = "unknown"  # nothing was simulated that could be judged
     return {"verdict": verdict, "findings": findings, "diverged_at_s": diverged_at}
