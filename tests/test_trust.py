@@ -409,3 +409,24 @@ def test_stopped_ecu_shows_in_the_verdict(tmp_path):
     per_car = s["deadline_misses"]["missed_commands_per_car"]
     assert late and per_car[2] > 0 and per_car[2] == max(per_car)  # (on a starved machine every car misses)
     assert "deadline misses: plant" in out
+
+
+@pytest.mark.slow
+def test_forkserver_crash_is_named_and_live_nodes_are_stopped_before_their_files_are_read(tmp_path):
+    p = _start(tmp_path)
+    _wait_rows(tmp_path / "run" / "signals.csv", 100)
+    kids = _descendants(p.pid)
+    server = [k for k in kids if b"multiprocessing.forkserver" in Path(f"/proc/{k}/cmdline").read_bytes()]
+    nodes = [k for k in kids if Path(f"/proc/{k}/cmdline").read_bytes().startswith(b"canbrake ")]
+    assert len(server) == 1 and len(nodes) == 8
+    os.kill(server[0], signal.SIGKILL)
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 1, err
+    s = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert "forkserver" in s["message"] and not s.get("live_nodes")
+    assert not [k for k in nodes if Path(f"/proc/{k}").exists()
+                and b"Z" not in Path(f"/proc/{k}/stat").read_bytes().rsplit(b")", 1)[1][:3]]
+    import csv
+
+    rows = list(csv.reader(open(tmp_path / "run" / "signals.csv")))
+    assert len({len(r) for r in rows}) == 1 and len(rows) - 1 >= s["ticks"] - 1  # one width: merged once, whole
