@@ -101,13 +101,14 @@ def _adapter_choice(scn: Scenario, interface: str, channel: str | None) -> BusCh
     return BusChoice("adapter", interface, channel, channel or interface, kwargs)
 
 
-#: files every run directory has from its start: what marks a directory as canbrake's to replace
-RUN_DIR_MARKERS = ("scenario.yaml", "canbrake.dbc")
+#: files of which a run directory has at least one (from its start, or a sweep's trimmed point):
+#: what marks a directory as canbrake's to replace
+RUN_DIR_MARKERS = ("scenario.yaml", "summary.json")
 
 
 def check_out_dir(out_dir: str | Path) -> Path:
     """``out_dir`` may be created or replaced: it does not exist, is empty, or is a canbrake run
-    directory (has scenario.yaml and canbrake.dbc), and it is not the current directory or one
+    directory (has scenario.yaml or summary.json), and it is not the current directory or one
     of its parents. Raises :class:`ScenarioError` (exit 2) otherwise; writes nothing."""
     out = Path(out_dir)
     if not out.exists() and not out.is_symlink():
@@ -121,8 +122,8 @@ def check_out_dir(out_dir: str | Path) -> Path:
         entries = {p.name for p in out.iterdir()}
     except OSError as e:
         raise ScenarioError(f"--out {out}: cannot read the directory: {e.strerror}") from None
-    if entries and not all(m in entries for m in RUN_DIR_MARKERS):
-        raise ScenarioError(f"--out {out}: exists and is not a canbrake run directory (no scenario.yaml/canbrake.dbc); "
+    if entries and not any(m in entries for m in RUN_DIR_MARKERS):
+        raise ScenarioError(f"--out {out}: exists and is not a canbrake run directory (no scenario.yaml or summary.json); "
                             f"a run replaces its directory as a whole, so choose another --out or remove it")
     return out
 
