@@ -430,3 +430,26 @@ def test_forkserver_crash_is_named_and_live_nodes_are_stopped_before_their_files
 
     rows = list(csv.reader(open(tmp_path / "run" / "signals.csv")))
     assert len({len(r) for r in rows}) == 1 and len(rows) - 1 >= s["ticks"] - 1  # one width: merged once, whole
+
+
+def test_recorder_hands_each_period_to_the_os(tmp_path, scn):
+    """kill -9 of the recorder loses at most the period in progress: tick k's frames are in
+    frames.log as soon as tick k+1 begins, before any close."""
+    import can
+
+    from canbrake.build import build_node
+    from canbrake.bus import dbc
+
+    rec = build_node(scn, "recorder", run_dir=tmp_path, channel="canbrake0")
+    rec.start(0.0)
+
+    def sync(k: int) -> can.Message:
+        return can.Message(arbitration_id=dbc.SYNC_ID, data=k.to_bytes(4, "little"), is_extended_id=False)
+
+    rec.handle(sync(0), 0.0)
+    rec.handle(can.Message(arbitration_id=dbc.SENSOR_BASE + 1, data=bytes(7), is_extended_id=False), 0.0)
+    assert (tmp_path / "frames.log").read_text() == ""
+    rec.handle(sync(1), 0.0)
+    lines = (tmp_path / "frames.log").read_text().splitlines()
+    assert [ln.split()[2].split("#")[0] for ln in lines] == ["010", f"{dbc.SENSOR_BASE + 1:03X}"]
+    rec.close()

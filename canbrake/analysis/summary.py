@@ -91,8 +91,8 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
             vals = [v for j, v in enumerate(r) if j != col]
             extra.setdefault(k, []).extend([""] * (start - len(extra.get(k, []))))
             extra[k][start:start + len(names)] = vals
-    if not extra_header:
-        return
+    if not extra_header or set(extra_header) & set(header):
+        return  # nothing to add, or already merged (never duplicate columns)
     total = sum(widths)
     tmp = sig.with_suffix(".csv.tmp")
     with open(tmp, "w", newline="") as f:
