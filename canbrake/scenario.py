@@ -31,9 +31,10 @@ _INF_OK = frozenset({"adhesion_mu"})
 
 
 def _non_finite(value: Any, path: str) -> str | None:
-    """Dotted sub-path of the first NaN/inf float in ``value`` (lists and mappings searched)."""
+    """Dotted sub-path of the first NaN/inf float in ``value`` (lists and mappings searched),
+    followed by ``=<value>``."""
     if isinstance(value, float) and not np.isfinite(value):
-        return path
+        return f"{path}={value}"
     if isinstance(value, (list, tuple)):
         for i, v in enumerate(value):
             if (hit := _non_finite(v, f"{path}.{i}")) is not None:
@@ -61,11 +62,11 @@ class _Model(BaseModel):
                 continue  # validated on its own
             hit = _non_finite(v, name)
             if hit is not None:
-                bad = v if hit == name else "a non-finite value"
                 if name in _INF_OK and not any(isinstance(x, float) and np.isnan(x)
                                                for x in (v if isinstance(v, list) else [v])):
                     continue
-                raise ValueError(f"@{hit}: must be a finite number, got {bad}")
+                where, bad = hit.rsplit("=", 1)
+                raise ValueError(f"@{where}: must be a finite number, got {bad}")
         return self
 
 

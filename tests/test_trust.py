@@ -407,7 +407,9 @@ def test_stopped_ecu_shows_in_the_verdict(tmp_path):
     assert s["status"] == "ok", err
     late = [f for f in s["findings"] if f["kind"] == "late"]
     per_car = s["deadline_misses"]["missed_commands_per_car"]
-    assert late and per_car[2] > 0 and per_car[2] == max(per_car)  # (on a starved machine every car misses)
+    # car 3 missed commands while stopped (no comparison with the other cars: on a starved
+    # machine every car misses some, and timing is not asserted in tests)
+    assert late and per_car[2] > 0 and s["verdict"] in ("late", "unsafe", "diverged")
     assert "deadline misses: plant" in out
 
 
