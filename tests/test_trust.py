@@ -184,6 +184,7 @@ def test_recorder_statistics_use_bounded_memory():
         assert h.quantile(q) == pytest.approx(np.quantile(x, q), rel=2e-3)
 
 
+@pytest.mark.slow
 def test_rerun_replaces_the_run_directory_as_a_whole(tmp_path):
     out = tmp_path / "run"
     assert main(["run", str(CASE1), "--bus", "inprocess", "--duration", "0.05", "--out", str(out)]) == 0
@@ -228,6 +229,7 @@ def _fsize_limit(limit: int):
     return pre
 
 
+@pytest.mark.slow
 def test_full_disk_gives_one_message_and_exit_1(tmp_path):
     r = subprocess.run([sys.executable, "-m", "canbrake.cli", "run", str(CASE1), "--bus", "inprocess",
                         "--duration", "2", "--out", str(tmp_path / "run"), "--no-plots"],
@@ -361,6 +363,7 @@ def _leave_stale_channel(name: str) -> None:
     subprocess.run([sys.executable, "-c", code], env=os.environ.copy(), timeout=120)
 
 
+@pytest.mark.slow
 def test_stale_channels_are_listed_removed_and_cleaned_at_the_next_start(shm, tmp_path, capsys):
     _leave_stale_channel("dead1")
     _leave_stale_channel("dead2")
@@ -375,6 +378,7 @@ def test_stale_channels_are_listed_removed_and_cleaned_at_the_next_start(shm, tm
     assert not list(shm.iterdir())  # the run cleaned the stale channel at its start and its own at its end
 
 
+@pytest.mark.slow
 def test_run_prints_its_channel_and_how_to_attach(shm, tmp_path, capsys):
     assert main(["run", str(CASE1), "--channel", "train7", "--duration", "0.01", "--out", str(tmp_path / "o"),
                  "--no-plots"]) == 0
@@ -385,6 +389,7 @@ def test_run_prints_its_channel_and_how_to_attach(shm, tmp_path, capsys):
         assert cmd in err
 
 
+@pytest.mark.slow
 def test_forkserver_is_stopped_when_canbrake_run_returns(shm, tmp_path):
     from multiprocessing import forkserver
 
