@@ -460,3 +460,27 @@ def test_recorder_hands_each_period_to_the_os(tmp_path, scn):
     lines = (tmp_path / "frames.log").read_text().splitlines()
     assert [ln.split()[2].split("#")[0] for ln in lines] == ["010", f"{dbc.SENSOR_BASE + 1:03X}"]
     rec.close()
+
+
+# ----------------------------------------------------------------------------- decode
+LOG = "(0.000089) canbrake0 010#00000000 R\n(0.000182) canbrake0 011#90D0A35F02 R\n"
+
+
+def test_decode_warns_on_a_line_cut_short_and_decodes_the_rest(tmp_path, capsys):
+    p = tmp_path / "frames.log"
+    p.write_text(LOG + "(0.000200) canbrake0 0C1#DCBA03")  # the writer was killed mid-line
+    assert main(["decode", str(p)]) == 0
+    cap = capsys.readouterr()
+    assert cap.out.count("\n") == 2 and "SYNC" in cap.out and "REFERENCE" in cap.out
+    assert "line 3" in cap.err and "cut short" in cap.err
+
+
+def test_decode_into_a_closed_pipe_is_a_normal_end(tmp_path):
+    p = tmp_path / "frames.log"
+    p.write_text(LOG * 2000)  # more than a pipe buffer
+    r = subprocess.run(f"{sys.executable} -m canbrake.cli decode {p} | head -1", shell=True, capture_output=True,
+                       text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert r.stdout.count("\n") == 1 and r.stderr == ""
+    r = subprocess.run(["bash", "-c", f"set -o pipefail; {sys.executable} -m canbrake.cli decode {p} | head -1"],
+                       capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 0, r.stderr
