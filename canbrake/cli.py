@@ -153,7 +153,9 @@ def _cmd_channels(a: argparse.Namespace) -> int:
     from canbrake.bus import memory_shm as shm
 
     if a.remove_stale:
-        removed = shm.clean_stale_channels()
+        from canbrake.run import clean_killed_runs
+
+        removed = clean_killed_runs() + shm.clean_stale_channels()
         print(f"removed {len(removed)} stale channel(s)" + (f": {', '.join(removed)}" if removed else ""))
         return EXIT_OK
     items = shm.channel_info()

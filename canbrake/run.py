@@ -377,6 +377,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     Returns the outcome: ``status`` ok / failed / interrupted, ``message`` (which process, which
     signal or exit status), ``wall_time_s``, ``ticks`` (the plant's last progress) and
     ``live_nodes`` (processes that could not be stopped; their files must not be touched)."""
+    clean_killed_runs()
     ctx = _mp_context()
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
     if start_timeout_s is None:
@@ -384,6 +385,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     roles = [("recorder", 0)] + [("ecu", c) for c in range(1, scn.n_cars + 1)] + [("plant", 0)]
     barrier = ctx.Barrier(len(roles))
     progress = ctx.Value("q", -1, lock=False)
+    record = _write_run_record(ctx, barrier, choice)
     data = scn.model_dump(mode="json")
     procs: dict[str, mp.process.BaseProcess] = {}
     starts: dict[str, int] = {}
@@ -464,7 +466,88 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             outcome["status"] = "failed"
     outcome["ticks"] = max(int(progress.value), 0)
     outcome["wall_time_s"] = time.time() - t_start
+    if record is not None and not live:
+        record.unlink(missing_ok=True)
     return outcome
+
+
+# ----------------------------------------------------------------------------- leftovers of killed runs
+def _run_records_dir() -> Path:
+    from canbrake.bus.memory_shm import resolve_dir
+
+    return Path(resolve_dir())
+
+
+def _write_run_record(ctx: Any, barrier: Any, choice: BusChoice) -> Path | None:
+    """Note what this run leaves in shared places if all its processes are killed (SIGKILL of the
+    whole process group): its named semaphores, multiprocessing's temporary directory and its
+    in-memory channel. The next run removes them (:func:`clean_killed_runs`); a run that ends
+    normally removes the note."""
+    import multiprocessing.util as mp_util
+
+    sems = []
+    cond = getattr(barrier, "_cond", None)
+    for part in ("_lock", "_sleeping_count", "_woken_count", "_wait_semaphore"):
+        name = getattr(getattr(getattr(cond, part, None), "_semlock", None), "name", None)
+        if name:
+            sems.append(name)
+    from multiprocessing import forkserver
+
+    servers = [getattr(forkserver._forkserver, "_forkserver_pid", None)]  # noqa: SLF001
+    rec = {"pid": os.getpid(), "start": _pid_start(os.getpid()), "semaphores": sems,
+           "tempdir": mp_util.get_temp_dir(), "server_pids": [p for p in servers if p],
+           "channel": choice.channel if choice.backend == "memory" else None}
+    path = _run_records_dir() / f"canbrake-run-{os.getpid()}.json"
+    try:
+        path.write_text(json.dumps(rec))
+        path.chmod(0o600)
+    except OSError:
+        return None
+    return path
+
+
+def clean_killed_runs() -> list[str]:
+    """Remove what runs killed with SIGKILL left behind (their note, named semaphores,
+    multiprocessing temporary directory, in-memory channel), for runs of this user whose
+    orchestrator and forkserver are gone. Returns the removed paths/names."""
+    import shutil
+
+    removed: list[str] = []
+    for note in _run_records_dir().glob("canbrake-run-*.json"):
+        try:
+            st = note.lstat()
+            if st.st_uid != os.geteuid():
+                continue
+            rec = json.loads(note.read_text())
+        except (OSError, ValueError):
+            continue
+        if _pid_running(rec.get("pid"), rec.get("start", 0)) or any(_pid_running(p, 0) for p in rec.get("server_pids", [])):
+            continue
+        try:
+            import _multiprocessing
+
+            for name in rec.get("semaphores", []):
+                try:
+                    _multiprocessing.sem_unlink(name)
+                    removed.append(name)
+                except OSError:
+                    pass
+        except ImportError:
+            pass
+        tmp = rec.get("tempdir")
+        if tmp and Path(tmp).name.startswith("pymp-") and Path(tmp).is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+            removed.append(tmp)
+        if rec.get("channel"):
+            try:
+                from canbrake.bus.memory import remove_channel
+
+                if remove_channel(rec["channel"]):
+                    removed.append(rec["channel"])
+            except (can.CanError, OSError):
+                pass
+        note.unlink(missing_ok=True)
+    return removed
 
 
 def _failure_detail(run_dir: Path, name: str) -> str:

@@ -475,6 +475,7 @@ def test_decode_warns_on_a_line_cut_short_and_decodes_the_rest(tmp_path, capsys)
     assert "line 3" in cap.err and "cut short" in cap.err
 
 
+@pytest.mark.slow
 def test_decode_into_a_closed_pipe_is_a_normal_end(tmp_path):
     p = tmp_path / "frames.log"
     p.write_text(LOG * 2000)  # more than a pipe buffer
@@ -484,3 +485,27 @@ def test_decode_into_a_closed_pipe_is_a_normal_end(tmp_path):
     r = subprocess.run(["bash", "-c", f"set -o pipefail; {sys.executable} -m canbrake.cli decode {p} | head -1"],
                        capture_output=True, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
     assert r.returncode == 0, r.stderr
+
+
+@pytest.mark.slow
+def test_leftovers_of_a_run_killed_whole_are_removed_by_the_next_run(shm, tmp_path):
+    """SIGKILL of every process of a run (orchestrator, nodes, forkserver, resource tracker)
+    leaves its channel, named semaphores and multiprocessing temporary directory; the next run
+    removes them."""
+    p = _start(tmp_path, out="first")
+    _wait_rows(tmp_path / "first" / "signals.csv", 50)
+    note = json.loads(next(shm.glob("canbrake-run-*.json")).read_text())
+    assert note["pid"] == p.pid and note["semaphores"] and note["channel"]
+    for pid in [p.pid] + _descendants(p.pid):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    p.communicate(timeout=60)
+    time.sleep(0.5)
+    sems = [Path("/dev/shm/sem." + s.lstrip("/")) for s in note["semaphores"]]
+    assert any(s.exists() for s in sems) and Path(note["tempdir"]).exists()
+    assert (shm / f"canbrake-{note['channel']}.bus").exists()
+    assert main(["run", str(CASE1), "--duration", "0.01", "--out", str(tmp_path / "second"), "--no-plots"]) == 0
+    assert not any(s.exists() for s in sems) and not Path(note["tempdir"]).exists()
+    assert not list(shm.iterdir())
