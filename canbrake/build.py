@@ -15,22 +15,92 @@ from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.control.base import Controller, make_controller
 from canbrake.nodes.base import Node, PassThrough, SendPath
-from canbrake.scenario import Scenario, per_car
+from canbrake.scenario import Scenario, TrainConfig, per_car
 
 
-def reference_fn(scn: Scenario):
-    """v*(t) = max(v0 - a* t, 0) and a* while v* > 0 (m/s, m/s²)."""
-    v0, a = scn.reference.speed_mps, scn.reference.decel_mps2
+class Reference:
+    """v*(t), a*(t) (a* > 0 slows down) and x*(t) of the scenario's reference, SI.
 
-    def ref(t_s: float) -> tuple[float, float]:
-        v = v0 - a * t_s
-        return (v, a) if v > 0 else (0.0, 0.0)
+    Calling it gives ``(v*, a*)`` at ``t_s``; :meth:`position` gives x*. A ramp is exact; a table
+    is interpolated linearly in time (``over: position`` tables are first turned into a time table
+    by integrating dt = dx / v on a fine grid) and x* is its exact integral (trapezoids)."""
 
-    return ref
+    def __init__(self, scn: Scenario) -> None:
+        r = scn.reference
+        self.kind = r.kind
+        self.x0 = float(r.position_m)
+        if r.kind == "ramp":
+            self.v0, self.a = r.speed_mps, r.decel_mps2
+            self.v_end = r.target_kmh / 3.6
+            self.t_end = abs(self.v0 - self.v_end) / abs(self.a) if self.a != 0 else math.inf
+            return
+        from canbrake.consist.base import DataFileError, load_table
+
+        try:
+            if r.over == "time":
+                tab = load_table(r.file, ("time_s", "speed_kmh"), scn.data_dir())  # type: ignore[arg-type]
+                t, v = tab["time_s"], tab["speed_kmh"] / 3.6
+            else:
+                tab = load_table(r.file, ("position_m", "speed_kmh"), scn.data_dir())  # type: ignore[arg-type]
+                x, vx = tab["position_m"], tab["speed_kmh"] / 3.6
+                if np.any(np.diff(x) <= 0) or np.any(vx <= 0):
+                    raise DataFileError(f"{r.file}: position_m must increase and speed_kmh be > 0 for a "
+                                        f"reference over position")
+                dt = np.diff(x) * 2.0 / (vx[1:] + vx[:-1])
+                t, v = np.concatenate([[0.0], np.cumsum(dt)]), vx
+                self.x0 = float(x[0]) if r.position_m == 0.0 else self.x0
+        except DataFileError as e:
+            raise ValueError(f"reference.file: {e}") from None
+        if t.size < 2 or np.any(np.diff(t) <= 0):
+            raise ValueError(f"reference.file: {r.file}: time_s must increase (at least two rows)")
+        if np.any(v < 0):
+            raise ValueError(f"reference.file: {r.file}: negative speed")
+        self.t, self.v = t - t[0], v
+        self.slope = np.diff(v) / np.diff(self.t)
+        self.cumx = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(self.t))])
+
+    def __call__(self, t_s: float) -> tuple[float, float]:
+        if self.kind == "ramp":
+            if t_s >= self.t_end:
+                return self.v_end, 0.0
+            return self.v0 - self.a * t_s, self.a
+        i = int(np.searchsorted(self.t, t_s, side="right")) - 1
+        if i >= self.t.size - 1:
+            return float(self.v[-1]), 0.0
+        i = max(i, 0)
+        return float(self.v[i] + self.slope[i] * (t_s - self.t[i])), float(-self.slope[i])
+
+    def position(self, t_s: float) -> float:
+        """x*(t_s) (m)."""
+        if self.kind == "ramp":
+            te = min(t_s, self.t_end)
+            x = self.v0 * te - 0.5 * self.a * te * te
+            return self.x0 + x + self.v_end * max(0.0, t_s - self.t_end)
+        i = int(np.searchsorted(self.t, t_s, side="right")) - 1
+        if i >= self.t.size - 1:
+            return self.x0 + float(self.cumx[-1] + self.v[-1] * (t_s - self.t[-1]))
+        i = max(i, 0)
+        dt = t_s - self.t[i]
+        return self.x0 + float(self.cumx[i] + self.v[i] * dt + 0.5 * self.slope[i] * dt * dt)
 
 
-def build_plant_model(scn: Scenario):
-    """The physics plant of ``scn`` (a :class:`canbrake.physics.train.TrainPlant`)."""
+def reference_fn(scn: Scenario) -> Reference:
+    """The scenario's reference (callable: t -> (v*, a*); ``.position(t)`` -> x*)."""
+    return Reference(scn)
+
+
+def build_plant_model(scn: Scenario) -> Any:
+    """The physics plant of ``scn``: an object following :class:`canbrake.physics.contract.PlantModel`."""
+    return scn.train.build_plant(scn, scn.data_dir())
+
+
+def build_coupled_plant(scn: Scenario) -> "CoupledPlant":
+    """The coupled (Chen) plant of ``scn`` behind the plant contract."""
+    return CoupledPlant(_train_plant(scn))
+
+
+def _train_plant(scn: Scenario):
+    """The :class:`canbrake.physics.train.TrainPlant` of a coupled-train scenario."""
     from canbrake.physics.actuator import BrakeActuator
     from canbrake.physics.rail import DisturbanceForce, RailConditions, RailEvent
     from canbrake.physics.resistance import DavisResistance
@@ -84,10 +154,51 @@ def needs_barrier(scn: Scenario) -> bool:
     return bool(scn.bus.impairments) or scn.bus.timing == "model"
 
 
-def build_controller(scn: Scenario, car: int) -> Controller:
-    """Controller of car ``car`` (1-based)."""
-    return make_controller(scn.controller.name, scn.controller.params, car_index=car - 1, n_cars=scn.n_cars,
-                           mass_kg=scn.train.mass_kg[car - 1], dt_s=scn.control_period_s)
+def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
+    """The placement as the bus sees it: per ECU its sensors, commands, broadcasts and listeners."""
+    from canbrake.control.base import controller_class
+
+    placed = scn.placement()
+    index = {p.name: i for i, p in enumerate(placed, start=1)}
+    listens: dict[int, tuple[int, ...]] = {}
+    for i, p in enumerate(placed, start=1):
+        if p.listens == "all":
+            listens[i] = tuple(j for j in range(1, len(placed) + 1) if j != i)
+        elif p.listens == "none":
+            listens[i] = ()
+        else:
+            listens[i] = tuple(sorted(index[x] for x in p.listens if index[x] != i))
+    specs = []
+    for i, p in enumerate(placed, start=1):
+        cls = controller_class(p.controller.name)
+        sensors = tuple(getattr(cls, "sensor_names", ("speed_mps", "position_m")))
+        if scn.plant.coupler_sensors and isinstance(scn.train, TrainConfig):
+            sensors += tuple(x for x in ("deflection_front_m", "deflection_rear_m") if x not in sensors)
+        listeners = tuple(j for j in range(1, len(placed) + 1) if i in listens[j])
+        specs.append(dbc.EcuSpec(p.name, i, p.vehicle, sensors=sensors,
+                                 commands=tuple(getattr(cls, "command_names", ("brake_force_n",))),
+                                 broadcast=tuple(getattr(cls, "broadcast_names", ("speed_mps", "position_m"))),
+                                 listeners=listeners, listens=listens[i]))
+    return specs
+
+
+def bus_layout(scn: Scenario) -> dbc.BusLayout:
+    """Every message of the run (the DBC's source), from the placement."""
+    from canbrake.control.base import controller_class
+
+    specs = ecu_specs(scn)
+    ref_pos = any(getattr(controller_class(p.controller.name), "needs_ref_position", False) for p in scn.placement())
+    layout = dbc.BusLayout(specs, period_ms=scn.control_period_s * 1000.0, ref_position=ref_pos,
+                           heartbeat_ms=int(round(scn.ecu.heartbeat_period_s * 1000)))
+    layout.n_vehicles = scn.n_cars  # type: ignore[attr-defined]
+    return layout
+
+
+def build_controller(scn: Scenario, ecu_index: int) -> Controller:
+    """Controller of the ECU at ``ecu_index`` (1-based, placement order)."""
+    p = scn.placement()[ecu_index - 1]
+    return make_controller(p.controller.name, p.controller.params, car_index=ecu_index - 1, n_cars=scn.n_ecus,
+                           mass_kg=float(scn.vehicle_masses_kg()[p.vehicle - 1]), dt_s=scn.control_period_s)
 
 
 def build_send_path(scn: Scenario, node: str) -> SendPath:
@@ -115,25 +226,34 @@ def hosted_babblers(scn: Scenario) -> list[SendPath]:
         return []
     from canbrake.bus.impair import babbling_nodes
 
-    real = {f"ecu{c}" for c in range(1, scn.n_cars + 1)}
+    real = {p.name for p in scn.placement()}
     return [build_send_path(scn, name) for name in babbling_nodes(scn.bus.impairments) if name not in real]
 
 
-class PlantAdapter:
-    """Presents a :class:`TrainPlant` as the plant node's :class:`~canbrake.nodes.plant.PlantModel`."""
+class CoupledPlant:
+    """A :class:`~canbrake.physics.train.TrainPlant` behind the plant contract: one command,
+    ``brake_force_n`` (NaN = no command = no force)."""
+
+    command_names = ("brake_force_n",)
 
     def __init__(self, plant: Any) -> None:
         self.plant = plant
+        self.n_vehicles = plant.n_cars
         self.n_cars = plant.n_cars
+        self.mass_kg = plant.mass_kg
 
-    def step(self, dt_s: float, brake_force_cmd_n: np.ndarray) -> None:
-        self.plant.step(dt_s, brake_force_cmd_n)
+    def step(self, dt_s: float, commands: Any) -> None:
+        f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
+        self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f))
 
     def measurements(self) -> dict[str, np.ndarray]:
         s = self.plant.snapshot()
         return {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
                 "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,
                 "coupler_force_n": s.coupler_force_n}
+
+
+PlantAdapter = CoupledPlant  # the former name
 
 
 def failsafe_of(scn: Scenario) -> Any:
@@ -143,21 +263,24 @@ def failsafe_of(scn: Scenario) -> Any:
     sf = scn.safety
     if sf.command_timeout_s is None:
         return None
-    mass = np.asarray(scn.train.mass_kg, dtype=float)
+    mass = scn.vehicle_masses_kg()
     return FailSafe(timeout_ticks=max(1, int(round(sf.command_timeout_s / scn.control_period_s))),
                     force_n=mass * sf.failsafe_decel_mps2, latch=sf.latch)
 
 
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
-               progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build") -> Node:
-    """One node of the run: ``role`` is "plant", "ecu" (with ``car``) or "recorder"."""
-    codec = codec or FrameCodec(dbc.build_database(scn.n_cars))
+               progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build",
+               layout: dbc.BusLayout | None = None) -> Node:
+    """One node of the run: ``role`` is "plant", "ecu" (``car``: the ECU's index, 1-based, in
+    placement order) or "recorder"."""
+    layout = layout or bus_layout(scn)
+    codec = codec or FrameCodec(layout.database())
     if role == "plant":
         from canbrake.nodes.plant import PlantNode
 
-        return PlantNode(PlantAdapter(build_plant_model(scn)), codec, dt_s=scn.control_period_s,
+        return PlantNode(build_plant_model(scn), codec, layout=layout, dt_s=scn.control_period_s,
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
-                         coupler_sensors=scn.plant.coupler_sensors, heartbeat_period_s=scn.ecu.heartbeat_period_s,
+                         heartbeat_period_s=scn.ecu.heartbeat_period_s,
                          out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
                          barrier=needs_barrier(scn), failsafe=failsafe_of(scn))
     if role == "ecu":
@@ -167,18 +290,19 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
             from canbrake.bus.schedule import build_bus_timing
 
             bus_timing = build_bus_timing(scn)
-        return EcuNode(car, scn.n_cars, build_controller(scn, car), codec, dt_s=scn.control_period_s,
-                       bus_timing=bus_timing, barrier=needs_barrier(scn), rx_path=build_rx_path(scn, f"ecu{car}"),
-                       mode=scn.mode, send_path=build_send_path(scn, f"ecu{car}"),
+        spec = layout.ecus[car - 1]
+        return EcuNode(spec, layout, build_controller(scn, car), codec, dt_s=scn.control_period_s,
+                       bus_timing=bus_timing, barrier=needs_barrier(scn), rx_path=build_rx_path(scn, spec.name),
+                       mode=scn.mode, send_path=build_send_path(scn, spec.name),
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
                        lockstep_deadline=scn.ecu.lockstep_deadline,
                        crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
-                                      if scn.ecu.crash is not None and scn.ecu.crash.car == car else None))
+                                      if scn.ecu.crash is not None and scn.ecu.crash.car == spec.vehicle else None))
     if role == "recorder":
         from canbrake.nodes.recorder import RecorderNode
 
-        return RecorderNode(scn.n_cars, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
+        return RecorderNode(layout, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
                             plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn),
                             log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
     raise ValueError(f"unknown node role {role!r}")
@@ -188,10 +312,12 @@ def build_nodes(scn: Scenario, run_dir: Path | None, channel: str = "can0") -> l
     """Every node of a run, plant last (it starts the first tick)."""
     from canbrake.bus.schedule import build_bus_timing
 
-    codec = FrameCodec(dbc.build_database(scn.n_cars))
+    layout = bus_layout(scn)
+    codec = FrameCodec(layout.database())
     timing = build_bus_timing(scn)  # one replica serves every node of an in-process run
-    nodes: list[Node] = [build_node(scn, "recorder", run_dir=run_dir, channel=channel, codec=codec)]
-    nodes += [build_node(scn, "ecu", car=c, run_dir=run_dir, codec=codec, bus_timing=timing)
-              for c in range(1, scn.n_cars + 1)]
-    nodes.append(build_node(scn, "plant", run_dir=run_dir, codec=codec))
+    kw = dict(run_dir=run_dir, codec=codec, layout=layout)
+    nodes: list[Node] = [build_node(scn, "recorder", channel=channel, **kw)]  # type: ignore[arg-type]
+    nodes += [build_node(scn, "ecu", car=i, bus_timing=timing, **kw)  # type: ignore[arg-type]
+              for i in range(1, scn.n_ecus + 1)]
+    nodes.append(build_node(scn, "plant", **kw))  # type: ignore[arg-type]
     return nodes

@@ -110,9 +110,21 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
 def _cmd_dbc(a: argparse.Namespace) -> int:
     from canbrake.bus.dbc import MAX_CARS, dbc_text
 
-    if not 1 <= a.cars <= MAX_CARS:
-        raise InputError(f"--cars: must be between 1 and {MAX_CARS}, got {a.cars}")
-    text = dbc_text(a.cars)
+    if a.scenario is not None:
+        from canbrake.build import bus_layout
+        from canbrake.run import check_buildable
+        from canbrake.scenario import load_scenario
+
+        scn = load_scenario(a.scenario, profile=a.profile)
+        check_buildable(scn)
+        text = bus_layout(scn).database().as_dbc_string()
+        what = f"{scn.n_ecus} ECUs on {scn.n_cars} vehicles"
+    else:
+        cars = 6 if a.cars is None else a.cars
+        if not 1 <= cars <= MAX_CARS:
+            raise InputError(f"--cars: must be between 1 and {MAX_CARS}, got {cars}")
+        text = dbc_text(cars)
+        what = f"{cars} cars"
     if a.output in (None, "-"):
         sys.stdout.write(text)
     else:
@@ -120,7 +132,7 @@ def _cmd_dbc(a: argparse.Namespace) -> int:
             Path(a.output).write_text(text)
         except OSError as e:
             raise InputError(f"-o {a.output}: cannot write: {e.strerror or e}") from None
-        print(f"wrote {a.output} ({a.cars} cars)", file=sys.stderr)
+        print(f"wrote {a.output} ({what})", file=sys.stderr)
     return EXIT_OK
 
 
@@ -197,8 +209,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-plots", action="store_true")
     r.set_defaults(func=_cmd_run)
 
-    d = sub.add_parser("dbc", help="generate the CAN database", description="Generate the canbrake DBC with cantools.")
-    d.add_argument("--cars", type=int, default=6)
+    d = sub.add_parser("dbc", help="generate the CAN database",
+                       description="Generate the canbrake DBC with cantools: from a scenario's consist and ECU "
+                                   "placement, or Chen's one-ECU-per-car layout with --cars N.")
+    d.add_argument("scenario", nargs="?", help="scenario file (its placement defines the messages)")
+    d.add_argument("--profile", help="profile of the scenario")
+    d.add_argument("--cars", type=int, default=None, help="shortcut without a scenario: N cars (default 6)")
     d.add_argument("-o", "--output", help="output file (default stdout)")
     d.set_defaults(func=_cmd_dbc)
 

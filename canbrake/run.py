@@ -153,13 +153,14 @@ def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | N
     if dbc_path is not None:
         check_dbc_matches(scn, dbc_path)
         dbc_text = Path(dbc_path).read_text()  # before the old run (which may hold it) is removed
+    else:
+        from canbrake.build import bus_layout
+
+        dbc_text = bus_layout(scn).database().as_dbc_string()
     try:
         _clear_run_dir(out)
         out.mkdir(parents=True, exist_ok=True)
-        if dbc_text is not None:
-            (out / "canbrake.dbc").write_text(dbc_text)
-        else:
-            dbc.write_dbc(scn.n_cars, out / "canbrake.dbc")
+        (out / "canbrake.dbc").write_text(dbc_text)
         (out / "scenario.yaml").write_text(scn.to_yaml())
         (out / "plots").mkdir(exist_ok=True)
     except OSError as e:
@@ -182,10 +183,16 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
         raise ScenarioError(f"{p}: no such DBC file") from None
     except Exception as e:  # cantools raises several parse error types
         raise ScenarioError(f"{p}: not a readable DBC file: {str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
-    n = dbc.n_cars_of(db)
-    if n != scn.n_cars:
-        raise ScenarioError(f"{p}: the DBC describes {n} cars but the scenario has {scn.n_cars} (train.mass_kg)")
-    ref = dbc.build_database(scn.n_cars)
+    from canbrake.build import bus_layout
+
+    ref = bus_layout(scn).database()
+    n_db = dbc.n_cars_of(db)
+    if n_db != scn.n_ecus:
+        raise ScenarioError(f"{p}: the DBC describes {n_db} cars (ECUs) but the scenario has {scn.n_ecus} ECUs on "
+                            f"{scn.n_cars} vehicles (generate its DBC with `canbrake dbc SCENARIO`)")
+    if len(db.messages) != len(ref.messages):
+        raise ScenarioError(f"{p}: the DBC has {len(db.messages)} messages, the scenario's placement needs "
+                            f"{len(ref.messages)} (generate it with `canbrake dbc SCENARIO`)")
     for m in ref.messages:
         try:
             got = db.get_message_by_frame_id(m.frame_id)
@@ -195,7 +202,7 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
         b = [(s.name, s.start, s.length, s.is_signed, s.scale, s.offset, s.byte_order) for s in got.signals]
         if got.name != m.name or got.length != m.length or sorted(a) != sorted(b):
             raise ScenarioError(f"{p}: message {m.frame_id:#x} does not match canbrake's layout for {m.name} "
-                                f"(regenerate with `canbrake dbc --cars {scn.n_cars}`)")
+                                f"(generate it with `canbrake dbc SCENARIO`)")
 
 
 # ----------------------------------------------------------------------------- child processes
@@ -235,7 +242,8 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         raise SystemExit(143)
 
     signal.signal(signal.SIGTERM, _term)
-    name = role if role != "ecu" else f"ecu{car}"
+    names = scenario.get("_ecu_names", {})
+    name = role if role != "ecu" else _ecu_process_name([names.get(str(i), f"ecu{i}") for i in range(1, len(names) + 1)], car)
     _set_title(f"canbrake {name} {scenario.get('name', '')}")
     import warnings
 
@@ -245,9 +253,20 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
     bus = None
     status = "failed"
     try:
-        scn = Scenario.model_validate(scenario)
-        node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
-                          progress=progress)
+        scn = Scenario.model_validate({k: v for k, v in scenario.items() if k != "_ecu_names"})
+        if isinstance(car, (tuple, list)):
+            from canbrake.build import bus_layout
+            from canbrake.bus.codec import FrameCodec
+            from canbrake.bus.schedule import build_bus_timing
+            from canbrake.nodes.group import NodeGroup
+
+            layout = bus_layout(scn)
+            codec, timing = FrameCodec(layout.database()), build_bus_timing(scn)
+            node = NodeGroup([build_node(scn, "ecu", car=c, run_dir=Path(run_dir), codec=codec, layout=layout,
+                                         bus_timing=timing) for c in car])
+        else:
+            node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
+                              progress=progress)
         bus = _open_bus(choice, node.filters(), role)
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
@@ -333,6 +352,14 @@ def _pid_running(pid: int | None, start: int) -> bool:
     return fields[0] != b"Z" and (not start or int(fields[19]) == start)
 
 
+def _ecu_process_name(placed: Any, car: Any) -> str:
+    """Name of an ECU process: the ECU's name, or "first..last" for a process hosting several."""
+    name = lambda i: placed[i - 1] if isinstance(placed[i - 1], str) else placed[i - 1].name  # noqa: E731
+    if isinstance(car, (tuple, list)):
+        return name(car[0]) if len(car) == 1 else f"{name(car[0])}..{name(car[-1])}"
+    return name(car)
+
+
 def _start_timeout_s() -> float:
     """How long node processes may take to start (s): CANBRAKE_START_TIMEOUT_S, default 120
     (an emulated VM needs far more just to import numpy and friends)."""
@@ -382,11 +409,18 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
     if start_timeout_s is None:
         start_timeout_s = _start_timeout_s()
-    roles = [("recorder", 0)] + [("ecu", c) for c in range(1, scn.n_cars + 1)] + [("plant", 0)]
+    placed = scn.placement()
+    per = max(1, scn.ecu.per_process)
+    if per == 1:
+        ecu_roles: list[tuple[str, Any]] = [("ecu", i) for i in range(1, len(placed) + 1)]
+    else:  # several ECUs hosted per process (canbrake.nodes.group)
+        ecu_roles = [("ecu", tuple(range(i, min(i + per, len(placed) + 1)))) for i in range(1, len(placed) + 1, per)]
+    roles = [("recorder", 0)] + ecu_roles + [("plant", 0)]
     barrier = ctx.Barrier(len(roles))
     progress = ctx.Value("q", -1, lock=False)
     record = _write_run_record(ctx, barrier, choice)
     data = scn.model_dump(mode="json")
+    data["_ecu_names"] = {str(i): p.name for i, p in enumerate(placed, start=1)}
     procs: dict[str, mp.process.BaseProcess] = {}
     starts: dict[str, int] = {}
     t_start = time.time()
@@ -400,7 +434,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
         old_term = signal.signal(signal.SIGTERM, _on_term)  # `kill` ends a run as cleanly as Ctrl-C
     try:
         for role, car in roles:
-            name = role if role != "ecu" else f"ecu{car}"
+            name = role if role != "ecu" else _ecu_process_name(placed, car)
             p = ctx.Process(target=_child_main, name=f"canbrake-{name}",
                             args=(role, car, data, str(run_dir), choice, barrier, progress, os.getpid(),
                                   env))
@@ -678,25 +712,27 @@ def check_impairment_targets(scn: Scenario) -> None:
     """Every impairment must match something of this train: its ``senders``/``receivers``/
     ``sender`` name a node of the run (plant, ecu1..ecuN, or a babbling device it defines) and its
     ``ids`` are frames of the run's DBC. An impairment that matches nothing is a typo, not a result."""
-    from canbrake.bus import dbc
+    from canbrake.build import bus_layout
 
-    nodes = {"plant"} | {f"ecu{c}" for c in range(1, scn.n_cars + 1)}
+    placed = scn.placement()
+    nodes = {"plant", "recorder"} | {p.name for p in placed}
     babblers = {getattr(s, "sender", None) for s in scn.bus.impairments if getattr(s, "type", "") == "babble"}
     known_nodes = nodes | {b for b in babblers if b}
-    ids = {m.frame_id for m in dbc.build_database(scn.n_cars).messages}
+    ids = {m.frame_id for m in bus_layout(scn).messages}
     for i, spec in enumerate(scn.bus.impairments):
         for field_name in ("senders", "receivers"):
             names = getattr(spec, field_name, None) or []
             bad = [x for x in names if x not in known_nodes]
             if bad:
                 raise ScenarioError(f"bus.impairments.{i}.{field_name}: {', '.join(map(str, bad))} is not a node of "
-                                    f"this {scn.n_cars}-car run (nodes: plant, ecu1..ecu{scn.n_cars})")
+                                    f"this run (nodes: plant, {', '.join(p.name for p in placed[:4])}"
+                                    f"{', ...' if len(placed) > 4 else ''})")
         spec_ids = getattr(spec, "ids", None) or []
         if getattr(spec, "type", "") != "babble":
             bad_ids = [x for x in spec_ids if x not in ids]
             if bad_ids:
                 raise ScenarioError(f"bus.impairments.{i}.ids: {', '.join(hex(x) for x in bad_ids)} is not a frame of "
-                                    f"this {scn.n_cars}-car run's DBC (`canbrake dbc --cars {scn.n_cars}` lists them)")
+                                    f"this run's DBC (its canbrake.dbc lists them)")
 
 
 def _check_memory_channel(scn: Scenario, choice: BusChoice, explicit: bool) -> None:
@@ -708,11 +744,12 @@ def _check_memory_channel(scn: Scenario, choice: BusChoice, explicit: bool) -> N
         shm.validate_channel(choice.channel)
     except can.CanError as e:
         raise ScenarioError(f"--channel {choice.channel}: {e}") from None
-    need = scn.n_cars + 2  # ECUs, plant, recorder
+    per = max(1, getattr(scn.ecu, "per_process", 1))
+    need = -(-len(scn.placement()) // per) + 2  # ECU processes, plant, recorder
     if need > shm.MAX_READERS:
-        raise ScenarioError(f"train.mass_kg: {scn.n_cars} cars need {need} buses on the in-memory channel, "
-                            f"which holds {shm.MAX_READERS} (at most {shm.MAX_READERS - 2} cars; "
-                            f"use --bus socketcan or inprocess for longer trains)")
+        raise ScenarioError(f"ecus: {need - 2} ECU processes need {need} buses on the in-memory channel, "
+                            f"which holds {shm.MAX_READERS} (host several ECUs per process with ecu.per_process, "
+                            f"or use --bus socketcan or inprocess)")
     try:  # before cleaning: a file someone else could have planted is reported, not silently removed
         shm.check_channel_owner(choice.channel)
     except can.CanError as e:
@@ -739,30 +776,38 @@ def _check_adapter(choice: BusChoice) -> None:
 
 
 def check_buildable(scn: Scenario) -> None:
-    """Build the plant and every controller once in this process, so that parameters the schema
-    passes through (``controller.params``) fail here with exit 2 rather than in a child."""
-    from canbrake.build import build_controller, build_plant_model
-    from canbrake.control.base import available
+    """Build the plant, the bus layout and every controller once in this process, so that
+    parameters the schema passes through (``controller.params``, data files) fail here with
+    exit 2 rather than in a child."""
+    from canbrake.build import build_controller, build_plant_model, bus_layout, reference_fn
+    from canbrake.control.base import ControllerError, check_params
 
-    if scn.controller.name not in available():
-        raise ScenarioError(f"controller.name: unknown controller {scn.controller.name!r} "
-                            f"(available: {', '.join(available())})")
+    placed = scn.placement()
+    where = {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
+    for p in placed:
+        field = where.get(id(p.controller), "controller")
+        try:
+            check_params(p.controller.name, p.controller.params)
+        except ControllerError as e:
+            where = f"{field}.params.{e.param}" if e.param else f"{field}.name"
+            raise ScenarioError(f"{where}: {e}") from None
     try:
-        for car in range(1, scn.n_cars + 1):
-            build_controller(scn, car)
-    except TypeError as e:
-        msg = str(e)
-        if "unexpected keyword argument" in msg:
-            key = msg.split("unexpected keyword argument")[-1].strip(" '\"")
-            raise ScenarioError(f"controller.params.{key}: unknown parameter of controller "
-                                f"{scn.controller.name!r}") from None
-        raise ScenarioError(f"controller.params: {msg}") from None
-    except ValueError as e:
+        for i in range(1, len(placed) + 1):
+            build_controller(scn, i)
+    except (TypeError, ValueError) as e:
         raise ScenarioError(f"controller.params: {e}") from None
+    try:
+        bus_layout(scn)
+    except ValueError as e:
+        raise ScenarioError(f"ecus: {e}") from None
+    try:
+        reference_fn(scn)
+    except ValueError as e:
+        raise ScenarioError(str(e)) from None
     try:
         build_plant_model(scn)
     except ValueError as e:
-        raise ScenarioError(f"train/actuator/events: {e}") from None
+        raise ScenarioError(f"train: {e}") from None
 
 
 def _remove_memory_channel(channel: str | None) -> None:

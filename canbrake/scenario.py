@@ -17,9 +17,14 @@ import numpy as np
 import yaml
 from canbrake.arrays import per_car
 from canbrake.bus.impair import ImpairmentSpec
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from canbrake.consist import TRAIN_MODELS
+from canbrake.consist.base import VehicleEntry, expand_vehicles
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
 
 KMH = 1.0 / 3.6  # m/s per km/h
+#: most vehicles (and ECUs) a scenario may have: the 29-bit identifier plan holds 4095 ECUs; the
+#: limit is what a run can carry in memory and time, not the bus
+MAX_VEHICLES = 1024
 
 
 class ScenarioError(Exception):
@@ -92,6 +97,14 @@ class CouplerConfig(_Model):
         return v
 
 
+class DavisTypeConfig(_Model):
+    """Running resistance of one vehicle: c0 + c1 |v| + c2 v² (N, v in m/s)."""
+
+    c0_n: float = Field(0.0, ge=0)
+    c1_n_s_per_m: float = Field(0.0, ge=0)
+    c2_n_s2_per_m2: float = Field(0.0, ge=0)
+
+
 class DavisConfig(_Model):
     """Running resistance per car: c0 + c1 |v| + c2 v² (N, v in m/s)."""
 
@@ -100,8 +113,23 @@ class DavisConfig(_Model):
     c2_n_s2_per_m2: PerCar = 0.0
 
 
+class CoupledVehicleType(_Model):
+    """A vehicle type of the coupled (Chen) model."""
+
+    mass_kg: float = Field(..., gt=0)
+    length_m: float = Field(20.0, gt=0, description="over couplers; the default spacing of the initial positions")
+    davis: DavisTypeConfig | None = Field(None, description="running resistance c0 + c1 v + c2 v^2 (N, v in m/s)")
+
+
 class TrainConfig(_Model):
-    mass_kg: list[float] = Field(..., min_length=1, max_length=63)
+    """Model "coupled" (the default): Chen 2023's longitudinal train, cars joined by nonlinear
+    couplers (physics/train.py). Vehicles are given either as ``mass_kg`` (one value per car) or
+    as ``vehicle_types`` repeated in ``vehicles``."""
+
+    model: Literal["coupled"] = "coupled"
+    vehicle_types: dict[str, CoupledVehicleType] = Field(default_factory=dict)
+    vehicles: list[VehicleEntry] = Field(default_factory=list)
+    mass_kg: list[float] = Field(default_factory=list, max_length=MAX_VEHICLES)
     davis: DavisConfig | None = Field(None, description="default: Davis (1926) multiple-unit coefficients per mass")
     coupler: CouplerConfig = CouplerConfig()
     grade_permille: float = Field(0.0, ge=-100, le=100, description="track grade, positive uphill (‰)")
@@ -115,9 +143,42 @@ class TrainConfig(_Model):
                 raise ValueError(f"car {i + 1}: mass must be > 0 kg, got {m}")
         return v
 
+    @model_validator(mode="after")
+    def _vehicles(self) -> "TrainConfig":
+        if self.vehicles:
+            if self.mass_kg:
+                raise ValueError("give either mass_kg (one per car) or vehicles (with vehicle_types), not both")
+            expanded = expand_vehicles(self.vehicle_types, self.vehicles)
+            if len(expanded) > MAX_VEHICLES:
+                raise ValueError(f"{len(expanded)} vehicles; at most {MAX_VEHICLES}")
+            self.mass_kg = [t.mass_kg for _, t in expanded]
+            if self.davis is None and any(t.davis is not None for _, t in expanded):
+                zero = DavisTypeConfig()
+                ds = [t.davis or zero for _, t in expanded]
+                self.davis = DavisConfig(c0_n=[d.c0_n for d in ds], c1_n_s_per_m=[d.c1_n_s_per_m for d in ds],
+                                         c2_n_s2_per_m2=[d.c2_n_s2_per_m2 for d in ds])
+            if self.coupler.spacing_m is None and len(expanded) > 1:
+                self.coupler.spacing_m = [0.5 * (a.length_m + b.length_m) for (_, a), (_, b) in zip(expanded, expanded[1:])]
+            self.vehicles = []
+            self.vehicle_types = {}
+        if not self.mass_kg:
+            raise ValueError("no vehicles: give mass_kg (one per car) or vehicles with vehicle_types")
+        return self
+
     @property
     def n_cars(self) -> int:
         return len(self.mass_kg)
+
+    def vehicle_count(self) -> int:
+        return len(self.mass_kg)
+
+    def vehicle_masses_kg(self) -> np.ndarray:
+        return np.asarray(self.mass_kg, dtype=float)
+
+    def build_plant(self, scn: "Scenario", base_dir: Path | None = None) -> Any:
+        from canbrake.build import build_coupled_plant
+
+        return build_coupled_plant(scn)
 
 
 class InitialConfig(_Model):
@@ -134,23 +195,88 @@ class InitialConfig(_Model):
 
 
 class ReferenceConfig(_Model):
-    """Virtual leader: v*(t) = speed - decel * t, floored at 0."""
+    """The virtual leader's speed v*(t) (and position x*(t)).
 
-    speed_kmh: float = Field(..., ge=0)
-    decel_kmh_per_s: float = Field(..., ge=0)
+    ``kind: ramp`` (default): v*(t) = speed − decel·t until it reaches ``target_kmh`` (a negative
+    ``decel_kmh_per_s`` ramps up), then constant. ``kind: table``: v* interpolated linearly in a CSV
+    ``file`` (columns ``time_s,speed_kmh``, or ``position_m,speed_kmh`` with ``over: position``);
+    a recorded speed curve is such a table. x*(0) = ``position_m``; x* is v* integrated.
+    """
+
+    kind: Literal["ramp", "table"] = "ramp"
+    speed_kmh: float | None = Field(None, ge=0, description="ramp: v*(0)")
+    decel_kmh_per_s: float | None = Field(None, description="ramp: rate of decrease of v* (negative: increase)")
+    target_kmh: float = Field(0.0, ge=0, description="ramp: speed at which the ramp ends")
+    file: str | None = Field(None, description="table: CSV file (relative to the scenario file)")
+    over: Literal["time", "position"] = Field("time", description="table: the table's abscissa")
+    position_m: float = Field(0.0, description="x*(0)")
+
+    @model_validator(mode="after")
+    def _kind_fields(self) -> "ReferenceConfig":
+        if self.kind == "ramp":
+            if self.speed_kmh is None or self.decel_kmh_per_s is None:
+                raise ValueError("a ramp needs speed_kmh and decel_kmh_per_s")
+            if self.decel_kmh_per_s > 0 and self.target_kmh > self.speed_kmh:
+                raise ValueError(f"target_kmh ({self.target_kmh}) is above speed_kmh ({self.speed_kmh}) of a "
+                                 f"decelerating ramp")
+            if self.decel_kmh_per_s < 0 and self.target_kmh < self.speed_kmh:
+                raise ValueError(f"target_kmh ({self.target_kmh}) is below speed_kmh ({self.speed_kmh}) of an "
+                                 f"accelerating ramp (negative decel_kmh_per_s)")
+        elif self.file is None:
+            raise ValueError("a table reference needs file")
+        return self
 
     @property
     def speed_mps(self) -> float:
-        return self.speed_kmh * KMH
+        return (self.speed_kmh or 0.0) * KMH
 
     @property
     def decel_mps2(self) -> float:
-        return self.decel_kmh_per_s * KMH
+        return (self.decel_kmh_per_s or 0.0) * KMH
 
 
 class ControllerConfig(_Model):
     name: str = "chen2023"
     params: dict[str, Any] = Field(default_factory=dict, description="passed to the controller's constructor")
+
+
+class PlacedEcu:
+    """One ECU after expanding the placement (see :meth:`Scenario.placement`)."""
+
+    __slots__ = ("name", "vehicle", "controller", "listens")
+
+    def __init__(self, name: str, vehicle: int, controller: "ControllerConfig", listens: Any) -> None:
+        self.name, self.vehicle, self.controller, self.listens = name, vehicle, controller, listens
+
+    def __repr__(self) -> str:
+        return f"PlacedEcu({self.name!r}, vehicle={self.vehicle}, controller={self.controller.name!r})"
+
+
+class EcuPlacement(_Model):
+    """Where an ECU sits and what it runs. ``vehicle`` (1-based) places one ECU; ``vehicles: "2-106"``
+    places one per vehicle of the range, named ``name`` with ``{v}`` replaced by the vehicle number
+    (default ``ecu{v}``). ``listens``: whose STATE frames it receives (``all`` other ECUs, ``none``,
+    or a list of ECU names); ``controller`` defaults to the scenario's top-level one."""
+
+    name: str | None = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_{}]*$")
+    vehicle: int | None = Field(None, ge=1)
+    vehicles: str | None = Field(None, pattern=r"^\s*\d+\s*-\s*\d+\s*$")
+    controller: ControllerConfig | None = None
+    listens: Literal["all", "none"] | list[str] = "all"
+
+    @model_validator(mode="after")
+    def _one_of(self) -> "EcuPlacement":
+        if (self.vehicle is None) == (self.vehicles is None):
+            raise ValueError("give exactly one of vehicle (one ECU) or vehicles (a range such as \"2-106\")")
+        return self
+
+    def vehicle_numbers(self) -> list[int]:
+        if self.vehicle is not None:
+            return [self.vehicle]
+        a, b = (int(x) for x in str(self.vehicles).split("-"))
+        if b < a:
+            raise ValueError(f"vehicles {self.vehicles!r}: empty range")
+        return list(range(a, b + 1))
 
 
 class ActuatorConfig(_Model):
@@ -255,12 +381,26 @@ class CrashFault(_Model):
 
 class EcuConfig(_Model):
     heartbeat_period_s: float = Field(0.1, gt=0)
+    per_process: int = Field(1, ge=1, le=1024,
+                             description="ECUs hosted per OS process (1: one process per ECU, the default; "
+                                         "more for long trains on few cores; frames are identical)")
     crash: CrashFault | None = Field(None, description="inject a crash of one ECU process")
     realtime_compute_deadline: float = Field(0.5, gt=0, lt=1,
                                              description="realtime: fraction of the period an ECU waits for peers")
     lockstep_deadline: float = Field(0.5, gt=0, lt=1,
                                      description="lockstep: fraction of the period within which a state frame "
                                                  "must arrive to be used in the same tick")
+
+
+def _train_tag(v: Any) -> str:
+    if isinstance(v, dict):
+        return str(v.get("model", "coupled"))
+    return str(getattr(v, "model", "coupled"))
+
+
+TrainUnion = Annotated[Union[tuple(Annotated[m, Tag(m.model_fields["model"].default)]  # type: ignore[misc]
+                                   for m in (TrainConfig, *TRAIN_MODELS))],
+                       Discriminator(_train_tag)]
 
 
 class Scenario(_Model):
@@ -272,10 +412,11 @@ class Scenario(_Model):
     mode: Literal["lockstep", "realtime"] = "lockstep"
     profile: str | None = None
     profiles: dict[str, dict[str, Any]] = Field(default_factory=dict)
-    train: TrainConfig
+    train: TrainUnion
     initial: InitialConfig
     reference: ReferenceConfig
     controller: ControllerConfig = ControllerConfig()
+    ecus: list[EcuPlacement] = Field(default_factory=list, description="ECU placement (default: one per vehicle)")
     actuator: ActuatorConfig = ActuatorConfig()
     events: list[Event] = Field(default_factory=list)
     bus: BusConfig = BusConfig()
@@ -285,9 +426,16 @@ class Scenario(_Model):
 
     @model_validator(mode="after")
     def _per_car_lengths(self) -> "Scenario":
-        n = self.train.n_cars
-        checks: list[tuple[str, Any, int]] = [
-            ("initial.speed_kmh", self.initial.speed_kmh, n),
+        n = self.n_cars
+        checks: list[tuple[str, Any, int]] = [("initial.speed_kmh", self.initial.speed_kmh, n)]
+        self._check_placement()
+        if not isinstance(self.train, TrainConfig):
+            if self.initial.position_m is not None:
+                checks.append(("initial.position_m", self.initial.position_m, n))
+            for name, value, k in checks:
+                per_car(value, k, name)
+            return self._check_times()
+        checks += [
             ("train.curve_resistance_n", self.train.curve_resistance_n, n),
             ("actuator.adhesion_mu", self.actuator.adhesion_mu, n),
         ]
@@ -317,8 +465,9 @@ class Scenario(_Model):
                              f"{'have' if len(wrong) > 1 else 'has'} {m} values: fix the mass list or those")
         for name, value, k in checks:
             per_car(value, k, name)
-        if self.ecu.crash is not None and self.ecu.crash.car > n:
-            raise ValueError(f"@ecu.crash.car: car {self.ecu.crash.car} is beyond the train ({n} cars)")
+        return self._check_times()
+
+    def _check_times(self) -> "Scenario":
         t_out = self.safety.command_timeout_s
         if t_out is not None and t_out < self.control_period_s:
             raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
@@ -327,10 +476,57 @@ class Scenario(_Model):
             raise ValueError("duration_s / control_period_s exceeds 10 million ticks")
         return self
 
+    def _check_placement(self) -> None:
+        placed = self.placement()
+        n = self.n_cars
+        names = [p.name for p in placed]
+        for p in placed:
+            if not 1 <= p.vehicle <= n:
+                raise ValueError(f"ecus: ECU {p.name} is on vehicle {p.vehicle}, the train has {n}")
+            if isinstance(p.listens, list):
+                unknown = [x for x in p.listens if x not in names]
+                if unknown:
+                    raise ValueError(f"ecus: ECU {p.name} listens to unknown ECU(s) {', '.join(unknown)} "
+                                     f"(ECUs: {', '.join(names)})")
+        if len(set(names)) != len(names):
+            dup = sorted({x for x in names if names.count(x) > 1})
+            raise ValueError(f"ecus: ECU name(s) used twice: {', '.join(dup)}")
+        veh = [p.vehicle for p in placed]
+        if len(set(veh)) != len(veh):
+            dup = sorted({x for x in veh if veh.count(x) > 1})
+            raise ValueError(f"ecus: more than one ECU on vehicle(s) {', '.join(map(str, dup))}")
+        if self.ecu.crash is not None and self.ecu.crash.car not in veh:
+            raise ValueError(f"ecu.crash.car: no ECU on vehicle {self.ecu.crash.car}")
+
+    def placement(self) -> list["PlacedEcu"]:
+        """Every ECU of the run in identifier-plan order (index 1..): name, vehicle, controller, listens."""
+        if not self.ecus:
+            return [PlacedEcu(f"ecu{v}", v, self.controller, "all") for v in range(1, self.n_cars + 1)]
+        out: list[PlacedEcu] = []
+        for i, e in enumerate(self.ecus):
+            try:
+                vs = e.vehicle_numbers()
+            except ValueError as err:
+                raise ValueError(f"ecus.{i}.vehicles: {err}") from None
+            for v in vs:
+                name = (e.name or "ecu{v}").replace("{v}", str(v))
+                if e.vehicles is not None and e.name is not None and "{v}" not in e.name and len(vs) > 1:
+                    raise ValueError(f"ecus.{i}.name: a range of vehicles needs {{v}} in the name")
+                out.append(PlacedEcu(name, v, e.controller or self.controller, e.listens))
+        return out
+
     # --- SI accessors -------------------------------------------------------------------
     @property
     def n_cars(self) -> int:
-        return self.train.n_cars
+        """Number of vehicles of the consist."""
+        return int(self.train.vehicle_count())
+
+    @property
+    def n_ecus(self) -> int:
+        return len(self.placement())
+
+    def vehicle_masses_kg(self) -> np.ndarray:
+        return np.asarray(self.train.vehicle_masses_kg(), dtype=float)
 
     @property
     def n_ticks(self) -> int:
@@ -343,13 +539,19 @@ class Scenario(_Model):
     def initial_position_m(self) -> np.ndarray:
         if self.initial.position_m is not None:
             return np.asarray(self.initial.position_m, dtype=float)
-        sp = self.train.coupler.spacing_m
+        sp = self.train.coupler.spacing_m  # type: ignore[union-attr]
         spacing = per_car(10.0 if sp is None else sp, max(self.n_cars - 1, 0), "spacing")
         # car 1 leads: x_1 > x_2 > ... with x_i - x_{i+1} = spacing_i
         x = np.zeros(self.n_cars)
         for i in range(1, self.n_cars):
             x[i] = x[i - 1] - spacing[i - 1]
         return x - x[-1]
+
+    #: folder of the scenario file: data files named in it are relative to it (None: the cwd)
+    base_dir: str | None = Field(None, description="set by the loader: folder the data files are relative to")
+
+    def data_dir(self) -> Path | None:
+        return None if self.base_dir is None else Path(self.base_dir)
 
     def to_yaml(self) -> str:
         """Resolved scenario (defaults filled in) as YAML."""
@@ -392,7 +594,8 @@ def format_validation_error(source: str, err: ValidationError) -> str:
     """One readable message per problem: ``file: field.path: what is wrong``."""
     lines = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p in ("rail", "disturbance")))
+        tags = {"rail", "disturbance", "coupled", *(m.model_fields["model"].default for m in TRAIN_MODELS)}
+        loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p in tags))
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
             msg = "unknown key"
@@ -471,4 +674,6 @@ def load_scenario(path: str | Path, profile: str | None = None,
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
         raise ScenarioError(f"{p}: malformed YAML{where}: {problem}") from None
+    if isinstance(data, dict) and "base_dir" not in data:
+        data["base_dir"] = str(p.resolve().parent)
     return resolve(data, str(p), profile, overrides)

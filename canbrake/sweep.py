@@ -277,14 +277,16 @@ def check_axes(axes: Sequence[Axis]) -> None:
 
 
 # ----------------------------------------------------------------------------- overrides
-def frame_ids(n_cars: int, which: str) -> list[int]:
-    """Arbitration ids the impairment axes act on: "state", "cmd" or "both"."""
-    state = [dbc.STATE_BASE + c for c in range(1, n_cars + 1)]
-    cmd = [dbc.BRAKE_CMD_BASE + c for c in range(1, n_cars + 1)]
+def frame_ids(layout: Any, which: str) -> list[int]:
+    """Arbitration ids the impairment axes act on: "state", "cmd" or "both" (``layout``: the
+    run's :class:`~canbrake.bus.dbc.BusLayout`, or a number of cars for Chen's placement)."""
+    if isinstance(layout, int):
+        layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
+    state, cmd = layout.ids("state"), layout.ids("cmd")
     return {"state": state, "cmd": cmd, "both": state + cmd}[which]
 
 
-def impairments_for(params: dict[str, Any], n_cars: int) -> list[dict[str, Any]]:
+def impairments_for(params: dict[str, Any], n_cars: Any) -> list[dict[str, Any]]:
     """Impairment specs (dicts for ``bus.impairments``) for the impairment axes in ``params``
     (axis name -> SI value); order: loss, jitter, delay; a value of 0 adds nothing."""
     out: list[dict[str, Any]] = []
@@ -303,7 +305,7 @@ def impairments_for(params: dict[str, Any], n_cars: int) -> list[dict[str, Any]]
     return out
 
 
-def point_overrides(base: dict[str, Any], params: dict[str, Any], n_cars: int) -> dict[str, Any]:
+def point_overrides(base: dict[str, Any], params: dict[str, Any], n_cars: Any) -> dict[str, Any]:
     """Dotted-path overrides of one grid point (``params``: axis name -> value).
 
     ``base`` is the scenario mapping after profile and ``--set`` (its ``bus.impairments`` are kept
@@ -400,9 +402,12 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
     out = Path(out)
     tasks: list[PointTask] = []
     combos = list(itertools.product(*[a.values for a in axes])) if axes else [()]
+    from canbrake.build import bus_layout
+
+    layout = bus_layout(base)
     for combo in combos:
         params = {a.name: v for a, v in zip(axes, combo)}
-        ov = point_overrides(base_data, params, base.n_cars)
+        ov = point_overrides(base_data, params, layout)
         random = is_random(params, ov.get("bus.impairments", base_data["bus"]["impairments"]))
         seed_list = [base.seed + s for s in range(seeds)] if random else [base.seed]
         for seed in seed_list:

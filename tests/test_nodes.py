@@ -17,7 +17,9 @@ from conftest import CASE1
 class _Exploding:
     """A plant model that diverges on its third step."""
 
-    n_cars = 2
+    n_vehicles = 2
+    mass_kg = np.ones(2)
+    command_names = ("brake_force_n",)
 
     def __init__(self) -> None:
         self.steps = 0
@@ -34,8 +36,10 @@ class _Exploding:
 
 
 def _plant(model, n_ticks=10):
-    codec = FrameCodec(dbc.build_database(2))
-    return codec, PlantNode(model, codec, dt_s=0.01, n_ticks=n_ticks, reference=lambda t: (10.0, 1.0))
+    layout = dbc.BusLayout(dbc.default_ecus(2, coupler_sensors=True))
+    codec = FrameCodec(layout.database())
+    return codec, PlantNode(model, codec, layout=layout, dt_s=0.01, n_ticks=n_ticks,
+                            reference=lambda t: (10.0, 1.0))
 
 
 def _finish_tick(codec, plant, k):

@@ -49,7 +49,7 @@ def test_bus_run_matches_ideal_communication_loop(tmp_path, case1_short):
     cols = read_signals(tmp_path / "signals.csv")
     scn = case1_short
     ctrls = [build_controller(scn, c) for c in range(1, scn.n_cars + 1)]
-    res = simulate_ideal(build_plant_model(scn), ctrls, _ref(scn), scn.duration_s, scn.control_period_s)
+    res = simulate_ideal(build_plant_model(scn).plant, ctrls, _ref(scn), scn.duration_s, scn.control_period_s)
     v_bus = np.column_stack([cols[f"speed_mps_c{c}"] for c in range(1, 7)])
     n = min(len(v_bus), len(res.v))
     assert np.max(np.abs(v_bus[:n] - res.v[:n])) < 2e-3  # m/s; quantisation is 1e-4 m/s, 0.1 mm

@@ -13,7 +13,7 @@ through a ``memoryview`` cast to ``'Q'`` so no reader ever sees a torn value)::
 
     [0, 4096)            header: magic, layout version, geometry, write_seq (own cache line),
                          reader_gen, token counter, tx-waiter count, closed flag, sleeper count
-    [4096, +64*512)      reader table: one 512-byte entry per open bus (token, pid, process
+    [4096, +256*512)     reader table: one 512-byte entry per open bus (token, pid, process
                          start time, flags, read_seq, sleeping, wake_seq, wake-up counter,
                          tx_waiting, pushed-down filters)
     [ring_off, ...)      ring of ``ring_size`` 96-byte frame slots: timestamp (f64, s),
@@ -34,10 +34,10 @@ from can.exceptions import CanInitializationError, CanOperationError
 
 # ---------------------------------------------------------------- geometry
 MAGIC = int.from_bytes(b"CANBRAKE", "little")
-LAYOUT_VERSION = 1
+LAYOUT_VERSION = 2
 HEADER_BYTES = 4096
 ENTRY_BYTES = 512
-MAX_READERS = 64
+MAX_READERS = 256  # 1 + 105 vehicles with an ECU each, the plant, the recorder and listeners
 MAX_PUSHED_FILTERS = 16
 SLOT_BYTES = 96
 DATA_OFFSET = 24

@@ -43,10 +43,27 @@ class BabbleSource:
 class LockstepBusTiming:
     """Replicated deterministic bus timing for lockstep runs (simulated seconds)."""
 
-    def __init__(self, n_cars: int, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
+    def __init__(self, layout: Any, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
                  heartbeat_every: int, plant_io_on_bus: bool = False, coupler_sensors: bool = False,
                  babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000) -> None:
-        self.n = n_cars
+        if isinstance(layout, int):  # a number of cars: Chen's default placement
+            layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=coupler_sensors))
+        self.layout = layout
+        self.n = len(layout.ecus)
+        # nominal traffic per tick: (phase 0 at t_k | 1 at t_k | 2 at t_k + c, sender, id, extended, dlc, heartbeat?)
+        self._traffic: list[tuple[int, str, int, bool, int, bool]] = []
+        for msg in layout.messages:
+            sender = "plant" if msg.ecu == 0 else layout.by_index[msg.ecu].name
+            if msg.kind in ("sync", "reference", "reference_pos"):
+                self._traffic.append((0, sender, msg.frame_id, msg.extended, msg.length, False))
+            elif msg.kind == "sensor" and plant_io_on_bus:
+                self._traffic.append((0, sender, msg.frame_id, msg.extended, msg.length, False))
+            elif msg.kind == "heartbeat":
+                self._traffic.append((0 if msg.ecu == 0 else 1, sender, msg.frame_id, msg.extended, msg.length, True))
+            elif msg.kind == "state":
+                self._traffic.append((1, sender, msg.frame_id, msg.extended, msg.length, False))
+            elif msg.kind == "cmd":
+                self._traffic.append((2, sender, msg.frame_id, msg.extended, msg.length, False))
         self.dt = dt_s
         self.c = decision_offset_s
         self.hb_every = max(1, heartbeat_every)
@@ -64,21 +81,11 @@ class LockstepBusTiming:
         t = k * self.dt
         m = self.model
         sub = m.submit
-        sub("plant", dbc.SYNC_ID, False, 4, None, t, tag=(k, "plant", dbc.SYNC_ID))
-        sub("plant", dbc.REFERENCE_ID, False, 5, None, t, tag=(k, "plant", dbc.REFERENCE_ID))
         hb = k % self.hb_every == 0
-        if hb:
-            sub("plant", dbc.HEARTBEAT_BASE, False, 1, None, t, tag=(k, "plant", dbc.HEARTBEAT_BASE))
-        for c in range(1, self.n + 1):
-            if self.plant_io:
-                if self.coupler_sensors:
-                    sub("plant", dbc.COUPLER_BASE + c, False, 4, None, t, tag=(k, "plant", dbc.COUPLER_BASE + c))
-                sub("plant", dbc.SENSOR_BASE + c, False, 7, None, t, tag=(k, "plant", dbc.SENSOR_BASE + c))
-            ecu = f"ecu{c}"
-            sub(ecu, dbc.STATE_BASE + c, False, 8, None, t, tag=(k, ecu, dbc.STATE_BASE + c))
-            if hb:
-                sub(ecu, dbc.HEARTBEAT_BASE + c, False, 1, None, t, tag=(k, ecu, dbc.HEARTBEAT_BASE + c))
-            sub(ecu, dbc.BRAKE_CMD_BASE + c, False, 5, None, t + self.c, tag=(k, ecu, dbc.BRAKE_CMD_BASE + c))
+        for phase, sender, fid, ext, dlc, is_hb in self._traffic:
+            if is_hb and not hb:
+                continue
+            sub(sender, fid, ext, dlc, None, t + self.c if phase == 2 else t, tag=(k, sender, fid))
         t_end = t + self.dt
         for i, b in enumerate(self.babblers):
             j = self._babble_next[i]
@@ -125,7 +132,9 @@ def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
                              math.inf if getattr(s, "stop_s", None) is None else s.stop_s)
                 for s in scn.bus.impairments if isinstance(s, BabbleSpec)]
     dt = scn.control_period_s
-    return LockstepBusTiming(scn.n_cars, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
+    from canbrake.build import bus_layout
+
+    return LockstepBusTiming(bus_layout(scn), dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
                              heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
                              plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
                              babblers=babblers)

@@ -18,13 +18,14 @@ from canbrake.bus import dbc
 from canbrake.bus.impair import MessageSendPath, build_impairments
 
 
-def exempt_ids(n_cars: int) -> set[int]:
+def exempt_ids(layout: Any) -> set[int]:
     """Frames never impaired: the lockstep barrier frames, and the plant's frames (SYNC,
     reference, sensors), which stand in for the time base and each car's local wiring."""
-    ids = {dbc.SYNC_ID, dbc.REFERENCE_ID, dbc.HEARTBEAT_BASE}
-    for c in range(1, n_cars + 1):
-        ids |= {dbc.STATE_DONE_BASE + c, dbc.CMD_DONE_BASE + c, dbc.SENSOR_BASE + c, dbc.COUPLER_BASE + c}
-    return ids
+    if isinstance(layout, int):  # a number of cars: Chen's default placement
+        layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
+    return {m.frame_id for m in layout.messages
+            if m.kind in ("sync", "reference", "reference_pos", "sensor", "state_done", "cmd_done")
+            or (m.kind == "heartbeat" and m.ecu == 0)}
 
 
 class HorizonSendPath:
@@ -45,5 +46,11 @@ class HorizonSendPath:
 
 def build_send_path(scn: Any, node: str) -> HorizonSendPath:
     """Send path of ``node`` ("ecu3", "plant", or a phantom babbler's name)."""
-    path = build_impairments(scn.bus.impairments, scn.seed, node, exempt_ids=exempt_ids(scn.n_cars))
+    path = build_impairments(scn.bus.impairments, scn.seed, node, exempt_ids=exempt_ids(_layout(scn)))
     return HorizonSendPath(MessageSendPath(path, node))
+
+
+def _layout(scn: Any) -> Any:
+    from canbrake.build import bus_layout
+
+    return bus_layout(scn)

@@ -110,9 +110,81 @@ def register(name: str) -> Callable[[ControllerFactory], ControllerFactory]:
 
 
 def available() -> list[str]:
-    """Names of the registered controllers."""
+    """Names of the registered controllers (built-in and from the ``canbrake.controllers`` entry points)."""
     _load_builtin()
     return sorted(_REGISTRY)
+
+
+class ControllerError(ValueError):
+    """A controller name or parameter is wrong; ``param`` names the parameter ("" for the name)."""
+
+    def __init__(self, message: str, param: str = "") -> None:
+        super().__init__(message)
+        self.param = param
+
+
+def controller_class(name: str) -> ControllerFactory:
+    """The controller registered as ``name`` (built-in, or an entry point of group
+    ``canbrake.controllers`` in any installed package, python-can style)."""
+    _load_builtin()
+    if name not in _REGISTRY:
+        _load_entry_point(name)
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        raise ControllerError(f"unknown controller {name!r}; available: {', '.join(available())}") from None
+
+
+def check_params(name: str, params: Mapping[str, Any]) -> dict[str, Any]:
+    """Validate ``params`` against the controller's constructor (its schema): unknown names and
+    values of the wrong type are errors naming the parameter. Returns the values converted to
+    the annotated types (e.g. the YAML string "2.0e5" to a float)."""
+    import inspect
+
+    import pydantic
+
+    cls = controller_class(name)
+    sig = inspect.signature(cls)  # type: ignore[arg-type]
+    fixed = {"car_index", "n_cars", "mass_kg", "dt_s"}
+    accepts_any = any(p.kind is p.VAR_KEYWORD for p in sig.parameters.values())
+    fields: dict[str, Any] = {}
+    for pname, p in sig.parameters.items():
+        if pname in fixed or p.kind in (p.VAR_KEYWORD, p.VAR_POSITIONAL):
+            continue
+        ann = p.annotation if p.annotation is not inspect.Parameter.empty else Any
+        if isinstance(ann, str):  # postponed annotations: resolve in the controller's module
+            import sys
+            import typing
+
+            mod = sys.modules.get(getattr(cls, "__module__", ""), None)
+            try:
+                ann = eval(ann, {**vars(typing), **(vars(mod) if mod else {})})  # noqa: S307 - our own annotations
+            except Exception:  # noqa: BLE001 - an annotation we cannot resolve is not checked
+                ann = Any
+        default = p.default if p.default is not inspect.Parameter.empty else ...
+        fields[pname] = (ann, default)
+    unknown = [k for k in params if k not in fields and k not in fixed]
+    if unknown and not accepts_any:
+        raise ControllerError(f"unknown parameter of controller {name!r} "
+                              f"(parameters: {', '.join(sorted(fields)) or 'none'})", unknown[0])
+    import math
+
+    for k, v in params.items():
+        vals = v if isinstance(v, (list, tuple)) else [v]
+        if any(isinstance(x, float) and math.isnan(x) for x in vals):
+            raise ControllerError(f"not a number (controller {name!r})", k)
+    model = pydantic.create_model(f"{name}_params", __config__=pydantic.ConfigDict(
+        arbitrary_types_allowed=True), **fields)  # type: ignore[call-overload]
+    given = {k: v for k, v in params.items() if k in fields}
+    try:
+        checked = model(**given)
+    except pydantic.ValidationError as e:
+        err = e.errors()[0]
+        where = ".".join(str(x) for x in err["loc"])
+        raise ControllerError(f"{err['msg']} (controller {name!r})", where) from None
+    out = dict(params)
+    out.update({k: getattr(checked, k) for k in given})
+    return out
 
 
 def make_controller(
@@ -124,13 +196,27 @@ def make_controller(
     mass_kg: float,
     dt_s: float,
 ) -> Controller:
-    """Build the controller registered as ``name`` for one car."""
-    _load_builtin()
-    try:
-        cls = _REGISTRY[name]
-    except KeyError:
-        raise KeyError(f"unknown controller {name!r}; available: {', '.join(sorted(_REGISTRY))}") from None
-    return cls(car_index=car_index, n_cars=n_cars, mass_kg=mass_kg, dt_s=dt_s, **dict(params))
+    """Build the controller registered as ``name`` for one ECU (``car_index``: the ECU's index,
+    0-based; ``n_cars``: number of ECUs; ``mass_kg``: mass of its vehicle)."""
+    cls = controller_class(name)
+    return cls(car_index=car_index, n_cars=n_cars, mass_kg=mass_kg, dt_s=dt_s, **check_params(name, params))
+
+
+def _load_entry_point(name: str) -> None:
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group="canbrake.controllers"):
+        if ep.name == name:
+            try:
+                cls = ep.load()
+            except Exception as e:  # noqa: BLE001 - a broken third-party package: say which
+                dist = getattr(getattr(ep, "dist", None), "name", "?")
+                raise ControllerError(f"controller {name!r} (entry point {ep.value!r} of package {dist}) "
+                                      f"cannot be loaded: {type(e).__name__}: {e}") from None
+            if not (isinstance(cls, type) and issubclass(cls, Controller)):
+                raise ControllerError(f"controller {name!r}: entry point {ep.value!r} is not a "
+                                      f"canbrake.control.base.Controller subclass")
+            _REGISTRY.setdefault(name, cls)
 
 
 def _load_builtin() -> None:

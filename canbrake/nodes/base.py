@@ -113,9 +113,11 @@ class CsvTrace:
 
 
 def frame(arbitration_id: int, data: bytes) -> can.Message:
-    """A classic standard-id data frame."""
-    return can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+    """A classic data frame; identifiers above 0x7FF are 29-bit (extended)."""
+    return can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=arbitration_id > 0x7FF)
 
 
-def exact_filter(arbitration_id: int) -> dict[str, Any]:
-    return {"can_id": arbitration_id, "can_mask": 0x7FF, "extended": False}
+def exact_filter(arbitration_id: int, extended: bool | None = None) -> dict[str, Any]:
+    """A python-can filter matching exactly one identifier (29-bit if ``extended`` or id > 0x7FF)."""
+    ext = arbitration_id > 0x7FF if extended is None else extended
+    return {"can_id": arbitration_id, "can_mask": 0x1FFFFFFF if ext else 0x7FF, "extended": ext}

@@ -37,28 +37,23 @@ class EcuStats:
     bus_latency: dict = field(default_factory=dict)  # timing model: per kind p50/p99/max (s)
 
 
-def _kind(aid: int) -> str:
-    if dbc.STATE_BASE < aid <= dbc.STATE_BASE + dbc.MAX_CARS:
-        return "state"
-    if dbc.BRAKE_CMD_BASE < aid <= dbc.BRAKE_CMD_BASE + dbc.MAX_CARS:
-        return "brake_cmd"
-    if dbc.HEARTBEAT_BASE <= aid <= dbc.HEARTBEAT_BASE + dbc.MAX_CARS:
-        return "heartbeat"
-    return "other"
-
-
 class EcuNode(Node):
-    """Brake ECU of car ``car`` (1-based)."""
+    """An ECU of the placement (``spec``: its :class:`~canbrake.bus.dbc.EcuSpec`), running one
+    controller: SENSOR frames from its vehicle and STATE frames of the ECUs it listens to in,
+    command frames to the plant and STATE frames to its listeners out."""
 
-    def __init__(self, car: int, n_cars: int, controller: Controller, codec: FrameCodec, *, dt_s: float,
+    def __init__(self, spec: Any, layout: Any, controller: Controller, codec: FrameCodec, *, dt_s: float,
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
                  crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
                  barrier: bool = True, rx_path: Any = None) -> None:
-        self.car = car
-        self.i = car - 1
-        self.n = n_cars
-        self.name = f"ecu{car}"
+        self.spec = spec
+        self.layout = layout
+        self.car = spec.vehicle            # vehicle number (trace suffix _c<vehicle>)
+        self.index = spec.index            # position in the identifier plan (1-based)
+        self.i = spec.index - 1
+        self.n = len(layout.ecus)
+        self.name = spec.name
         self.controller = controller
         self.codec = codec
         self.dt = dt_s
@@ -80,36 +75,55 @@ class EcuNode(Node):
         self._latency: dict[str, list[float]] = {}
         self._t0_wall: float | None = None
         self.k = -1
-        self.phase = 0  # 0 waiting for sensor, 1 waiting for peers, 2 done for this tick
-        self.speed = np.nan
-        self.position = np.nan
-        self.defl_front: float | None = None
-        self.defl_rear: float | None = None
+        self.phase = 0  # 0 waiting for sensors, 1 waiting for peers, 2 done for this tick
+        self.sensors: dict[str, float] = {n: math.nan for n in spec.sensors}
         self.v_ref = 0.0
         self.a_ref = 0.0
-        self.peer_speed = np.full(n_cars, np.nan)
-        self.peer_pos = np.full(n_cars, np.nan)
-        self.peer_origin = np.full(n_cars, -(10 ** 12), dtype=np.int64)
-        self._peers = [j for j in range(n_cars) if j != self.i]
-        self._all_done = (1 << n_cars) - 1  # bit j set: STATE_DONE of car j seen this tick
-        self._done = 1 << self.i
-        self._state_codec = codec[f"STATE_C{car}"]
-        self._cmd_codec = codec[f"BRAKE_CMD_C{car}"]
-        self._sdone = codec[f"STATE_DONE_C{car}"]
-        self._cdone = codec[f"CMD_DONE_C{car}"]
-        self._hb = codec[f"HEARTBEAT_C{car}"]
-        self._sensor_id = dbc.SENSOR_BASE + car
-        self._coupler_id = dbc.COUPLER_BASE + car
+        self.x_ref = math.nan
+        # frames in: sensor pages (the last one starts phase 1), peers' state pages
+        self._sensor_pages = {m.frame_id: [(sig, spec_.name) for sig, spec_ in m.signals if sig]
+                              for m in layout.messages if m.kind == "sensor" and m.ecu == self.index}
+        self._last_sensor_id = max(self._sensor_pages)
+        self._listens = list(spec.listens)                     # ECU indices (1-based)
+        self._slot = {j: s for s, j in enumerate(self._listens)}  # listened ECU -> bit
+        self._state_pages: dict[int, tuple[int, int, list[tuple[str, str]]]] = {}  # id -> (ecu, page, sigs)
+        self._pages_of: dict[int, int] = {}
+        for m in layout.messages:
+            if m.kind == "state" and m.ecu in self._slot:
+                self._state_pages[m.frame_id] = (m.ecu, m.page, [(sig, sp.name) for sig, sp in m.signals if sig])
+                self._pages_of[m.ecu] = self._pages_of.get(m.ecu, 0) + 1
+        self._state_done_ids = {layout.plan.state_done(j): j for j in self._listens}
+        names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
+                       | {"speed_mps", "position_m"})
+        self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
+        self.peer_origin = np.full(self.n, -(10 ** 12), dtype=np.int64)
+        self._page_fresh = np.zeros(self.n, dtype=np.int64)  # pages of this tick seen, per ECU
+        self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
+        self._done = 0
+        # frames out
+        self._cmd_msgs = [(m.frame_id, codec[m.name], [(sig, sp.name) for sig, sp in m.signals if sig])
+                          for m in layout.messages if m.kind == "cmd" and m.ecu == self.index]
+        self._state_msgs = ([(m.frame_id, codec[m.name], [(sig, sp.name) for sig, sp in m.signals if sig])
+                             for m in layout.messages if m.kind == "state" and m.ecu == self.index]
+                            if spec.listeners else [])
+        self._broadcast: dict[str, float] = {}
+        self._hb_id = layout.plan.heartbeat(self.index)
+        self._sdone_id = layout.plan.state_done(self.index)
+        self._cdone_id = layout.plan.cmd_done(self.index)
+        self._hb = codec.by_id[self._hb_id]
+        self._sdone = codec.by_id.get(self._sdone_id)  # None: nobody listens, no state phase to close
+        self._cdone = codec.by_id[self._cdone_id]
+        self._sync_id = dbc.SYNC_ID
         self._deadline: float | None = None
         self._trace: CsvTrace | None = None
 
     def filters(self) -> list[dict]:
-        ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, self._sensor_id, self._coupler_id]
-        for j in self._peers:
-            ids.append(dbc.STATE_BASE + j + 1)
-            if self.barrier:
-                ids.append(dbc.STATE_DONE_BASE + j + 1)
-        return [exact_filter(i) for i in ids]
+        ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, *self._sensor_pages, *self._state_pages]
+        if self.layout.ref_position:
+            ids.append(dbc.REFERENCE_POS_ID)
+        if self.barrier:
+            ids += list(self._state_done_ids)
+        return [exact_filter(i, self.layout.plan.extended and i > 0x7FF) for i in ids]
 
     def start(self, now: float) -> list[can.Message]:
         self._trace = CsvTrace(None if self.out_dir is None else self.out_dir / f"ecu_c{self.car}.csv",
@@ -120,42 +134,46 @@ class EcuNode(Node):
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
-        if aid == dbc.SYNC_ID:
+        if aid == self._sync_id and not msg.is_extended_id:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
             if tick == dbc.SYNC_END_TICK:
                 self.finished = True
                 return []
             self.k = int(tick)
             self.phase = 0
-            self._done = 1 << self.i
+            self._done = 0
+            self._page_fresh[:] = 0
             return []
-        if aid == self._sensor_id:
+        page = self._sensor_pages.get(aid)
+        if page is not None:
             d = self.codec.by_id[aid].decode(msg.data)
-            self.speed, self.position = d["Speed"], d["Position"]
-            return self._phase1(now)
+            for sig, dbc_name in page:
+                self.sensors[sig] = d[dbc_name]
+            return self._phase1(now) if aid == self._last_sensor_id else []
         if aid == dbc.REFERENCE_ID:
             d = self.codec.by_id[aid].decode(msg.data)
             self.v_ref, self.a_ref = d["RefSpeed"], d["RefDecel"]
             return []
-        if aid == self._coupler_id:
-            d = self.codec.by_id[aid].decode(msg.data)
-            self.defl_front = d["DeflFront"] if self.i > 0 else None
-            self.defl_rear = d["DeflRear"] if self.i < self.n - 1 else None
+        if aid == dbc.REFERENCE_POS_ID:
+            self.x_ref = self.codec.by_id[aid].decode(msg.data)["RefPosition"]
             return []
-        if dbc.STATE_BASE < aid <= dbc.STATE_BASE + self.n:
-            j = aid - dbc.STATE_BASE - 1
+        st = self._state_pages.get(aid)
+        if st is not None:
+            j = st[0] - 1
             if self.rx_path is not None:
                 self._receive_linked(msg, j, now)
                 return []
             if self._on_state(j, msg) and not self.barrier:
-                self._done |= 1 << j
-                if self.phase == 1 and self._done == self._all_done:
-                    return self._phase2(now)
+                if self._page_fresh[j] == self._pages_of[j + 1]:
+                    self._done |= 1 << self._slot[j + 1]
+                    if self.phase == 1 and self._done == self._all_done:
+                        return self._phase2(now)
             return []
-        if dbc.STATE_DONE_BASE < aid <= dbc.STATE_DONE_BASE + self.n:
+        src = self._state_done_ids.get(aid)
+        if src is not None:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
             if tick == (self.k & 0xFFFF):
-                self._done |= 1 << (aid - dbc.STATE_DONE_BASE - 1)
+                self._done |= 1 << self._slot[src]
                 if self.phase == 1 and self._done == self._all_done:
                     return self._phase2(now)
         return []
@@ -166,7 +184,7 @@ class EcuNode(Node):
         from canbrake.bus.impair import TxFrame
 
         t, horizon = self._times(now, 1)
-        self.rx_path.submit(TxFrame.from_message(msg, f"ecu{j + 1}", t))
+        self.rx_path.submit(TxFrame.from_message(msg, self.layout.by_index[j + 1].name, t))
         self._release_linked(horizon)
 
     def _release_linked(self, horizon: float) -> None:
@@ -174,29 +192,38 @@ class EcuNode(Node):
             return
         for f in self.rx_path.release(horizon):
             m = f.to_message()
-            self._on_state(m.arbitration_id - dbc.STATE_BASE - 1, m)
+            self._on_state(self._state_pages[m.arbitration_id][0] - 1, m)
 
     def _on_state(self, j: int, msg: can.Message) -> bool:
-        """Take a peer's state frame; True if it is this tick's."""
+        """Take a state frame of ECU index j+1; True if it is this tick's."""
         data = msg.data
         if len(data) < 2 or data[0] != e2e_crc(msg.arbitration_id, data):
             self.stats.peer_corrupted += 1
             return False
         lag = (self.k - counter_of(msg.data)) % COUNTER_MODULO
         origin = self.k - lag
-        if origin <= self.peer_origin[j]:
+        if origin < self.peer_origin[j] or (origin == self.peer_origin[j] and self._pages_of[j + 1] == 1):
             self.stats.peer_stale_or_duplicate += 1
             return False
+        _, _page, sigs = self._state_pages[msg.arbitration_id]
         d = self.codec.by_id[msg.arbitration_id].decode(msg.data)
-        self.peer_speed[j], self.peer_pos[j], self.peer_origin[j] = d["Speed"], d["Position"], origin
+        for sig, dbc_name in sigs:
+            self.peer_signals[sig][j] = d[dbc_name]
+        if origin > self.peer_origin[j]:
+            self.peer_origin[j] = origin
+            self._page_fresh[j] = 0
         self.stats.peer_frames += 1
-        return origin == self.k
+        if origin == self.k:
+            self._page_fresh[j] += 1
+            return True
+        return False
 
     # ---------------------------------------------------------------- send
     def _emit(self, msg: can.Message, t_s: float, out: list[can.Message]) -> None:
         if self.bus_timing is not None:
             lat = self.bus_timing.latency_s(self.k, self.name, msg.arbitration_id, t_s)
-            self._latency.setdefault(_kind(msg.arbitration_id), []).append(lat)
+            kind = self.layout.by_id[msg.arbitration_id].kind
+            self._latency.setdefault("brake_cmd" if kind == "cmd" else kind, []).append(lat)
             if not math.isfinite(lat):  # starved by higher-priority traffic: never gets on the bus
                 self.stats.frames_starved += 1
                 return
@@ -224,13 +251,16 @@ class EcuNode(Node):
         self._release_linked(horizon)
         out: list[can.Message] = []
         if self.k % self.heartbeat_every == 0:
-            self._emit(frame(dbc.HEARTBEAT_BASE + self.car, self._hb.encode({"NodeState": 5})), t, out)
-        state = self._state_codec.encode({"Speed": self.speed, "Position": self.position},
-                                         counter=self.k % COUNTER_MODULO)
-        self._emit(frame(dbc.STATE_BASE + self.car, state), t, out)
+            self._emit(frame(self._hb_id, self._hb.encode({"NodeState": 5})), t, out)
+        if self._state_msgs:
+            values = {**self._broadcast, **self.sensors}
+            for fid, codec, sigs in self._state_msgs:
+                payload = codec.encode({dn: values[sig] for sig, dn in sigs if math.isfinite(values.get(sig, math.nan))},
+                                       counter=self.k % COUNTER_MODULO)
+                self._emit(frame(fid, payload), t, out)
         out += self.send_path.release(horizon)
-        if self.barrier:
-            out.append(frame(dbc.STATE_DONE_BASE + self.car, self._sdone.encode({"Tick": self.k & 0xFFFF})))
+        if self.barrier and self._state_msgs:
+            out.append(frame(self._sdone_id, self._sdone.encode({"Tick": self.k & 0xFFFF})))
         self.phase = 1
         if self.mode == "realtime":
             self._deadline = now + self.compute_deadline * self.dt
@@ -243,26 +273,39 @@ class EcuNode(Node):
         self._deadline = None
         t, horizon = self._times(now, 2)
         self._release_linked(self._times(now, 1)[1])
-        speed = self.peer_speed.copy()
-        pos = self.peer_pos.copy()
-        speed[self.i], pos[self.i] = self.speed, self.position
+        own_speed = self.sensors.get("speed_mps", math.nan)
+        own_pos = self.sensors.get("position_m", math.nan)
+        peers = {nm: arr.copy() for nm, arr in self.peer_signals.items()}
+        for nm, arr in peers.items():
+            if nm in self.sensors:
+                arr[self.i] = self.sensors[nm]
         origin = self.peer_origin.copy()
         origin[self.i] = self.k
-        age = np.where(np.isnan(speed), np.inf, (self.k - origin) * self.dt)
-        fresh = int((origin == self.k).sum())
-        self.stats.peer_missing += self.n - fresh
-        obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=self.speed, position_m=self.position,
+        speed = peers["speed_mps"]
+        age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
+        listened = [j - 1 for j in self._listens]
+        fresh = int((origin[listened] == self.k).sum()) + 1 if listened else 1
+        self.stats.peer_missing += len(listened) + 1 - fresh
+        obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
-                          peer_position_m=pos, peer_age_s=age, deflection_front_m=self.defl_front,
-                          deflection_rear_m=self.defl_rear)
+                          peer_position_m=peers["position_m"], peer_age_s=age,
+                          deflection_front_m=self.sensors.get("deflection_front_m") if self.car > 1 else None,
+                          deflection_rear_m=(self.sensors.get("deflection_rear_m")
+                                             if "deflection_rear_m" in self.sensors and not self._last_vehicle() else None),
+                          ref_position_m=self.x_ref, sensors=dict(self.sensors), peer_signals=peers)
         result = self.controller.step(obs)
+        self._broadcast = result.broadcast
         out: list[can.Message] = []
-        cmd = self._cmd_codec.encode({"Status": 0, "BrakeForce": result.brake_force_n},
-                                     counter=self.k % COUNTER_MODULO)
-        self._emit(frame(dbc.BRAKE_CMD_BASE + self.car, cmd), t, out)
+        values = {"brake_force_n": result.brake_force_n, **result.commands}
+        status = int(result.diagnostics.get("status", 0)) if "status" in result.diagnostics else 0
+        for fid, codec, sigs in self._cmd_msgs:
+            cmd = codec.encode({"Status": status, **{dn: float(values.get(sig, math.nan)) for sig, dn in sigs
+                                                     if math.isfinite(values.get(sig, math.nan))}},
+                               counter=self.k % COUNTER_MODULO)
+            self._emit(frame(fid, cmd), t, out)
         out += self.send_path.release(horizon)
         if self.barrier:
-            out.append(frame(dbc.CMD_DONE_BASE + self.car, self._cdone.encode({"Tick": self.k & 0xFFFF})))
+            out.append(frame(self._cdone_id, self._cdone.encode({"Tick": self.k & 0xFFFF})))
         self.stats.ticks += 1
         if self._trace is not None:
             finite_age = age[np.isfinite(age)]
@@ -270,6 +313,9 @@ class EcuNode(Node):
                                 *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
                                 float(finite_age.max()) if finite_age.size else np.inf, fresh])
         return out
+
+    def _last_vehicle(self) -> bool:
+        return self.car >= getattr(self.layout, "n_vehicles", 10 ** 9)
 
     # ---------------------------------------------------------------- realtime
     def next_deadline(self) -> float | None:

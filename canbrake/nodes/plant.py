@@ -7,6 +7,7 @@ It knows frames and timing, not train formulas: the physics is any object follow
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
@@ -20,20 +21,10 @@ from canbrake.bus.e2e import E2EReceiver, E2EStatus, counter_of
 from canbrake.nodes.base import CsvTrace, Node, exact_filter, frame
 
 
-class PlantModel(Protocol):
-    """The physics the plant node drives (SI units)."""
-
-    n_cars: int
-
-    def step(self, dt_s: float, brake_force_cmd_n: np.ndarray) -> None:
-        """Advance by ``dt_s`` holding the commanded braking forces (N, shape (n,))."""
-
-    def measurements(self) -> dict[str, np.ndarray]:
-        """Current state: position_m, speed_mps, accel_mps2, applied_brake_n (n,);
-        deflection_m, coupler_force_n (n-1,)."""
+from canbrake.physics.contract import PlantModel  # noqa: E402  (the contract every model implements)
 
 
-Reference = Callable[[float], tuple[float, float]]  # t_s -> (v* m/s, a* m/s^2)
+Reference = Callable[[float], tuple[float, float]]  # t_s -> (v* m/s, a* m/s^2); may have .position(t_s) -> x* m
 
 
 @dataclass
@@ -71,19 +62,21 @@ class PlantNode(Node):
 
     name = "plant"
 
-    def __init__(self, model: PlantModel, codec: FrameCodec, *, dt_s: float, n_ticks: int,
-                 reference: Reference, mode: str = "lockstep", coupler_sensors: bool = False,
+    def __init__(self, model: PlantModel, codec: FrameCodec, *, layout: Any, dt_s: float, n_ticks: int,
+                 reference: Reference, mode: str = "lockstep",
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
                  flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None,
                  barrier: bool = True, failsafe: FailSafe | None = None) -> None:
         self.model = model
         self.codec = codec
-        self.n = model.n_cars
+        self.layout = layout
+        self.n = model.n_vehicles
+        self.ecus = list(layout.ecus)
+        self.n_ecus = len(self.ecus)
         self.dt = dt_s
         self.n_ticks = n_ticks
         self.reference = reference
         self.mode = mode
-        self.coupler_sensors = coupler_sensors
         self.heartbeat_every = max(1, int(round(heartbeat_period_s / dt_s)))
         self.out_dir = Path(out_dir) if out_dir else None
         self.flush_every = flush_every
@@ -93,31 +86,62 @@ class PlantNode(Node):
         # barrier=False: commands cannot be lost or delayed, so the commands themselves close the tick
         self.barrier = barrier
         self.k = 0
-        self.stats = PlantStats(commands_missed_per_car=[0] * self.n)
-        self.cmd_n = np.zeros(self.n)
-        self._fresh = np.zeros(self.n, dtype=bool)
-        self._done = 0  # bit i set: CMD_DONE of car i seen this tick
-        self._all_done = (1 << self.n) - 1
-        self._e2e = [E2EReceiver(dbc.BRAKE_CMD_BASE + c) for c in range(1, self.n + 1)]
-        self._last_counter = [-1] * self.n  # tick of each car's newest accepted command
+        self.stats = PlantStats(commands_missed_per_car=[0] * self.n_ecus)
+        # commands by name, per vehicle (NaN: no ECU commands it); 0 until a vehicle's first command
+        self.command_names = sorted({c for e in self.ecus for c in e.commands})
+        self.commands = {c: np.full(self.n, np.nan) for c in self.command_names}
+        for e in self.ecus:
+            for c in e.commands:
+                self.commands[c][e.vehicle - 1] = 0.0
+        if "brake_force_n" not in self.commands:
+            self.commands["brake_force_n"] = np.full(self.n, np.nan)
+        self.cmd_n = self.commands["brake_force_n"]
+        # command frames: id -> (ECU slot, page, codec, [(signal, dbc name)])
+        self._cmd_pages: dict[int, tuple[int, int, Any, list[tuple[str, str]]]] = {}
+        self._pages_per_ecu = np.zeros(self.n_ecus, dtype=np.int64)
+        for m in layout.messages:
+            if m.kind == "cmd":
+                slot = m.ecu - 1
+                self._cmd_pages[m.frame_id] = (slot, m.page, codec[m.name],
+                                               [(sig, sp.name) for sig, sp in m.signals if sig])
+                self._pages_per_ecu[slot] += 1
+        self._cmd_done_ids = {layout.plan.cmd_done(e.index): e.index - 1 for e in self.ecus}
+        self._veh = np.asarray([e.vehicle - 1 for e in self.ecus], dtype=np.int64)
+        self._fresh_pages = np.zeros(self.n_ecus, dtype=np.int64)
+        self._fresh = np.zeros(self.n_ecus, dtype=bool)
+        self._done = 0  # bit i set: CMD_DONE of ECU slot i seen this tick
+        self._all_done = (1 << self.n_ecus) - 1
+        self._e2e = {fid: E2EReceiver(fid) for fid in self._cmd_pages}
+        self._last_counter = np.full(self.n_ecus, -1, dtype=np.int64)  # tick of each ECU's newest command
+        self._page_origin = {fid: -1 for fid in self._cmd_pages}
         self.failsafe = failsafe
-        self._in_failsafe = np.zeros(self.n, dtype=bool)
+        self._in_failsafe = np.zeros(self.n_ecus, dtype=bool)
         self._sync = codec["SYNC"]
         self._ref = codec["REFERENCE"]
-        self._sensor = [codec[f"SENSOR_C{c}"] for c in range(1, self.n + 1)]
-        self._coupler = [codec[f"COUPLER_C{c}"] for c in range(1, self.n + 1)]
-        self._cmd_codec = {dbc.BRAKE_CMD_BASE + c: codec[f"BRAKE_CMD_C{c}"] for c in range(1, self.n + 1)}
+        self._ref_pos = codec["REFERENCE_POS"] if layout.ref_position else None
+        self._sensor_msgs = [(m.frame_id, codec[m.name], m.ecu, [(sig, sp.name) for sig, sp in m.signals if sig])
+                             for m in layout.messages if m.kind == "sensor"]
         self._hb = codec["HEARTBEAT_PLANT"]
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
         self._trace: CsvTrace | None = None
+        self._extra_meas: list[str] | None = None
 
     # ---------------------------------------------------------------- frames
     def filters(self) -> list[dict]:
-        ids = [dbc.BRAKE_CMD_BASE + c for c in range(1, self.n + 1)]
+        ids = list(self._cmd_pages)
         if self.barrier:
-            ids += [dbc.CMD_DONE_BASE + c for c in range(1, self.n + 1)]
+            ids += list(self._cmd_done_ids)
         return [exact_filter(i) for i in ids]
+
+    @staticmethod
+    def _vehicle_value(meas: dict[str, np.ndarray], name: str, v: int, n: int) -> float:
+        """Measurement ``name`` of vehicle index ``v`` (0-based) for its ECU's sensor frame."""
+        if name == "deflection_front_m":
+            return float(meas["deflection_m"][v - 1]) if v > 0 else 0.0
+        if name == "deflection_rear_m":
+            return float(meas["deflection_m"][v]) if v < n - 1 else 0.0
+        return float(meas[name][v])
 
     def _tick_frames(self) -> list[can.Message]:
         k = self.k
@@ -126,18 +150,19 @@ class PlantNode(Node):
         v_ref, a_ref = self.reference(t)
         out = [frame(dbc.SYNC_ID, self._sync.encode({"Tick": k})),
                frame(dbc.REFERENCE_ID, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
+        if self._ref_pos is not None:
+            out.append(frame(dbc.REFERENCE_POS_ID, self._ref_pos.encode({"RefPosition": self.reference.position(t)})))
         if k % self.heartbeat_every == 0:
             out.append(frame(dbc.HEARTBEAT_BASE, self._hb.encode({"NodeState": 5})))
-        x, v = meas["position_m"], meas["speed_mps"]
-        if self.coupler_sensors:
-            d = meas["deflection_m"]
-            for i in range(self.n):
-                front = float(d[i - 1]) if i > 0 else 0.0
-                rear = float(d[i]) if i < self.n - 1 else 0.0
-                out.append(frame(dbc.COUPLER_BASE + i + 1, self._coupler[i].encode({"DeflFront": front, "DeflRear": rear})))
-        for i in range(self.n):
-            out.append(frame(dbc.SENSOR_BASE + i + 1,
-                             self._sensor[i].encode({"Speed": float(v[i]), "Position": float(x[i])})))
+        n = self.n
+        for fid, codec, ecu, sigs in self._sensor_msgs:
+            v = self.ecus[ecu - 1].vehicle - 1
+            vals = {}
+            for sig, dbc_name in sigs:
+                x = self._vehicle_value(meas, sig, v, n)
+                if math.isfinite(x):
+                    vals[dbc_name] = x
+            out.append(frame(fid, codec.encode(vals)))
         for sp in self.hosted:
             out += sp.release(t)
         return out
@@ -153,24 +178,28 @@ class PlantNode(Node):
 
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
-        if dbc.BRAKE_CMD_BASE < aid <= dbc.BRAKE_CMD_BASE + self.n:
-            i = aid - dbc.BRAKE_CMD_BASE - 1
-            if self._on_command(i, msg) and not self.barrier and self.mode == "lockstep":
-                self._done |= 1 << i
-                if self._done == self._all_done:
-                    return self._advance(now)
+        page = self._cmd_pages.get(aid)
+        if page is not None:
+            slot = page[0]
+            if self._on_command(aid, page, msg) and not self.barrier and self.mode == "lockstep":
+                if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
+                    self._done |= 1 << slot
+                    if self._done == self._all_done:
+                        return self._advance(now)
             return []
-        if self.mode == "lockstep" and dbc.CMD_DONE_BASE < aid <= dbc.CMD_DONE_BASE + self.n:
+        slot = self._cmd_done_ids.get(aid)
+        if slot is not None and self.mode == "lockstep":
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
             if tick == (self.k & 0xFFFF):
-                self._done |= 1 << (aid - dbc.CMD_DONE_BASE - 1)
+                self._done |= 1 << slot
                 if self._done == self._all_done:
                     return self._advance(now)
         return []
 
-    def _on_command(self, i: int, msg: can.Message) -> bool:
-        """Take a brake command; True if it is this tick's."""
-        status = self._e2e[i].check(msg.data)
+    def _on_command(self, aid: int, page: tuple[int, int, Any, list[tuple[str, str]]], msg: can.Message) -> bool:
+        """Take a command frame; True if it is this tick's."""
+        slot, _p, codec, sigs = page
+        status = self._e2e[aid].check(msg.data)
         if status is E2EStatus.WRONG_CRC:
             self.stats.commands_corrupted += 1
             return False
@@ -183,13 +212,19 @@ class PlantNode(Node):
         if lag > 7:  # from the future is impossible; treat as very old
             return False
         origin = self.k - lag
-        if origin <= self._last_counter[i]:
+        if origin <= self._page_origin[aid]:
             return False
-        self._last_counter[i] = origin
-        self.cmd_n[i] = self._cmd_codec[msg.arbitration_id].decode(msg.data)["BrakeForce"]
+        self._page_origin[aid] = origin
+        self._last_counter[slot] = max(self._last_counter[slot], origin)
+        d = codec.decode(msg.data)
+        v = self._veh[slot]
+        for sig, dbc_name in sigs:
+            self.commands[sig][v] = d[dbc_name]
         self.stats.commands_received += 1
         if origin == self.k:
-            self._fresh[i] = True
+            self._fresh_pages[slot] += 1
+            if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
+                self._fresh[slot] = True
             return True
         return False
 
@@ -210,22 +245,25 @@ class PlantNode(Node):
             self.stats.late_periods += 1
         return self._advance(now)
 
-    def _applied_commands(self) -> np.ndarray:
-        """The force each car's brake unit applies this tick (N): the newest command, or the
-        fail-safe force for cars whose commands have stopped."""
+    def _applied_commands(self) -> dict[str, np.ndarray]:
+        """The commands each vehicle's equipment applies this tick: the newest command, or the
+        fail-safe brake force for vehicles whose ECU's commands have stopped."""
         fs = self.failsafe
+        cmds = {c: a.copy() for c, a in self.commands.items()}
         if fs is None:
-            return self.cmd_n.copy()
-        age = self.k - np.asarray(self._last_counter)  # ticks since the newest valid command
+            return cmds
+        age = self.k - self._last_counter  # ticks since the newest valid command, per ECU
         if not fs.latch:
             self._in_failsafe &= ~self._fresh
         entering = (age > fs.timeout_ticks) & ~self._in_failsafe
         for i in np.flatnonzero(entering):
             self.stats.failsafe_activations += 1
-            self.stats.failsafe_first_s.setdefault(f"c{i + 1}", round(self.k * self.dt, 9))
+            self.stats.failsafe_first_s.setdefault(f"c{self.ecus[i].vehicle}", round(self.k * self.dt, 9))
         self._in_failsafe |= entering
         self.stats.failsafe_ticks += int(self._in_failsafe.sum())
-        return np.where(self._in_failsafe, fs.force_n, self.cmd_n)
+        veh = self._veh[self._in_failsafe]
+        cmds["brake_force_n"][veh] = fs.force_n[veh]
+        return cmds
 
     def _advance(self, now: float) -> list[can.Message]:
         self.stats.commands_missed += int((~self._fresh).sum())
@@ -247,6 +285,7 @@ class PlantNode(Node):
         if self.progress is not None:
             self.progress.value = self.k
         self._fresh[:] = False
+        self._fresh_pages[:] = 0
         self._done = 0
         if self.k >= self.n_ticks:
             self._record(final=True)
@@ -258,15 +297,32 @@ class PlantNode(Node):
         return self._tick_frames()
 
     # ---------------------------------------------------------------- trace
+    _STANDARD = ("position_m", "speed_mps", "accel_mps2", "applied_brake_n", "deflection_m", "coupler_force_n")
+
+    def _extra_measurements(self) -> list[str]:
+        """Per-vehicle measurement arrays beyond the standard ones, in a stable order."""
+        if self._extra_meas is None:
+            m = self.model.measurements()
+            self._extra_meas = sorted(k for k, v in m.items()
+                                      if k not in self._STANDARD and np.shape(v) == (self.n,))
+        return self._extra_meas
+
     def columns(self) -> list[str]:
         cols = ["tick", "t_s", "ref_speed_mps", "ref_decel_mps2"]
+        if self._ref_pos is not None:
+            cols.append("ref_position_m")
         for c in range(1, self.n + 1):
             cols += [f"position_m_c{c}", f"speed_mps_c{c}", f"accel_mps2_c{c}",
                      f"brake_cmd_n_c{c}", f"brake_applied_n_c{c}"]
         for c in range(1, self.n):
             cols += [f"deflection_m_k{c}", f"coupler_force_n_k{c}"]
         if self.failsafe is not None:
-            cols += [f"failsafe_c{c}" for c in range(1, self.n + 1)]
+            cols += [f"failsafe_c{e.vehicle}" for e in self.ecus]
+        for name in self.command_names:
+            if name != "brake_force_n":
+                cols += [f"cmd_{name}_c{e.vehicle}" for e in self.ecus if name in e.commands]
+        for name in self._extra_measurements():
+            cols += [f"{name}_c{c}" for c in range(1, self.n + 1)]
         return cols
 
     def _open_trace(self) -> None:
@@ -278,13 +334,23 @@ class PlantNode(Node):
         t = self.k * self.dt
         v_ref, a_ref = self.reference(t)
         row: list[float] = [self.k, t, v_ref, a_ref]
+        if self._ref_pos is not None:
+            row.append(self.reference.position(t))
         cmd = np.full(self.n, np.nan) if final else self.cmd_n
+        pos, spd, acc, app = m["position_m"], m["speed_mps"], m["accel_mps2"], m["applied_brake_n"]
         for i in range(self.n):
-            row += [m["position_m"][i], m["speed_mps"][i], m["accel_mps2"][i], cmd[i], m["applied_brake_n"][i]]
+            row += [pos[i], spd[i], acc[i], cmd[i], app[i]]
+        d, f = m["deflection_m"], m["coupler_force_n"]
         for j in range(self.n - 1):
-            row += [m["deflection_m"][j], m["coupler_force_n"][j]]
+            row += [d[j], f[j]]
         if self.failsafe is not None:
-            row += [int(f) for f in self._in_failsafe]
+            row += [int(x) for x in self._in_failsafe]
+        for name in self.command_names:
+            if name != "brake_force_n":
+                arr = self.commands[name]
+                row += [np.nan if final else float(arr[e.vehicle - 1]) for e in self.ecus if name in e.commands]
+        for name in self._extra_measurements():
+            row += [float(x) for x in m[name]]
         if self._trace is not None:
             self._trace.append(row)
             if final:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import can
 import numpy as np
@@ -77,13 +78,18 @@ class LogHistogram:
         return float(min(self.max, self.LO_S * self.RATIO ** (k - 0.5)))
 
 
-def _is_plant_frame(aid: int, n: int) -> bool:
-    return (aid in (dbc.SYNC_ID, dbc.REFERENCE_ID, dbc.HEARTBEAT_BASE)
-            or dbc.SENSOR_BASE < aid <= dbc.SENSOR_BASE + n or dbc.COUPLER_BASE < aid <= dbc.COUPLER_BASE + n)
+#: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
+#: 2 their command phase (frames a sender held back are written with the phase of their kind)
+_PHASE = {"sync": 0, "reference": 0, "reference_pos": 0, "sensor": 0, "heartbeat": 1, "state": 1,
+          "state_done": 1, "cmd": 2, "cmd_done": 2}
+_KIND_NAME = {"cmd": "brake_cmd"}
 
 
-def is_sim_control(aid: int) -> bool:
+def is_sim_control(aid: int, layout: Any = None) -> bool:
     """True for the lockstep barrier frames (STATE_DONE/CMD_DONE), which carry no train data."""
+    if layout is not None:
+        m = layout.by_id.get(aid)
+        return m is not None and m.kind in ("state_done", "cmd_done")
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
 
 
@@ -92,10 +98,13 @@ class RecorderNode(Node):
 
     name = "recorder"
 
-    def __init__(self, n_cars: int, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
+    def __init__(self, layout: Any, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
                  plant_io_on_bus: bool = False, barrier: bool = True) -> None:
-        self.n = n_cars
+        if isinstance(layout, int):  # a number of cars: Chen's default placement
+            layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
+        self.layout = layout
+        self._kinds = {m.frame_id: m.kind for m in layout.messages}
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
         self.mode = mode
@@ -107,7 +116,6 @@ class RecorderNode(Node):
         self._writer: can.Listener | None = None
         self._k = -1
         self._tick_frames: list[can.Message] = []
-        self._done_seen = 0
         self._bus_free_s = 0.0
         self.frames = 0
         self.frames_by_kind: dict[str, int] = {}
@@ -125,8 +133,9 @@ class RecorderNode(Node):
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         self.frames += 1
         aid = msg.arbitration_id
-        kind = self._kind(aid)
-        self.frames_by_kind[kind] = self.frames_by_kind.get(kind, 0) + 1
+        kind = self._kinds.get(aid, "other") if not msg.is_error_frame else "error"
+        name = _KIND_NAME.get(kind, kind)
+        self.frames_by_kind[name] = self.frames_by_kind.get(name, 0) + 1
         if self.mode == "realtime":
             self._realtime(msg, now)
             return []
@@ -138,27 +147,9 @@ class RecorderNode(Node):
                 self.finished = True
                 return []
             self._k = tick
-            self._done_seen = 0
-        # phase: 0 plant frames, 1 until the last STATE_DONE of the tick, 2 after it
-        marker = dbc.STATE_DONE_BASE if self.barrier else dbc.STATE_BASE
-        if marker < aid <= marker + self.n:
-            self._done_seen += 1
-            phase = 1
-        elif self._done_seen >= self.n:
-            phase = 2
-        else:
-            phase = 0 if _is_plant_frame(aid, self.n) else 1
+        phase = 0 if aid == dbc.HEARTBEAT_BASE and not msg.is_extended_id else _PHASE.get(kind, 1)
         self._tick_frames.append((phase, aid, bytes(msg.data), msg))  # type: ignore[arg-type]
         return []
-
-    def _kind(self, aid: int) -> str:
-        for base, kind in ((dbc.CMD_DONE_BASE, "cmd_done"), (dbc.STATE_DONE_BASE, "state_done"),
-                           (dbc.HEARTBEAT_BASE, "heartbeat"), (dbc.STATE_BASE, "state"),
-                           (dbc.COUPLER_BASE, "coupler"), (dbc.SENSOR_BASE, "sensor"),
-                           (dbc.BRAKE_CMD_BASE, "brake_cmd")):
-            if base <= aid <= base + self.n:
-                return kind
-        return {dbc.SYNC_ID: "sync", dbc.REFERENCE_ID: "reference"}.get(aid, "other")
 
     def _flush_tick(self) -> None:
         if self._k < 0 or not self._tick_frames:
@@ -209,10 +200,10 @@ class RecorderNode(Node):
     def _untimed(self, aid: int) -> bool:
         """Frames that take no bus time in the accounting: barrier frames, and the plant's sensor
         frames unless they are declared bus traffic (they stand in for local wiring)."""
-        if is_sim_control(aid):
+        kind = self._kinds.get(aid)
+        if kind in ("state_done", "cmd_done"):
             return True
-        return not self.plant_io_on_bus and (dbc.SENSOR_BASE < aid <= dbc.SENSOR_BASE + self.n
-                                             or dbc.COUPLER_BASE < aid <= dbc.COUPLER_BASE + self.n)
+        return not self.plant_io_on_bus and kind == "sensor"
 
     def _write(self, msgs: list[can.Message]) -> None:
         if self._writer is not None:
