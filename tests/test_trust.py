@@ -97,6 +97,7 @@ def test_magnitudes_print_sensibly():
     assert fmt_quantity(5.6e65, "cm") == "5.60e+65 cm"
     assert fmt_quantity(0.0512, "cm") == "0.0512 cm"
     assert fmt_quantity(float("inf")) == "inf"
+    assert fmt_quantity(1000.0, "kbit/s") == "1000 kbit/s" and fmt_quantity(142.3, "%") == "142 %"
     assert len(fmt_quantity(2.18e193)) < 12
 
 

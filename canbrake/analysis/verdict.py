@@ -56,6 +56,8 @@ def fmt_quantity(x: float | None, unit: str = "", digits: int = 3) -> str:
         s = "nan" if math.isnan(x) else ("inf" if x > 0 else "-inf")
     elif x != 0 and (abs(x) >= 1e5 or abs(x) < 1e-3):
         s = f"{x:.{digits - 1}e}"
+    elif abs(x) >= 10 ** digits:
+        s = f"{x:.0f}"
     else:
         s = f"{x:.{digits}g}"
     return f"{s} {unit}".rstrip()
