@@ -202,8 +202,9 @@ def build_controller(scn: Scenario, ecu_index: int) -> Controller:
 
 
 def build_send_path(scn: Scenario, node: str) -> SendPath:
-    """The impairment chain of one sending node (pass-through when none applies)."""
-    if not scn.bus.impairments:
+    """The impairment chain of one sending node (pass-through when none applies and no timing
+    model latency has to be held back)."""
+    if not scn.bus.impairments and not (scn.mode == "lockstep" and scn.bus.timing == "model"):
         return PassThrough()
     from canbrake.bus.sendpath import build_send_path as _build
 
@@ -268,6 +269,13 @@ def failsafe_of(scn: Scenario) -> Any:
                     force_n=mass * sf.failsafe_decel_mps2, latch=sf.latch)
 
 
+def _error_timing(scn: Scenario) -> Any:
+    """The recorder's own timing-model replica when the scenario has bus errors (else None)."""
+    from canbrake.bus.schedule import faults_of, timing_of
+
+    return timing_of(scn) if scn.mode == "lockstep" and faults_of(scn) is not None else None
+
+
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
                progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build",
                layout: dbc.BusLayout | None = None) -> Node:
@@ -304,7 +312,8 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
 
         return RecorderNode(layout, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
                             plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn),
-                            log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
+                            log_path=None if run_dir is None else run_dir / "frames.log", channel=channel,
+                            bus_timing=_error_timing(scn))
     raise ValueError(f"unknown node role {role!r}")
 
 

@@ -236,7 +236,7 @@ def build_parser() -> argparse.ArgumentParser:
     ch.add_argument("--remove-stale", action="store_true", help="remove the channels no process has open")
     ch.set_defaults(func=_cmd_channels)
 
-    for extra in ("sweep", "report", "bench"):
+    for extra in ("sweep", "report", "bench", "analyze"):
         _register_optional(sub, extra)
     return p
 

@@ -689,6 +689,9 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
     try:
         choice = choose_bus(scn, backend, channel, interface)
         check_buildable(scn)
+        from canbrake.bus.schedule import check_faults
+
+        check_faults(scn)
         check_impairment_targets(scn)
         if choice.backend == "memory":
             _check_memory_channel(scn, choice, explicit=bool(channel or scn.bus.channel))

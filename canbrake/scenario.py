@@ -17,6 +17,8 @@ import numpy as np
 import yaml
 from canbrake.arrays import per_car
 from canbrake.bus.impair import ImpairmentSpec
+from canbrake.bus.clock import ClockConfig
+from canbrake.bus.txbuffer import TxBufferConfig
 from canbrake.consist import TRAIN_MODELS
 from canbrake.consist.base import VehicleEntry, expand_vehicles
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
@@ -349,6 +351,9 @@ class BusConfig(_Model):
                                                      "(false: they stand in for each car's local wiring)")
     impairments: list[ImpairmentSpec] = Field(default_factory=list,
                                               description="see canbrake.bus.impair (delay, jitter, loss, ...)")
+    tx_buffers: list[TxBufferConfig] = Field(default_factory=list,
+                                             description="transmit buffer per node for the timing model and the "
+                                                         "analysis (canbrake.bus.txbuffer); default: priority-ordered")
 
 
 class PlantConfig(_Model):
@@ -390,6 +395,9 @@ class EcuConfig(_Model):
     lockstep_deadline: float = Field(0.5, gt=0, lt=1,
                                      description="lockstep: fraction of the period within which a state frame "
                                                  "must arrive to be used in the same tick")
+    clocks: list[ClockConfig] = Field(default_factory=list,
+                                      description="clock drift (ppm) and timer jitter per ECU, simulated time with "
+                                                  "bus.timing: model (canbrake.bus.clock)")
 
 
 def _train_tag(v: Any) -> str:

@@ -92,7 +92,8 @@ SAFETY_LEVELS = ("ok", "degraded", "violation", "unstable")
 #: statuses of a finished point (not retried on resume)
 FINAL_STATUSES = ("ok", "diverged", "invalid")
 #: impairment types whose effect depends on random draws
-RANDOM_IMPAIRMENTS = ("jitter", "loss", "gilbert_elliott", "duplicate", "reorder", "corrupt")
+RANDOM_IMPAIRMENTS = ("jitter", "loss", "gilbert_elliott", "duplicate", "reorder", "corrupt", "bit_error_rate",
+                      "faulty_transceiver")
 
 _UNITS: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "%": 0.01, "bps": 1.0, "kbps": 1e3}
 

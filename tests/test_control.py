@@ -47,8 +47,11 @@ def test_registry_builds_both_controllers():
     assert isinstance(c, ChenConsensusController) and c.k == 10.0
     p = make_controller("pi", {}, car_index=0, n_cars=6, mass_kg=M, dt_s=1e-3)
     assert isinstance(p, PISpeedController)
-    with pytest.raises(TypeError):
+    from canbrake.control.base import ControllerError
+
+    with pytest.raises(ControllerError) as e:  # checked against the constructor's signature
         make_controller("chen2023", {"no_such_gain": 1.0}, car_index=0, n_cars=6, mass_kg=M, dt_s=1e-3)
+    assert e.value.param == "no_such_gain"
     with pytest.raises(ValueError):
         chen(deflection_source="telepathy")
 

@@ -104,6 +104,32 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
     os.replace(tmp, sig)
 
 
+def merge_tick_file(run_dir: Path, name: str) -> None:
+    """Append the columns of ``run_dir/name`` (a CSV with a ``tick`` column, e.g. the recorder's
+    can_errors.csv) to signals.csv, joined on tick; atomic like :func:`merge_ecu_columns`."""
+    sig, extra_p = run_dir / "signals.csv", run_dir / name
+    if not sig.exists() or not extra_p.exists():
+        return
+    with open(sig, newline="") as f:
+        rows = list(csv.reader(f))
+    with open(extra_p, newline="") as f:
+        erows = list(csv.reader(f))
+    if not rows or not erows:
+        return
+    col = erows[0].index("tick")
+    names = [h for j, h in enumerate(erows[0]) if j != col]
+    if set(names) & set(rows[0]):
+        return  # already merged
+    by_tick = {int(r[col]): [v for j, v in enumerate(r) if j != col] for r in erows[1:]}
+    tmp = sig.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(rows[0] + names)
+        for r in rows[1:]:
+            w.writerow(r + by_tick.get(int(float(r[0])), [""] * len(names)))
+    os.replace(tmp, sig)
+
+
 def _load_json(p: Path) -> dict[str, Any]:
     try:
         return json.loads(p.read_text())
@@ -208,6 +234,7 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
     live = outcome.get("live_nodes") or []
     if not live:  # never rewrite signals.csv while a node may still write it
         merge_ecu_columns(run_dir, n)
+        merge_tick_file(run_dir, "can_errors.csv")
     plant = _load_json(run_dir / "plant_stats.json")
     busst = _load_json(run_dir / "bus_stats.json")
     ecus = [_load_json(run_dir / f"ecu_c{c}_stats.json") for c in range(1, n + 1)]
@@ -234,6 +261,12 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
 
                 try:
                     summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name)
+                    from canbrake.analysis.plots import plot_bus
+
+                    summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
+                    from canbrake.analysis.plots import plot_bus
+
+                    summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
                 except Exception as e:  # noqa: BLE001 - a plotting problem must not lose the run's results
                     summary["plots_error"] = str(e)
     summary["frames"] = {
@@ -248,7 +281,11 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
         "peer_values_missing": sum(e.get("peer_missing", 0) for e in ecus),
     }
     summary["bus_load"] = {k: busst.get(k) for k in ("bitrate_bps", "bus_load_mean", "bus_load_peak",
+                                                      "bus_load_peak_window", "bus_load_window_s",
+                                                      "error_frames_per_s", "frames_per_s_by_sender",
                                                       "latency_p50_s", "latency_p99_s", "latency_max_s",
+                                                      "bus_load_peak_window", "bus_load_window_s",
+                                                      "error_frames_per_s", "frames_per_s_by_sender",
                                                       "latency_model")}
     lat: dict[str, Any] = {}
     for e in ecus:
@@ -261,6 +298,10 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
             agg["max_s"] = max(agg["max_s"], st["max_s"] or 0.0)
     if lat:
         summary["bus_latency_in_loop"] = {"model": scn.bus.timing, **lat}
+    if busst.get("errors"):
+        summary["can_errors"] = busst["errors"]
+    if busst.get("errors"):
+        summary["can_errors"] = busst["errors"]
     if scn.safety.command_timeout_s is not None:
         summary["failsafe"] = {"command_timeout_s": scn.safety.command_timeout_s,
                                "activations": plant.get("failsafe_activations", 0),

@@ -60,7 +60,8 @@ __all__ = [
     "GilbertElliottLoss", "Duplicate", "Reorder", "Corrupt", "Silence", "Babbler",
     "SendPath", "MessageSendPath", "build_impairments", "babbling_nodes", "derive_seed",
     "DelaySpec", "JitterSpec", "LossSpec", "GilbertElliottSpec", "DuplicateSpec",
-    "ReorderSpec", "CorruptSpec", "SilentSpec", "BabbleSpec", "ImpairmentSpec",
+    "ReorderSpec", "CorruptSpec", "SilentSpec", "BabbleSpec", "BitErrorRateSpec",
+    "FaultyTransceiverSpec", "BUS_ERROR_SPECS", "ImpairmentSpec",
     "IMPAIRMENT_SPECS",
 ]
 
@@ -658,8 +659,12 @@ class MessageSendPath:
         self.path = path
         self.node = node if node is not None else path.node
 
-    def submit(self, msg: Any, t_s: float) -> list[Any]:
-        self.path.submit(TxFrame.from_message(msg, self.node, t_s))
+    def submit(self, msg: Any, t_s: float, delay_s: float = 0.0) -> list[Any]:
+        """Submit at ``t_s``; the frame may go to the bus from ``t_s + delay_s`` on (s) plus what
+        the impairments add. Returns the frames due at ``t_s``."""
+        frame = TxFrame.from_message(msg, self.node, t_s)
+        frame.t_release_s += delay_s
+        self.path.submit(frame)
         return self.release(t_s)
 
     def release(self, t_s: float) -> list[Any]:
@@ -908,16 +913,46 @@ class BabbleSpec(_SpecBase):
                        is_extended=self.is_extended, start_s=self.start_s, stop_s=self._stop())
 
 
+class BitErrorRateSpec(_SpecBase):
+    """Bit errors on the wire: each bit of every frame is flipped with probability ``ber``.
+
+    Not a send-path impairment: it acts in the CAN timing model (``bus.timing: model``,
+    lockstep), where a hit frame becomes an error frame, is retransmitted and raises the error
+    counters of its sender (see :mod:`canbrake.bus.faults`)."""
+
+    type: Literal["bit_error_rate"] = "bit_error_rate"
+    ber: float = Field(ge=0.0, lt=1.0, description="probability that one bit is corrupted")
+    auto_recovery: bool = Field(True, description="bus-off nodes restart after 128 x 11 recessive bits")
+    recovery_delay_s: float = Field(0.0, ge=0.0, description="host restart delay before a bus-off node starts its "
+                                                              "recovery (s; e.g. AUTOSAR CanSM bus-off time)")
+
+
+class FaultyTransceiverSpec(_SpecBase):
+    """A node whose transceiver corrupts its own frames with ``probability`` (timing model only,
+    like ``bit_error_rate``): its TEC rises by 8 per failed attempt and it drifts into bus-off."""
+
+    type: Literal["faulty_transceiver"] = "faulty_transceiver"
+    node: str = Field(min_length=1, description="the faulty node, e.g. ecu3")
+    probability: Probability = Field(1.0, description="probability that a frame it sends is corrupted")
+    auto_recovery: bool = Field(True, description="bus-off nodes restart after 128 x 11 recessive bits")
+    recovery_delay_s: float = Field(0.0, ge=0.0, description="host restart delay before a bus-off node starts its "
+                                                              "recovery (s; e.g. AUTOSAR CanSM bus-off time)")
+
+
+#: spec types that act in the timing model's fault confinement, not on a send path
+BUS_ERROR_SPECS = (BitErrorRateSpec, FaultyTransceiverSpec)
+
 #: the spec classes in the union, by their ``type`` tag
 IMPAIRMENT_SPECS: dict[str, type[_SpecBase]] = {
     "delay": DelaySpec, "jitter": JitterSpec, "loss": LossSpec,
     "gilbert_elliott": GilbertElliottSpec, "duplicate": DuplicateSpec, "reorder": ReorderSpec,
     "corrupt": CorruptSpec, "silent": SilentSpec, "babble": BabbleSpec,
+    "bit_error_rate": BitErrorRateSpec, "faulty_transceiver": FaultyTransceiverSpec,
 }
 
 ImpairmentSpec = Annotated[
     Union[DelaySpec, JitterSpec, LossSpec, GilbertElliottSpec, DuplicateSpec, ReorderSpec,
-          CorruptSpec, SilentSpec, BabbleSpec],
+          CorruptSpec, SilentSpec, BabbleSpec, BitErrorRateSpec, FaultyTransceiverSpec],
     Field(discriminator="type"),
 ]
 
@@ -973,6 +1008,8 @@ def build_impairments(specs: Iterable[Any], seed: int, node: str, *,
         if isinstance(spec, BabbleSpec):
             if direction == "tx" and spec.sender == node:
                 sources.append(spec.build())
+            continue
+        if isinstance(spec, BUS_ERROR_SPECS):  # acts in the timing model (canbrake.bus.faults)
             continue
         if direction == "tx":
             if spec.receivers is not None:

@@ -40,38 +40,75 @@ class BabbleSource:
     stop_s: float
 
 
+@dataclass(frozen=True)
+class Stream:
+    """One periodic frame of the nominal schedule: ``sender`` queues ``arbitration_id`` at
+    ``t_k + offset_s`` of every tick k with ``k % every_ticks == 0``."""
+
+    sender: str
+    arbitration_id: int
+    dlc: int
+    every_ticks: int = 1
+    offset_s: float = 0.0
+    is_extended: bool = False
+    name: str = ""
+
+
+def nominal_streams(layout: Any, *, decision_offset_s: float, heartbeat_every: int,
+                    plant_io_on_bus: bool = False) -> list[Stream]:
+    """The nominal traffic of one control period, in the layout's identifier order: SYNC,
+    REFERENCE(_POS) and the plant's heartbeat at t_k; per ECU STATE and heartbeat at t_k and its
+    commands at the decision instant t_k + ``decision_offset_s``; sensor frames at t_k if
+    ``plant_io_on_bus``. The timing model (:class:`LockstepBusTiming`) and the response-time
+    analysis (:func:`message_set`) both read it."""
+    hb = max(1, heartbeat_every)
+    out: list[Stream] = []
+    for msg in layout.messages:
+        sender = "plant" if msg.ecu == 0 else layout.by_index[msg.ecu].name
+        s = dict(sender=sender, arbitration_id=msg.frame_id, dlc=msg.length, is_extended=msg.extended, name=msg.name)
+        if msg.kind in ("sync", "reference", "reference_pos") or (msg.kind == "sensor" and plant_io_on_bus):
+            out.append(Stream(**s))
+        elif msg.kind == "heartbeat":
+            out.append(Stream(**s, every_ticks=hb))
+        elif msg.kind == "state":
+            out.append(Stream(**s))
+        elif msg.kind == "cmd":
+            out.append(Stream(**s, offset_s=decision_offset_s))
+    return out
+
+
 class LockstepBusTiming:
-    """Replicated deterministic bus timing for lockstep runs (simulated seconds)."""
+    """Replicated deterministic bus timing for lockstep runs (simulated seconds).
+
+    Optional: ``faults`` (:class:`canbrake.bus.faults.FaultConfinement`: error frames,
+    retransmissions, bus-off — a dropped frame's latency is ``math.inf``), ``tx_buffers``
+    (per-node transmit buffers, :mod:`canbrake.bus.txbuffer`), ``clocks`` (node name ->
+    :class:`canbrake.bus.clock.EcuClock`: the node's frames of tick k are queued at its drifting
+    timer instant), ``record_history`` (latency statistics, for ``canbrake analyze``).
+    """
 
     def __init__(self, layout: Any, dt_s: float, bitrate_bps: float, *, decision_offset_s: float,
                  heartbeat_every: int, plant_io_on_bus: bool = False, coupler_sensors: bool = False,
-                 babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000) -> None:
+                 babblers: list[BabbleSource] | None = None, max_wait_ticks: int = 2_000,
+                 record_history: bool = False, faults: Any = None, tx_buffers: Any = None,
+                 clocks: dict[str, Any] | None = None) -> None:
         if isinstance(layout, int):  # a number of cars: Chen's default placement
             layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=coupler_sensors))
         self.layout = layout
         self.n = len(layout.ecus)
-        # nominal traffic per tick: (phase 0 at t_k | 1 at t_k | 2 at t_k + c, sender, id, extended, dlc, heartbeat?)
-        self._traffic: list[tuple[int, str, int, bool, int, bool]] = []
-        for msg in layout.messages:
-            sender = "plant" if msg.ecu == 0 else layout.by_index[msg.ecu].name
-            if msg.kind in ("sync", "reference", "reference_pos"):
-                self._traffic.append((0, sender, msg.frame_id, msg.extended, msg.length, False))
-            elif msg.kind == "sensor" and plant_io_on_bus:
-                self._traffic.append((0, sender, msg.frame_id, msg.extended, msg.length, False))
-            elif msg.kind == "heartbeat":
-                self._traffic.append((0 if msg.ecu == 0 else 1, sender, msg.frame_id, msg.extended, msg.length, True))
-            elif msg.kind == "state":
-                self._traffic.append((1, sender, msg.frame_id, msg.extended, msg.length, False))
-            elif msg.kind == "cmd":
-                self._traffic.append((2, sender, msg.frame_id, msg.extended, msg.length, False))
         self.dt = dt_s
         self.c = decision_offset_s
         self.hb_every = max(1, heartbeat_every)
         self.plant_io = plant_io_on_bus
         self.coupler_sensors = coupler_sensors
+        self.streams = nominal_streams(layout, decision_offset_s=decision_offset_s, heartbeat_every=heartbeat_every,
+                                       plant_io_on_bus=plant_io_on_bus)
         self.babblers = list(babblers or [])
         self.max_wait_ticks = max_wait_ticks
-        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=False)
+        self.model = BusTimingModel(bitrate_bps, stuffing="worst", record_history=record_history, faults=faults,
+                                    tx_buffers=tx_buffers)
+        self.faults = faults
+        self.clocks = dict(clocks or {})  # node -> canbrake.bus.clock.EcuClock
         self._next_tick = 0
         self._done: dict[tuple[int, str, int], float] = {}
         self._babble_next = [0] * len(self.babblers)
@@ -79,13 +116,12 @@ class LockstepBusTiming:
 
     def _submit_tick(self, k: int) -> None:
         t = k * self.dt
-        m = self.model
-        sub = m.submit
-        hb = k % self.hb_every == 0
-        for phase, sender, fid, ext, dlc, is_hb in self._traffic:
-            if is_hb and not hb:
-                continue
-            sub(sender, fid, ext, dlc, None, t + self.c if phase == 2 else t, tag=(k, sender, fid))
+        sub = self.model.submit
+        drift = {node: c.offset_s(k) for node, c in self.clocks.items()}
+        for s in self.streams:
+            if k % s.every_ticks == 0:
+                sub(s.sender, s.arbitration_id, s.is_extended, s.dlc, None, t + s.offset_s + drift.get(s.sender, 0.0),
+                    tag=(k, s.sender, s.arbitration_id))
         t_end = t + self.dt
         for i, b in enumerate(self.babblers):
             j = self._babble_next[i]
@@ -98,6 +134,18 @@ class LockstepBusTiming:
                 j += 1
             self._babble_next[i] = j
 
+    def simulate_through(self, t_s: float) -> None:
+        """Simulate every tick that starts before ``t_s`` (keeps the latencies for ``latency_s``)."""
+        while self._next_tick * self.dt < t_s - 1e-12:
+            self._step()
+
+    def run_ticks(self, n_ticks: int) -> None:
+        """Simulate the nominal traffic of ticks 0..n_ticks-1 (for statistics; needs
+        ``record_history=True`` to keep latencies)."""
+        while self._next_tick < n_ticks:
+            self._step()
+            self._done.clear()
+
     def _step(self) -> None:
         k = self._next_tick
         self._submit_tick(k)
@@ -105,6 +153,10 @@ class LockstepBusTiming:
             tag = d.tag
             if tag[2] >= 0:
                 self._done[tag] = d.t_end_s
+        if self.faults is not None or self.model._buffer_cfgs:  # frames of bus-off nodes / full buffers
+            for d in self.model.pop_dropped():
+                if d.tag[2] >= 0:
+                    self._done[d.tag] = math.inf
         self._next_tick = k + 1
         if k % 256 == 0:  # forget deliveries nobody will ask for (other nodes' frames of past ticks)
             old = self._query_tick - 2
@@ -112,7 +164,8 @@ class LockstepBusTiming:
 
     def latency_s(self, k: int, node: str, msg_id: int, t_queue_s: float) -> float:
         """Bus latency (queueing + transmission, s) of ``node``'s frame ``msg_id`` of tick ``k``;
-        ``math.inf`` if it would wait more than ``max_wait_ticks`` periods (starved)."""
+        ``math.inf`` if it would wait more than ``max_wait_ticks`` periods (starved) or never
+        reaches the bus (its node is bus-off, its transmit buffer was full)."""
         key = (k, node, msg_id)
         self._query_tick = max(self._query_tick, k)
         while key not in self._done:
@@ -122,19 +175,131 @@ class LockstepBusTiming:
         return self._done.pop(key) - t_queue_s
 
 
+def _babblers_of(scn: Any) -> list[BabbleSource]:
+    from canbrake.bus.impair import BabbleSpec
+
+    return [BabbleSource(s.sender, s.arbitration_id, s.rate_hz, s.dlc, s.is_extended, s.start_s,
+                         math.inf if getattr(s, "stop_s", None) is None else s.stop_s)
+            for s in scn.bus.impairments if isinstance(s, BabbleSpec)]
+
+
+def faults_of(scn: Any) -> Any:
+    """The :class:`~canbrake.bus.faults.FaultConfinement` of ``scn``'s ``bit_error_rate`` and
+    ``faulty_transceiver`` impairments (None if it has none). Seeded from the run seed with a
+    stable hash, so every process of a run draws the same errors."""
+    from canbrake.bus.faults import BitErrorSource, FaultConfinement, FaultyTransceiver
+    from canbrake.bus.impair import BitErrorRateSpec, FaultyTransceiverSpec, derive_seed
+
+    specs = [s for s in scn.bus.impairments if isinstance(s, (BitErrorRateSpec, FaultyTransceiverSpec))]
+    if not specs:
+        return None
+    stop = [math.inf if s.stop_s is None else s.stop_s for s in specs]
+    seed = int(derive_seed(scn.seed, "bus_errors").generate_state(1)[0])
+    return FaultConfinement(
+        bit_errors=[BitErrorSource(s.ber, s.start_s, e) for s, e in zip(specs, stop) if isinstance(s, BitErrorRateSpec)],
+        faulty=[FaultyTransceiver(s.node, s.probability, s.start_s, e) for s, e in zip(specs, stop)
+                if isinstance(s, FaultyTransceiverSpec)],
+        seed=seed, auto_recovery=all(s.auto_recovery for s in specs), bitrate_bps=float(scn.bus.bitrate_bps),
+        recovery_delay_s=max(s.recovery_delay_s for s in specs))
+
+
+def check_faults(scn: Any) -> None:
+    """Bus errors and ECU clock drift are modelled in simulated time only: refuse them elsewhere,
+    and refuse clocks of cars the train does not have (one clear message, exit 2)."""
+    from canbrake.scenario import ScenarioError as InputError
+
+    from canbrake.build import bus_layout
+
+    layout = bus_layout(scn)
+    clocks = getattr(scn.ecu, "clocks", []) or []
+    for c in clocks:
+        if c.car not in layout.by_index:
+            raise InputError(f"ecu.clocks: car {c.car} has no ECU (ECU indices 1..{len(layout.ecus)})")
+    if clocks and (scn.mode != "lockstep" or scn.bus.timing != "model"):
+        raise InputError("ecu.clocks: clock drift is modelled in simulated time and needs mode: lockstep and "
+                         f"bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
+    if faults_of(scn) is None:
+        return
+    if scn.mode != "lockstep" or scn.bus.timing != "model":
+        raise InputError("bus.impairments: bit_error_rate / faulty_transceiver act in the CAN timing model and need "
+                         f"mode: lockstep and bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
+    names = {"plant"} | {e.name for e in layout.ecus} | {b.sender for b in _babblers_of(scn)}
+    for s in scn.bus.impairments:
+        if getattr(s, "type", None) == "faulty_transceiver" and s.node not in names:
+            raise InputError(f"bus.impairments: faulty_transceiver node {s.node!r} is not a node of this train "
+                             f"(plant, {', '.join(e.name for e in layout.ecus[:3])}, ...)")
+
+
+def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
+    """The nominal-traffic timing model of ``scn``, whatever its mode and ``bus.timing``."""
+    from canbrake.build import bus_layout
+
+    dt = scn.control_period_s
+    layout = bus_layout(scn)
+    return LockstepBusTiming(layout, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
+                             heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
+                             plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
+                             babblers=_babblers_of(scn), record_history=record_history, faults=faults_of(scn),
+                             tx_buffers=getattr(scn.bus, "tx_buffers", None), clocks=clocks_of(scn, layout))
+
+
+def clocks_of(scn: Any, layout: Any) -> dict[str, Any]:
+    """``ecu.clocks`` as :class:`~canbrake.bus.clock.EcuClock` per ECU node name (``car`` is the
+    ECU's index in the placement), seeded from the run seed."""
+    from canbrake.bus.clock import EcuClock
+    from canbrake.bus.impair import derive_seed
+
+    out = {}
+    for c in getattr(scn.ecu, "clocks", []) or []:
+        if c.car not in layout.by_index:
+            continue  # refused by check_faults before a run
+        node = layout.by_index[c.car].name
+        out[node] = EcuClock(c, scn.control_period_s, int(derive_seed(scn.seed, "clock", node).generate_state(1)[0]))
+    return out
+
+
 def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
     """The in-loop timing model of ``scn`` (None unless lockstep with ``bus.timing: model``)."""
     if scn.mode != "lockstep" or scn.bus.timing != "model":
         return None
-    from canbrake.bus.impair import BabbleSpec
+    return timing_of(scn)
 
-    babblers = [BabbleSource(s.sender, s.arbitration_id, s.rate_hz, s.dlc, s.is_extended, s.start_s,
-                             math.inf if getattr(s, "stop_s", None) is None else s.stop_s)
-                for s in scn.bus.impairments if isinstance(s, BabbleSpec)]
+
+def message_set(scn: Any) -> list[Any]:
+    """The periodic messages of ``scn``'s nominal schedule as :class:`canbrake.bus.rta.CanMessage`
+    (names from the scenario's DBC; period = ``every_ticks`` control periods, deadline = period;
+    a babbler is a message with period 1/rate_hz). Lockstep barrier frames take no bus time and
+    are not listed. An ECU with a clock (``ecu.clocks``) gets release jitter: its timer jitter
+    plus its phase, or a whole period if it drifts (the send instant slides over the period)."""
+    from canbrake.bus.rta import CanMessage
+
+    t = timing_of(scn)
     dt = scn.control_period_s
+    jitter: dict[str, float] = {}
+    for node, clk in t.clocks.items():  # drift slides the send instant over a whole period
+        c = clk.cfg
+        jitter[node] = (dt if c.ppm else c.phase_s) + c.jitter_s
+    out = [CanMessage(s.name or f"0x{s.arbitration_id:X}", s.arbitration_id, s.dlc,
+                      s.every_ticks * dt, is_extended=s.is_extended, sender=s.sender,
+                      jitter_s=jitter.get(s.sender, 0.0)) for s in t.streams]
+    out += [CanMessage(f"BABBLE_{b.sender}_0x{b.arbitration_id:X}", b.arbitration_id, b.dlc, 1.0 / b.rate_hz,
+                       is_extended=b.is_extended, sender=b.sender) for b in t.babblers]
+    return out
+
+
+def fifo_like_nodes(scn: Any, messages: list[Any]) -> list[str]:
+    """Senders whose transmit buffer (``bus.tx_buffers``) can invert priorities: the analysis
+    treats their messages at the node's lowest priority (:func:`canbrake.bus.rta.analyze`)."""
+    from canbrake.bus.txbuffer import inverting_nodes
+
+    per_node: dict[str, int] = {}
+    for m in messages:
+        per_node[m.sender] = per_node.get(m.sender, 0) + 1
+    return inverting_nodes(list(getattr(scn.bus, "tx_buffers", []) or []), per_node)
+
+
+def dbc_cycle_times_s(scn: Any) -> dict[int, float]:
+    """Cycle times (s) the scenario's DBC declares (``GenMsgCycleTime``), by frame id."""
     from canbrake.build import bus_layout
 
-    return LockstepBusTiming(bus_layout(scn), dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
-                             heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
-                             plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
-                             babblers=babblers)
+    return {m.frame_id: m.cycle_ms / 1000.0 for m in bus_layout(scn).messages if m.cycle_ms}

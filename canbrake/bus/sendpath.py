@@ -34,8 +34,8 @@ class HorizonSendPath:
     def __init__(self, path: MessageSendPath) -> None:
         self.path = path
 
-    def submit(self, msg: can.Message, t_s: float) -> list[can.Message]:
-        return self.path.submit(msg, t_s)
+    def submit(self, msg: can.Message, t_s: float, delay_s: float = 0.0) -> list[can.Message]:
+        return self.path.submit(msg, t_s, delay_s)
 
     def release(self, t_s: float) -> list[can.Message]:
         return self.path.release(t_s)

@@ -40,6 +40,8 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 
+from canbrake.bus.faults import ERROR_FRAME_BITS, ErrorEvent
+
 __all__ = [
     "Stuffing",
     "QueuePolicy",
@@ -345,6 +347,7 @@ class Delivery:
     t_start_s: float
     t_end_s: float
     tag: Any = None
+    dropped: bool = False  # never sent: its node went bus-off (t_start_s = t_end_s = drop time)
 
     @property
     def latency_s(self) -> float:
@@ -460,11 +463,19 @@ class BusTimingModel:
         queue_policy: ``"priority"`` (default) or ``"fifo"`` within a node.
         include_ifs: count the 3-bit interframe space in each frame's bus time.
         record_history: keep what load and latency statistics need (O(frames) memory).
+        faults: error sources and fault confinement (:mod:`canbrake.bus.faults`): failed
+            attempts become error frames on the bus and are retransmitted; a bus-off node's
+            frames are dropped (see :meth:`pop_dropped`). None = an error-free bus.
+        tx_buffers: per-node transmit buffers (:class:`canbrake.bus.txbuffer.TxBufferConfig`:
+            priority / FIFO of a depth / mailboxes with or without abort); the first config that
+            applies to a node is its buffer, other nodes follow ``queue_policy``. A frame
+            submitted to a full buffer is dropped (see :meth:`pop_dropped`).
     """
 
     def __init__(self, bitrate_bps: float, *, stuffing: Stuffing = "worst",
                  queue_policy: QueuePolicy = "priority", include_ifs: bool = True,
-                 record_history: bool = True) -> None:
+                 record_history: bool = True, faults: Any = None,
+                 tx_buffers: Sequence[Any] | None = None) -> None:
         self.bitrate_bps = _check_bitrate(bitrate_bps)
         _check_stuffing(stuffing)
         if queue_policy not in ("priority", "fifo"):
@@ -487,6 +498,13 @@ class BusTimingModel:
         self._offered_dur: list[float] = []
         self._lat: dict[tuple[int, bool], list[float]] = {}
         self._lat_node: dict[tuple[int, bool, str], list[float]] = {}
+        self.faults = faults
+        if faults is not None:
+            faults.bitrate_bps = self.bitrate_bps
+        self._dropped: list[Delivery] = []
+        self._buffer_cfgs = list(tx_buffers or [])
+        self._buffers: dict[str, Any] = {}  # node -> TxBuffer, for nodes with a configured buffer
+        self._buffer_of: dict[str, Any] = {}  # node -> TxBuffer or None (cache)
 
     # -- properties ---------------------------------------------------------------------------
     @property
@@ -510,7 +528,24 @@ class BusTimingModel:
                           is_remote=is_remote, include_ifs=self.include_ifs) / self.bitrate_bps
 
     def _pending(self) -> list[_Pending]:
-        return [e[-1] for e in self._future] + [e[-1] for q in self._ready.values() for e in q]
+        return ([e[-1] for e in self._future] + [e[-1] for q in self._ready.values() for e in q]
+                + [p for b in self._buffers.values() for p in b.pending()])
+
+    def _buffer(self, node: str) -> Any:
+        b = self._buffer_of.get(node, False)
+        if b is False:
+            from canbrake.bus.txbuffer import make_tx_buffer
+
+            cfg = next((c for c in self._buffer_cfgs if c.applies_to(node)), None)
+            b = None if cfg is None else make_tx_buffer(cfg)
+            self._buffer_of[node] = b
+            if b is not None:
+                self._buffers[node] = b
+        return b
+
+    def buffer_counters(self) -> dict[str, dict[str, int]]:
+        """Per node with a configured buffer: frames dropped on overflow, mailbox aborts."""
+        return {n: {"overflow": b.n_overflow, "aborted": b.n_aborted} for n, b in sorted(self._buffers.items())}
 
     def pending_count(self, node: str | None = None, msg_id: int | None = None) -> int:
         """Frames submitted but not yet started, optionally for one node and/or identifier."""
@@ -539,6 +574,8 @@ class BusTimingModel:
         bits = frame_bits(msg_id, is_extended, dlc, payload, self.stuffing,
                           is_remote=is_remote, include_ifs=self.include_ifs)
         ticket = Ticket(self._seq, node, int(msg_id), bool(is_extended), bits, t_q)
+        if self.faults is not None:
+            self.faults.register(node)
         self._seq += 1
         pending = _Pending(ticket, bool(is_remote), int(dlc), payload, tag,
                            self.queue_policy == "fifo")
@@ -579,25 +616,55 @@ class BusTimingModel:
                 t = max(t, future[0][0])
             if t >= until - 2 * TIME_EPS_S:
                 break
+            fc = self.faults
+            if fc is not None:
+                fc.idle(self._bus_free_at, t)
             # everything queued by t (within rounding) joins its node's queue ...
             limit = t + TIME_EPS_S
             while future and future[0][0] <= limit:
                 p = heappop(future)[2]
+                if fc is not None and fc.is_bus_off(p.ticket.node):
+                    self._drop(p, t)
+                    continue
+                if self._buffer_cfgs:
+                    b = self._buffer(p.ticket.node)
+                    if b is not None:
+                        lost = b.push(p)
+                        if lost is not None:
+                            self._drop(lost, t)
+                        else:
+                            self._n_ready += 1
+                        continue
                 q = ready.get(p.ticket.node)
                 if q is None:
                     q = ready[p.ticket.node] = []
                 heappush(q, (p.node_key, p))
                 self._n_ready += 1
             # ... and the heads of the node queues arbitrate
-            best_q: list[tuple[Any, _Pending]] | None = None
+            best_q: Any = None  # a node heap or a TxBuffer
             best_key: Any = None
             for q in ready.values():
                 if q and (best_q is None or q[0][1].bus_key < best_key):
                     best_q, best_key = q, q[0][1].bus_key
-            assert best_q is not None
-            p = heappop(best_q)[1]
+            best_b = None
+            for b in self._buffers.values():
+                h = b.head()
+                if h is not None and (best_key is None or h.bus_key < best_key):
+                    best_b, best_key = b, h.bus_key
+            if best_b is not None:
+                p = best_b.pop_head()
+                best_q = best_b
+            elif best_q is None:  # everything that was due belonged to bus-off nodes
+                continue
+            else:
+                p = heappop(best_q)[1]
             self._n_ready -= 1
-            self._transmit(p, t)
+            if fc is None:
+                self._transmit(p, t)
+            else:
+                self._attempt(p, t, best_q)
+        if self.faults is not None:
+            self.faults.idle(self._bus_free_at, until)
         self._now = until
         done = [d for d in self._committed if d.t_end_s <= until]
         if done:
@@ -608,6 +675,55 @@ class BusTimingModel:
                     self._lat_node.setdefault((d.arbitration_id, d.is_extended, d.node),
                                               []).append(d.latency_s)
         return done
+
+    def _drop(self, p: _Pending, t: float) -> None:
+        tk = p.ticket
+        self._dropped.append(Delivery(tk, tk.node, tk.arbitration_id, tk.is_extended, p.is_remote, p.dlc,
+                                      p.data, tk.bits, tk.t_queue_s, t, t, p.tag, True))
+
+    def pop_dropped(self) -> list[Delivery]:
+        """Frames dropped because their node was bus-off (since the last call), in drop order."""
+        out, self._dropped = self._dropped, []
+        return out
+
+    def _attempt(self, p: _Pending, t_start: float, queue: Any) -> None:
+        """One transmission attempt under the fault model: success, or an error frame and a
+        retransmission (or, if the sender went bus-off, the loss of its whole queue)."""
+        fc = self.faults
+        tk = p.ticket
+        ifs = IFS_BITS if self.include_ifs else 0
+        hit = fc.draw(tk.node, tk.bits - ifs, t_start)
+        if hit is None:
+            self._transmit(p, t_start)
+            fc.frame_end(self._bus_free_at)
+            fc.tx_ok(tk.node, self._bus_free_at)
+            return
+        bit, cause = hit
+        t_end = t_start + (bit + 1 + ERROR_FRAME_BITS + ifs) / self.bitrate_bps
+        self._bus_free_at = t_end
+        if self.record_history:
+            self._busy_start.append(t_start)
+            self._busy_end.append(t_end)
+        fc.frame_end(t_end)
+        c = fc.tx_error(tk.node, t_end)
+        fc.events.append(ErrorEvent(t_start, t_end, tk.node, tk.arbitration_id, tk.is_extended, bit, cause,
+                                    c.tec, c.state))
+        if c.state == "bus_off":
+            self._drop(p, t_end)
+            if isinstance(queue, list):
+                while queue:
+                    self._drop(heapq.heappop(queue)[1], t_end)
+                    self._n_ready -= 1
+            else:  # a TxBuffer
+                for x in queue.drain():
+                    self._drop(x, t_end)
+                    self._n_ready -= 1
+        elif isinstance(queue, list):
+            heapq.heappush(queue, (p.node_key, p))  # automatic retransmission
+            self._n_ready += 1
+        else:
+            queue.requeue(p)
+            self._n_ready += 1
 
     def _transmit(self, p: _Pending, t_start: float) -> None:
         tk = p.ticket

@@ -33,8 +33,9 @@ import can
 class SendPath(Protocol):
     """What a node's outgoing frames pass through (impairments, bus timing)."""
 
-    def submit(self, msg: can.Message, t_s: float) -> list[can.Message]:
-        """Frames to send now (possibly none, possibly duplicates)."""
+    def submit(self, msg: can.Message, t_s: float, delay_s: float = 0.0) -> list[can.Message]:
+        """Frames to send now (possibly none, possibly duplicates); ``delay_s`` (s, e.g. the bus
+        latency of the timing model) holds the frame until ``t_s + delay_s``."""
 
     def release(self, t_s: float) -> list[can.Message]:
         """Held frames that are due at simulated/wall time ``t_s``."""
@@ -43,7 +44,7 @@ class SendPath(Protocol):
 class PassThrough:
     """Send path without impairments."""
 
-    def submit(self, msg: can.Message, t_s: float) -> list[can.Message]:
+    def submit(self, msg: can.Message, t_s: float, delay_s: float = 0.0) -> list[can.Message]:
         return [msg]
 
     def release(self, t_s: float) -> list[can.Message]:

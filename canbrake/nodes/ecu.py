@@ -227,7 +227,8 @@ class EcuNode(Node):
             if not math.isfinite(lat):  # starved by higher-priority traffic: never gets on the bus
                 self.stats.frames_starved += 1
                 return
-            t_s += lat
+            out.extend(self.send_path.submit(msg, t_s, delay_s=lat))  # held until it is off the wire
+            return
         out.extend(self.send_path.submit(msg, t_s))
 
     def _times(self, now: float, phase: int) -> tuple[float, float]:

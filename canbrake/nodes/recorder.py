@@ -12,9 +12,21 @@ byte for byte between runs and backends for the same seed. Simulation-control fr
 period, the bus stays busy into the next one and the timestamps show it.
 
 Realtime mode: frames are written as received, with their wall-clock receive timestamps.
+
+Bus errors (``bit_error_rate`` / ``faulty_transceiver``, lockstep with the timing model): the
+recorder keeps its own replica of the timing model (:mod:`canbrake.bus.schedule`), writes every
+failed attempt as a python-can error frame (``is_error_frame=True``; SocketCAN error-frame
+layout of ``linux/can/error.h``: protocol violation, controller state, TEC in byte 6 and REC
+in byte 7) stamped with the replica's time of the attempt, and samples each node's error state
+and counters at the end of every control period into ``can_errors.csv``.
+
+Statistics (``bus_stats.json``, ``bus_load.csv``): bus load per control period and per 100 ms
+window, frames per second by identifier and by sender, error frames per second.
 """
 from __future__ import annotations
 
+import array
+import csv
 import json
 from pathlib import Path
 from typing import Any
@@ -25,24 +37,6 @@ import numpy as np
 from canbrake.bus import dbc
 from canbrake.bus.timing import frame_bits
 from canbrake.nodes.base import Node
-
-class RunningLoad:
-    """Mean and peak of the per-period bus load in O(1) memory."""
-
-    def __init__(self) -> None:
-        self.n = 0
-        self.total = 0.0
-        self.peak = 0.0
-
-    def add(self, x: float) -> None:
-        self.n += 1
-        self.total += x
-        self.peak = max(self.peak, x)
-
-    @property
-    def mean(self) -> float:
-        return self.total / self.n if self.n else 0.0
-
 
 class LogHistogram:
     """Quantiles of positive durations (s) in bounded memory: logarithmic bins 0.1 % wide from
@@ -84,6 +78,29 @@ _PHASE = {"sync": 0, "reference": 0, "reference_pos": 0, "sensor": 0, "heartbeat
           "state_done": 1, "cmd": 2, "cmd_done": 2}
 _KIND_NAME = {"cmd": "brake_cmd"}
 
+# SocketCAN error frame layout (linux/can/error.h)
+CAN_ERR_FLAG = 0x20000000
+CAN_ERR_CRTL = 0x00000004
+CAN_ERR_PROT = 0x00000008
+CAN_ERR_BUSOFF = 0x00000040
+CAN_ERR_CNT = 0x00000200
+CAN_ERR_CRTL_TX_PASSIVE = 0x20
+CAN_ERR_PROT_BIT = 0x01
+
+
+def error_frame(event: Any, t_s: float, channel: str, rec: int = 0) -> can.Message:
+    """A :class:`canbrake.bus.faults.ErrorEvent` as a python-can error frame (SocketCAN layout)."""
+    aid = CAN_ERR_FLAG | CAN_ERR_PROT | CAN_ERR_CNT
+    ctrl = 0
+    if event.state == "passive":
+        aid |= CAN_ERR_CRTL
+        ctrl = CAN_ERR_CRTL_TX_PASSIVE
+    elif event.state == "bus_off":
+        aid |= CAN_ERR_BUSOFF
+    data = bytes([0, ctrl, CAN_ERR_PROT_BIT, 0, 0, 0, min(event.tec, 255), min(rec, 255)])
+    return can.Message(timestamp=t_s, arbitration_id=aid, is_extended_id=True, is_error_frame=True, dlc=8,
+                       data=data, channel=channel, is_rx=True)
+
 
 def is_sim_control(aid: int, layout: Any = None) -> bool:
     """True for the lockstep barrier frames (STATE_DONE/CMD_DONE), which carry no train data."""
@@ -100,7 +117,7 @@ class RecorderNode(Node):
 
     def __init__(self, layout: Any, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
-                 plant_io_on_bus: bool = False, barrier: bool = True) -> None:
+                 plant_io_on_bus: bool = False, barrier: bool = True, bus_timing: Any = None) -> None:
         if isinstance(layout, int):  # a number of cars: Chen's default placement
             layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
         self.layout = layout
@@ -119,10 +136,21 @@ class RecorderNode(Node):
         self._bus_free_s = 0.0
         self.frames = 0
         self.frames_by_kind: dict[str, int] = {}
-        self._load = RunningLoad()
+        # per-period series in compact arrays (8 bytes per period each); latencies in a histogram
+        # of fixed size whatever the run length
+        self._busy_per_tick = array.array("d")
         self._latency = LogHistogram()
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
+        self.frames_by_id: dict[int, int] = {}
+        self._frames_per_tick = array.array("q")
+        self._errors_per_tick = array.array("q")
+        # bus errors: own replica of the timing model (canbrake.bus.schedule.LockstepBusTiming)
+        self.timing = bus_timing if bus_timing is not None and getattr(bus_timing, "faults", None) else None
+        self._ev_i = 0
+        self.error_frames = 0
+        self._err_nodes = ["plant"] + [e.name for e in layout.ecus]
+        self._err_rows: list[list[int]] = []
 
     def start(self, now: float) -> list[can.Message]:
         if self.log_path is not None:
@@ -136,6 +164,7 @@ class RecorderNode(Node):
         kind = self._kinds.get(aid, "other") if not msg.is_error_frame else "error"
         name = _KIND_NAME.get(kind, kind)
         self.frames_by_kind[name] = self.frames_by_kind.get(name, 0) + 1
+        self.frames_by_id[aid] = self.frames_by_id.get(aid, 0) + 1
         if self.mode == "realtime":
             self._realtime(msg, now)
             return []
@@ -168,10 +197,83 @@ class RecorderNode(Node):
                 self._latency.add(t - t_k)
             out.append(self._stamp(msg, None, t))
         self._bus_free_s = t
-        self._load.add(busy / self.dt)
+        self._busy_per_tick.append(busy / self.dt)
+        self._frames_per_tick.append(sum(1 for f in ordered if not self._untimed(f[1])))
+        n_out = len(out)
+        if self.timing is not None:
+            out = self._with_errors(out)
+        self._errors_per_tick.append(len(out) - n_out)
         self._write(out)
         self._flush_file()
         self._tick_frames = []
+
+    def _with_errors(self, out: list[can.Message]) -> list[can.Message]:
+        """Add the error frames of tick ``self._k`` (in time order) and sample the error states."""
+        fc = self.timing.faults
+        t_next = (self._k + 1) * self.dt
+        self.timing.simulate_through(t_next)
+        events = fc.events
+        new = []
+        while self._ev_i < len(events) and events[self._ev_i].t_start_s < t_next:
+            ev = events[self._ev_i]
+            new.append(error_frame(ev, self.epoch + ev.t_start_s, self.channel))
+            self._ev_i += 1
+        self.error_frames += len(new)
+        row = [self._k]
+        for name in self._err_nodes:
+            c = fc.nodes.get(name)
+            row += [0, 0, 0] if c is None else [{"active": 0, "passive": 1, "bus_off": 2}[c.state], c.tec, c.rec]
+        self._err_rows.append(row)
+        if not new:
+            return out
+        return sorted(out + new, key=lambda m: m.timestamp)
+
+    def _col_suffix(self, name: str) -> str:
+        """Column suffix of a node: ``plant``, ``c3`` for the default ECU of car 3, else its name."""
+        if name == "plant":
+            return "plant"
+        e = next((e for e in self.layout.ecus if e.name == name), None)
+        return e.tag.lower() if e is not None else name
+
+    def _write_error_states(self) -> None:
+        if self.log_path is None or not self._err_rows:
+            return
+        header = ["tick"]
+        for name in self._err_nodes:
+            sfx = self._col_suffix(name)
+            header += [f"can_state_{sfx}", f"tec_{sfx}", f"rec_{sfx}"]
+        with open(self.log_path.parent / "can_errors.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(header)
+            w.writerows(self._err_rows)
+
+    def _write_load_series(self) -> None:
+        """bus_load.csv: per control period the busy fraction, frames and error frames on the bus."""
+        if self.log_path is None or not self._busy_per_tick:
+            return
+        with open(self.log_path.parent / "bus_load.csv", "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
+            for k, load in enumerate(self._busy_per_tick):
+                fr = self._frames_per_tick[k] if k < len(self._frames_per_tick) else ""
+                er = self._errors_per_tick[k] if k < len(self._errors_per_tick) else 0
+                w.writerow([k, f"{k * self.dt:.9g}", f"{load:.6g}", fr, er])
+
+    def _windows(self, load: np.ndarray, window_s: float = 0.1) -> list[float]:
+        per = max(1, int(round(window_s / self.dt)))
+        n = len(load) // per
+        return [float(load[i * per:(i + 1) * per].mean()) for i in range(n)] or [float(load.mean())]
+
+    def _fps_by_sender(self, span: float) -> dict[str, float]:
+        """Frames per second by sending node (the layout's sender of each identifier)."""
+        out: dict[str, float] = {}
+        for aid, n in self.frames_by_id.items():
+            if self._untimed(aid):
+                continue
+            m = self.layout.by_id.get(aid)
+            who = "other" if m is None else ("plant" if m.ecu == 0 else self.layout.by_index[m.ecu].name)
+            out[who] = out.get(who, 0.0) + n / span
+        return dict(sorted(out.items()))
 
     def _stamp(self, msg: can.Message, tick: int | None, t_s: float) -> can.Message:
         if tick is not None:
@@ -188,7 +290,7 @@ class RecorderNode(Node):
         aid = msg.arbitration_id
         if aid == dbc.SYNC_ID:
             if self._rt_tick_start is not None:
-                self._load.add(self._rt_bits / self.bitrate / self.dt)
+                self._busy_per_tick.append(self._rt_bits / self.bitrate / self.dt)
                 self._flush_file()
             self._rt_bits = 0
             self._rt_tick_start = m.timestamp
@@ -220,20 +322,32 @@ class RecorderNode(Node):
             f.flush()
 
     def bus_stats(self) -> dict:
-        load = self._load
+        load = np.asarray(self._busy_per_tick) if self._busy_per_tick else np.zeros(1)
         lat = self._latency
+        span = max(self.dt * max(len(self._busy_per_tick), 1), 1e-12)
         return {
             "frames": self.frames,
             "frames_by_kind": self.frames_by_kind,
             "bitrate_bps": self.bitrate,
-            "bus_load_mean": load.mean,
-            "bus_load_peak": load.peak,
+            "bus_load_mean": float(load.mean()),
+            "bus_load_peak": float(load.max()),
             "plant_io_on_bus": self.plant_io_on_bus,
             "latency_model": "lockstep: all frames of a phase queued at t_k, arbitration order, actual stuffing"
             if self.mode == "lockstep" else "not modelled in realtime mode",
             "latency_p50_s": lat.quantile(0.50),
             "latency_p99_s": lat.quantile(0.99),
             "latency_max_s": lat.max,
+            "bus_load_window_s": 0.1,
+            "bus_load_windows": self._windows(load),
+            "bus_load_peak_window": max(self._windows(load)),
+            "frames_per_s_by_id": {f"0x{aid:03X}": n / span for aid, n in sorted(self.frames_by_id.items())
+                                   if not self._untimed(aid)},
+            "frames_per_s_by_sender": self._fps_by_sender(span),
+            "error_frames_per_s": float(sum(self._errors_per_tick)) / span,
+            **({"errors": {**self.timing.faults.summary(self.timing.model.now_s),
+                           "error_frames_logged": self.error_frames,
+                           "state_codes": {"active": 0, "passive": 1, "bus_off": 2}}}
+               if self.timing is not None else {}),
         }
 
     def close(self, status: str = "ok") -> None:
@@ -243,6 +357,8 @@ class RecorderNode(Node):
             self._writer.stop()
             self._writer = None
         if self.log_path is not None:
+            self._write_error_states()
+            self._write_load_series()
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
             (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
