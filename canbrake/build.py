@@ -191,6 +191,11 @@ def bus_layout(scn: Scenario) -> dbc.BusLayout:
     layout = dbc.BusLayout(specs, period_ms=scn.control_period_s * 1000.0, ref_position=ref_pos,
                            heartbeat_ms=int(round(scn.ecu.heartbeat_period_s * 1000)))
     layout.n_vehicles = scn.n_cars  # type: ignore[attr-defined]
+    if scn.security is not None:  # secured layouts: longer frames with a MAC (canbrake.bus.secoc)
+        from canbrake.bus.secoc import secure_database
+
+        plain = layout.database
+        layout.database = lambda: secure_database(plain())  # type: ignore[method-assign]
     return layout
 
 
@@ -281,8 +286,11 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                layout: dbc.BusLayout | None = None) -> Node:
     """One node of the run: ``role`` is "plant", "ecu" (``car``: the ECU's index, 1-based, in
     placement order) or "recorder"."""
+    from canbrake.bus.secoc import secoc_of
+
     layout = layout or bus_layout(scn)
     codec = codec or FrameCodec(layout.database())
+    secoc = secoc_of(scn)  # None unless `security:` is set
     if role == "plant":
         from canbrake.nodes.plant import PlantNode
 
@@ -290,7 +298,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                          n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                          heartbeat_period_s=scn.ecu.heartbeat_period_s,
                          out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
-                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn))
+                         barrier=needs_barrier(scn), failsafe=failsafe_of(scn), secoc=secoc)
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 
@@ -305,15 +313,16 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                        heartbeat_period_s=scn.ecu.heartbeat_period_s,
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
                        lockstep_deadline=scn.ecu.lockstep_deadline,
+                       secoc=secoc, peer_hold_periods=scn.safety.peer_hold_periods, n_ticks=scn.n_ticks,
                        crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
                                       if scn.ecu.crash is not None and scn.ecu.crash.car == spec.vehicle else None))
     if role == "recorder":
         from canbrake.nodes.recorder import RecorderNode
 
         return RecorderNode(layout, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
-                            plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn),
-                            log_path=None if run_dir is None else run_dir / "frames.log", channel=channel,
-                            bus_timing=_error_timing(scn))
+                            plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn), secoc=secoc,
+                            n_ticks=scn.n_ticks, bus_timing=_error_timing(scn),
+                            log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
     raise ValueError(f"unknown node role {role!r}")
 
 

@@ -103,6 +103,11 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
         lines.append(f"deadline misses: plant {dm.get('plant', 0)}{rate}, ECUs {dm.get('ecus', 0)}")
     if s.get("finalize_error"):
         lines.append(f"summary incomplete: {s['finalize_error']}")
+    sf = s.get("safety") or {}
+    if sf.get("verdict", "clean") != "clean":
+        rej = ", ".join(f"{k} {v}" for k, v in sf["rejected"].items() if v) or "none"
+        lines.append(f"safety: {sf['verdict']}  rejected: {rej}  "
+                     f"fail-safe: {sf['fallbacks']['failsafe_entries']} car(s), {sf['fallbacks']['failsafe_time_s']:g} s")
     lines.append(f"written: {out}/summary.json, signals.csv, frames.log" + (", plots/" if s.get("plots") else ""))
     print("\n".join(lines))
 

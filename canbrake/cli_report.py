@@ -15,8 +15,8 @@ def register(sub: Any) -> None:
                                    "figures. A run is reused when its resolved scenario is unchanged and it "
                                    "finished ok; --force reruns everything.")
     p.add_argument("name", choices=sorted(REPORTS), help="which report")
-    p.add_argument("--out", default="docs/reproduction", help="where the report and figures/ go "
-                                                              "(default docs/reproduction)")
+    p.add_argument("--out", default=None, help="where the report and figures/ go "
+                                               "(default docs/reproduction; docs for safety)")
     p.add_argument("--runs", default=None, help="run directories (default runs/report-NAME)")
     p.add_argument("--force", action="store_true", help="rerun every run instead of reusing")
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),
@@ -38,6 +38,7 @@ def _cmd_report(a: argparse.Namespace) -> int:
     def log(msg: str) -> None:
         print(msg, file=sys.stderr, flush=True)
 
-    path = mod.generate(a.out, runs, force=a.force, jobs=a.jobs, log=log)
+    out = a.out or getattr(mod, "DEFAULT_OUT", "docs/reproduction")
+    path = mod.generate(out, runs, force=a.force, jobs=a.jobs, log=log)
     print(path)
     return 0

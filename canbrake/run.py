@@ -456,11 +456,19 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
                 break
             plant = procs["plant"]
             if plant.exitcode == 0:
-                # The plant sent the end-of-run SYNC; the others stop on it.
-                deadline = time.time() + 10.0
+                # The plant sent the end-of-run SYNC; the others stop on it. After an early end
+                # (diverged), nodes without authentication do not trust that END (it could be
+                # forged, canbrake.bus.guard): the run is over, so they are stopped here.
+                early = _load_plant_status(run_dir) == "diverged"
+                deadline = time.time() + (2.0 if early else 10.0)
                 for p in alive:
                     p.join(max(0.0, deadline - time.time()))
                 stuck = [n for n, p in procs.items() if p.exitcode is None]
+                if stuck and early:
+                    for n in stuck:
+                        procs[n].terminate()
+                        procs[n].join(10.0)
+                    break
                 if stuck:
                     raise RunFailure(f"{', '.join(stuck)} did not stop after the end of the run")
                 continue
@@ -584,6 +592,14 @@ def clean_killed_runs() -> list[str]:
     return removed
 
 
+def _load_plant_status(run_dir: Path) -> str | None:
+    """Status the plant wrote in plant_stats.json when it closed (None if unreadable)."""
+    try:
+        return json.loads((run_dir / "plant_stats.json").read_text()).get("status")
+    except (OSError, ValueError):
+        return None
+
+
 def _failure_detail(run_dir: Path, name: str) -> str:
     log = run_dir / "logs" / f"{name}.log"
     if log.exists():
@@ -695,6 +711,19 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
         check_impairment_targets(scn)
         if choice.backend == "memory":
             _check_memory_channel(scn, choice, explicit=bool(channel or scn.bus.channel))
+        if scn.security is not None:
+            from canbrake.bus.secoc import KeyFileError, load_key
+
+            try:
+                load_key(scn.security.key_file)
+            except KeyFileError as e:
+                raise ScenarioError(f"security.key_file: {e}") from None
+            from canbrake.build import bus_layout
+
+            try:
+                bus_layout(scn).database()  # secured layouts: every MAC must fit
+            except ValueError as e:
+                raise ScenarioError(str(e)) from None
         if choice.backend == "socketcan" and choice.interface == "socketcan":
             from canbrake.bus.vcan import VcanError, check_socketcan_channel
 

@@ -375,6 +375,18 @@ class SafetyConfig(_Model):
     max_abs_deflection_m: float | None = Field(None, gt=0, description="coupler deflection bound for the verdict "
                                                "(default: the controller's theta bounds, if any)")
     max_speed_kmh: float | None = Field(None, gt=0, description="speed bound for the verdict (null: none)")
+    peer_hold_periods: int | None = Field(None, ge=1, description="an ECU holds a peer's last good value for "
+                                                                  "this many periods, then drops it and runs on its "
+                                                                  "own sensors (null: hold forever)")
+
+
+class SecurityConfig(_Model):
+    """SecOC-style authentication (canbrake.bus.secoc): 24-bit truncated AES-CMAC on brake commands
+    and simulation-control frames, freshness = (session, tick). The key never lives in the repository."""
+
+    key_file: str = Field(..., min_length=1, description="file with the AES-128 key (32 hex digits or 16 bytes)")
+    session: int = Field(0, ge=0, le=0xFFFFFFFF, description="trip counter in the freshness value; increase it "
+                                                            "per run so frames of earlier runs fail")
 
 
 class CrashFault(_Model):
@@ -431,6 +443,8 @@ class Scenario(_Model):
     plant: PlantConfig = PlantConfig()
     ecu: EcuConfig = EcuConfig()
     safety: SafetyConfig = SafetyConfig()
+    security: SecurityConfig | None = Field(None, description="authentication of commands and simulation control "
+                                                             "(null: off)")
 
     @model_validator(mode="after")
     def _per_car_lengths(self) -> "Scenario":
@@ -473,7 +487,24 @@ class Scenario(_Model):
                              f"{'have' if len(wrong) > 1 else 'has'} {m} values: fix the mass list or those")
         for name, value, k in checks:
             per_car(value, k, name)
+        self._check_spacing()
         return self._check_times()
+
+    def _check_spacing(self) -> None:
+        """Initial positions and a given coupler spacing must agree: a coupler that would start
+        deflected by more than its own spacing means the positions list the cars in the other order."""
+        sp, pos = self.train.coupler.spacing_m, self.initial.position_m  # type: ignore[union-attr]
+        if sp is None or pos is None or self.n_cars < 2:
+            return
+        s = per_car(sp, self.n_cars - 1, "train.coupler.spacing_m")
+        dl = np.asarray(pos[:-1], dtype=float) - np.asarray(pos[1:], dtype=float) - s
+        bad = np.flatnonzero(np.abs(dl) > np.abs(s))
+        if bad.size:
+            j = int(bad[0])
+            raise ValueError(f"initial.position_m: coupler {j + 1} (cars {j + 1}-{j + 2}) would start deflected by "
+                             f"{dl[j]:g} m, more than its spacing {s[j]:g} m (train.coupler.spacing_m, or the "
+                             f"vehicle types' length_m with car 1 leading); list the positions with car 1 in "
+                             f"front or set train.coupler.spacing_m")
 
     def _check_times(self) -> "Scenario":
         t_out = self.safety.command_timeout_s

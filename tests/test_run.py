@@ -40,30 +40,69 @@ def test_closed_loop_on_python_can_virtual_bus(tmp_path, case1_short):
     assert s["frames"]["commands_missed"] == 0 and s["frames"]["peer_values_missing"] == 0
 
 
+def _frames_by_tick(run_dir: Path) -> list[dict[str, dict[str, float]]]:
+    """frames.log decoded with the run's DBC: per tick (from SYNC), message name -> signals."""
+    import cantools
+
+    db = cantools.database.load_file(str(run_dir / "canbrake.dbc"))
+    ticks: list[dict[str, dict[str, float]]] = []
+    for m in can.LogReader(str(run_dir / "frames.log")):
+        msg = db.get_message_by_frame_id(m.arbitration_id)
+        d = msg.decode(bytes(m.data), decode_choices=False)
+        if msg.name == "SYNC":
+            ticks.append({})
+        ticks[-1][msg.name] = d
+    return ticks
+
+
 def test_bus_run_matches_ideal_communication_loop(tmp_path, case1_short):
-    """With a perfect bus the distributed run equals the ideal loop up to CAN quantisation."""
-    from canbrake.build import build_controller, build_plant_model, reference_fn
-    from canbrake.ideal import simulate_ideal
+    """With a perfect bus the distributed run is the ideal-communication loop up to CAN quantisation:
+    at every tick each ECU computes from the plant's state of that same tick (its own and every
+    peer's, in frames of that tick), and the plant applies that command over the next period."""
+    from canbrake.build import build_controller, build_plant_model
+    from canbrake.bus.signals import signal_format
+    from canbrake.control.base import Observation
 
-    run_scenario(case1_short, tmp_path, backend="inprocess", plots=False)
-    cols = read_signals(tmp_path / "signals.csv")
     scn = case1_short
-    ctrls = [build_controller(scn, c) for c in range(1, scn.n_cars + 1)]
-    res = simulate_ideal(build_plant_model(scn).plant, ctrls, _ref(scn), scn.duration_s, scn.control_period_s)
-    v_bus = np.column_stack([cols[f"speed_mps_c{c}"] for c in range(1, 7)])
-    n = min(len(v_bus), len(res.v))
-    assert np.max(np.abs(v_bus[:n] - res.v[:n])) < 2e-3  # m/s; quantisation is 1e-4 m/s, 0.1 mm
-
-
-def _ref(scn):
-    import inspect
-
-    from canbrake import ideal
-
-    # the ideal loop takes its own reference object; build it from the scenario's values
-    sig = inspect.signature(ideal.simulate_ideal)
-    ref_cls = getattr(ideal, "Reference", None) or getattr(ideal, "BrakingReference")
-    return ref_cls(scn.reference.speed_mps, scn.reference.decel_mps2)
+    run_scenario(scn, tmp_path, backend="inprocess", plots=False)
+    cols = read_signals(tmp_path / "signals.csv")
+    n, steps = scn.n_cars, scn.n_ticks
+    car = range(1, n + 1)
+    x = np.column_stack([cols[f"position_m_c{c}"] for c in car])
+    v = np.column_stack([cols[f"speed_mps_c{c}"] for c in car])
+    cmd = np.column_stack([cols[f"brake_cmd_n_c{c}"] for c in car])
+    ecu_cmd = np.column_stack([cols[f"ecu_brake_cmd_n_c{c}"] for c in car])
+    frames = _frames_by_tick(tmp_path)
+    assert len(frames) == steps + 1  # + the end-of-run SYNC
+    half_q = signal_format("speed_mps").scale / 2 + 1e-7  # + signals.csv's 9 significant digits
+    assert signal_format("position_m").scale == signal_format("speed_mps").scale
+    ctrls = [build_controller(scn, c) for c in car]
+    zero_age = np.zeros(n)
+    for k in range(steps):
+        f = frames[k]
+        sx = np.array([f[f"SENSOR_C{c}"]["Position"] for c in car])
+        sv = np.array([f[f"SENSOR_C{c}"]["Speed"] for c in car])
+        # the frames of tick k carry the plant's state at tick k, quantised ...
+        assert np.all(np.abs(sx - x[k]) <= half_q) and np.all(np.abs(sv - v[k]) <= half_q), k
+        # ... and every peer's STATE frame of tick k carries that same measurement (no age)
+        assert [f[f"STATE_C{c}"]["Position"] for c in car] == sx.tolist(), k
+        assert [f[f"STATE_C{c}"]["Speed"] for c in car] == sv.tolist(), k
+        ref = f["REFERENCE"]
+        for i, c in enumerate(car):  # each ECU's controller on exactly these values gives its command
+            out = ctrls[i].step(Observation(
+                tick=k, time_s=k * scn.control_period_s, speed_mps=sv[i], position_m=sx[i],
+                ref_speed_mps=ref["RefSpeed"], ref_decel_mps2=ref["RefDecel"], peer_speed_mps=sv,
+                peer_position_m=sx, peer_age_s=zero_age))
+            assert out.brake_force_n == pytest.approx(ecu_cmd[k, i], rel=1e-8, abs=0.01), (k, c)
+            assert f[f"BRAKE_CMD_C{c}"]["BrakeForce"] == cmd[k, i]
+    # the plant applies the command, in 10 N steps, over the next period (zero-order hold)
+    assert np.all(np.abs(cmd[:-1] - ecu_cmd[:-1]) <= signal_format("brake_force_n").scale / 2 + 0.01)
+    plant = build_plant_model(scn)
+    for k in range(steps):
+        plant.step(scn.control_period_s, {"brake_force_n": cmd[k]})
+    meas = plant.measurements()
+    np.testing.assert_allclose(meas["speed_mps"], v[-1], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(meas["position_m"], x[-1], rtol=0, atol=1e-6)
 
 
 def test_lockstep_is_deterministic_and_backend_independent(tmp_path, case1_short):

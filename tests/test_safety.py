@@ -19,7 +19,7 @@ from canbrake.scenario import ScenarioError, load_scenario
 from conftest import CASE1
 
 CMD3 = 0x083
-M3 = 19500.0  # car 3's mass in case 1 (kg)
+M3 = float(load_scenario(CASE1).vehicle_masses_kg()[2])  # car 3's mass in case 1 (kg), Table 2
 DECEL = 1.2   # m/s^2
 
 

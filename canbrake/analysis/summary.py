@@ -307,6 +307,7 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
                                "activations": plant.get("failsafe_activations", 0),
                                "car_ticks": plant.get("failsafe_ticks", 0),
                                "first_activation_s": plant.get("failsafe_first_s", {})}
+    summary["safety"] = safety_counters(scn, plant, ecus, busst)
     summary["deadline_misses"] = {"plant": plant.get("deadline_misses", 0),
                                   "ecus": sum(e.get("deadline_misses", 0) for e in ecus),
                                   "ecus_per_car": [e.get("deadline_misses", 0) for e in ecus],
@@ -320,3 +321,47 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
     summary["findings"] = v["findings"]
     summary["diverged_at_s"] = v["diverged_at_s"]
     return summary
+
+
+def safety_counters(scn: Scenario, plant: dict[str, Any], ecus: list[dict[str, Any]],
+                    busst: dict[str, Any]) -> dict[str, Any]:
+    """Detections and reactions of a run (``summary.json`` ``safety``): frames rejected by reason
+    (:mod:`canbrake.bus.guard`) in total and per node, frames of unknown senders by identifier,
+    fallbacks entered (ECU: peers lost; brake unit: fail-safe) and time in fallback, and a verdict:
+    ``clean`` (nothing rejected, no fallback), ``attack or fault detected`` (frames rejected,
+    braking as commanded), ``detected, fail-safe engaged`` (a brake unit reacted)."""
+    from canbrake.bus.guard import REASONS
+
+    nodes = {"plant": plant.get("guard") or {}, "recorder": busst.get("guard") or {}}
+    for c, e in enumerate(ecus, start=1):
+        nodes[f"ecu{c}"] = e.get("guard") or {}
+    total = {r: sum((g.get("rejected") or {}).get(r, 0) for g in nodes.values()) for r in REASONS}
+    unknown: dict[str, int] = {}
+    for g in nodes.values():
+        for k, v in (g.get("unknown_ids") or {}).items():
+            unknown[k] = unknown.get(k, 0) + v
+    dt = scn.control_period_s
+    fb_ticks = sum(e.get("fallback_ticks", 0) for e in ecus)
+    fs_ticks = plant.get("failsafe_ticks", 0)
+    fallbacks = {"ecu_peer_loss_entries": sum(e.get("fallback_entries", 0) for e in ecus),
+                 "ecu_peer_loss_time_s": round(fb_ticks * dt, 9),
+                 "failsafe_entries": plant.get("failsafe_activations", 0),
+                 "failsafe_time_s": round(fs_ticks * dt, 9)}
+    if fallbacks["failsafe_entries"]:
+        verdict = "detected, fail-safe engaged"
+    elif sum(total.values()) or fallbacks["ecu_peer_loss_entries"]:
+        verdict = "attack or fault detected"
+    else:
+        verdict = "clean"
+    flood = {"frames_on_unknown_ids": busst.get("frames_by_unknown_id") or {},
+             "rx_frames_lost": {n: g.get("rx_frames_lost", 0) for n, g in nodes.items() if g.get("rx_frames_lost")}}
+    # unauthenticated END frames before the last tick: the plant's own after a divergence (one per
+    # listening node) or forged ones
+    end_ignored = sum(g.get("end_ignored", 0) for g in nodes.values())
+    own_end = len(nodes) - 1 if plant.get("status") == "diverged" else 0
+    if verdict == "clean" and (flood["frames_on_unknown_ids"] or flood["rx_frames_lost"] or end_ignored > own_end):
+        verdict = "attack or fault detected"
+    return {"authenticated": scn.security is not None, "verdict": verdict, "rejected": total, "flood": flood,
+            "end_frames_ignored": end_ignored,
+            "rejected_by_node": {n: g.get("rejected", {}) for n, g in nodes.items() if sum((g.get("rejected") or {}).values())},
+            "unknown_senders": unknown, "fallbacks": fallbacks}

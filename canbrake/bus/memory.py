@@ -30,7 +30,7 @@ Design
 Slow readers (choice: per bus, default overrun)
   * ``backpressure=False`` (default, like a CAN controller's receive FIFO): writers never wait.
     A reader that falls a whole ring (``ring_size`` frames, default 16384) behind loses the
-    oldest frames; its next ``recv`` raises :class:`can.CanOperationError` saying how many
+    oldest frames; its next ``recv`` raises :class:`BusOverrunError` (a ``can.CanOperationError``) saying how many
     were lost (also in :meth:`MemoryBus.stats`), then continues with the oldest frame still in
     the ring. Frames are never dropped silently.
   * ``backpressure=True`` (for recorders that must see every frame): a writer that would
@@ -139,6 +139,16 @@ def _shutdown_all() -> None:
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_after_fork_in_child)
 atexit.register(_shutdown_all)
+
+
+class BusOverrunError(CanOperationError):
+    """A non-backpressure reader fell a whole ring behind: ``frames_lost`` frames were overwritten
+    unread. The bus goes on with the oldest frame still in the ring; a caller that can live with
+    the loss (a node under a flood) counts it and receives on."""
+
+    def __init__(self, message: str, frames_lost: int) -> None:
+        super().__init__(message)
+        self.frames_lost = frames_lost
 
 
 @dataclass(frozen=True)
@@ -640,10 +650,10 @@ class MemoryBus(BusABC):
         if lost:
             self._n_lost += lost
             self._n_overruns += 1
-            raise CanOperationError(
+            raise BusOverrunError(
                 f"canbrake bus {self._name!r} overrun: this reader fell more than a ring "
                 f"({n} frames) behind and {lost} frame(s) were overwritten unread "
-                "(read faster, enlarge ring_size, or open the bus with backpressure=True)"
+                "(read faster, enlarge ring_size, or open the bus with backpressure=True)", lost
             )
 
     def _publish_read_seq(self) -> None:

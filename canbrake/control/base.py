@@ -1,9 +1,9 @@
-"""Controller interface shared by ECU processes and the in-process engines.
+"""The one controller interface: every controller of every train runs in an ECU node.
 
-A controller is one object per carriage with explicit state and no I/O. Every control
-period the caller builds an :class:`Observation` from whatever it knows (in an ECU:
-the sensor frame and the latest peer frames received over CAN; in the ideal engine:
-the plant state directly) and calls :meth:`Controller.step`.
+A controller is one object per ECU with explicit state and no I/O. Every control period the
+ECU node (:mod:`canbrake.nodes.ecu`, in its own process or in the in-process engine) builds an
+:class:`Observation` from the frames it received — its vehicle's sensor frames, the reference,
+the latest STATE frames of the ECUs it listens to — and calls :meth:`Controller.step`.
 
 Units are SI throughout: m, s, m/s, m/s^2, N, kg.
 """

@@ -56,6 +56,9 @@ class Node(ABC):
 
     name: str = "node"
     finished: bool = False
+    #: the node whose end is the end of the run (the plant): once it has finished, a driver ends
+    #: the others that are still waiting (e.g. for an END frame they would not trust)
+    time_master: bool = False
 
     def filters(self) -> list[dict[str, Any]] | None:
         """python-can filters for the frames this node needs (None = all)."""
@@ -76,6 +79,13 @@ class Node(ABC):
     def on_timer(self, now: float) -> list[can.Message]:
         """Called at or after :meth:`next_deadline`."""
         return []
+
+    def on_rx_overrun(self, frames_lost: int) -> None:
+        """The receive queue overflowed and ``frames_lost`` frames were dropped (a flood): counted
+        by the node's receiver checks (``guard``, :mod:`canbrake.bus.guard`) when it has them."""
+        guard = getattr(self, "guard", None)
+        if guard is not None:
+            guard.overrun(frames_lost)
 
     def close(self, status: str = "ok") -> None:
         """Flush traces and statistics; called once, also after an error."""

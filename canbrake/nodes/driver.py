@@ -18,6 +18,7 @@ from typing import Callable, Sequence
 
 import can
 
+from canbrake.bus.memory import BusOverrunError
 from canbrake.nodes.base import Node
 
 
@@ -77,7 +78,12 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         deadline = node.next_deadline()
         now = clock()
         timeout = idle_check_s if deadline is None else max(0.0, min(idle_check_s, deadline - now))
-        msg = bus.recv(timeout=timeout)
+        try:
+            msg = bus.recv(timeout=timeout)
+        except BusOverrunError as e:
+            # a flood overran this node's receive ring: count what was lost and receive on
+            node.on_rx_overrun(e.frames_lost)
+            continue
         now = clock()
         if msg is not None:
             _send_all(bus, node.handle(msg, now))
@@ -100,6 +106,16 @@ def run_inprocess(nodes: Sequence[Node], *, medium: str = "direct", max_frames: 
     if medium == "virtual":
         return _run_virtual(nodes, max_frames)
     raise ValueError(f"unknown in-process medium {medium!r}")
+
+
+def _end_with_time_master(nodes: Sequence[Node]) -> None:
+    """Once the time master has finished and every frame is delivered, the run is over: nodes
+    still waiting (an unauthenticated END before the scheduled last tick is not trusted, see
+    :func:`canbrake.bus.guard.sync_verdict`) are finished too."""
+    if any(n.time_master and n.finished for n in nodes):
+        for n in nodes:
+            for m in getattr(n, "members", [n]):  # a NodeGroup finishes with its members
+                m.finished = True
 
 
 def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
@@ -138,6 +154,7 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
             out = node.handle(msg, 0.0)
             if out:
                 queue.extend((idx, m) for m in out)
+    _end_with_time_master(nodes)
     unfinished = [n.name for n in nodes if not n.finished]
     if unfinished:
         raise NodeFailure(f"in-process run stalled; unfinished nodes: {', '.join(unfinished)}")
@@ -168,6 +185,7 @@ def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
     finally:
         for bus in buses:
             bus.shutdown()
+    _end_with_time_master(nodes)
     unfinished = [n.name for n in nodes if not n.finished]
     if unfinished:
         raise NodeFailure(f"virtual-bus run stalled; unfinished nodes: {', '.join(unfinished)}")

@@ -19,7 +19,8 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
-from canbrake.bus.e2e import COUNTER_MODULO, counter_of, e2e_crc
+from canbrake.bus.e2e import COUNTER_MODULO
+from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.control.base import Controller, Observation
 from canbrake.nodes.base import CsvTrace, Node, PassThrough, SendPath, exact_filter, frame
 
@@ -35,6 +36,9 @@ class EcuStats:
     frames_starved: int = 0      # timing model: frames that never won arbitration
     status: str = "running"
     bus_latency: dict = field(default_factory=dict)  # timing model: per kind p50/p99/max (s)
+    guard: dict = field(default_factory=dict)    # canbrake.bus.guard: rejected frames by reason
+    fallback_entries: int = 0    # times peers were lost (older than safety.peer_hold_periods)
+    fallback_ticks: int = 0      # ticks computed on own sensors with at least one peer dropped
 
 
 class EcuNode(Node):
@@ -46,7 +50,8 @@ class EcuNode(Node):
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
                  crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
-                 barrier: bool = True, rx_path: Any = None) -> None:
+                 barrier: bool = True, rx_path: Any = None, secoc: Any = None,
+                 peer_hold_periods: int | None = None, n_ticks: int | None = None) -> None:
         self.spec = spec
         self.layout = layout
         self.car = spec.vehicle            # vehicle number (trace suffix _c<vehicle>)
@@ -72,6 +77,12 @@ class EcuNode(Node):
         self.barrier = barrier
         # per-link impairments on what this ECU receives (canbrake.bus.impair.SendPath, direction rx)
         self.rx_path = rx_path
+        # receiver checks (E2E, SecOC, protocol) and the peer-loss fallback (canbrake.bus.guard)
+        self.secoc = secoc
+        self.guard = FrameGuard(secoc)
+        self.peer_hold_periods = peer_hold_periods
+        self.final_tick = None if n_ticks is None else n_ticks - 1  # unauthenticated END only after it
+        self._in_fallback = False
         self._latency: dict[str, list[float]] = {}
         self._t0_wall: float | None = None
         self.k = -1
@@ -135,11 +146,14 @@ class EcuNode(Node):
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
         if aid == self._sync_id and not msg.is_extended_id:
-            tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
-            if tick == dbc.SYNC_END_TICK:
+            verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
+                                   tick_complete=self.phase == 2 or self.k < 0, final_tick=self.final_tick)
+            if verdict is None:
+                return []
+            if verdict == "end":
                 self.finished = True
                 return []
-            self.k = int(tick)
+            self.k = int(self.codec.by_id[aid].decode(msg.data)["Tick"])
             self.phase = 0
             self._done = 0
             self._page_fresh[:] = 0
@@ -172,7 +186,9 @@ class EcuNode(Node):
         src = self._state_done_ids.get(aid)
         if src is not None:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
-            if tick == (self.k & 0xFFFF):
+            if tick != (self.k & 0xFFFF):
+                self.guard.reject("sync")
+            elif self.guard.control(aid, msg.data, self.k):
                 self._done |= 1 << self._slot[src]
                 if self.phase == 1 and self._done == self._all_done:
                     return self._phase2(now)
@@ -196,14 +212,13 @@ class EcuNode(Node):
 
     def _on_state(self, j: int, msg: can.Message) -> bool:
         """Take a state frame of ECU index j+1; True if it is this tick's."""
-        data = msg.data
-        if len(data) < 2 or data[0] != e2e_crc(msg.arbitration_id, data):
-            self.stats.peer_corrupted += 1
-            return False
-        lag = (self.k - counter_of(msg.data)) % COUNTER_MODULO
-        origin = self.k - lag
-        if origin < self.peer_origin[j] or (origin == self.peer_origin[j] and self._pages_of[j + 1] == 1):
-            self.stats.peer_stale_or_duplicate += 1
+        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, int(self.peer_origin[j]),
+                                   same_tick_ok=self._pages_of[j + 1] > 1)
+        if origin is None:
+            if self.guard.last_reason == "crc":
+                self.stats.peer_corrupted += 1
+            else:
+                self.stats.peer_stale_or_duplicate += 1
             return False
         _, _page, sigs = self._state_pages[msg.arbitration_id]
         d = self.codec.by_id[msg.arbitration_id].decode(msg.data)
@@ -261,7 +276,8 @@ class EcuNode(Node):
                 self._emit(frame(fid, payload), t, out)
         out += self.send_path.release(horizon)
         if self.barrier and self._state_msgs:
-            out.append(frame(self._sdone_id, self._sdone.encode({"Tick": self.k & 0xFFFF})))
+            sdone = sign_control(self.secoc, self._sdone_id, self._sdone.encode({"Tick": self.k & 0xFFFF}), self.k)
+            out.append(frame(self._sdone_id, sdone))
         self.phase = 1
         if self.mode == "realtime":
             self._deadline = now + self.compute_deadline * self.dt
@@ -282,6 +298,8 @@ class EcuNode(Node):
                 arr[self.i] = self.sensors[nm]
         origin = self.peer_origin.copy()
         origin[self.i] = self.k
+        if self.peer_hold_periods is not None:
+            self._peer_fallback(origin, peers)
         speed = peers["speed_mps"]
         age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
         listened = [j - 1 for j in self._listens]
@@ -299,14 +317,17 @@ class EcuNode(Node):
         out: list[can.Message] = []
         values = {"brake_force_n": result.brake_force_n, **result.commands}
         status = int(result.diagnostics.get("status", 0)) if "status" in result.diagnostics else 0
+        if self._in_fallback and status == 0:
+            status = 1  # degraded: running without a lost peer
         for fid, codec, sigs in self._cmd_msgs:
             cmd = codec.encode({"Status": status, **{dn: float(values.get(sig, math.nan)) for sig, dn in sigs
                                                      if math.isfinite(values.get(sig, math.nan))}},
                                counter=self.k % COUNTER_MODULO)
-            self._emit(frame(fid, cmd), t, out)
+            self._emit(frame(fid, sign_protected(self.secoc, fid, cmd, self.k)), t, out)
         out += self.send_path.release(horizon)
         if self.barrier:
-            out.append(frame(self._cdone_id, self._cdone.encode({"Tick": self.k & 0xFFFF})))
+            cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": self.k & 0xFFFF}), self.k)
+            out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
         if self._trace is not None:
             finite_age = age[np.isfinite(age)]
@@ -314,6 +335,20 @@ class EcuNode(Node):
                                 *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
                                 float(finite_age.max()) if finite_age.size else np.inf, fresh])
         return out
+
+    def _peer_fallback(self, origin: np.ndarray, peers: dict[str, np.ndarray]) -> None:
+        """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
+        the controller runs on its own sensors for them); counts entries and ticks in fallback."""
+        lost = np.zeros(self.n, dtype=bool)
+        listened = [j - 1 for j in self._listens]
+        lost[listened] = (self.k - origin[listened]) > self.peer_hold_periods
+        for arr in peers.values():
+            arr[lost] = np.nan
+        now = bool(lost.any())
+        if now and not self._in_fallback:
+            self.stats.fallback_entries += 1
+        self.stats.fallback_ticks += int(now)
+        self._in_fallback = now
 
     def _last_vehicle(self) -> bool:
         return self.car >= getattr(self.layout, "n_vehicles", 10 ** 9)
@@ -333,6 +368,7 @@ class EcuNode(Node):
         if self._trace is not None:
             self._trace.close()
         self.stats.status = "ok" if self.finished else status
+        self.stats.guard = self.guard.stats()
         for kind, vals in self._latency.items():
             a = np.asarray(vals)
             fin = a[np.isfinite(a)]

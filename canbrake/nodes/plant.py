@@ -17,7 +17,8 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
-from canbrake.bus.e2e import E2EReceiver, E2EStatus, counter_of
+from canbrake.bus.e2e import E2EReceiver, E2EStatus
+from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.nodes.base import CsvTrace, Node, exact_filter, frame
 
 
@@ -55,18 +56,20 @@ class PlantStats:
     failsafe_first_s: dict[str, float] = field(default_factory=dict)  # car -> first activation (s)
     status: str = "running"
     extra: dict[str, float] = field(default_factory=dict)
+    guard: dict = field(default_factory=dict)  # canbrake.bus.guard: rejected frames by reason
 
 
 class PlantNode(Node):
     """Time master and physics host."""
 
     name = "plant"
+    time_master = True
 
     def __init__(self, model: PlantModel, codec: FrameCodec, *, layout: Any, dt_s: float, n_ticks: int,
                  reference: Reference, mode: str = "lockstep",
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
                  flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None,
-                 barrier: bool = True, failsafe: FailSafe | None = None) -> None:
+                 barrier: bool = True, failsafe: FailSafe | None = None, secoc: Any = None) -> None:
         self.model = model
         self.codec = codec
         self.layout = layout
@@ -115,6 +118,13 @@ class PlantNode(Node):
         self._last_counter = np.full(self.n_ecus, -1, dtype=np.int64)  # tick of each ECU's newest command
         self._page_origin = {fid: -1 for fid in self._cmd_pages}
         self.failsafe = failsafe
+        # brake-unit receive checks (E2E window of 7 periods, SecOC) and rejection counters
+        self.secoc = secoc
+        self.guard = FrameGuard(secoc, max_lag=7)
+        self._last_sync_k = -1
+        # command identifiers of ECUs this train does not have (11-bit plan): unknown senders
+        self._foreign_cmd_ids = ([dbc.BRAKE_CMD_BASE + i for i in range(self.n_ecus + 1, dbc.MAX_CARS + 1)]
+                                 if not layout.plan.extended else [])
         self._in_failsafe = np.zeros(self.n_ecus, dtype=bool)
         self._sync = codec["SYNC"]
         self._ref = codec["REFERENCE"]
@@ -132,6 +142,7 @@ class PlantNode(Node):
         ids = list(self._cmd_pages)
         if self.barrier:
             ids += list(self._cmd_done_ids)
+        ids += [i for i in self._foreign_cmd_ids if i not in self.layout.by_id]
         return [exact_filter(i) for i in ids]
 
     @staticmethod
@@ -148,7 +159,8 @@ class PlantNode(Node):
         t = k * self.dt
         meas = self.model.measurements()
         v_ref, a_ref = self.reference(t)
-        out = [frame(dbc.SYNC_ID, self._sync.encode({"Tick": k})),
+        self._last_sync_k = k
+        out = [frame(dbc.SYNC_ID, sign_control(self.secoc, dbc.SYNC_ID, self._sync.encode({"Tick": k}), k)),
                frame(dbc.REFERENCE_ID, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
         if self._ref_pos is not None:
             out.append(frame(dbc.REFERENCE_POS_ID, self._ref_pos.encode({"RefPosition": self.reference.position(t)})))
@@ -164,11 +176,21 @@ class PlantNode(Node):
                     vals[dbc_name] = x
             out.append(frame(fid, codec.encode(vals)))
         for sp in self.hosted:
-            out += sp.release(t)
+            rogue = sp.release(t)
+            out += rogue
+            self._hear_hosted(rogue)
         return out
 
+    def _hear_hosted(self, frames: list[can.Message]) -> None:
+        """A hosted source is another node on the bus: the brake units hear its command frames
+        too (a driver never hands a node the frames it sent itself)."""
+        for m in frames:
+            if m.arbitration_id in self._cmd_pages or m.arbitration_id in self._foreign_cmd_ids:
+                self.handle(m, 0.0)
+
     def _end_frames(self) -> list[can.Message]:
-        return [frame(dbc.SYNC_ID, self._sync.encode({"Tick": dbc.SYNC_END_TICK}))]
+        end = self._sync.encode({"Tick": dbc.SYNC_END_TICK})
+        return [frame(dbc.SYNC_ID, sign_control(self.secoc, dbc.SYNC_ID, end, self._last_sync_k))]
 
     def start(self, now: float) -> list[can.Message]:
         self._open_trace()
@@ -187,10 +209,15 @@ class PlantNode(Node):
                     if self._done == self._all_done:
                         return self._advance(now)
             return []
+        if aid in self._foreign_cmd_ids and aid not in self.layout.by_id:
+            self.guard.unknown(aid)
+            return []
         slot = self._cmd_done_ids.get(aid)
         if slot is not None and self.mode == "lockstep":
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
-            if tick == (self.k & 0xFFFF):
+            if tick != (self.k & 0xFFFF):
+                self.guard.reject("sync")
+            elif self.guard.control(aid, msg.data, self.k):
                 self._done |= 1 << slot
                 if self._done == self._all_done:
                     return self._advance(now)
@@ -202,17 +229,15 @@ class PlantNode(Node):
         status = self._e2e[aid].check(msg.data)
         if status is E2EStatus.WRONG_CRC:
             self.stats.commands_corrupted += 1
+            self.guard.reject("crc")
             return False
         if status is E2EStatus.WRONG_SEQUENCE:
             self.stats.commands_out_of_sequence += 1
         # The sender's counter is its tick mod 15; accept only the frame of the current tick or a
-        # newer-looking one, never an older (delayed/reordered) one.
-        c = counter_of(msg.data)
-        lag = (self.k - c) % 15
-        if lag > 7:  # from the future is impossible; treat as very old
-            return False
-        origin = self.k - lag
-        if origin <= self._page_origin[aid]:
+        # newer-looking one, never an older (delayed/reordered) one; with SecOC only an authentic
+        # frame of exactly that tick (canbrake.bus.guard).
+        origin = self.guard.origin(aid, msg.data, self.k, self._page_origin[aid], authenticated=True)
+        if origin is None:
             return False
         self._page_origin[aid] = origin
         self._last_counter[slot] = max(self._last_counter[slot], origin)
@@ -361,5 +386,6 @@ class PlantNode(Node):
             self._trace.close()
         if self.stats.status == "running":
             self.stats.status = status
+        self.stats.guard = self.guard.stats()
         if self.out_dir is not None:
             (self.out_dir / "plant_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))

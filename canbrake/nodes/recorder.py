@@ -35,6 +35,7 @@ import can
 import numpy as np
 
 from canbrake.bus import dbc
+from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.timing import frame_bits
 from canbrake.nodes.base import Node
 
@@ -117,7 +118,8 @@ class RecorderNode(Node):
 
     def __init__(self, layout: Any, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
-                 plant_io_on_bus: bool = False, barrier: bool = True, bus_timing: Any = None) -> None:
+                 plant_io_on_bus: bool = False, barrier: bool = True, bus_timing: Any = None, secoc: Any = None,
+                 n_ticks: int | None = None) -> None:
         if isinstance(layout, int):  # a number of cars: Chen's default placement
             layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
         self.layout = layout
@@ -132,6 +134,14 @@ class RecorderNode(Node):
         self.barrier = barrier  # without barrier frames, the n-th STATE frame ends phase 1
         self._writer: can.Listener | None = None
         self._k = -1
+        # a tick is complete once every CMD_DONE (without barrier: every command frame) is seen;
+        # only then does a SYNC or END count (canbrake.bus.guard.sync_verdict)
+        self._closing_kind = "cmd_done" if barrier else "cmd"
+        self._closing_total = sum(1 for m in layout.messages if m.kind == self._closing_kind)
+        self._closing_seen = 0
+        self.guard = FrameGuard(secoc)
+        self.final_tick = None if n_ticks is None else n_ticks - 1
+        self.other_ids: dict[str, int] = {}  # frames on identifiers outside the database, by id
         self._tick_frames: list[can.Message] = []
         self._bus_free_s = 0.0
         self.frames = 0
@@ -165,10 +175,19 @@ class RecorderNode(Node):
         name = _KIND_NAME.get(kind, kind)
         self.frames_by_kind[name] = self.frames_by_kind.get(name, 0) + 1
         self.frames_by_id[aid] = self.frames_by_id.get(aid, 0) + 1
+        if kind == "other":  # identifiers outside the database: who flooded or inserted
+            key = f"{aid:#05x}" if not msg.is_extended_id else f"{aid:#010x}"
+            self.other_ids[key] = self.other_ids.get(key, 0) + 1
         if self.mode == "realtime":
             self._realtime(msg, now)
             return []
+        if kind == self._closing_kind:
+            self._closing_seen += 1
+        verdict = None
         if aid == dbc.SYNC_ID and not msg.is_extended_id:
+            verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=True, final_tick=self.final_tick,
+                                   tick_complete=self._k < 0 or self._closing_seen >= self._closing_total)
+        if verdict is not None:
             self._flush_tick()
             tick = int.from_bytes(msg.data[:4], "little")
             if tick == dbc.SYNC_END_TICK:
@@ -176,6 +195,7 @@ class RecorderNode(Node):
                 self.finished = True
                 return []
             self._k = tick
+            self._closing_seen = 0
         phase = 0 if aid == dbc.HEARTBEAT_BASE and not msg.is_extended_id else _PHASE.get(kind, 1)
         self._tick_frames.append((phase, aid, bytes(msg.data), msg))  # type: ignore[arg-type]
         return []
@@ -294,8 +314,12 @@ class RecorderNode(Node):
                 self._flush_file()
             self._rt_bits = 0
             self._rt_tick_start = m.timestamp
-            if int.from_bytes(msg.data[:4], "little") == dbc.SYNC_END_TICK:
+            verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=False, tick_complete=True,
+                                   final_tick=self.final_tick)
+            if verdict == "end":
                 self.finished = True
+            elif verdict == "tick":
+                self._k = int.from_bytes(msg.data[:4], "little")
         if not self._untimed(aid):
             self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual")
 
@@ -328,6 +352,7 @@ class RecorderNode(Node):
         return {
             "frames": self.frames,
             "frames_by_kind": self.frames_by_kind,
+            "frames_by_unknown_id": dict(sorted(self.other_ids.items(), key=lambda kv: -kv[1])[:20]),
             "bitrate_bps": self.bitrate,
             "bus_load_mean": float(load.mean()),
             "bus_load_peak": float(load.max()),
@@ -361,4 +386,5 @@ class RecorderNode(Node):
             self._write_load_series()
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
+            stats["guard"] = self.guard.stats()
             (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
