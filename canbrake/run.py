@@ -548,6 +548,21 @@ def _write_run_record(ctx: Any, barrier: Any, choice: BusChoice) -> Path | None:
     return path
 
 
+def live_runs() -> list[dict[str, Any]]:
+    """The notes of this user's canbrake runs that are still running (pid, channel, ...)."""
+    out = []
+    for note in _run_records_dir().glob("canbrake-run-*.json"):
+        try:
+            if note.lstat().st_uid != os.geteuid():
+                continue
+            rec = json.loads(note.read_text())
+        except (OSError, ValueError):
+            continue
+        if _pid_running(rec.get("pid"), rec.get("start", 0)):
+            out.append(rec)
+    return out
+
+
 def clean_killed_runs() -> list[str]:
     """Remove what runs killed with SIGKILL left behind (their note, named semaphores,
     multiprocessing temporary directory, in-memory channel), for runs of this user whose
@@ -788,10 +803,11 @@ def _check_memory_channel(scn: Scenario, choice: BusChoice, explicit: bool) -> N
         raise ScenarioError(f"--channel {choice.channel}: {e}") from None
     shm.clean_stale_channels()
     if explicit and os.environ.get("CANBRAKE_JOIN") != "1":
-        pids = shm.channel_pids(choice.channel)
-        if pids:
-            raise ScenarioError(f"--channel {choice.channel}: in use by pids {', '.join(map(str, pids))} (another run?); "
-                                f"choose another channel, or set CANBRAKE_JOIN=1 to join it on purpose")
+        runs = [r["pid"] for r in live_runs() if r.get("channel") == choice.channel and r.get("pid") != os.getpid()]
+        if runs:
+            raise ScenarioError(f"--channel {choice.channel}: in use by another canbrake run (pid "
+                                f"{', '.join(map(str, runs))}); choose another channel, or set CANBRAKE_JOIN=1 "
+                                f"to join it on purpose (python-can tools may always attach)")
 
 
 def _check_adapter(choice: BusChoice) -> None:

@@ -54,8 +54,22 @@ def _non_finite(value: Any, path: str) -> str | None:
 
 
 class _Model(BaseModel):
-    # strict: `duration_s: true` is not 1 s and "3" is not 3
-    model_config = ConfigDict(extra="forbid", validate_default=True, strict=True)
+    model_config = ConfigDict(extra="forbid", validate_default=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: Any) -> Any:
+        """`duration_s: true` is not 1 s: a YAML bool where a number belongs is an error (numbers
+        stay lax otherwise: PyYAML reads 2.0e6 as a string, which pydantic converts)."""
+        if isinstance(data, dict):
+            for name, f in cls.model_fields.items():
+                v = data.get(name)
+                ann = str(f.annotation)
+                if ("float" in ann or "int" in ann) and "bool" not in ann and "Any" not in ann:
+                    vals = v if isinstance(v, list) else [v]
+                    if any(isinstance(x, bool) for x in vals):
+                        raise ValueError(f"@{name}: expected a number, got {str(v).lower()}")
+        return data
 
     @model_validator(mode="after")
     def _finite(self) -> "_Model":

@@ -347,14 +347,32 @@ def test_channel_of_another_user_is_refused(shm, tmp_path, capsys):
     assert rc == 2 and "belongs to user" in err and "not to you" in err
 
 
-def test_second_run_on_a_channel_in_use_is_refused(shm, tmp_path, capsys, monkeypatch):
-    import can
+def test_second_run_on_a_channel_in_use_is_refused(shm, tmp_path, capsys):
+    from canbrake.bus.memory_shm import proc_start_time
 
-    with can.Bus(interface="canbrake", channel="train0"):  # another run (or a logger) has it open
+    other = subprocess.Popen(["sleep", "60"])  # stands in for another run's orchestrator
+    try:
+        (shm / f"canbrake-run-{other.pid}.json").write_text(json.dumps(
+            {"pid": other.pid, "start": proc_start_time(other.pid), "channel": "train0", "semaphores": []}))
         rc = main(["run", str(CASE1), "--channel", "train0", "--duration", "0.01", "--out", str(tmp_path / "out")])
         err = capsys.readouterr().err
-        assert rc == 2 and f"in use by pids {os.getpid()}" in err and "CANBRAKE_JOIN=1" in err
+        assert rc == 2 and f"in use by another canbrake run (pid {other.pid})" in err and "CANBRAKE_JOIN=1" in err
+        assert main(["run", str(CASE1), "--channel", "train1", "--duration", "0.01", "--out", str(tmp_path / "o1"),
+                     "--no-plots"]) == 0  # another channel is fine
+    finally:
+        other.kill()
+        other.wait()
+
+
+@pytest.mark.slow
+def test_python_can_tools_may_attach_to_a_run_channel(shm, tmp_path):
+    import can
+
+    with can.Bus(interface="canbrake", channel="train0") as listener:  # e.g. python -m can.logger
+        assert main(["run", str(CASE1), "--channel", "train0", "--duration", "0.01", "--out", str(tmp_path / "o"),
+                     "--no-plots"]) == 0
         assert (shm / "canbrake-train0.bus").stat().st_mode & 0o777 == 0o600  # private from the start
+        assert listener.recv(timeout=1) is not None
 
 
 def _leave_stale_channel(name: str) -> None:
@@ -457,7 +475,7 @@ def test_recorder_hands_each_period_to_the_os(tmp_path, scn):
     rec.handle(sync(0), 0.0)
     rec.handle(can.Message(arbitration_id=dbc.SENSOR_BASE + 1, data=bytes(7), is_extended_id=False), 0.0)
     assert (tmp_path / "frames.log").read_text() == ""
-    rec.handle(sync(1), 0.0)
+    rec._flush_tick()  # noqa: SLF001 - the end of period 0 (in a run: the next accepted SYNC)
     lines = (tmp_path / "frames.log").read_text().splitlines()
     assert [ln.split()[2].split("#")[0] for ln in lines] == ["010", f"{dbc.SENSOR_BASE + 1:03X}"]
     rec.close()
