@@ -322,7 +322,8 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
         return RecorderNode(layout, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
                             plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn), secoc=secoc,
                             n_ticks=scn.n_ticks, bus_timing=_error_timing(scn),
-                            log_path=None if run_dir is None else run_dir / "frames.log", channel=channel)
+                            log_path=None if run_dir is None else run_dir / f"frames.{scn.bus.log_format}",
+                            channel=channel)
     raise ValueError(f"unknown node role {role!r}")
 
 

@@ -33,16 +33,20 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 
 
 def _cmd_run(a: argparse.Namespace) -> int:
+    from canbrake.builtin import find_scenario
     from canbrake.run import preflight, run_scenario, stop_node_server
     from canbrake.scenario import load_scenario
 
     overrides = _parse_set(a.set or [])
+    if a.log_format is not None:
+        overrides["bus.log_format"] = a.log_format
     if a.seed is not None:
         overrides["seed"] = a.seed
     if a.duration is not None:
         overrides["duration_s"] = a.duration
     if a.mode is not None:
         overrides["mode"] = a.mode
+    a.scenario = str(find_scenario(a.scenario))  # a file, else a built-in scenario's name
     scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
     choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
@@ -51,11 +55,17 @@ def _cmd_run(a: argparse.Namespace) -> int:
     check_out_dir(out)
     print(f"canbrake: running {scn.name} ({scn.n_cars} cars, {scn.duration_s:g} s, {scn.mode}, "
           f"bus {a.bus or scn.bus.backend}) -> {out}", file=sys.stderr)
+    channel = a.channel
+    if choice.backend in ("memory", "socketcan"):
+        channel = choice.channel  # the same channel for the run and the hint
+        iface = "" if choice.backend == "memory" else " --interface socketcan"
+        print(f"canbrake: watch it live: canbrake monitor --channel {channel}{iface} --scenario "
+              f"{out / 'scenario.yaml'}", file=sys.stderr)
     if choice.backend == "memory":
         _print_attach(choice.channel, out)
     try:
-        summary = run_scenario(scn, out, backend=a.bus, channel=choice.channel if choice.backend == "memory" else a.channel,
-                               interface=a.interface, dbc_path=a.dbc, plots=not a.no_plots)
+        summary = run_scenario(scn, out, backend=a.bus, channel=channel, interface=a.interface, dbc_path=a.dbc,
+                               plots=not a.no_plots)
     finally:
         stop_node_server()
     _print_summary(summary, out)
@@ -108,7 +118,8 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
         rej = ", ".join(f"{k} {v}" for k, v in sf["rejected"].items() if v) or "none"
         lines.append(f"safety: {sf['verdict']}  rejected: {rej}  "
                      f"fail-safe: {sf['fallbacks']['failsafe_entries']} car(s), {sf['fallbacks']['failsafe_time_s']:g} s")
-    lines.append(f"written: {out}/summary.json, signals.csv, frames.log" + (", plots/" if s.get("plots") else ""))
+    log = next((p.name for p in sorted(out.glob("frames.*"))), "frames.log")
+    lines.append(f"written: {out}/summary.json, signals.csv, {log}" + (", plots/" if s.get("plots") else ""))
     print("\n".join(lines))
 
 
@@ -144,7 +155,50 @@ def _cmd_dbc(a: argparse.Namespace) -> int:
 def _cmd_decode(a: argparse.Namespace) -> int:
     from canbrake.analysis.decode import decode_log
 
-    return decode_log(a.log, a.dbc, sys.stdout, only=a.only)
+    return decode_log(a.log, a.dbc, sys.stdout, only=a.only, hide_sim_control=a.hide_sim_control)
+
+
+def _cmd_monitor(a: argparse.Namespace) -> int:
+    import can
+
+    from canbrake.monitor import MonitorState, load_database, monitor, open_monitor_bus, spacing_from_scenario
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario(a.scenario) if a.scenario else None
+    try:
+        db = load_database(a.dbc, scn)
+    except FileNotFoundError:
+        raise InputError(f"--dbc {a.dbc}: no such DBC file") from None
+    bitrate = a.bitrate or (scn.bus.bitrate_bps if scn is not None else 500_000)
+    state = MonitorState(db, bitrate_bps=bitrate, spacing_m=spacing_from_scenario(scn) if scn is not None else None)
+    try:
+        bus = open_monitor_bus(a.channel, a.interface)
+    except (can.CanError, OSError, ValueError, ImportError) as e:
+        raise InputError(f"--channel {a.channel}: cannot listen: {str(e).splitlines()[0] if str(e) else e}") from None
+    title = f"canbrake monitor — {a.channel}" + (f" — {scn.name}" if scn is not None else "")
+    try:
+        monitor(bus, state, title=title, duration_s=a.duration)
+    finally:
+        bus.shutdown()
+    return EXIT_OK
+
+
+def _cmd_scenarios(a: argparse.Namespace) -> int:
+    from canbrake.builtin import builtin_scenarios
+
+    items = builtin_scenarios()
+    width = max((len(b.name) for b in items), default=0)
+    for b in items:
+        print(f"{b.name:<{width}}  {b.description}".rstrip())
+    return EXIT_OK
+
+
+def _cmd_init(a: argparse.Namespace) -> int:
+    from canbrake.builtin import init_scenario
+
+    for p in init_scenario(a.name, a.dir):
+        print(p)
+    return EXIT_OK
 
 
 def _cmd_vcan(a: argparse.Namespace) -> int:
@@ -197,7 +251,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     r = sub.add_parser("run", help="run a scenario", description="Run a scenario: one process per ECU, a plant, a recorder.")
-    r.add_argument("scenario", help="scenario YAML file")
+    r.add_argument("scenario", help="scenario YAML file, or the name of a built-in scenario (canbrake scenarios)")
     r.add_argument("--bus", choices=["memory", "socketcan", "virtual", "inprocess"],
                    help="memory (default): in-memory cross-process bus; socketcan: Linux SocketCAN (e.g. vcan0); "
                         "virtual: python-can virtual bus in one process; inprocess: fast single-process engine")
@@ -212,7 +266,31 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a scenario field, dotted path, YAML value (repeatable)")
     r.add_argument("--no-plots", action="store_true")
+    r.add_argument("--log-format", choices=["log", "asc", "blf", "trc", "mf4"],
+                   help="frame log format, written by python-can as frames.<FORMAT> (default log: candump -L; "
+                        "mf4 needs asammdf)")
     r.set_defaults(func=_cmd_run)
+
+    mo = sub.add_parser("monitor", help="live view of a running train on a bus",
+                        description="Listen to a bus and show per car speed, brake force, coupler deflection and E2E "
+                                    "errors, per node frame rates and the bus load, as the run goes.")
+    mo.add_argument("--channel", default="vcan0", help="in-memory channel printed by canbrake run, or vcan0/can0")
+    mo.add_argument("--interface", help="python-can interface (default: socketcan for vcan*/can*, else canbrake)")
+    mo.add_argument("--scenario", help="the run's scenario.yaml: car count, bit rate, coupler spacing")
+    mo.add_argument("--dbc", help="DBC to decode with (default: from --scenario, else 6 cars)")
+    mo.add_argument("--bitrate", type=int, help="bit rate for the bus load (default: the scenario's, else 500000)")
+    mo.add_argument("--duration", type=float, help="stop after this many seconds (default: at the end of the run)")
+    mo.set_defaults(func=_cmd_monitor)
+
+    sc = sub.add_parser("scenarios", help="list the built-in scenarios",
+                        description="List the scenarios shipped with canbrake, one per line (name, description).")
+    sc.set_defaults(func=_cmd_scenarios)
+
+    ini = sub.add_parser("init", help="copy a built-in scenario to start from",
+                         description="Copy a built-in scenario (and the data files it names) into DIR.")
+    ini.add_argument("name", help="a built-in scenario (canbrake scenarios lists them)")
+    ini.add_argument("dir", nargs="?", default=".", help="destination folder (default: the current one)")
+    ini.set_defaults(func=_cmd_init)
 
     d = sub.add_parser("dbc", help="generate the CAN database",
                        description="Generate the canbrake DBC with cantools: from a scenario's consist and ECU "
@@ -228,6 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("log")
     de.add_argument("--dbc", help="default: canbrake.dbc next to the log, else the 6-car database")
     de.add_argument("--only", help="only messages whose name starts with this")
+    de.add_argument("--hide-sim-control", action="store_true",
+                    help="leave out the lockstep barrier frames (STATE_DONE/CMD_DONE), e.g. in a candump capture "
+                         "of a run; a run's own log never has them")
     de.set_defaults(func=_cmd_decode)
 
     v = sub.add_parser("vcan", help="create/remove a virtual CAN interface (needs root)")

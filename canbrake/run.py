@@ -24,6 +24,8 @@ from typing import Any
 import can
 
 from canbrake.scenario import Scenario, ScenarioError
+from canbrake.startup import (PACKAGE_ENV, check_same_package, server_imports_this_canbrake,
+                              children_skip_main, controller_modules, make_module_callable)
 
 BACKENDS = ("memory", "socketcan", "virtual", "inprocess")
 
@@ -235,6 +237,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         for key in [k for k in os.environ if k.startswith("CANBRAKE_") and k not in env]:
             del os.environ[key]
         os.environ.update(env)
+        check_same_package(env)
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the orchestrator decides how a run ends
 
@@ -389,7 +392,8 @@ def _mp_context() -> Any:
         from multiprocessing import forkserver
 
         try:
-            forkserver.ensure_running()
+            with server_imports_this_canbrake():
+                forkserver.ensure_running()
         except OSError:
             # The server listens on a unix socket under TMPDIR, which fails when TMPDIR is too
             # long for a socket path or on a file system that cannot hold one (9p, some FUSE).
@@ -405,8 +409,10 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     signal or exit status), ``wall_time_s``, ``ticks`` (the plant's last progress) and
     ``live_nodes`` (processes that could not be stopped; their files must not be touched)."""
     clean_killed_runs()
-    ctx = _mp_context()
+    with children_skip_main():
+        ctx = _mp_context()
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
+    env.update(PACKAGE_ENV, CANBRAKE_IMPORT=",".join(controller_modules(scn)))
     if start_timeout_s is None:
         start_timeout_s = _start_timeout_s()
     placed = scn.placement()
@@ -438,7 +444,8 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             p = ctx.Process(target=_child_main, name=f"canbrake-{name}",
                             args=(role, car, data, str(run_dir), choice, barrier, progress, os.getpid(),
                                   env))
-            p.start()
+            with children_skip_main():
+                p.start()
             procs[name] = p
             starts[name] = _pid_start(p.pid)
         last_tick, last_change = -1, time.time()
@@ -748,6 +755,14 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
                 raise ScenarioError(f"--channel {choice.channel}: {e}") from None
         elif choice.backend == "adapter":
             _check_adapter(choice)
+        if choice.backend not in ("virtual", "inprocess"):
+            controller_modules(scn)
+        from canbrake.nodes.recorder import check_log_format
+
+        try:
+            check_log_format(scn.bus.log_format)
+        except ValueError as e:
+            raise ScenarioError(str(e)) from None
     except ScenarioError as e:
         if source and not str(e).startswith(source) and not str(e).startswith("--"):
             raise ScenarioError(f"{source}: {e}") from None
@@ -872,3 +887,6 @@ def _remove_memory_channel(channel: str | None) -> None:
 
 def write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(data, indent=1, sort_keys=False))
+
+
+make_module_callable(__name__)  # canbrake.run(...) is the API's run (canbrake/api.py)

@@ -365,6 +365,10 @@ class BusConfig(_Model):
                                                      "(false: they stand in for each car's local wiring)")
     impairments: list[ImpairmentSpec] = Field(default_factory=list,
                                               description="see canbrake.bus.impair (delay, jitter, loss, ...)")
+    log_format: Literal["log", "asc", "blf", "trc", "mf4"] = Field(
+        "log", description="format of the run's frame log frames.<log_format>, written by python-can: "
+                           "log (candump -L), asc (Vector ASCII), blf (Vector binary), trc (PEAK), mf4 (ASAM MDF, "
+                           "needs asammdf: pip install 'canbrake[mf4]')")
     tx_buffers: list[TxBufferConfig] = Field(default_factory=list,
                                              description="transmit buffer per node for the timing model and the "
                                                          "analysis (canbrake.bus.txbuffer); default: priority-ordered")

@@ -998,7 +998,7 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
     cb.set_label("max |Δl| (cm), worst seed", fontsize=7)
     cb.ax.tick_params(labelsize=7)
-    fig.suptitle(f"max coupler deflection (white outline: within ±1 cm) — {title}", fontsize=8)
+    _fit_suptitle(fig, f"max coupler deflection (white outline: within ±1 cm) — {title}")
     paths.append(_save(fig, out_dir / f"{prefix}deflection.png"))
 
     # speed RMSE
@@ -1012,7 +1012,7 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
     cb.set_label("speed RMSE (km/h), worst car, mean of seeds", fontsize=7)
     cb.ax.tick_params(labelsize=7)
-    fig.suptitle(f"speed tracking RMSE — {title}", fontsize=8)
+    _fit_suptitle(fig, f"speed tracking RMSE — {title}")
     paths.append(_save(fig, out_dir / f"{prefix}speed_rmse.png"))
 
     # convergence time
@@ -1033,7 +1033,7 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
     cb = fig.colorbar(im, ax=axs, extend="max", shrink=0.9)
     cb.set_label("convergence to ±0.5 km/h (s), latest seed", fontsize=7)
     cb.ax.tick_params(labelsize=7)
-    fig.suptitle(f"convergence time (never = not within the band at the end) — {title}", fontsize=8)
+    _fit_suptitle(fig, f"convergence time (never = not within the band at the end) — {title}")
     paths.append(_save(fig, out_dir / f"{prefix}convergence.png"))
 
     # safety
@@ -1047,18 +1047,27 @@ def plot_heatmaps(rows: Sequence[dict[str, Any]], axes: Sequence[Axis], out_dir:
         decorate(ax, fv)
     cb = fig.colorbar(im, ax=axs, ticks=[0, 1, 2, 3], shrink=0.9)
     cb.ax.set_yticklabels(["ok", "tracking\ndegraded", "|Δl| > 1 cm", "unstable"], fontsize=7)
-    fig.suptitle(f"safety (worst seed; k/n = seeds at that level) — {title}", fontsize=8)
+    _fit_suptitle(fig, f"safety (worst seed; k/n = seeds at that level) — {title}")
     paths.append(_save(fig, out_dir / f"{prefix}safety.png"))
     return paths
 
 
 def _short_cm(v: float) -> str:
-    """A deflection in cm for a cell: 0.052, 1.3, 58, 1.6m, ∞ (beyond 100 m: the plant ran away)."""
+    """A deflection in cm for a cell, in the colour bar's unit: 0.052, 1.3, 58, 160, 2400; ∞ beyond
+    100 m (the plant ran away)."""
     if not math.isfinite(v) or v >= 1e4:
         return "∞"
     if v >= 100:
-        return f"{v / 100:.2g}m"
+        return f"{v:.0f}"
     return f"{v:.2g}"
+
+
+def _fit_suptitle(fig: Any, text: str, fontsize: float = 8) -> None:
+    """A figure title wrapped to the figure's width (≈ 0.6 em per character), never cut off."""
+    import textwrap
+
+    width_in = float(fig.get_size_inches()[0])
+    fig.suptitle(textwrap.fill(text, max(24, int(width_in * 72 / (fontsize * 0.6)))), fontsize=fontsize)
 
 
 def _bound_outline(ax: Any, g: np.ndarray, bound_m: float) -> None:
@@ -1137,3 +1146,8 @@ def threshold_table(rows: Sequence[dict[str, Any]], axes: Sequence[Axis]) -> str
                                                     fmt(th["deflection_violation"]), fmt(th["tracking_degraded"]),
                                                     fmt(th["unstable"])]) + " |")
     return "\n".join(lines) + "\n"
+
+
+from canbrake.startup import make_module_callable  # noqa: E402
+
+make_module_callable(__name__)  # canbrake.sweep(...) is the API's sweep (canbrake/api.py)

@@ -21,7 +21,8 @@ from canbrake.scenario import load_scenario
 from conftest import CASE1, ROOT, default_sigint
 
 RUN_FILES = ["frames.log", "signals.csv", "summary.json", "scenario.yaml", "canbrake.dbc",
-             "plots/speeds.png", "plots/errors.png", "plots/deflections.png"]
+             "plots/speeds.png", "plots/errors.png", "plots/deflections.png", "plots/overview.png",
+             "plots/decel.png", "plots/forces.png", "plots/stopping.png"]
 
 
 def _frames(path: Path) -> list[tuple[int, bytes]]:

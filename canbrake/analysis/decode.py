@@ -77,11 +77,13 @@ def _iter_frames(log: str, warn: TextIO) -> Iterable[can.Message]:
 
 
 def decode_log(log: str, dbc_path: str | None, out: TextIO, only: str | None = None,
-               warn: TextIO | None = None) -> int:
+               hide_sim_control: bool = False, warn: TextIO | None = None) -> int:
     """Print one decoded line per frame; returns the exit status. Raises InputError (exit 2) for
     a log python-can cannot read, an unknown ``only`` prefix, or a bad DBC; a closed ``out``
-    (``| head``) raises BrokenPipeError, which the command line treats as a normal end."""
+    (``| head``) raises BrokenPipeError, which the command line treats as a normal end.
+    ``hide_sim_control``: leave out the lockstep barrier frames (STATE_DONE/CMD_DONE)."""
     from canbrake.errors import InputError
+    from canbrake.nodes.recorder import is_sim_control
 
     warn = warn or sys.stderr
     if dbc_path is None and log != "-" and (Path(log).parent / "canbrake.dbc").exists():
@@ -100,6 +102,8 @@ def decode_log(log: str, dbc_path: str | None, out: TextIO, only: str | None = N
         frames = _iter_frames(log, warn)
         for msg in frames:
             count += 1
+            if hide_sim_control and not msg.is_extended_id and is_sim_control(msg.arbitration_id):
+                continue
             line = format_frame(db, msg, only)
             if line:
                 out.write(line)

@@ -257,10 +257,10 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
         if tr is not None and len(tr.t_s) > 1:
             summary["metrics"] = compute_metrics(tr)
             if plots:
-                from canbrake.analysis.plots import plot_run
+                from canbrake.analysis.plots import plot_meta, plot_run
 
                 try:
-                    summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name)
+                    summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name, meta=plot_meta(scn, bus))
                     from canbrake.analysis.plots import plot_bus
 
                     summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)

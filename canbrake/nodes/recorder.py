@@ -1,15 +1,22 @@
-"""The recorder node: writes every frame on the bus to ``frames.log`` and measures bus load.
+"""The recorder node: writes every frame on the bus to the run's frame log and measures bus load.
 
-The log is written by python-can's own writer (``can.Logger`` picks .log/.asc/.blf/... by
-suffix), so candump/canplayer, python-can and ``cantools decode`` read it.
+The log is written by python-can's own writer (``can.Logger`` picks the format by suffix:
+``frames.log`` candump -L, ``.asc``, ``.blf``, ``.trc``, ``.mf4``), so candump/canplayer,
+python-can, ``cantools decode``, CANoe and asammdf read it.
 
-Lockstep mode: frames of one control period are written in the order a CAN bus would carry
-them if every node queued its frames of a phase at the same instant (phase by phase, then by
-identifier — arbitration), stamped with simulated time: t_k plus the wire time of the frames
-before them at the scenario's bit rate (actual bit stuffing). That makes frames.log identical
-byte for byte between runs and backends for the same seed. Simulation-control frames
-(*_DONE) take no wire time in this accounting. When a period's traffic does not fit in the
-period, the bus stays busy into the next one and the timestamps show it.
+What a frame's timestamp means (lockstep mode): simulated time, the instant the frame's last bit
+would leave an ideal bus carrying the control period's frames back to back from the period's
+start t_k, in the order a CAN bus would carry them if every node queued its frames of a phase at
+the same instant (phase by phase, then by identifier — arbitration; actual bit stuffing at the
+scenario's bit rate). A stamp never runs ahead of the period: when the period's frames need more
+wire time W than the period T (bus load > 100 %), their wire times are scaled by T/W so that the
+last one ends at t_k + T; ``bus_stats.json`` (and the summary's bus load) says by how much the
+traffic did not fit. That makes the log identical byte for byte between runs and backends for
+the same seed.
+
+Simulation-control frames (the lockstep barrier's STATE_DONE/CMD_DONE, which carry no train data
+and are only sent when an impairment needs them) are never written to the log, so a log holds the
+same train traffic whatever the configuration; they are counted in ``frames_by_kind``.
 
 Realtime mode: frames are written as received, with their wall-clock receive timestamps.
 
@@ -103,6 +110,16 @@ def error_frame(event: Any, t_s: float, channel: str, rec: int = 0) -> can.Messa
                        data=data, channel=channel, is_rx=True)
 
 
+def check_log_format(fmt: str) -> None:
+    """Raise ValueError when python-can cannot write ``fmt`` here (MF4 needs asammdf)."""
+    if fmt == "mf4":
+        try:
+            import asammdf  # noqa: F401
+        except ImportError:
+            raise ValueError("bus.log_format: mf4 needs asammdf (pip install 'canbrake[mf4]' or pip install "
+                             "asammdf)") from None
+
+
 def is_sim_control(aid: int, layout: Any = None) -> bool:
     """True for the lockstep barrier frames (STATE_DONE/CMD_DONE), which carry no train data."""
     if layout is not None:
@@ -165,6 +182,9 @@ class RecorderNode(Node):
     def start(self, now: float) -> list[can.Message]:
         if self.log_path is not None:
             self._writer = can.Logger(str(self.log_path))
+            if self.mode == "lockstep" and isinstance(self._writer, can.ASCWriter):
+                # ASC stamps are relative to the start of measurement: make that simulated time 0
+                self._writer.log_event("canbrake: simulated time", timestamp=self.epoch)
         return []
 
     # ---------------------------------------------------------------- receive
@@ -191,7 +211,8 @@ class RecorderNode(Node):
             self._flush_tick()
             tick = int.from_bytes(msg.data[:4], "little")
             if tick == dbc.SYNC_END_TICK:
-                self._write([self._stamp(msg, self._k + 1, 0.0)])
+                t_end = (self._k + 1) * self.dt + self._wire_s(msg)
+                self._write([self._stamp(msg, t_end)])
                 self.finished = True
                 return []
             self._k = tick
@@ -200,22 +221,34 @@ class RecorderNode(Node):
         self._tick_frames.append((phase, aid, bytes(msg.data), msg))  # type: ignore[arg-type]
         return []
 
+    def _wire_s(self, msg: can.Message) -> float:
+        """The frame's time on the wire (s), actual stuffing; 0 for frames the accounting leaves out."""
+        if self._untimed(msg.arbitration_id):
+            return 0.0
+        return frame_bits(msg.arbitration_id, msg.is_extended_id, msg.dlc, bytes(msg.data),
+                          stuffing="actual") / self.bitrate
+
     def _flush_tick(self) -> None:
         if self._k < 0 or not self._tick_frames:
             self._tick_frames = []
             return
         t_k = self._k * self.dt
-        t = max(t_k, self._bus_free_s)
+        t = max(t_k, self._bus_free_s)  # the accounting: a busy bus carries over into this period
         ordered = sorted(self._tick_frames, key=lambda f: (f[0], f[1], f[2]))
+        durs = [self._wire_s(msg) for *_x, msg in ordered]
+        wire = sum(durs)
+        scale = min(1.0, self.dt / wire) if wire > 0 else 1.0  # stamps stay inside [t_k, t_k + T]
         out = []
         busy = 0.0
-        for _phase, aid, data, msg in ordered:
+        in_period = 0.0
+        for (_phase, aid, _data, msg), dur in zip(ordered, durs):
             if not self._untimed(aid):
-                dur = frame_bits(aid, msg.is_extended_id, msg.dlc, data, stuffing="actual") / self.bitrate
                 t += dur
                 busy += dur
                 self._latency.add(t - t_k)
-            out.append(self._stamp(msg, None, t))
+            in_period += dur
+            if not is_sim_control(aid, self.layout):
+                out.append(self._stamp(msg, t_k + in_period * scale))
         self._bus_free_s = t
         self._busy_per_tick.append(busy / self.dt)
         self._frames_per_tick.append(sum(1 for f in ordered if not self._untimed(f[1])))
@@ -295,19 +328,18 @@ class RecorderNode(Node):
             out[who] = out.get(who, 0.0) + n / span
         return dict(sorted(out.items()))
 
-    def _stamp(self, msg: can.Message, tick: int | None, t_s: float) -> can.Message:
-        if tick is not None:
-            t_s = max(tick * self.dt, self._bus_free_s)
+    def _stamp(self, msg: can.Message, t_s: float) -> can.Message:
         return can.Message(timestamp=self.epoch + t_s, arbitration_id=msg.arbitration_id,
                            is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
                            is_error_frame=msg.is_error_frame, dlc=msg.dlc, data=msg.data,
                            channel=self.channel, is_rx=True)
 
     def _realtime(self, msg: can.Message, now: float) -> None:
-        m = self._stamp(msg, None, 0.0)
+        m = self._stamp(msg, 0.0)
         m.timestamp = msg.timestamp or now
-        self._write([m])
         aid = msg.arbitration_id
+        if not is_sim_control(aid, self.layout):
+            self._write([m])
         if aid == dbc.SYNC_ID:
             if self._rt_tick_start is not None:
                 self._busy_per_tick.append(self._rt_bits / self.bitrate / self.dt)
