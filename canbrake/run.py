@@ -715,9 +715,19 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
         outcome = {"status": "interrupted", "wall_time_s": time.time() - t0,
                    "message": "terminated by SIGTERM" if isinstance(e, Terminated) else "interrupted by the user (Ctrl-C)"}
     finally:
-        if choice.backend == "memory":
-            _remove_memory_channel(choice.channel)
-    return finalize_run(scn, run_dir, choice.describe(), outcome, plots=plots)
+        # from here on a further Ctrl-C is noted, not obeyed: the summary must be written
+        old_int = signal.signal(signal.SIGINT, lambda s, f: None) \
+            if threading.current_thread() is threading.main_thread() else None
+        try:
+            if choice.backend == "memory":
+                _remove_memory_channel(choice.channel)
+        finally:
+            pass
+    try:
+        return finalize_run(scn, run_dir, choice.describe(), outcome, plots=plots)
+    finally:
+        if old_int is not None:
+            signal.signal(signal.SIGINT, old_int)
 
 
 def preflight(scn: Scenario, backend: str | None = None, channel: str | None = None,

