@@ -34,7 +34,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 
 def _cmd_run(a: argparse.Namespace) -> int:
     from canbrake.builtin import find_scenario
-    from canbrake.run import preflight, run_scenario
+    from canbrake.run import preflight, run_scenario, stop_node_server
     from canbrake.scenario import load_scenario
 
     overrides = _parse_set(a.set or [])
@@ -50,6 +50,9 @@ def _cmd_run(a: argparse.Namespace) -> int:
     scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
     choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
+    from canbrake.run import check_out_dir
+
+    check_out_dir(out)
     print(f"canbrake: running {scn.name} ({scn.n_cars} cars, {scn.duration_s:g} s, {scn.mode}, "
           f"bus {a.bus or scn.bus.backend}) -> {out}", file=sys.stderr)
     channel = a.channel
@@ -58,32 +61,58 @@ def _cmd_run(a: argparse.Namespace) -> int:
         iface = "" if choice.backend == "memory" else " --interface socketcan"
         print(f"canbrake: watch it live: canbrake monitor --channel {channel}{iface} --scenario "
               f"{out / 'scenario.yaml'}", file=sys.stderr)
-    summary = run_scenario(scn, out, backend=a.bus, channel=channel, interface=a.interface, dbc_path=a.dbc,
-                           plots=not a.no_plots)
+    if choice.backend == "memory":
+        _print_attach(choice.channel, out)
+    try:
+        summary = run_scenario(scn, out, backend=a.bus, channel=channel, interface=a.interface, dbc_path=a.dbc,
+                               plots=not a.no_plots)
+    finally:
+        stop_node_server()
     _print_summary(summary, out)
     if summary["status"] == "interrupted":
+        print(f"canbrake: {summary['message']} (results so far kept in {out})", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if summary["status"] == "diverged":
-        print(f"canbrake: {summary['message']} (results kept in {out})", file=sys.stderr)
-        return EXIT_FAIL
     if summary["status"] != "ok":
         print(f"canbrake: run failed: {summary['message']} (logs kept in {out})", file=sys.stderr)
+        return EXIT_FAIL
+    if summary.get("verdict") == "diverged":
+        print(f"canbrake: the closed loop diverged (results kept in {out})", file=sys.stderr)
         return EXIT_FAIL
     return EXIT_OK
 
 
+def _print_attach(channel: str | None, out: Path) -> None:
+    """The run's in-memory channel and the commands that attach to it (python-can, cantools)."""
+    print(f"canbrake: channel {channel}; to watch it while the run lasts:\n"
+          f"  python -m can.logger -i canbrake -c {channel}\n"
+          f"  python -m can.viewer -i canbrake -c {channel}\n"
+          f"  cantools monitor -b canbrake -c {channel} {out}/canbrake.dbc", file=sys.stderr)
+
+
 def _print_summary(s: dict[str, Any], out: Path) -> None:
+    from canbrake.analysis.verdict import fmt_quantity as q
+
     m = s.get("metrics", {})
-    lines = [f"status: {s['status']}  ticks: {s.get('ticks')}  wall: {s.get('wall_time_s') or 0:.1f} s"]
+    lines = [f"status: {s['status']}  verdict: {s.get('verdict')}  ticks: {s.get('ticks')}  "
+             f"wall: {s.get('wall_time_s') or 0:.1f} s"]
+    for f in s.get("findings") or []:
+        lines.append(f"  {f['kind']}: {f['message']}")
     if m:
         tc = m.get("convergence_time_s")
         lines.append(f"convergence (±{m['band_kmh']} km/h): {'never' if tc is None else f'{tc:.3f} s'}  "
-                     f"max |deflection|: {m['max_abs_deflection_m'] * 100:.2f} cm  "
-                     f"speed RMSE: {max(m['speed_rmse_kmh']):.3f} km/h (worst car)")
-    bl = s.get("bus_load", {})
+                     f"max |deflection|: {q(m['max_abs_deflection_m'] * 100, 'cm')}  "
+                     f"speed RMSE: {q(max(m['speed_rmse_kmh']), 'km/h')} (worst car)")
+    bl = s.get("bus_load", {}) or {}
     if bl.get("bus_load_mean") is not None:
         lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "
                      f"at {bl['bitrate_bps'] / 1000:g} kbit/s  frames: {s['frames']['on_bus']}")
+    dm = s.get("deadline_misses") or {}
+    if s.get("mode") == "realtime" and dm:
+        ticks = s.get("ticks") or 0
+        rate = f" ({dm.get('plant', 0) / ticks * 100:.1f} % of periods)" if ticks else ""
+        lines.append(f"deadline misses: plant {dm.get('plant', 0)}{rate}, ECUs {dm.get('ecus', 0)}")
+    if s.get("finalize_error"):
+        lines.append(f"summary incomplete: {s['finalize_error']}")
     sf = s.get("safety") or {}
     if sf.get("verdict", "clean") != "clean":
         rej = ", ".join(f"{k} {v}" for k, v in sf["rejected"].items() if v) or "none"
@@ -118,7 +147,7 @@ def _cmd_dbc(a: argparse.Namespace) -> int:
         try:
             Path(a.output).write_text(text)
         except OSError as e:
-            raise InputError(f"-o {a.output}: cannot write: {e.strerror}") from None
+            raise InputError(f"-o {a.output}: cannot write: {e.strerror or e}") from None
         print(f"wrote {a.output} ({what})", file=sys.stderr)
     return EXIT_OK
 
@@ -173,16 +202,46 @@ def _cmd_init(a: argparse.Namespace) -> int:
 
 
 def _cmd_vcan(a: argparse.Namespace) -> int:
-    from canbrake.bus.vcan import VcanError, vcan_down, vcan_up
+    from canbrake.bus.vcan import VcanError, _check_name, _iface_exists, vcan_down, vcan_up
 
     try:
         if a.action == "up":
             print(vcan_up(a.name))
         else:
+            _check_name(a.name)
+            if not _iface_exists(a.name):
+                raise InputError(f"{a.name}: no such network interface; nothing to remove "
+                                 f"(`ip -brief link` lists them)")
             vcan_down(a.name)
             print(f"{a.name} removed")
     except VcanError as e:
         raise InputError(str(e)) from None
+    return EXIT_OK
+
+
+def _cmd_channels(a: argparse.Namespace) -> int:
+    """List the in-memory channels in the shared-memory directory; remove stale ones."""
+    from canbrake.bus import memory_shm as shm
+
+    if a.remove_stale:
+        from canbrake.run import clean_killed_runs
+
+        removed = clean_killed_runs() + shm.clean_stale_channels()
+        print(f"removed {len(removed)} stale channel(s)" + (f": {', '.join(removed)}" if removed else ""))
+        return EXIT_OK
+    items = shm.channel_info()
+    if not items:
+        print(f"no canbrake channels in {shm.resolve_dir()}")
+    for it in items:
+        if "owner" in it:
+            state = f"belongs to uid {it['owner']} (not yours: not touched)"
+        elif it.get("error"):
+            state = f"unreadable: {it['error']}"
+        elif it["stale"]:
+            state = "stale (no process has it open; `canbrake channels --remove-stale`)"
+        else:
+            state = f"in use by pids {', '.join(map(str, it['pids']))}"
+        print(f"{it['channel']}  {state}")
     return EXIT_OK
 
 
@@ -257,6 +316,12 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("name", nargs="?", default="vcan0")
     v.set_defaults(func=_cmd_vcan)
 
+    ch = sub.add_parser("channels", help="list (or remove stale) in-memory bus channels",
+                        description="List the in-memory channels of this machine: in use (which pids) or "
+                                    "stale (left by killed runs). --remove-stale removes your stale ones.")
+    ch.add_argument("--remove-stale", action="store_true", help="remove the channels no process has open")
+    ch.set_defaults(func=_cmd_channels)
+
     for extra in ("sweep", "report", "bench", "analyze"):
         _register_optional(sub, extra)
     return p
@@ -278,6 +343,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     parser = build_parser()
     args = parser.parse_args(argv)
+    old_term = _term_as_interrupt()
     try:
         return int(args.func(args) or 0)
     except (InputError, ScenarioError) as e:
@@ -287,7 +353,45 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("canbrake: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:
+        _quiet_stdout()
         return EXIT_OK
+    except OSError as e:  # a full disk or an unwritable file while running: one line, no traceback
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"canbrake: error: {where}{e.strerror or e}", file=sys.stderr)
+        return EXIT_FAIL
+    finally:
+        if old_term is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, old_term)
+
+
+def _term_as_interrupt() -> Any:
+    """SIGTERM ends a command as cleanly as Ctrl-C (and is named as such in a run's summary).
+    Returns the previous handler (None off the main thread)."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    from canbrake.run import Terminated
+
+    def _raise(signum: int, frame: Any) -> None:
+        raise Terminated
+
+    return signal.signal(signal.SIGTERM, _raise)
+
+
+def _quiet_stdout() -> None:
+    """After a closed stdout (``| head``), point stdout at /dev/null so the interpreter's final
+    flush does not complain (the Python docs' recipe for SIGPIPE)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -103,25 +103,75 @@ def _adapter_choice(scn: Scenario, interface: str, channel: str | None) -> BusCh
     return BusChoice("adapter", interface, channel, channel or interface, kwargs)
 
 
+#: files of which a run directory has at least one (from its start, or a sweep's trimmed point):
+#: what marks a directory as canbrake's to replace
+RUN_DIR_MARKERS = ("scenario.yaml", "summary.json")
+
+
+def check_out_dir(out_dir: str | Path) -> Path:
+    """``out_dir`` may be created or replaced: it does not exist, is empty, or is a canbrake run
+    directory (has scenario.yaml or summary.json), and it is not the current directory or one
+    of its parents. Raises :class:`ScenarioError` (exit 2) otherwise; writes nothing."""
+    out = Path(out_dir)
+    if not out.exists() and not out.is_symlink():
+        return out
+    if not out.is_dir() or out.is_symlink():
+        raise ScenarioError(f"--out {out}: exists and is not a directory")
+    here = Path.cwd().resolve()
+    if out.resolve() == here or out.resolve() in here.parents:
+        raise ScenarioError(f"--out {out}: is the current directory or one of its parents; choose a run directory")
+    try:
+        entries = {p.name for p in out.iterdir()}
+    except OSError as e:
+        raise ScenarioError(f"--out {out}: cannot read the directory: {e.strerror}") from None
+    if entries and not any(m in entries for m in RUN_DIR_MARKERS):
+        raise ScenarioError(f"--out {out}: exists and is not a canbrake run directory (no scenario.yaml or summary.json); "
+                            f"a run replaces its directory as a whole, so choose another --out or remove it")
+    return out
+
+
+def _clear_run_dir(out: Path) -> None:
+    """Replace an existing run directory by an empty one: the old one is renamed aside first (so no
+    file of it can mix with the new run's), then deleted."""
+    import shutil
+
+    if not out.exists():
+        return
+    if not any(out.iterdir()):
+        return
+    aside = out.with_name(f".{out.name}.old-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+    os.rename(out, aside)
+    shutil.rmtree(aside, ignore_errors=True)
+
+
 def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | None = None) -> Path:
-    """Create ``out_dir`` and write the resolved scenario and the DBC used (checked against the scenario)."""
+    """Create ``out_dir`` afresh (an earlier run there is replaced as a whole, see
+    :func:`check_out_dir`) and write the resolved scenario and the DBC used (checked against the
+    scenario). Raises :class:`ScenarioError` for bad input before anything is removed or written."""
     from canbrake.bus import dbc
 
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise ScenarioError(f"--out {out}: cannot create the run directory: {e.strerror}") from None
+    out = check_out_dir(out_dir)
+    dbc_text = None
     if dbc_path is not None:
         check_dbc_matches(scn, dbc_path)
-        (out / "canbrake.dbc").write_text(Path(dbc_path).read_text())
+        dbc_text = Path(dbc_path).read_text()  # before the old run (which may hold it) is removed
     else:
         from canbrake.build import bus_layout
 
-        (out / "canbrake.dbc").write_text(bus_layout(scn).database().as_dbc_string())
-    (out / "scenario.yaml").write_text(scn.to_yaml())
-    (out / "plots").mkdir(exist_ok=True)
+        dbc_text = bus_layout(scn).database().as_dbc_string()
+    try:
+        _clear_run_dir(out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "canbrake.dbc").write_text(dbc_text)
+        (out / "scenario.yaml").write_text(scn.to_yaml())
+        (out / "plots").mkdir(exist_ok=True)
+    except OSError as e:
+        raise RunDirError(f"--out {out}: cannot write the run directory: {e.strerror or e}") from None
     return out
+
+
+class RunDirError(ScenarioError):
+    """The run directory cannot be written (permissions, full disk): one message, exit 2."""
 
 
 def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
@@ -197,6 +247,11 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
     signal.signal(signal.SIGTERM, _term)
     names = scenario.get("_ecu_names", {})
     name = role if role != "ecu" else _ecu_process_name([names.get(str(i), f"ecu{i}") for i in range(1, len(names) + 1)], car)
+    _set_title(f"canbrake {name} {scenario.get('name', '')}")
+    import warnings
+
+    # a diverging plant overflows before it notices; the verdict reports it, not numpy's warnings
+    warnings.simplefilter("ignore", RuntimeWarning)
     node = None
     bus = None
     status = "failed"
@@ -244,6 +299,60 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                 pass
         if bus is not None:
             bus.shutdown()
+
+
+def _set_title(title: str) -> None:
+    """Name this process for ps/top (``canbrake ecu3 chen2023_case1``), if setproctitle is there."""
+    try:
+        import setproctitle
+    except ImportError:
+        return
+    setproctitle.setproctitle(title)
+
+
+def stop_node_server() -> None:
+    """Stop multiprocessing's forkserver (started for the node processes), so that nothing of a
+    run outlives ``canbrake run``. The next run starts a new one."""
+    from multiprocessing import forkserver
+
+    try:
+        forkserver._forkserver._stop()  # noqa: SLF001 - the stdlib's only way to stop it
+    except Exception:  # noqa: BLE001 - best effort at exit
+        pass
+
+
+class Terminated(KeyboardInterrupt):
+    """The orchestrator got SIGTERM (ends the run as cleanly as Ctrl-C, and says so)."""
+
+
+def _signal_name(code: int | None) -> str:
+    """``exited with status 3`` / ``killed by SIGKILL`` for a process exit code."""
+    if code is not None and code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name}"
+        except ValueError:
+            return f"killed by signal {-code}"
+    if code == 143:
+        return "terminated (SIGTERM)"
+    return f"exited with status {code}"
+
+
+def _pid_start(pid: int | None) -> int:
+    from canbrake.bus.memory_shm import proc_start_time
+
+    return proc_start_time(pid) if pid else 0
+
+
+def _pid_running(pid: int | None, start: int) -> bool:
+    """Is process ``pid`` (started at ``start``, /proc ticks) still running (not a zombie)?"""
+    if not pid:
+        return False
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return False
+    return fields[0] != b"Z" and (not start or int(fields[19]) == start)
 
 
 def _ecu_process_name(placed: Any, car: Any) -> str:
@@ -294,7 +403,12 @@ def _mp_context() -> Any:
 
 def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_timeout_s: float = 60.0,
                   start_timeout_s: float | None = None) -> dict[str, Any]:
-    """Run plant, ECUs and recorder as separate OS processes; supervise until done."""
+    """Run plant, ECUs and recorder as separate OS processes; supervise until done.
+
+    Returns the outcome: ``status`` ok / failed / interrupted, ``message`` (which process, which
+    signal or exit status), ``wall_time_s``, ``ticks`` (the plant's last progress) and
+    ``live_nodes`` (processes that could not be stopped; their files must not be touched)."""
+    clean_killed_runs()
     with children_skip_main():
         ctx = _mp_context()
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
@@ -310,15 +424,18 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     roles = [("recorder", 0)] + ecu_roles + [("plant", 0)]
     barrier = ctx.Barrier(len(roles))
     progress = ctx.Value("q", -1, lock=False)
+    record = _write_run_record(ctx, barrier, choice)
     data = scn.model_dump(mode="json")
     data["_ecu_names"] = {str(i): p.name for i, p in enumerate(placed, start=1)}
     procs: dict[str, mp.process.BaseProcess] = {}
+    starts: dict[str, int] = {}
     t_start = time.time()
     outcome: dict[str, Any] = {"status": "ok", "message": ""}
-    old_term = None
-    if threading.current_thread() is threading.main_thread():
+    old_term = old_int = None
+    main = threading.current_thread() is threading.main_thread()
+    if main:
         def _on_term(signum: int, frame: Any) -> None:
-            raise KeyboardInterrupt
+            raise Terminated
 
         old_term = signal.signal(signal.SIGTERM, _on_term)  # `kill` ends a run as cleanly as Ctrl-C
     try:
@@ -330,14 +447,18 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             with children_skip_main():
                 p.start()
             procs[name] = p
+            starts[name] = _pid_start(p.pid)
         last_tick, last_change = -1, time.time()
         while True:
             alive = [p for p in procs.values() if p.exitcode is None]
             failed = [(n, p) for n, p in procs.items() if p.exitcode not in (None, 0)]
             if failed:
                 n, p = failed[0]
+                if _pid_running(p.pid, starts[n]):
+                    raise RunFailure(f"lost contact with {n} (pid {p.pid}), which is still running: "
+                                     f"multiprocessing's forkserver exited or was killed")
                 detail = _failure_detail(run_dir, n)
-                raise RunFailure(f"{n} (pid {p.pid}) exited with status {p.exitcode}{detail}")
+                raise RunFailure(f"{n} (pid {p.pid}) {_signal_name(p.exitcode)}{detail}")
             if not alive:
                 break
             plant = procs["plant"]
@@ -367,18 +488,130 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             if now - last_change > limit:
                 where = "before the first tick" if tick < 0 else f"at tick {tick}"
                 raise RunFailure(f"run stalled {where}: no progress for {limit:.0f} s (a node is waiting for "
-                                 f"frames that never came; see frames.log)")
+                                 f"frames that never came, or is stopped: see frames.log)")
+    except Terminated:
+        outcome = {"status": "interrupted", "message": "terminated by SIGTERM"}
     except KeyboardInterrupt:
         outcome = {"status": "interrupted", "message": "interrupted by the user (Ctrl-C)"}
     except RunFailure as e:
         outcome = {"status": "failed", "message": str(e)}
     finally:
-        _reap(procs)
-        barrier.abort()
-        if old_term is not None:
-            signal.signal(signal.SIGTERM, old_term)
+        again: list[int] = []
+        if main:  # a second Ctrl-C/SIGTERM must not cut the clean-up short (it is bounded: ~7 s)
+            old_int = signal.signal(signal.SIGINT, lambda s, f: again.append(s))
+            signal.signal(signal.SIGTERM, lambda s, f: again.append(s))
+        try:
+            live = _reap(procs, starts)
+            barrier.abort()
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, old_int)
+                signal.signal(signal.SIGTERM, old_term)
+    outcome["live_nodes"] = live
+    if live:
+        outcome["message"] = (outcome["message"] + "; " if outcome["message"] else "") + \
+            f"could not stop {', '.join(live)}: their files were left as they are"
+        if outcome["status"] == "ok":
+            outcome["status"] = "failed"
+    outcome["ticks"] = max(int(progress.value), 0)
     outcome["wall_time_s"] = time.time() - t_start
+    if record is not None and not live:
+        record.unlink(missing_ok=True)
     return outcome
+
+
+# ----------------------------------------------------------------------------- leftovers of killed runs
+def _run_records_dir() -> Path:
+    from canbrake.bus.memory_shm import resolve_dir
+
+    return Path(resolve_dir())
+
+
+def _write_run_record(ctx: Any, barrier: Any, choice: BusChoice) -> Path | None:
+    """Note what this run leaves in shared places if all its processes are killed (SIGKILL of the
+    whole process group): its named semaphores, multiprocessing's temporary directory and its
+    in-memory channel. The next run removes them (:func:`clean_killed_runs`); a run that ends
+    normally removes the note."""
+    import multiprocessing.util as mp_util
+
+    sems = []
+    cond = getattr(barrier, "_cond", None)
+    for part in ("_lock", "_sleeping_count", "_woken_count", "_wait_semaphore"):
+        name = getattr(getattr(getattr(cond, part, None), "_semlock", None), "name", None)
+        if name:
+            sems.append(name)
+    from multiprocessing import forkserver
+
+    servers = [getattr(forkserver._forkserver, "_forkserver_pid", None)]  # noqa: SLF001
+    rec = {"pid": os.getpid(), "start": _pid_start(os.getpid()), "semaphores": sems,
+           "tempdir": mp_util.get_temp_dir(), "server_pids": [p for p in servers if p],
+           "channel": choice.channel if choice.backend == "memory" else None}
+    path = _run_records_dir() / f"canbrake-run-{os.getpid()}.json"
+    try:
+        path.write_text(json.dumps(rec))
+        path.chmod(0o600)
+    except OSError:
+        return None
+    return path
+
+
+def live_runs() -> list[dict[str, Any]]:
+    """The notes of this user's canbrake runs that are still running (pid, channel, ...)."""
+    out = []
+    for note in _run_records_dir().glob("canbrake-run-*.json"):
+        try:
+            if note.lstat().st_uid != os.geteuid():
+                continue
+            rec = json.loads(note.read_text())
+        except (OSError, ValueError):
+            continue
+        if _pid_running(rec.get("pid"), rec.get("start", 0)):
+            out.append(rec)
+    return out
+
+
+def clean_killed_runs() -> list[str]:
+    """Remove what runs killed with SIGKILL left behind (their note, named semaphores,
+    multiprocessing temporary directory, in-memory channel), for runs of this user whose
+    orchestrator and forkserver are gone. Returns the removed paths/names."""
+    import shutil
+
+    removed: list[str] = []
+    for note in _run_records_dir().glob("canbrake-run-*.json"):
+        try:
+            st = note.lstat()
+            if st.st_uid != os.geteuid():
+                continue
+            rec = json.loads(note.read_text())
+        except (OSError, ValueError):
+            continue
+        if _pid_running(rec.get("pid"), rec.get("start", 0)) or any(_pid_running(p, 0) for p in rec.get("server_pids", [])):
+            continue
+        try:
+            import _multiprocessing
+
+            for name in rec.get("semaphores", []):
+                try:
+                    _multiprocessing.sem_unlink(name)
+                    removed.append(name)
+                except OSError:
+                    pass
+        except ImportError:
+            pass
+        tmp = rec.get("tempdir")
+        if tmp and Path(tmp).name.startswith("pymp-") and Path(tmp).is_dir():
+            shutil.rmtree(tmp, ignore_errors=True)
+            removed.append(tmp)
+        if rec.get("channel"):
+            try:
+                from canbrake.bus.memory import remove_channel
+
+                if remove_channel(rec["channel"]):
+                    removed.append(rec["channel"])
+            except (can.CanError, OSError):
+                pass
+        note.unlink(missing_ok=True)
+    return removed
 
 
 def _load_plant_status(run_dir: Path) -> str | None:
@@ -398,8 +631,11 @@ def _failure_detail(run_dir: Path, name: str) -> str:
     return ""
 
 
-def _reap(procs: dict[str, mp.process.BaseProcess]) -> None:
-    """Terminate and join every child; kill the ones that ignore SIGTERM."""
+def _reap(procs: dict[str, mp.process.BaseProcess], starts: dict[str, int] | None = None) -> list[str]:
+    """Terminate and join every child; kill the ones that ignore SIGTERM. Children whose exit
+    multiprocessing cannot see (their forkserver died) are found by pid and start time and
+    signalled directly. Returns the names of processes still running afterwards."""
+    starts = starts or {}
     for p in procs.values():
         if p.exitcode is None:
             p.terminate()
@@ -410,6 +646,20 @@ def _reap(procs: dict[str, mp.process.BaseProcess]) -> None:
         if p.exitcode is None:
             p.kill()
             p.join(2.0)
+    orphans = {n: p.pid for n, p in procs.items() if _pid_running(p.pid, starts.get(n, 0))}
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        for pid in orphans.values():
+            try:
+                os.kill(pid, sig)
+            except OSError:
+                pass
+        deadline = time.time() + (3.0 if sig == signal.SIGTERM else 2.0)
+        while time.time() < deadline and any(_pid_running(pid, starts.get(n, 0)) for n, pid in orphans.items()):
+            time.sleep(0.05)
+        orphans = {n: pid for n, pid in orphans.items() if _pid_running(pid, starts.get(n, 0))}
+        if not orphans:
+            break
+    return sorted(orphans)
 
 
 # ----------------------------------------------------------------------------- in-process
@@ -418,11 +668,18 @@ def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> di
     from canbrake.build import build_nodes
     from canbrake.nodes.driver import NodeFailure, run_inprocess
 
+    import warnings
+
+    import numpy as np
+
     nodes = build_nodes(scn, run_dir, channel=choice.log_channel)
     t0 = time.time()
     status = "failed"
     try:
-        run_inprocess(nodes, medium="virtual" if choice.backend == "virtual" else "direct")
+        # a diverging plant overflows before it notices: the verdict reports it, not numpy's warnings
+        with warnings.catch_warnings(), np.errstate(over="ignore", invalid="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            run_inprocess(nodes, medium="virtual" if choice.backend == "virtual" else "direct")
         status = "ok"
         return {"status": "ok", "message": "", "wall_time_s": time.time() - t0}
     except NodeFailure as e:
@@ -445,15 +702,32 @@ def run_scenario(scn: Scenario, out_dir: str | Path, *, backend: str | None = No
 
     choice = preflight(scn, backend, channel, interface)
     run_dir = prepare_run_dir(scn, out_dir, dbc_path)
+    t0 = time.time()
     try:
         if choice.backend in ("virtual", "inprocess"):
             outcome = run_in_process(scn, run_dir, choice)
         else:
             outcome = run_processes(scn, run_dir, choice, stall_timeout_s=stall_timeout_s)
+    except OSError as e:  # a full disk or a vanished run directory while a node writes
+        outcome = {"status": "failed", "wall_time_s": time.time() - t0,
+                   "message": f"cannot write the run directory {run_dir}: {e.strerror or e}"}
+    except KeyboardInterrupt as e:
+        outcome = {"status": "interrupted", "wall_time_s": time.time() - t0,
+                   "message": "terminated by SIGTERM" if isinstance(e, Terminated) else "interrupted by the user (Ctrl-C)"}
     finally:
-        if choice.backend == "memory":
-            _remove_memory_channel(choice.channel)
-    return finalize_run(scn, run_dir, choice.describe(), outcome, plots=plots)
+        # from here on a further Ctrl-C is noted, not obeyed: the summary must be written
+        old_int = signal.signal(signal.SIGINT, lambda s, f: None) \
+            if threading.current_thread() is threading.main_thread() else None
+        try:
+            if choice.backend == "memory":
+                _remove_memory_channel(choice.channel)
+        finally:
+            pass
+    try:
+        return finalize_run(scn, run_dir, choice.describe(), outcome, plots=plots)
+    finally:
+        if old_int is not None:
+            signal.signal(signal.SIGINT, old_int)
 
 
 def preflight(scn: Scenario, backend: str | None = None, channel: str | None = None,
@@ -466,6 +740,9 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
         from canbrake.bus.schedule import check_faults
 
         check_faults(scn)
+        check_impairment_targets(scn)
+        if choice.backend == "memory":
+            _check_memory_channel(scn, choice, explicit=bool(channel or scn.bus.channel))
         if scn.security is not None:
             from canbrake.bus.secoc import KeyFileError, load_key
 
@@ -501,6 +778,61 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
             raise ScenarioError(f"{source}: {e}") from None
         raise
     return choice
+
+
+def check_impairment_targets(scn: Scenario) -> None:
+    """Every impairment must match something of this train: its ``senders``/``receivers``/
+    ``sender`` name a node of the run (plant, ecu1..ecuN, or a babbling device it defines) and its
+    ``ids`` are frames of the run's DBC. An impairment that matches nothing is a typo, not a result."""
+    from canbrake.build import bus_layout
+
+    placed = scn.placement()
+    nodes = {"plant", "recorder"} | {p.name for p in placed}
+    babblers = {getattr(s, "sender", None) for s in scn.bus.impairments if getattr(s, "type", "") == "babble"}
+    known_nodes = nodes | {b for b in babblers if b}
+    ids = {m.frame_id for m in bus_layout(scn).messages}
+    for i, spec in enumerate(scn.bus.impairments):
+        for field_name in ("senders", "receivers"):
+            names = getattr(spec, field_name, None) or []
+            bad = [x for x in names if x not in known_nodes]
+            if bad:
+                raise ScenarioError(f"bus.impairments.{i}.{field_name}: {', '.join(map(str, bad))} is not a node of "
+                                    f"this run (nodes: plant, {', '.join(p.name for p in placed[:4])}"
+                                    f"{', ...' if len(placed) > 4 else ''})")
+        spec_ids = getattr(spec, "ids", None) or []
+        if getattr(spec, "type", "") != "babble":
+            bad_ids = [x for x in spec_ids if x not in ids]
+            if bad_ids:
+                raise ScenarioError(f"bus.impairments.{i}.ids: {', '.join(hex(x) for x in bad_ids)} is not a frame of "
+                                    f"this run's DBC (its canbrake.dbc lists them)")
+
+
+def _check_memory_channel(scn: Scenario, choice: BusChoice, explicit: bool) -> None:
+    """The in-memory channel is usable: a valid name, room for every node, files owned by this
+    user and not writable by others, and not in use by another run (unless CANBRAKE_JOIN=1)."""
+    from canbrake.bus import memory_shm as shm
+
+    try:
+        shm.validate_channel(choice.channel)
+    except can.CanError as e:
+        raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+    per = max(1, getattr(scn.ecu, "per_process", 1))
+    need = -(-len(scn.placement()) // per) + 2  # ECU processes, plant, recorder
+    if need > shm.MAX_READERS:
+        raise ScenarioError(f"ecus: {need - 2} ECU processes need {need} buses on the in-memory channel, "
+                            f"which holds {shm.MAX_READERS} (host several ECUs per process with ecu.per_process, "
+                            f"or use --bus socketcan or inprocess)")
+    try:  # before cleaning: a file someone else could have planted is reported, not silently removed
+        shm.check_channel_owner(choice.channel)
+    except can.CanError as e:
+        raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+    shm.clean_stale_channels()
+    if explicit and os.environ.get("CANBRAKE_JOIN") != "1":
+        runs = [r["pid"] for r in live_runs() if r.get("channel") == choice.channel and r.get("pid") != os.getpid()]
+        if runs:
+            raise ScenarioError(f"--channel {choice.channel}: in use by another canbrake run (pid "
+                                f"{', '.join(map(str, runs))}); choose another channel, or set CANBRAKE_JOIN=1 "
+                                f"to join it on purpose (python-can tools may always attach)")
 
 
 def _check_adapter(choice: BusChoice) -> None:

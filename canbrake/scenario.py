@@ -33,8 +33,62 @@ class ScenarioError(Exception):
     """A scenario cannot be used; the message names the file and the field."""
 
 
+#: fields where inf is meaningful ("unlimited"); NaN is refused everywhere
+_INF_OK = frozenset({"adhesion_mu"})
+
+
+def _non_finite(value: Any, path: str) -> str | None:
+    """Dotted sub-path of the first NaN/inf float in ``value`` (lists and mappings searched),
+    followed by ``=<value>``."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return f"{path}={value}"
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            if (hit := _non_finite(v, f"{path}.{i}")) is not None:
+                return hit
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if (hit := _non_finite(v, f"{path}.{k}")) is not None:
+                return hit
+    return None
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_default=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: Any) -> Any:
+        """`duration_s: true` is not 1 s: a YAML bool where a number belongs is an error (numbers
+        stay lax otherwise: PyYAML reads 2.0e6 as a string, which pydantic converts)."""
+        if isinstance(data, dict):
+            for name, f in cls.model_fields.items():
+                v = data.get(name)
+                ann = str(f.annotation)
+                if ("float" in ann or "int" in ann) and "bool" not in ann and "Any" not in ann:
+                    vals = v if isinstance(v, list) else [v]
+                    if any(isinstance(x, bool) for x in vals):
+                        raise ValueError(f"@{name}: expected a number, got {str(v).lower()}")
+        return data
+
+    @model_validator(mode="after")
+    def _finite(self) -> "_Model":
+        """No NaN or inf in any field (a NaN mass or gain would fail inside a node, after the run
+        directory was replaced), except inf where it means unlimited (``adhesion_mu``)."""
+        for name in type(self).model_fields:
+            if name == "profiles":
+                continue
+            v = getattr(self, name)
+            if isinstance(v, BaseModel):
+                continue  # validated on its own
+            hit = _non_finite(v, name)
+            if hit is not None:
+                if name in _INF_OK and not any(isinstance(x, float) and np.isnan(x)
+                                               for x in (v if isinstance(v, list) else [v])):
+                    continue
+                where, bad = hit.rsplit("=", 1)
+                raise ValueError(f"@{where}: must be a finite number, got {bad}")
+        return self
 
 
 PerCar = Union[float, list[float]]
@@ -49,6 +103,14 @@ class CouplerConfig(_Model):
     epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
     spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
     end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear goes solid (none by default)")
+
+    @field_validator("stiffness_n_per_m")
+    @classmethod
+    def _positive_stiffness(cls, v: PerCar) -> PerCar:
+        for x in (v if isinstance(v, list) else [v]):
+            if not x > 0:
+                raise ValueError(f"coupler stiffness must be > 0 N/m, got {x}")
+        return v
 
 
 class DavisTypeConfig(_Model):
@@ -138,6 +200,14 @@ class TrainConfig(_Model):
 class InitialConfig(_Model):
     speed_kmh: PerCar
     position_m: list[float] | None = Field(None, description="default: car 1 in front, spaced by coupler.spacing_m or 10 m")
+
+    @field_validator("speed_kmh")
+    @classmethod
+    def _forward(cls, v: PerCar) -> PerCar:
+        for x in (v if isinstance(v, list) else [v]):
+            if x < 0:
+                raise ValueError(f"initial speeds must be >= 0 km/h (the train runs towards +x), got {x}")
+        return v
 
 
 class ReferenceConfig(_Model):
@@ -246,6 +316,14 @@ class RailEvent(_Model):
     brake_factor: PerCar = Field(1.0, description="share of the braking force that reaches the rail (0..1)")
     adhesion_mu: PerCar | None = Field(None, description="adhesion limit μ during the event (realistic actuator)")
 
+    @field_validator("brake_factor")
+    @classmethod
+    def _share(cls, v: PerCar) -> PerCar:
+        for x in (v if isinstance(v, list) else [v]):
+            if not 0.0 <= x <= 1.0:
+                raise ValueError(f"brake_factor is a share of the braking force: 0..1, got {x}")
+        return v
+
     @model_validator(mode="after")
     def _order(self) -> "RailEvent":
         if self.stop_s is not None and self.stop_s < self.start_s:
@@ -314,6 +392,9 @@ class SafetyConfig(_Model):
     failsafe_decel_mps2: float = Field(1.2, gt=0, description="fail-safe braking force per unit mass (m/s^2)")
     latch: bool = Field(True, description="true: a car stays in fail-safe until the end of the run; false: "
                                           "the next valid command releases it")
+    max_abs_deflection_m: float | None = Field(None, gt=0, description="coupler deflection bound for the verdict "
+                                               "(default: the controller's theta bounds, if any)")
+    max_speed_kmh: float | None = Field(None, gt=0, description="speed bound for the verdict (null: none)")
     peer_hold_periods: int | None = Field(None, ge=1, description="an ECU holds a peer's last good value for "
                                                                   "this many periods, then drops it and runs on its "
                                                                   "own sensors (null: hold forever)")
@@ -417,6 +498,13 @@ class Scenario(_Model):
             for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "bias_n"):
                 if hasattr(ev, fname) and getattr(ev, fname) is not None:
                     checks.append((f"events.{i}.{fname}", getattr(ev, fname), n))
+        wrong = [(name, len(value)) for name, value, k in checks if isinstance(value, list) and len(value) != k]
+        lengths = {m for _, m in wrong}
+        if wrong and len(lengths) == 1 and len(wrong) >= 2:
+            # every per-car list agrees on another train length: the mass list is the odd one out
+            m = lengths.pop()
+            raise ValueError(f"@train.mass_kg: has {n} cars, but {', '.join(nm for nm, _ in wrong)} "
+                             f"{'have' if len(wrong) > 1 else 'has'} {m} values: fix the mass list or those")
         for name, value, k in checks:
             per_car(value, k, name)
         self._check_spacing()
@@ -575,6 +663,9 @@ def format_validation_error(source: str, err: ValidationError) -> str:
             msg = "unknown key"
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
+        if msg.startswith("@") and ": " in msg:  # a model validator naming the field it rejects
+            sub, msg = msg[1:].split(": ", 1)
+            loc = f"{loc}.{sub}" if loc else sub
         lines.append(f"{source}: {loc}: {msg}" if loc else f"{source}: {msg}")
     return "\n".join(lines)
 
@@ -600,7 +691,32 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
-        raise ScenarioError(format_validation_error(source, e)) from None
+        raise ScenarioError(_blame_overrides(format_validation_error(source, e), source, overrides or {})) from None
+
+
+def _blame_overrides(message: str, source: str, overrides: dict[str, Any]) -> str:
+    """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file."""
+    out = []
+    for line in message.splitlines():
+        rest = line[len(source) + 2:] if line.startswith(f"{source}: ") else line
+        field = rest.split(": ", 1)[0]
+        key = next((k for k in sorted(overrides, key=len, reverse=True)
+                    if field == k or field.startswith(k + ".") or k.startswith(field + ".")), None)
+        out.append(f"--set {key}: {rest}" if key is not None and key != field else
+                   f"--set {rest}" if key is not None else line)
+    return "\n".join(out)
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """YAML's safe loader without anchors/aliases: a few hundred bytes of nested aliases expand
+    to gigabytes (a "billion laughs"), and a scenario has no need for them."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:  # noqa: D102
+        if self.check_event(yaml.AliasEvent):
+            ev = self.peek_event()
+            raise yaml.composer.ComposerError(None, None, f"YAML aliases (*{ev.anchor}) are not supported in "
+                                              "scenarios; write the values out", ev.start_mark)
+        return super().compose_node(parent, index)
 
 
 def load_scenario(path: str | Path, profile: str | None = None,
@@ -614,7 +730,7 @@ def load_scenario(path: str | Path, profile: str | None = None,
     except (OSError, UnicodeDecodeError) as e:
         raise ScenarioError(f"{p}: cannot read: {e}") from None
     try:
-        data = yaml.safe_load(text)
+        data = yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader without aliases
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""

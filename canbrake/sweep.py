@@ -510,7 +510,8 @@ def make_row(task: PointTask, summary: dict[str, Any]) -> dict[str, Any]:
     row["controller"] = (sc.get("controller") or {}).get("name")
     row["duration_s"] = sc.get("duration_s")
     row["control_period_s"] = sc.get("control_period_s")
-    row["status"] = summary.get("status", "error")
+    # a run that executed but diverged is a "diverged" point of the map (summary: verdict)
+    row["status"] = "diverged" if summary.get("verdict") == "diverged" else summary.get("status", "error")
     row["message"] = summary.get("message", "")
     for k in ("ticks", "wall_time_s", "real_time_factor"):
         row[k] = summary.get(k)

@@ -43,7 +43,8 @@ def test_load_scenario_by_name_and_nested_overrides():
 
 def test_run_result_reads_the_run(tmp_path):
     r = canbrake.run("chen2023_case1_fine_rail", out=tmp_path, bus="inprocess", duration_s=0.05, plots=False)
-    assert r.status == "ok" and r.run_dir == tmp_path and r.verdict == "ok"
+    # case 1's 1 ms traffic needs ~142 % of the bus under ideal timing: the verdict says so (issue 11)
+    assert r.status == "ok" and r.run_dir == tmp_path and r.verdict == "overloaded"
     sig = r.signals
     assert sig.index.name == "t_s" and sig.index[-1] == pytest.approx(0.05)
     # every plant and ECU column ends with a unit or is a count/tick
@@ -103,7 +104,7 @@ def test_controller_in_main_needs_an_inprocess_bus(tmp_path, monkeypatch):
 def test_sweep_returns_a_dataframe(tmp_path):
     df = canbrake.sweep("chen2023_case1_fine_rail", {"delay": [0.0, 0.004]}, out=tmp_path, duration_s=0.05,
                         plots=False)
-    assert list(df["delay_s"]) == [0.0, 0.004] and set(df["status"]) == {"ok"}
+    assert list(df["delay_s"]) == [0.0, 0.004] and set(df["status"]) <= {"ok", "diverged"}
     assert (tmp_path / "results.csv").exists() and df.attrs["out"] == str(tmp_path)
 
 

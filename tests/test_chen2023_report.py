@@ -85,7 +85,7 @@ def test_paper_gains_diverge_with_a_realistic_brake(runs):
     r = runs(1, "realistic", "short-paper-gains", duration_s=5.0,
              **{k: v for k, v in R._PAPER_GAINS.items()})  # noqa: SLF001 - the report's own variant
     assert not r.ok
-    assert "diverged" in (r.summary["status"] + r.summary["message"]).lower()
+    assert r.summary.get("verdict") == "diverged" or "diverged" in (r.summary["status"] + r.summary["message"]).lower()
     assert R.end_time(r) < 5.0
     assert r.metrics["max_abs_deflection_m"] > 1.0  # past the softening coupler's force peak (0.82 m)
 

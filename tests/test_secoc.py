@@ -183,12 +183,13 @@ def test_forged_end_frames_from_a_foreign_process_cannot_end_a_run(tmp_path, sec
 def test_a_diverged_run_still_ends_though_its_early_end_frame_is_not_trusted(tmp_path, backend):
     """The paper's gains with a realistic brake diverge at ~4.1 s (docs/reproduction/chen2023.md):
     the plant's unauthenticated early END is ignored by the other nodes, and the driver or the
-    orchestrator ends them once the plant has finished; the run reports "diverged", safety clean."""
+    orchestrator ends them once the plant has finished; the run's verdict is "diverged", safety clean."""
     from canbrake.report.chen2023 import _PAPER_GAINS
 
     scn = load_scenario(CASE1, profile="realistic", overrides={"duration_s": 5.0, **_PAPER_GAINS})
     s = run_scenario(scn, tmp_path, backend=backend, plots=False)
-    assert s["status"] == "diverged" and s["ticks"] < 500
+    # status: how it executed (ok); verdict: the physics (issue 11, canbrake/analysis/verdict.py)
+    assert s["status"] == "ok" and s["verdict"] == "diverged" and s["ticks"] < 500
     assert s["safety"]["end_frames_ignored"] == scn.n_cars + 1 and s["safety"]["verdict"] == "clean"
 
 

@@ -20,19 +20,31 @@ def read_signals(path: str | Path) -> dict[str, np.ndarray]:
     if len(rows) < 2:
         return {name: np.zeros(0) for name in (rows[0] if rows else [])}
     header, body = rows[0], rows[1:]
-    arr = np.array([[float(x) if x not in ("", "nan") else np.nan for x in r] for r in body], dtype=float)
+    width = len(header)
+    # a row cut short by a killed writer (or a full disk) is dropped, not half-read
+    body = [r for r in body if len(r) == width]
+    arr = np.full((len(body), width), np.nan)
+    for i, r in enumerate(body):
+        try:
+            arr[i] = [float(x) if x not in ("", "nan") else np.nan for x in r]
+        except ValueError:
+            arr = arr[:i]
+            break
     return {name: arr[:, j] for j, name in enumerate(header)}
 
 
 def trace_from_columns(cols: dict[str, np.ndarray], n: int) -> Trace:
     """Build a :class:`Trace` from signals.csv columns."""
+    rows = len(cols["t_s"])
+
     def stack(prefix: str, count: int) -> np.ndarray:
+        # a column a node never wrote (killed before its first row) is NaN, never a KeyError
         if count == 0:
-            return np.zeros((len(cols["t_s"]), 0))
-        return np.column_stack([cols[f"{prefix}{c}"] for c in range(1, count + 1)])
+            return np.zeros((rows, 0))
+        return np.column_stack([cols.get(f"{prefix}{c}", np.full(rows, np.nan)) for c in range(1, count + 1)])
 
     obs = None
-    if "observer_accel_mps2_c1" in cols:
+    if any(f"observer_accel_mps2_c{c}" in cols for c in range(1, n + 1)):
         obs = stack("observer_accel_mps2_c", n)
     return Trace(t_s=cols["t_s"], ref_speed_mps=cols["ref_speed_mps"], position_m=stack("position_m_c", n),
                  speed_mps=stack("speed_mps_c", n), accel_mps2=stack("accel_mps2_c", n),
@@ -53,7 +65,7 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
         rows = list(csv.reader(f))
     if not rows:
         return
-    header, body = rows[0], rows[1:]
+    header, body = rows[0], [r for r in rows[1:] if len(r) == len(rows[0])]
     extra_header: list[str] = []
     extra: dict[int, list[str]] = {}
     widths: list[int] = []
@@ -73,12 +85,14 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
         start = sum(widths)
         widths.append(len(names))
         for r in erows[1:]:
+            if len(r) != len(erows[0]) or not r[col].isdigit():
+                continue  # a row cut short by a killed ECU
             k = int(r[col])
             vals = [v for j, v in enumerate(r) if j != col]
             extra.setdefault(k, []).extend([""] * (start - len(extra.get(k, []))))
             extra[k][start:start + len(names)] = vals
-    if not extra_header:
-        return
+    if not extra_header or set(extra_header) & set(header):
+        return  # nothing to add, or already merged (never duplicate columns)
     total = sum(widths)
     tmp = sig.with_suffix(".csv.tmp")
     with open(tmp, "w", newline="") as f:
@@ -123,48 +137,133 @@ def _load_json(p: Path) -> dict[str, Any]:
         return {}
 
 
-def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], *, plots: bool = True) -> dict[str, Any]:
-    """Write summary.json (and plots) for ``run_dir``; returns the summary."""
-    n = scn.n_cars
-    merge_ecu_columns(run_dir, n)
-    merge_tick_file(run_dir, "can_errors.csv")
-    plant = _load_json(run_dir / "plant_stats.json")
-    busst = _load_json(run_dir / "bus_stats.json")
-    ecus = [_load_json(run_dir / f"ecu_c{c}_stats.json") for c in range(1, n + 1)]
-    if outcome.get("status") == "ok" and plant.get("status") == "diverged":
-        outcome = {**outcome, "status": "diverged",
-                   "message": f"the closed loop diverged at t = {plant['extra'].get('diverged_at_s', 0):.3f} s: "
-                              f"{plant['extra'].get('message', '')}"}
-    summary: dict[str, Any] = {
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write ``data`` as JSON to a temporary file next to ``path``, fsync it and rename it over
+    ``path``: a reader sees the old file or the new one, never a partial one (a full disk raises
+    OSError and leaves the old file)."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "w") as f:
+            f.write(json.dumps(data, indent=1, allow_nan=False, default=_json_default))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _finite_json(x: Any) -> Any:
+    """Non-finite floats as strings ("inf", "nan"): summary.json stays strict JSON."""
+    if isinstance(x, float) and not np.isfinite(x):
+        return "nan" if np.isnan(x) else ("inf" if x > 0 else "-inf")
+    if isinstance(x, dict):
+        return {k: _finite_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_json(v) for v in x]
+    return x
+
+
+def _base_summary(scn: Scenario, bus: str, outcome: dict[str, Any]) -> dict[str, Any]:
+    return {
         "scenario": scn.name,
         "profile": scn.profile,
         "seed": scn.seed,
         "bus": bus,
         "mode": scn.mode,
         "controller": scn.controller.name,
-        "n_cars": n,
+        "n_cars": scn.n_cars,
         "duration_s": scn.duration_s,
         "control_period_s": scn.control_period_s,
         "status": outcome.get("status", "failed"),
         "message": outcome.get("message", ""),
+        "verdict": None,
         "wall_time_s": outcome.get("wall_time_s"),
-        "ticks": plant.get("ticks", 0),
+        "ticks": outcome.get("ticks", 0),
     }
+
+
+def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], *, plots: bool = True) -> dict[str, Any]:
+    """Write summary.json (and plots) for ``run_dir``; returns the summary.
+
+    ``outcome``: ``status`` (ok / failed / interrupted: how the run executed), ``message``,
+    ``wall_time_s`` and optionally ``ticks`` (the last progress the orchestrator saw) and
+    ``live_nodes`` (node processes that could not be stopped: their files are not touched).
+    summary.json is always written (atomically), also when the traces are damaged or a second
+    Ctrl-C arrives here: then it holds what is known and ``finalize_error`` says what is missing.
+    """
+    import warnings
+
+    try:
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            summary = _summarise(scn, run_dir, bus, outcome, plots=plots)
+    except KeyboardInterrupt:
+        summary = _base_summary(scn, bus, {**outcome, "status": "interrupted",
+                                           "message": outcome.get("message") or "interrupted while writing the summary"})
+        summary["finalize_error"] = "interrupted while the summary was being computed: metrics and plots are missing"
+        summary["verdict"] = "unknown"
+    except Exception as e:  # noqa: BLE001 - a damaged trace must not cost the run its summary
+        summary = _base_summary(scn, bus, outcome)
+        summary["finalize_error"] = f"{type(e).__name__}: {e}"
+        summary["verdict"] = "unknown"
+    try:
+        write_json_atomic(run_dir / "summary.json", _finite_json(summary))
+    except OSError as e:  # a full disk: say which file (the CLI prints it as one line, exit 1)
+        raise OSError(e.errno, f"cannot write it: {e.strerror or e}"
+                      + (f" (the run: {summary['status']}: {summary['message']})" if summary.get("message") else ""),
+                      str(run_dir / "summary.json")) from None
+    return summary
+
+
+def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], *, plots: bool) -> dict[str, Any]:
+    from canbrake.analysis.verdict import judge
+
+    n = scn.n_cars
+    live = outcome.get("live_nodes") or []
+    if not live:  # never rewrite signals.csv while a node may still write it
+        merge_ecu_columns(run_dir, n)
+        merge_tick_file(run_dir, "can_errors.csv")
+    plant = _load_json(run_dir / "plant_stats.json")
+    busst = _load_json(run_dir / "bus_stats.json")
+    ecus = [_load_json(run_dir / f"ecu_c{c}_stats.json") for c in range(1, n + 1)]
+    summary = _base_summary(scn, bus, outcome)
+    if live:
+        summary["live_nodes"] = live
+    summary["ticks"] = plant.get("ticks") or outcome.get("ticks") or 0
     if summary["ticks"] and plant.get("wall_time_s"):
         # simulated seconds per wall second of the plant's loop (start-up of the processes excluded)
         summary["real_time_factor"] = summary["ticks"] * scn.control_period_s / plant["wall_time_s"]
     sig = run_dir / "signals.csv"
+    tr = None
     if sig.exists():
         cols = read_signals(sig)
-        if cols.get("t_s") is not None and len(cols["t_s"]) > 1:
+        if cols.get("t_s") is not None and len(cols["t_s"]) > 0:
             tr = trace_from_columns(cols, n)
             tr.mass_kg = scn.vehicle_masses_kg()
+            if not plant.get("ticks"):  # the plant died before writing its statistics
+                summary["ticks"] = max(int(summary["ticks"]), int(cols["tick"][-1]) if "tick" in cols else 0)
+        if tr is not None and len(tr.t_s) > 1:
             summary["metrics"] = compute_metrics(tr)
             if plots:
                 from canbrake.analysis.plots import plot_meta, plot_run
 
                 try:
                     summary["plots"] = plot_run(tr, run_dir / "plots", title=scn.name, meta=plot_meta(scn, bus))
+                    from canbrake.analysis.plots import plot_bus
+
+                    summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
                     from canbrake.analysis.plots import plot_bus
 
                     summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
@@ -185,6 +284,8 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
                                                       "bus_load_peak_window", "bus_load_window_s",
                                                       "error_frames_per_s", "frames_per_s_by_sender",
                                                       "latency_p50_s", "latency_p99_s", "latency_max_s",
+                                                      "bus_load_peak_window", "bus_load_window_s",
+                                                      "error_frames_per_s", "frames_per_s_by_sender",
                                                       "latency_model")}
     lat: dict[str, Any] = {}
     for e in ecus:
@@ -199,6 +300,8 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
         summary["bus_latency_in_loop"] = {"model": scn.bus.timing, **lat}
     if busst.get("errors"):
         summary["can_errors"] = busst["errors"]
+    if busst.get("errors"):
+        summary["can_errors"] = busst["errors"]
     if scn.safety.command_timeout_s is not None:
         summary["failsafe"] = {"command_timeout_s": scn.safety.command_timeout_s,
                                "activations": plant.get("failsafe_activations", 0),
@@ -207,9 +310,16 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
     summary["safety"] = safety_counters(scn, plant, ecus, busst)
     summary["deadline_misses"] = {"plant": plant.get("deadline_misses", 0),
                                   "ecus": sum(e.get("deadline_misses", 0) for e in ecus),
+                                  "ecus_per_car": [e.get("deadline_misses", 0) for e in ecus],
+                                  "missed_commands_per_car": plant.get("commands_missed_per_car"),
                                   "late_periods": plant.get("late_periods", 0),
                                   "max_lateness_s": plant.get("max_lateness_s", 0.0)}
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+    if scn.mode != "realtime":
+        summary["deadline_misses"]["missed_commands_per_car"] = None  # lockstep: missing = lost, not late
+    v = judge(scn, summary, tr, plant)
+    summary["verdict"] = v["verdict"]
+    summary["findings"] = v["findings"]
+    summary["diverged_at_s"] = v["diverged_at_s"]
     return summary
 
 

@@ -233,10 +233,16 @@ def open_locked(path: str, ring_size: int, create: bool = True) -> Optional[int]
     for _ in range(1000):
         flags = os.O_RDWR | (os.O_CREAT if create else 0)
         try:
-            fd = os.open(path, flags, 0o660)
+            fd = os.open(path, flags | getattr(os, "O_NOFOLLOW", 0), 0o600)
         except FileNotFoundError:
             return None
+        except OSError as e:
+            if e.errno == errno.ELOOP:
+                raise CanInitializationError(f"{path} is a symbolic link; refusing to use it as a canbrake channel") from None
+            raise
         try:
+            if create:  # opened for use (removal and listing only look)
+                check_private(os.fstat(fd), path)
             fcntl.flock(fd, fcntl.LOCK_EX)
             st = os.fstat(fd)
             try:
@@ -268,6 +274,92 @@ def open_locked(path: str, ring_size: int, create: bool = True) -> Optional[int]
             os.close(fd)
             raise
     raise CanInitializationError(f"could not open {path}: it keeps being removed and re-created")
+
+
+def check_private(st: os.stat_result, path: str) -> None:
+    """A channel file must belong to this user and be writable by no one else: another local
+    user's file would let that user see and inject frames. Raises CanInitializationError."""
+    if st.st_uid != os.geteuid():
+        try:
+            import pwd
+
+            owner = pwd.getpwuid(st.st_uid).pw_name
+        except (ImportError, KeyError):
+            owner = str(st.st_uid)
+        raise CanInitializationError(
+            f"{path} belongs to user {owner}, not to you: refusing a channel another user controls "
+            "(choose another channel name)")
+    if st.st_mode & 0o022:
+        raise CanInitializationError(
+            f"{path} is writable by others (mode {st.st_mode & 0o777:o}): refusing it "
+            "(remove it with `canbrake channels --remove-stale`, or choose another channel name)")
+
+
+def check_channel_owner(channel: object, shm_dir: Optional[str] = None) -> None:
+    """:func:`check_private` for the file of ``channel``, if it exists."""
+    name = validate_channel(channel)
+    path = bus_path(resolve_dir(shm_dir), name)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    import stat as _stat
+
+    if _stat.S_ISLNK(st.st_mode):
+        raise CanInitializationError(f"{path} is a symbolic link; refusing to use it as a canbrake channel")
+    check_private(st, path)
+
+
+def channel_info(shm_dir: Optional[str] = None) -> list[dict]:
+    """Every channel file (and FIFO group) of this user in the shared-memory directory:
+    ``{"channel", "path", "pids", "stale"}``; a channel is stale when no live process has it open.
+    Other users' channels are listed with ``"owner"`` and never touched."""
+    directory = resolve_dir(shm_dir)
+    try:
+        files = os.listdir(directory)
+    except FileNotFoundError:
+        return []
+    names: set[str] = set()
+    for f in files:
+        if not f.startswith("canbrake-"):
+            continue
+        rest = f[len("canbrake-"):]
+        name = rest[:-4] if rest.endswith(".bus") else rest.split("@", 1)[0] if "@" in rest else None
+        if name and _CHANNEL_RE.match(name):
+            names.add(name)
+    out = []
+    for name in sorted(names):
+        path = bus_path(directory, name)
+        item: dict = {"channel": name, "path": path, "pids": [], "stale": True}
+        try:
+            st = os.lstat(path)
+            if st.st_uid != os.geteuid():
+                item.update(owner=st.st_uid, stale=None)
+                out.append(item)
+                continue
+        except FileNotFoundError:
+            pass
+        try:
+            item["pids"] = channel_pids(name, directory)
+        except CanInitializationError as e:
+            item["error"] = str(e)
+        item["stale"] = not item["pids"]
+        out.append(item)
+    return out
+
+
+def clean_stale_channels(shm_dir: Optional[str] = None) -> list[str]:
+    """Remove this user's channels that no live process has open (left behind when every process
+    of a run was killed); returns their names. Never touches another user's files."""
+    removed = []
+    for item in channel_info(shm_dir):
+        if item["stale"] is True and "error" not in item:
+            try:
+                if remove_channel(item["channel"], shm_dir):
+                    removed.append(item["channel"])
+            except (CanOperationError, CanInitializationError, OSError):
+                pass
+    return removed
 
 
 def _initialise(fd: int, ring_size: int) -> None:

@@ -92,34 +92,35 @@ class Node(ABC):
 
 
 class CsvTrace:
-    """Rows buffered in memory and appended to a CSV file every ``flush_every`` rows, so a
-    crashed run keeps what it had traced. Floats are written with 9 significant digits."""
+    """A CSV trace written as it goes: the header at once, then every row handed to the OS as it
+    is appended (one ``write`` per row through a buffered file: one control period per row), so
+    a node killed with SIGKILL loses at most its current row. ``flush_every`` is accepted for
+    compatibility and ignored. Floats are written with 9 significant digits."""
 
-    def __init__(self, path: Path | None, header: list[str], flush_every: int) -> None:
+    def __init__(self, path: Path | None, header: list[str], flush_every: int = 1) -> None:
         self.flush_every = flush_every
-        self._rows: list[list[Any]] = []
         self._file = open(path, "w", newline="") if path is not None else None
         self._writer = csv.writer(self._file) if self._file is not None else None
         if self._writer is not None:
             self._writer.writerow(header)
+            self._file.flush()  # type: ignore[union-attr]
 
     def append(self, row: list[Any]) -> None:
-        self._rows.append(row)
-        if len(self._rows) >= self.flush_every:
-            self.flush()
+        if self._writer is not None:
+            self._writer.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+            self._file.flush()  # type: ignore[union-attr]
 
     def flush(self) -> None:
-        if self._writer is not None and self._rows:
-            self._writer.writerows([[f"{v:.9g}" if isinstance(v, float) else v for v in r] for r in self._rows])
-            self._file.flush()  # type: ignore[union-attr]
-        self._rows.clear()
+        if self._file is not None:
+            self._file.flush()
 
     def close(self) -> None:
-        self.flush()
         if self._file is not None:
-            self._file.close()
-            self._file = None
-            self._writer = None
+            try:
+                self._file.close()
+            finally:
+                self._file = None
+                self._writer = None
 
 
 def frame(arbitration_id: int, data: bytes) -> can.Message:

@@ -44,6 +44,7 @@ class PlantStats:
     ticks: int = 0
     commands_received: int = 0
     commands_missed: int = 0          # ticks x cars without a fresh command
+    commands_missed_per_car: list[int] = field(default_factory=list)  # the same per car (a stopped ECU shows)
     commands_corrupted: int = 0       # failed CRC
     commands_out_of_sequence: int = 0
     deadline_misses: int = 0          # realtime: periods that ended before every command arrived
@@ -90,7 +91,7 @@ class PlantNode(Node):
         # barrier=False: commands cannot be lost or delayed, so the commands themselves close the tick
         self.barrier = barrier
         self.k = 0
-        self.stats = PlantStats()
+        self.stats = PlantStats(commands_missed_per_car=[0] * self.n_ecus)
         # commands by name, per vehicle (NaN: no ECU commands it); 0 until a vehicle's first command
         self.command_names = sorted({c for e in self.ecus for c in e.commands})
         self.commands = {c: np.full(self.n, np.nan) for c in self.command_names}
@@ -293,6 +294,8 @@ class PlantNode(Node):
 
     def _advance(self, now: float) -> list[can.Message]:
         self.stats.commands_missed += int((~self._fresh).sum())
+        for i in np.flatnonzero(~self._fresh):
+            self.stats.commands_missed_per_car[i] += 1
         applied = self._applied_commands()
         if self.k % self.trace_every == 0:
             self._record()

@@ -172,7 +172,7 @@ class RunResult:
 
     @property
     def ok(self) -> bool:
-        return self.summary.get("status") == "ok"
+        return self.summary.get("status") == "ok" and self.summary.get("verdict") != "diverged"
 
     @property
     def metrics(self) -> dict[str, Any]:
@@ -203,7 +203,7 @@ def _reusable(scn: Scenario, run_dir: Path) -> bool:
         if (run_dir / "scenario.yaml").read_text() != scn.to_yaml():
             return False
         s = json.loads((run_dir / "summary.json").read_text())
-        if s.get("status") != "ok" or s.get("report_trace_version") != TRACE_VERSION:
+        if s.get("status") != "ok" or s.get("verdict") == "diverged" or s.get("report_trace_version") != TRACE_VERSION:
             return False
         with np.load(run_dir / "trace.npz") as z:
             return int(z["version"]) == TRACE_VERSION
@@ -989,7 +989,7 @@ def _all_runs_rows(res: dict[str, RunResult]) -> list[list[str]]:
     for key, r in res.items():
         m = r.metrics
         rows.append([
-            f"`{key}`", r.summary.get("status", "?") + ("" if r.ok else f" at {fmt(end_time(r), 3, 's')}"),
+            f"`{key}`", ("diverged" if r.summary.get("verdict") == "diverged" else r.summary.get("status", "?")) + ("" if r.ok else f" at {fmt(end_time(r), 3, 's')}"),
             fmt(m.get("convergence_time_s"), 3, "s"),
             cm(m.get("max_abs_deflection_m")) if r.ok else "> " + cm(coupler_limits_m(r.scenario)[1]),
             fmt((m.get("max_abs_coupler_force_n") or 0) / 1000, 3, "kN") if r.ok else "—",
