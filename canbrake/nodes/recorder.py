@@ -32,7 +32,6 @@ window, frames per second by identifier and by sender, error frames per second.
 """
 from __future__ import annotations
 
-import array
 import csv
 import json
 from pathlib import Path
@@ -128,6 +127,84 @@ def is_sim_control(aid: int, layout: Any = None) -> bool:
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
 
 
+class LoadSeries:
+    """Per-period bus load in constant memory: each period is written to ``bus_load.csv`` as it
+    ends (handed to the OS with the frames of that period) and only running aggregates stay in
+    memory — mean, peak, the peak ``window_s`` window, and at most ``max_windows`` window means
+    (pairs are merged and the window doubles when there would be more), so a run of any length
+    keeps the recorder's memory bounded."""
+
+    def __init__(self, path: Path | None, dt_s: float, window_s: float = 0.1, max_windows: int = 4096) -> None:
+        self.dt = dt_s
+        self.path = path
+        self._f: Any = None
+        self._w: Any = None
+        self.n = 0
+        self.sum = 0.0
+        self.peak = 0.0
+        self.errors = 0
+        self.per_window = max(1, int(round(window_s / dt_s)))
+        self.window_s = self.per_window * dt_s
+        self._base_window_s = self.window_s
+        self._acc, self._acc_n = 0.0, 0
+        self.peak_window = 0.0
+        self.windows: list[float] = []
+        self._merge = 1          # base windows per stored window
+        self._pend, self._pend_n = 0.0, 0
+        self.max_windows = max_windows
+
+    def add(self, load: float, frames: int | str, errors: int) -> None:
+        if self._w is None and self.path is not None:
+            self._f = open(self.path, "w", newline="")
+            self._w = csv.writer(self._f)
+            self._w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
+        if self._w is not None:
+            self._w.writerow([self.n, f"{self.n * self.dt:.9g}", f"{load:.6g}", frames, errors])
+        self.n += 1
+        self.sum += load
+        self.peak = max(self.peak, load)
+        self.errors += errors
+        self._acc += load
+        self._acc_n += 1
+        if self._acc_n == self.per_window:
+            self._window(self._acc / self._acc_n)
+            self._acc, self._acc_n = 0.0, 0
+
+    def _window(self, mean: float) -> None:
+        self.peak_window = max(self.peak_window, mean)
+        self._pend += mean          # sum of base-window means not stored yet
+        self._pend_n += 1           # ... and how many base windows that is
+        if self._pend_n < self._merge:
+            return
+        self.windows.append(self._pend / self._pend_n)
+        self._pend, self._pend_n = 0.0, 0
+        if len(self.windows) > self.max_windows:  # halve the resolution: bounded memory
+            last = self.windows.pop() if len(self.windows) % 2 else None
+            self.windows = [(a + b) / 2 for a, b in zip(self.windows[0::2], self.windows[1::2])]
+            if last is not None:  # an odd one out waits, as base windows, for its partner
+                self._pend, self._pend_n = last * self._merge, self._merge
+            self._merge *= 2
+            self.window_s = self._base_window_s * self._merge
+
+    def flush(self) -> None:
+        if self._f is not None:
+            self._f.flush()
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+    @property
+    def mean(self) -> float:
+        return self.sum / self.n if self.n else 0.0
+
+    def window_list(self) -> list[float]:
+        if self.windows:
+            return list(self.windows)
+        return [self._acc / self._acc_n] if self._acc_n else [self.mean]
+
+
 class RecorderNode(Node):
     """Listens to everything; writes ``frames.log`` and ``bus_stats.json``."""
 
@@ -165,19 +242,17 @@ class RecorderNode(Node):
         self.frames_by_kind: dict[str, int] = {}
         # per-period series in compact arrays (8 bytes per period each); latencies in a histogram
         # of fixed size whatever the run length
-        self._busy_per_tick = array.array("d")
+        self._series = LoadSeries(None if log_path is None else Path(log_path).parent / "bus_load.csv", dt_s)
         self._latency = LogHistogram()
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
         self.frames_by_id: dict[int, int] = {}
-        self._frames_per_tick = array.array("q")
-        self._errors_per_tick = array.array("q")
         # bus errors: own replica of the timing model (canbrake.bus.schedule.LockstepBusTiming)
         self.timing = bus_timing if bus_timing is not None and getattr(bus_timing, "faults", None) else None
         self._ev_i = 0
         self.error_frames = 0
         self._err_nodes = ["plant"] + [e.name for e in layout.ecus]
-        self._err_rows: list[list[int]] = []
+        self._err_file: Any = None  # can_errors.csv, written per period as the states change
 
     def start(self, now: float) -> list[can.Message]:
         if self.log_path is not None:
@@ -250,12 +325,10 @@ class RecorderNode(Node):
             if not is_sim_control(aid, self.layout):
                 out.append(self._stamp(msg, t_k + in_period * scale))
         self._bus_free_s = t
-        self._busy_per_tick.append(busy / self.dt)
-        self._frames_per_tick.append(sum(1 for f in ordered if not self._untimed(f[1])))
         n_out = len(out)
         if self.timing is not None:
             out = self._with_errors(out)
-        self._errors_per_tick.append(len(out) - n_out)
+        self._series.add(busy / self.dt, sum(1 for f in ordered if not self._untimed(f[1])), len(out) - n_out)
         self._write(out)
         self._flush_file()
         self._tick_frames = []
@@ -276,7 +349,7 @@ class RecorderNode(Node):
         for name in self._err_nodes:
             c = fc.nodes.get(name)
             row += [0, 0, 0] if c is None else [{"active": 0, "passive": 1, "bus_off": 2}[c.state], c.tec, c.rec]
-        self._err_rows.append(row)
+        self._error_row(row)
         if not new:
             return out
         return sorted(out + new, key=lambda m: m.timestamp)
@@ -288,34 +361,19 @@ class RecorderNode(Node):
         e = next((e for e in self.layout.ecus if e.name == name), None)
         return e.tag.lower() if e is not None else name
 
-    def _write_error_states(self) -> None:
-        if self.log_path is None or not self._err_rows:
+    def _error_row(self, row: list[int]) -> None:
+        """One period of every node's error state, appended to can_errors.csv at once."""
+        if self.log_path is None:
             return
-        header = ["tick"]
-        for name in self._err_nodes:
-            sfx = self._col_suffix(name)
-            header += [f"can_state_{sfx}", f"tec_{sfx}", f"rec_{sfx}"]
-        with open(self.log_path.parent / "can_errors.csv", "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(header)
-            w.writerows(self._err_rows)
-
-    def _write_load_series(self) -> None:
-        """bus_load.csv: per control period the busy fraction, frames and error frames on the bus."""
-        if self.log_path is None or not self._busy_per_tick:
-            return
-        with open(self.log_path.parent / "bus_load.csv", "w", newline="") as f:
-            w = csv.writer(f)
-            w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
-            for k, load in enumerate(self._busy_per_tick):
-                fr = self._frames_per_tick[k] if k < len(self._frames_per_tick) else ""
-                er = self._errors_per_tick[k] if k < len(self._errors_per_tick) else 0
-                w.writerow([k, f"{k * self.dt:.9g}", f"{load:.6g}", fr, er])
-
-    def _windows(self, load: np.ndarray, window_s: float = 0.1) -> list[float]:
-        per = max(1, int(round(window_s / self.dt)))
-        n = len(load) // per
-        return [float(load[i * per:(i + 1) * per].mean()) for i in range(n)] or [float(load.mean())]
+        if self._err_file is None:
+            header = ["tick"]
+            for name in self._err_nodes:
+                sfx = self._col_suffix(name)
+                header += [f"can_state_{sfx}", f"tec_{sfx}", f"rec_{sfx}"]
+            self._err_file = open(self.log_path.parent / "can_errors.csv", "w", newline="")
+            self._err_writer = csv.writer(self._err_file)
+            self._err_writer.writerow(header)
+        self._err_writer.writerow(row)
 
     def _fps_by_sender(self, span: float) -> dict[str, float]:
         """Frames per second by sending node (the layout's sender of each identifier)."""
@@ -342,7 +400,7 @@ class RecorderNode(Node):
             self._write([m])
         if aid == dbc.SYNC_ID:
             if self._rt_tick_start is not None:
-                self._busy_per_tick.append(self._rt_bits / self.bitrate / self.dt)
+                self._series.add(self._rt_bits / self.bitrate / self.dt, "", 0)
                 self._flush_file()
             self._rt_bits = 0
             self._rt_tick_start = m.timestamp
@@ -376,31 +434,34 @@ class RecorderNode(Node):
         f = getattr(self._writer, "file", None)
         if f is not None and isinstance(self._writer, can.io.generic.TextIOMessageWriter):
             f.flush()
+        self._series.flush()
+        if self._err_file is not None:
+            self._err_file.flush()
 
     def bus_stats(self) -> dict:
-        load = np.asarray(self._busy_per_tick) if self._busy_per_tick else np.zeros(1)
+        ser = self._series
         lat = self._latency
-        span = max(self.dt * max(len(self._busy_per_tick), 1), 1e-12)
+        span = max(self.dt * max(ser.n, 1), 1e-12)
         return {
             "frames": self.frames,
             "frames_by_kind": self.frames_by_kind,
             "frames_by_unknown_id": dict(sorted(self.other_ids.items(), key=lambda kv: -kv[1])[:20]),
             "bitrate_bps": self.bitrate,
-            "bus_load_mean": float(load.mean()),
-            "bus_load_peak": float(load.max()),
+            "bus_load_mean": float(ser.mean),
+            "bus_load_peak": float(ser.peak),
             "plant_io_on_bus": self.plant_io_on_bus,
             "latency_model": "lockstep: all frames of a phase queued at t_k, arbitration order, actual stuffing"
             if self.mode == "lockstep" else "not modelled in realtime mode",
             "latency_p50_s": lat.quantile(0.50),
             "latency_p99_s": lat.quantile(0.99),
             "latency_max_s": lat.max,
-            "bus_load_window_s": 0.1,
-            "bus_load_windows": self._windows(load),
-            "bus_load_peak_window": max(self._windows(load)),
+            "bus_load_window_s": ser.window_s,
+            "bus_load_windows": ser.window_list(),
+            "bus_load_peak_window": max([ser.peak_window, *ser.window_list()]),
             "frames_per_s_by_id": {f"0x{aid:03X}": n / span for aid, n in sorted(self.frames_by_id.items())
                                    if not self._untimed(aid)},
             "frames_per_s_by_sender": self._fps_by_sender(span),
-            "error_frames_per_s": float(sum(self._errors_per_tick)) / span,
+            "error_frames_per_s": float(ser.errors) / span,
             **({"errors": {**self.timing.faults.summary(self.timing.model.now_s),
                            "error_frames_logged": self.error_frames,
                            "state_codes": {"active": 0, "passive": 1, "bus_off": 2}}}
@@ -413,9 +474,11 @@ class RecorderNode(Node):
         if self._writer is not None:
             self._writer.stop()
             self._writer = None
+        self._series.close()
+        if self._err_file is not None:
+            self._err_file.close()
+            self._err_file = None
         if self.log_path is not None:
-            self._write_error_states()
-            self._write_load_series()
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
             stats["guard"] = self.guard.stats()
