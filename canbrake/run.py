@@ -288,8 +288,8 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         logs = Path(run_dir) / "logs"
         logs.mkdir(exist_ok=True)
         (logs / f"{name}.log").write_text(traceback.format_exc())
-        first = str(e).splitlines()[0] if str(e) else type(e).__name__
-        print(f"canbrake: {name} failed: {first}", file=sys.stderr, flush=True)
+        # the orchestrator reports it (one message naming this process and the last line of its
+        # traceback, from logs/<name>.log); nothing is printed here
         sys.exit(1)
     finally:
         if node is not None:

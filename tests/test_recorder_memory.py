@@ -43,3 +43,19 @@ def test_load_series_memory_does_not_grow_with_the_run(tmp_path):
     tracemalloc.stop()
     s.close()
     assert grown < 16 * 1024, grown  # bounded; per-period arrays would grow by 3.2 MB here
+
+
+def test_a_cut_short_log_line_is_trimmed(tmp_path):
+    """A write cut short (full disk) must not leave half a frame python-can reads as a shorter one."""
+    import can
+
+    from canbrake.nodes.recorder import trim_partial_line
+
+    log = tmp_path / "frames.log"
+    log.write_text("(0.000100) canbrake0 010#00000000 R\n(0.000200) canbrake0 141#B1C0AD3B")
+    trim_partial_line(log)
+    frames = list(can.LogReader(str(log)))
+    assert len(frames) == 1 and frames[0].arbitration_id == 0x010
+    whole = log.read_bytes()
+    trim_partial_line(log)  # a complete file is left alone
+    assert log.read_bytes() == whole

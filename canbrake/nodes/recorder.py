@@ -127,6 +127,25 @@ def is_sim_control(aid: int, layout: Any = None) -> bool:
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
 
 
+def trim_partial_line(path: Path) -> None:
+    """Cut a text log after its last complete line: a write cut short (full disk, a killed
+    writer) must not leave half a frame that a reader takes for a shorter one."""
+    try:
+        with open(path, "rb+") as f:
+            size = f.seek(0, 2)
+            if size == 0:
+                return
+            back = min(size, 4096)
+            f.seek(size - back)
+            tail = f.read()
+            if tail.endswith(b"\n"):
+                return
+            cut = tail.rfind(b"\n")
+            f.truncate(size - back + cut + 1 if cut >= 0 else (0 if back == size else size))
+    except OSError:
+        pass
+
+
 class LoadSeries:
     """Per-period bus load in constant memory: each period is written to ``bus_load.csv`` as it
     ends (handed to the OS with the frames of that period) and only running aggregates stay in
@@ -469,11 +488,15 @@ class RecorderNode(Node):
         }
 
     def close(self, status: str = "ok") -> None:
-        if self.mode == "lockstep" and not self.finished:
-            self._flush_tick()
-        if self._writer is not None:
-            self._writer.stop()
+        try:
+            if self.mode == "lockstep" and not self.finished:
+                self._flush_tick()
+            if self._writer is not None:
+                self._writer.stop()
+        finally:
             self._writer = None
+            if self.log_path is not None and self.log_path.suffix == ".log":
+                trim_partial_line(self.log_path)
         self._series.close()
         if self._err_file is not None:
             self._err_file.close()
