@@ -395,7 +395,9 @@ def test_socketcan_run_frames_equal_memory_run(
     socketcan_run: dict[str, object], memory_run: dict[str, object]
 ) -> None:
     """Same payloads in the same order (frames injected with cansend aside); the timestamps are
-    equal up to the first injected frame (after it, its wire time shifts the later ones)."""
+    equal up to the control period of the first injected frame (its wire time shifts the later
+    stamps, and an overloaded period's stamps are scaled to fit the period, so the frames before
+    it in the same period move too)."""
     _check(socketcan_run["proc"])  # type: ignore[arg-type]
     _check(memory_run["proc"])  # type: ignore[arg-type]
     sc, mem = socketcan_run["out"], memory_run["out"]
@@ -406,7 +408,9 @@ def test_socketcan_run_frames_equal_memory_run(
     assert len(mem_rows) > 1000
     first_injected = next((i for i, r in enumerate(sc_all) if r[1] in injected), len(sc_all))
     assert first_injected < len(sc_all), "no injected frame in the socketcan run's frames.log"
-    assert sc_all[:first_injected] == mem_rows[:first_injected]
+    period_start = max((i for i, r in enumerate(sc_all[:first_injected]) if r[1].startswith("010#")), default=0)
+    assert period_start > 0
+    assert sc_all[:period_start] == mem_rows[:period_start]
     assert [r[1:] for r in sc_rows] == [r[1:] for r in mem_rows], (
         f"frames.log payloads differ: socketcan {len(sc_rows)} frames, memory {len(mem_rows)}"
     )
@@ -478,7 +482,15 @@ def test_rogue_brake_command_is_rejected_by_the_plant(socketcan_run: dict[str, o
     assert summary["frames"]["commands_received"] == 6 * summary["ticks"]
 
 
-@pytest.mark.parametrize("scenario", sorted(p.name for p in SCENARIO.parent.glob("*.yaml") if p != SCENARIO))
+#: one or two scenarios of each train model on vcan0: the emulated guest needs ~25 s per scenario
+#: and CI's VM budget is 14 min. Every scenario is run byte-identically on the in-process,
+#: python-can virtual and in-memory buses in the default suite (test_engine, test_li2024_engine,
+#: test_cai2014); the 106-ECU ECP train takes minutes in the guest and is left to those.
+VCAN_SCENARIOS = ["chen2023_case2_poor_rail.yaml", "chen2023_case3_disturbance.yaml", "emu8_example.yaml",
+                  "cai2014_case4.yaml", "cai2014_crh3_case4.yaml", "li2024_rbfnn_smc_ndo.yaml"]
+
+
+@pytest.mark.parametrize("scenario", VCAN_SCENARIOS)
 def test_every_scenario_runs_on_vcan0(scenario: str, tmp_path: Path, memory_run: dict[str, object]) -> None:
     """The other scenarios, briefly (0.02 s or two control periods), through the CLI's main() on vcan0: exit 0, and the
     same signals.csv as the in-process engine for the same seed. (``memory_run`` first: its
