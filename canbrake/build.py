@@ -181,7 +181,24 @@ def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
 
 
 def bus_layout(scn: Scenario) -> dbc.BusLayout:
-    """Every message of the run (the DBC's source), from the placement."""
+    """Every message of the run (the DBC's source), from the placement.
+
+    Memoised on the scenario's content: the plant, every ECU, its send path, the timing model and
+    the recorder all ask for it, and building it builds every controller (106 for a 1 + 105 train).
+    The layout is never modified after it is built."""
+    key = repr(scn.model_dump())  # exact, inf included (JSON would turn it into null)
+    layout = _LAYOUTS.get(key)
+    if layout is None:
+        if len(_LAYOUTS) >= 8:
+            _LAYOUTS.pop(next(iter(_LAYOUTS)))
+        layout = _LAYOUTS[key] = _build_layout(scn)
+    return layout
+
+
+_LAYOUTS: dict[str, dbc.BusLayout] = {}
+
+
+def _build_layout(scn: Scenario) -> dbc.BusLayout:
     from canbrake.control.base import controller_class
 
     specs = ecu_specs(scn)

@@ -48,3 +48,25 @@ def save_npz(path: Path, header: dict[str, Any], data: dict[str, Any]) -> None:
     tmp = path.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, header=_canonical(header), **{k: np.asarray(v) for k, v in data.items()})
     tmp.replace(path)
+
+
+def reusable_run(scn: Any, run_dir: Path, npz_name: str, version: int, *, summary_version_key: str | None = None,
+                 reject_verdicts: tuple[str, ...] = ()) -> bool:
+    """May a report reuse the ``canbrake run`` in ``run_dir``? Yes when it ran exactly this
+    scenario (its resolved ``scenario.yaml``), ended with status ok (and a verdict not in
+    ``reject_verdicts``), and its reduced trace ``npz_name`` (and, if given, the summary's
+    ``summary_version_key``) carry ``version``. Anything missing or unreadable: run again."""
+    import json
+
+    try:
+        if (run_dir / "scenario.yaml").read_text() != scn.to_yaml():
+            return False
+        s = json.loads((run_dir / "summary.json").read_text())
+        if s.get("status") != "ok" or s.get("verdict") in reject_verdicts:
+            return False
+        if summary_version_key is not None and s.get(summary_version_key) != version:
+            return False
+        with np.load(run_dir / npz_name) as z:
+            return int(z["version"]) == version
+    except (OSError, ValueError, KeyError):
+        return False

@@ -23,6 +23,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from canbrake.report.cache import reusable_run
 import yaml
 
 from canbrake.control.cai2014 import CASE_NAMES, CASES, CaiGains
@@ -243,16 +245,7 @@ def trace_from_signals(cols: dict[str, np.ndarray], setup: CaiSetup, case: int) 
 
 
 def _reusable(scn: Scenario, run_dir: Path) -> bool:
-    try:
-        if (run_dir / "scenario.yaml").read_text() != scn.to_yaml():
-            return False
-        s = json.loads((run_dir / "summary.json").read_text())
-        if s.get("status") != "ok" or s.get("report_trace_version") != TRACE_VERSION:
-            return False
-        with np.load(run_dir / "trace.npz") as z:
-            return int(z["version"]) == TRACE_VERSION
-    except (OSError, ValueError, KeyError):
-        return False
+    return reusable_run(scn, run_dir, "trace.npz", TRACE_VERSION, summary_version_key="report_trace_version")
 
 
 def execute(spec: RunSpec, runs_dir: str | Path, force: bool = False,

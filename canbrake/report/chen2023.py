@@ -22,6 +22,8 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+
+from canbrake.report.cache import reusable_run
 import yaml
 
 from canbrake.analysis.metrics import (DEFAULT_BAND_KMH, KMH, OBSERVER_TOL_MPS2, Trace, compute_metrics,
@@ -199,16 +201,8 @@ def _load_trace(path: Path) -> Trace:
 
 
 def _reusable(scn: Scenario, run_dir: Path) -> bool:
-    try:
-        if (run_dir / "scenario.yaml").read_text() != scn.to_yaml():
-            return False
-        s = json.loads((run_dir / "summary.json").read_text())
-        if s.get("status") != "ok" or s.get("verdict") == "diverged" or s.get("report_trace_version") != TRACE_VERSION:
-            return False
-        with np.load(run_dir / "trace.npz") as z:
-            return int(z["version"]) == TRACE_VERSION
-    except (OSError, ValueError, KeyError):
-        return False
+    return reusable_run(scn, run_dir, "trace.npz", TRACE_VERSION, summary_version_key="report_trace_version",
+                        reject_verdicts=("diverged",))
 
 
 def execute(spec: RunSpec, runs_dir: str | Path, force: bool = False,

@@ -30,6 +30,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from canbrake.report.cache import reusable_run
+
 from canbrake.control import li2024 as ctl_li
 from canbrake.physics import heavy_haul as hh
 
@@ -131,15 +133,7 @@ def _load(scenario: str, profile: str | None, overrides: dict[str, Any], scen_di
 
 
 def _reusable(scn: Any, run_dir: Path) -> bool:
-    try:
-        if (run_dir / "scenario.yaml").read_text() != scn.to_yaml():
-            return False
-        if json.loads((run_dir / "summary.json").read_text()).get("status") != "ok":
-            return False
-        with np.load(run_dir / "report.npz") as z:
-            return int(z["version"]) == REPORT_VERSION
-    except (OSError, ValueError, KeyError):
-        return False
+    return reusable_run(scn, run_dir, "report.npz", REPORT_VERSION)
 
 
 def _read_columns(path: Path, want: Callable[[str], bool]) -> dict[str, np.ndarray]:
