@@ -296,6 +296,14 @@ def _error_timing(scn: Scenario) -> Any:
     return timing_of(scn) if scn.mode == "lockstep" and faults_of(scn) is not None else None
 
 
+def _segments_of(scn: Scenario, layout: Any) -> Any:
+    """The recorder's view of ``bus.segments`` (None on one bus; canbrake.bus.segments)."""
+    from canbrake.bus.segments import topology_of
+
+    topo = topology_of(scn, layout) if scn.mode == "lockstep" else None
+    return None if topo is None else (topo, scn.ecu.lockstep_deadline * scn.control_period_s, scn.bus.tx_buffers)
+
+
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
                progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build",
                layout: dbc.BusLayout | None = None) -> Node:
@@ -337,7 +345,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
 
         return RecorderNode(layout, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
                             plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn), secoc=secoc,
-                            n_ticks=scn.n_ticks, bus_timing=_error_timing(scn),
+                            n_ticks=scn.n_ticks, bus_timing=_error_timing(scn), segments=_segments_of(scn, layout),
                             log_path=None if run_dir is None else run_dir / f"frames.{scn.bus.log_format}",
                             channel=channel)
     raise ValueError(f"unknown node role {role!r}")

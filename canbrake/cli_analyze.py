@@ -26,6 +26,10 @@ def analyze_scenario(scn: Any, *, method: str = "davis2007", sim_ticks: int = 0)
     from canbrake.bus.schedule import dbc_cycle_times_s, fifo_like_nodes, message_set
 
     msgs = message_set(scn)
+    from canbrake.bus.segments import topology_of
+
+    if topology_of(scn) is not None:
+        return analyze_segmented(scn, msgs, method=method, sim_ticks=sim_ticks)
     res = analyze(msgs, scn.bus.bitrate_bps, method=method,  # type: ignore[arg-type]
                   fifo_nodes=fifo_like_nodes(scn, msgs))
     out = {"scenario": scn.name, "profile": scn.profile, "n_cars": scn.n_cars,
@@ -47,12 +51,70 @@ def analyze_scenario(scn: Any, *, method: str = "davis2007", sim_ticks: int = 0)
     return out
 
 
+def analyze_segmented(scn: Any, msgs: list[Any], *, method: str, sim_ticks: int) -> dict[str, Any]:
+    """``bus.segments``: the analysis of every segment (messages forwarded into it are sent by
+    their gateway, with the upstream response time as release jitter) and each message's
+    end-to-end bound (:func:`canbrake.bus.segments.analyze_network`), with the simulated
+    latencies of the segmented timing model beside them."""
+    from canbrake.build import bus_layout
+    from canbrake.bus.schedule import dbc_cycle_times_s, fifo_like_nodes, timing_of
+    from canbrake.bus.segments import analyze_network, forwarding_tables, message_routes, topology_of
+
+    layout = bus_layout(scn)
+    topo = topology_of(scn, layout)
+    per_seg, e2e = analyze_network(msgs, topo, message_routes(layout, topo, scn.bus.plant_io_on_bus),
+                                   method=method, fifo_nodes=lambda seg, on: fifo_like_nodes(scn, on))
+    cycles = dbc_cycle_times_s(scn)
+    sim = None
+    if sim_ticks > 0:
+        t = timing_of(scn, record_history=True)
+        t.run_ticks(sim_ticks)
+        sim = t
+    f = (lambda x: None if x is None or not math.isfinite(x) else x)
+    segments: dict[str, Any] = {}
+    flat: list[dict] = []
+    for seg, res in per_seg.items():
+        d = res.as_dict()
+        lat = sim.net.models[seg].latency_by_message() if sim is not None else {}
+        for m in d["messages"]:
+            m["segment"] = seg
+            m["dbc_cycle_s"] = cycles.get(m["id"])
+            st = lat.get((m["id"], m["extended"]))
+            if st is not None:
+                m["simulated"] = {"n_delivered": st.n_delivered, "n_pending": st.n_pending, "p50_s": f(st.p50_s),
+                                  "p99_s": f(st.p99_s), "max_s": f(st.max_s),
+                                  "max_pending_age_s": st.max_pending_age_s}
+        segments[seg] = d
+        flat += d["messages"]
+    ends = []
+    for e in e2e:
+        row = e.as_dict()
+        if sim is not None:
+            v = sim.net.e2e.get((e.arbitration_id, e.arbitration_id > 0x7FF and layout.plan.extended))
+            row["simulated_max_s"] = max(v) if v else None
+        ends.append(row)
+    out = {"scenario": scn.name, "profile": scn.profile, "n_cars": scn.n_cars,
+           "control_period_s": scn.control_period_s, "bitrate_bps": scn.bus.bitrate_bps, "method": method,
+           "utilisation": max(d["utilisation"] for d in segments.values()),
+           "schedulable": all(d["schedulable"] for d in segments.values()) and all(e["schedulable"] for e in ends),
+           "notes": ["per segment: a forwarded message is sent by its gateway, with release jitter = upstream R - "
+                     "best-case C; end to end = R on the first segment + sum of (gateway delay + R - J) on the next"],
+           "segments": segments, "messages": flat, "end_to_end": ends,
+           "gateways": {gw: {"delay_s": d} for gw, d in sorted(topo.delay.items())},
+           "forwarding_tables": forwarding_tables(layout, topo)}
+    if sim is not None:
+        out["simulated_ticks"] = sim_ticks
+    return out
+
+
 def _ms(x: float | None) -> str:
     return "inf" if x is None else f"{x * 1e3:.3f}"
 
 
 def format_table(a: dict[str, Any]) -> str:
     """The analysis as a fixed-width text table (times in ms)."""
+    if "segments" in a:
+        return _format_segmented(a)
     sim = "simulated_ticks" in a
     head = (f"{'message':18s} {'id':>6s} {'sender':8s} {'dlc':>3s} {'T':>8s} {'D':>8s} {'C':>6s} {'B':>6s} "
             f"{'busy':>8s} {'Q':>3s} {'R':>8s} {'R1994':>8s} {'ok':>3s}")
@@ -81,6 +143,32 @@ def format_table(a: dict[str, Any]) -> str:
                      "(worst-case stuffing, all frames of a period queued at their nominal instant)")
     for note in a.get("notes", []):
         lines.append(f"note: {note}")
+    return "\n".join(lines)
+
+
+def _format_segmented(a: dict[str, Any]) -> str:
+    """One table per segment, then the end-to-end bounds through the gateways (ms)."""
+    lines = []
+    sim = "simulated_ticks" in a
+    for seg, d in a["segments"].items():
+        sub = {**a, **d, "scenario": f"{a['scenario']} segment {seg}", "profile": None}
+        sub.pop("segments")
+        lines.append(format_table(sub))
+        lines.append("")
+    head = (f"{'end to end':18s} {'id':>6s} {'sender':8s} {'path':34s} {'R per segment':28s} {'gw':>6s} "
+            f"{'E2E':>8s} {'D':>8s} {'ok':>3s}" + (f" {'sim max':>8s}" if sim else ""))
+    lines += [f"{a['scenario']}: end-to-end response times through the gateways (ms): R on the first segment + "
+              "sum of (gateway delay + R - J) on the next", head]
+    for e in a["end_to_end"]:
+        per = " + ".join(_ms(h["response_s"] if h["gateway"] is None else h["bound_s"]) for h in e["hops"])
+        row = (f"{e['name']:18s} {e['id_hex']:>6s} {e['sender']:8s} {'>'.join(e['path']):34s} {per:28s} "
+               f"{e['gateway_delay_s'] * 1e3:6.3f} {_ms(e['response_s']):>8s} {_ms(e['deadline_s']):>8s} "
+               f"{'yes' if e['schedulable'] else 'NO':>3s}")
+        if sim:
+            row += f" {_ms(e.get('simulated_max_s')) if e.get('simulated_max_s') is not None else '-':>8s}"
+        lines.append(row)
+    lines.append("end to end: " + ("schedulable" if a["schedulable"] else "NOT schedulable")
+                 + f"; most loaded segment {a['utilisation'] * 100:.1f} %")
     return "\n".join(lines)
 
 

@@ -19,6 +19,7 @@ from canbrake.arrays import per_car
 from canbrake.bus.impair import ImpairmentSpec
 from canbrake.bus.clock import ClockConfig
 from canbrake.bus.txbuffer import TxBufferConfig
+from canbrake.bus.segments import GatewayConfig, SegmentConfig
 from canbrake.consist import TRAIN_MODELS
 from canbrake.consist.base import VehicleEntry, expand_vehicles
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
@@ -372,6 +373,11 @@ class BusConfig(_Model):
     tx_buffers: list[TxBufferConfig] = Field(default_factory=list,
                                              description="transmit buffer per node for the timing model and the "
                                                          "analysis (canbrake.bus.txbuffer); default: priority-ordered")
+    segments: list[SegmentConfig] = Field(default_factory=list,
+                                          description="bus segments (name, bit rate, nodes) joined by gateways, "
+                                                      "lockstep (canbrake.bus.segments); empty: one bus")
+    gateways: list[GatewayConfig] = Field(default_factory=list,
+                                          description="gateways joining two segments each, with a forwarding delay")
 
 
 class PlantConfig(_Model):

@@ -116,7 +116,7 @@ class LockstepBusTiming:
 
     def _submit_tick(self, k: int) -> None:
         t = k * self.dt
-        sub = self.model.submit
+        sub = self._queue
         drift = {node: c.offset_s(k) for node, c in self.clocks.items()}
         for s in self.streams:
             if k % s.every_ticks == 0:
@@ -133,6 +133,9 @@ class LockstepBusTiming:
                     sub(b.sender, b.arbitration_id, b.is_extended, b.dlc, None, te, tag=(k, b.sender, -1))
                 j += 1
             self._babble_next[i] = j
+
+    def _queue(self, node: str, msg_id: int, is_extended: bool, dlc: int, data: Any, t_s: float, *, tag: Any) -> None:
+        self.model.submit(node, msg_id, is_extended, dlc, data, t_s, tag=tag)
 
     def simulate_through(self, t_s: float) -> None:
         """Simulate every tick that starts before ``t_s`` (keeps the latencies for ``latency_s``)."""
@@ -175,6 +178,45 @@ class LockstepBusTiming:
         return self._done.pop(key) - t_queue_s
 
 
+class SegmentedBusTiming(LockstepBusTiming):
+    """:class:`LockstepBusTiming` over several segments joined by gateways
+    (:class:`canbrake.bus.segments.SegmentedNetwork`): each frame of the nominal schedule is
+    queued on its sender's segment, forwarded by the gateways towards every segment where it has
+    a receiver, and its latency is the time until it has ended on the last of them (the farthest
+    receiver). ``self.net.models`` are the per-segment bus models. Bus errors are not modelled
+    across segments (refused by :func:`check_faults`)."""
+
+    def __init__(self, layout: Any, topo: Any, dt_s: float, *, record_history: bool = False,
+                 tx_buffers: Any = None, **kw: Any) -> None:
+        from canbrake.bus.segments import SegmentedNetwork, message_routes
+
+        super().__init__(layout, dt_s, max(topo.bitrate.values()), record_history=False, tx_buffers=tx_buffers, **kw)
+        self.topo = topo
+        self.net = SegmentedNetwork(topo, record_history=record_history, tx_buffers=tx_buffers)
+        self.routes = message_routes(self.layout, topo, self.plant_io)
+        self._babble_seg = topo.plant_segment
+
+    def _queue(self, node: str, msg_id: int, is_extended: bool, dlc: int, data: Any, t_s: float, *, tag: Any) -> None:
+        r = self.routes.get(msg_id)
+        if r is None or tag[2] < 0:  # a babbler: on the plant's segment, nobody forwards it
+            src, dests = self._babble_seg, (self._babble_seg,)
+        else:
+            src, dests = r[1], r[2]
+        self.net.submit(node, msg_id, is_extended, dlc, data, t_s, src=src, dests=dests, tag=tag)
+
+    def _step(self) -> None:
+        k = self._next_tick
+        self._submit_tick(k)
+        self.net.advance((k + 1) * self.dt)
+        for tag, t_end in self.net.pop_completed():
+            if tag[2] >= 0:
+                self._done[tag] = t_end
+        self._next_tick = k + 1
+        if k % 256 == 0:
+            old = self._query_tick - 2
+            self._done = {key: v for key, v in self._done.items() if key[0] >= old}
+
+
 def _babblers_of(scn: Any) -> list[BabbleSource]:
     from canbrake.bus.impair import BabbleSpec
 
@@ -211,6 +253,15 @@ def check_faults(scn: Any) -> None:
     from canbrake.build import bus_layout
 
     layout = bus_layout(scn)
+    from canbrake.bus.segments import topology_of
+
+    if topology_of(scn, layout) is not None:
+        if scn.mode != "lockstep":
+            raise InputError("bus.segments: segments and gateways are modelled in simulated time and need mode: "
+                             f"lockstep (got mode: {scn.mode}); realtime runs share one bus")
+        if faults_of(scn) is not None:
+            raise InputError("bus.impairments: bit_error_rate / faulty_transceiver are modelled on a single bus, "
+                             "not across bus.segments (remove one or the other)")
     clocks = getattr(scn.ecu, "clocks", []) or []
     for c in clocks:
         if c.car not in layout.by_index:
@@ -234,8 +285,17 @@ def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
     """The nominal-traffic timing model of ``scn``, whatever its mode and ``bus.timing``."""
     from canbrake.build import bus_layout
 
+    from canbrake.bus.segments import topology_of
+
     dt = scn.control_period_s
     layout = bus_layout(scn)
+    topo = topology_of(scn, layout)
+    if topo is not None:
+        return SegmentedBusTiming(layout, topo, dt, decision_offset_s=scn.ecu.lockstep_deadline * dt,
+                                  heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
+                                  plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,
+                                  babblers=_babblers_of(scn), record_history=record_history,
+                                  tx_buffers=getattr(scn.bus, "tx_buffers", None), clocks=clocks_of(scn, layout))
     return LockstepBusTiming(layout, dt, scn.bus.bitrate_bps, decision_offset_s=scn.ecu.lockstep_deadline * dt,
                              heartbeat_every=int(round(scn.ecu.heartbeat_period_s / dt)),
                              plant_io_on_bus=scn.bus.plant_io_on_bus, coupler_sensors=scn.plant.coupler_sensors,

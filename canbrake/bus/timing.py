@@ -596,6 +596,19 @@ class BusTimingModel:
                            data, t_queue_s, is_remote=remote, tag=msg if tag is None else tag)
 
     # -- simulation ---------------------------------------------------------------------------
+    def next_event_s(self) -> float:
+        """Earliest instant (s) at which anything can happen on this bus: a queued frame that may
+        start, a frame that ends, a submission that becomes due; ``math.inf`` if none. Nothing is
+        delivered before it (used to co-simulate several buses, :mod:`canbrake.bus.segments`)."""
+        t = math.inf
+        if self._n_ready:
+            t = max(self._bus_free_at, self._now)
+        if self._future:
+            t = min(t, self._future[0][0])
+        if self._committed:
+            t = min(t, min(d.t_end_s for d in self._committed))
+        return t
+
     def advance(self, until_s: float) -> list[Delivery]:
         """Simulate the bus up to ``until_s`` (s); return frames whose transmission ended by then.
 

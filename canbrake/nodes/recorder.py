@@ -232,7 +232,7 @@ class RecorderNode(Node):
     def __init__(self, layout: Any, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
                  plant_io_on_bus: bool = False, barrier: bool = True, bus_timing: Any = None, secoc: Any = None,
-                 n_ticks: int | None = None) -> None:
+                 n_ticks: int | None = None, segments: Any = None) -> None:
         if isinstance(layout, int):  # a number of cars: Chen's default placement
             layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
         self.layout = layout
@@ -272,6 +272,17 @@ class RecorderNode(Node):
         self.error_frames = 0
         self._err_nodes = ["plant"] + [e.name for e in layout.ecus]
         self._err_file: Any = None  # can_errors.csv, written per period as the states change
+        # bus segments (canbrake.bus.segments): (Topology, decision offset c·T in s, tx_buffers)
+        self.net: Any = None
+        if segments is not None:
+            from canbrake.bus.segments import SegmentedNetwork, message_routes
+
+            self.topo, self._cmd_offset_s, tx_buffers = segments
+            self.net = SegmentedNetwork(self.topo, stuffing="actual", tx_buffers=tx_buffers)
+            self.routes = message_routes(layout, self.topo, plant_io_on_bus)
+            self._seg_writers: dict[str, Any] = {}
+            self._seg_series = {seg: LoadSeries(None, dt_s) for seg in self.topo.names}
+            self._seg_frames = {seg: 0 for seg in self.topo.names}
 
     def start(self, now: float) -> list[can.Message]:
         if self.log_path is not None:
@@ -279,7 +290,14 @@ class RecorderNode(Node):
             if self.mode == "lockstep" and isinstance(self._writer, can.ASCWriter):
                 # ASC stamps are relative to the start of measurement: make that simulated time 0
                 self._writer.log_event("canbrake: simulated time", timestamp=self.epoch)
+            if self.net is not None:
+                for seg in self.topo.names:
+                    self._seg_writers[seg] = can.Logger(str(self._seg_log(seg)))
         return []
+
+    def _seg_log(self, seg: str) -> Path:
+        assert self.log_path is not None
+        return self.log_path.with_name(f"{self.log_path.stem}_{seg}{self.log_path.suffix}")
 
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
@@ -306,6 +324,11 @@ class RecorderNode(Node):
             tick = int.from_bytes(msg.data[:4], "little")
             if tick == dbc.SYNC_END_TICK:
                 t_end = (self._k + 1) * self.dt + self._wire_s(msg)
+                if self.net is not None:  # the last frames first, then END on the plant's segment
+                    t_end = max(t_end, self._drain_segments())
+                    self._write_segments([(self.topo.plant_segment, self._stamp(msg, t_end))])
+                    self.finished = True
+                    return []
                 self._write([self._stamp(msg, t_end)])
                 self.finished = True
                 return []
@@ -323,6 +346,9 @@ class RecorderNode(Node):
                           stuffing="actual") / self.bitrate
 
     def _flush_tick(self) -> None:
+        if self.net is not None:
+            self._flush_tick_segmented()
+            return
         if self._k < 0 or not self._tick_frames:
             self._tick_frames = []
             return
@@ -351,6 +377,91 @@ class RecorderNode(Node):
         self._write(out)
         self._flush_file()
         self._tick_frames = []
+
+    # ---------------------------------------------------------------- segments
+    def _flush_tick_segmented(self) -> None:
+        """Bus segments: the period's frames go through the recorder's own segmented network
+        (actual stuffing), queued at t_k (phase 0/1) or at the decision instant t_k + c·T
+        (commands) on their sender's segment and forwarded by the gateways; each end of frame on
+        a segment is one line, stamped with that time, channel = the segment's name."""
+        if self._k < 0:
+            self._tick_frames = []
+            return
+        t_k = self._k * self.dt
+        local: list[tuple[str, can.Message]] = []
+        plant_seg = self.topo.plant_segment
+        for phase, aid, _data, msg in sorted(self._tick_frames, key=lambda f: (f[0], f[1], f[2])):
+            if is_sim_control(aid, self.layout):
+                continue
+            node, src, dests = self.routes.get(aid, ("other", plant_seg, frozenset({plant_seg})))
+            if self._untimed(aid):  # local wiring: on its segment's log, no bus time
+                local.append((src, self._stamp(msg, t_k)))
+                continue
+            t_q = t_k + (self._cmd_offset_s if phase == 2 else 0.0)
+            self.net.submit(node, aid, msg.is_extended_id, msg.dlc, bytes(msg.data), t_q, src=src, dests=dests,
+                            tag=msg)
+        self._tick_frames = []
+        self._segment_period(local, self.net.advance(t_k + self.dt))
+        self._flush_file()
+        for w in self._seg_writers.values():
+            f = getattr(w, "file", None)
+            if f is not None and isinstance(w, can.io.generic.TextIOMessageWriter):
+                f.flush()
+
+    def _segment_period(self, local: list[tuple[str, can.Message]], deliveries: list[Any],
+                        period: bool = True) -> None:
+        busy = {seg: 0.0 for seg in self.topo.names}
+        count = {seg: 0 for seg in self.topo.names}
+        out = list(local)
+        for seg, d in deliveries:
+            busy[seg] += d.t_end_s - d.t_start_s
+            count[seg] += 1
+            self._latency.add(d.t_end_s - d.tag.t_queue)
+            out.append((seg, self._stamp(d.tag.tag, d.t_end_s)))
+        for seg in self.topo.names:
+            if period:
+                self._seg_series[seg].add(busy[seg] / self.dt, count[seg], 0)
+            self._seg_frames[seg] += count[seg]
+        if period:
+            self._series.add(max(busy.values()) / self.dt, sum(count.values()), 0)
+        self._write_segments(out)
+
+    def _drain_segments(self, max_periods: int = 1000) -> float:
+        """Carry the frames still queued or on the wire to their last segment (at the end of a
+        run); returns the time the network reached."""
+        n = 0
+        while self.net.pending() and n < max_periods:
+            self._segment_period([], self.net.advance(self.net.now_s + self.dt), period=False)
+            n += 1
+        return self.net.now_s
+
+    def _write_segments(self, out: list[tuple[str, can.Message]]) -> None:
+        order = {seg: i for i, seg in enumerate(self.topo.names)}
+        out.sort(key=lambda sm: (sm[1].timestamp, order[sm[0]]))
+        for seg, m in out:
+            m.channel = seg
+        self._write([m for _seg, m in out])
+        for seg, m in out:
+            w = self._seg_writers.get(seg)
+            if w is not None:
+                w.on_message_received(m)
+
+    def _segment_stats(self) -> dict:
+        from canbrake.bus.segments import forwarding_tables
+
+        fmt = self.log_path.suffix if self.log_path is not None else ".log"
+        return {
+            "segments": {seg: {"bitrate_bps": self.topo.bitrate[seg], "frames": self._seg_frames[seg],
+                               "bus_load_mean": float(self._seg_series[seg].mean),
+                               "bus_load_peak": float(self._seg_series[seg].peak),
+                               "bus_load_peak_window": max([self._seg_series[seg].peak_window,
+                                                            *self._seg_series[seg].window_list()]),
+                               "nodes": sorted(n for n, g in self.topo.segment_of.items() if g == seg),
+                               "log": f"frames_{seg}{fmt}"} for seg in self.topo.names},
+            "gateways": {gw: {"delay_s": d, "frames_forwarded": self.net.forwarded.get(gw, 0)}
+                         for gw, d in sorted(self.topo.delay.items())},
+            "forwarding_tables": forwarding_tables(self.layout, self.topo),
+        }
 
     def _with_errors(self, out: list[can.Message]) -> list[can.Message]:
         """Add the error frames of tick ``self._k`` (in time order) and sample the error states."""
@@ -469,7 +580,10 @@ class RecorderNode(Node):
             "bus_load_mean": float(ser.mean),
             "bus_load_peak": float(ser.peak),
             "plant_io_on_bus": self.plant_io_on_bus,
-            "latency_model": "lockstep: all frames of a phase queued at t_k, arbitration order, actual stuffing"
+            "latency_model": ("lockstep, bus segments: per segment (bus load = the most loaded segment), frames "
+                              "queued at t_k / t_k + c*T on their sender's segment and forwarded by the gateways, "
+                              "actual stuffing" if self.net is not None else
+                              "lockstep: all frames of a phase queued at t_k, arbitration order, actual stuffing")
             if self.mode == "lockstep" else "not modelled in realtime mode",
             "latency_p50_s": lat.quantile(0.50),
             "latency_p99_s": lat.quantile(0.99),
@@ -485,16 +599,26 @@ class RecorderNode(Node):
                            "error_frames_logged": self.error_frames,
                            "state_codes": {"active": 0, "passive": 1, "bus_off": 2}}}
                if self.timing is not None else {}),
+            **(self._segment_stats() if self.net is not None else {}),
         }
 
     def close(self, status: str = "ok") -> None:
         try:
             if self.mode == "lockstep" and not self.finished:
                 self._flush_tick()
+                if self.net is not None:
+                    self._drain_segments()
             if self._writer is not None:
                 self._writer.stop()
+            for w in getattr(self, "_seg_writers", {}).values():
+                w.stop()
         finally:
             self._writer = None
+            if self.net is not None:
+                self._seg_writers = {}
+                if self.log_path is not None and self.log_path.suffix == ".log":
+                    for seg in self.topo.names:
+                        trim_partial_line(self._seg_log(seg))
             if self.log_path is not None and self.log_path.suffix == ".log":
                 trim_partial_line(self.log_path)
         self._series.close()
