@@ -304,6 +304,22 @@ def _segments_of(scn: Scenario, layout: Any) -> Any:
     return None if topo is None else (topo, scn.ecu.lockstep_deadline * scn.control_period_s, scn.bus.tx_buffers)
 
 
+def _realtime_clock(scn: Scenario, layout: Any, name: str) -> Any:
+    """Realtime: the ECU's own timer from ``ecu.clocks`` (drift, jitter, phase), None otherwise."""
+    if scn.mode != "realtime" or not scn.ecu.clocks:
+        return None
+    from canbrake.bus.schedule import clocks_of
+
+    return clocks_of(scn, layout).get(name)
+
+
+def _realtime_errors(scn: Scenario, name: str) -> Any:
+    """Realtime: the ECU's own bit-error / faulty-transceiver injector (canbrake.bus.rt_errors)."""
+    from canbrake.bus.rt_errors import realtime_errors_of
+
+    return realtime_errors_of(scn, name)
+
+
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",
                progress: Any = None, codec: FrameCodec | None = None, bus_timing: Any = "build",
                layout: dbc.BusLayout | None = None) -> Node:
@@ -338,6 +354,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                        compute_deadline=scn.ecu.realtime_compute_deadline, out_dir=run_dir,
                        lockstep_deadline=scn.ecu.lockstep_deadline,
                        secoc=secoc, peer_hold_periods=scn.safety.peer_hold_periods, n_ticks=scn.n_ticks,
+                       clock=_realtime_clock(scn, layout, spec.name), rt_errors=_realtime_errors(scn, spec.name),
                        crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
                                       if scn.ecu.crash is not None and scn.ecu.crash.car == spec.vehicle else None))
     if role == "recorder":

@@ -69,3 +69,53 @@ def test_drift_makes_peer_data_late_in_a_run(tmp_path) -> None:
     late = sum(1 for a in ages[1:] if a > 0)
     assert 0.3 * len(ages) < late < 0.7 * len(ages)
     assert max(ages) == pytest.approx(0.005)
+
+
+def _realtime_ecu_and_tick0(clocks: list[dict]):
+    """A realtime ECU of car 3 with ``ecu.clocks`` and the plant's frames of tick 0."""
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    path = "scenarios/chen2023_case1_fine_rail.yaml"
+    rt = load_scenario(path, profile="realistic", overrides={"mode": "realtime", "ecu.clocks": clocks})
+    plant = build_node(load_scenario(path, profile="realistic"), "plant", run_dir=None)
+    ecu = build_node(rt, "ecu", car=3, run_dir=None)
+    ecu.start(0.0)
+    return ecu, plant.start(0.0)
+
+
+def test_realtime_ecu_timer_drifts_and_jitters() -> None:
+    """Realtime: car 3's timer is 4 ms (phase) + 2000 ppm slow: its state frame of tick k leaves
+    at sensor time + (phase + k·T·2e-3) mod T + jitter, on the ECU's timer (next_deadline), not
+    when the sensor frame arrives; jitter stays within jitter_s."""
+    ecu, frames = _realtime_ecu_and_tick0([{"car": 3, "ppm": -2000, "phase_s": 0.004}])
+    t0 = 100.0
+    assert [m for f in frames for m in ecu.handle(f, t0)] == []  # the sensors are in, the timer has not fired
+    assert ecu.next_deadline() == pytest.approx(t0 + 0.004)
+    assert ecu.on_timer(t0 + 0.0039) == []
+    sent = ecu.on_timer(t0 + 0.004)
+    assert {m.arbitration_id for m in sent} >= {dbc.STATE_BASE + 3}
+    jit, _ = _realtime_ecu_and_tick0([{"car": 3, "jitter_s": 0.001}])
+    for f in _:
+        jit.handle(f, t0)
+    assert t0 <= jit.next_deadline() < t0 + 0.001
+
+
+def test_realtime_timer_past_the_next_sync_is_a_sample_slip() -> None:
+    ecu, frames = _realtime_ecu_and_tick0([{"car": 3, "phase_s": 0.0099}])
+    for f in frames:
+        ecu.handle(f, 0.0)
+    nxt = frames[0].__class__(arbitration_id=frames[0].arbitration_id, is_extended_id=False,
+                              data=(1).to_bytes(4, "little"))
+    ecu.handle(nxt, 0.0098)  # tick 1's SYNC before the timer of tick 0 fired
+    assert ecu.stats.timer_slips == 1 and ecu.next_deadline() is None and ecu.k == 1
+
+
+def test_realtime_accepts_clocks_lockstep_still_needs_the_timing_model() -> None:
+    from canbrake.bus.schedule import check_faults
+    from canbrake.scenario import ScenarioError, load_scenario
+
+    path = "scenarios/chen2023_case1_fine_rail.yaml"
+    check_faults(load_scenario(path, overrides={"mode": "realtime", "ecu.clocks": [{"car": 2, "ppm": 50}]}))
+    with pytest.raises(ScenarioError, match="bus.timing: model"):
+        check_faults(load_scenario(path, overrides={"ecu.clocks": [{"car": 2, "ppm": 50}]}))

@@ -302,6 +302,10 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
         summary["can_errors"] = busst["errors"]
     if busst.get("errors"):
         summary["can_errors"] = busst["errors"]
+    rt_errors = {f"ecu_c{c}": e["can_errors"] for c, e in enumerate(ecus, 1) if e.get("can_errors")}
+    if rt_errors:  # realtime: injected at each ECU (canbrake.bus.rt_errors)
+        summary["can_errors"] = {"model": "realtime: injected at each sending ECU", "nodes": rt_errors,
+                                 "error_frames_logged": busst.get("error_frames_received")}
     if scn.safety.command_timeout_s is not None:
         summary["failsafe"] = {"command_timeout_s": scn.safety.command_timeout_s,
                                "activations": plant.get("failsafe_activations", 0),

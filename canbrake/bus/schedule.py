@@ -266,14 +266,21 @@ def check_faults(scn: Any) -> None:
     for c in clocks:
         if c.car not in layout.by_index:
             raise InputError(f"ecu.clocks: car {c.car} has no ECU (ECU indices 1..{len(layout.ecus)})")
-    if clocks and (scn.mode != "lockstep" or scn.bus.timing != "model"):
-        raise InputError("ecu.clocks: clock drift is modelled in simulated time and needs mode: lockstep and "
-                         f"bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
+    if clocks and scn.mode == "lockstep" and scn.bus.timing != "model":
+        raise InputError("ecu.clocks: in lockstep, clock drift acts in the CAN timing model and needs "
+                         f"bus.timing: model (got bus.timing: {scn.bus.timing}); realtime runs apply it to the "
+                         "ECUs' timers")
     if faults_of(scn) is None:
         return
-    if scn.mode != "lockstep" or scn.bus.timing != "model":
-        raise InputError("bus.impairments: bit_error_rate / faulty_transceiver act in the CAN timing model and need "
-                         f"mode: lockstep and bus.timing: model (got mode: {scn.mode}, bus.timing: {scn.bus.timing})")
+    if scn.mode == "lockstep" and scn.bus.timing != "model":
+        raise InputError("bus.impairments: in lockstep, bit_error_rate / faulty_transceiver act in the CAN timing "
+                         f"model and need bus.timing: model (got bus.timing: {scn.bus.timing}); realtime runs inject "
+                         "them at each ECU")
+    if scn.mode == "realtime":
+        for s in scn.bus.impairments:
+            if getattr(s, "type", None) == "faulty_transceiver" and s.node not in {e.name for e in layout.ecus}:
+                raise InputError(f"bus.impairments: faulty_transceiver node {s.node!r}: in realtime only ECUs inject "
+                                 "errors (canbrake.bus.rt_errors); the plant's frames stand in for the time base")
     names = {"plant"} | {e.name for e in layout.ecus} | {b.sender for b in _babblers_of(scn)}
     for s in scn.bus.impairments:
         if getattr(s, "type", None) == "faulty_transceiver" and s.node not in names:

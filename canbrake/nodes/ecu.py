@@ -39,6 +39,8 @@ class EcuStats:
     guard: dict = field(default_factory=dict)    # canbrake.bus.guard: rejected frames by reason
     fallback_entries: int = 0    # times peers were lost (older than safety.peer_hold_periods)
     fallback_ticks: int = 0      # ticks computed on own sensors with at least one peer dropped
+    timer_slips: int = 0         # realtime with ecu.clocks: periods whose timer instant fell past the next SYNC
+    can_errors: dict = field(default_factory=dict)  # realtime bus errors: state, TEC, error frames, bus-off
 
 
 class EcuNode(Node):
@@ -51,7 +53,8 @@ class EcuNode(Node):
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,
                  crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
                  barrier: bool = True, rx_path: Any = None, secoc: Any = None,
-                 peer_hold_periods: int | None = None, n_ticks: int | None = None) -> None:
+                 peer_hold_periods: int | None = None, n_ticks: int | None = None, clock: Any = None,
+                 rt_errors: Any = None) -> None:
         self.spec = spec
         self.layout = layout
         self.car = spec.vehicle            # vehicle number (trace suffix _c<vehicle>)
@@ -127,6 +130,12 @@ class EcuNode(Node):
         self._sync_id = dbc.SYNC_ID
         self._deadline: float | None = None
         self._trace: CsvTrace | None = None
+        # realtime: this ECU's own timer (canbrake.bus.clock.EcuClock): phase 1 of tick k starts
+        # offset_s(k) after its sensor frames (drift + jitter), not at once; None: on the plant's grid
+        self.clock = clock if mode == "realtime" else None
+        self._p1_at: float | None = None
+        # realtime bus errors injected at this sender (canbrake.bus.rt_errors.RealtimeErrors) or None
+        self.rt_errors = rt_errors if mode == "realtime" else None
 
     def filters(self) -> list[dict]:
         ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, *self._sensor_pages, *self._state_pages]
@@ -153,6 +162,9 @@ class EcuNode(Node):
             if verdict == "end":
                 self.finished = True
                 return []
+            if self._p1_at is not None:  # the drifting timer did not fire within the period: a sample slip
+                self.stats.timer_slips += 1
+                self._p1_at = None
             self.k = int(self.codec.by_id[aid].decode(msg.data)["Tick"])
             self.phase = 0
             self._done = 0
@@ -163,7 +175,12 @@ class EcuNode(Node):
             d = self.codec.by_id[aid].decode(msg.data)
             for sig, dbc_name in page:
                 self.sensors[sig] = d[dbc_name]
-            return self._phase1(now) if aid == self._last_sensor_id else []
+            if aid != self._last_sensor_id:
+                return []
+            if self.clock is not None and self.phase == 0 and self.k >= 0:
+                self._p1_at = now + self.clock.offset_s(self.k)  # realtime: when this ECU's timer fires
+                return []
+            return self._phase1(now)
         if aid == dbc.REFERENCE_ID:
             d = self.codec.by_id[aid].decode(msg.data)
             self.v_ref, self.a_ref = d["RefSpeed"], d["RefDecel"]
@@ -244,6 +261,11 @@ class EcuNode(Node):
                 return
             out.extend(self.send_path.submit(msg, t_s, delay_s=lat))  # held until it is off the wire
             return
+        if self.rt_errors is not None:  # realtime: error frames before it, or nothing when bus-off
+            errors, ok = self.rt_errors.attempt(msg, t_s)
+            out.extend(errors)
+            if not ok:
+                return
         out.extend(self.send_path.submit(msg, t_s))
 
     def _times(self, now: float, phase: int) -> tuple[float, float]:
@@ -355,9 +377,16 @@ class EcuNode(Node):
 
     # ---------------------------------------------------------------- realtime
     def next_deadline(self) -> float | None:
+        if self.phase == 0 and self._p1_at is not None:
+            return self._p1_at
         return self._deadline if self.phase == 1 else None
 
     def on_timer(self, now: float) -> list[can.Message]:
+        if self.phase == 0 and self._p1_at is not None:
+            if now < self._p1_at:
+                return []
+            self._p1_at = None
+            return self._phase1(now)
         if self.phase != 1:
             return []
         self.stats.deadline_misses += 1
@@ -369,6 +398,8 @@ class EcuNode(Node):
             self._trace.close()
         self.stats.status = "ok" if self.finished else status
         self.stats.guard = self.guard.stats()
+        if self.rt_errors is not None:
+            self.stats.can_errors = self.rt_errors.summary()
         for kind, vals in self._latency.items():
             a = np.asarray(vals)
             fin = a[np.isfinite(a)]

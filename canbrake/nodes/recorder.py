@@ -540,7 +540,9 @@ class RecorderNode(Node):
                 self.finished = True
             elif verdict == "tick":
                 self._k = int.from_bytes(msg.data[:4], "little")
-        if not self._untimed(aid):
+        if msg.is_error_frame:  # realtime bus errors (canbrake.bus.rt_errors): logged, counted, no wire model
+            self.error_frames += 1
+        elif not self._untimed(aid):
             self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual")
 
     def _untimed(self, aid: int) -> bool:
@@ -594,7 +596,8 @@ class RecorderNode(Node):
             "frames_per_s_by_id": {f"0x{aid:03X}": n / span for aid, n in sorted(self.frames_by_id.items())
                                    if not self._untimed(aid)},
             "frames_per_s_by_sender": self._fps_by_sender(span),
-            "error_frames_per_s": float(ser.errors) / span,
+            "error_frames_per_s": float(ser.errors if self.mode == "lockstep" else self.error_frames) / span,
+            "error_frames_received": self.error_frames,
             **({"errors": {**self.timing.faults.summary(self.timing.model.now_s),
                            "error_frames_logged": self.error_frames,
                            "state_codes": {"active": 0, "passive": 1, "bus_off": 2}}}
