@@ -300,8 +300,6 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
         summary["bus_latency_in_loop"] = {"model": scn.bus.timing, **lat}
     if busst.get("errors"):
         summary["can_errors"] = busst["errors"]
-    if busst.get("errors"):
-        summary["can_errors"] = busst["errors"]
     rt_errors = {f"ecu_c{c}": e["can_errors"] for c, e in enumerate(ecus, 1) if e.get("can_errors")}
     if rt_errors:  # realtime: injected at each ECU (canbrake.bus.rt_errors)
         summary["can_errors"] = {"model": "realtime: injected at each sending ECU", "nodes": rt_errors,
