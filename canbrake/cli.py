@@ -106,6 +106,12 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
     if bl.get("bus_load_mean") is not None:
         lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "
                      f"at {bl['bitrate_bps'] / 1000:g} kbit/s  frames: {s['frames']['on_bus']}")
+        if bl.get("segments"):  # bus segments: the line above is the most loaded one
+            lines[-1] = "bus load per segment: " + ", ".join(
+                f"{seg} {v['bus_load_mean'] * 100:.1f} % (peak {v['bus_load_peak'] * 100:.1f} %) at "
+                f"{v['bitrate_bps'] / 1000:g} kbit/s" for seg, v in bl["segments"].items()) + \
+                f"  frames: {s['frames']['on_bus']}"
+
     dm = s.get("deadline_misses") or {}
     if s.get("mode") == "realtime" and dm:
         ticks = s.get("ticks") or 0

@@ -206,12 +206,16 @@ def test_no_simulated_latency_exceeds_the_bound(case) -> None:
 
 
 @pytest.mark.parametrize("scenario", sorted(p.name for p in SCENARIOS.glob("*.yaml")))
-def test_cli_analyze_every_scenario(scenario: str, tmp_path) -> None:
+def test_cli_analyze_every_scenario(scenario: str, tmp_path, capsys) -> None:
     from canbrake.cli import main
 
     out = tmp_path / "a.json"
+    capsys.readouterr()
     assert main(["analyze", str(SCENARIOS / scenario), "--json", str(out), "--ticks", "200"]) == 0
     data = json.loads(out.read_text())
+    printed = capsys.readouterr().out  # the table: a header and one row per message (per segment)
+    assert " R1994 " in printed and all(f" {m['id_hex']:>6s} " in printed for m in data["messages"])
+    assert "schedulable" in printed.lower()
     assert data["messages"] and {"response_s", "schedulable", "simulated"} <= set(data["messages"][0])
     for m in data["messages"]:  # the simulated latencies never exceed a finite bound
         s = m.get("simulated")

@@ -141,6 +141,7 @@ def test_segmented_scenario_runs_on_the_memory_bus(tmp_path: Path) -> None:
         assert stats["segments"][seg]["bus_load_mean"] == pytest.approx(wire / (ticks * 0.01), rel=0.02)
     assert stats["segments"]["backbone"]["bus_load_mean"] > stats["segments"]["car1"]["bus_load_mean"]
     assert stats["bus_load_mean"] == pytest.approx(max(v["bus_load_mean"] for v in stats["segments"].values()))
+    assert s["bus_load"]["segments"] == stats["segments"] and "bus load per segment: backbone" in mem.stdout
     inp = _run(tmp_path, "--bus", "inprocess", "--duration", "0.3", "--no-plots", "--out", str(tmp_path / "inp"))
     assert inp.returncode == 0, inp.stderr
     for f in ("frames.log", "frames_backbone.log", "signals.csv"):

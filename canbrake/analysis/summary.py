@@ -264,9 +264,6 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
                     from canbrake.analysis.plots import plot_bus
 
                     summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
-                    from canbrake.analysis.plots import plot_bus
-
-                    summary["plots"] += plot_bus(run_dir, run_dir / "plots", title=scn.name)
                 except Exception as e:  # noqa: BLE001 - a plotting problem must not lose the run's results
                     summary["plots_error"] = str(e)
     summary["frames"] = {
@@ -286,7 +283,10 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
                                                       "latency_p50_s", "latency_p99_s", "latency_max_s",
                                                       "bus_load_peak_window", "bus_load_window_s",
                                                       "error_frames_per_s", "frames_per_s_by_sender",
-                                                      "latency_model")}
+                                                      "latency_model", "segments", "gateways")}
+    if summary["bus_load"].get("segments") is None:  # one bus
+        summary["bus_load"].pop("segments")
+        summary["bus_load"].pop("gateways")
     lat: dict[str, Any] = {}
     for e in ecus:
         for kind, st in (e.get("bus_latency") or {}).items():
