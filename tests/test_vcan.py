@@ -11,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -371,6 +372,8 @@ def _start_viewers(root: Path) -> dict[str, object]:
     mon_out.close()
     mon_err.close()
     panes: dict[str, str] = {}
+    # tmux's socket must be on a file system that holds sockets (the VM's /tmp is 9p: it cannot)
+    os.environ.setdefault("TMUX_TMPDIR", tempfile.gettempdir())
     if shutil.which("tmux"):
         tag = f"{os.getpid()}"
         py = f"PYTHONPATH={Path(__file__).resolve().parents[1]} {sys.executable}"
@@ -388,6 +391,7 @@ def _start_viewers(root: Path) -> dict[str, object]:
         if up:
             break
         time.sleep(1)
+    print(f"viewers up after {time.monotonic() - deadline + 600:.0f} s", file=sys.stderr)
     return {"monitor": mon, "root": root, "panes": panes}
 
 
