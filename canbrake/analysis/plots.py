@@ -101,15 +101,22 @@ def _legend(ax: Axes, n: int) -> None:
               title=f"{n} series, first and last named", title_fontsize=7)
 
 
-def _symlog_if_extreme(ax: Axes, values: np.ndarray, unit_scale: float = 1.0) -> bool:
+def _symlog_if_extreme(ax: Axes, values: np.ndarray, unit_scale: float = 1.0, limit: float | None = None) -> bool:
     """Use a symmetric-log y axis when the largest |value| is over 20 times the 90th percentile (a
-    few extreme instants would flatten the rest); linear below the 90th percentile. True if set."""
+    few extreme instants would flatten the rest). ``values`` in SI, plotted times ``unit_scale``.
+    Linear up to the power of ten at or below 1.5 × the 90th percentile (a decade, so that no decade
+    tick crowds into the linear part, and the bulk of the values shows in the first log decade), or up
+    to the decade of ``limit`` (a band drawn at ±limit, in plotted units) when that is smaller, so that
+    the band stays visible. True if set."""
     v = np.abs(values[np.isfinite(values)]) * unit_scale
     if v.size == 0:
         return False
     p90 = float(np.percentile(v, 90))
     if p90 > 0 and v.max() > 20 * p90:
-        ax.set_yscale("symlog", linthresh=max(p90 * 1.5, 1e-9))
+        lin = 10.0 ** np.floor(np.log10(max(p90 * 1.5, 1e-12)))
+        if limit is not None and limit > 0:
+            lin = min(lin, 10.0 ** np.ceil(np.log10(limit)))
+        ax.set_yscale("symlog", linthresh=float(lin))
         return True
     return False
 
@@ -128,7 +135,7 @@ def _errors(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
         ax.plot(tr.t_s, err[:, i], lw=1, label=f"car {i + 1}")
     ax.axhspan(-meta.band_kmh, meta.band_kmh, color="g", alpha=0.1, label=f"±{meta.band_kmh:g} km/h band")
     ax.set(xlabel="time (s)", ylabel="v − v* (km/h)", title="speed tracking error")
-    _symlog_if_extreme(ax, err)
+    _symlog_if_extreme(ax, err, limit=meta.band_kmh)
     _legend(ax, tr.n_cars)
 
 
@@ -158,7 +165,7 @@ def _jerk(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
     ax.axhspan(-meta.jerk_limit_mps3, meta.jerk_limit_mps3, color="g", alpha=0.1,
                label=f"comfort ±{meta.jerk_limit_mps3:g} m/s³")
     ax.set(xlabel="time (s)", ylabel="jerk da/dt (m/s³)", title="jerk against the comfort limit")
-    _symlog_if_extreme(ax, jerk)
+    _symlog_if_extreme(ax, jerk, limit=meta.jerk_limit_mps3)
     _legend(ax, tr.n_cars)
 
 
@@ -169,7 +176,7 @@ def _deflections(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
     ax.axhline(b, color="r", ls=":", lw=1.2)
     ax.axhline(-b, color="r", ls=":", lw=1.2, label=f"bound ±{b:g} cm")
     ax.set(xlabel="time (s)", ylabel="deflection Δl (cm, + stretched)", title="coupler deflection against its bound")
-    _symlog_if_extreme(ax, tr.deflection_m, 100)
+    _symlog_if_extreme(ax, tr.deflection_m, 100, limit=b)
     _legend(ax, tr.deflection_m.shape[1])
 
 
@@ -177,7 +184,7 @@ def _coupler_forces(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
     for j in range(tr.coupler_force_n.shape[1]):
         ax.plot(tr.t_s, tr.coupler_force_n[:, j] / 1000, lw=1, label=f"coupler {j + 1}–{j + 2}")
     ax.set(xlabel="time (s)", ylabel="coupler force (kN)", title="coupler force")
-    _symlog_if_extreme(ax, tr.coupler_force_n)
+    _symlog_if_extreme(ax, tr.coupler_force_n, 1e-3)  # plotted in kN
     _legend(ax, tr.coupler_force_n.shape[1])
 
 
