@@ -41,6 +41,7 @@ class FrameGuard:
         self.rx_overruns = 0       # receive-queue overflows (flood), see Node.on_rx_overrun
         self.rx_frames_lost = 0    # frames dropped by them
         self.end_ignored = 0       # unauthenticated END frames before the last scheduled tick
+        self.state_auth_orphans = 0  # STATE_AUTH frames whose state frame never came (lost)
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -94,7 +95,7 @@ class FrameGuard:
     def stats(self) -> dict[str, Any]:
         return {"rejected": dict(self.rejected), "unknown_ids": dict(self.unknown_ids),
                 "rx_overruns": self.rx_overruns, "rx_frames_lost": self.rx_frames_lost,
-                "end_ignored": self.end_ignored}
+                "end_ignored": self.end_ignored, "state_auth_orphans": self.state_auth_orphans}
 
 
 def sign_control(secoc: SecOC | None, data_id: int, payload: bytes, freshness_tick: int) -> bytes:
