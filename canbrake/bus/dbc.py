@@ -190,6 +190,28 @@ _CRC = SignalSpec("CRC", 0, 8, comment="CRC-8 SAE J1850 over data ID (= frame id
 _COUNTER = SignalSpec("Counter", 8, 4, minimum=0, maximum=14, comment="alive counter 0..14, +1 per control period")
 _STATUS = SignalSpec("Status", 12, 4, minimum=0, maximum=15, comment="0 normal, 1 degraded (stale peers), 2 fail-safe",
                      choices=((0, "normal"), (1, "degraded"), (2, "fail_safe")))
+#: most bits of the counter extension (the spare bits of a protected frame's last byte)
+COUNTER_EXT_MAX_BITS = 7
+
+
+def _with_counter_ext(pages: list[list[tuple[str, SignalSpec]]]) -> list[list[tuple[str, SignalSpec]]]:
+    """Give each protected page whose last byte has spare bits a ``CounterExt`` field there: the
+    alive counter then counts tick mod 15·2^m (low nibble: tick mod 15 as before, CounterExt:
+    floor(tick / 15) mod 2^m), so it aliases after 15·2^m periods instead of 15. The frame's
+    length is unchanged (canbrake.bus.e2e.counter_modulus)."""
+    out = []
+    for sigs in pages:
+        used = max(s.start + s.length for _, s in sigs)
+        spare = min(-used % 8, COUNTER_EXT_MAX_BITS)
+        if spare:
+            sigs = sigs + [("", SignalSpec(
+                "CounterExt", used, spare, minimum=0, maximum=(1 << spare) - 1,
+                comment=f"alive counter extension: floor(tick / 15) mod {1 << spare}; with Counter the "
+                        f"sender's tick mod {15 << spare} (aliases after {15 << spare} periods)"))]
+        out.append(sigs)
+    return out
+
+
 _NMT = "CANopen NMT state: 0 boot, 4 stopped, 5 operational, 127 pre-op"
 _NMT_CHOICES = ((0, "boot"), (4, "stopped"), (5, "operational"), (127, "pre_operational"))
 
@@ -267,9 +289,9 @@ class BusLayout:
         self.by_index = {e.index: e for e in self.ecus}
         n = len(self.ecus)
         sens = {e.index: _pack(e.sensors, 0, [], f"ECU {e.name} sensors") for e in self.ecus}
-        cmds = {e.index: _pack(e.commands, 16, [_CRC, _COUNTER, _STATUS], f"ECU {e.name} commands")
+        cmds = {e.index: _with_counter_ext(_pack(e.commands, 16, [_CRC, _COUNTER, _STATUS], f"ECU {e.name} commands"))
                 for e in self.ecus}
-        states = {e.index: (_pack(e.broadcast, 12, [_CRC, _COUNTER], f"ECU {e.name} broadcast")
+        states = {e.index: (_with_counter_ext(_pack(e.broadcast, 12, [_CRC, _COUNTER], f"ECU {e.name} broadcast"))
                             if e.listeners and e.broadcast else []) for e in self.ecus}
         pages = {"sensor": max(len(v) for v in sens.values()), "cmd": max(len(v) for v in cmds.values()),
                  "state": max([len(v) for v in states.values()] + [1])}
@@ -348,6 +370,10 @@ class BusLayout:
         bits = max([first_bit] + [s.start + s.length for _, s in sigs])
         return MessageSpec(fid, base if page == 1 else f"{base}_P{page}", (bits + 7) // 8, sender, receivers,
                            tuple(sigs), comment, cyc, ext, kind, ecu, page_no or page)
+
+    def counter_ext(self) -> dict[int, tuple[int, int]]:
+        """Protected frames with a counter extension: frame id -> (start bit, bits)."""
+        return {m.frame_id: (s.start, s.length) for m in self.messages for _, s in m.signals if s.name == "CounterExt"}
 
     def ids(self, kind: str, ecu: int | None = None) -> list[int]:
         """Frame ids of ``kind`` (of one ECU index, or all), in page order."""

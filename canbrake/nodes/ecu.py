@@ -81,6 +81,7 @@ class EcuNode(Node):
         # receiver checks (E2E, SecOC, protocol) and the peer-loss fallback (canbrake.bus.guard)
         self.secoc = secoc
         self.guard = FrameGuard(secoc)
+        self.guard.counter_ext = layout.counter_ext()
         self.peer_hold_periods = peer_hold_periods
         self.final_tick = None if n_ticks is None else n_ticks - 1  # unauthenticated END only after it
         self._in_fallback = False
@@ -343,7 +344,7 @@ class EcuNode(Node):
             values = {**self._broadcast, **self.sensors}
             for fid, codec, sigs in self._state_msgs:
                 payload = codec.encode({dn: values[sig] for sig, dn in sigs if math.isfinite(values.get(sig, math.nan))},
-                                       counter=self.k % COUNTER_MODULO)
+                                       counter=self.k % COUNTER_MODULO, tick=self.k)
                 self._emit(frame(fid, payload), t, out)
                 if self.secoc is not None:  # its authenticator, right after it (canbrake.bus.secoc)
                     auth_id = self._auth_id[fid]
@@ -396,7 +397,7 @@ class EcuNode(Node):
         for fid, codec, sigs in self._cmd_msgs:
             cmd = codec.encode({"Status": status, **{dn: float(values.get(sig, math.nan)) for sig, dn in sigs
                                                      if math.isfinite(values.get(sig, math.nan))}},
-                               counter=self.k % COUNTER_MODULO)
+                               counter=self.k % COUNTER_MODULO, tick=self.k)
             self._emit(frame(fid, sign_protected(self.secoc, fid, cmd, self.k)), t, out)
         out += self.send_path.release(horizon)
         if self.barrier:
