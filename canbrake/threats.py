@@ -131,7 +131,8 @@ THREATS: list[Threat] = [
            {False: Expect(reasons=("sync",), unchanged=True), True: Expect(reasons=("sync",), unchanged=True)}),
     Threat("flood", "insertion (flooding)",
            "rogue node floods identifier 0x001 (highest priority) at 100 kHz",
-           "receive queues drop and count on overflow; the recorder names the identifier",
+           "acceptance filters keep it out of the nodes (in-memory bus: it may not overwrite a frame a lockstep "
+           "node accepts, tests/test_flood.py); the recorder names the identifier",
            lambda ctx: [{"type": "babble", "sender": "rogue", "arbitration_id": 1, "rate_hz": 100_000.0, "dlc": 8,
                          "start_s": ATTACK_S}],
            {False: Expect(unchanged=True), True: Expect(unchanged=True)}),
