@@ -218,3 +218,16 @@ def test_a_command_page_without_room_for_the_mac_is_refused():
 
     with pytest.raises(ValueError, match="BRAKE_CMD_C1 uses 7 bytes"):
         secure_database(db)
+
+
+def test_a_missing_key_file_on_the_command_line_is_exit_2_one_message_nothing_written(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "canbrake.cli", "run", str(CASE1), "--set",
+                        f"security.key_file={tmp_path / 'absent.hex'}", "--duration", "0.01", "--out", str(out),
+                        "--no-plots"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().count("\n") == 0 and "security.key_file" in r.stderr and "no such key file" in r.stderr
+    assert not out.exists()

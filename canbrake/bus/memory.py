@@ -524,11 +524,10 @@ class MemoryBus(BusABC):
                 if deadline is None:
                     self._n_send_waits += 1
                     deadline = now + (self._send_timeout if timeout is None else max(0.0, timeout))
-                if blocker == eb and self._protect:
-                    self._drain_own()  # our own unread frames are in the way: take them now
+                # backpressure="accepted": take our own unread frames in (they may be what is in
+                # the way), so that no other waiting sender ever waits for us
+                if self._protect and self._drain_own() and blocker == eb:
                     continue
-                if self._protect:
-                    self._drain_own()  # and never make another waiting sender wait for us
                 if blocker == eb and not self._in_recv:
                     self._clear_tx_waiting()
                     raise CanOperationError(
@@ -589,14 +588,16 @@ class MemoryBus(BusABC):
         self._pr_floor = floor
         return blocker
 
-    def _drain_own(self) -> None:
-        """Copy this bus's accepted frames into its local queue while a send waits (unless another
-        thread is receiving right now)."""
-        if self._rxlock.acquire(blocking=False):
-            try:
-                self._fetch()
-            finally:
-                self._rxlock.release()
+    def _drain_own(self) -> bool:
+        """Copy this bus's accepted frames into its local queue while a send waits; False if
+        another thread is receiving right now (it does the same)."""
+        if not self._rxlock.acquire(blocking=False):
+            return False
+        try:
+            self._fetch()
+        finally:
+            self._rxlock.release()
+        return True
 
     def _clear_tx_waiting(self) -> None:
         self._lock()

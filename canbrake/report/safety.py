@@ -223,7 +223,7 @@ identifiers the node does not accept costs it nothing; a flood on identifiers it
 back to the pace at which it reads, and its frames are dropped by the receiver checks and
 counted. Either way nothing the run needs is lost and the run neither stalls nor changes
 (`tests/test_flood.py::test_a_rogue_flooding_the_bus_in_lockstep_neither_stalls_nor_changes_the_run`:
-a foreign process floods 0x001 through a 1024-frame ring; signals.csv equals the in-process run).
+a foreign process floods 0x001 through a 256-frame ring; signals.csv equals the in-process run).
 Other readers (realtime nodes, tools) keep the overrun policy: the oldest frames are dropped, the
 next `recv` raises `BusOverrunError` with the count, and `drive()` counts it (`rx_overruns`,
 `rx_frames_lost`, `summary.json` `safety.flood.rx_frames_lost`) and receives on. The recorder,
