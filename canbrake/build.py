@@ -204,7 +204,8 @@ def _build_layout(scn: Scenario) -> dbc.BusLayout:
     specs = ecu_specs(scn)
     ref_pos = any(getattr(controller_class(p.controller.name), "needs_ref_position", False) for p in scn.placement())
     layout = dbc.BusLayout(specs, period_ms=scn.control_period_s * 1000.0, ref_position=ref_pos,
-                           heartbeat_ms=int(round(scn.ecu.heartbeat_period_s * 1000)))
+                           heartbeat_ms=int(round(scn.ecu.heartbeat_period_s * 1000)),
+                           secured=scn.security is not None)
     layout.n_vehicles = scn.n_cars  # type: ignore[attr-defined]
     if scn.security is not None:  # secured layouts: longer frames with a MAC (canbrake.bus.secoc)
         from canbrake.bus.secoc import secure_database

@@ -208,7 +208,7 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
 
 
 # ----------------------------------------------------------------------------- child processes
-def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "") -> can.BusABC:
+def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", lockstep: bool = False) -> can.BusABC:
     if choice.backend == "socketcan" and choice.interface == "socketcan":
         from canbrake.bus.vcan import open_socketcan_bus
 
@@ -221,6 +221,10 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "") -> 
     if choice.interface == "canbrake" and role == "recorder":
         # the recorder must see every frame: senders wait for it rather than overrun its ring
         kwargs["backpressure"] = True
+    elif choice.interface == "canbrake" and lockstep:
+        # a lockstep node waits for every frame it filters for: a flood may not overwrite those
+        # (it is held back instead), frames it filters out may go by (canbrake.bus.memory)
+        kwargs["backpressure"] = "accepted"
     kwargs.update(choice.bus_kwargs)
     return can.Bus(interface=choice.interface, channel=choice.channel, can_filters=filters,
                    receive_own_messages=False, **kwargs)
@@ -270,7 +274,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         else:
             node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
                               progress=progress)
-        bus = _open_bus(choice, node.filters(), role)
+        bus = _open_bus(choice, node.filters(), role, lockstep=scn.mode == "lockstep")
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
         if prof_dir:  # developer aid: a cProfile of every node process

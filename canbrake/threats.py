@@ -26,6 +26,8 @@ TIMEOUT_S = 0.02
 DURATION_S = 0.15
 CAR = 3
 CMD_ID = 0x080 + CAR          # BRAKE_CMD_C3
+STATE_ID = 0x140 + CAR        # STATE_C3 (to the other five ECUs)
+STATE_AUTH_ID = 0x180 + CAR   # STATE_AUTH_C3, its authenticator in secured runs
 UNKNOWN_CMD_ID = 0x080 + 63   # BRAKE_CMD of a car 63 the six-car train does not have
 SYNC_ID = 0x010
 REPLAY_FROM_TICK = 10         # the logged frame the rogue replays
@@ -60,12 +62,29 @@ class Context:
     codec: Any
 
 
-def _logged_command(ctx: Context) -> str:
-    """Hex payload of car 3's command of tick REPLAY_FROM_TICK as recorded in the clean frames.log."""
+def _logged(ctx: Context, aid: int = CMD_ID) -> str:
+    """Hex payload of car 3's frame ``aid`` of tick REPLAY_FROM_TICK as recorded in the clean frames.log."""
     import can
 
-    frames = [m for m in can.LogReader(str(ctx.clean_dir / "frames.log")) if m.arbitration_id == CMD_ID]
+    frames = [m for m in can.LogReader(str(ctx.clean_dir / "frames.log")) if m.arbitration_id == aid]
     return bytes(frames[REPLAY_FROM_TICK].data).hex()
+
+
+def _logged_command(ctx: Context) -> str:
+    return _logged(ctx, CMD_ID)
+
+
+def _state_replay(ctx: Context) -> list[dict[str, Any]]:
+    """The logged STATE_C3 of tick REPLAY_FROM_TICK and, secured, its logged authenticator."""
+    out = [_rogue(STATE_ID, _logged(ctx, STATE_ID))]
+    if ctx.secured:
+        out.append(_rogue(STATE_AUTH_ID, _logged(ctx, STATE_AUTH_ID)))
+    return out
+
+
+def _forged_state(ctx: Context) -> str:
+    """Car 3 at standstill at position 0, valid E2E CRC, counter 0 (no authenticator: the key is secret)."""
+    return ctx.codec["STATE_C3"].encode({"Speed": 0.0, "Position": 0.0}, counter=0).hex()
 
 
 def _forged_command(ctx: Context) -> str:
@@ -112,7 +131,8 @@ THREATS: list[Threat] = [
            {False: Expect(reasons=("sync",), unchanged=True), True: Expect(reasons=("sync",), unchanged=True)}),
     Threat("flood", "insertion (flooding)",
            "rogue node floods identifier 0x001 (highest priority) at 100 kHz",
-           "receive queues drop and count on overflow; the recorder names the identifier",
+           "acceptance filters keep it out of the nodes (in-memory bus: it may not overwrite a frame a lockstep "
+           "node accepts, tests/test_flood.py); the recorder names the identifier",
            lambda ctx: [{"type": "babble", "sender": "rogue", "arbitration_id": 1, "rate_hz": 100_000.0, "dlc": 8,
                          "start_s": ATTACK_S}],
            {False: Expect(unchanged=True), True: Expect(unchanged=True)}),
@@ -133,6 +153,19 @@ THREATS: list[Threat] = [
            "SecOC freshness (the counter alone cannot see it), then time-out",
            lambda ctx: [{"type": "delay", "delay_s": 0.015, **_ON_CMD}],
            {False: Expect(undetected=True), True: Expect(reasons=("freshness",), failsafe=True)}),
+    Threat("state_replay", "repetition",
+           f"rogue node re-sends car {CAR}'s logged state frame (STATE_C3) of tick {REPLAY_FROM_TICK} every period "
+           "(secured: with its logged authenticator STATE_AUTH_C3)",
+           "alive counter; SecOC authenticator per state frame (full 32-bit freshness)",
+           _state_replay,
+           {False: Expect(reasons=("counter",), undetected=True),
+            True: Expect(reasons=("counter", "authentication", "freshness"), unchanged=True)}),
+    Threat("state_masquerade", "masquerade",
+           f"rogue node sends car {CAR}'s state frame (STATE_C3: standstill at 0 m) with a valid CRC",
+           "none without authentication; SecOC authenticator per state frame",
+           lambda ctx: [_rogue(STATE_ID, _forged_state(ctx))],
+           {False: Expect(reasons=("counter",), undetected=True),
+            True: Expect(reasons=("counter", "authentication"), unchanged=True)}),
     Threat("masquerade", "masquerade",
            f"rogue node sends 0 N commands on car {CAR}'s identifier with a valid CRC",
            "none without authentication (the CRC is public); SecOC MAC",

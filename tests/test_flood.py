@@ -78,3 +78,72 @@ def test_a_babbling_flood_does_not_fail_the_run_and_the_flooder_is_named(tmp_pat
     assert s["safety"]["verdict"] == "attack or fault detected"
     assert (tmp_path / "flood" / "signals.csv").read_bytes() == (tmp_path / "clean" / "signals.csv").read_bytes()
     assert clean["safety"]["verdict"] == "clean"
+
+
+def test_a_node_that_accepts_only_some_ids_never_loses_them_to_a_flood(shm_dir):
+    """backpressure="accepted" (lockstep nodes): a flood on identifiers the reader filters out
+    overwrites freely and raises no overrun; a frame it accepts is never overwritten unread —
+    the flooder is held back (and times out) instead."""
+    ring = 64
+    want = [{"can_id": 0x123, "can_mask": 0x7FF, "extended": False}]
+    with can.Bus(interface="canbrake", channel="fl3", ring_size=ring) as tx, \
+            can.Bus(interface="canbrake", channel="fl3", can_filters=want, backpressure="accepted") as rx:
+        for k in range(10 * ring):  # ten rings of frames it does not accept, nothing to wait for
+            tx.send(frame(0x001, k.to_bytes(2, "little")))
+        tx.send(frame(0x123, b"\x01"))
+        sent = 0
+        with pytest.raises(can.CanTimeoutError):
+            for k in range(2 * ring):  # the flood reaches the unread 0x123: the flooder waits
+                tx.send(frame(0x001, b"\x00"), timeout=0.05)
+                sent += 1
+        assert sent == ring - 1  # every slot but the one holding 0x123
+        got = rx.recv(0)  # no BusOverrunError: nothing it accepts was lost
+        assert got.arbitration_id == 0x123 and bytes(got.data) == b"\x01"
+        assert rx.recv(0) is None
+        tx.send(frame(0x001, b"\x00"), timeout=0.05)  # read: the flood goes on
+        assert rx.stats().frames_lost == 0 and rx.stats().overruns == 0
+
+
+@pytest.mark.slow
+def test_a_rogue_flooding_the_bus_in_lockstep_neither_stalls_nor_changes_the_run(tmp_path, shm_dir):
+    """A foreign process floods identifier 0x001 as fast as it can on the run's cross-process bus
+    (a 256-frame ring, so it goes round many times while a node is busy): the lockstep run ends normally, its
+    signals.csv equals the in-process run's, and the recorder names the flooding identifier."""
+    import threading
+    import uuid
+
+    over = {"duration_s": 0.05}
+    run_scenario(load_scenario(CASE1, overrides=over), tmp_path / "inprocess", backend="inprocess", plots=False)
+    channel = f"cbflood-{uuid.uuid4().hex[:6]}"
+    stop = threading.Event()
+    sent = [0]
+    nothing = [{"can_id": 0x7FF, "can_mask": 0x7FF, "extended": False}]
+    rogue_bus = can.Bus(interface="canbrake", channel=channel, ring_size=256, can_filters=nothing)
+
+    def flood() -> None:
+        from canbrake.bus.memory import channel_pids
+
+        burst = [frame(0x001, bytes(8)) for _ in range(32)]
+        while not stop.is_set() and len(channel_pids(channel)) < 1 + 8:  # the plant, 6 ECUs, the recorder
+            stop.wait(0.01)
+        while not stop.is_set() and sent[0] < 160 * 256:
+            try:
+                rogue_bus.send_many(burst, timeout=0.2)
+                sent[0] += len(burst)
+            except can.CanTimeoutError:
+                pass  # held back by a node that has not read yet
+
+    t = threading.Thread(target=flood, daemon=True)
+    t.start()
+    try:
+        s = run_scenario(load_scenario(CASE1, overrides=over), tmp_path / "memory", backend="memory",
+                         channel=channel, plots=False, stall_timeout_s=20)
+    finally:
+        stop.set()
+        t.join()
+        rogue_bus.shutdown()
+    assert s["status"] == "ok" and s["ticks"] == 50, s.get("message")
+    assert sent[0] > 8 * 256  # the ring went round many times during the run
+    assert s["safety"]["flood"]["frames_on_unknown_ids"]["0x001"] > 0
+    assert s["safety"]["verdict"] == "attack or fault detected"
+    assert (tmp_path / "memory" / "signals.csv").read_bytes() == (tmp_path / "inprocess" / "signals.csv").read_bytes()

@@ -137,6 +137,22 @@ def test_peer_hold_then_fallback_on_own_sensors(tmp_path):
     assert status == [0] * 25 + [1] * 25
 
 
+def test_a_lost_state_frame_leaves_its_authenticator_orphaned_and_the_run_as_unsecured(tmp_path):
+    """Secured: car 2's state frames lost from 0.02 s while their authenticators still arrive —
+    each of its five listeners counts one orphaned authenticator per period (ticks 20..49), falls
+    back as in the unsecured run, and braking equals the unsecured run's."""
+    key = write_key(tmp_path / "key.hex")
+    over = {"duration_s": 0.05, "bus": {"impairments": [{"type": "loss", "probability": 1.0, "ids": [0x142],
+                                                          "start_s": 0.02}]},
+            "safety": {"peer_hold_periods": 5}}
+    plain = run_scenario(load_scenario(CASE1, overrides=over), tmp_path / "plain", backend="inprocess", plots=False)
+    sec = run_scenario(load_scenario(CASE1, overrides={**over, "security": {"key_file": str(key)}}),
+                       tmp_path / "sec", backend="inprocess", plots=False)
+    assert sec["safety"]["state_auth_orphans"] == 5 * (50 - 20) and plain["safety"]["state_auth_orphans"] == 0
+    assert sec["safety"]["fallbacks"] == plain["safety"]["fallbacks"]
+    assert (tmp_path / "sec" / "signals.csv").read_bytes() == (tmp_path / "plain" / "signals.csv").read_bytes()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("secured", [False, True], ids=["e2e", "secoc"])
 def test_forged_end_frames_from_a_foreign_process_cannot_end_a_run(tmp_path, secured):
@@ -202,3 +218,16 @@ def test_a_command_page_without_room_for_the_mac_is_refused():
 
     with pytest.raises(ValueError, match="BRAKE_CMD_C1 uses 7 bytes"):
         secure_database(db)
+
+
+def test_a_missing_key_file_on_the_command_line_is_exit_2_one_message_nothing_written(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "run"
+    r = subprocess.run([sys.executable, "-m", "canbrake.cli", "run", str(CASE1), "--set",
+                        f"security.key_file={tmp_path / 'absent.hex'}", "--duration", "0.01", "--out", str(out),
+                        "--no-plots"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().count("\n") == 0 and "security.key_file" in r.stderr and "no such key file" in r.stderr
+    assert not out.exists()

@@ -56,3 +56,15 @@ def test_replay_counts_follow_from_the_15_period_alias(work):
     assert plain.rejected == {"counter": n}
     secured = run_threat(replay, CASE1, d, key)
     assert secured.rejected == {"freshness": n} and secured.unchanged
+
+
+def test_replayed_state_frames_are_counted_by_what_caught_them(work):
+    """Secured: every replayed authenticator (tick 10) is stale; each replayed STATE_C3 is dropped
+    by its counter, or, in the periods where its counter aliases to the current tick (k = 10 mod
+    15), for want of an authenticator that verifies it — at each of car 3's five listeners."""
+    d, key = work
+    o = run_threat(next(t for t in THREATS if t.key == "state_replay"), CASE1, d, key)
+    aliased = sum(1 for k in range(round(ATTACK_S / DT), N_TICKS) if k % 15 == 10)
+    assert o.rejected["authentication"] == 5 * aliased
+    assert o.rejected["freshness"] == o.rejected["counter"] + o.rejected["authentication"]
+    assert o.unchanged

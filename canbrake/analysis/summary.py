@@ -365,5 +365,7 @@ def safety_counters(scn: Scenario, plant: dict[str, Any], ecus: list[dict[str, A
         verdict = "attack or fault detected"
     return {"authenticated": scn.security is not None, "verdict": verdict, "rejected": total, "flood": flood,
             "end_frames_ignored": end_ignored,
+            # secured runs: STATE_AUTH frames whose state frame never came (a lost state frame)
+            "state_auth_orphans": sum(g.get("state_auth_orphans", 0) for g in nodes.values()),
             "rejected_by_node": {n: g.get("rejected", {}) for n, g in nodes.items() if sum((g.get("rejected") or {}).values())},
             "unknown_senders": unknown, "fallbacks": fallbacks}

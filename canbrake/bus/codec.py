@@ -37,14 +37,18 @@ class MessageCodec:
                            float(s.scale), float(s.offset), lo, hi))
         self._fields = tuple(fields)
 
-    def encode(self, values: Mapping[str, float], counter: int | None = None) -> bytes:
-        """Encode ``values`` (physical units). For protected messages pass ``counter`` and the CRC is computed."""
+    def encode(self, values: Mapping[str, float], counter: int | None = None, tick: int | None = None) -> bytes:
+        """Encode ``values`` (physical units). For protected messages pass ``counter`` (tick mod 15)
+        and the CRC is computed; ``tick`` (the sender's tick) also fills a ``CounterExt`` field
+        (floor(tick / 15) mod 2^bits, canbrake.bus.dbc)."""
         word = 0
         for name, start, mask, _length, _signed, scale, offset, lo, hi in self._fields:
             if name == "CRC":
                 continue
             if name == "Counter" and counter is not None:
                 raw = counter
+            elif name == "CounterExt" and tick is not None:
+                raw = tick // 15
             else:
                 v = values.get(name, offset)
                 raw = round((v - offset) / scale) if scale != 1.0 or offset != 0.0 else round(v)

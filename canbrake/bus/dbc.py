@@ -9,6 +9,7 @@ standard and encode priority (lower wins arbitration)::
     0x0C0 + i    SENSOR_Ci       plant -> ECU i   measured speed and position of car i
     0x100 + i    COUPLER_Ci      plant -> ECU i   measured coupler deflections (optional sensor)
     0x140 + i    STATE_Ci        ECU i -> all     speed and position broadcast (E2E protected)
+    0x180 + i    STATE_AUTH_Ci   ECU i -> all     with ``security:`` only: SecOC authenticator of STATE_Ci
     0x700        HEARTBEAT_PLANT plant            node state (CANopen-style heartbeat ids)
     0x700 + i    HEARTBEAT_Ci    ECU i            node state
     0x780 + i    STATE_DONE_Ci   ECU i            simulation control: state phase of tick done
@@ -118,8 +119,9 @@ def default_ecus(n_cars: int, coupler_sensors: bool = False) -> list[EcuSpec]:
             for c in range(1, n_cars + 1)]
 
 
-#: frame kinds of the identifier plan, highest priority first
-KINDS = ("cmd", "sensor", "state")
+#: frame kinds of the identifier plan, highest priority first; "state_auth" (the SecOC
+#: authenticator of each STATE page, canbrake.bus.secoc) exists only in secured layouts
+KINDS = ("cmd", "sensor", "state", "state_auth")
 #: 11-bit plan with 64-id blocks (up to 63 ECUs): base of (kind, page); page 2 of "sensor" is
 #: 0x100 (COUPLER_C* in the original six-car layout)
 _PLAN64 = {("cmd", 1): BRAKE_CMD_BASE, ("sensor", 1): SENSOR_BASE, ("sensor", 2): COUPLER_BASE,
@@ -138,7 +140,10 @@ class IdPlan:
     up to 127 ECUs: 11-bit, 128-id blocks — command pages first, then sensor, then state pages,
     from 0x080, barrier frames at 0x600/0x680 + i, heartbeats at 0x700 + i (CANopen);
     beyond: 29-bit identifiers ``kind << 24 | page << 16 | index`` (kind 1 command, 2 sensor,
-    3 state, 0x18 heartbeat, 0x1E state done, 0x1F command done), so commands still win.
+    3 state, 4 state authenticator, 0x18 heartbeat, 0x1E state done, 0x1F command done), so
+    commands still win. Secured layouts (``security:``) add a "state_auth" block per state page,
+    allocated right after the state pages of the same page number (11-bit plans: the first free
+    block, 0x180 + i for page 1 with up to 63 ECUs); unsecured layouts are unchanged.
     SYNC 0x010, REFERENCE 0x011, REFERENCE_POS 0x012 and HEARTBEAT_PLANT 0x700 in every plan.
     """
 
@@ -155,7 +160,7 @@ class IdPlan:
             free = list(_FREE64)
         else:
             free = list(_FREE128)
-        order = [(k, p) for p in range(1, 9) for k in KINDS if p <= pages.get(k, 1)]
+        order = [(k, p) for p in range(1, 9) for k in KINDS if p <= pages.get(k, 0 if k == "state_auth" else 1)]
         for key in order:
             if key in self._base:
                 continue
@@ -167,7 +172,7 @@ class IdPlan:
 
     def frame(self, kind: str, index: int, page: int = 1) -> int:
         if self.extended:
-            code = {"cmd": 1, "sensor": 2, "state": 3}[kind]
+            code = {"cmd": 1, "sensor": 2, "state": 3, "state_auth": 4}[kind]
             return (code << 24) | (page << 16) | index
         return self._base[(kind, page)] + index
 
@@ -185,8 +190,43 @@ _CRC = SignalSpec("CRC", 0, 8, comment="CRC-8 SAE J1850 over data ID (= frame id
 _COUNTER = SignalSpec("Counter", 8, 4, minimum=0, maximum=14, comment="alive counter 0..14, +1 per control period")
 _STATUS = SignalSpec("Status", 12, 4, minimum=0, maximum=15, comment="0 normal, 1 degraded (stale peers), 2 fail-safe",
                      choices=((0, "normal"), (1, "degraded"), (2, "fail_safe")))
+#: most bits of the counter extension (the spare bits of a protected frame's last byte)
+COUNTER_EXT_MAX_BITS = 7
+
+
+def _with_counter_ext(pages: list[list[tuple[str, SignalSpec]]]) -> list[list[tuple[str, SignalSpec]]]:
+    """Give each protected page whose last byte has spare bits a ``CounterExt`` field there: the
+    alive counter then counts tick mod 15·2^m (low nibble: tick mod 15 as before, CounterExt:
+    floor(tick / 15) mod 2^m), so it aliases after 15·2^m periods instead of 15. The frame's
+    length is unchanged (canbrake.bus.e2e.counter_modulus)."""
+    out = []
+    for sigs in pages:
+        used = max(s.start + s.length for _, s in sigs)
+        spare = min(-used % 8, COUNTER_EXT_MAX_BITS)
+        if spare:
+            sigs = sigs + [("", SignalSpec(
+                "CounterExt", used, spare, minimum=0, maximum=(1 << spare) - 1,
+                comment=f"alive counter extension: floor(tick / 15) mod {1 << spare}; with Counter the "
+                        f"sender's tick mod {15 << spare} (aliases after {15 << spare} periods)"))]
+        out.append(sigs)
+    return out
+
+
 _NMT = "CANopen NMT state: 0 boot, 4 stopped, 5 operational, 127 pre-op"
 _NMT_CHOICES = ((0, "boot"), (4, "stopped"), (5, "operational"), (127, "pre_operational"))
+
+
+def _state_auth_signals(state: str) -> list[tuple[str, SignalSpec]]:
+    """Signals of the authenticator frame of state page ``state`` (layout: canbrake.bus.secoc)."""
+    return [("", SignalSpec("CRC", 0, 8, comment="CRC-8 SAE J1850 over data ID (= this frame's id, low byte "
+                                                 "first) and bytes 1..7 (computed after the MAC)")),
+            ("", SignalSpec("FreshnessTick", 8, 32, unit="tick",
+                            comment=f"the sender's tick k when it sent {state} (the full 32-bit freshness "
+                                    f"counter; no aliasing within 2^32 periods)")),
+            ("", SignalSpec("MAC", 40, 24, minimum=0, maximum=(1 << 24) - 1,
+                            comment=f"SecOC: first 24 bits of AES-128-CMAC over {state}'s data ID (LE16) | "
+                                    f"freshness (session BE32, FreshnessTick BE32) | {state} bytes 1..DLC-1; "
+                                    f"bytes in MAC order"))]
 
 
 def _num(x: float | None) -> float | int | None:
@@ -239,21 +279,25 @@ class BusLayout:
     """Every message of a run, derived from the placement (``ecus``) — the DBC's source.
 
     ``period_ms``: the control period, written as ``GenMsgCycleTime`` of the periodic messages;
-    ``ref_position``: send REFERENCE_POS (x*) for controllers that need it.
+    ``ref_position``: send REFERENCE_POS (x*) for controllers that need it; ``secured``: add a
+    STATE_AUTH message per STATE page (``security:``, layout in :mod:`canbrake.bus.secoc`).
     """
 
     def __init__(self, ecus: list[EcuSpec], *, period_ms: float = 1.0, ref_position: bool = False,
-                 heartbeat_ms: int = 100) -> None:
+                 heartbeat_ms: int = 100, secured: bool = False) -> None:
         self.ecus = list(ecus)
         self.by_index = {e.index: e for e in self.ecus}
         n = len(self.ecus)
         sens = {e.index: _pack(e.sensors, 0, [], f"ECU {e.name} sensors") for e in self.ecus}
-        cmds = {e.index: _pack(e.commands, 16, [_CRC, _COUNTER, _STATUS], f"ECU {e.name} commands")
+        cmds = {e.index: _with_counter_ext(_pack(e.commands, 16, [_CRC, _COUNTER, _STATUS], f"ECU {e.name} commands"))
                 for e in self.ecus}
-        states = {e.index: (_pack(e.broadcast, 12, [_CRC, _COUNTER], f"ECU {e.name} broadcast")
+        states = {e.index: (_with_counter_ext(_pack(e.broadcast, 12, [_CRC, _COUNTER], f"ECU {e.name} broadcast"))
                             if e.listeners and e.broadcast else []) for e in self.ecus}
         pages = {"sensor": max(len(v) for v in sens.values()), "cmd": max(len(v) for v in cmds.values()),
                  "state": max([len(v) for v in states.values()] + [1])}
+        if secured:
+            pages["state_auth"] = pages["state"]
+        self.secured = secured
         self.plan = IdPlan(n, pages)
         ext = self.plan.extended
         cyc = max(1, int(round(period_ms)))
@@ -296,6 +340,12 @@ class BusLayout:
                 msgs.append(self._msg(self.plan.frame("state", e.index, p), f"STATE_{tag}", p, sigs, 12, node, peers,
                                       f"State of ECU {e.name} (vehicle {e.vehicle}), broadcast to its listeners.",
                                       cyc, ext, "state", e.index))
+                if secured:
+                    msgs.append(self._msg(self.plan.frame("state_auth", e.index, p), f"STATE_AUTH_{tag}", p,
+                                          _state_auth_signals(f"STATE_{tag}" + ("" if p == 1 else f"_P{p}")), 64,
+                                          node, peers, f"SecOC authenticator of STATE_{tag}"
+                                          + ("" if p == 1 else f"_P{p}") + " (sent right after it).", cyc, ext,
+                                          "state_auth", e.index))
             msgs.append(MessageSpec(self.plan.heartbeat(e.index), f"HEARTBEAT_{tag}", 1, node, (PLANT,),
                                     (("", SignalSpec("NodeState", 0, 8, comment=_NMT, choices=_NMT_CHOICES)),),
                                     f"Heartbeat of ECU {e.name}.", heartbeat_ms, ext, "heartbeat", e.index))
@@ -320,6 +370,10 @@ class BusLayout:
         bits = max([first_bit] + [s.start + s.length for _, s in sigs])
         return MessageSpec(fid, base if page == 1 else f"{base}_P{page}", (bits + 7) // 8, sender, receivers,
                            tuple(sigs), comment, cyc, ext, kind, ecu, page_no or page)
+
+    def counter_ext(self) -> dict[int, tuple[int, int]]:
+        """Protected frames with a counter extension: frame id -> (start bit, bits)."""
+        return {m.frame_id: (s.start, s.length) for m in self.messages for _, s in m.signals if s.name == "CounterExt"}
 
     def ids(self, kind: str, ecu: int | None = None) -> list[int]:
         """Frame ids of ``kind`` (of one ECU index, or all), in page order."""

@@ -50,6 +50,23 @@ def e2e_crc(data_id: int, payload: bytes | bytearray) -> int:
     return crc ^ 0xFF
 
 
+def counter_modulus(ext_bits: int) -> int:
+    """Modulus of an alive counter with ``ext_bits`` extension bits (canbrake.bus.dbc CounterExt):
+    the low nibble counts 0..14, the extension counts its wraps."""
+    return COUNTER_MODULO << ext_bits
+
+
+def extended_counter(payload: bytes | bytearray, ext: tuple[int, int] | None) -> int:
+    """The alive counter of ``payload`` with its extension ``ext`` = (start bit, bits), if any:
+    the sender's tick mod :func:`counter_modulus`."""
+    c = payload[1] & 0x0F
+    if ext is None:
+        return c
+    start, bits = ext
+    word = int.from_bytes(bytes(payload), "little")
+    return c + COUNTER_MODULO * ((word >> start) & ((1 << bits) - 1))
+
+
 def protect(data_id: int, payload: bytearray) -> bytearray:
     """Write the CRC into byte 0 of ``payload`` (counter must already be in byte 1)."""
     payload[0] = e2e_crc(data_id, payload)

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from canbrake.bus.e2e import COUNTER_MODULO, e2e_crc
+from canbrake.bus.e2e import COUNTER_MODULO, counter_modulus, e2e_crc, extended_counter
 from canbrake.bus.secoc import STALE_ALIASES, SecOC
 
 REASONS = ("crc", "counter", "freshness", "authentication", "unknown_sender", "sync")
@@ -41,6 +41,9 @@ class FrameGuard:
         self.rx_overruns = 0       # receive-queue overflows (flood), see Node.on_rx_overrun
         self.rx_frames_lost = 0    # frames dropped by them
         self.end_ignored = 0       # unauthenticated END frames before the last scheduled tick
+        self.state_auth_orphans = 0  # STATE_AUTH frames whose state frame never came (lost)
+        #: frames whose counter has an extension (canbrake.bus.dbc CounterExt): id -> (start bit, bits)
+        self.counter_ext: dict[int, tuple[int, int]] = {}
 
     def reject(self, reason: str) -> None:
         self.rejected[reason] += 1
@@ -60,18 +63,19 @@ class FrameGuard:
         if len(payload) < 2 or payload[0] != e2e_crc(data_id, payload):
             self.reject("crc")
             return None
-        c = payload[1] & 0x0F
-        if c >= COUNTER_MODULO:
+        if payload[1] & 0x0F >= COUNTER_MODULO:
             self.reject("counter")
             return None
-        lag = (k - c) % COUNTER_MODULO
+        ext = self.counter_ext.get(data_id)
+        modulus = COUNTER_MODULO if ext is None else counter_modulus(ext[1])
+        lag = (k - extended_counter(payload, ext)) % modulus
         origin = k - lag
         if lag > self.max_lag or origin < last_origin or (origin == last_origin and not same_tick_ok):
             self.reject("counter")
             return None
         if authenticated and self.secoc is not None:
             if not self.secoc.verify(data_id, payload, origin, has_crc=True):
-                stale = any(self.secoc.verify(data_id, payload, origin - COUNTER_MODULO * m, has_crc=True)
+                stale = any(self.secoc.verify(data_id, payload, origin - modulus * m, has_crc=True)
                             for m in range(1, STALE_ALIASES + 1))
                 self.reject("freshness" if stale else "authentication")
                 return None
@@ -94,7 +98,7 @@ class FrameGuard:
     def stats(self) -> dict[str, Any]:
         return {"rejected": dict(self.rejected), "unknown_ids": dict(self.unknown_ids),
                 "rx_overruns": self.rx_overruns, "rx_frames_lost": self.rx_frames_lost,
-                "end_ignored": self.end_ignored}
+                "end_ignored": self.end_ignored, "state_auth_orphans": self.state_auth_orphans}
 
 
 def sign_control(secoc: SecOC | None, data_id: int, payload: bytes, freshness_tick: int) -> bytes:

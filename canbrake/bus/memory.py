@@ -33,6 +33,15 @@ Slow readers (choice: per bus, default overrun)
     oldest frames; its next ``recv`` raises :class:`BusOverrunError` (a ``can.CanOperationError``) saying how many
     were lost (also in :meth:`MemoryBus.stats`), then continues with the oldest frame still in
     the ring. Frames are never dropped silently.
+  * ``backpressure="accepted"`` (for lockstep nodes, which must see every frame they filter
+    for, but need not slow down for frames they filter out — as a CAN controller's acceptance
+    filter keeps a flood on other identifiers out of its receive FIFO): a writer waits, as for
+    ``backpressure=True``, only when it would overwrite a frame this reader *accepts* and has not
+    read yet; frames it does not accept are overwritten freely and never raise an overrun. A
+    flood on identifiers the node filters out then costs it nothing; a flood on identifiers it
+    accepts is held back to the pace at which the node reads (and counted by the node's checks).
+    A writer blocked this way keeps copying its own bus's accepted frames into its local queue
+    while it waits, so two such nodes can never wait for each other.
   * ``backpressure=True`` (for recorders that must see every frame): a writer that would
     overwrite a frame this reader has not read waits (blocking, woken by the reader) for up to
     ``send`` ``timeout`` or else ``send_timeout`` seconds, then raises
@@ -89,6 +98,7 @@ from canbrake.bus.memory_shm import (
     F_ACCEPT_ALL,
     F_BACKPRESSURE,
     F_OWN,
+    F_PROTECT,
     H_CLOSED,
     H_READER_GEN,
     H_SLEEPERS,
@@ -104,6 +114,8 @@ from canbrake.bus.memory_shm import (
     MAX_DATA,
     SLOT_BYTES,
     SLOT_HEAD,
+    SLOT_INVALID,
+    SLOT_SEQ_OFFSET,
     Layout,
     accepts,
     channel_pids,
@@ -163,6 +175,8 @@ class MemoryBusStats:
     frames_lost: int  #: frames overwritten before this (non-backpressure) reader read them
     overruns: int  #: times recv raised CanOperationError for lost frames
     send_waits: int  #: times send waited for a backpressure reader to make room
+    #: backpressure="accepted": frames it does not accept, overwritten before it looked (no loss)
+    frames_passed: int = 0
 
 
 class MemoryBus(BusABC):
@@ -207,7 +221,9 @@ class MemoryBus(BusABC):
         self._path = shm.bus_path(self._dir, self._name)
         self._own = bool(receive_own_messages)
         self._preserve_ts = bool(preserve_timestamps)
-        self._backpressure = bool(backpressure)
+        #: backpressure="accepted": writers wait only for the frames this reader accepts
+        self._protect = backpressure == "accepted"
+        self._backpressure = bool(backpressure) and not self._protect
         self._send_timeout = float(send_timeout)
         self._yield = bool(yield_before_sleep) and hasattr(os, "sched_yield")
         self._can_protocol = CanProtocol.CAN_FD if fd else CanProtocol.CAN_20
@@ -220,6 +236,11 @@ class MemoryBus(BusABC):
         #: readers to consider waking: (entry word, token, filters or None = all, accept cache)
         self._peers: list[tuple[int, int, Optional[tuple[shm.Filter, ...]], dict[int, bool]]] = []
         self._bp_peers: list[int] = []
+        #: backpressure="accepted" readers: (entry word, token, filters or None, own frames, cache)
+        self._pr_peers: list[tuple[int, int, Optional[tuple[shm.Filter, ...]], bool, dict[int, bool]]] = []
+        self._pr_floor = -1  # no protected reader's position is below this (positions only grow)
+        self._rxlock = threading.Lock()  # the receiving thread, or a sender draining (see _drain_own)
+        self._n_passed = 0  # protected reader: frames it does not accept, overwritten before it looked
         self._peers_gen = -1
         self._wake_fds: dict[tuple[int, str], int] = {}
         self._in_recv = False
@@ -300,7 +321,8 @@ class MemoryBus(BusABC):
         w = q[H_WRITE_SEQ]
         q[b + E_PID] = os.getpid()
         q[b + E_START] = shm.proc_start_time(os.getpid())
-        q[b + E_FLAGS] = (F_OWN if self._own else 0) | (F_BACKPRESSURE if self._backpressure else 0) | F_ACCEPT_ALL
+        q[b + E_FLAGS] = ((F_OWN if self._own else 0) | (F_BACKPRESSURE if self._backpressure else 0)
+                          | (F_PROTECT if self._protect else 0) | F_ACCEPT_ALL)
         q[b + E_NFILT] = 0
         q[b + E_READ_SEQ] = w
         q[b + E_SLEEPING] = 0
@@ -439,6 +461,8 @@ class MemoryBus(BusABC):
                     w = q[H_WRITE_SEQ]
                     if self._bp_peers:
                         blocker = self._blocking_reader(w + n)
+                    if not blocker and self._pr_peers and w + n - self._ring_n > self._pr_floor:
+                        blocker = self._protecting_reader(w, n)
                     if blocker:
                         if not q[eb + E_TX_WAITING]:
                             q[eb + E_TX_WAITING] = 1
@@ -453,10 +477,13 @@ class MemoryBus(BusABC):
                         base, mask = self._ring_off, self._ring_mask
                         for i, (ts, aid, flags, dlc, data) in enumerate(frames):
                             off = base + ((w + i) & mask) * SLOT_BYTES
+                            sw = (off + SLOT_SEQ_OFFSET) >> 3
+                            q[sw] = SLOT_INVALID  # per-slot seqlock: invalid while it is rewritten
                             ln = len(data)
                             pack(mv, off, ts, aid, token, flags, dlc, ln, 0)
                             if ln:
                                 mv[off + DATA_OFFSET : off + DATA_OFFSET + ln] = data
+                            q[sw] = w + i
                         q[H_WRITE_SEQ] = w + n  # publish: aligned 8-byte store
                         if not self._own and not self._in_recv and self._seq == w:
                             # our reader is caught up and never receives its own frames: skip
@@ -497,6 +524,10 @@ class MemoryBus(BusABC):
                 if deadline is None:
                     self._n_send_waits += 1
                     deadline = now + (self._send_timeout if timeout is None else max(0.0, timeout))
+                # backpressure="accepted": take our own unread frames in (they may be what is in
+                # the way), so that no other waiting sender ever waits for us
+                if self._protect and self._drain_own() and blocker == eb:
+                    continue
                 if blocker == eb and not self._in_recv:
                     self._clear_tx_waiting()
                     raise CanOperationError(
@@ -529,6 +560,45 @@ class MemoryBus(BusABC):
                 return b
         return 0
 
+    def _protecting_reader(self, w: int, n: int) -> int:
+        """A backpressure="accepted" reader that accepts, and has not read, a frame that writing
+        seqs ``w .. w+n-1`` would overwrite (its entry word), else 0 (lock held). Also moves
+        ``_pr_floor`` up to the lowest such reader position."""
+        q, mv, ring, mask, base = self._q, self._mv, self._ring_n, self._ring_mask, self._ring_off
+        floor = w
+        blocker = 0
+        for b, tok, filt, own, cache in self._pr_peers:
+            p = self._bp_position(b, w)
+            floor = min(floor, p)
+            if blocker:
+                continue
+            for seq in range(max(p, w - ring), w + n - ring):
+                _ts, aid, stok, flags, _dlc, _ln, _ = SLOT_HEAD.unpack_from(mv, base + (seq & mask) * SLOT_BYTES)
+                if stok == tok and not own:
+                    continue  # its own frame: never delivered to it
+                if filt is not None:
+                    key = aid | (flags & M_EXT) << 32
+                    ok = cache.get(key)
+                    if ok is None:
+                        ok = cache[key] = accepts(filt, aid, bool(flags & M_EXT))
+                    if not ok:
+                        continue
+                blocker = b
+                break
+        self._pr_floor = floor
+        return blocker
+
+    def _drain_own(self) -> bool:
+        """Copy this bus's accepted frames into its local queue while a send waits; False if
+        another thread is receiving right now (it does the same)."""
+        if not self._rxlock.acquire(blocking=False):
+            return False
+        try:
+            self._fetch()
+        finally:
+            self._rxlock.release()
+        return True
+
     def _clear_tx_waiting(self) -> None:
         self._lock()
         try:
@@ -542,7 +612,7 @@ class MemoryBus(BusABC):
     def _refresh_peers(self) -> None:
         """Re-read the reader table after a registration/filter change (lock held)."""
         q = self._q
-        peers, bp, live = [], [], set()
+        peers, bp, pr, live = [], [], [], set()
         for b in shm.live_entries(q):
             tok, flags = q[b + E_TOKEN], q[b + E_FLAGS]
             live.add(tok)
@@ -555,9 +625,12 @@ class MemoryBus(BusABC):
                 peers.append((b, tok, filt, {}))  # unless it receives its own messages
             if flags & F_BACKPRESSURE:
                 bp.append(b)
+            if flags & F_PROTECT:
+                pr.append((b, tok, filt, bool(flags & F_OWN), {}))
         for key in [k for k in self._wake_fds if k[0] not in live]:
             os.close(self._wake_fds.pop(key))
         self._peers, self._bp_peers, self._peers_gen = peers, bp, q[H_READER_GEN]
+        self._pr_peers, self._pr_floor = pr, -1
 
     def _notify(self, token: int, kind: str) -> None:
         """Write one wake-up byte to the ``kind`` FIFO of the bus with ``token``."""
@@ -607,7 +680,10 @@ class MemoryBus(BusABC):
         # Seq x lives in slot x % n until seq x + n is written, which an overrun-mode writer may
         # be doing as soon as write_seq == x + n. A backpressure reader is safe one seq longer:
         # writers do not start seq x + n before it has read x.
-        slack = 0 if self._backpressure else 1
+        # A protected reader (backpressure="accepted") is safe one seq longer too for the frames it
+        # accepts, and checks each one's slot sequence number: the others may be overwritten.
+        protect = self._protect
+        slack = 0 if self._backpressure or protect else 1
         start = max(s, w - n + slack)
         mv, unpack, flag_bits, slot_bytes = self._mv, SLOT_HEAD.unpack_from, _FLAG_BITS, SLOT_BYTES
         own, token, filt, cache, ch = self._own, self._token, self._filters_c, self._accept_cache, self._name
@@ -634,13 +710,18 @@ class MemoryBus(BusABC):
                     continue
             if ln > MAX_DATA:
                 ln = MAX_DATA
-            off += DATA_OFFSET
-            msgs.append(Message(ts, aid, ext, rtr, err, ch, dlc, bytearray(mv[off : off + ln]), fd, is_rx, brs, esi))
+            data = bytearray(mv[off + DATA_OFFSET : off + DATA_OFFSET + ln])
+            if protect and q[(off + SLOT_SEQ_OFFSET) >> 3] != seq:
+                continue  # overwritten while we looked: it was a frame we do not accept
+            msgs.append(Message(ts, aid, ext, rtr, err, ch, dlc, data, fd, is_rx, brs, esi))
             seqs.append(seq)
         # seqlock-style check: a slot may have been overwritten while we copied it
         valid_from = q[H_WRITE_SEQ] - n + slack
         lost = 0
-        if valid_from > s:
+        if protect:
+            if valid_from > s:  # frames it does not accept went by unseen: no loss, as on a CAN filter
+                self._n_passed += valid_from - s
+        elif valid_from > s:
             lost = valid_from - s
             msgs = [m for m, sq in zip(msgs, seqs) if sq >= valid_from]
             w = max(w, valid_from)
@@ -658,7 +739,10 @@ class MemoryBus(BusABC):
 
     def _publish_read_seq(self) -> None:
         q, b = self._q, self._eb
-        if not self._backpressure:
+        if self._protect and not q[H_TX_WAITERS]:
+            q[b + E_READ_SEQ] = self._seq  # no sender waits: a plain store, read under the lock
+            return
+        if not self._backpressure and not self._protect:
             q[b + E_READ_SEQ] = self._seq  # informative only
             return
         waiters: list[int] = []
@@ -678,6 +762,10 @@ class MemoryBus(BusABC):
 
     def _recv_internal(self, timeout: Optional[float]) -> tuple[Optional[Message], bool]:
         """Next accepted frame, or ``None`` after ``timeout`` s (``None``: wait forever, 0: poll)."""
+        with self._rxlock:
+            return self._recv_locked(timeout)
+
+    def _recv_locked(self, timeout: Optional[float]) -> tuple[Optional[Message], bool]:
         self._check_open()
         buf = self._rxbuf
         if not buf:
@@ -803,6 +891,7 @@ class MemoryBus(BusABC):
             frames_lost=self._n_lost,
             overruns=self._n_overruns,
             send_waits=self._n_send_waits,
+            frames_passed=self._n_passed,
         )
 
     remove_channel = staticmethod(remove_channel)

@@ -17,7 +17,8 @@ through a ``memoryview`` cast to ``'Q'`` so no reader ever sees a torn value)::
                          start time, flags, read_seq, sleeping, wake_seq, wake-up counter,
                          tx_waiting, pushed-down filters)
     [ring_off, ...)      ring of ``ring_size`` 96-byte frame slots: timestamp (f64, s),
-                         arbitration id (u32), sender token (u32), flags, dlc, length, data[64]
+                         arbitration id (u32), sender token (u32), flags, dlc, length, data[64],
+                         sequence number (u64, at byte 88; layout 3)
 """
 from __future__ import annotations
 
@@ -34,7 +35,7 @@ from can.exceptions import CanInitializationError, CanOperationError
 
 # ---------------------------------------------------------------- geometry
 MAGIC = int.from_bytes(b"CANBRAKE", "little")
-LAYOUT_VERSION = 2
+LAYOUT_VERSION = 3
 HEADER_BYTES = 4096
 ENTRY_BYTES = 512
 MAX_READERS = 256  # 1 + 105 vehicles with an ECU each, the plant, the recorder and listeners
@@ -42,6 +43,11 @@ MAX_PUSHED_FILTERS = 16
 SLOT_BYTES = 96
 DATA_OFFSET = 24
 MAX_DATA = 64
+#: byte offset of a slot's sequence number (u64): the writer stores SLOT_INVALID first, then the
+#: frame, then its sequence number, so a reader that finds its expected number after copying a
+#: frame knows the copy is whole (a per-slot seqlock)
+SLOT_SEQ_OFFSET = 88
+SLOT_INVALID = (1 << 64) - 1
 DEFAULT_RING_SIZE = 16384
 
 #: frame slot head: timestamp (s), arbitration id, sender token, flags, dlc, data length, pad
@@ -69,6 +75,7 @@ E_FILTERS = 16  # MAX_PUSHED_FILTERS x (can_id & mask, mask, mode)
 F_OWN = 1  # receive_own_messages
 F_BACKPRESSURE = 2
 F_ACCEPT_ALL = 4  # no filters pushed down: every frame concerns this reader
+F_PROTECT = 8  # backpressure="accepted": writers never overwrite a frame it accepts and has not read
 
 # frame flags
 M_EXT, M_RTR, M_ERR, M_FD, M_BRS, M_ESI = 1, 2, 4, 8, 16, 32

@@ -70,7 +70,7 @@ def nominal_streams(layout: Any, *, decision_offset_s: float, heartbeat_every: i
             out.append(Stream(**s))
         elif msg.kind == "heartbeat":
             out.append(Stream(**s, every_ticks=hb))
-        elif msg.kind == "state":
+        elif msg.kind in ("state", "state_auth"):
             out.append(Stream(**s))
         elif msg.kind == "cmd":
             out.append(Stream(**s, offset_s=decision_offset_s))

@@ -1,5 +1,5 @@
-"""SecOC-style authentication of brake commands and simulation-control frames (optional, per
-scenario: ``security:``).
+"""SecOC-style authentication of brake commands, state frames and simulation-control frames
+(optional, per scenario: ``security:``).
 
 AUTOSAR SecOC adds to a protected PDU a truncated freshness value and a truncated MAC; here:
 
@@ -29,8 +29,20 @@ Secured layouts (DLC grows, the signals keep their places; see :func:`secure_dat
     STATE_DONE_Ci 5 bytes: 0-1 Tick | 2-4 MAC (freshness = k)
     CMD_DONE_Ci   5 bytes: 0-1 Tick | 2-4 MAC (freshness = k)
 
-STATE_Ci frames stay E2E-only: their 8 bytes are full (CRC 8 + counter 4 + speed 20 + position
-32 bits), a 24-bit MAC needs CAN FD or a second PDU.
+STATE frames keep their layout (their 8 bytes are full: CRC 8 + counter 4 + speed 20 + position
+32 bits); each STATE page is followed by a second PDU, its authenticator (classical CAN, kind
+"state_auth" of the identifier plan, :class:`canbrake.bus.dbc.IdPlan`: 0x180 + i next to
+STATE_Ci at 0x140 + i)::
+
+    STATE_AUTH_Ci 8 bytes: 0 CRC (over its own id and bytes 1-7) | 1-4 FreshnessTick (the sender's
+                  tick, 32 bits, little-endian) | 5-7 MAC over STATE_Ci (data ID = STATE_Ci's id,
+                  freshness = FreshnessTick, body = STATE_Ci bytes 1..7)
+
+The authenticator carries the full tick, so its freshness does not alias (2^32 periods). A
+receiver holds a STATE page that passed its E2E check as a candidate and applies it only when an
+authenticator of the same tick verifies it (:func:`state_authenticator`, :meth:`SecOC.verify_state`);
+a candidate that none verifies is rejected as ``authentication``, an authenticator of a tick not
+newer than the last accepted one (a replay) as ``freshness``.
 """
 from __future__ import annotations
 
@@ -108,11 +120,31 @@ class SecOC:
             buf[0] = e2e_crc(data_id, buf)
         return bytes(buf)
 
+    def verify_state(self, state_id: int, state_payload: bytes | bytearray, auth_payload: bytes | bytearray) -> bool:
+        """Does STATE_AUTH frame ``auth_payload`` authenticate STATE frame ``state_payload``?"""
+        if len(auth_payload) != 8:
+            return False
+        return bytes(auth_payload[5:8]) == self.mac(state_id, authenticator_tick(auth_payload), bytes(state_payload[1:]))
+
     def verify(self, data_id: int, payload: bytes | bytearray, freshness_tick: int, *, has_crc: bool) -> bool:
         """Does the MAC in the last three bytes match freshness ``freshness_tick``?"""
         if len(payload) <= MAC_BYTES:
             return False
         return bytes(payload[-MAC_BYTES:]) == self.mac(data_id, freshness_tick, self._body(payload, has_crc))
+
+
+def state_authenticator(secoc: "SecOC", auth_id: int, state_id: int, state_payload: bytes | bytearray,
+                        tick: int) -> bytes:
+    """The 8-byte STATE_AUTH frame authenticating ``state_payload`` (STATE frame ``state_id``)
+    sent at ``tick``: CRC | tick (LE32) | MAC."""
+    buf = bytearray(1) + (tick & 0xFFFFFFFF).to_bytes(4, "little") + secoc.mac(state_id, tick, bytes(state_payload[1:]))
+    buf[0] = e2e_crc(auth_id, buf)
+    return bytes(buf)
+
+
+def authenticator_tick(payload: bytes | bytearray) -> int:
+    """FreshnessTick of a STATE_AUTH frame."""
+    return int.from_bytes(bytes(payload[1:5]), "little")
 
 
 #: messages secured, by name prefix ("SYNC": exactly): has an E2E CRC, secured length (bytes)

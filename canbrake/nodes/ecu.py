@@ -21,6 +21,7 @@ from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
+from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
 from canbrake.nodes.base import CsvTrace, Node, PassThrough, SendPath, exact_filter, frame
 
@@ -83,6 +84,7 @@ class EcuNode(Node):
         # receiver checks (E2E, SecOC, protocol) and the peer-loss fallback (canbrake.bus.guard)
         self.secoc = secoc
         self.guard = FrameGuard(secoc)
+        self.guard.counter_ext = layout.counter_ext()
         self.peer_hold_periods = peer_hold_periods
         self.final_tick = None if n_ticks is None else n_ticks - 1  # unauthenticated END only after it
         self._in_fallback = False
@@ -107,6 +109,14 @@ class EcuNode(Node):
                 self._state_pages[m.frame_id] = (m.ecu, m.page, [(sig, sp.name) for sig, sp in m.signals if sig])
                 self._pages_of[m.ecu] = self._pages_of.get(m.ecu, 0) + 1
         self._state_done_ids = {layout.plan.state_done(j): j for j in self._listens}
+        # secured layouts: authenticator id -> (ECU, its state page's id); state pages that passed
+        # the E2E check wait as candidates (origin, payload) until an authenticator verifies them
+        self._auth_of: dict[int, tuple[int, int]] = {}
+        if secoc is not None:
+            state_id = {(m.ecu, m.page): m.frame_id for m in layout.messages if m.kind == "state"}
+            self._auth_of = {m.frame_id: (m.ecu, state_id[(m.ecu, m.page)]) for m in layout.messages
+                             if m.kind == "state_auth" and m.ecu in self._slot}
+        self._candidates: dict[int, list[tuple[int, bytes]]] = {}
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
         self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
@@ -121,6 +131,9 @@ class EcuNode(Node):
                              for m in layout.messages if m.kind == "state" and m.ecu == self.index]
                             if spec.listeners else [])
         self._broadcast: dict[str, float] = {}
+        self._auth_id = {sm.frame_id: am.frame_id for sm in layout.messages for am in layout.messages
+                         if sm.kind == "state" and am.kind == "state_auth" and sm.ecu == am.ecu == self.index
+                         and sm.page == am.page}
         self._hb_id = layout.plan.heartbeat(self.index)
         self._sdone_id = layout.plan.state_done(self.index)
         self._cdone_id = layout.plan.cmd_done(self.index)
@@ -138,7 +151,7 @@ class EcuNode(Node):
         self.rt_errors = rt_errors if mode == "realtime" else None
 
     def filters(self) -> list[dict]:
-        ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, *self._sensor_pages, *self._state_pages]
+        ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, *self._sensor_pages, *self._state_pages, *self._auth_of]
         if self.layout.ref_position:
             ids.append(dbc.REFERENCE_POS_ID)
         if self.barrier:
@@ -169,6 +182,8 @@ class EcuNode(Node):
             self.phase = 0
             self._done = 0
             self._page_fresh[:] = 0
+            if self._candidates:
+                self._expire_candidates()
             return []
         page = self._sensor_pages.get(aid)
         if page is not None:
@@ -188,7 +203,7 @@ class EcuNode(Node):
         if aid == dbc.REFERENCE_POS_ID:
             self.x_ref = self.codec.by_id[aid].decode(msg.data)["RefPosition"]
             return []
-        st = self._state_pages.get(aid)
+        st = self._state_pages.get(aid) or self._auth_of.get(aid)
         if st is not None:
             j = st[0] - 1
             if self.rx_path is not None:
@@ -225,20 +240,77 @@ class EcuNode(Node):
             return
         for f in self.rx_path.release(horizon):
             m = f.to_message()
-            self._on_state(self._state_pages[m.arbitration_id][0] - 1, m)
+            self._on_state((self._state_pages.get(m.arbitration_id) or self._auth_of[m.arbitration_id])[0] - 1, m)
 
     def _on_state(self, j: int, msg: can.Message) -> bool:
-        """Take a state frame of ECU index j+1; True if it is this tick's."""
+        """Take a state frame (or, secured, its authenticator) of ECU index j+1; True if a state
+        page of this tick was accepted."""
+        if msg.arbitration_id in self._auth_of:
+            return self._on_state_auth(j, msg)
         origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, int(self.peer_origin[j]),
                                    same_tick_ok=self._pages_of[j + 1] > 1)
         if origin is None:
-            if self.guard.last_reason == "crc":
-                self.stats.peer_corrupted += 1
-            else:
-                self.stats.peer_stale_or_duplicate += 1
+            self._count_peer_rejection()
             return False
-        _, _page, sigs = self._state_pages[msg.arbitration_id]
-        d = self.codec.by_id[msg.arbitration_id].decode(msg.data)
+        if self.secoc is not None:  # applied only once its authenticator verifies it
+            cands = self._candidates.setdefault(msg.arbitration_id, [])
+            cands.append((origin, bytes(msg.data)))
+            if len(cands) > 2 * COUNTER_MODULO:  # a flood of forgeries: keep the newest
+                del cands[0]
+                self.guard.reject("authentication")
+            return False
+        return self._apply_state(j, msg.arbitration_id, msg.data, origin)
+
+    def _count_peer_rejection(self) -> None:
+        if self.guard.last_reason == "crc":
+            self.stats.peer_corrupted += 1
+        else:
+            self.stats.peer_stale_or_duplicate += 1
+
+    def _on_state_auth(self, j: int, msg: can.Message) -> bool:
+        """A STATE_AUTH frame (canbrake.bus.secoc): apply the candidate state page it verifies."""
+        from canbrake.bus.e2e import e2e_crc
+        from canbrake.bus.secoc import authenticator_tick
+
+        aid, data = msg.arbitration_id, msg.data
+        state_id = self._auth_of[aid][1]
+        if len(data) != 8 or data[0] != e2e_crc(aid, data):
+            self.guard.reject("crc")
+            self._count_peer_rejection()
+            return False
+        tick, last = authenticator_tick(data), int(self.peer_origin[j])
+        if tick > self.k or self.k - tick > self.guard.max_lag or tick < last or (
+                tick == last and self._pages_of[j + 1] == 1):
+            self.guard.reject("freshness")  # an authenticator of an earlier (or no) period: a replay
+            self._count_peer_rejection()
+            return False
+        cands = self._candidates.get(state_id, [])
+        hit = next((p for o, p in cands if o == tick and self.secoc.verify_state(state_id, p, data)), None)
+        if hit is None:
+            if any(o == tick for o, _ in cands):
+                self.guard.reject("authentication")  # a state of that tick, but not the one authenticated
+                self._count_peer_rejection()
+            else:
+                self.guard.state_auth_orphans += 1  # its state frame was lost (or never sent)
+            return False
+        keep = [(o, p) for o, p in cands if o > tick]
+        for _ in range(len(cands) - len(keep) - 1):  # the other candidates of that tick or older: forged/replayed
+            self.guard.reject("authentication")
+        self._candidates[state_id] = keep
+        return self._apply_state(j, state_id, hit, tick)
+
+    def _expire_candidates(self) -> None:
+        """Candidates too old for the window never got their authenticator: rejected."""
+        for sid, cands in self._candidates.items():
+            keep = [(o, p) for o, p in cands if self.k - o <= self.guard.max_lag]
+            for _ in range(len(cands) - len(keep)):
+                self.guard.reject("authentication")
+            self._candidates[sid] = keep
+
+    def _apply_state(self, j: int, state_id: int, data: bytes | bytearray, origin: int) -> bool:
+        """Use an accepted state page of ECU index j+1 sent at tick ``origin``."""
+        _, _page, sigs = self._state_pages[state_id]
+        d = self.codec.by_id[state_id].decode(data)
         for sig, dbc_name in sigs:
             self.peer_signals[sig][j] = d[dbc_name]
         if origin > self.peer_origin[j]:
@@ -294,8 +366,11 @@ class EcuNode(Node):
             values = {**self._broadcast, **self.sensors}
             for fid, codec, sigs in self._state_msgs:
                 payload = codec.encode({dn: values[sig] for sig, dn in sigs if math.isfinite(values.get(sig, math.nan))},
-                                       counter=self.k % COUNTER_MODULO)
+                                       counter=self.k % COUNTER_MODULO, tick=self.k)
                 self._emit(frame(fid, payload), t, out)
+                if self.secoc is not None:  # its authenticator, right after it (canbrake.bus.secoc)
+                    auth_id = self._auth_id[fid]
+                    self._emit(frame(auth_id, state_authenticator(self.secoc, auth_id, fid, payload, self.k)), t, out)
         out += self.send_path.release(horizon)
         if self.barrier and self._state_msgs:
             sdone = sign_control(self.secoc, self._sdone_id, self._sdone.encode({"Tick": self.k & 0xFFFF}), self.k)
@@ -344,7 +419,7 @@ class EcuNode(Node):
         for fid, codec, sigs in self._cmd_msgs:
             cmd = codec.encode({"Status": status, **{dn: float(values.get(sig, math.nan)) for sig, dn in sigs
                                                      if math.isfinite(values.get(sig, math.nan))}},
-                               counter=self.k % COUNTER_MODULO)
+                               counter=self.k % COUNTER_MODULO, tick=self.k)
             self._emit(frame(fid, sign_protected(self.secoc, fid, cmd, self.k)), t, out)
         out += self.send_path.release(horizon)
         if self.barrier:

@@ -126,6 +126,7 @@ class PlantNode(Node):
         # brake-unit receive checks (E2E window of 7 periods, SecOC) and rejection counters
         self.secoc = secoc
         self.guard = FrameGuard(secoc, max_lag=7)
+        self.guard.counter_ext = layout.counter_ext()
         self._last_sync_k = -1
         # command identifiers of ECUs this train does not have (11-bit plan): unknown senders
         self._foreign_cmd_ids = ([dbc.BRAKE_CMD_BASE + i for i in range(self.n_ecus + 1, dbc.MAX_CARS + 1)]

@@ -54,7 +54,8 @@ def threat_section(runs_dir: Path, log: Callable[[str], None]) -> str:
     lines = [
         f"Set-up (`canbrake/threats.py`): Chen case 1, six cars, 1 ms period, {DURATION_S:g} s, in-process engine; "
         f"fail-safe time-out {TIMEOUT_S * 1000:g} ms (latched); every attack starts at {ATTACK_S:g} s and targets "
-        f"car 3's brake commands (0x083) or the simulation-control frames. Each cell is one run, compared with the "
+        f"car 3's brake commands (0x083), its state frames (0x143, secured: and their authenticators 0x183) or "
+        f"the simulation-control frames. Each cell is one run, compared with the "
         f"clean run of the same setting; a time-out reaction is expected at {fs:g} s (last valid command at tick "
         f"{round(ATTACK_S * 1000) - 1}, + {round(TIMEOUT_S * 1000)} periods, + 1).",
         "",
@@ -140,9 +141,21 @@ alive counter, the sender's tick mod 15 (15 is never sent and is rejected).
 periods and only an origin newer than the newest command it accepted; the ECUs accept any lag up
 to 14 and only newer origins. So, without authentication, a copy of the command sent 15·m periods
 earlier passes if it arrives before this period's genuine command, and a stream delayed by a
-multiple of 15 periods looks fresh (rows *repetition* and *delay 15* below). A longer counter does
-not fit: STATE_Ci uses all 64 bits, and the 3 free bytes of an 8-byte BRAKE_CMD are taken by the
-MAC; the full tick is instead recovered, for authenticated frames, from the freshness value.
+multiple of 15 periods looks fresh (rows *repetition* and *delay 15* below).
+
+**A longer counter where it fits.** A protected frame whose last byte has spare bits carries a
+`CounterExt` field there (m ≤ 7 bits, `canbrake/bus/dbc.py`): floor(tick / 15) mod 2^m. With the
+low nibble (tick mod 15, unchanged) the counter is the sender's tick mod 15·2^m, the receiver
+dates a frame at `origin = k - ((k - C) mod 15·2^m)`, and aliasing starts after 15·2^m periods
+instead of 15; the frame's length, and so the bus load, do not change, and the acceptance windows
+(7 and 14 periods) stay. Where it applies: Li's locomotive command with the driver (`BRAKE_CMD_LOCO`,
+7 spare bits: mod 1920 periods, 19.2 s at 10 ms), the ECP train's locomotive (5 bits: mod 480) and
+wagon commands (6 bits: mod 960) and the locomotive's state frame (2 bits: mod 60)
+(`tests/test_e2e_counter.py`: a copy 15 periods late is dropped as `counter`, signals.csv equals
+the clean run). Chen's BRAKE_CMD (5 bytes) and STATE (8 bytes) and Cai's commands have no spare
+bit and keep the 4-bit counter, so the Chen rows below still show its aliasing without SecOC.
+With SecOC, state frames carry the full 32-bit tick in their authenticator, and authenticated
+commands are dated by their MAC (the aliases are rejected as `freshness`).
 
 **SecOC-style authentication** (`canbrake/bus/secoc.py`, optional: scenario section `security:`
 with `key_file` and `session`). AES-128-CMAC (`cryptography`) truncated to its first 24 bits, in the
@@ -155,6 +168,8 @@ Secured layouts (also in the DBC written to each run directory, `MAC` signal com
 | message | DLC | bytes |
 |---|---|---|
 | BRAKE_CMD_<ECU> (each page) | 8 | 0 CRC · 1 counter/status · 2-4 command signals (BrakeForce) · 5-7 MAC (freshness: sender's tick) |
+| STATE_<ECU> (each page) | 8 | unchanged: 0 CRC · 1 counter (low nibble) · state signals — authenticated by the next frame |
+| STATE_AUTH_<ECU> (one per state page; id 0x180 + i beside STATE_<ECU> at 0x140 + i) | 8 | 0 CRC (over its id and bytes 1-7) · 1-4 FreshnessTick (the sender's tick, 32 bits LE) · 5-7 MAC over STATE_<ECU> (its data ID, freshness = FreshnessTick, its bytes 1-7) |
 | SYNC | 8 | 0-3 Tick · 4 reserved · 5-7 MAC (freshness: Tick; END frame: the last tick sent) |
 | STATE_DONE_<ECU>, CMD_DONE_<ECU> | 5 | 0-1 Tick (low 16 bits) · 2-4 MAC (freshness: the receiver's tick) |
 
@@ -163,7 +178,15 @@ with `security:` is refused before the run (one message naming the frame).
 
 A replayed frame of any earlier tick carries a MAC over that tick; its counter may alias to the
 current tick, its MAC does not, so it is rejected (counted as `freshness` when the MAC verifies for
-an aliasing tick up to 8×15 periods back, else `authentication`). Keys: a file of 32 hex digits (or
+an aliasing tick up to 8×15 periods back, else `authentication`). State frames: a receiver holds a
+STATE page that passed its E2E check as a candidate and uses it only when the STATE_AUTH of the
+same tick verifies it; candidates that no authenticator verifies (forged, replayed) are rejected
+as `authentication`, an authenticator whose tick is not newer than the last accepted state (a
+replayed one) as `freshness`, and one whose state frame never came is only counted
+(`state_auth_orphans`). So a forged or replayed state changes nothing (rows *state replay* and
+*state masquerade*); a lost authenticator costs that period's state, as a lost state frame does.
+Without `security:` nothing of this exists: the identifier plan, frames.log and signals.csv are
+those of an unsecured run. Keys: a file of 32 hex digits (or
 16 raw bytes) named in the scenario, never in the repository; a missing, unreadable or wrong-size
 file is one error naming `security.key_file` (exit 2). `canbrake.bus.secoc.write_key(path)` makes one.
 
@@ -191,6 +214,21 @@ barrier frame (CMD_DONE/STATE_DONE with the right tick) can still close a phase 
 SecOC — the effect of a late frame, met by the counter and the time-out; barrier frames with a
 wrong tick are counted (`sync`).
 
+**Floods.** On the in-memory bus a lockstep node opens the bus with `backpressure="accepted"`
+(`canbrake/bus/memory.py`): a writer never overwrites a frame that node accepts and has not read
+yet — it waits (bounded), and a waiting writer keeps taking its own frames in, so two nodes never
+wait for each other — while frames the node filters out are overwritten freely and cause no
+overrun, as a CAN controller's acceptance filter keeps them out of its receive FIFO. A flood on
+identifiers the node does not accept costs it nothing; a flood on identifiers it accepts is held
+back to the pace at which it reads, and its frames are dropped by the receiver checks and
+counted. Either way nothing the run needs is lost and the run neither stalls nor changes
+(`tests/test_flood.py::test_a_rogue_flooding_the_bus_in_lockstep_neither_stalls_nor_changes_the_run`:
+a foreign process floods 0x001 through a 256-frame ring; signals.csv equals the in-process run).
+Other readers (realtime nodes, tools) keep the overrun policy: the oldest frames are dropped, the
+next `recv` raises `BusOverrunError` with the count, and `drive()` counts it (`rx_overruns`,
+`rx_frames_lost`, `summary.json` `safety.flood.rx_frames_lost`) and receives on. The recorder,
+which must see every frame, names the flooding identifiers (`safety.flood.frames_on_unknown_ids`).
+
 **Counters** (`summary.json`, `safety`): `rejected` by reason (total and per node),
 `unknown_senders` by identifier, `fallbacks` (ECU peer-loss entries and time, fail-safe entries and
 time), and `verdict`: `clean`, `attack or fault detected` (frames rejected, braking as commanded)
@@ -203,9 +241,10 @@ clean.
 
 Reading the table: with E2E alone, corruption, deletion, long delays, resequencing, insertion on
 unknown identifiers and forged END frames are detected and met safely; **replay, masquerade and a
-delay of a multiple of 15 periods are not** — the CRC is public and the counter aliases. With
-SecOC, a replayed or forged command is dropped and counted and braking is identical to the clean
-run, and the aliased delay is detected as stale and ends in the fail-safe brake.
+delay of a multiple of 15 periods are not** — the CRC is public and the counter aliases (Chen's
+frames have no spare bit for a longer counter). With SecOC, a replayed or forged command or state
+frame is dropped and counted and braking is identical to the clean run, and the aliased delay is
+detected as stale and ends in the fail-safe brake.
 
 ## Residual error
 
@@ -239,19 +278,17 @@ stops all of them in these counts (expected ≈ 10^−4 per 10^6 frames).
 
 ## Limits (not done)
 
-* STATE_Ci frames are not authenticated: their 8 bytes are full; a MAC needs CAN FD or a second
-  PDU per state frame. They remain E2E-protected, and a forged state can mislead a controller
-  (not the brake unit's fail-safe).
-* Without `security:`, masquerade, replay and a 15·m-period delay are not detected (table).
+* Without `security:`, masquerade, replay and a 15·m-period delay are not detected (table) on
+  frames without spare bits for a longer counter.
+* A secured run sends one authenticator per state page: 8 more bytes per state frame on the bus.
 * Cross-run replay with the same key and `session` is accepted (same freshness): increase
   `session` per run.
-* Floods: the in-memory bus raises a typed `BusOverrunError` (a `can.CanOperationError`) when a
-  reader falls a ring behind; `drive()` counts it (`rx_overruns`, `rx_frames_lost` in the node's
-  `guard` stats, `summary.json` `safety.flood.rx_frames_lost`) and receives on instead of failing
-  (`tests/test_flood.py`). Frames a node needed may be among those lost; a lockstep run then waits
-  for them and is reported as stalled — the flood is survived only as long as what it overwrites
-  is traffic the node filters out. SocketCAN drops silently in the kernel (not counted).
-* The replicated CAN timing model (`bus.timing: model`) uses the unsecured frame lengths.
+* Floods on SocketCAN: the kernel drops frames for a full socket queue silently (not counted),
+  and a lockstep node that loses a frame it waits for stalls the run; the in-memory bus is the one
+  that holds a flood back (above). A flood held back by a node that stops reading for longer than
+  the writer's `send_timeout` (5 s) fails that writer's send.
+* The replicated CAN timing model (`bus.timing: model`) uses the unsecured lengths of the
+  command and simulation-control frames (the STATE_AUTH frames are in it).
 * The threat matrix runs on the in-process engine; the cross-process bus is covered by the
   forged-END test and the authenticated run's byte-identity with the in-process one.
 """
