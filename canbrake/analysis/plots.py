@@ -68,7 +68,8 @@ def plot_meta(scn: Any, bus: str = "") -> PlotMeta:
     jerk = COMFORT_JERK_MPS3
     if getattr(act, "model", "") == "realistic" and getattr(act, "jerk_limit_mps3", None):
         jerk = float(act.jerk_limit_mps3)
-    return PlotMeta(scenario=scn.name, profile=scn.profile, controller=scn.controller.name,
+    ctrl = " + ".join(dict.fromkeys(p.controller.name for p in scn.placement()))  # every ECU's, in order
+    return PlotMeta(scenario=scn.name, profile=scn.profile, controller=ctrl,
                     bus=_short_bus(bus), mode=scn.mode, ref_decel_mps2=float(scn.reference.decel_mps2),
                     emergency_decel_mps2=emergency, jerk_limit_mps3=jerk)
 
@@ -83,9 +84,21 @@ def _short_bus(bus: str) -> str:
 
 
 # ----------------------------------------------------------------------------- panels
+#: more per-vehicle series than this: the legend names only the first and the last vehicle
+LEGEND_MAX_SERIES = 12
+
+
 def _legend(ax: Axes, n: int) -> None:
     ax.grid(alpha=0.3)
-    ax.legend(ncol=2 if n > 3 else 1, fontsize=7, loc="best")
+    if n <= LEGEND_MAX_SERIES:
+        ax.legend(ncol=2 if n > 3 else 1, fontsize=7, loc="best")
+        return
+    # a long train (106 vehicles): a legend entry per vehicle would leave no room for the axes
+    handles, labels = ax.get_legend_handles_labels()
+    series = [i for i, lb in enumerate(labels) if lb.split(" ")[0] in ("car", "coupler", "vehicle")]
+    keep = [i for i in range(len(labels)) if i not in series] + series[:1] + series[-1:]
+    ax.legend([handles[i] for i in keep], [labels[i] for i in keep], fontsize=7, loc="best",
+              title=f"{n} series, first and last named", title_fontsize=7)
 
 
 def _symlog_if_extreme(ax: Axes, values: np.ndarray, unit_scale: float = 1.0, limit: float | None = None) -> bool:
