@@ -42,6 +42,10 @@ class CarView:
     brake_force_n: float = float("nan")
     e2e_errors: int = 0
     cmd_seen_tick: int = -1
+    #: positions by control period (the last few), so that a deflection compares two cars at the
+    #: same period: between two SYNCs some cars have sent this period's STATE and some not yet
+    #: (at 25 m/s and 1 ms, one period apart reads as 2.5 cm of deflection)
+    positions_m: dict[int, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -115,17 +119,22 @@ class MonitorState:
         elif kind == "STATE" and "Speed" in v:
             c = self.cars.setdefault(car, CarView())
             c.speed_mps, c.position_m = float(v["Speed"]), float(v["Position"])
+            c.positions_m[self.tick] = c.position_m
+            if len(c.positions_m) > 4:
+                del c.positions_m[min(c.positions_m)]
         elif kind == "BRAKE_CMD" and "BrakeForce" in v:
             c = self.cars.setdefault(car, CarView())
             c.brake_force_n, c.cmd_seen_tick = float(v["BrakeForce"]), self.tick
 
     def deflections_m(self) -> list[float]:
-        """Δl_j = x_j − x_{j+1} − spacing_j per coupler (m, + stretched); NaN until both cars are seen."""
+        """Δl_j = x_j − x_{j+1} − spacing_j per coupler (m, + stretched), from the two cars' positions
+        of the latest control period both have reported; NaN until then."""
         out = []
         n = max(self.cars) if self.cars else 0
         for j in range(1, n):
             a, b = self.cars.get(j), self.cars.get(j + 1)
-            gap = (a.position_m - b.position_m) if a and b else float("nan")
+            both = sorted(set(a.positions_m) & set(b.positions_m)) if a and b else []
+            gap = (a.positions_m[both[-1]] - b.positions_m[both[-1]]) if both else float("nan")
             if self.spacing_m is not None and j - 1 < len(self.spacing_m):
                 nominal = self.spacing_m[j - 1]
             else:

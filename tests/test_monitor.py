@@ -54,6 +54,20 @@ def test_state_from_a_runs_frames_matches_its_traces(finished):
     assert sum(snap["rates_hz"].values()) == pytest.approx(len(frames) / span)
 
 
+def test_deflection_compares_cars_at_the_same_period(finished):
+    """Viewed between two SYNCs (some cars have sent this period's STATE, some not), Δl still compares
+    positions of one period: never the 2.5 cm that one period at 90 km/h and 1 ms would read as."""
+    scn = canbrake.load_scenario(finished.run_dir / "scenario.yaml")
+    truth = float(finished.signals.filter(like="deflection_m_k").abs().to_numpy().max())
+    for spacing in (spacing_from_scenario(scn), None):  # None: the first gap seen is the nominal one
+        st = MonitorState(finished.database, bitrate_bps=scn.bus.bitrate_bps, spacing_m=spacing)
+        worst = 0.0
+        for m in finished.frames():
+            st.feed(m)
+            worst = max([worst, *(abs(d) for d in st.deflections_m() if d == d)])
+        assert worst <= 2 * truth + 5e-4, (spacing is None, worst, truth)
+
+
 def test_counts_e2e_errors_and_missing_commands():
     db = dbc.build_database(2)
     codec = FrameCodec(db)

@@ -331,7 +331,9 @@ def socketcan_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]
     candump = _start_candump(dump, rcvbuf=16 << 20)
     env = {**os.environ, "CANBRAKE_START_TIMEOUT_S": START_TIMEOUT_S}
     sent: list[str] = []
-    viewers = _start_viewers(root)  # canbrake monitor, can.viewer, cantools monitor on vcan0
+    # canbrake monitor, can.viewer, cantools monitor on vcan0: opt-in, their start (~45 s of imports in
+    # the VM) comes before the run and does not fit CI's VM budget; CANBRAKE_VCAN_MONITOR=1 turns it on
+    viewers = _start_viewers(root) if os.environ.get("CANBRAKE_VCAN_MONITOR") == "1" else None
     try:
         t0 = time.monotonic()
         with can.Bus(interface="socketcan", channel=CHANNEL,
@@ -353,7 +355,7 @@ def socketcan_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]
         time.sleep(1.0)  # let candump write the last frames
     finally:
         _stop(candump)
-        shown = _stop_viewers(viewers)
+        shown = _stop_viewers(viewers) if viewers is not None else None
     done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
     return {"proc": done, "out": out, "candump": dump, "wall": wall, "sent": sent, "viewers": shown}
 
@@ -391,7 +393,6 @@ def _start_viewers(root: Path) -> dict[str, object]:
         if up:
             break
         time.sleep(1)
-    print(f"viewers up after {time.monotonic() - deadline + 600:.0f} s", file=sys.stderr)
     return {"monitor": mon, "root": root, "panes": panes}
 
 
@@ -449,6 +450,8 @@ def test_monitor_and_viewers_follow_the_run_on_vcan0(socketcan_run: dict[str, ob
     show the run's frames decoded or raw."""
     import json
 
+    if socketcan_run["viewers"] is None:
+        pytest.skip("CANBRAKE_VCAN_MONITOR=1 attaches the viewers to the vcan0 run (not in CI's VM budget)")
     _check(socketcan_run["proc"])  # type: ignore[arg-type]
     out = socketcan_run["out"]
     assert isinstance(out, Path)
