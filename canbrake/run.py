@@ -271,6 +271,14 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
                               progress=progress)
         bus = _open_bus(choice, node.filters(), role)
+        spin_s = 0.0
+        if scn.mode == "realtime":  # SCHED_FIFO / affinity where permitted (canbrake.nodes.rt)
+            from canbrake.nodes.rt import setup_realtime
+
+            sched = setup_realtime(role)
+            if role == "plant" and hasattr(node, "stats"):
+                node.stats.extra["scheduling"] = sched
+            spin_s = min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * scn.control_period_s)
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
         if prof_dir:  # developer aid: a cProfile of every node process
@@ -279,7 +287,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             cProfile.runctx("drive(node, bus, parent_pid=parent_pid)", globals(), locals(),
                             str(Path(prof_dir) / f"{name}.prof"))
         else:
-            drive(node, bus, parent_pid=parent_pid)
+            drive(node, bus, parent_pid=parent_pid, spin_s=spin_s)
         status = "ok"
     except SystemExit:
         status = "terminated"

@@ -68,16 +68,23 @@ def _parent_alive(parent_pid: int) -> bool:
 
 
 def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time,
-          idle_check_s: float = 0.5, parent_pid: int | None = None) -> None:
+          idle_check_s: float = 0.5, parent_pid: int | None = None, spin_s: float = 0.0) -> None:
     """Run ``node`` on ``bus`` until it finishes. Checks every ``idle_check_s`` (s, busy or idle)
     that the parent process is still alive, so an orphaned node exits instead of running on or
-    waiting forever."""
+    waiting forever. ``spin_s`` (s, realtime): within that much of the node's deadline it polls
+    the bus and yields the CPU instead of sleeping, so the deadline is not missed by an OS
+    wake-up's latency (a busy-wait/yield hybrid; 0 = always sleep)."""
     _send_all(bus, node.start(clock()))
     next_check = time.monotonic() + idle_check_s
     while not node.finished:
         deadline = node.next_deadline()
         now = clock()
-        timeout = idle_check_s if deadline is None else max(0.0, min(idle_check_s, deadline - now))
+        if deadline is None:
+            timeout = idle_check_s
+        elif spin_s > 0.0 and deadline - now <= spin_s:
+            timeout = 0.0  # near the deadline: poll, and yield below if nothing came
+        else:
+            timeout = max(0.0, min(idle_check_s, deadline - now - spin_s))
         try:
             msg = bus.recv(timeout=timeout)
         except BusOverrunError as e:
@@ -87,6 +94,8 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         now = clock()
         if msg is not None:
             _send_all(bus, node.handle(msg, now))
+        elif timeout == 0.0 and spin_s > 0.0:
+            os.sched_yield()
         deadline = node.next_deadline()
         if deadline is not None and now >= deadline:
             _send_all(bus, node.on_timer(now))
