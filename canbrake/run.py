@@ -221,6 +221,10 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "") -> 
     if choice.interface == "canbrake" and role == "recorder":
         # the recorder must see every frame: senders wait for it rather than overrun its ring
         kwargs["backpressure"] = True
+    if choice.interface == "canbrake" and os.environ.get("CANBRAKE_MEMORY_YIELD") == "0":
+        # no sched_yield before a blocking recv: on a machine loaded by other work a yield hands
+        # the CPU to them for a whole time slice (`canbrake bench`, docs/performance.md)
+        kwargs["yield_before_sleep"] = False
     kwargs.update(choice.bus_kwargs)
     return can.Bus(interface=choice.interface, channel=choice.channel, can_filters=filters,
                    receive_own_messages=False, **kwargs)

@@ -107,8 +107,13 @@ class EcuNode(Node):
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
         self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
-        self.peer_origin = np.full(self.n, -(10 ** 12), dtype=np.int64)
-        self._page_fresh = np.zeros(self.n, dtype=np.int64)  # pages of this tick seen, per ECU
+        # per ECU index: tick of the newest state frame taken, pages of this tick seen (Python
+        # lists: a frame touches single elements, which numpy scalars make several times dearer)
+        self.peer_origin: list[int] = [-(10 ** 12)] * self.n
+        self._page_fresh: list[int] = [0] * self.n
+        self._multi_page = {j: self._pages_of[j] > 1 for j in self._pages_of}  # ECU index (1-based) -> bool
+        self._state_dec = {fid: (codec.by_id[fid].decode, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
+        self._listened_idx = np.asarray([j - 1 for j in self._listens], dtype=np.int64)
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # frames out
@@ -145,6 +150,18 @@ class EcuNode(Node):
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
+        st = self._state_pages.get(aid)  # peers' state frames first: most of what an ECU hears
+        if st is not None:
+            j = st[0] - 1
+            if self.rx_path is not None:
+                self._receive_linked(msg, j, now)
+                return []
+            if self._on_state(j, msg) and not self.barrier:
+                if self._page_fresh[j] == self._pages_of[j + 1]:
+                    self._done |= 1 << self._slot[j + 1]
+                    if self.phase == 1 and self._done == self._all_done:
+                        return self._phase2(now)
+            return []
         if aid == self._sync_id and not msg.is_extended_id:
             verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
                                    tick_complete=self.phase == 2 or self.k < 0, final_tick=self.final_tick)
@@ -156,7 +173,7 @@ class EcuNode(Node):
             self.k = int(self.codec.by_id[aid].decode(msg.data)["Tick"])
             self.phase = 0
             self._done = 0
-            self._page_fresh[:] = 0
+            self._page_fresh = [0] * self.n
             return []
         page = self._sensor_pages.get(aid)
         if page is not None:
@@ -170,18 +187,6 @@ class EcuNode(Node):
             return []
         if aid == dbc.REFERENCE_POS_ID:
             self.x_ref = self.codec.by_id[aid].decode(msg.data)["RefPosition"]
-            return []
-        st = self._state_pages.get(aid)
-        if st is not None:
-            j = st[0] - 1
-            if self.rx_path is not None:
-                self._receive_linked(msg, j, now)
-                return []
-            if self._on_state(j, msg) and not self.barrier:
-                if self._page_fresh[j] == self._pages_of[j + 1]:
-                    self._done |= 1 << self._slot[j + 1]
-                    if self.phase == 1 and self._done == self._all_done:
-                        return self._phase2(now)
             return []
         src = self._state_done_ids.get(aid)
         if src is not None:
@@ -212,18 +217,19 @@ class EcuNode(Node):
 
     def _on_state(self, j: int, msg: can.Message) -> bool:
         """Take a state frame of ECU index j+1; True if it is this tick's."""
-        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, int(self.peer_origin[j]),
-                                   same_tick_ok=self._pages_of[j + 1] > 1)
+        aid, data = msg.arbitration_id, msg.data
+        origin = self.guard.origin(aid, data, self.k, self.peer_origin[j], same_tick_ok=self._multi_page[j + 1])
         if origin is None:
             if self.guard.last_reason == "crc":
                 self.stats.peer_corrupted += 1
             else:
                 self.stats.peer_stale_or_duplicate += 1
             return False
-        _, _page, sigs = self._state_pages[msg.arbitration_id]
-        d = self.codec.by_id[msg.arbitration_id].decode(msg.data)
+        decode, sigs = self._state_dec[aid]
+        d = decode(data)
+        ps = self.peer_signals
         for sig, dbc_name in sigs:
-            self.peer_signals[sig][j] = d[dbc_name]
+            ps[sig][j] = d[dbc_name]
         if origin > self.peer_origin[j]:
             self.peer_origin[j] = origin
             self._page_fresh[j] = 0
@@ -296,15 +302,15 @@ class EcuNode(Node):
         for nm, arr in peers.items():
             if nm in self.sensors:
                 arr[self.i] = self.sensors[nm]
-        origin = self.peer_origin.copy()
+        origin = np.array(self.peer_origin, dtype=np.int64)
         origin[self.i] = self.k
         if self.peer_hold_periods is not None:
             self._peer_fallback(origin, peers)
         speed = peers["speed_mps"]
         age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
-        listened = [j - 1 for j in self._listens]
-        fresh = int((origin[listened] == self.k).sum()) + 1 if listened else 1
-        self.stats.peer_missing += len(listened) + 1 - fresh
+        listened = self._listened_idx
+        fresh = int((origin[listened] == self.k).sum()) + 1 if listened.size else 1
+        self.stats.peer_missing += listened.size + 1 - fresh
         obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
