@@ -18,7 +18,7 @@ def _cmd(a: argparse.Namespace) -> int:
         print(f"canbrake bench: --only: unknown group {bad[0]!r} (choose from {', '.join(GROUPS)})", file=sys.stderr)
         return 2
     if a.quick:
-        a.duration, a.repeat, a.realtime, a.scale_ticks = min(a.duration, 0.5), 1, min(a.realtime, 2.0), 200
+        a.duration, a.repeat, a.realtime, a.scale_ticks = min(a.duration, 0.5), 1, min(a.realtime, 2.0), 50
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if not a.quiet else (lambda s: None)
     res = run_bench(only=only, duration_s=a.duration, repeat=a.repeat, realtime_s=a.realtime,
                     scale_ticks=a.scale_ticks, log=log)
@@ -49,7 +49,7 @@ def register(sub: Any) -> None:
     p.add_argument("--repeat", type=int, default=3, help="lockstep rounds, median taken (default 3)")
     p.add_argument("--realtime", type=float, default=5.0,
                    help="seconds of each 1 ms realtime run (the 10 ms run is twice as long; default 5)")
-    p.add_argument("--scale-ticks", type=int, default=500, help="periods per scale run (default 500)")
+    p.add_argument("--scale-ticks", type=int, default=200, help="periods per scale run (default 200)")
     p.add_argument("--only", default="", help="comma-separated groups: codec,lockstep,realtime,scale,sweep")
     p.add_argument("--quick", action="store_true", help="short runs, one round (a smoke test of the bench)")
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")

@@ -107,9 +107,9 @@ class EcuNode(Node):
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
         self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
-        # per ECU index: tick of the newest state frame taken, pages of this tick seen (Python
-        # lists: a frame touches single elements, which numpy scalars make several times dearer)
-        self.peer_origin: list[int] = [-(10 ** 12)] * self.n
+        # per ECU index: tick of the newest state frame taken; pages of this tick seen (a Python
+        # list: a frame touches single elements, which numpy scalars make several times dearer)
+        self.peer_origin = np.full(self.n, -(10 ** 12), dtype=np.int64)
         self._page_fresh: list[int] = [0] * self.n
         self._multi_page = {j: self._pages_of[j] > 1 for j in self._pages_of}  # ECU index (1-based) -> bool
         self._state_dec = {fid: (codec.by_id[fid].decode, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
@@ -218,7 +218,8 @@ class EcuNode(Node):
     def _on_state(self, j: int, msg: can.Message) -> bool:
         """Take a state frame of ECU index j+1; True if it is this tick's."""
         aid, data = msg.arbitration_id, msg.data
-        origin = self.guard.origin(aid, data, self.k, self.peer_origin[j], same_tick_ok=self._multi_page[j + 1])
+        last = int(self.peer_origin[j])
+        origin = self.guard.origin(aid, data, self.k, last, same_tick_ok=self._multi_page[j + 1])
         if origin is None:
             if self.guard.last_reason == "crc":
                 self.stats.peer_corrupted += 1
@@ -230,7 +231,7 @@ class EcuNode(Node):
         ps = self.peer_signals
         for sig, dbc_name in sigs:
             ps[sig][j] = d[dbc_name]
-        if origin > self.peer_origin[j]:
+        if origin > last:
             self.peer_origin[j] = origin
             self._page_fresh[j] = 0
         self.stats.peer_frames += 1
@@ -302,7 +303,7 @@ class EcuNode(Node):
         for nm, arr in peers.items():
             if nm in self.sensors:
                 arr[self.i] = self.sensors[nm]
-        origin = np.array(self.peer_origin, dtype=np.int64)
+        origin = self.peer_origin.copy()
         origin[self.i] = self.k
         if self.peer_hold_periods is not None:
             self._peer_fallback(origin, peers)
