@@ -156,9 +156,11 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def run_case_subprocess(case: dict[str, Any], timeout_s: float = 900.0) -> dict[str, Any]:
-    """:func:`run_case` in a fresh interpreter (own memory; a crash is a failed row)."""
-    env = dict(os.environ)
+def run_case_subprocess(case: dict[str, Any], timeout_s: float = 900.0,
+                        env: dict[str, str] | None = None) -> dict[str, Any]:
+    """:func:`run_case` in a fresh interpreter (own memory; a crash is a failed row); ``env``:
+    extra environment variables of that run."""
+    env = {**os.environ, **(env or {})}
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), *filter(None, [env.get("PYTHONPATH")])])
     try:
         p = subprocess.run([sys.executable, "-m", "canbrake.benchmark", json.dumps(case)], capture_output=True,
@@ -245,6 +247,7 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
     """Chen case 1 lockstep: rounds alternate the backends; medians of ``repeat`` rounds."""
     cases = {"inprocess": {"backend": "inprocess"}, "virtual": {"backend": "virtual"},
              "memory": {"backend": "memory"},
+             "memory_noyield": {"backend": "memory", "env": {"CANBRAKE_MEMORY_YIELD": "0"}},
              "timing": {"backend": "inprocess", "overrides": {"bus.timing": "model"}}}
     vals: dict[str, list[float]] = {k: [] for k in cases}
     fail: dict[str, dict[str, Any]] = {}
@@ -253,7 +256,8 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
             if name in fail:
                 continue
             res = run_case_subprocess({"scenario": CASE1, **c,
-                                       "overrides": {"duration_s": duration_s, **c.get("overrides", {})}})
+                                       "overrides": {"duration_s": duration_s, **c.get("overrides", {})}},
+                                      env=c.get("env"))
             log(f"  lockstep {name} round {r + 1}: {res.get('status')} {res.get('ticks_per_s') or res.get('message')}")
             if res["status"] != "ok" or not res.get("ticks_per_s"):
                 fail[name] = res
@@ -282,6 +286,11 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
         rows.append(_failed("lockstep one process per ECU (memory bus)", fail["memory"], ">= 4x"))
     if "virtual" in fail:
         rows.append(_failed("lockstep python-can virtual", fail["virtual"]))
+    if "memory_noyield" in med:
+        rows.append(_row("lockstep processes, CANBRAKE_MEMORY_YIELD=0", med["memory_noyield"], "periods/s",
+                         "processes (yield before sleep)", med.get("memory"),
+                         med["memory_noyield"] / med["memory"] if "memory" in med else None, "(knob)", None,
+                         note=note))
     if "timing" in med:
         rows.append(_row("lockstep in-process + CAN timing model", med["timing"], "periods/s", "in-process engine",
                          med.get("inprocess"), med["timing"] / med["inprocess"] if "inprocess" in med else None,
@@ -451,6 +460,40 @@ def table(result: dict[str, Any], markdown: bool = False) -> str:
 def notes(result: dict[str, Any]) -> str:
     """Failure reasons and notes, one per figure that has one."""
     return "\n".join(f"- {r['figure']}: {r['note']}" for r in result["figures"] if r.get("note"))
+
+
+def plot_scale(result: dict[str, Any], path: str | Path) -> Path | None:
+    """Periods per second and peak memory against the number of ECUs (the ``scale`` rows), as a
+    PNG; None if the result has no scale rows."""
+    rows = [r for r in result["figures"] if r.get("cars") and r["status"] == "ok"]
+    if not rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
+    for backend, label in (("inprocess", "in process"), ("memory", "processes (106: 8 ECUs per process)")):
+        rs = sorted((r for r in rows if r["backend"] == backend), key=lambda r: r["cars"])
+        if not rs:
+            continue
+        x = [r["cars"] for r in rs]
+        a1.plot(x, [r["real_time_factor"] / (0.01 if r["cars"] == 106 else 0.001) for r in rs], "o-", label=label)
+        a2.plot(x, [r["peak_rss_mb"] for r in rs], "o-", label=label)
+    a1.set(xscale="log", yscale="log", xlabel="ECUs (Chen 6-48, ECP 106)", ylabel="control periods per second")
+    a2.set(xscale="log", xlabel="ECUs (Chen 6-48, ECP 106)", ylabel="peak RSS of the run's processes (MB)")
+    for a in (a1, a2):
+        a.grid(True, which="both", alpha=0.3)
+        a.legend()
+    m = result["machine"]
+    fig.suptitle(f"canbrake lockstep scale, {m['cores']} cores, load {m['load_avg_1_5_15'][0]:.1f}, {m['utc']} UTC")
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
 
 
 if __name__ == "__main__":

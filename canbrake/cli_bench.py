@@ -34,7 +34,10 @@ def _cmd(a: argparse.Namespace) -> int:
           f"{m['utc']} UTC, {res['bench_wall_s']:.0f} s")
     print(table(res, markdown=a.markdown))
     print(notes(res))
-    print(f"written: {out}")
+    from canbrake.benchmark import plot_scale
+
+    png = plot_scale(res, a.plot) if "scale" in only else None
+    print(f"written: {out}" + (f", {png}" if png else ""))
     return 0
 
 
@@ -55,4 +58,5 @@ def register(sub: Any) -> None:
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--out", default="bench/results.json", help="where to write the results (JSON)")
+    p.add_argument("--plot", default="bench/scale.png", help="where to write the scale plot (PNG)")
     p.set_defaults(func=_cmd)
