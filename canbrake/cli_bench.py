@@ -1,25 +1,62 @@
-"""`canbrake bench`: throughput of every backend on a scenario, as ratios to the in-process engine."""
+"""`canbrake bench`: every performance figure beside its baseline, ratio and target (issue 13);
+writes bench/results.json and prints the table. A failed or diverged case is a row, not a traceback."""
 from __future__ import annotations
 
 import argparse
+import json
+import sys
+from pathlib import Path
 from typing import Any
 
 
 def _cmd(a: argparse.Namespace) -> int:
-    from canbrake.benchmark import run_benchmark
-    from canbrake.scenario import load_scenario
+    from canbrake.benchmark import GROUPS, notes, run_bench, table
 
-    scn = load_scenario(a.scenario, overrides={"duration_s": a.duration})
-    print(f"{'how':32s} {'ticks/s':>9s} {'ratio':>7s}")
-    for name, tps, ratio in run_benchmark(scn, a.repeat):
-        print(f"{name:32s} {tps:9.0f} {ratio:7.2f}")
+    only = tuple(x.strip() for x in a.only.split(",")) if a.only else GROUPS
+    bad = [x for x in only if x not in GROUPS]
+    if bad:
+        print(f"canbrake bench: --only: unknown group {bad[0]!r} (choose from {', '.join(GROUPS)})", file=sys.stderr)
+        return 2
+    if a.quick:
+        a.duration, a.repeat, a.realtime, a.scale_ticks = min(a.duration, 0.5), 1, min(a.realtime, 2.0), 50
+    log = (lambda s: print(s, file=sys.stderr, flush=True)) if not a.quiet else (lambda s: None)
+    res = run_bench(only=only, duration_s=a.duration, repeat=a.repeat, realtime_s=a.realtime,
+                    scale_ticks=a.scale_ticks, log=log)
+    out = Path(a.out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=1) + "\n")
+    except OSError as e:
+        print(f"canbrake bench: cannot write {out}: {e.strerror or e}", file=sys.stderr)
+        return 2
+    m = res["machine"]
+    print(f"{m['cpu']} x{m['cores']}, load {m['load_avg_1_5_15'][0]:.2f} -> {res['load_avg_at_end'][0]:.2f}, "
+          f"{m['utc']} UTC, {res['bench_wall_s']:.0f} s")
+    print(table(res, markdown=a.markdown))
+    print(notes(res))
+    from canbrake.benchmark import plot_scale
+
+    png = plot_scale(res, a.plot) if "scale" in only else None
+    print(f"written: {out}" + (f", {png}" if png else ""))
     return 0
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("bench", help="measure throughput of every backend",
-                       description="Control periods per second of each backend, as ratios to the in-process engine.")
-    p.add_argument("scenario", nargs="?", default="scenarios/chen2023_case1_fine_rail.yaml")
-    p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per run")
-    p.add_argument("--repeat", type=int, default=3)
+    p = sub.add_parser("bench", help="measure every performance figure against its baseline and target",
+                       description="Codec, lockstep, realtime, scale and sweep figures of issue 13, each beside "
+                                   "a baseline measured in the same run, the ratio and the target. Writes "
+                                   "bench/results.json.")
+    p.add_argument("scenario", nargs="?", default=None, help="ignored (kept for compatibility): the figures "
+                   "use the repository's scenarios")
+    p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per lockstep run (default 1)")
+    p.add_argument("--repeat", type=int, default=3, help="lockstep rounds, median taken (default 3)")
+    p.add_argument("--realtime", type=float, default=5.0,
+                   help="seconds of each 1 ms realtime run (the 10 ms run is twice as long; default 5)")
+    p.add_argument("--scale-ticks", type=int, default=200, help="periods per scale run (default 200)")
+    p.add_argument("--only", default="", help="comma-separated groups: codec,lockstep,realtime,scale,sweep")
+    p.add_argument("--quick", action="store_true", help="short runs, one round (a smoke test of the bench)")
+    p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.add_argument("--out", default="bench/results.json", help="where to write the results (JSON)")
+    p.add_argument("--plot", default="bench/scale.png", help="where to write the scale plot (PNG)")
     p.set_defaults(func=_cmd)

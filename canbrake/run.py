@@ -225,6 +225,10 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", loc
         # a lockstep node waits for every frame it filters for: a flood may not overwrite those
         # (it is held back instead), frames it filters out may go by (canbrake.bus.memory)
         kwargs["backpressure"] = "accepted"
+    if choice.interface == "canbrake" and os.environ.get("CANBRAKE_MEMORY_YIELD") == "0":
+        # no sched_yield before a blocking recv: on a machine loaded by other work a yield hands
+        # the CPU to them for a whole time slice (`canbrake bench`, docs/performance.md)
+        kwargs["yield_before_sleep"] = False
     kwargs.update(choice.bus_kwargs)
     return can.Bus(interface=choice.interface, channel=choice.channel, can_filters=filters,
                    receive_own_messages=False, **kwargs)
@@ -275,6 +279,14 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             node = build_node(scn, role, car=car, run_dir=Path(run_dir), channel=choice.log_channel,
                               progress=progress)
         bus = _open_bus(choice, node.filters(), role, lockstep=scn.mode == "lockstep")
+        spin_s = 0.0
+        if scn.mode == "realtime":  # SCHED_FIFO / affinity where permitted (canbrake.nodes.rt)
+            from canbrake.nodes.rt import setup_realtime
+
+            sched = setup_realtime(role)
+            if role == "plant" and hasattr(node, "stats"):
+                node.stats.extra["scheduling"] = sched
+            spin_s = min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * scn.control_period_s)
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
         if prof_dir:  # developer aid: a cProfile of every node process
@@ -283,7 +295,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             cProfile.runctx("drive(node, bus, parent_pid=parent_pid)", globals(), locals(),
                             str(Path(prof_dir) / f"{name}.prof"))
         else:
-            drive(node, bus, parent_pid=parent_pid)
+            drive(node, bus, parent_pid=parent_pid, spin_s=spin_s)
         status = "ok"
     except SystemExit:
         status = "terminated"

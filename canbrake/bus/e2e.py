@@ -40,8 +40,25 @@ def crc8_sae_j1850(data: bytes | bytearray, crc: int = 0xFF) -> int:
     return crc ^ 0xFF
 
 
+_CRC_MEMO: dict[tuple[int, bytes], int] = {}
+
+
 def e2e_crc(data_id: int, payload: bytes | bytearray) -> int:
-    """CRC of a protected frame: over data ID low/high byte, then ``payload[1:]``."""
+    """CRC of a protected frame: over data ID low/high byte, then ``payload[1:]``.
+
+    Memoised (bounded): every receiver of a broadcast frame checks the same bytes, and in one
+    process (the in-process engine, hosted ECUs) that is computed once instead of once per ECU."""
+    key = (data_id, bytes(payload[1:]))
+    crc = _CRC_MEMO.get(key)
+    if crc is not None:
+        return crc
+    if len(_CRC_MEMO) >= 4096:
+        _CRC_MEMO.clear()
+    crc = _CRC_MEMO[key] = _e2e_crc(data_id, payload)
+    return crc
+
+
+def _e2e_crc(data_id: int, payload: bytes | bytearray) -> int:
     t = _TABLE
     crc = t[0xFF ^ (data_id & 0xFF)]
     crc = t[crc ^ ((data_id >> 8) & 0xFF)]

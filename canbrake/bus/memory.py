@@ -760,6 +760,11 @@ class MemoryBus(BusABC):
         for tok in waiters:
             self._notify(tok, "tx")
 
+    def recv_filtered(self, timeout: Optional[float] = None) -> Optional[Message]:
+        """:meth:`recv` without python-can's per-frame debug logging (this bus's frames are
+        already filtered): the node driver's hot path."""
+        return self._recv_internal(timeout)[0]
+
     def _recv_internal(self, timeout: Optional[float]) -> tuple[Optional[Message], bool]:
         """Next accepted frame, or ``None`` after ``timeout`` s (``None``: wait forever, 0: poll)."""
         with self._rxlock:

@@ -211,6 +211,7 @@ def _enc(state: tuple[int, int]) -> int:
 
 _CRC_TABLE: list[int] = []
 _STUFF_TABLE: list[list[tuple[int, int]]] = []
+_STUFF_TABLE7: list[list[int]] = []  # stuff bits of a 7-bit tail (the CRC's low bits) by state
 
 
 def _build_tables() -> None:
@@ -226,6 +227,7 @@ def _build_tables() -> None:
             n, new = _stuff_run(_int_bits(byte, 8), (last, run))
             row.append((n, _enc(new)))
         _STUFF_TABLE.append(row)
+        _STUFF_TABLE7.append([_stuff_run(_int_bits(v, 7), (last, run))[0] if run <= 4 else 0 for v in range(128)])
 
 
 def _crc15_byte_entry(byte: int) -> int:
@@ -259,16 +261,17 @@ def _header_state(arbitration_id: int, is_extended: bool, dlc: int,
 def _actual_stuff_bits(arbitration_id: int, is_extended: bool, dlc: int, data: bytes,
                        is_remote: bool) -> int:
     crc, n, code = _header_state(int(arbitration_id), bool(is_extended), int(dlc), bool(is_remote))
+    if not _STUFF_TABLE:
+        _build_tables()
     if not is_remote and data:
-        if not _STUFF_TABLE:
-            _build_tables()
         crc = _crc15_bytes(data, crc)
         table = _STUFF_TABLE
         for byte in data:
             k, code = table[code][byte]
             n += k
-    k, _ = _stuff_run(_int_bits(crc, 15), (code >> 3, code & 7))
-    return n + k
+    # the 15 CRC bits: the high 8 through the byte table, the low 7 through the 7-bit one
+    k, code = _STUFF_TABLE[code][crc >> 7]
+    return n + k + _STUFF_TABLE7[code][crc & 0x7F]
 
 
 # --------------------------------------------------------------------------------------------

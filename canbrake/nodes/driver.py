@@ -68,18 +68,28 @@ def _parent_alive(parent_pid: int) -> bool:
 
 
 def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time,
-          idle_check_s: float = 0.5, parent_pid: int | None = None) -> None:
+          idle_check_s: float = 0.5, parent_pid: int | None = None, spin_s: float = 0.0) -> None:
     """Run ``node`` on ``bus`` until it finishes. Checks every ``idle_check_s`` (s, busy or idle)
     that the parent process is still alive, so an orphaned node exits instead of running on or
-    waiting forever."""
+    waiting forever. ``spin_s`` (s, realtime): within that much of the node's deadline it polls
+    the bus and yields the CPU instead of sleeping, so the deadline is not missed by an OS
+    wake-up's latency (a busy-wait/yield hybrid; 0 = always sleep)."""
     _send_all(bus, node.start(clock()))
     next_check = time.monotonic() + idle_check_s
+    # canbrake's memory bus filters in shared memory: take its frames without BusABC.recv's
+    # per-frame debug-log call (a measurable share of a frame's cost, see docs/performance.md)
+    recv = getattr(bus, "recv_filtered", None) or bus.recv
     while not node.finished:
         deadline = node.next_deadline()
         now = clock()
-        timeout = idle_check_s if deadline is None else max(0.0, min(idle_check_s, deadline - now))
+        if deadline is None:
+            timeout = idle_check_s
+        elif spin_s > 0.0 and deadline - now <= spin_s:
+            timeout = 0.0  # near the deadline: poll, and yield below if nothing came
+        else:
+            timeout = max(0.0, min(idle_check_s, deadline - now - spin_s))
         try:
-            msg = bus.recv(timeout=timeout)
+            msg = recv(timeout=timeout)
         except BusOverrunError as e:
             # a flood overran this node's receive ring: count what was lost and receive on
             node.on_rx_overrun(e.frames_lost)
@@ -87,6 +97,8 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         now = clock()
         if msg is not None:
             _send_all(bus, node.handle(msg, now))
+        elif timeout == 0.0 and spin_s > 0.0:
+            os.sched_yield()
         deadline = node.next_deadline()
         if deadline is not None and now >= deadline:
             _send_all(bus, node.on_timer(now))
@@ -119,41 +131,44 @@ def _end_with_time_master(nodes: Sequence[Node]) -> None:
 
 
 def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
-    filters = [n.filters() for n in nodes]
+    filters = [n.filters() or None for n in nodes]
     # Routing: nodes whose filters are all exact standard ids are looked up by id; the others
     # (the recorder: no filter) are matched frame by frame. Order of delivery = order of `nodes`.
+    # Each identifier's route (node index, node, filters to match or None) is computed once.
     exact: list[set[int] | None] = []
     for f in filters:
         exact.append({x["can_id"] for x in f} if f and all(x["can_mask"] == 0x7FF for x in f) else None)
-    routes: dict[int, list[int]] = {}
+    routes: dict[int, list[tuple[int, Node, list[dict] | None]]] = {}
+    routes_ext: dict[int, list[tuple[int, Node, list[dict] | None]]] = {}
 
-    def route(aid: int) -> list[int]:
-        r = routes.get(aid)
-        if r is None:
-            r = routes[aid] = [i for i, ex in enumerate(exact) if ex is None or aid in ex]
+    def route(aid: int, extended: bool) -> list[tuple[int, Node, list[dict] | None]]:
+        if extended:  # exact-id nodes take standard frames only
+            r = routes_ext[aid] = [(i, nodes[i], filters[i]) for i, ex in enumerate(exact) if ex is None]
+        else:
+            r = routes[aid] = [(i, nodes[i], filters[i] if ex is None else None)
+                               for i, ex in enumerate(exact) if ex is None or aid in ex]
         return r
 
     queue: deque[tuple[int, can.Message]] = deque()
     for idx, node in enumerate(nodes):
         queue.extend((idx, m) for m in node.start(0.0))
     moved = 0
+    popleft, extend = queue.popleft, queue.extend
     while queue:
-        sender, msg = queue.popleft()
+        sender, msg = popleft()
         moved += 1
         if max_frames is not None and moved > max_frames:
             raise NodeFailure(f"in-process run exceeded {max_frames} frames")
-        targets = route(msg.arbitration_id) if not msg.is_extended_id else range(len(nodes))
-        for idx in targets:
-            node = nodes[idx]
+        aid = msg.arbitration_id
+        targets = (routes_ext if msg.is_extended_id else routes).get(aid) or route(aid, msg.is_extended_id)
+        for idx, node, flt in targets:
             if idx == sender or node.finished:
                 continue
-            if exact[idx] is None and not _matches(filters[idx], msg):
-                continue
-            if msg.is_extended_id and exact[idx] is not None:
+            if flt is not None and not _matches(flt, msg):
                 continue
             out = node.handle(msg, 0.0)
             if out:
-                queue.extend((idx, m) for m in out)
+                extend([(idx, m) for m in out])
     _end_with_time_master(nodes)
     unfinished = [n.name for n in nodes if not n.finished]
     if unfinished:

@@ -142,6 +142,10 @@ class PlantNode(Node):
         self._t_start_wall: float | None = None
         self._trace: CsvTrace | None = None
         self._extra_meas: list[str] | None = None
+        # realtime: wall time the current period's SYNC was sent, and per period the time from it
+        # to the last command of the period (s; command latency, `canbrake bench`)
+        self._sync_wall: float | None = None
+        self._cmd_latency: list[float] = []
 
     # ---------------------------------------------------------------- frames
     def filters(self) -> list[dict]:
@@ -202,6 +206,7 @@ class PlantNode(Node):
         self._open_trace()
         self._t0_wall = now
         self._t_start_wall = now
+        self._sync_wall = now
         return self._tick_frames()
 
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
@@ -209,7 +214,11 @@ class PlantNode(Node):
         page = self._cmd_pages.get(aid)
         if page is not None:
             slot = page[0]
-            if self._on_command(aid, page, msg) and not self.barrier and self.mode == "lockstep":
+            fresh = self._on_command(aid, page, msg)
+            if fresh and self.mode == "realtime" and self._sync_wall is not None and self._fresh.all():
+                self._cmd_latency.append(now - self._sync_wall)
+                self._sync_wall = None  # one latency per period
+            if fresh and not self.barrier and self.mode == "lockstep":
                 if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
                     self._done |= 1 << slot
                     if self._done == self._all_done:
@@ -270,6 +279,7 @@ class PlantNode(Node):
             return []
         if not self._fresh.all():
             self.stats.deadline_misses += 1
+            self._cmd_latency.append(math.inf)  # the period's commands did not all arrive in time
         lateness = now - self.next_deadline()  # type: ignore[operator]
         self.stats.max_lateness_s = max(self.stats.max_lateness_s, lateness)
         if lateness > self.dt:
@@ -322,6 +332,7 @@ class PlantNode(Node):
         self._fresh[:] = False
         self._fresh_pages[:] = 0
         self._done = 0
+        self._sync_wall = now
         if self.k >= self.n_ticks:
             self._record(final=True)
             self.finished = True
@@ -397,5 +408,12 @@ class PlantNode(Node):
         if self.stats.status == "running":
             self.stats.status = status
         self.stats.guard = self.guard.stats()
+        if self._cmd_latency:
+            # missed periods count as infinitely late: a percentile among them is null (JSON)
+            lat = np.asarray(self._cmd_latency)
+            for key, val in (("p50", np.percentile(lat, 50)), ("p99", np.percentile(lat, 99)), ("max", lat.max())):
+                self.stats.extra[f"cmd_latency_{key}_s"] = float(val) if math.isfinite(val) else None  # type: ignore[assignment]
+            self.stats.extra["cmd_latency_periods"] = int(lat.size)
+            self.stats.extra["cmd_latency_missing"] = int(np.isinf(lat).sum())
         if self.out_dir is not None:
             (self.out_dir / "plant_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))

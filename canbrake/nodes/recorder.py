@@ -251,6 +251,7 @@ class RecorderNode(Node):
             layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
         self.layout = layout
         self._kinds = {m.frame_id: m.kind for m in layout.messages}
+        self._untimed_memo: dict[int, bool] = {}
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
         self.mode = mode
@@ -598,10 +599,12 @@ class RecorderNode(Node):
     def _untimed(self, aid: int) -> bool:
         """Frames that take no bus time in the accounting: barrier frames, and the plant's sensor
         frames unless they are declared bus traffic (they stand in for local wiring)."""
-        kind = self._kinds.get(aid)
-        if kind in ("state_done", "cmd_done"):
-            return True
-        return not self.plant_io_on_bus and kind == "sensor"
+        memo = self._untimed_memo
+        r = memo.get(aid)
+        if r is None:
+            kind = self._kinds.get(aid)
+            r = memo[aid] = kind in ("state_done", "cmd_done") or (not self.plant_io_on_bus and kind == "sensor")
+        return r
 
     def _write(self, msgs: list[can.Message]) -> None:
         if self._writer is not None:
