@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from canbrake.analysis import metrics as M
+
 from canbrake.report.cache import reusable_run
 import yaml
 
@@ -349,12 +351,9 @@ def window(tr: CaiTrace, t0: float, t1: float = np.inf) -> np.ndarray:
 
 
 def error_metrics(tr: CaiTrace, t0_s: float = 0.0) -> dict[str, float]:
-    """Mean and max |position error| (m), mean and max |speed error| (m/s) for t ≥ ``t0_s``."""
-    sel = tr.time_s >= t0_s
-    e, de = np.abs(tr.position_error_m[sel]), np.abs(tr.speed_error_mps[sel])
-    return {"mean_abs_pos_err_m": float(np.mean(e)), "max_abs_pos_err_m": float(np.max(e)),
-            "mean_abs_speed_err_mps": float(np.mean(de)), "max_abs_speed_err_mps": float(np.max(de)),
-            "rms_pos_err_m": float(np.sqrt(np.mean(e * e)))}
+    """Mean and max |position error| (m), mean and max |speed error| (m/s) for t ≥ ``t0_s``
+    (:func:`canbrake.analysis.metrics.tracking_errors`)."""
+    return M.tracking_errors(tr.time_s, tr.position_error_m, tr.speed_error_mps, t0_s)
 
 
 def case_metrics(tr: CaiTrace) -> dict[str, float]:
@@ -367,12 +366,12 @@ def _case_metrics(tr: CaiTrace) -> dict[str, float]:
     st = error_metrics(tr, SETTLE_S)
     sel = window(tr, 5.0)
     fa = tr.adhesion_n[sel]
-    spread = (fa.max(axis=1) - fa.min(axis=1)) / np.maximum(np.abs(fa.mean(axis=1)), 1.0)
+    spread = M.relative_spread(fa)
     ob = {}
     for name, est, act in (("adhesion", tr.adhesion_hat_n[sel], tr.adhesion_n[sel]),
                            ("resistance", tr.resistance_hat_n[sel], tr.resistance_n[sel]),
                            ("lumped", tr.lumped_hat_n[sel], tr.lumped_n[sel])):
-        ob[f"obs_{name}_rel"] = float(np.sqrt(np.mean((est - act) ** 2)) / np.sqrt(np.mean(act ** 2)))
+        ob[f"obs_{name}_rel"] = M.relative_estimation_error(est, act)
     return {**m, "settled_mean_abs_pos_err_m": st["mean_abs_pos_err_m"],
             "settled_pos_err_m": float(np.mean(tr.position_error_m[window(tr, SETTLE_S)])),
             "max_speed_err_after5_kmh": float(np.max(np.abs(tr.speed_error_mps[sel]))) / KMH,

@@ -26,6 +26,7 @@ import numpy as np
 from canbrake.report.cache import reusable_run
 import yaml
 
+from canbrake.analysis import metrics as M
 from canbrake.analysis.metrics import (DEFAULT_BAND_KMH, KMH, OBSERVER_TOL_MPS2, Trace, compute_metrics,
                                        lumped_disturbance_mps2, settling_time_s)
 from canbrake.scenario import Scenario, load_scenario
@@ -350,7 +351,7 @@ def observer_error_rms(r: RunResult, car: int = OBS_CAR, t0: float = 0.02, t1: f
         return None
     e = tr.observer_accel_mps2[:, car - 1] - lumped_disturbance_mps2(tr)[:, car - 1]
     w = window(tr, t0, t1) & np.isfinite(e)
-    return float(np.sqrt(np.mean(e[w] ** 2))) if w.any() else None
+    return M.rmse(e[w]) if w.any() else None
 
 
 def follow_worst(r: RunResult, ev: Any) -> dict[str, Any]:
@@ -391,7 +392,7 @@ def disturbance_error(r: RunResult) -> dict[str, float] | None:
     if not w.any():
         return None
     e = err_kmh(tr)[w]
-    return {"rms_kmh": float(np.sqrt(np.mean(e ** 2))), "max_kmh": float(np.max(np.abs(e))),
+    return {"rms_kmh": M.rmse(e), "max_kmh": float(np.max(np.abs(e))),
             "max_deflection_m": float(np.max(np.abs(tr.deflection_m[w])))}
 
 
