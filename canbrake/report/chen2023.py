@@ -1112,10 +1112,17 @@ def _in_short(res: dict[str, RunResult], cl: list[Claim]) -> str:
         txt += f"With a realistic brake the paper's gains make the train fly apart ({divergence_text(pg)}); "
     else:
         txt += "With a realistic brake "
+    txt += (f"retuned gains converge in {fmt(q1.metrics['convergence_time_s'], 3, 's', 'never')} with couplers "
+            f"deflected by up to {cm(q1.metrics['max_abs_deflection_m'])}, because Table 2's initial speeds differ "
+            f"by up to {fmt(_spread_kmh(q1.scenario), 2, 'km/h')}; from consistent speeds the same controller keeps "
+            f"{cm(q90.metrics['max_abs_deflection_m'])}. With the realistic brake {n_real} of the "
+            f"{len(testable)} claims {'holds' if n_real == 1 else 'hold'} from Table 2's speeds, {n_90} from "
+            f"consistent speeds.")
     pl1, plq = M.plausibility(p1.trace), M.plausibility(q1.trace)
-    txt += (f"What the cars actually do is {PLAUSIBILITY_TEXT[pl1['verdict']]} with the ideal actuator "
+    txt += (f" What the cars actually do is {PLAUSIBILITY_TEXT[pl1['verdict']]} with the ideal actuator "
             f"(up to {fmt(pl1['peak_decel_mps2'], 3, 'm/s²')} of deceleration) and "
-            f"{PLAUSIBILITY_TEXT[plq['verdict']]} with the realistic one: the brakes stay within their rating, but "
+            f"{PLAUSIBILITY_TEXT[plq['verdict']]} with the realistic one: the brakes apply at most "
+            f"{fmt(q1.metrics.get('peak_brake_applied_decel_mps2'), 3, 'm/s²')}, but "
             f"coupler surge from Table 2's speeds decelerates car {plq['peak_decel_car']} at "
             f"{fmt(plq['peak_decel_mps2'], 3, 'm/s²')} with {fmt(plq['peak_abs_jerk_mps3'], 3, 'm/s³')} of jerk. ")
     dem = bus_demand(res)
@@ -1128,12 +1135,6 @@ def _in_short(res: dict[str, RunResult], cl: list[Claim]) -> str:
                 + (f"diverges at {fmt(diverged_at(bus1), 3, 's')}" if not bus1.ok else
                    f"keeps {cm(bus1.metrics['max_abs_deflection_m'])}")
                 + " (every other run assumes ideal bus timing). ")
-    txt += (f"retuned gains converge in {fmt(q1.metrics['convergence_time_s'], 3, 's', 'never')} with couplers "
-            f"deflected by up to {cm(q1.metrics['max_abs_deflection_m'])}, because Table 2's initial speeds differ "
-            f"by up to {fmt(_spread_kmh(q1.scenario), 2, 'km/h')}; from consistent speeds the same controller keeps "
-            f"{cm(q90.metrics['max_abs_deflection_m'])}. With the realistic brake {n_real} of the "
-            f"{len(testable)} claims {'holds' if n_real == 1 else 'hold'} from Table 2's speeds, {n_90} from "
-            f"consistent speeds.")
     return txt
 
 
