@@ -131,7 +131,7 @@ def _trace(t, a, v=None):
     n = a.shape[1]
     v = np.full_like(a, 20.0) if v is None else v
     z = np.zeros_like(a)
-    return Trace(t, v[:, 0], np.cumsum(v, axis=0) * 0.01, v, a, z, z, np.zeros((t.size, n - 1)),
+    return Trace(t, v[:, 0].copy(), np.cumsum(v, axis=0) * 0.01, v, a, z, z, np.zeros((t.size, n - 1)),
                  np.zeros((t.size, n - 1)))
 
 
@@ -146,6 +146,17 @@ def test_plausibility_verdicts_against_metro_limits():
     surge[200:210, 1] = -3.7  # coupler surge on car 2 for 0.1 s
     p = M.plausibility(_trace(t, surge))
     assert p["verdict"] == "beyond" and p["peak_decel_car"] == 2 and p["peak_decel_mps2"] == pytest.approx(3.7)
+
+
+def test_diverged_at_is_the_first_state_that_is_no_train():
+    t = np.arange(0, 0.1, 0.01)
+    a = np.zeros((t.size, 2))
+    tr = _trace(t, a)
+    assert M.diverged_at_s(tr) is None
+    tr.speed_mps[6, 1] = 5e3  # 5 km/s: no train
+    tr.speed_mps[8, 0] = np.inf
+    assert M.diverged_at_s(tr) == pytest.approx(t[6])
+    assert M.compute_metrics(tr)["diverged_at_s"] == pytest.approx(t[6])
 
 
 def test_step_convergence_table():
