@@ -478,7 +478,8 @@ def divergence_text(r: RunResult) -> str:
     """How a diverged run came apart: when |Δl| passed the coupler's force peak and reversal."""
     peak, rev = coupler_limits_m(r.scenario)
     tp, tr_ = first_exceed_s(r, peak), first_exceed_s(r, rev)
-    parts = [f"diverged at {fmt(diverged_at(r), 3, 's')}"]
+    why = [f.get("reason") for f in r.summary.get("findings", []) if f.get("kind") == "diverged" and f.get("reason")]
+    parts = [f"diverged at {fmt(diverged_at(r), 3, 's')}" + (f" ({why[0]})" if why else "")]
     if tp is not None:
         parts.append(f"|Δl| past the force peak ({fmt(peak * 100, 2, 'cm')}) at {fmt(tp, 3, 's')}")
     if tr_ is not None:
@@ -918,7 +919,8 @@ def _save(fig: Any, path: Path, dpi: int = DPI) -> str:
 
 # --------------------------------------------------------------------------------------- document
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out = ["| " + " | ".join(str(h).replace("|", "\\|") for h in header) + " |",
+           "|" + "|".join("---" for _ in header) + "|"]
     out += ["| " + " | ".join(str(c).replace("|", "\\|") for c in r) + " |" for r in rows]
     return "\n".join(out)
 
@@ -933,6 +935,7 @@ def _chosen_values(res: dict[str, RunResult]) -> list[list[str]]:
     cq = build_controller(q1, OBS_CAR)
     obs, obsq = c._obs, cq._obs  # noqa: SLF001 - reporting the observer's effective parameters
     plant = build_plant_model(p1)
+    plant = getattr(plant, "plant", plant)  # the coupled family wraps its TrainPlant
     rs = plant.resistance
     e2, e3 = rail_events(s2)[0], rail_events(s3)[0]
     d3 = disturbance_events(s3)[0]
@@ -1371,9 +1374,9 @@ def _deviations(res: dict[str, RunResult]) -> list[str]:
                 f"(convergence {fmt(settling_time_s(noc.trace.t_s, err_kmh(noc.trace), BAND_KMH), 3, 's')}); "
                 if noc.ok and noc.metrics["max_abs_deflection_m"] <= bound else
                 f"Without consensus the field alone does not hold the bound in case 1: |Δl| passes 1 cm at "
-                f"{fmt(first_exceed_s(noc, bound), 3, 's', 'never')}, reaches {cm(max_deflection_until(noc, 0.1 + 1e-9))} "
+                f"{fmt(first_exceed_s(noc, bound), 3, 's', 'never')} and reaches {cm(max_deflection_until(noc, 0.1 + 1e-9))} "
                 + (f"by 0.1 s and {cm(max_deflection_until(noc, end_time(noc) + 1e-9))} by {fmt(end_time(noc), 2, 's')}"
-                   if noc.ok else f"by 0.1 s, and then {divergence_text(noc)}")
+                   if noc.ok else f"by 0.1 s; the run {divergence_text(noc)}")
                 + f" (convergence: {fmt(settling_time_s(noc.trace.t_s, err_kmh(noc.trace), BAND_KMH), 3, 's')}"
                 + ("; the same to 1 % with the plant step halved twice, section *Step size*"
                    if any(v == "no-consensus" and tab[-1]["converged"] for _, v, tab, _h in step_tables(res)) else
