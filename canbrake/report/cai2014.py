@@ -599,7 +599,7 @@ def _step_section(res: dict[str, CaiTrace]) -> str:
         tab = M.step_convergence(rows)
         names = list(rows[0][1])
         out.append(f"**Case {c}** ({CASE_NAMES[c]}), 0–{t1:g} s, control period {fmt(runs[0].params.dt_s * 1e3, 2)} ms:\n")
-        out.append("| plant step | " + " | ".join(names) + f" | all < {M.STEP_TOL:.0%}? |")
+        out.append("| plant step | " + " | ".join(n.replace("|", "\\|") for n in names) + f" | all < {M.STEP_TOL:.0%}? |")
         out.append("|---" * (len(names) + 2) + "|")
         for row in tab:
             cells = []

@@ -585,7 +585,8 @@ def _step_section(res: dict) -> str:
          + (f"first {STEP_WINDOW_S:g} s" if STEP_WINDOW_S else "the whole run") + ", control period "
          "10 ms; the plant's integration step (`train.integration_step_s`, sub-steps of the control period) "
          f"halved until every metric changes by less than {M.STEP_TOL:.0%}:", "",
-         "| plant step | " + " | ".join(names) + " | converged? |", "|---" * (len(names) + 2) + "|"]
+         "| plant step | " + " | ".join(n.replace("|", "\\|") for n in names) + " | converged? |",
+         "|---" * (len(names) + 2) + "|"]
     for row in tab:
         cells = []
         for n in names:
