@@ -335,6 +335,27 @@ def test_ndo_estimates_a_constant_disturbance():
     assert d["d_hat"] == pytest.approx(0.03, abs=1e-3)
 
 
+@pytest.mark.parametrize("ndo_model", ["nominal", "printed"])
+def test_ndo_readings_what_d_hat_absorbs(ndo_model):
+    """Plant a = (1 + δ) f + u/m0 + d (eq. 16 with ΔF = δ F): the nominal NDO's model is f alone, so
+    d̂ → d + δ f; the printed one's is f + Δf (eq. 17), so d̂ → d alone."""
+    dt, m0, delta, f, d = 0.01, 184e3, 0.01, -0.4, 0.03
+    ctl = LiSlidingMode(dt, m0, ndo=True, ndo_model=ndo_model, model_uncertainty=delta)
+    v, x = 20.0, 0.0
+    for k in range(300):
+        u, diag = ctl.step(Obs(k * dt, x, v, k * dt * 20.0, 20.0, 0.0, f))
+        v += ((1 + delta) * f + u / m0 + d) * dt
+        x += v * dt
+    expected = d if ndo_model == "printed" else d + delta * f
+    assert diag["d_hat"] == pytest.approx(expected, abs=1e-4)
+    assert abs(expected - (d + delta * f if ndo_model == "printed" else d)) > 10 * 1e-4  # the readings differ
+
+
+def test_ndo_model_is_a_validated_param():
+    with pytest.raises(ValueError, match="ndo_model"):
+        LiSlidingMode(0.01, 184e3, ndo=True, ndo_model="both")
+
+
 # ------------------------------------------------------------------------------ engine controllers
 def _obs(t: float = 0.0, v: float = 20.0, x: float = 100.0, **kw) -> Observation:
     sens = {"speed_mps": v, "position_m": x, **kw.pop("sensors", {})}

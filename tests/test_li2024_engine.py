@@ -88,11 +88,16 @@ def test_report_regenerates_through_the_engine(tmp_path):
 
     sd = tmp_path / "scenarios"
     shutil.copytree(SCENARIOS, sd)
-    specs = [li2024.RunSpec("pid", False), li2024.RunSpec("smc", False), li2024.RunSpec("rbfnn-smc+ndo", True)]
+    specs = [li2024.RunSpec("pid", False), li2024.RunSpec("smc", False), li2024.RunSpec("rbfnn-smc+ndo", True),
+             li2024.RunSpec("rbfnn-smc+ndo", False), li2024.RunSpec("rbfnn-smc+ndo", False, "listed", "printed"),
+             li2024.RunSpec("rbfnn-smc+ndo", False, "listed", "nominal", 0.005)]
     md = li2024.generate(tmp_path / "out", tmp_path / "runs", jobs=1, log=lambda s: None, duration_s=5.0,
                          specs=specs, scen_dir=sd, driver_duration_s=5.0)
     text = md.read_text()
     assert "Table 2" in text and "| PID |" in text and "canbrake run scenarios/li2024_smc.yaml" in text
+    assert "## Table 2 in each reading" in text and "## Step size" in text
+    assert "--set ecus.0.controller.params.ndo_model=printed" in text
+    assert "--set train.integration_step_s=0.005" in text
     assert (tmp_path / "out" / "figures" / "li2024_errors.png").exists()
     assert (tmp_path / "runs" / "pid-nodist" / "report.npz").exists()
     # the driver run made the reference table the tracking runs read

@@ -48,6 +48,7 @@ def convergence_time_s(t: np.ndarray, err_kmh: np.ndarray, band_kmh: float = DEF
 
 def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
     """Tracking, coupler, comfort and braking metrics of one trace."""
+    diverged_src = tr
     finite = np.all(np.isfinite(tr.speed_mps), axis=1) & np.all(np.isfinite(tr.position_m), axis=1)
     if not finite.all():  # a diverged run: judge the part that was still a number
         keep = np.nonzero(finite)[0]
@@ -63,9 +64,8 @@ def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
     rmse_after = np.sqrt(np.mean(err_kmh[after] ** 2, axis=0)) if after.any() else np.full(tr.n_cars, np.nan)
     defl = np.abs(tr.deflection_m) if tr.deflection_m.size else np.zeros((len(t), 1))
     cforce = np.abs(tr.coupler_force_n) if tr.coupler_force_n.size else np.zeros((len(t), 1))
-    dt = np.diff(t)
     decel = -tr.accel_mps2
-    jerk = np.diff(tr.accel_mps2, axis=0) / dt[:, None] if len(t) > 1 else np.zeros((1, tr.n_cars))
+    jerk = jerk_mps3(t, tr.accel_mps2)
     out = {
         "band_kmh": band_kmh,
         "convergence_time_s": tc,
@@ -81,6 +81,7 @@ def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
         "peak_decel_mps2": float(decel.max()),
         "peak_accel_mps2": float(tr.accel_mps2.max()),
         "peak_abs_jerk_mps3": float(np.abs(jerk).max()) if jerk.size else 0.0,
+        "diverged_at_s": diverged_at_s(diverged_src),
         "max_brake_cmd_n": float(np.nanmax(tr.brake_cmd_n)) if np.isfinite(tr.brake_cmd_n).any() else None,
         "distance_m": float(np.mean(np.abs(tr.position_m[-1] - tr.position_m[0]))),
         "final_speed_kmh": [float(x) for x in tr.speed_mps[-1] * KMH],
@@ -219,3 +220,169 @@ def distance_metrics(tr: Trace) -> dict:
 def within_bound(tr: Trace, bound_m: float) -> bool:
     """True if every coupler deflection stayed within ±``bound_m`` throughout."""
     return bool(np.all(np.abs(tr.deflection_m) <= bound_m))
+
+
+# ----------------------------------------------------------------------------- derivatives, divergence
+#: a state beyond these is a diverged integration, not a train (m/s; m of coupler deflection)
+DIVERGED_SPEED_MPS = 1e3
+DIVERGED_DEFLECTION_M = 1e2
+
+
+def jerk_mps3(t_s: np.ndarray, accel_mps2: np.ndarray) -> np.ndarray:
+    """Jerk (m/s³) between consecutive trace rows, (T-2, n) for (T, n) accelerations.
+
+    Row 0 of a plant trace is the initial state, recorded before any period was integrated, so its
+    acceleration is 0 by construction (not a measurement); differencing it against row 1 would report
+    a(t_1)/dt of jerk that no car ever had. The jerk therefore starts between rows 1 and 2.
+    """
+    a = np.asarray(accel_mps2, dtype=float)
+    a = a.reshape(len(t_s), -1)
+    if len(t_s) < 3:
+        return np.zeros((0, a.shape[1]))
+    return np.diff(a[1:], axis=0) / np.diff(np.asarray(t_s, dtype=float)[1:])[:, None]
+
+
+def diverged_at_s(tr: Trace) -> float | None:
+    """Time of the first trace row whose state is not finite or beyond any train (|v| >
+    :data:`DIVERGED_SPEED_MPS`, |Δl| > :data:`DIVERGED_DEFLECTION_M`); None if the run never diverged."""
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.all(np.abs(tr.speed_mps) <= DIVERGED_SPEED_MPS, axis=1)
+                & np.all(np.isfinite(tr.position_m), axis=1))
+        if tr.deflection_m.size:
+            bad |= ~np.all(np.abs(tr.deflection_m) <= DIVERGED_DEFLECTION_M, axis=1)
+    k = np.nonzero(bad)[0]
+    return float(tr.t_s[k[0]]) if k.size else None
+
+
+# ----------------------------------------------------------------------------- plausibility
+#: a metro's brake (EN 13452-1 / typical metro specifications): service brake up to 1.0–1.2 m/s²,
+#: emergency brake 1.3–1.5 m/s² (MODELS.md section 1); jerk 1–1.5 m/s³ for passenger comfort in
+#: service braking (emergency braking is not jerk-limited). The upper ends are the limits judged.
+METRO_SERVICE_DECEL_MPS2 = 1.2
+METRO_EMERGENCY_DECEL_MPS2 = 1.5
+METRO_SERVICE_JERK_MPS3 = 1.5
+#: a metro's traction: up to about 1.0–1.3 m/s²
+METRO_TRACTION_ACCEL_MPS2 = 1.3
+
+
+def plausibility(tr: Trace, t_from_s: float = 0.0) -> dict:
+    """What the cars actually did (their accelerations in the trace: brake, traction, couplers,
+    resistance, disturbances together) against a metro's limits, from ``t_from_s`` on.
+
+    Returns the peak deceleration, acceleration and |jerk| over every car (jerk per
+    :func:`jerk_mps3`), the car and time of each, and ``verdict``: ``"service"`` (decel ≤
+    :data:`METRO_SERVICE_DECEL_MPS2`, jerk ≤ :data:`METRO_SERVICE_JERK_MPS3`, accel ≤
+    :data:`METRO_TRACTION_ACCEL_MPS2`), ``"emergency"`` (decel ≤ :data:`METRO_EMERGENCY_DECEL_MPS2`
+    and accel within traction, jerk unlimited) or ``"beyond"`` (no metro brake does this).
+    """
+    t = np.asarray(tr.t_s, dtype=float)
+    a = np.asarray(tr.accel_mps2, dtype=float)
+    rows = np.arange(len(t)) >= 1  # row 0: no period integrated yet (see jerk_mps3)
+    rows &= t >= t_from_s - 1e-12
+    rows &= np.all(np.isfinite(a), axis=1)
+    if not rows.any():
+        return {"verdict": None}
+    aw = np.where(rows[:, None], a, np.nan)
+    kd = np.unravel_index(int(np.nanargmin(aw)), aw.shape)
+    ka = np.unravel_index(int(np.nanargmax(aw)), aw.shape)
+    j = jerk_mps3(t, a)
+    jt = t[2:]
+    jw = np.where((rows[2:] & rows[1:-1])[:, None], np.abs(j), np.nan) if j.size else j
+    if j.size and np.isfinite(jw).any():
+        kj = np.unravel_index(int(np.nanargmax(jw)), jw.shape)
+        jerk, jerk_car, jerk_t = float(jw[kj]), int(kj[1]) + 1, float(jt[kj[0]])
+    else:
+        jerk, jerk_car, jerk_t = 0.0, None, None
+    decel, accel = float(max(0.0, -aw[kd])), float(max(0.0, aw[ka]))
+    if decel <= METRO_SERVICE_DECEL_MPS2 and jerk <= METRO_SERVICE_JERK_MPS3 and accel <= METRO_TRACTION_ACCEL_MPS2:
+        verdict = "service"
+    elif decel <= METRO_EMERGENCY_DECEL_MPS2 and accel <= METRO_TRACTION_ACCEL_MPS2:
+        verdict = "emergency"
+    else:
+        verdict = "beyond"
+    return {"peak_decel_mps2": decel, "peak_decel_car": int(kd[1]) + 1, "peak_decel_t_s": float(t[kd[0]]),
+            "peak_accel_mps2": accel, "peak_accel_car": int(ka[1]) + 1, "peak_accel_t_s": float(t[ka[0]]),
+            "peak_abs_jerk_mps3": jerk, "peak_jerk_car": jerk_car, "peak_jerk_t_s": jerk_t, "verdict": verdict}
+
+
+# ----------------------------------------------------------------------------- tracking errors
+def rmse(err: np.ndarray) -> float:
+    """Root mean square of ``err`` (any unit; NaN ignored)."""
+    e = np.asarray(err, dtype=float)
+    return float(np.sqrt(np.nanmean(e * e)))
+
+
+def error_band(err: np.ndarray) -> tuple[float, float]:
+    """(min, max) of a signed error (NaN ignored)."""
+    e = np.asarray(err, dtype=float)
+    return float(np.nanmin(e)), float(np.nanmax(e))
+
+
+def within_band(err: np.ndarray, lo: float, hi: float) -> bool:
+    """True if every value of ``err`` lies in [lo, hi]."""
+    e = np.asarray(err, dtype=float)
+    return bool(np.all((e >= lo) & (e <= hi)))
+
+
+def tracking_errors(t_s: np.ndarray, pos_err_m: np.ndarray, speed_err_mps: np.ndarray, t0_s: float = 0.0) -> dict:
+    """Mean and max |position error| (m), mean and max |speed error| (m/s) and the position error's
+    RMS for t ≥ ``t0_s``."""
+    sel = np.asarray(t_s) >= t0_s
+    e, de = np.abs(np.asarray(pos_err_m)[sel]), np.abs(np.asarray(speed_err_mps)[sel])
+    return {"mean_abs_pos_err_m": float(np.mean(e)), "max_abs_pos_err_m": float(np.max(e)),
+            "mean_abs_speed_err_mps": float(np.mean(de)), "max_abs_speed_err_mps": float(np.max(de)),
+            "rms_pos_err_m": rmse(e)}
+
+
+def relative_estimation_error(estimate: np.ndarray, actual: np.ndarray) -> float:
+    """RMS(estimate − actual) / RMS(actual): an observer's error relative to what it estimates."""
+    est, act = np.asarray(estimate, dtype=float), np.asarray(actual, dtype=float)
+    return rmse(est - act) / rmse(act)
+
+
+def relative_spread(values: np.ndarray) -> np.ndarray:
+    """Per row of (T, k) ``values``: (max − min) / max(|mean|, 1) — e.g. how unequal axle forces are."""
+    v = np.asarray(values, dtype=float)
+    return (v.max(axis=1) - v.min(axis=1)) / np.maximum(np.abs(v.mean(axis=1)), 1.0)
+
+
+# ----------------------------------------------------------------------------- step-size convergence
+#: a metric counts as converged when halving the step changes it by less than this (relative)
+STEP_TOL = 0.01
+
+
+def step_convergence(rows: list[tuple[float, dict]], tol: float = STEP_TOL) -> list[dict]:
+    """Step-size table: ``rows`` = [(step_s, {metric: value}), ...] from the coarsest step down,
+    each step half (or a fraction) of the one before. Returns one dict per row with the values, the
+    relative change of each metric against the previous (coarser) row and ``converged`` (every
+    metric changed by < ``tol``; None on the first row). A metric that is None (e.g. "never") on both
+    rows counts as unchanged, on one of them as changed."""
+    out: list[dict] = []
+    prev: dict | None = None
+    for step, vals in rows:
+        ch: dict[str, float | None] = {}
+        ok: bool | None = None
+        if prev is not None:
+            ok = True
+            for k, v in vals.items():
+                p = prev.get(k)
+                if v is None and p is None:
+                    ch[k] = 0.0
+                elif v is None or p is None or not (np.isfinite(v) and np.isfinite(p)):
+                    ch[k], ok = None, False
+                else:
+                    c = abs(v - p) / max(abs(v), abs(p), 1e-300) if (v or p) else 0.0
+                    ch[k] = c
+                    ok = ok and c < tol
+        out.append({"step_s": step, "values": dict(vals), "change": ch, "converged": ok})
+        prev = vals
+    return out
+
+
+def first_converged_step(table: list[dict]) -> float | None:
+    """The coarsest step of a :func:`step_convergence` table whose halving changed no metric by the
+    tolerance (the step before the first converged row); None if no row converged."""
+    for i, row in enumerate(table):
+        if row["converged"]:
+            return table[i - 1]["step_s"]
+    return None

@@ -64,6 +64,10 @@ READINGS = ("listed", "adaptive-power")
 #: NDO discretisation: "exact" (error dynamics integrated exactly over a step, zero-order hold) or
 #: "euler" (explicit Euler of eq. 30 as printed; unstable when ω·dt > 2)
 OBSERVER_READINGS = ("exact", "euler")
+#: what the NDO's model F(x) contains: "nominal" (f(x) only, so d̂ absorbs the model error Δf as well as
+#: d) or "printed" (eq. 17/30 as printed: F(x) = [v, f(x) + Δf], so d̂ estimates d only and Δf is left
+#: to the RBF network; Δf = ``model_uncertainty``·f(x), the plant's δ, known to this reading's observer)
+NDO_MODELS = ("nominal", "printed")
 
 
 @dataclass(frozen=True)
@@ -117,7 +121,10 @@ class LiSlidingMode:
                  reading: str = "listed", lam1: float = 1.0, lam2: float = 0.1, zeta0: float = 0.005,
                  kappa: float = 0.05, alpha: float = 5.0, gamma: float = 0.01, b: float = 0.005,
                  centers=(-1.0, -0.5, 0.0, 0.5, 1.0), center_scale: float = 0.01, omega: float = 1000.0,
-                 observer: str = "exact"):
+                 observer: str = "exact", ndo_model: str = "nominal", model_uncertainty: float = 0.01):
+        if ndo_model not in NDO_MODELS:
+            raise ValueError(f"ndo_model: unknown NDO model {ndo_model!r}; use one of {NDO_MODELS}")
+        self.ndo_model, self.model_uncertainty = ndo_model, float(model_uncertainty)
         if reading not in READINGS:
             raise ValueError(f"reading: unknown reading {reading!r}; use one of {READINGS}")
         if observer not in OBSERVER_READINGS:
@@ -161,6 +168,8 @@ class LiSlidingMode:
             if self._prev is not None:
                 v0, f0, u0 = self._prev
                 d_meas = (o.v_mps - v0) / self.dt - f0 - u0 / self.m0
+                if self.ndo_model == "printed":  # F(x) includes Δf: the residual is d alone
+                    d_meas -= self.model_uncertainty * f0
                 gain = (1.0 - math.exp(-self.omega * self.dt)) if self.observer == "exact" else self.omega * self.dt
                 self.d_hat += (d_meas - self.d_hat) * gain
             self.z = self.d_hat - self.omega * o.v_mps
@@ -274,11 +283,12 @@ class _LiSMCBase(_LiLocomotive):
                  observer: str = "exact", lam1: float = 1.0, lam2: float = 0.1, zeta0: float = 0.005,
                  kappa: float = 0.05, alpha: float = 5.0, gamma: float = 0.01, b: float = 0.005,
                  centers: Any = (-1.0, -0.5, 0.0, 0.5, 1.0), center_scale: float = 0.01, omega: float = 1000.0,
-                 airbrake_schedule: Any = ()) -> None:
+                 ndo_model: str = "nominal", model_uncertainty: float = 0.01, airbrake_schedule: Any = ()) -> None:
         super().__init__(car_index, n_cars, mass_kg, dt_s, airbrake_schedule)
         self._params = dict(reading=reading, observer=observer, lam1=lam1, lam2=lam2, zeta0=zeta0, kappa=kappa,
                             alpha=alpha, gamma=gamma, b=b, centers=tuple(centers), center_scale=center_scale,
-                            omega=omega, airbrake_schedule=self._events)
+                            omega=omega, ndo_model=ndo_model, model_uncertainty=model_uncertainty,
+                            airbrake_schedule=self._events)
         if len(self._params["centers"]) < 1:
             raise ValueError("centers: at least one RBF centre")
         for name in ("b", "omega"):
@@ -288,7 +298,8 @@ class _LiSMCBase(_LiLocomotive):
                                  observer=observer, lam1=float(lam1), lam2=float(lam2), zeta0=float(zeta0),
                                  kappa=float(kappa), alpha=float(alpha), gamma=float(gamma), b=float(b),
                                  centers=tuple(float(c) for c in centers), center_scale=float(center_scale),
-                                 omega=float(omega))
+                                 omega=float(omega), ndo_model=ndo_model,
+                                 model_uncertainty=float(model_uncertainty))
 
 
 @register("li2024_smc")

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from canbrake.analysis import metrics as M
+
 from canbrake.report.cache import reusable_run
 import yaml
 
@@ -48,6 +50,8 @@ DT_CHECK_S = 30.0
 #: the report's control period: 10 ms keeps the 15 runs through the node engine to minutes; the
 #: scenarios' own is 1 ms, and the step-size check runs 2 ms and 20 ms beside it
 STEP_S = 1e-2
+#: plant sub-steps per control period in the step-size table (1 = the runs' own)
+PLANT_SUBSTEPS = (1, 2, 4)
 CASE_FILE = "cai2014_case{}.yaml"
 
 
@@ -103,6 +107,10 @@ def run_specs(duration_s: float = 200.0, dt_s: float = STEP_S) -> list[RunSpec]:
         for label, dt in (("fine", dt_s / 5), ("coarse", dt_s * 2)):
             specs.append(_spec(f"paper-case{case}-dt-{label}", case, control_period_s=dt,
                                duration_s=min(DT_CHECK_S, 0.5 * duration_s)))
+    for case in (1, 4):  # step-size table: the plant step halved at the report's control period
+        for n in PLANT_SUBSTEPS[1:]:
+            specs.append(_spec(f"paper-case{case}-dt-substeps{n}", case, control_period_s=dt_s,
+                               plant__substeps=n, duration_s=min(DT_CHECK_S, 0.5 * duration_s)))
     # what ka the paper's "about ten times" would need: ka = 10 R by the settled-error derivation
     radius = CaiSetup.of(resolve_spec(specs[0])).radius_m
     specs.append(_spec("paper-case2-ka-for-10x", 2, control_period_s=dt_s,
@@ -349,12 +357,9 @@ def window(tr: CaiTrace, t0: float, t1: float = np.inf) -> np.ndarray:
 
 
 def error_metrics(tr: CaiTrace, t0_s: float = 0.0) -> dict[str, float]:
-    """Mean and max |position error| (m), mean and max |speed error| (m/s) for t ≥ ``t0_s``."""
-    sel = tr.time_s >= t0_s
-    e, de = np.abs(tr.position_error_m[sel]), np.abs(tr.speed_error_mps[sel])
-    return {"mean_abs_pos_err_m": float(np.mean(e)), "max_abs_pos_err_m": float(np.max(e)),
-            "mean_abs_speed_err_mps": float(np.mean(de)), "max_abs_speed_err_mps": float(np.max(de)),
-            "rms_pos_err_m": float(np.sqrt(np.mean(e * e)))}
+    """Mean and max |position error| (m), mean and max |speed error| (m/s) for t ≥ ``t0_s``
+    (:func:`canbrake.analysis.metrics.tracking_errors`)."""
+    return M.tracking_errors(tr.time_s, tr.position_error_m, tr.speed_error_mps, t0_s)
 
 
 def case_metrics(tr: CaiTrace) -> dict[str, float]:
@@ -367,12 +372,12 @@ def _case_metrics(tr: CaiTrace) -> dict[str, float]:
     st = error_metrics(tr, SETTLE_S)
     sel = window(tr, 5.0)
     fa = tr.adhesion_n[sel]
-    spread = (fa.max(axis=1) - fa.min(axis=1)) / np.maximum(np.abs(fa.mean(axis=1)), 1.0)
+    spread = M.relative_spread(fa)
     ob = {}
     for name, est, act in (("adhesion", tr.adhesion_hat_n[sel], tr.adhesion_n[sel]),
                            ("resistance", tr.resistance_hat_n[sel], tr.resistance_n[sel]),
                            ("lumped", tr.lumped_hat_n[sel], tr.lumped_n[sel])):
-        ob[f"obs_{name}_rel"] = float(np.sqrt(np.mean((est - act) ** 2)) / np.sqrt(np.mean(act ** 2)))
+        ob[f"obs_{name}_rel"] = M.relative_estimation_error(est, act)
     return {**m, "settled_mean_abs_pos_err_m": st["mean_abs_pos_err_m"],
             "settled_pos_err_m": float(np.mean(tr.position_error_m[window(tr, SETTLE_S)])),
             "max_speed_err_after5_kmh": float(np.max(np.abs(tr.speed_error_mps[sel]))) / KMH,
@@ -570,6 +575,56 @@ def _bus_section(res: dict[str, CaiTrace]) -> str:
 
 
 # ------------------------------------------------------------------------------------ document
+def _step_metrics(tr: CaiTrace, t1: float) -> dict[str, float]:
+    """The headline metrics of a step-size table over [0, t1]: position error at t1 and mean |position
+    error| over the settled part (mm), largest speed error after 5 s (km/h)."""
+    sel = tr.time_s <= t1 + 1e-9
+    sub = M.tracking_errors(tr.time_s[sel], tr.position_error_m[sel], tr.speed_error_mps[sel], min(SETTLE_S, 0.5 * t1))
+    late = sel & (tr.time_s >= 5.0)
+    return {f"position error at {t1:g} s (mm)": 1000 * error_at(tr, t1),
+            "mean |position error|, settled (mm)": 1000 * sub["mean_abs_pos_err_m"],
+            "max |speed error| after 5 s (km/h)": float(np.max(np.abs(tr.speed_error_mps[late]))) / KMH}
+
+
+def _step_section(res: dict[str, CaiTrace]) -> str:
+    """Step-size tables: the plant step halved (sub-steps of the control period) for cases 1 and 4."""
+    L = ["## Step size\n"]
+    out = []
+    for c in (1, 4):
+        runs = [res.get(f"paper-case{c}")] + [res.get(f"paper-case{c}-dt-substeps{n}") for n in PLANT_SUBSTEPS[1:]]
+        if any(r is None for r in runs):
+            continue
+        t1 = float(np.floor(runs[1].time_s[-1]))
+        rows = [(r.params.dt_s / n, _step_metrics(r, t1)) for r, n in zip(runs, PLANT_SUBSTEPS)]
+        tab = M.step_convergence(rows)
+        names = list(rows[0][1])
+        out.append(f"**Case {c}** ({CASE_NAMES[c]}), 0–{t1:g} s, control period {fmt(runs[0].params.dt_s * 1e3, 2)} ms:\n")
+        out.append("| plant step | " + " | ".join(n.replace("|", "\\|") for n in names) + f" | all < {M.STEP_TOL:.0%}? |")
+        out.append("|---" * (len(names) + 2) + "|")
+        for row in tab:
+            cells = []
+            for nm in names:
+                ch = row["change"].get(nm)
+                cells.append(fmt(row["values"][nm], 4) + ("" if row["converged"] is None else
+                                                          f" ({'—' if ch is None else fmt(100 * ch, 2)} %)"))
+            conv = "—" if row["converged"] is None else ("**yes**" if row["converged"] else "**no**")
+            out.append(f"| {fmt(row['step_s'] * 1e3, 3)} ms | " + " | ".join(cells) + f" | {conv} |")
+        h = M.first_converged_step(tab)
+        out.append("")
+        out.append((f"Converged at a {fmt(h * 1e3, 3)} ms plant step"
+                    + (" — the step of every run in this document." if h >= tab[0]["step_s"] - 1e-12 else
+                       "; this document's runs use the first row's step.")) if h is not None else
+                   f"Not converged to {M.STEP_TOL:.0%} within the table.")
+        out.append("")
+    if not out:
+        return ""
+    L.append("The plant's step is the control period divided by `plant.substeps` (default 1: one plant step per "
+             f"control period). Each table halves it until every headline metric changes by less than {M.STEP_TOL:.0%} "
+             "(change against the coarser row in brackets); the controllers run at the control period "
+             "throughout (the control period itself is checked in reading 7).\n")
+    return "\n".join(L + out) + "\n"
+
+
 def _doc(res: dict[str, CaiTrace], specs: Sequence[RunSpec], elapsed: float) -> str:
     met = {k: case_metrics(tr) for k, tr in res.items() if "printed" not in k and "-dt-" not in k}
     m_ka = met.pop("paper-case2-ka-for-10x")
@@ -687,6 +742,7 @@ def _doc(res: dict[str, CaiTrace], specs: Sequence[RunSpec], elapsed: float) -> 
       "discretise exactly for the torque held and the speeds linear over a step, which uses the same measurements. "
       f"Step-size check, position error at t = {t_chk:g} s: {chk}.\n")
     w("![printed sign](figures/cai2014_printed_sign.png)\n")
+    w(_step_section(res))
 
     w("## Claims\n")
     w("| claim (paper figure) | paper | ours: paper curve | ours: physical curve | holds? (paper / physical) | criterion |")

@@ -26,6 +26,7 @@ import numpy as np
 from canbrake.report.cache import reusable_run
 import yaml
 
+from canbrake.analysis import metrics as M
 from canbrake.analysis.metrics import (DEFAULT_BAND_KMH, KMH, OBSERVER_TOL_MPS2, Trace, compute_metrics,
                                        lumped_disturbance_mps2, settling_time_s)
 from canbrake.scenario import Scenario, load_scenario
@@ -80,6 +81,8 @@ VARIANT_LABELS = {
     "reading-literal-feedforward": "reading check: u_i3 feed-forward = v* as printed (a speed)",
     "reading-unscaled-consensus": "reading check: u_i1, u_i2 in newtons as printed (not × m_i)",
     "reading-kd-cancellation": "reading check: observer term k_d φ̂ with k_d = 50 as printed",
+    "bus-model-1000k": "CAN timing model, 1 Mbit/s",
+    "bus-model-500k": "CAN timing model, 500 kbit/s",
 }
 
 
@@ -149,7 +152,40 @@ def run_specs() -> list[RunSpec]:
     specs += [_spec(1, "realistic", "with-potential-field", a=_PF_ON),
               _spec(1, "realistic", "paper-gains", a=_PAPER_GAINS),
               _spec(1, "realistic", "to-standstill", a=_FROM_90, d={"duration_s": 28.0})]
+    # the bus: the paper profile under the CAN timing model (frames arrive when arbitration lets them)
+    for br in BUS_BITRATES:
+        specs.append(_spec(1, "paper", bus_variant(br), a={"bus.timing": "model", "bus.bitrate_bps": br},
+                           d={"duration_s": BUS_WINDOW_S}))
+    # step-size tables: the plant step halved (sub-steps of the control period)
+    for profile, variants in STEP_RUNS.items():
+        for v in variants:
+            base = {"no-consensus": {"controller.params.consensus": False}}.get(v, {})
+            w = step_window(profile, v)
+            for n in STEP_SUBSTEPS[1:]:
+                specs.append(_spec(1, profile, step_variant(v, n), a=base, b={"plant.substeps": n},
+                                   d={"duration_s": w} if w is not None else {}))
     return specs
+
+
+#: the bus rows of the claim table: the paper profile under ``bus.timing: model`` at these bitrates
+BUS_BITRATES = (1_000_000, 500_000)
+BUS_WINDOW_S = 2.0
+#: step-size tables: plant sub-steps per control period (1 = the scenarios' default), and the runs
+STEP_SUBSTEPS = (1, 2, 4)
+STEP_RUNS = {"paper": ("proposed", "no-consensus"), "realistic": ("proposed",)}
+
+
+def bus_variant(bitrate_bps: int) -> str:
+    return f"bus-model-{bitrate_bps // 1000}k"
+
+
+def step_variant(variant: str, substeps: int) -> str:
+    return variant if substeps == 1 else f"{variant}-substeps{substeps}"
+
+
+def step_window(profile: str, variant: str) -> float | None:
+    """The window of a step-size table (s): the paper profile's 1 ms runs over the ablation window."""
+    return ABLATION_WINDOW_S[(1, "paper")] if profile == "paper" else None
 
 
 def scenario_dir() -> Path:
@@ -350,7 +386,7 @@ def observer_error_rms(r: RunResult, car: int = OBS_CAR, t0: float = 0.02, t1: f
         return None
     e = tr.observer_accel_mps2[:, car - 1] - lumped_disturbance_mps2(tr)[:, car - 1]
     w = window(tr, t0, t1) & np.isfinite(e)
-    return float(np.sqrt(np.mean(e[w] ** 2))) if w.any() else None
+    return M.rmse(e[w]) if w.any() else None
 
 
 def follow_worst(r: RunResult, ev: Any) -> dict[str, Any]:
@@ -391,7 +427,7 @@ def disturbance_error(r: RunResult) -> dict[str, float] | None:
     if not w.any():
         return None
     e = err_kmh(tr)[w]
-    return {"rms_kmh": float(np.sqrt(np.mean(e ** 2))), "max_kmh": float(np.max(np.abs(e))),
+    return {"rms_kmh": M.rmse(e), "max_kmh": float(np.max(np.abs(e))),
             "max_deflection_m": float(np.max(np.abs(tr.deflection_m[w])))}
 
 
@@ -413,7 +449,14 @@ def max_deflection_until(r: RunResult, t1: float) -> float:
 
 
 def diverged_at(r: RunResult) -> float | None:
-    return None if r.ok else end_time(r)
+    """When the run diverged (s): the engine's verdict time, else the first non-physical trace row
+    (:func:`canbrake.analysis.metrics.diverged_at_s`), else the end of a run that stopped early; None if ok."""
+    if r.ok:
+        return None
+    for t in (r.summary.get("diverged_at_s"), r.metrics.get("diverged_at_s")):
+        if t is not None:
+            return float(t)
+    return end_time(r)
 
 
 def coupler_limits_m(scn: Scenario) -> tuple[float, float]:
@@ -435,7 +478,8 @@ def divergence_text(r: RunResult) -> str:
     """How a diverged run came apart: when |Δl| passed the coupler's force peak and reversal."""
     peak, rev = coupler_limits_m(r.scenario)
     tp, tr_ = first_exceed_s(r, peak), first_exceed_s(r, rev)
-    parts = [f"diverged at {fmt(end_time(r), 3, 's')}"]
+    why = [f.get("reason") for f in r.summary.get("findings", []) if f.get("kind") == "diverged" and f.get("reason")]
+    parts = [f"diverged at {fmt(diverged_at(r), 3, 's')}" + (f" ({why[0]})" if why else "")]
     if tp is not None:
         parts.append(f"|Δl| past the force peak ({fmt(peak * 100, 2, 'cm')}) at {fmt(tp, 3, 's')}")
     if tr_ is not None:
@@ -481,6 +525,9 @@ class Claim:
     values: dict[str, str] = field(default_factory=dict)
     holds: dict[str, bool | None] = field(default_factory=dict)
 
+
+PLAUSIBILITY_TEXT = {"service": "within a metro's service brake", "emergency": "within a metro's emergency brake only",
+                     "beyond": "beyond any metro brake", None: "no data"}
 
 #: the three columns of the claim table: (column name, profile, variant prefix for "proposed")
 COLUMNS = (("paper profile", "paper", ""), ("realistic profile", "realistic", ""),
@@ -597,14 +644,45 @@ def claims(res: dict[str, RunResult]) -> list[Claim]:
     add(Claim(f"Case 3: the observer tracks the disturbance on car {OBS_CAR}, Fig. 17", "precise estimate",
               "RMS error after 6 s ≤ 10 % of the disturbance amplitude"), obs3)
 
-    lo, hi = PAPER["emergency_brake_mps2"]
-
     def plaus(profile: str, prefix: str) -> tuple[str, bool | None]:
         r = get(1, profile, prefix)
+        if r is None:
+            return "—", None
+        if not r.ok:
+            return divergence_text(r), False
+        pl = M.plausibility(r.trace)
         d = r.metrics.get("peak_brake_cmd_decel_mps2")
-        return f"{fmt(d, 3, 'm/s²')} ({fmt(d / hi, 3)}× the emergency brake)", d <= hi
-    add(Claim("Physical plausibility: braking demanded per unit mass (case 1 peak)",
-              f"not stated; a metro brake gives {lo}–{hi} m/s² in emergency", f"≤ {hi} m/s²"), plaus)
+        return (f"cars: decel {fmt(pl['peak_decel_mps2'], 3, 'm/s²')} (car {pl['peak_decel_car']}, "
+                f"{fmt(pl['peak_decel_t_s'], 2, 's')}), accel {fmt(pl['peak_accel_mps2'], 3, 'm/s²')}, jerk "
+                f"{fmt(pl['peak_abs_jerk_mps3'], 3, 'm/s³')} (car {pl['peak_jerk_car']}, {fmt(pl['peak_jerk_t_s'], 2, 's')}); "
+                f"brake demand {fmt(d, 3, 'm/s²')} → {PLAUSIBILITY_TEXT[pl['verdict']]}"), pl["verdict"] != "beyond"
+    add(Claim("Physical plausibility (case 1): what the cars do — deceleration, acceleration and jerk of every car "
+              "from the trace, brake and coupler forces together",
+              f"not stated; a metro brakes at ≤ {M.METRO_SERVICE_DECEL_MPS2} m/s² in service (jerk ≤ "
+              f"{M.METRO_SERVICE_JERK_MPS3} m/s³), ≤ {M.METRO_EMERGENCY_DECEL_MPS2} m/s² in emergency",
+              f"decel ≤ {M.METRO_EMERGENCY_DECEL_MPS2} m/s² and accel ≤ {M.METRO_TRACTION_ACCEL_MPS2} m/s² "
+              f"(emergency); service also jerk ≤ {M.METRO_SERVICE_JERK_MPS3} m/s³"), plaus)
+
+    # the bus: the paper profile under the CAN timing model (paper-profile column only)
+    for br in BUS_BITRATES:
+        def on_bus(profile: str, prefix: str, br: int = br) -> tuple[str, bool | None]:
+            if profile != "paper" or prefix:
+                return "not run (10 ms profile)", None
+            r = res.get(f"case1-paper-{bus_variant(br)}")
+            if r is None:
+                return "—", None
+            bl = r.summary.get("bus_load", {}) or {}
+            load = (f"; the bus carried {fmt(100 * bl['bus_load_mean'], 3, '%')} on average"
+                    if bl.get("bus_load_mean") is not None else "")
+            if not r.ok:
+                return divergence_text(r) + load, False
+            m = r.metrics
+            ok = m["max_abs_deflection_m"] <= bound and (m["convergence_time_s"] or math.inf) < PAPER["convergence_s"]
+            return (f"converged {fmt(m['convergence_time_s'], 3, 's')}, max |Δl| {cm(m['max_abs_deflection_m'])}"
+                    + load), ok
+        add(Claim(f"Case 1 on a classical CAN bus at {br // 1000} kbit/s (`bus.timing: model`): converge < 0.04 s "
+                  "and stay within ±1 cm", "(the paper assumes every value arrives within 1 ms)",
+                  "both, as in the rows above"), on_bus)
     return rows
 
 
@@ -740,7 +818,7 @@ def draw(ax: Any, r: RunResult, kind: str, *, inset: bool = False, legend: bool 
 
 def _status_note(ax: Any, r: RunResult) -> None:
     if not r.ok:
-        ax.text(0.02, 0.04, f"diverged at {fmt(end_time(r), 3, 's')}", transform=ax.transAxes, color="r",
+        ax.text(0.02, 0.04, f"diverged at {fmt(diverged_at(r), 3, 's')}", transform=ax.transAxes, color="r",
                 fontsize=8, weight="bold")
 
 
@@ -775,7 +853,7 @@ def make_figures(res: dict[str, RunResult], fig_dir: Path) -> dict[str, str]:
             k = _thin(tr)
             k = k[tr.t_s[k] <= t_end + 1e-9]
             y = np.max(np.abs(tr.deflection_m), axis=1)[k] * 100
-            lab = v + ("" if r.ok else f" (diverged at {fmt(end_time(r), 3, 's')})")
+            lab = v + ("" if r.ok else f" (diverged at {fmt(diverged_at(r), 3, 's')})")
             if profile == "paper":
                 ax.semilogy(tr.t_s[k], np.maximum(y, 1e-4), color=COLORS[j % 6], label=lab)
             else:
@@ -841,7 +919,8 @@ def _save(fig: Any, path: Path, dpi: int = DPI) -> str:
 
 # --------------------------------------------------------------------------------------- document
 def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
-    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out = ["| " + " | ".join(str(h).replace("|", "\\|") for h in header) + " |",
+           "|" + "|".join("---" for _ in header) + "|"]
     out += ["| " + " | ".join(str(c).replace("|", "\\|") for c in r) + " |" for r in rows]
     return "\n".join(out)
 
@@ -856,6 +935,7 @@ def _chosen_values(res: dict[str, RunResult]) -> list[list[str]]:
     cq = build_controller(q1, OBS_CAR)
     obs, obsq = c._obs, cq._obs  # noqa: SLF001 - reporting the observer's effective parameters
     plant = build_plant_model(p1)
+    plant = getattr(plant, "plant", plant)  # the coupled family wraps its TrainPlant
     rs = plant.resistance
     e2, e3 = rail_events(s2)[0], rail_events(s3)[0]
     d3 = disturbance_events(s3)[0]
@@ -979,19 +1059,28 @@ def _cell(r: RunResult) -> str:
 
 
 def _all_runs_rows(res: dict[str, RunResult]) -> list[list[str]]:
+    """One row per run; a diverged run shows when it diverged and how, never the numbers of a state
+    that is no longer a train."""
     rows = []
     for key, r in res.items():
         m = r.metrics
+        if not r.ok:
+            status = (f"**diverged** at {fmt(diverged_at(r), 3, 's')}" if r.summary.get("verdict") == "diverged"
+                      or r.summary.get("status") != "ok" else r.summary.get("status", "?"))
+            rows.append([f"`{key}`", status, "—", divergence_text(r).split(", ", 1)[-1] if ", " in divergence_text(r)
+                         else "—"] + ["—"] * 9)
+            continue
+        pl = M.plausibility(r.trace)
         rows.append([
-            f"`{key}`", ("diverged" if r.summary.get("verdict") == "diverged" else r.summary.get("status", "?")) + ("" if r.ok else f" at {fmt(end_time(r), 3, 's')}"),
+            f"`{key}`", r.summary.get("status", "?"),
             fmt(m.get("convergence_time_s"), 3, "s"),
-            cm(m.get("max_abs_deflection_m")) if r.ok else "> " + cm(coupler_limits_m(r.scenario)[1]),
-            fmt((m.get("max_abs_coupler_force_n") or 0) / 1000, 3, "kN") if r.ok else "—",
+            cm(m.get("max_abs_deflection_m")),
+            fmt((m.get("max_abs_coupler_force_n") or 0) / 1000, 3, "kN"),
             fmt(max(m.get("speed_rmse_kmh") or [float("nan")]), 3, "km/h"),
             fmt(max(m.get("speed_max_abs_error_kmh") or [float("nan")]), 3, "km/h"),
             fmt(observer_error_rms(r), 2, "m/s²", "—"),
             fmt(m.get("peak_brake_cmd_decel_mps2"), 3, "m/s²"),
-            fmt(m.get("peak_decel_mps2"), 3, "m/s²"), fmt(m.get("peak_abs_jerk_mps3"), 3, "m/s³"),
+            fmt(pl.get("peak_decel_mps2"), 3, "m/s²"), fmt(pl.get("peak_abs_jerk_mps3"), 3, "m/s³"),
             fmt(m.get("distance_m"), 4, "m"), fmt(m.get("distance_excess_m"), 2, "m"),
         ])
     return rows
@@ -1010,7 +1099,7 @@ def _close(a: RunResult, b: RunResult, rel: float = 0.25) -> bool:
 def _in_short(res: dict[str, RunResult], cl: list[Claim]) -> str:
     p1, q1, q90 = res["case1-paper-proposed"], res["case1-realistic-proposed"], res["case1-realistic-from-90"]
     pg = res["case1-realistic-paper-gains"]
-    testable = [c for c in cl if not c.claim.startswith("Physical")]
+    testable = [c for c in cl if not c.claim.startswith(("Physical", "Case 1 on a classical CAN bus"))]
     n_ok = sum(bool(c.holds["paper profile"]) for c in testable)
     n_real = sum(bool(c.holds["realistic profile"]) for c in testable)
     n_90 = sum(bool(c.holds["realistic, from 90 km/h"]) for c in testable)
@@ -1024,13 +1113,157 @@ def _in_short(res: dict[str, RunResult], cl: list[Claim]) -> str:
            f"{fmt(p1.metrics['peak_brake_cmd_decel_mps2'] / hi, 3)} times a metro's emergency brake. ")
     if not pg.ok:
         txt += f"With a realistic brake the paper's gains make the train fly apart ({divergence_text(pg)}); "
+    else:
+        txt += "With a realistic brake "
     txt += (f"retuned gains converge in {fmt(q1.metrics['convergence_time_s'], 3, 's', 'never')} with couplers "
             f"deflected by up to {cm(q1.metrics['max_abs_deflection_m'])}, because Table 2's initial speeds differ "
             f"by up to {fmt(_spread_kmh(q1.scenario), 2, 'km/h')}; from consistent speeds the same controller keeps "
             f"{cm(q90.metrics['max_abs_deflection_m'])}. With the realistic brake {n_real} of the "
             f"{len(testable)} claims {'holds' if n_real == 1 else 'hold'} from Table 2's speeds, {n_90} from "
             f"consistent speeds.")
+    pl1, plq = M.plausibility(p1.trace), M.plausibility(q1.trace)
+    txt += (f" What the cars actually do is {PLAUSIBILITY_TEXT[pl1['verdict']]} with the ideal actuator "
+            f"(up to {fmt(pl1['peak_decel_mps2'], 3, 'm/s²')} of deceleration) and "
+            f"{PLAUSIBILITY_TEXT[plq['verdict']]} with the realistic one: the brakes apply at most "
+            f"{fmt(q1.metrics.get('peak_brake_applied_decel_mps2'), 3, 'm/s²')}, but "
+            f"coupler surge from Table 2's speeds decelerates car {plq['peak_decel_car']} at "
+            f"{fmt(plq['peak_decel_mps2'], 3, 'm/s²')} with {fmt(plq['peak_abs_jerk_mps3'], 3, 'm/s³')} of jerk. ")
+    dem = bus_demand(res)
+    bus1 = res.get(f"case1-paper-{bus_variant(BUS_BITRATES[0])}")
+    if dem is not None and bus1 is not None:
+        txt += (f"The paper's 1 ms all-to-all exchange needs {fmt(100 * dem['mean'], 3, '%')} of a "
+                f"{dem['bitrate_bps'] / 1e6:g} Mbit/s CAN bus (peak {fmt(100 * dem['peak'], 3, '%')}): "
+                + ("it does not fit a classical CAN bus, and " if dem["peak"] > 1 else "")
+                + "with the CAN timing model case 1 "
+                + (f"diverges at {fmt(diverged_at(bus1), 3, 's')}" if not bus1.ok else
+                   f"keeps {cm(bus1.metrics['max_abs_deflection_m'])}")
+                + " (every other run assumes ideal bus timing). ")
     return txt
+
+
+def _step_metrics(r: RunResult, variant: str) -> dict[str, float | None]:
+    """The headline metrics a step-size table compares for one run."""
+    if variant == "no-consensus":  # the field alone: when and how far the bound is lost
+        return {"|Δl| > 1 cm at (s)": first_exceed_s(r, PAPER["bound_m"]),
+                "max |Δl| in 0–0.1 s (cm)": 100 * max_deflection_until(r, 0.1 + 1e-9)}
+    m = r.metrics
+    out: dict[str, float | None] = {"max |Δl| (cm)": 100 * m["max_abs_deflection_m"],
+                                    "convergence (s)": m["convergence_time_s"],
+                                    "max |v − v*| (km/h)": max(m["speed_max_abs_error_kmh"])}
+    if r.spec.profile == "paper":
+        out["observer settling (s)"] = observer_settling(r)
+    else:
+        pl = M.plausibility(r.trace)
+        out["peak car decel (m/s²)"] = pl["peak_decel_mps2"]
+        out["peak car jerk (m/s³)"] = pl["peak_abs_jerk_mps3"]
+    return out
+
+
+def step_tables(res: dict[str, RunResult]) -> list[tuple[str, str, list[dict], float | None]]:
+    """Per (profile, variant) of :data:`STEP_RUNS`: (profile, variant, step-size table, converged step s)."""
+    out = []
+    for profile, variants in STEP_RUNS.items():
+        for v in variants:
+            w = step_window(profile, v)
+            rows = []
+            for n in STEP_SUBSTEPS:
+                r = res.get(f"case1-{profile}-{step_variant(v, n)}")
+                if r is None:
+                    break
+                r = upto(r, w) if w is not None else r
+                rows.append((r.scenario.control_period_s / n, _step_metrics(r, v)))
+            if len(rows) >= 2:
+                tab = M.step_convergence(rows)
+                out.append((profile, v, tab, M.first_converged_step(tab)))
+    return out
+
+
+def _step_section(res: dict[str, RunResult]) -> list[str]:
+    L = ["## Step size\n",
+         "The plant integrates each control period in `plant.substeps` sub-steps (default 1: the paper profile's "
+         "plant step is 1 ms, the realistic profile's 10 ms — one step per ECU cycle). Within a sub-step the held "
+         "forces (brake command, traction, resistance, disturbance) move a car by the trapezoidal rule, exact for a "
+         "force held constant, and the couplers semi-implicitly (symplectic Euler; ωh ≤ 0.03). Each table halves "
+         f"the step until every headline metric changes by less than {M.STEP_TOL:.0%} (change against the coarser "
+         "row in brackets):\n"]
+    for profile, v, tab, h in step_tables(res):
+        w = step_window(profile, v)
+        names = list(tab[0]["values"])
+        L.append(f"**Case 1, {profile} profile, {VARIANT_LABELS.get(v, v)}**"
+                 + (f" (0–{w:g} s)" if w is not None else "") + ":\n")
+        rows = []
+        for row in tab:
+            cells = []
+            for n in names:
+                val, c = row["values"][n], row["change"].get(n)
+                cells.append(fmt(val, 4, "", "never") + ("" if row["converged"] is None else
+                                                         f" ({'—' if c is None else fmt(100 * c, 2, '%')})"))
+            conv = "—" if row["converged"] is None else yesno(row["converged"])
+            rows.append([f"{fmt(row['step_s'] * 1000, 3, 'ms')} ({int(round(tab[0]['step_s'] / row['step_s']))} "
+                         f"sub-step{'s' if row['step_s'] < tab[0]['step_s'] else ''})"] + cells + [conv])
+        L.append(_table(["plant step"] + names + [f"< {M.STEP_TOL:.0%}?"], rows))
+        L.append("")
+        L.append(f"Converged at {fmt(h * 1000, 3, 'ms')}: " + ("the document's runs use this step." if h is not None
+                 and h >= tab[0]["step_s"] - 1e-12 else "the document's runs use the first row's step.")
+                 if h is not None else "Not converged within the table: the metrics still move by more than "
+                 f"{M.STEP_TOL:.0%} per halving.")
+        L.append("")
+    return L
+
+
+def bus_demand(res: dict[str, RunResult]) -> dict[str, float] | None:
+    """The paper profile's traffic with ideal timing (frames always arrive): what the 1 ms loop asks of
+    the bus at the scenario's bitrate (mean and peak per-period load; > 1 = more bits than the bus has)."""
+    r = res.get("case1-paper-proposed")
+    bl = (r.summary.get("bus_load") or {}) if r is not None else {}
+    if bl.get("bus_load_mean") is None:
+        return None
+    return {"bitrate_bps": float(bl.get("bitrate_bps", r.scenario.bus.bitrate_bps)),
+            "mean": float(bl["bus_load_mean"]), "peak": float(bl["bus_load_peak"])}
+
+
+def _bus_section(res: dict[str, RunResult]) -> list[str]:
+    dem = bus_demand(res)
+    L = ["## On a classical CAN bus\n"]
+    p = res["case1-paper-proposed"].scenario
+    n = p.n_cars
+    if dem is not None:
+        br = dem["bitrate_bps"]
+        fits = dem["peak"] <= 1.0
+        L.append(f"**The paper's 1 ms all-to-all exchange {'fits' if fits else 'does not fit'} a classical CAN bus.** "
+                 f"Every run above except the two below assumes ideal bus timing (`bus.timing: ideal`): each of the "
+                 f"{n} ECUs' frames arrives within its 1 ms period, whatever the load. Measured in case 1 (paper "
+                 f"profile), the loop's frames need {fmt(100 * dem['mean'], 3, '%')} of a {br / 1e6:g} Mbit/s bus on "
+                 f"average and {fmt(100 * dem['peak'], 3, '%')} in the busiest period — "
+                 f"{fmt(100 * dem['mean'] * 1e6 / 500e3, 3, '%')} / {fmt(100 * dem['peak'] * 1e6 / 500e3, 3, '%')} "
+                 "at 500 kbit/s. A CAN bus carries at most 100 %: with the CAN timing model (`bus.timing: model`: "
+                 "arbitration, bit stuffing, queueing decide when each frame arrives) the frames that do not fit "
+                 "arrive periods late, the ECUs act on stale peer values and commands, and:\n")
+    q = res.get("case1-realistic-proposed")
+    q_bl = (q.summary.get("bus_load") or {}) if q is not None else {}
+    rows = []
+    for br in BUS_BITRATES:
+        r = res.get(f"case1-paper-{bus_variant(br)}")
+        if r is None:
+            continue
+        bl = r.summary.get("bus_load") or {}
+        lat = bl.get("latency_max_s")
+        rows.append([f"{br // 1000} kbit/s", fmt(100 * bl.get("bus_load_mean", math.nan), 3, "%", "—"),
+                     fmt(100 * bl.get("bus_load_peak", math.nan), 3, "%", "—"),
+                     fmt(None if lat is None else lat * 1000, 3, "ms", "—"),
+                     divergence_text(r) if not r.ok else f"max |Δl| {cm(r.metrics['max_abs_deflection_m'])}, converged "
+                     f"{fmt(r.metrics['convergence_time_s'], 3, 's')}", f"`{r.spec.command()}`"])
+    if rows:
+        L.append(_table(["bitrate", "bus load carried (mean)", "peak period", "max frame latency", "case 1, paper profile",
+                         "command"], rows))
+        L.append("")
+        L.append("The paper profile's results hold only on a bus that delivers every value within the 1 ms period "
+                 "(ideal timing) — a bus with several times a classical CAN bus's bandwidth. How much delay and loss "
+                 "the loop survives is measured in [delay-robustness.md](../delay-robustness.md)"
+                 + (f"; the realistic profile's 10 ms cycle needs {fmt(100 * q_bl['bus_load_mean'], 2, '%')} "
+                    f"(peak {fmt(100 * q_bl['bus_load_peak'], 2, '%')})" if q_bl.get("bus_load_mean") is not None else "")
+                 + ".\n")
+    return L
 
 
 def _deviations(res: dict[str, RunResult]) -> list[str]:
@@ -1137,8 +1370,21 @@ def _deviations(res: dict[str, RunResult]) -> list[str]:
     B.append((f"**The potential field is not what keeps ±1 cm in case 1** — the consensus term is (without the field: "
               f"{cm(d_nopf)}). " if d_nopf <= bound else
               f"**Without the potential field case 1 leaves ±1 cm** ({cm(d_nopf)}). ")
-             + f"Without consensus the field alone keeps {cm(noc.metrics['max_abs_deflection_m'])} in case 1 "
-             f"(convergence {fmt(settling_time_s(noc.trace.t_s, err_kmh(noc.trace), BAND_KMH), 3, 's')}); in case 2 "
+             + (f"Without consensus the field alone keeps {cm(noc.metrics['max_abs_deflection_m'])} in case 1 "
+                f"(convergence {fmt(settling_time_s(noc.trace.t_s, err_kmh(noc.trace), BAND_KMH), 3, 's')}); "
+                if noc.ok and noc.metrics["max_abs_deflection_m"] <= bound else
+                f"Without consensus the field alone does not hold the bound in case 1: |Δl| passes 1 cm at "
+                f"{fmt(first_exceed_s(noc, bound), 3, 's', 'never')} and reaches {cm(max_deflection_until(noc, 0.1 + 1e-9))} "
+                + (f"by 0.1 s and {cm(max_deflection_until(noc, end_time(noc) + 1e-9))} by {fmt(end_time(noc), 2, 's')}"
+                   if noc.ok else f"by 0.1 s; the run {divergence_text(noc)}")
+                + f" (convergence: {fmt(settling_time_s(noc.trace.t_s, err_kmh(noc.trace), BAND_KMH), 3, 's')}"
+                + ("; the same to 1 % with the plant step halved twice, section *Step size*"
+                   if any(v == "no-consensus" and tab[-1]["converged"] for _, v, tab, _h in step_tables(res)) else
+                   "; see section *Step size* for how these move with the plant step")
+                + ") — a barrier on ±1 cm cannot absorb "
+                f"Table 2's {fmt(_spread_kmh(noc.scenario), 2, 'km/h')} speed spread without the consensus term "
+                "matching the speeds; ")
+             + f"in case 2 "
              f"the field is needed: without it {cm(p2npf.metrics['max_abs_deflection_m'])}, with it "
              f"{cm(upto(p2, w2).metrics['max_abs_deflection_m'])}.")
     pi1, pi2, pi3 = res["case1-paper-pi"], res["case2-paper-pi"], res["case3-paper-pi"]
@@ -1204,7 +1450,11 @@ def write_markdown(res: dict[str, RunResult], out_dir: Path, figs: dict[str, str
       f"Table 2 gains, {p1.scenario.control_period_s * 1000:g} ms) and **realistic** (first-order brake lag, "
       f"jerk limit, brake rating, adhesion cap μ·m·g, {q1.scenario.control_period_s * 1000:g} ms ECU cycle, "
       "retuned gains). Select one with `profile:` in the file or `--profile` on the command line; the variants "
-      "below are `--set` overrides (the exact command of every run is listed at the end).\n")
+      "below are `--set` overrides (the exact command of every run is listed at the end). The plant's "
+      f"integration step is the control period divided by `plant.substeps`: {fmt(p1.scenario.control_period_s / p1.scenario.plant.substeps * 1000, 3, 'ms')} "
+      f"in the paper profile, {fmt(q1.scenario.control_period_s / q1.scenario.plant.substeps * 1000, 3, 'ms')} in the "
+      "realistic profile, each checked by halving it (section *Step size*). Bus timing is ideal (every frame within "
+      "its period) except in the rows marked *CAN timing model* (section *On a classical CAN bus*).\n")
     a(f"All {len(res)} runs ({fmt(sim_s, 4, 's')} simulated, {ticks:,} control periods) use canbrake's "
       "**in-process engine** (`--bus inprocess`): the plant, the six ECUs and the recorder are the same node code "
       "that runs as separate OS processes, exchanging the same CAN frames (DBC-encoded, E2E-protected) in "
@@ -1226,6 +1476,7 @@ def write_markdown(res: dict[str, RunResult], out_dir: Path, figs: dict[str, str
       f"{OBSERVER_TOL_MPS2} m/s² of the actual value (the CAN speed resolution of 10⁻⁴ m/s leaves a few "
       "mm/s² of estimation noise).\n")
 
+    L.extend(_bus_section(res))
     a("## What does not reproduce, and why\n")
     for b in _deviations(res):
         a(f"* {b}")
@@ -1246,6 +1497,7 @@ def write_markdown(res: dict[str, RunResult], out_dir: Path, figs: dict[str, str
                   "realistic profile", "realistic, from 90 km/h"], _ablation_rows(res, c)))
         a("")
 
+    L.extend(_step_section(res))
     a("## Figures 3–17\n")
     a("Numbered as in the paper; each shows our paper profile (left) and realistic profile (right). Grey bands: "
       "rail events; dotted line: disturbance start; red dotted: the ±1 cm bound; green band: ±0.5 km/h.\n")
