@@ -4,6 +4,8 @@ runs at the scenario's ``bus.bitrate_bps`` and is not bus-off (a vcan has no bit
 from __future__ import annotations
 
 import json
+import shutil
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -15,9 +17,6 @@ def socketcan_link(channel: str) -> dict[str, Any]:
     ``up`` (bool), ``bitrate_bps`` (int, or None where the kernel reports none, e.g. vcan) and
     ``state`` (the CAN controller state, e.g. ERROR-ACTIVE, BUS-OFF). Falls back to sysfs
     (operstate, type) without ``ip``. Raises OSError when the interface cannot be read."""
-    import shutil
-    import subprocess
-
     info: dict[str, Any] = {"kind": None, "up": None, "bitrate_bps": None, "state": None}
     sys_dir = Path("/sys/class/net") / channel
     if shutil.which("ip"):
