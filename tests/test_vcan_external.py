@@ -1,0 +1,110 @@
+"""Car 3's ECU in C (examples/foreign_ecu_c) on vcan0 beside a canbrake run, lockstep and realtime.
+
+Marked ``vcan``: runs in the VM (``.ci/run-vcan``). Kept short for CI's VM budget: a three-car
+version of examples/foreign_ecu.yaml with a 50 ms period, one canbrake run per mode. The C
+program is compiled in the test against the codec that ``cantools generate_c_source`` makes from
+the DBC the lockstep run wrote (its run directory's canbrake.dbc); the realtime run has the same
+layout and reuses it.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+pytestmark = pytest.mark.vcan
+
+ROOT = Path(__file__).resolve().parents[1]
+C_EXAMPLE = ROOT / "examples" / "foreign_ecu_c"
+PERIOD_S = 0.05
+KP = 4.0  # 1/s: kp * T = 0.2, the speed error shrinks by 0.8 per period
+
+
+def _scenario(tmp_path: Path) -> Path:
+    """examples/foreign_ecu.yaml cut to three cars, PI everywhere (no peer data), 50 ms period."""
+    data = yaml.safe_load((ROOT / "examples" / "foreign_ecu.yaml").read_text())
+    data.update(name="foreign_ecu_c_vcan", control_period_s=PERIOD_S, duration_s=0.5,
+                controller={"name": "pi", "params": {"kp": KP}})
+    data["train"]["mass_kg"] = data["train"]["mass_kg"][:3]
+    data["initial"] = {"speed_kmh": [88, 93, 87], "position_m": [10, 20, 30]}
+    data["ecus"] = [{"name": "ecu1", "vehicle": 1, "listens": "none"}, {"name": "ecu2", "vehicle": 2, "listens": "none"},
+                    {"name": "ecu3", "vehicle": 3, "listens": "none", "external": True,
+                     "controller": {"name": "pi", "params": {"kp": KP}}}]
+    data["safety"] = {"command_timeout_s": 0.25}
+    data["ecu"] = {"external_start_timeout_s": 600, "external_timeout_s": 30}  # an emulated VM is slow
+    data["bus"] = {"backend": "socketcan", "channel": "vcan0", "bitrate_bps": 1000000}
+    p = tmp_path / "foreign_ecu_c_vcan.yaml"
+    p.write_text(yaml.safe_dump(data, sort_keys=False))
+    return p
+
+
+def _env(tmp_path: Path) -> dict[str, str]:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    env.setdefault("CANBRAKE_START_TIMEOUT_S", "600")
+    return env
+
+
+def _run(tmp_path: Path, scn: Path, out: str, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "canbrake", "run", str(scn), "--bus", "socketcan", "--channel",
+                             "vcan0", "--out", out, "--no-plots", *extra], cwd=tmp_path, env=_env(tmp_path),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _check(tmp_path: Path, out: str, run: subprocess.Popen, ecu: subprocess.Popen) -> dict:
+    o, err = run.communicate(timeout=900)
+    eo, ee = ecu.communicate(timeout=120)
+    assert run.returncode == 0, err[-3000:]
+    assert ecu.returncode == 0, ee
+    s = json.loads((tmp_path / out / "summary.json").read_text())
+    n_ticks = round(0.5 / PERIOD_S)
+    assert s["status"] == "ok" and s["verdict"] == "ok", (s["verdict"], s["findings"])
+    assert s["external_ecus"]["ecu3"]["periods_missed"] == 0
+    assert f"answered {n_ticks}" in eo or s["mode"] == "realtime", eo
+    import csv
+
+    rows = list(csv.DictReader((tmp_path / out / "signals.csv").open()))
+    # PI with zero-order hold: e_k+1 = (1 - kp T) e_k from |87 - 90| km/h; after 8 periods
+    # 3 * 0.8^8 = 0.5 km/h (the metrics' band), before coupler forces; checked from period 9
+    late = [r for r in rows if float(r["t_s"]) >= 9 * PERIOD_S - 1e-9]
+    assert late, rows[-1]
+    worst = max(abs(float(r["speed_mps_c3"]) - float(r["ref_speed_mps"])) * 3.6 for r in late)
+    assert worst < 0.5, worst
+    return s
+
+
+@pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="no cc/make")
+def test_c_foreign_ecu_on_vcan0_lockstep_and_realtime(tmp_path):
+    scn = _scenario(tmp_path)
+    run = _run(tmp_path, scn, "lock")
+    dbc = tmp_path / "lock" / "canbrake.dbc"
+    t0 = time.monotonic()
+    while not dbc.exists():  # written before the run starts its nodes
+        assert run.poll() is None, run.communicate()[1][-3000:]
+        assert time.monotonic() - t0 < 600, "the run wrote no canbrake.dbc"
+        time.sleep(0.5)
+    build = tmp_path / "build"
+    mk = subprocess.run(["make", "-C", str(C_EXAMPLE), f"BUILD={build}", f"DBC={dbc}", f"PYTHON={sys.executable}"],
+                        env=_env(tmp_path), capture_output=True, text=True, timeout=600)
+    assert mk.returncode == 0, mk.stdout[-2000:] + mk.stderr[-2000:]
+    exe = str(build / "foreign_ecu")
+    args = ["-c", "vcan0", "--period-ms", str(PERIOD_S * 1000), "--kp", str(KP), "--mass-kg", "19500",
+            "--timeout-s", "600"]
+    ecu = subprocess.Popen([exe, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    s = _check(tmp_path, "lock", run, ecu)
+    assert s["mode"] == "lockstep"
+
+    # realtime at half speed (100 ms of wall time per period): the C ECU needs no barrier frames
+    run = _run(tmp_path, scn, "rt", "--mode", "realtime", "--time-scale", "0.5")
+    ecu = subprocess.Popen([exe, *args, "--realtime"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    s = _check(tmp_path, "rt", run, ecu)
+    assert s["mode"] == "realtime" and s["clock"]["time_scale"] == 0.5
+    assert s["clock"]["wall_period_s"] == pytest.approx(2 * PERIOD_S)
+    assert s["ecu_response_s"]["ecu3"]["n"] > 0
