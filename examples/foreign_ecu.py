@@ -10,7 +10,7 @@ examples/foreign_ecu.yaml (``external: true``) and follows docs/lockstep-protoco
 ecu3 runs the ``pi`` controller works: ``--external ecu3`` makes it external from the command line.)
 
 Per control period k the plant sends SYNC(k), REFERENCE and SENSOR_C3; on SENSOR_C3 this ECU sends
-(heartbeat every 100 periods), STATE_C3 and STATE_DONE_C3(k), then BRAKE_CMD_C3 and CMD_DONE_C3(k).
+(a heartbeat every heartbeat period), STATE_C3 and STATE_DONE_C3(k), then BRAKE_CMD_C3 and CMD_DONE_C3(k).
 It ends on SYNC(0xFFFFFFFF). The control law is a PI speed controller with feed-forward:
 F = m (a* + kp (v - v*)) N, + = brake (Chen's u_i3 term alone).
 """
@@ -51,7 +51,6 @@ def main() -> None:
     ap.add_argument("--car", default="C3", help="message suffix of this ECU (C3 = ecu3 on vehicle 3)")
     ap.add_argument("--mass-kg", type=float, default=19500.0, help="this car's mass (kg)")
     ap.add_argument("--kp", type=float, default=36.0, help="speed gain (1/s)")
-    ap.add_argument("--heartbeat-every", type=int, default=100, help="control periods per heartbeat")
     ap.add_argument("--timeout", type=float, default=60.0, help="give up after this long without a SYNC (s)")
     a = ap.parse_args()
 
@@ -59,6 +58,8 @@ def main() -> None:
     msg = {name: db.get_message_by_name(f"{name}_{a.car}")
            for name in ("SENSOR", "STATE", "STATE_DONE", "BRAKE_CMD", "CMD_DONE", "HEARTBEAT")}
     sync, ref = db.get_message_by_name("SYNC"), db.get_message_by_name("REFERENCE")
+    # the DBC gives the period: SYNC's cycle time is the control period, HEARTBEAT's the heartbeat's (ms)
+    heartbeat_every = max(1, round(msg["HEARTBEAT"].cycle_time / sync.cycle_time))
     wanted = [sync.frame_id, ref.frame_id, msg["SENSOR"].frame_id]
     bus = can.Bus(interface=a.interface, channel=a.channel, receive_own_messages=False,
                   can_filters=[{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in wanted])
@@ -94,7 +95,7 @@ def main() -> None:
                 s = msg["SENSOR"].decode(frame.data)
                 counter = k % COUNTER_MODULO
                 # phase 1: heartbeat, state for the peers that listen to us, state barrier
-                if k % a.heartbeat_every == 0:
+                if k % heartbeat_every == 0:
                     send(msg["HEARTBEAT"], encode(msg["HEARTBEAT"], {"NodeState": 5}))
                 state = {"Speed": s["Speed"], "Position": s["Position"], "Counter": counter, "CRC": 0}
                 send(msg["STATE"], protect(msg["STATE"].frame_id, encode(msg["STATE"], state)))
