@@ -35,7 +35,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 def _cmd_run(a: argparse.Namespace) -> int:
     from canbrake.builtin import find_scenario
     from canbrake.run import preflight, run_scenario, stop_node_server
-    from canbrake.scenario import load_scenario
+    from canbrake.scenario import ScenarioError, load_scenario
 
     overrides = _parse_set(a.set or [])
     if a.log_format is not None:
@@ -49,7 +49,12 @@ def _cmd_run(a: argparse.Namespace) -> int:
     if a.time_scale is not None:
         overrides["time_scale"] = a.time_scale
     a.scenario = str(find_scenario(a.scenario))  # a file, else a built-in scenario's name
-    scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides, external=a.external)
+    try:
+        scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides, external=a.external)
+    except ScenarioError as e:
+        if a.time_scale is not None and str(e).startswith("--set time_scale:"):
+            raise ScenarioError("--time-scale" + str(e)[len("--set time_scale"):]) from None
+        raise
     choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
     from canbrake.run import check_out_dir
