@@ -29,13 +29,14 @@ KP = 4.0  # 1/s: kp * T = 0.2, the speed error shrinks by 0.8 per period
 
 
 def _scenario(tmp_path: Path) -> Path:
-    """examples/foreign_ecu.yaml cut to three cars, PI everywhere (no peer data), 50 ms period."""
+    """examples/foreign_ecu.yaml cut to three cars, PI everywhere, 50 ms period."""
     data = yaml.safe_load((ROOT / "examples" / "foreign_ecu.yaml").read_text())
     data.update(name="foreign_ecu_c_vcan", control_period_s=PERIOD_S, duration_s=0.5,
                 controller={"name": "pi", "params": {"kp": KP}})
     data["train"]["mass_kg"] = data["train"]["mass_kg"][:3]
     data["initial"] = {"speed_kmh": [88, 93, 87], "position_m": [10, 20, 30]}
-    data["ecus"] = [{"name": "ecu1", "vehicle": 1, "listens": "none"}, {"name": "ecu2", "vehicle": 2, "listens": "none"},
+    # ecu1 and ecu2 listen to ecu3 (their PI law ignores it, but they wait for its state frames)
+    data["ecus"] = [{"name": "ecu1", "vehicle": 1, "listens": ["ecu3"]}, {"name": "ecu2", "vehicle": 2, "listens": ["ecu3"]},
                     {"name": "ecu3", "vehicle": 3, "listens": "none", "external": True,
                      "controller": {"name": "pi", "params": {"kp": KP}}}]
     data["safety"] = {"command_timeout_s": 0.25}
@@ -44,6 +45,11 @@ def _scenario(tmp_path: Path) -> Path:
     p = tmp_path / "foreign_ecu_c_vcan.yaml"
     p.write_text(yaml.safe_dump(data, sort_keys=False))
     return p
+
+
+def _progress(what: str) -> None:
+    """A line on stderr (shown live with pytest -s): where a slow VM run is."""
+    print(f"test_vcan_external {time.strftime('%H:%M:%S')}: {what}", file=sys.stderr, flush=True)
 
 
 def _env(tmp_path: Path) -> dict[str, str]:
@@ -108,6 +114,7 @@ def test_c_foreign_ecu_on_vcan0_lockstep_and_realtime(tmp_path):
 
 def _lockstep_and_realtime(tmp_path: Path) -> None:
     os.environ.setdefault("CANBRAKE_START_TIMEOUT_S", "600")
+    _progress("starting the lockstep run")
     scn = _scenario(tmp_path)
     run = _run(scn, tmp_path / "lock")
     dbc = tmp_path / "lock" / "canbrake.dbc"
@@ -116,7 +123,18 @@ def _lockstep_and_realtime(tmp_path: Path) -> None:
         assert run[0].is_alive(), run[1]
         assert time.monotonic() - t0 < 600, "the run wrote no canbrake.dbc"
         time.sleep(0.5)
+    _progress(f"the run wrote {dbc.name}; building the C ECU")
     build = tmp_path / "build"
+    # the codec in this process (cantools is loaded already: one Python start less in the VM), with
+    # the Makefile's generator; make then only compiles (its generation step: tests/test_external.py)
+    build.mkdir()
+    shutil.copy(dbc, build / "canbrake.dbc")
+    sys.path.insert(0, str(C_EXAMPLE))
+    try:
+        import gen_codec
+    finally:
+        sys.path.remove(str(C_EXAMPLE))
+    gen_codec.main(str(build / "canbrake.dbc"), str(build))
     mk = subprocess.run(["make", "-C", str(C_EXAMPLE), f"BUILD={build}", f"DBC={dbc}", f"PYTHON={sys.executable}"],
                         env=_env(tmp_path), capture_output=True, text=True, timeout=600)
     assert mk.returncode == 0, mk.stdout[-2000:] + mk.stderr[-2000:]
@@ -124,13 +142,17 @@ def _lockstep_and_realtime(tmp_path: Path) -> None:
     args = ["-c", "vcan0", "--period-ms", str(PERIOD_S * 1000), "--kp", str(KP), "--mass-kg", "19500",
             "--timeout-s", "600"]
     ecu = subprocess.Popen([exe, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _progress("C ECU started (lockstep)")
     s = _check(tmp_path / "lock", run, ecu)
+    _progress("lockstep run done")
     assert s["mode"] == "lockstep"
 
     # realtime at half speed (100 ms of wall time per period): the C ECU needs no barrier frames
     run = _run(scn, tmp_path / "rt", mode="realtime", time_scale=0.5)
     ecu = subprocess.Popen([exe, *args, "--realtime"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _progress("realtime run and C ECU started")
     s = _check(tmp_path / "rt", run, ecu)
+    _progress("realtime run done")
     assert s["mode"] == "realtime" and s["clock"]["time_scale"] == 0.5
     assert s["clock"]["wall_period_s"] == pytest.approx(2 * PERIOD_S)
     assert s["ecu_response_s"]["ecu3"]["n"] > 0
