@@ -115,3 +115,45 @@ def test_ecp_over_can_wagons_apply_the_locomotive_demand(tmp_path):
     last = df["brake_cylinder_pressure_pa_c106"].to_numpy()
     assert list(df["cmd_ecp_demand_c106"].to_numpy()[:4]) == [0.0, 0.0, 0.0, 1.0]  # t = 0, .05, .1, .15
     assert last[-1] > 0.0
+
+
+@pytest.mark.slow
+def test_a_silent_ecp_wagon_brakes_on_its_own_with_the_failsafe(tmp_path):
+    """Wagon 53's ECU goes silent at 0.05 s. Without a fail-safe its cylinder holds the last command
+    (released); with ``safety.failsafe_commands: {ecp_demand: 1}`` the brake unit applies a full
+    application after ``command_timeout_s`` (0.1 s = 2 periods) while its neighbours stay released
+    (no demand yet)."""
+    base = {"duration_s": 0.5, "ecus.0.controller.params.brake_at_s": 10.0, "bus.timing": "ideal",
+            "bus.impairments": [{"type": "silent", "senders": ["wagon53"], "start_s": 0.05}]}
+    out = {}
+    for key, extra in (("hold", {}), ("failsafe", {"safety": {"command_timeout_s": 0.1,
+                                                              "failsafe_commands": {"ecp_demand": 1.0}}})):
+        scn = load_scenario(SCENARIOS / "li2024_ecp_over_can.yaml", overrides={**base, **extra})
+        s = run_scenario(scn, tmp_path / key, backend="inprocess", plots=False)
+        assert s["status"] == "ok", s.get("message")
+        out[key] = (s, _signals(tmp_path / key, ("brake_cylinder_pressure_pa_c53", "brake_cylinder_pressure_pa_c52")))
+    s_hold, hold = out["hold"]
+    s_fs, fs = out["failsafe"]
+    assert hold["brake_cylinder_pressure_pa_c53"].max() == 0.0
+    assert fs["brake_cylinder_pressure_pa_c53"][-1] > 0.0 and fs["brake_cylinder_pressure_pa_c52"].max() == 0.0
+    assert s_fs["failsafe"]["activations"] == 1 and list(s_fs["failsafe"]["first_activation_s"]) == ["c53"]
+
+
+@pytest.mark.slow
+def test_ecp_report_runs_the_step_check(tmp_path):
+    """`canbrake report ecp` on a short run: the step-size runs are the same run with the plant step
+    halved twice, and the table shows each with the change to the next finer step."""
+    from canbrake.report import ecp
+    sets = (("ecus.0.controller.params.brake_at_s", 0.1), ("bus.timing", "ideal"), ("train.integration_step_s", 0.01))
+    spec = ecp.Spec("ecp-250k", None, "ECP test", sets)
+    md = ecp.generate(tmp_path / "out", tmp_path / "runs", jobs=1, duration_s=0.4, specs=(spec,),
+                      log=lambda m: None)
+    text = md.read_text()
+    assert "## Integration step" in text
+    for h in ("10 ms", "5 ms", "2.5 ms"):
+        assert f"| ECP test | {h} |" in text
+    assert "--set train.integration_step_s=0.0025" in text
+    import json
+    r5 = json.loads((tmp_path / "runs" / "ecp-250k-h5ms" / "report.json").read_text())
+    r10 = json.loads((tmp_path / "runs" / "ecp-250k" / "report.json").read_text())
+    assert r5["max_compression_n"] != r10["max_compression_n"]  # a different step is a different run
