@@ -151,7 +151,12 @@ def _train_plant(scn: Scenario):
 
 def needs_barrier(scn: Scenario) -> bool:
     """Lockstep needs the *_DONE barrier frames only when a frame can be lost, delayed or late."""
-    return bool(scn.bus.impairments) or scn.bus.timing == "model"
+    return bool(scn.bus.impairments) or scn.bus.timing == "model" or bool(external_ecus(scn))
+
+
+def external_ecus(scn: Scenario) -> frozenset[int]:
+    """Indices (1-based, placement order) of the ECUs canbrake does not start (``external: true``)."""
+    return frozenset(i for i, p in enumerate(scn.placement(), start=1) if getattr(p, "external", False))
 
 
 def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
@@ -341,7 +346,9 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                          heartbeat_period_s=scn.ecu.heartbeat_period_s,
                          out_dir=run_dir, progress=progress, hosted=hosted_babblers(scn),
                          barrier=needs_barrier(scn), failsafe=failsafe_of(scn), secoc=secoc,
-                         trace_every=scn.plant.trace_every)
+                         trace_every=scn.plant.trace_every, external=external_ecus(scn),
+                         external_start_timeout_s=scn.ecu.external_start_timeout_s,
+                         external_timeout_s=scn.ecu.external_timeout_s, time_scale=scn.time_scale)
     if role == "ecu":
         from canbrake.nodes.ecu import EcuNode
 
@@ -358,6 +365,8 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
                        lockstep_deadline=scn.ecu.lockstep_deadline,
                        secoc=secoc, peer_hold_periods=scn.safety.peer_hold_periods, n_ticks=scn.n_ticks,
                        clock=_realtime_clock(scn, layout, spec.name), rt_errors=_realtime_errors(scn, spec.name),
+                       external=external_ecus(scn), external_timeout_s=scn.ecu.external_timeout_s,
+                       time_scale=scn.time_scale,
                        crash_at_tick=(int(round(scn.ecu.crash.at_s / scn.control_period_s))
                                       if scn.ecu.crash is not None and scn.ecu.crash.car == spec.vehicle else None))
     if role == "recorder":
@@ -366,6 +375,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
         return RecorderNode(layout, dt_s=scn.control_period_s, bitrate_bps=scn.bus.bitrate_bps, mode=scn.mode,
                             plant_io_on_bus=scn.bus.plant_io_on_bus, barrier=needs_barrier(scn), secoc=secoc,
                             n_ticks=scn.n_ticks, bus_timing=_error_timing(scn), segments=_segments_of(scn, layout),
+                            external=external_ecus(scn),
                             log_path=None if run_dir is None else run_dir / f"frames.{scn.bus.log_format}",
                             channel=channel)
     raise ValueError(f"unknown node role {role!r}")

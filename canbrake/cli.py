@@ -35,7 +35,7 @@ def _parse_set(items: Sequence[str]) -> dict[str, Any]:
 def _cmd_run(a: argparse.Namespace) -> int:
     from canbrake.builtin import find_scenario
     from canbrake.run import preflight, run_scenario, stop_node_server
-    from canbrake.scenario import load_scenario
+    from canbrake.scenario import ScenarioError, load_scenario
 
     overrides = _parse_set(a.set or [])
     if a.log_format is not None:
@@ -46,8 +46,15 @@ def _cmd_run(a: argparse.Namespace) -> int:
         overrides["duration_s"] = a.duration
     if a.mode is not None:
         overrides["mode"] = a.mode
+    if a.time_scale is not None:
+        overrides["time_scale"] = a.time_scale
     a.scenario = str(find_scenario(a.scenario))  # a file, else a built-in scenario's name
-    scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides)
+    try:
+        scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides, external=a.external)
+    except ScenarioError as e:
+        if a.time_scale is not None and str(e).startswith("--set time_scale:"):
+            raise ScenarioError("--time-scale" + str(e)[len("--set time_scale"):]) from None
+        raise
     choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     out = Path(a.out) if a.out else Path("runs") / scn.name
     from canbrake.run import check_out_dir
@@ -63,6 +70,10 @@ def _cmd_run(a: argparse.Namespace) -> int:
               f"{out / 'scenario.yaml'}", file=sys.stderr)
     if choice.backend == "memory":
         _print_attach(choice.channel, out)
+    ext = [p.name for p in scn.placement() if p.external]
+    if ext:
+        print(f"canbrake: external ECU {', '.join(ext)}: start it on {choice.describe()} now (waiting "
+              f"{scn.ecu.external_start_timeout_s:g} s for its heartbeat; docs/lockstep-protocol.md)", file=sys.stderr)
     try:
         summary = run_scenario(scn, out, backend=a.bus, channel=channel, interface=a.interface, dbc_path=a.dbc,
                                plots=not a.no_plots)
@@ -265,6 +276,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--channel", help="bus channel (vcan0, can0, or an in-memory channel name)")
     r.add_argument("--interface", help="any python-can interface name (overrides --bus), e.g. pcan, kvaser")
     r.add_argument("--mode", choices=["lockstep", "realtime"])
+    r.add_argument("--time-scale", type=float, metavar="X",
+                   help="realtime: simulated s per wall s (0.5 half speed for slow hardware, 2 double)")
+    r.add_argument("--external", action="append", metavar="ECU",
+                   help="leave this ECU (e.g. ecu3) to a program or device outside canbrake "
+                        "(docs/lockstep-protocol.md); repeatable")
     r.add_argument("--profile", help="a profile defined in the scenario's profiles: section (e.g. paper, realistic)")
     r.add_argument("--seed", type=int)
     r.add_argument("--duration", type=float, help="simulated seconds")

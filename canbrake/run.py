@@ -433,10 +433,11 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
         start_timeout_s = _start_timeout_s()
     placed = scn.placement()
     per = max(1, scn.ecu.per_process)
+    own = [i for i, p in enumerate(placed, start=1) if not p.external]  # external ECUs are not started
     if per == 1:
-        ecu_roles: list[tuple[str, Any]] = [("ecu", i) for i in range(1, len(placed) + 1)]
+        ecu_roles: list[tuple[str, Any]] = [("ecu", i) for i in own]
     else:  # several ECUs hosted per process (canbrake.nodes.group)
-        ecu_roles = [("ecu", tuple(range(i, min(i + per, len(placed) + 1)))) for i in range(1, len(placed) + 1, per)]
+        ecu_roles = [("ecu", tuple(own[i:i + per])) for i in range(0, len(own), per)]
     roles = [("recorder", 0)] + ecu_roles + [("plant", 0)]
     barrier = ctx.Barrier(len(roles))
     progress = ctx.Value("q", -1, lock=False)
@@ -482,7 +483,12 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
                 # The plant sent the end-of-run SYNC; the others stop on it. After an early end
                 # (diverged), nodes without authentication do not trust that END (it could be
                 # forged, canbrake.bus.guard): the run is over, so they are stopped here.
-                early = _load_plant_status(run_dir) == "diverged"
+                plant_status = _load_plant_status(run_dir)
+                if plant_status == "external_missing":
+                    from canbrake.external import missing_message
+
+                    raise RunFailure(missing_message(scn, run_dir, choice.describe()))
+                early = plant_status == "diverged"
                 deadline = time.time() + (2.0 if early else 10.0)
                 for p in alive:
                     p.join(max(0.0, deadline - time.time()))
@@ -757,6 +763,10 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
 
         check_faults(scn)
         check_impairment_targets(scn)
+        external = [p.name for p in scn.placement() if p.external]
+        if external and choice.backend in ("virtual", "inprocess"):
+            raise ScenarioError(f"ecus: external ECU {', '.join(external)} needs a bus other programs can reach: "
+                                f"--bus memory (python-can interface canbrake) or --bus socketcan, not {choice.backend}")
         if choice.backend == "memory":
             _check_memory_channel(scn, choice, explicit=bool(channel or scn.bus.channel))
         if scn.security is not None:
@@ -779,6 +789,9 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
                 check_socketcan_channel(choice.channel or "vcan0")
             except VcanError as e:
                 raise ScenarioError(f"--channel {choice.channel}: {e}") from None
+            from canbrake.bus.link import check_socketcan_link
+
+            check_socketcan_link(scn, choice.channel or "vcan0")
         elif choice.backend == "adapter":
             _check_adapter(choice)
         if choice.backend not in ("virtual", "inprocess"):

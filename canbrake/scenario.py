@@ -260,10 +260,12 @@ class ControllerConfig(_Model):
 class PlacedEcu:
     """One ECU after expanding the placement (see :meth:`Scenario.placement`)."""
 
-    __slots__ = ("name", "vehicle", "controller", "listens")
+    __slots__ = ("name", "vehicle", "controller", "listens", "external")
 
-    def __init__(self, name: str, vehicle: int, controller: "ControllerConfig", listens: Any) -> None:
+    def __init__(self, name: str, vehicle: int, controller: "ControllerConfig", listens: Any,
+                 external: bool = False) -> None:
         self.name, self.vehicle, self.controller, self.listens = name, vehicle, controller, listens
+        self.external = external  # not started by canbrake: a foreign program or a real ECU on the bus
 
     def __repr__(self) -> str:
         return f"PlacedEcu({self.name!r}, vehicle={self.vehicle}, controller={self.controller.name!r})"
@@ -280,6 +282,9 @@ class EcuPlacement(_Model):
     vehicles: str | None = Field(None, pattern=r"^\s*\d+\s*-\s*\d+\s*$")
     controller: ControllerConfig | None = None
     listens: Literal["all", "none"] | list[str] = "all"
+    external: bool = Field(False, description="canbrake does not start this ECU: a foreign program or a real ECU "
+                                              "sends its frames (docs/lockstep-protocol.md); its controller only "
+                                              "defines its frames")
 
     @model_validator(mode="after")
     def _one_of(self) -> "EcuPlacement":
@@ -440,6 +445,12 @@ class EcuConfig(_Model):
     clocks: list[ClockConfig] = Field(default_factory=list,
                                       description="clock drift (ppm) and timer jitter per ECU, simulated time with "
                                                   "bus.timing: model (canbrake.bus.clock)")
+    external_start_timeout_s: float = Field(30.0, gt=0, description="external ECUs (ecus.*.external): how long "
+                                            "the run waits for each one's first heartbeat (wall s)")
+    external_timeout_s: float = Field(1.0, gt=0, description="lockstep: how long (wall s) the plant and the ECUs "
+                                      "wait for an external ECU's frames of a period once everything else is in; "
+                                      "then the period goes on without them and the ECU counts as silent until its "
+                                      "frames are on time again")
 
 
 def _train_tag(v: Any) -> str:
@@ -460,6 +471,8 @@ class Scenario(_Model):
     duration_s: float = Field(..., gt=0)
     control_period_s: float = Field(0.001, gt=0, le=1.0)
     mode: Literal["lockstep", "realtime"] = "lockstep"
+    time_scale: float = Field(1.0, gt=0, le=100, description="realtime: simulated seconds per wall second "
+                                                             "(0.5: half speed for slow hardware)")
     profile: str | None = None
     profiles: dict[str, dict[str, Any]] = Field(default_factory=dict)
     train: TrainUnion
@@ -537,6 +550,8 @@ class Scenario(_Model):
                              f"front or set train.coupler.spacing_m")
 
     def _check_times(self) -> "Scenario":
+        if self.time_scale != 1.0 and self.mode != "realtime":
+            raise ValueError("@time_scale: only used in realtime mode (mode: realtime, --mode realtime)")
         t_out = self.safety.command_timeout_s
         if t_out is not None and t_out < self.control_period_s:
             raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
@@ -593,7 +608,7 @@ class Scenario(_Model):
                 name = (e.name or "ecu{v}").replace("{v}", str(v))
                 if e.vehicles is not None and e.name is not None and "{v}" not in e.name and len(vs) > 1:
                     raise ValueError(f"ecus.{i}.name: a range of vehicles needs {{v}} in the name")
-                out.append(PlacedEcu(name, v, e.controller or self.controller, e.listens))
+                out.append(PlacedEcu(name, v, e.controller or self.controller, e.listens, e.external))
         return out
 
     # --- SI accessors -------------------------------------------------------------------
@@ -638,6 +653,39 @@ class Scenario(_Model):
         """Resolved scenario (defaults filled in) as YAML."""
         data = self.model_dump(mode="json")
         return yaml.safe_dump(data, sort_keys=False)
+
+
+def mark_external(data: dict[str, Any], names: list[str], source: str = "--external") -> dict[str, Any]:
+    """Scenario mapping ``data`` with the ECUs ``names`` made external (``--external ecu3``). A
+    scenario without ``ecus:`` gets Chen's placement written out (ecu1..ecuN, one per vehicle)."""
+    data = copy.deepcopy(data)
+    if not names:
+        return data
+    if not data.get("ecus"):
+        try:
+            n = Scenario.model_validate(data).n_cars
+        except ValidationError:
+            return data  # the scenario's own error is reported by resolve()
+        data["ecus"] = [{"name": f"ecu{v}", "vehicle": v} for v in range(1, n + 1)]
+    entries = data["ecus"]
+    known = []
+    for name in names:
+        hit = None
+        for e in entries:
+            if not isinstance(e, dict):
+                continue
+            own = e.get("name") or ("ecu{v}" if e.get("vehicles") else f"ecu{e.get('vehicle')}")
+            if e.get("vehicle") is not None:
+                own = own.replace("{v}", str(e["vehicle"]))
+            if own == name:
+                hit = e
+            known.append(own)
+        if hit is None:
+            raise ScenarioError(f"{source} {name}: no ECU of that name in the placement (ECUs: "
+                                f"{', '.join(dict.fromkeys(known))}); an ECU of a vehicle range is made external "
+                                f"in the scenario file (ecus: ... external: true)")
+        hit["external"] = True
+    return data
 
 
 def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
@@ -690,7 +738,7 @@ def format_validation_error(source: str, err: ValidationError) -> str:
 
 
 def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | None = None,
-            overrides: dict[str, Any] | None = None) -> Scenario:
+            overrides: dict[str, Any] | None = None, external: list[str] | None = None) -> Scenario:
     """Validate a scenario mapping, applying a profile and dotted-key overrides."""
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
@@ -707,6 +755,8 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
         data["profile"] = profile
     for k, v in (overrides or {}).items():
         _set_dotted(data, k, v)
+    if external:
+        data = mark_external(data, list(external))
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
@@ -739,7 +789,7 @@ class _NoAliasLoader(yaml.SafeLoader):
 
 
 def load_scenario(path: str | Path, profile: str | None = None,
-                  overrides: dict[str, Any] | None = None) -> Scenario:
+                  overrides: dict[str, Any] | None = None, external: list[str] | None = None) -> Scenario:
     """Read and validate a scenario file; raises :class:`ScenarioError` with a clear message."""
     p = Path(path)
     try:
@@ -757,4 +807,4 @@ def load_scenario(path: str | Path, profile: str | None = None,
         raise ScenarioError(f"{p}: malformed YAML{where}: {problem}") from None
     if isinstance(data, dict) and "base_dir" not in data:
         data["base_dir"] = str(p.resolve().parent)
-    return resolve(data, str(p), profile, overrides)
+    return resolve(data, str(p), profile, overrides, external)

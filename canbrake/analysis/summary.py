@@ -318,11 +318,44 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
                                   "max_lateness_s": plant.get("max_lateness_s", 0.0)}
     if scn.mode != "realtime":
         summary["deadline_misses"]["missed_commands_per_car"] = None  # lockstep: missing = lost, not late
+    summary["clock"] = clock_figures(scn, plant, int(summary["ticks"] or 0))
+    if plant.get("response_s"):
+        summary["ecu_response_s"] = plant["response_s"]
+    from canbrake.external import external_finding, external_summary
+
+    ext = external_summary(scn, plant)
+    if ext is not None:
+        summary["external_ecus"] = ext
     v = judge(scn, summary, tr, plant)
+    late = external_finding(scn, ext, int(summary["ticks"] or 0))
+    if late is not None:
+        from canbrake.analysis.verdict import VERDICTS
+
+        v["findings"].append(late)
+        if VERDICTS.index("late") < VERDICTS.index(v["verdict"]):
+            v["verdict"] = "late"
     summary["verdict"] = v["verdict"]
     summary["findings"] = v["findings"]
     summary["diverged_at_s"] = v["diverged_at_s"]
     return summary
+
+
+def clock_figures(scn: Scenario, plant: dict[str, Any], ticks: int) -> dict[str, Any]:
+    """``summary.json``'s ``clock``: how simulated time related to the wall clock. ``time_scale``
+    (realtime: simulated s per wall s asked for), ``wall_period_s`` (the plant's period on the wall
+    clock), ``achieved_time_scale`` (simulated s per wall s of the plant's loop, start-up excluded),
+    realtime ``late_periods`` (a period started more than one period late) and ``max_lateness_s``."""
+    dt = scn.control_period_s
+    wall = plant.get("wall_time_s") or 0.0
+    out: dict[str, Any] = {"mode": scn.mode, "time_scale": scn.time_scale if scn.mode == "realtime" else None,
+                           "control_period_s": dt,
+                           "wall_period_s": dt / scn.time_scale if scn.mode == "realtime" else None,
+                           "simulated_s": round(ticks * dt, 9), "plant_wall_s": wall,
+                           "achieved_time_scale": (ticks * dt / wall) if wall else None}
+    if scn.mode == "realtime":
+        out["late_periods"] = plant.get("late_periods", 0)
+        out["max_lateness_s"] = plant.get("max_lateness_s", 0.0)
+    return out
 
 
 def safety_counters(scn: Scenario, plant: dict[str, Any], ecus: list[dict[str, Any]],

@@ -42,6 +42,7 @@ class EcuStats:
     fallback_ticks: int = 0      # ticks computed on own sensors with at least one peer dropped
     timer_slips: int = 0         # realtime with ecu.clocks: periods whose timer instant fell past the next SYNC
     can_errors: dict = field(default_factory=dict)  # realtime bus errors: state, TEC, error frames, bus-off
+    external_timeouts: int = 0   # lockstep: periods computed without an external peer's state (it was late)
 
 
 class EcuNode(Node):
@@ -55,7 +56,8 @@ class EcuNode(Node):
                  crash_at_tick: int | None = None, lockstep_deadline: float = 0.5, bus_timing: Any = None,
                  barrier: bool = True, rx_path: Any = None, secoc: Any = None,
                  peer_hold_periods: int | None = None, n_ticks: int | None = None, clock: Any = None,
-                 rt_errors: Any = None) -> None:
+                 rt_errors: Any = None, external: frozenset[int] = frozenset(), external_timeout_s: float = 1.0,
+                 time_scale: float = 1.0) -> None:
         self.spec = spec
         self.layout = layout
         self.car = spec.vehicle            # vehicle number (trace suffix _c<vehicle>)
@@ -124,6 +126,13 @@ class EcuNode(Node):
         self._page_fresh = np.zeros(self.n, dtype=np.int64)  # pages of this tick seen, per ECU
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
+        # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
+        # STATE_DONE; in lockstep they are waited for at most external_timeout_s (wall) once every other
+        # peer is in, then counted silent (not waited for) until they are on time again
+        self._ext_bits = sum(1 << self._slot[j] for j in self._listens if j in external)
+        self._lost = 0
+        self._ext_timeout = float(external_timeout_s)
+        self.time_scale = float(time_scale)
         # frames out
         self._cmd_msgs = [(m.frame_id, codec[m.name], [(sig, sp.name) for sig, sp in m.signals if sig])
                           for m in layout.messages if m.kind == "cmd" and m.ecu == self.index]
@@ -209,22 +218,38 @@ class EcuNode(Node):
             if self.rx_path is not None:
                 self._receive_linked(msg, j, now)
                 return []
-            if self._on_state(j, msg) and not self.barrier:
+            bit = 1 << self._slot[j + 1]
+            if self._on_state(j, msg) and (not self.barrier or self._ext_bits & bit):
                 if self._page_fresh[j] == self._pages_of[j + 1]:
-                    self._done |= 1 << self._slot[j + 1]
-                    if self.phase == 1 and self._done == self._all_done:
-                        return self._phase2(now)
+                    return self._peer_done(bit, now)
             return []
         src = self._state_done_ids.get(aid)
         if src is not None:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
+            bit = 1 << self._slot[src]
             if tick != (self.k & 0xFFFF):
-                self.guard.reject("sync")
+                if not self._ext_bits & bit:  # an external peer late for a period already gone: not a fault
+                    self.guard.reject("sync")
             elif self.guard.control(aid, msg.data, self.k):
-                self._done |= 1 << self._slot[src]
-                if self.phase == 1 and self._done == self._all_done:
-                    return self._phase2(now)
+                return self._peer_done(bit, now)
         return []
+
+    def _peer_done(self, bit: int, now: float) -> list[can.Message]:
+        self._done |= bit
+        self._lost &= ~bit  # a silent external peer on time again
+        if self.phase == 1:
+            if (self._done | self._lost) == self._all_done:
+                return self._phase2(now)
+            self._arm_external(now)
+        return []
+
+    def _arm_external(self, now: float) -> None:
+        """Lockstep, phase 1: once only external peers are missing, wait for them at most external_timeout_s."""
+        if self.mode != "lockstep" or not self._ext_bits or self._deadline is not None:
+            return
+        missing = self._all_done & ~(self._done | self._lost)
+        if missing and not missing & ~self._ext_bits:
+            self._deadline = now + self._ext_timeout
 
     def _receive_linked(self, msg: can.Message, j: int, now: float) -> None:
         """A peer's state frame through this ECU's per-link impairments: frames the link delays
@@ -377,9 +402,11 @@ class EcuNode(Node):
             out.append(frame(self._sdone_id, sdone))
         self.phase = 1
         if self.mode == "realtime":
-            self._deadline = now + self.compute_deadline * self.dt
-        if self._done == self._all_done:
+            self._deadline = now + self.compute_deadline * self.dt / self.time_scale
+        if (self._done | self._lost) == self._all_done:
             out += self._phase2(now)
+        else:
+            self._arm_external(now)
         return out
 
     def _phase2(self, now: float) -> list[can.Message]:
@@ -464,6 +491,10 @@ class EcuNode(Node):
             return self._phase1(now)
         if self.phase != 1:
             return []
+        if self.mode == "lockstep":  # external peers late: go on without them (see _arm_external)
+            self.stats.external_timeouts += 1
+            self._lost |= self._all_done & ~self._done & self._ext_bits
+            return self._phase2(now)
         self.stats.deadline_misses += 1
         return self._phase2(now)
 

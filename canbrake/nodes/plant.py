@@ -60,6 +60,12 @@ class PlantStats:
     status: str = "running"
     extra: dict[str, float] = field(default_factory=dict)
     guard: dict = field(default_factory=dict)  # canbrake.bus.guard: rejected frames by reason
+    #: external ECUs (not started by canbrake): per name first heartbeat, periods without their
+    #: commands, lockstep time-outs, entries into "silent" (see PlantNode)
+    external: dict = field(default_factory=dict)
+    #: wall time from a period's SYNC to each ECU's complete commands (s): p50/p99/max per ECU
+    response_s: dict = field(default_factory=dict)
+    time_scale: float = 1.0
 
 
 class PlantNode(Node):
@@ -73,7 +79,9 @@ class PlantNode(Node):
                  heartbeat_period_s: float = 0.1, out_dir: str | Path | None = None,
                  flush_every: int = 500, progress: Any = None, hosted: list[Any] | None = None,
                  barrier: bool = True, failsafe: FailSafe | None = None, secoc: Any = None,
-                 trace_every: int = 1) -> None:
+                 trace_every: int = 1, external: frozenset[int] = frozenset(),
+                 external_start_timeout_s: float = 30.0, external_timeout_s: float = 1.0,
+                 time_scale: float = 1.0) -> None:
         self.model = model
         self.trace_every = max(1, int(trace_every))
         self.codec = codec
@@ -146,6 +154,27 @@ class PlantNode(Node):
         # to the last command of the period (s; command latency, `canbrake bench`)
         self._sync_wall: float | None = None
         self._cmd_latency: list[float] = []
+        # external ECUs (indices 1-based): the first tick waits for each one's heartbeat; in lockstep a
+        # period waits at most external_timeout_s (wall) for their commands once every other ECU's are
+        # in, then goes on and treats them as silent (not waited for) until their frames are on time
+        self.time_scale = float(time_scale)
+        self.stats.time_scale = self.time_scale
+        self._ext_slots = sorted(i - 1 for i in external)
+        self._ext_mask = sum(1 << s for s in self._ext_slots)
+        self._ext_timeout = float(external_timeout_s)
+        self._ext_start_timeout = float(external_start_timeout_s)
+        self._hb_of_ext = {layout.plan.heartbeat(i): i - 1 for i in external}
+        self._unheard = set(self._ext_slots)
+        self._start_deadline: float | None = None
+        self._ext_deadline: float | None = None
+        self._lost = 0  # bit i: external ECU slot i is silent (not waited for)
+        self._tick_wall = 0.0
+        from canbrake.nodes.recorder import LogHistogram
+
+        self._resp = [LogHistogram() for _ in self.ecus]
+        for s_ in self._ext_slots:
+            self.stats.external[self.ecus[s_].name] = {"first_heartbeat_wall_s": None, "periods_missed": 0,
+                                                       "timeouts": 0, "silent_entries": 0, "late_frames": 0}
 
     # ---------------------------------------------------------------- frames
     def filters(self) -> list[dict]:
@@ -153,6 +182,7 @@ class PlantNode(Node):
         if self.barrier:
             ids += list(self._cmd_done_ids)
         ids += [i for i in self._foreign_cmd_ids if i not in self.layout.by_id]
+        ids += [i for i in self._hb_of_ext if i not in ids]
         return [exact_filter(i) for i in ids]
 
     @staticmethod
@@ -206,23 +236,75 @@ class PlantNode(Node):
         self._open_trace()
         self._t0_wall = now
         self._t_start_wall = now
+        if self._unheard:  # wait for every external ECU's first heartbeat
+            self._start_deadline = now + self._ext_start_timeout
+            return []
+        return self._first_tick(now)
+
+    def _first_tick(self, now: float) -> list[can.Message]:
+        self._start_deadline = None
+        self._t0_wall = now
+        self._t_start_wall = now
+        self._tick_wall = now
         self._sync_wall = now
-        return self._tick_frames()
+        out = self._tick_frames()
+        self._arm_external(now)
+        return out
+
+    def missing_external(self) -> list[str]:
+        """Names of the external ECUs not heard yet (before the first tick)."""
+        return [self.ecus[s].name for s in sorted(self._unheard)]
+
+    def _complete(self) -> bool:
+        return (self._done | self._lost) == self._all_done
+
+    def _arm_external(self, now: float) -> None:
+        """Lockstep: once only external ECUs are missing, wait for them at most external_timeout_s."""
+        if self.mode != "lockstep" or not self._ext_mask or self._ext_deadline is not None:
+            return
+        missing = self._all_done & ~(self._done | self._lost)
+        if missing & ~self._ext_mask:
+            return
+        if missing:
+            self._ext_deadline = now + self._ext_timeout
+        else:  # only silent external ECUs are outstanding: go on (at once if canbrake has ECUs of its own)
+            self._ext_deadline = now + (0.0 if self._ext_mask != self._all_done else 0.1 * self._ext_timeout)
+
+    def _slot_done(self, slot: int, now: float) -> list[can.Message]:
+        self._done |= 1 << slot
+        self._lost &= ~(1 << slot)  # a silent external ECU on time again
+        if self._complete():
+            return self._advance(now)
+        self._arm_external(now)
+        return []
 
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
+        if self._unheard or self._start_deadline is not None:
+            slot = self._hb_of_ext.get(aid)
+            if slot is not None:
+                self._unheard.discard(slot)
+                self.stats.external[self.ecus[slot].name]["first_heartbeat_wall_s"] = round(
+                    now - (self._t_start_wall or now), 6)
+                if not self._unheard:
+                    return self._first_tick(now)
+            return []
         page = self._cmd_pages.get(aid)
         if page is not None:
             slot = page[0]
-            fresh = self._on_command(aid, page, msg)
-            if fresh and self.mode == "realtime" and self._sync_wall is not None and self._fresh.all():
-                self._cmd_latency.append(now - self._sync_wall)
-                self._sync_wall = None  # one latency per period
-            if fresh and not self.barrier and self.mode == "lockstep":
-                if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
-                    self._done |= 1 << slot
-                    if self._done == self._all_done:
-                        return self._advance(now)
+            was_fresh = bool(self._fresh[slot])
+            ext = bool(self._ext_mask >> slot & 1)
+            if self._on_command(aid, page, msg):
+                if not was_fresh and self._fresh[slot]:
+                    self._resp[slot].add(max(now - self._tick_wall, 0.0))
+                if self.mode == "realtime" and self._sync_wall is not None and self._fresh.all():
+                    self._cmd_latency.append(now - self._sync_wall)
+                    self._sync_wall = None  # one latency per period
+                if (not self.barrier or ext) and self.mode == "lockstep" and not self._done >> slot & 1:
+                    if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
+                        return self._slot_done(slot, now)
+            elif ext and self.stats.external:
+                self.stats.external[self.ecus[slot].name]["late_frames"] += 1
             return []
         if aid in self._foreign_cmd_ids and aid not in self.layout.by_id:
             self.guard.unknown(aid)
@@ -231,11 +313,12 @@ class PlantNode(Node):
         if slot is not None and self.mode == "lockstep":
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
             if tick != (self.k & 0xFFFF):
-                self.guard.reject("sync")
-            elif self.guard.control(aid, msg.data, self.k):
-                self._done |= 1 << slot
-                if self._done == self._all_done:
-                    return self._advance(now)
+                if self._ext_mask >> slot & 1:  # an external ECU late for a period already gone
+                    self.stats.external[self.ecus[slot].name]["late_frames"] += 1
+                else:
+                    self.guard.reject("sync")
+            elif self.guard.control(aid, msg.data, self.k) and not self._done >> slot & 1:
+                return self._slot_done(slot, now)
         return []
 
     def _on_command(self, aid: int, page: tuple[int, int, Any, list[tuple[str, str]]], msg: can.Message) -> bool:
@@ -270,19 +353,44 @@ class PlantNode(Node):
 
     # ---------------------------------------------------------------- time
     def next_deadline(self) -> float | None:
-        if self.mode != "realtime" or self._t0_wall is None or self.finished:
+        if self.finished:
             return None
-        return self._t0_wall + (self.k + 1) * self.dt
+        if self._start_deadline is not None:
+            return self._start_deadline
+        if self.mode != "realtime":
+            return self._ext_deadline
+        if self._t0_wall is None:
+            return None
+        return self._t0_wall + (self.k + 1) * self.dt / self.time_scale
 
     def on_timer(self, now: float) -> list[can.Message]:
-        if self.mode != "realtime" or self.finished:
+        if self.finished:
             return []
+        if self._start_deadline is not None:
+            if now < self._start_deadline:
+                return []
+            # an external ECU never appeared: the run ends before its first tick (the orchestrator
+            # reports which one, on which channel)
+            self.finished = True
+            self.stats.status = "external_missing"
+            self.stats.extra["missing"] = self.missing_external()  # type: ignore[assignment]
+            return []
+        if self.mode != "realtime":
+            if self._ext_deadline is None or now < self._ext_deadline:
+                return []
+            missing = self._all_done & ~(self._done | self._lost)
+            for s_ in self._ext_slots:
+                if missing >> s_ & 1:
+                    self.stats.external[self.ecus[s_].name]["timeouts"] += 1
+                    self.stats.external[self.ecus[s_].name]["silent_entries"] += 1
+            self._lost |= missing
+            return self._advance(now)
         if not self._fresh.all():
             self.stats.deadline_misses += 1
             self._cmd_latency.append(math.inf)  # the period's commands did not all arrive in time
         lateness = now - self.next_deadline()  # type: ignore[operator]
         self.stats.max_lateness_s = max(self.stats.max_lateness_s, lateness)
-        if lateness > self.dt:
+        if lateness > self.dt / self.time_scale:
             self.stats.late_periods += 1
         return self._advance(now)
 
@@ -310,9 +418,12 @@ class PlantNode(Node):
         return cmds
 
     def _advance(self, now: float) -> list[can.Message]:
+        self._ext_deadline = None
         self.stats.commands_missed += int((~self._fresh).sum())
         for i in np.flatnonzero(~self._fresh):
             self.stats.commands_missed_per_car[i] += 1
+            if self._ext_mask >> int(i) & 1:
+                self.stats.external[self.ecus[int(i)].name]["periods_missed"] += 1
         applied = self._applied_commands()
         if self.k % self.trace_every == 0:
             self._record()
@@ -340,7 +451,10 @@ class PlantNode(Node):
             if self._t_start_wall is not None:
                 self.stats.wall_time_s = now - self._t_start_wall
             return self._end_frames()
-        return self._tick_frames()
+        self._tick_wall = now
+        out = self._tick_frames()
+        self._arm_external(now)
+        return out
 
     # ---------------------------------------------------------------- trace
     _STANDARD = ("position_m", "speed_mps", "accel_mps2", "applied_brake_n", "deflection_m", "coupler_force_n")
@@ -415,5 +529,9 @@ class PlantNode(Node):
                 self.stats.extra[f"cmd_latency_{key}_s"] = float(val) if math.isfinite(val) else None  # type: ignore[assignment]
             self.stats.extra["cmd_latency_periods"] = int(lat.size)
             self.stats.extra["cmd_latency_missing"] = int(np.isinf(lat).sum())
+        for e, h in zip(self.ecus, self._resp):
+            if h.n:
+                self.stats.response_s[e.name] = {"n": h.n, "p50_s": h.quantile(0.5), "p99_s": h.quantile(0.99),
+                                                 "max_s": h.max}
         if self.out_dir is not None:
             (self.out_dir / "plant_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))

@@ -246,7 +246,7 @@ class RecorderNode(Node):
     def __init__(self, layout: Any, *, dt_s: float, bitrate_bps: int, mode: str = "lockstep",
                  log_path: str | Path | None = None, channel: str = "can0", epoch_s: float = 0.0,
                  plant_io_on_bus: bool = False, barrier: bool = True, bus_timing: Any = None, secoc: Any = None,
-                 n_ticks: int | None = None, segments: Any = None) -> None:
+                 n_ticks: int | None = None, segments: Any = None, external: frozenset[int] = frozenset()) -> None:
         if isinstance(layout, int):  # a number of cars: Chen's default placement
             layout = dbc.BusLayout(dbc.default_ecus(layout, coupler_sensors=True))
         self.layout = layout
@@ -265,7 +265,10 @@ class RecorderNode(Node):
         # a tick is complete once every CMD_DONE (without barrier: every command frame) is seen;
         # only then does a SYNC or END count (canbrake.bus.guard.sync_verdict)
         self._closing_kind = "cmd_done" if barrier else "cmd"
-        self._closing_total = sum(1 for m in layout.messages if m.kind == self._closing_kind)
+        # (external ECUs' frames close no tick: the plant may go on without them, see PlantNode)
+        self._closing_ids = {m.frame_id for m in layout.messages
+                             if m.kind == self._closing_kind and m.ecu not in external}
+        self._closing_total = len(self._closing_ids)
         self._closing_seen = 0
         self.guard = FrameGuard(secoc)
         self.final_tick = None if n_ticks is None else n_ticks - 1
@@ -334,7 +337,7 @@ class RecorderNode(Node):
         if self.mode == "realtime":
             self._realtime(msg, now)
             return []
-        if kind == self._closing_kind:
+        if aid in self._closing_ids:
             self._closing_seen += 1
         verdict = None
         if aid == dbc.SYNC_ID and not msg.is_extended_id:
