@@ -1,6 +1,7 @@
 """Car 3's ECU in C (examples/foreign_ecu_c) on vcan0 beside a canbrake run, lockstep and realtime.
 
-Marked ``vcan``: runs in the VM (``.ci/run-vcan``). Kept short for CI's VM budget: a three-car
+Marked ``vcan``: runs in the VM (``.ci/run-vcan``); the realtime case only with
+CANBRAKE_VCAN_REALTIME=1 (an emulated guest's wall-clock timing depends on the host's load). Kept short for CI's VM budget: a three-car
 version of examples/foreign_ecu.yaml with a 50 ms period, one canbrake run per mode. The C
 program is compiled in the test against the codec that ``cantools generate_c_source`` makes from
 the DBC the lockstep run wrote (its run directory's canbrake.dbc); the realtime run has the same
@@ -102,22 +103,32 @@ def _check(out: Path, run: tuple[threading.Thread, dict], ecu: subprocess.Popen)
     return s
 
 
+# realtime in an emulated VM depends on the host's load (the guest's plant misses its 100 ms wall
+# periods on a busy host): opt-in, CANBRAKE_VCAN_REALTIME=1 bash .ci/run-vcan
+_REALTIME = pytest.param("realtime", marks=pytest.mark.skipif(
+    os.environ.get("CANBRAKE_VCAN_REALTIME") != "1",
+    reason="realtime in the emulated VM is opt-in (CANBRAKE_VCAN_REALTIME=1): its timing depends on the host's load"))
+
+
 @pytest.mark.skipif(shutil.which("cc") is None or shutil.which("make") is None, reason="no cc/make")
-def test_c_foreign_ecu_on_vcan0_lockstep_and_realtime(tmp_path):
+@pytest.mark.parametrize("mode", ["lockstep", _REALTIME])
+def test_c_foreign_ecu_on_vcan0(tmp_path, mode):
     from canbrake.run import stop_node_server
 
     try:
-        _lockstep_and_realtime(tmp_path)
+        _one_mode(tmp_path, mode)
     finally:
         stop_node_server()
 
 
-def _lockstep_and_realtime(tmp_path: Path) -> None:
+def _one_mode(tmp_path: Path, mode: str) -> None:
     os.environ.setdefault("CANBRAKE_START_TIMEOUT_S", "600")
-    _progress("starting the lockstep run")
+    _progress(f"starting the {mode} run")
     scn = _scenario(tmp_path)
-    run = _run(scn, tmp_path / "lock")
-    dbc = tmp_path / "lock" / "canbrake.dbc"
+    out = tmp_path / mode
+    # realtime at half speed (100 ms of wall time per period): the C ECU needs no barrier frames
+    run = _run(scn, out) if mode == "lockstep" else _run(scn, out, mode="realtime", time_scale=0.5)
+    dbc = out / "canbrake.dbc"
     t0 = time.monotonic()
     while not dbc.exists():  # written before the run starts its nodes
         assert run[0].is_alive(), run[1]
@@ -141,18 +152,14 @@ def _lockstep_and_realtime(tmp_path: Path) -> None:
     exe = str(build / "foreign_ecu")
     args = ["-c", "vcan0", "--period-ms", str(PERIOD_S * 1000), "--kp", str(KP), "--mass-kg", "19500",
             "--timeout-s", "600"]
-    ecu = subprocess.Popen([exe, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    _progress("C ECU started (lockstep)")
-    s = _check(tmp_path / "lock", run, ecu)
-    _progress("lockstep run done")
-    assert s["mode"] == "lockstep"
-
-    # realtime at half speed (100 ms of wall time per period): the C ECU needs no barrier frames
-    run = _run(scn, tmp_path / "rt", mode="realtime", time_scale=0.5)
-    ecu = subprocess.Popen([exe, *args, "--realtime"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    _progress("realtime run and C ECU started")
-    s = _check(tmp_path / "rt", run, ecu)
-    _progress("realtime run done")
-    assert s["mode"] == "realtime" and s["clock"]["time_scale"] == 0.5
+    extra = [] if mode == "lockstep" else ["--realtime"]
+    ecu = subprocess.Popen([exe, *args, *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    _progress(f"C ECU started ({mode})")
+    s = _check(out, run, ecu)
+    _progress(f"{mode} run done")
+    assert s["mode"] == mode
+    if mode == "lockstep":
+        return
+    assert s["clock"]["time_scale"] == 0.5
     assert s["clock"]["wall_period_s"] == pytest.approx(2 * PERIOD_S)
     assert s["ecu_response_s"]["ecu3"]["n"] > 0
