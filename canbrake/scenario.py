@@ -21,6 +21,7 @@ from canbrake.bus.clock import ClockConfig
 from canbrake.bus.txbuffer import TxBufferConfig
 from canbrake.consist import TRAIN_MODELS
 from canbrake.consist.base import VehicleEntry, expand_vehicles
+from canbrake.consist.brakes import BrakeSystemConfig
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
 
 KMH = 1.0 / 3.6  # m/s per km/h
@@ -150,6 +151,8 @@ class TrainConfig(_Model):
     coupler: CouplerConfig = CouplerConfig()
     grade_permille: float = Field(0.0, ge=-100, le=100, description="track grade, positive uphill (‰)")
     curve_resistance_n: PerCar = Field(0.0, description="extra resistance per car, e.g. 0.004·m·D_c (N)")
+    brakes: BrakeSystemConfig | None = Field(None, description="brake equipment: blending, easing, wheels with "
+                                                               "adhesion, wheel-slide protection (canbrake.consist.brakes)")
 
     @field_validator("mass_kg")
     @classmethod
