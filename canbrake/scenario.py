@@ -104,6 +104,7 @@ class CouplerConfig(_Model):
     epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
     spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
     end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear goes solid (none by default)")
+    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0, description="stiffness beyond the end stop (solid gear)")
 
     @field_validator("stiffness_n_per_m")
     @classmethod
