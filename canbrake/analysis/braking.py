@@ -65,3 +65,34 @@ def decel_at_standstill_mps2(t_s: np.ndarray, speed_mps: np.ndarray, accel_mps2:
             d = float(-a[still[0] - 1, i])
             out = d if not out == out else max(out, d)
     return out
+
+
+def braking_summary(t_s: np.ndarray, speed_mps: np.ndarray, accel_mps2: np.ndarray,
+                    columns: dict[str, np.ndarray]) -> dict[str, object]:
+    """The ``braking`` section of a run's summary (trains with ``train.brakes``): stop jerk (m/s³,
+    against :data:`STOP_JERK_LIMIT_MPS3`), deceleration left at standstill (m/s²), and per car, when
+    the trace has wheels (``axle<j>_slip_c<i>``), the worst slip (λ < 0 braking), the time any axle
+    slid past |λ| = 0.5 (s) and the time its dump valves were open more than half (s)."""
+    def clean(x: float) -> float | None:
+        return None if not x == x else float(x)
+
+    sj = stop_jerk_mps3(t_s, speed_mps, accel_mps2)
+    out: dict[str, object] = {"stop_jerk_mps3": clean(sj), "stop_jerk_limit_mps3": STOP_JERK_LIMIT_MPS3,
+                              "stop_jerk_within_limit": None if not sj == sj else bool(sj <= STOP_JERK_LIMIT_MPS3),
+                              "decel_at_standstill_mps2": clean(decel_at_standstill_mps2(t_s, speed_mps, accel_mps2))}
+    n = speed_mps.shape[1] if np.ndim(speed_mps) == 2 else 1
+    dt = float(np.median(np.diff(t_s))) if len(t_s) > 1 else 0.0
+    slips = []
+    for i in range(1, n + 1):
+        cols = [np.asarray(v, dtype=float) for k, v in columns.items()
+                if k.startswith("axle") and k.endswith(f"_slip_c{i}")]
+        if not cols:
+            continue
+        lam = np.vstack(cols)
+        valve = np.asarray(columns.get(f"wsp_valve_c{i}", np.zeros(lam.shape[1])), dtype=float)
+        slips.append({"car": i, "min_slip": float(np.nanmin(lam)),
+                      "sliding_s": float(np.sum(np.nanmax(np.abs(lam), axis=0) > 0.5) * dt),
+                      "wsp_venting_s": float(np.sum(valve > 0.5) * dt)})
+    if slips:
+        out["wheels"] = slips
+    return out
