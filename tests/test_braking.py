@@ -290,3 +290,28 @@ def test_end_stop_bounds_the_deflection_by_the_stop_plus_the_solid_overrun():
         worst = max(worst, float(np.max(np.abs(p.deflection_m))))
     overrun = dv * math.sqrt((m / 2) / k_stop)  # 0.112 m (the spring before the stop only lowers it)
     assert 0.1 < worst <= 0.1 + overrun * 1.01
+
+
+# ------------------------------------------------------------------ the low-adhesion scenario
+@pytest.mark.slow
+def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
+    """chen2023_case2_low_adhesion.yaml with its poor rail from 0.5 s, for 3 s: car 3's skid comes
+    from μ per car over time; the profile ``wsp`` keeps its axles near the adhesion peak."""
+    import pandas as pd
+
+    from canbrake.run import run_scenario
+
+    path = ROOT / "scenarios" / "chen2023_case2_low_adhesion.yaml"
+    slips = {}
+    for prof in (None, "wsp"):
+        scn = load_scenario(path, profile=prof, overrides={"duration_s": 3.0, "events.0.start_s": 0.5})
+        assert (scn.train.brakes.wsp.enabled) == (prof == "wsp")
+        s = run_scenario(scn, tmp_path / str(prof), backend="inprocess", plots=False)
+        assert s["status"] == "ok"
+        d = pd.read_csv(tmp_path / str(prof) / "signals.csv")
+        slips[prof] = min(float(d[f"axle{j}_slip_c3"].min()) for j in range(1, 5))
+        assert s["braking"]["wheels"][2]["car"] == 3
+    assert slips[None] < -0.5  # past the adhesion peak (|λ| = 0.12 for b3 = 2) and on its way to locking
+    assert slips["wsp"] > -0.25
+    # the switch is an ordinary field
+    assert load_scenario(path, overrides={"train.brakes.wsp.enabled": True}).train.brakes.wsp.enabled
