@@ -326,8 +326,9 @@ def failsafe_of(scn: Scenario) -> Any:
     if sf.command_timeout_s is None:
         return None
     mass = scn.vehicle_masses_kg()
+    values = dict(sf.failsafe_commands or {})
     return FailSafe(timeout_ticks=max(1, int(round(sf.command_timeout_s / scn.control_period_s))),
-                    force_n=mass * sf.failsafe_decel_mps2, latch=sf.latch)
+                    force_n=mass * sf.failsafe_decel_mps2, latch=sf.latch, values=values)
 
 
 def _error_timing(scn: Scenario) -> Any:

@@ -396,6 +396,10 @@ class SafetyConfig(_Model):
     failsafe_decel_mps2: float = Field(1.2, gt=0, description="fail-safe braking force per unit mass (m/s^2)")
     latch: bool = Field(True, description="true: a car stays in fail-safe until the end of the run; false: "
                                           "the next valid command releases it")
+    failsafe_commands: dict[str, float] | None = Field(
+        None, description="the plant commands a brake unit in fail-safe applies instead of the fail-safe "
+                          "force, e.g. {ecp_demand: 1.0} (an ECP wagon's full application); null: "
+                          "brake_force_n = failsafe_decel_mps2 x mass")
     max_abs_deflection_m: float | None = Field(None, gt=0, description="coupler deflection bound for the verdict "
                                                "(default: the controller's theta bounds, if any)")
     max_speed_kmh: float | None = Field(None, gt=0, description="speed bound for the verdict (null: none)")
@@ -563,6 +567,15 @@ class Scenario(_Model):
             raise ValueError(f"ecus: more than one ECU on vehicle(s) {', '.join(map(str, dup))}")
         if self.ecu.crash is not None and self.ecu.crash.car not in veh:
             raise ValueError(f"ecu.crash.car: no ECU on vehicle {self.ecu.crash.car}")
+        if self.safety.failsafe_commands:
+            from canbrake.control.base import controller_class
+            sent = set()
+            for p in placed:
+                sent.update(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
+            unknown = sorted(set(self.safety.failsafe_commands) - sent)
+            if unknown:
+                raise ValueError(f"safety.failsafe_commands: {', '.join(unknown)} is not a command of any ECU "
+                                 f"(commands: {', '.join(sorted(sent))})")
 
     def placement(self) -> list["PlacedEcu"]:
         """Every ECU of the run in identifier-plan order (index 1..): name, vehicle, controller, listens."""

@@ -435,3 +435,30 @@ def test_brake_test_demands_from_its_start_time():
     assert b.step(_obs(4.95)).broadcast == {"ecp_demand": 0.0}
     out = b.step(_obs(5.0))
     assert out.broadcast == {"ecp_demand": 0.8} and out.commands == {"airbrake_apply": 1.0, "ecp_demand": 0.8}
+
+
+def test_a_braked_train_stops_and_stays_at_rest():
+    """ECP full service on level track: the train stops, no vehicle rolls backwards, and it stays at
+    rest (brake and running resistance hold it; Karnopp stick-slip), and the distance run equals the
+    work of the dissipative forces: ½ M v0² = Σ ∫ (brake + resistance) v dt (couplers are internal;
+    their hysteresis dissipates too, so ≥)."""
+    route = hh.Route(grade_start_m=np.array([-10_000.0]), grade_permille=np.array([0.0]))
+    t = short_train(5, air_brake={**train_data()["air_brake"], "mode": "ecp", "service_factor": 0.8})
+    c = t.consist()
+    v0 = 20 * KMH
+    m = _model_on(route, t, v0, 5000.0)
+    demand = {"ecp_demand": np.ones(c.n)}  # the locomotive brakes too: a released one is pushed back by the gears
+    e0 = 0.5 * float(np.sum(c.mass_kg)) * v0 ** 2
+    work = 0.0
+    stopped_at = None
+    for k in range(6000):
+        v_before = m.v.copy()
+        m.step(0.01, demand if k == 0 else {})
+        vm = 0.5 * (v_before + m.v)
+        work += 0.01 * float(np.sum((hh.basic_resistance_n(c, vm) + m.ab.last_force_n) * vm))
+        assert np.all(m.v >= 0.0), f"a vehicle rolls backwards at t = {m.t:.2f} s"
+        if stopped_at is None and np.all(m.v == 0.0):
+            stopped_at = m.t
+    assert stopped_at is not None and stopped_at < 40.0
+    assert np.all(m.v == 0.0) and np.all(m.measurements()["accel_mps2"] == 0.0)
+    assert work == pytest.approx(e0, rel=0.05)

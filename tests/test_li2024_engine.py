@@ -115,3 +115,25 @@ def test_ecp_over_can_wagons_apply_the_locomotive_demand(tmp_path):
     last = df["brake_cylinder_pressure_pa_c106"].to_numpy()
     assert list(df["cmd_ecp_demand_c106"].to_numpy()[:4]) == [0.0, 0.0, 0.0, 1.0]  # t = 0, .05, .1, .15
     assert last[-1] > 0.0
+
+
+@pytest.mark.slow
+def test_a_silent_ecp_wagon_brakes_on_its_own_with_the_failsafe(tmp_path):
+    """Wagon 53's ECU goes silent at 0.05 s. Without a fail-safe its cylinder holds the last command
+    (released); with ``safety.failsafe_commands: {ecp_demand: 1}`` the brake unit applies a full
+    application after ``command_timeout_s`` (0.1 s = 2 periods) while its neighbours stay released
+    (no demand yet)."""
+    base = {"duration_s": 0.5, "ecus.0.controller.params.brake_at_s": 10.0, "bus.timing": "ideal",
+            "bus.impairments": [{"type": "silent", "senders": ["wagon53"], "start_s": 0.05}]}
+    out = {}
+    for key, extra in (("hold", {}), ("failsafe", {"safety": {"command_timeout_s": 0.1,
+                                                              "failsafe_commands": {"ecp_demand": 1.0}}})):
+        scn = load_scenario(SCENARIOS / "li2024_ecp_over_can.yaml", overrides={**base, **extra})
+        s = run_scenario(scn, tmp_path / key, backend="inprocess", plots=False)
+        assert s["status"] == "ok", s.get("message")
+        out[key] = (s, _signals(tmp_path / key, ("brake_cylinder_pressure_pa_c53", "brake_cylinder_pressure_pa_c52")))
+    s_hold, hold = out["hold"]
+    s_fs, fs = out["failsafe"]
+    assert hold["brake_cylinder_pressure_pa_c53"].max() == 0.0
+    assert fs["brake_cylinder_pressure_pa_c53"][-1] > 0.0 and fs["brake_cylinder_pressure_pa_c52"].max() == 0.0
+    assert s_fs["failsafe"]["activations"] == 1 and list(s_fs["failsafe"]["first_activation_s"]) == ["c53"]

@@ -304,8 +304,6 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
         summary["bus_latency_in_loop"] = {"model": scn.bus.timing, **lat}
     if busst.get("errors"):
         summary["can_errors"] = busst["errors"]
-    if busst.get("errors"):
-        summary["can_errors"] = busst["errors"]
     if scn.safety.command_timeout_s is not None:
         summary["failsafe"] = {"command_timeout_s": scn.safety.command_timeout_s,
                                "activations": plant.get("failsafe_activations", 0),

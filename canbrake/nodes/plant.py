@@ -37,6 +37,9 @@ class FailSafe:
     timeout_ticks: int
     force_n: np.ndarray
     latch: bool = True
+    #: commands the brake unit applies in fail-safe instead of ``force_n`` (name -> value for every
+    #: vehicle in fail-safe, e.g. ``{"ecp_demand": 1.0}``); empty: ``brake_force_n = force_n``
+    values: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -289,7 +292,10 @@ class PlantNode(Node):
         self._in_failsafe |= entering
         self.stats.failsafe_ticks += int(self._in_failsafe.sum())
         veh = self._veh[self._in_failsafe]
-        cmds["brake_force_n"][veh] = fs.force_n[veh]
+        if not fs.values:
+            cmds["brake_force_n"][veh] = fs.force_n[veh]
+        for name, value in fs.values.items():
+            cmds.setdefault(name, np.full(self.n, np.nan))[veh] = value
         return cmds
 
     def _advance(self, now: float) -> list[can.Message]:

@@ -625,9 +625,23 @@ class HeavyHaulModel:
         total += self.u
         if self.dist_on is not None:
             total += disturbance_n(self.c, self.t, self.v, self.dist_on, self.dist_coef)
+        # Standstill: running resistance and the brake only resist motion, they never reverse it.
+        # A vehicle at rest (its friction terms are zero in F_i, sign(0) = 0) stays at rest while the
+        # other forces do not exceed what its brake and resistance can hold; a moving vehicle whose
+        # speed would cross zero within the step stops at zero (Karnopp's stick-slip friction model).
+        rest = self.v == 0.0
+        if rest.any():
+            hold = (basic_resistance_n(self.c, self.v) + self.ab.last_force_n) * (1.0 + self.unc)
+            slip = np.sign(total) * np.maximum(np.abs(total) - hold, 0.0)
+            total = np.where(rest, slip, total)
         acc = total / self.c.mass_kg
+        v_new = self.v + acc * self.dt
+        crossed = self.v * v_new < 0.0
+        if crossed.any():
+            v_new = np.where(crossed, 0.0, v_new)
+            acc = np.where(crossed, -self.v / self.dt, acc)
         self.acc = acc
-        self.v = self.v + acc * self.dt
+        self.v = v_new
         self.x = self.x + self.v * self.dt
         self.t += self.dt
         self.fc = self._coupler_forces()

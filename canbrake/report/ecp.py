@@ -21,8 +21,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 SCENARIO = "li2024_ecp_over_can.yaml"
-REPORT_VERSION = 2
-DEFAULT_DURATION_S = 40.0
+REPORT_VERSION = 3
+DEFAULT_DURATION_S = 80.0  # the scenario's: long enough for every run with a brake to stop
 KMH = 1.0 / 3.6
 SILENT = 53  # the silent_wagon profile's vehicle
 
@@ -32,11 +32,30 @@ class Spec:
     key: str
     profile: str | None
     label: str
+    #: ``--set`` overrides (dotted key, value), e.g. the integration step of the step-size check
+    sets: tuple[tuple[str, Any], ...] = ()
 
 
 SPECS = (Spec("ecp-250k", None, "ECP, 250 kbit/s"), Spec("ecp-125k", "kbps125", "ECP, 125 kbit/s"),
          Spec("ecp-500k", "kbps500", "ECP, 500 kbit/s"), Spec("pneumatic-250k", "pneumatic", "pneumatic brake pipe"),
-         Spec("ecp-silent-wagon", "silent_wagon", f"ECP, wagon {SILENT}'s ECU silent from 4 s"))
+         Spec("ecp-silent-wagon", "silent_wagon", f"ECP, wagon {SILENT}'s ECU silent from 4 s"),
+         Spec("ecp-silent-failsafe", "silent_wagon_failsafe",
+              f"ECP, wagon {SILENT}'s ECU silent from 4 s, fail-safe after 0.5 s"))
+#: the step-size check: these runs again with the plant's integration step halved twice
+STEP_BASES = ("ecp-250k", "pneumatic-250k")
+STEP_DIVISORS = (2, 4)
+
+
+def step_specs(base_step_s: float, specs: Sequence[Spec] = SPECS) -> list[Spec]:
+    """The runs of the step-size check: each of ``STEP_BASES`` at base_step / 2 and / 4."""
+    out = []
+    for sp in specs:
+        if sp.key in STEP_BASES:
+            for d in STEP_DIVISORS:
+                h = base_step_s / d
+                out.append(Spec(f"{sp.key}-h{1000 * h:g}ms", sp.profile, f"{sp.label}, step {1000 * h:g} ms",
+                                (("train.integration_step_s", h),)))
+    return out
 
 
 def scenario_dir() -> Path:
@@ -45,12 +64,14 @@ def scenario_dir() -> Path:
 
 def command(spec: Spec, duration_s: float, runs_dir: str) -> str:
     prof = f" --profile {spec.profile}" if spec.profile else ""
-    return f"canbrake run scenarios/{SCENARIO}{prof} --duration {duration_s:g} --bus inprocess --out {runs_dir}/{spec.key}"
+    sets = "".join(f" --set {k}={v:g}" for k, v in spec.sets)
+    return (f"canbrake run scenarios/{SCENARIO}{prof}{sets} --duration {duration_s:g} --bus inprocess "
+            f"--out {runs_dir}/{spec.key}")
 
 
 def _load(spec: Spec, duration_s: float, scen_dir: Path) -> Any:
     from canbrake.scenario import load_scenario
-    return load_scenario(scen_dir / SCENARIO, profile=spec.profile, overrides={"duration_s": duration_s})
+    return load_scenario(scen_dir / SCENARIO, profile=spec.profile, overrides={"duration_s": duration_s, **dict(spec.sets)})
 
 
 def reduce_run(run_dir: Path, brake_at_s: float) -> dict[str, Any]:
@@ -137,8 +158,9 @@ DEFAULT_OUT = "docs"  # `canbrake report ecp` writes docs/ecp-over-can.md
 
 def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-ecp", force: bool = False,
              jobs: int = 2, log: Callable[[str], None] = print, duration_s: float = DEFAULT_DURATION_S,
-             specs: Sequence[Spec] = SPECS, scen_dir: str | Path | None = None) -> Path:
-    """Run (or reuse) the runs and write ``out_dir/ecp-over-can.md`` with ``figures/ecp_*.png``."""
+             specs: Sequence[Spec] = SPECS, scen_dir: str | Path | None = None, step_check: bool = True) -> Path:
+    """Run (or reuse) the runs and write ``out_dir/ecp-over-can.md`` with ``figures/ecp_*.png``;
+    ``step_check``: also the runs of ``STEP_BASES`` with the plant step halved twice (step table)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -147,7 +169,9 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
     out_dir, runs_dir = Path(out_dir), Path(runs_dir)
     sd = Path(scen_dir) if scen_dir else scenario_dir()
     runs_dir.mkdir(parents=True, exist_ok=True)
-    tasks = [(sp, duration_s, str(runs_dir), force, str(sd)) for sp in specs]
+    h0 = float(_load(specs[0], duration_s, sd).train.integration_step_s)
+    checks = step_specs(h0, specs) if step_check else []
+    tasks = [(sp, duration_s, str(runs_dir), force, str(sd)) for sp in (*specs, *checks)]
     if jobs > 1:
         import multiprocessing as mp
         with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
@@ -156,7 +180,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
         outs = [_star(t) for t in tasks]
     for key, reused, wall in outs:
         log(f"  {key}: {'reused' if reused else f'ran in {wall:.0f} s'}")
-    res = {sp.key: json.loads((runs_dir / sp.key / "report.json").read_text()) for sp in specs}
+    res = {sp.key: json.loads((runs_dir / sp.key / "report.json").read_text()) for sp in (*specs, *checks)}
 
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -232,6 +256,51 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
           "The train loses one wagon's brake in 105; `safety.command_timeout_s` would make its brake unit brake on "
           "its own instead.")
         w("")
+    fsr = res.get("ecp-silent-failsafe")
+    if fsr is not None:
+        w(f"**The same with a fail-safe.** With `safety: {{command_timeout_s: 0.5, failsafe_commands: {{ecp_demand: 1.0}}}}` "
+          f"(profile `silent_wagon_failsafe`) wagon {SILENT}'s brake unit applies in full on its own after 0.5 s "
+          f"without a command: its cylinder reaches {fsr['silent_cyl_max_pa'] / 1e3:.0f} kPa, before the demand at "
+          f"{fsr['brake_at_s']:.0f} s, so the train runs with one wagon braking until the demand "
+          + (f"and stops in {fsr['stopping_distance_m']:.0f} m" if np.isfinite(fsr["stopping_distance_m"]) else "")
+          + f" (peak tension {fsr['max_tension_n'] / 1e3:.0f} kN, compression {-fsr['max_compression_n'] / 1e3:.0f} kN).")
+        w("")
+    if checks:
+        w("## Integration step")
+        w("")
+        w(f"The plant integrates with a fixed step h = {1000 * h0:g} ms (semi-implicit Euler, "
+          f"{int(round(_load(specs[0], duration_s, sd).control_period_s / h0))} sub-steps per control period). "
+          "The same runs with h / 2 and h / 4 (change: relative to the next finer step):")
+        w("")
+        w("| run | step | stopping distance (m) | peak compression (kN) | peak tension (kN) | last wagon half pressure | largest change to the next finer step |")
+        w("|---|---|---|---|---|---|---|")
+        heads = ("stopping_distance_m", "max_compression_n", "max_tension_n", "last_wagon_half_s")
+        worst_all = 0.0
+        for base in STEP_BASES:
+            if base not in res:
+                continue
+            chain = [(h0, res[base])] + [(h0 / d, res[f"{base}-h{1000 * h0 / d:g}ms"]) for d in STEP_DIVISORS]
+            label = next(sp.label for sp in specs if sp.key == base)
+            for i, (h, r) in enumerate(chain):
+                if i + 1 < len(chain):
+                    nxt = chain[i + 1][1]
+                    ch = max(abs(r[k] - nxt[k]) / max(abs(nxt[k]), 1e-12) for k in heads
+                             if np.isfinite(r[k]) and np.isfinite(nxt[k]))
+                    chs = f"{100 * ch:.2f} %"
+                    if i == 0:
+                        worst_all = max(worst_all, ch)
+                else:
+                    chs = "—"
+                sd_m = "—" if not np.isfinite(r["stopping_distance_m"]) else f"{r['stopping_distance_m']:.1f}"
+                w(f"| {label} | {1000 * h:g} ms | {sd_m} | {-r['max_compression_n'] / 1e3:.1f} | "
+                  f"{r['max_tension_n'] / 1e3:.1f} | {_fmt_s(r['last_wagon_half_s'])} | {chs} |")
+        w("")
+        verdict = ("converged: every headline number changes by less than 1 % when the step is halved"
+                   if worst_all < 0.01 else
+                   f"**not converged to 1 %**: halving the step changes a headline number by {100 * worst_all:.1f} %; "
+                   "read the table's finest-step row")
+        w(f"At the scenario's step the numbers above are {verdict}.")
+        w("")
     w("Bus load counts every frame the recorder sees, including the plant's sensor frames (the plant's "
       "\"local wiring\" in the emulation) and the lockstep barrier frames; the timing model queues the "
       "ECUs' state, command and heartbeat frames by priority.")
@@ -241,7 +310,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
     w("## Runs")
     w("")
     w("```sh")
-    for sp in specs:
+    for sp in (*specs, *checks):
         w(command(sp, duration_s, str(runs_dir)))
     w("```")
     w("")
