@@ -502,6 +502,7 @@ class Scenario(_Model):
                 checks.append(("train.coupler.spacing_m", c.spacing_m, n - 1))
         if self.initial.position_m is not None:
             checks.append(("initial.position_m", self.initial.position_m, n))
+        self._check_easing()
         for i, ev in enumerate(self.events):
             for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "bias_n"):
                 if hasattr(ev, fname) and getattr(ev, fname) is not None:
@@ -517,6 +518,19 @@ class Scenario(_Model):
             per_car(value, k, name)
         self._check_spacing()
         return self._check_times()
+
+    def _check_easing(self) -> None:
+        """Easing anticipates the brake's lag: its time constant must be longer (canbrake.control.brake_functions)."""
+        b = self.train.brakes  # type: ignore[union-attr]
+        if b is None or b.easing is None:
+            return
+        from canbrake.consist.brakes import easing_lag_s
+
+        lag = easing_lag_s(b, self.actuator)
+        if not b.easing.time_constant_s > lag:
+            raise ValueError(f"@train.brakes.easing.time_constant_s: must exceed the brake lag it anticipates "
+                             f"({lag:g} s: actuator.lag_s + blending.friction_lag_s, or easing.lag_s), "
+                             f"got {b.easing.time_constant_s:g}")
 
     def _check_spacing(self) -> None:
         """Initial positions and a given coupler spacing must agree: a coupler that would start

@@ -14,6 +14,8 @@ wheel-slide protection): :mod:`canbrake.control.brake_functions`. Units in the f
 """
 from __future__ import annotations
 
+from typing import Any
+
 from pydantic import Field, model_validator
 
 from canbrake.consist.base import StrictModel
@@ -95,3 +97,15 @@ class BrakeSystemConfig(StrictModel):
         if self.wsp is not None and self.wsp.enabled and self.wheels is None:
             raise ValueError("@wsp: wheel-slide protection needs wheels (train.brakes.wheels)")
         return self
+
+
+def easing_lag_s(brakes: BrakeSystemConfig, actuator: Any) -> float:
+    """The brake lag (s) easing anticipates: ``easing.lag_s`` if given, else the realistic actuator's
+    lag (0 for an ideal one) plus the friction brake's lag behind the blend."""
+    e = brakes.easing
+    if e is not None and e.lag_s is not None:
+        return float(e.lag_s)
+    lag = float(actuator.lag_s) if getattr(actuator, "model", "ideal") == "realistic" else 0.0
+    if brakes.blending is not None:
+        lag += brakes.blending.friction_lag_s
+    return lag

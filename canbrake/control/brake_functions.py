@@ -105,14 +105,12 @@ def brake_functions_of(ctrl: Controller, brakes: Any, actuator: Any) -> BrakeFun
     """Wrap ``ctrl`` with the ECU functions configured in ``train.brakes`` (a
     :class:`canbrake.consist.brakes.BrakeSystemConfig`); ``actuator`` is the scenario's actuator
     section (its lag is what easing anticipates unless ``easing.lag_s`` is given)."""
+    from canbrake.consist.brakes import easing_lag_s
+
     tau = lag = None
     if brakes.easing is not None:
         tau = brakes.easing.time_constant_s
-        lag = brakes.easing.lag_s
-        if lag is None:  # the brake's own lag, plus the friction brake's behind the blend
-            lag = actuator.lag_s if actuator.model == "realistic" else 0.0
-            if brakes.blending is not None:
-                lag += brakes.blending.friction_lag_s
+        lag = easing_lag_s(brakes, actuator)
     wsp = brakes.wsp if brakes.wsp is not None and brakes.wsp.enabled else None
     w = brakes.wheels
     return BrakeFunctions(ctrl, easing_tau_s=tau, lag_s=lag or 0.0, wsp=wsp,
