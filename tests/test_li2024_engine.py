@@ -137,3 +137,23 @@ def test_a_silent_ecp_wagon_brakes_on_its_own_with_the_failsafe(tmp_path):
     assert hold["brake_cylinder_pressure_pa_c53"].max() == 0.0
     assert fs["brake_cylinder_pressure_pa_c53"][-1] > 0.0 and fs["brake_cylinder_pressure_pa_c52"].max() == 0.0
     assert s_fs["failsafe"]["activations"] == 1 and list(s_fs["failsafe"]["first_activation_s"]) == ["c53"]
+
+
+@pytest.mark.slow
+def test_ecp_report_runs_the_step_check(tmp_path):
+    """`canbrake report ecp` on a short run: the step-size runs are the same run with the plant step
+    halved twice, and the table shows each with the change to the next finer step."""
+    from canbrake.report import ecp
+    sets = (("ecus.0.controller.params.brake_at_s", 0.1), ("bus.timing", "ideal"), ("train.integration_step_s", 0.01))
+    spec = ecp.Spec("ecp-250k", None, "ECP test", sets)
+    md = ecp.generate(tmp_path / "out", tmp_path / "runs", jobs=1, duration_s=0.4, specs=(spec,),
+                      log=lambda m: None)
+    text = md.read_text()
+    assert "## Integration step" in text
+    for h in ("10 ms", "5 ms", "2.5 ms"):
+        assert f"| ECP test | {h} |" in text
+    assert "--set train.integration_step_s=0.0025" in text
+    import json
+    r5 = json.loads((tmp_path / "runs" / "ecp-250k-h5ms" / "report.json").read_text())
+    r10 = json.loads((tmp_path / "runs" / "ecp-250k" / "report.json").read_text())
+    assert r5["max_compression_n"] != r10["max_compression_n"]  # a different step is a different run

@@ -54,7 +54,7 @@ def step_specs(base_step_s: float, specs: Sequence[Spec] = SPECS) -> list[Spec]:
             for d in STEP_DIVISORS:
                 h = base_step_s / d
                 out.append(Spec(f"{sp.key}-h{1000 * h:g}ms", sp.profile, f"{sp.label}, step {1000 * h:g} ms",
-                                (("train.integration_step_s", h),)))
+                                sp.sets + (("train.integration_step_s", h),)))
     return out
 
 
@@ -64,7 +64,7 @@ def scenario_dir() -> Path:
 
 def command(spec: Spec, duration_s: float, runs_dir: str) -> str:
     prof = f" --profile {spec.profile}" if spec.profile else ""
-    sets = "".join(f" --set {k}={v:g}" for k, v in spec.sets)
+    sets = "".join(f" --set {k}={v:g}" if isinstance(v, float) else f" --set {k}={v}" for k, v in spec.sets)
     return (f"canbrake run scenarios/{SCENARIO}{prof}{sets} --duration {duration_s:g} --bus inprocess "
             f"--out {runs_dir}/{spec.key}")
 
@@ -284,10 +284,10 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
             for i, (h, r) in enumerate(chain):
                 if i + 1 < len(chain):
                     nxt = chain[i + 1][1]
-                    ch = max(abs(r[k] - nxt[k]) / max(abs(nxt[k]), 1e-12) for k in heads
-                             if np.isfinite(r[k]) and np.isfinite(nxt[k]))
+                    ch = max((abs(r[k] - nxt[k]) / max(abs(nxt[k]), 1e-12) for k in heads
+                              if np.isfinite(r[k]) and np.isfinite(nxt[k])), default=float("nan"))
                     chs = f"{100 * ch:.2f} %"
-                    if i == 0:
+                    if i == 0 and np.isfinite(ch):
                         worst_all = max(worst_all, ch)
                 else:
                     chs = "—"
