@@ -149,6 +149,7 @@ def _train_plant(scn: Scenario):
         actuator=actuator, rail=RailConditions(base_adhesion_mu=per_car(a.adhesion_mu, n, "mu"), events=rail_events),
         disturbances=disturbances, max_substep_s=scn.control_period_s / scn.plant.substeps,
         blending=blending, wheels=wheels, wsp_valve_lag_s=valve_lag,
+        wsp_max_vent_s=t.brakes.wsp.max_vent_s if t.brakes is not None and t.brakes.wsp is not None else math.inf,
     )
 
 

@@ -142,6 +142,19 @@ def test_wheel_slide_protection_keeps_the_slip_below_its_threshold_on_a_low_mu_s
     assert wsp["v"][-1] <= bare["v"][-1] + 0.05
 
 
+def test_dump_valve_watchdog_brings_the_brake_back_after_max_vent_s():
+    plant = _wheeled_car(0.25)
+    plant.wsp_max_vent_s = 1.0
+    m = 20_000.0
+    valve = []
+    for _ in range(200):  # an ECU that vents for ever (or went silent while venting)
+        plant.step(0.01, np.array([0.5 * m]), wsp_release=np.array([1.0]))
+        valve.append(float(plant.wsp_valve[0]))
+    v = np.asarray(valve)
+    assert v[90] > 0.99                     # vented during the first second
+    assert v[-1] < 1e-3                     # closed again: valve lag 0.05 s << the remaining 1 s
+
+
 # ------------------------------------------------------------------ easing
 def _stop(easing: bool, blending: BrakeBlending | None = None) -> dict[str, np.ndarray]:
     m, dt = 20_000.0, 0.01

@@ -76,6 +76,8 @@ class WspConfig(StrictModel):
     reapply_per_s: float = Field(4.0, gt=0, description="rate at which the valve closes again (1/s)")
     valve_lag_s: float = Field(0.05, ge=0, description="dump valve first-order lag (s)")
     min_speed_kmh: float = Field(3.0, ge=0, description="below this speed WSP is inactive (slip is ill-defined)")
+    max_vent_s: float = Field(5.0, gt=0, description="dump-valve watchdog: a car's brake comes back after venting "
+                                                     "this long without a break, whatever the ECU commands")
 
     @model_validator(mode="after")
     def _order(self) -> "WspConfig":

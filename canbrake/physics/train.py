@@ -112,6 +112,7 @@ class TrainPlant:
         blending: BrakeBlending | None = None,
         wheels: Wheelsets | None = None,
         wsp_valve_lag_s: float = 0.05,
+        wsp_max_vent_s: float = math.inf,
     ) -> None:
         self.mass_kg = np.asarray(mass_kg, dtype=float).copy()
         n = self.mass_kg.size
@@ -171,6 +172,7 @@ class TrainPlant:
         self.blending = blending
         self.wheels = wheels
         self.wsp_valve_lag_s = float(wsp_valve_lag_s)
+        self.wsp_max_vent_s = float(wsp_max_vent_s)
         self._wheels0 = None if wheels is None else wheels.omega.copy()
         self.reset()
 
@@ -189,6 +191,7 @@ class TrainPlant:
         self._plain_rail = not self.actuator.adhesion_limited
         self._blend = None if self.blending is None else BlendingState(self.blending, self.mass_kg)
         self.wsp_valve = np.zeros(self.n_cars)
+        self._vent_s = np.zeros(self.n_cars)
         if self.wheels is not None and self._wheels0 is not None:
             self.wheels.omega = self._wheels0.copy()
 
@@ -369,7 +372,12 @@ class TrainPlant:
             brake = np.maximum(total, 0.0) * self._eff
             traction = np.minimum(total, 0.0)
             if wsp is not None:
-                self.wsp_valve = valve_step(self.wsp_valve, wsp, h, self.wsp_valve_lag_s)
+                # the dump valves' watchdog: a command to vent for longer than wsp_max_vent_s is ignored
+                # until it is withdrawn (the brake comes back even if the ECU keeps venting)
+                want = np.clip(np.where(np.isnan(wsp), 0.0, wsp), 0.0, 1.0)
+                self._vent_s = np.where(want > 0.5, self._vent_s + h, 0.0)
+                want = np.where(self._vent_s > self.wsp_max_vent_s, 0.0, want)
+                self.wsp_valve = valve_step(self.wsp_valve, want, h, self.wsp_valve_lag_s)
                 brake = brake * (1.0 - self.wsp_valve)
             dl = x[:-1] - x[1:] - self.coupler_spacing_m
             f = self._incidence.dot(self.coupler_force_from_deflection(dl))
