@@ -333,10 +333,11 @@ def failsafe_of(scn: Scenario) -> Any:
 
 
 def _error_timing(scn: Scenario) -> Any:
-    """The recorder's own timing-model replica when the scenario has bus errors (else None)."""
-    from canbrake.bus.schedule import faults_of, timing_of
+    """The recorder's own timing-model replica (lockstep with ``bus.timing: model``, else None):
+    the frames' modelled wire times for the log's stamps, and the bus errors if it has any."""
+    from canbrake.bus.schedule import build_bus_timing
 
-    return timing_of(scn) if scn.mode == "lockstep" and faults_of(scn) is not None else None
+    return build_bus_timing(scn)
 
 
 def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, channel: str = "can0",

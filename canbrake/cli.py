@@ -176,6 +176,7 @@ def _cmd_monitor(a: argparse.Namespace) -> int:
     except (can.CanError, OSError, ValueError, ImportError) as e:
         raise InputError(f"--channel {a.channel}: cannot listen: {str(e).splitlines()[0] if str(e) else e}") from None
     title = f"canbrake monitor — {a.channel}" + (f" — {scn.name}" if scn is not None else "")
+    print(f"canbrake monitor: listening on {a.channel}", file=sys.stderr, flush=True)  # scripts wait for it
     try:
         monitor(bus, state, title=title, duration_s=a.duration)
     finally:

@@ -195,3 +195,30 @@ def test_init_copies_the_data_files_a_scenario_names(tmp_path, monkeypatch):
     written = B.init_scenario("heavy", tmp_path / "mine")
     assert sorted(p.relative_to(tmp_path / "mine").as_posix() for p in written) == ["data/wagons.csv", "heavy.yaml"]
     assert (tmp_path / "mine" / "data" / "wagons.csv").read_text() == "mass_kg\n25000\n"
+
+
+def test_symlog_axes_keep_limits_visible_and_units_right():
+    """Extreme first instants switch an axis to symmetric-log: its linear part ends at a decade (no
+    decade tick crowds next to 0), never above the decade of the band drawn (jerk comfort ±1 m/s³),
+    and is chosen in the plotted unit (coupler force in kN, not N)."""
+    meta = PlotMeta(scenario="case1", profile="paper", controller="chen2023", bus="memory", mode="lockstep",
+                    ref_decel_mps2=0.97)
+    tr = _trace()
+    T, n = tr.accel_mps2.shape
+    dt = float(tr.t_s[1] - tr.t_s[0])
+    tr.accel_mps2 = -0.97 + 0.3 * dt * np.where(np.arange(T) % 2, 1.0, -1.0)[:, None] * np.ones(n) * 1000
+    tr.accel_mps2[:2] = 500.0  # jerk ~ 300 m/s³ from the alternation, 1e5+ at the start
+    tr.coupler_force_n = np.full((T, n - 1), 2_000.0)  # 2 kN ...
+    tr.coupler_force_n[:2] = 5e6                        # ... after a 5 MN spike
+
+    def linthresh(ax):
+        assert ax.get_yscale() == "symlog"
+        return ax.yaxis.get_transform().linthresh
+
+    figs = figures(tr, meta)
+    jerk = linthresh(figs["decel"].axes[1])
+    assert jerk <= meta.jerk_limit_mps3 and np.log10(jerk) == np.round(np.log10(jerk))
+    force = linthresh(figs["deflections"].axes[1])
+    assert force == 1.0  # kN: the decade at or below 1.5 x 2 kN
+    brake = linthresh(figs["forces"].axes[0])
+    assert brake == 10.0  # kN: the decade at or below 1.5 x 20 kN; 20 kN shows in the first log decade

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 import re
 
 import can
@@ -153,3 +154,79 @@ def test_decode_hides_sim_control(tmp_path, capsys):
     assert main(["decode", str(log), "--hide-sim-control"]) == 0
     out = capsys.readouterr().out
     assert "STATE_DONE_C1" not in out and "SYNC" in out
+
+
+def _model_completions(scn) -> list[tuple[float, int]]:
+    """The nominal traffic of ``scn`` fed to a fresh BusTimingModel here, tick by tick (the test's
+    own schedule, from the scenario's bus layout): [(t_end_s, arbitration_id)] in bus order."""
+    from canbrake.build import bus_layout
+    from canbrake.bus.timing import BusTimingModel
+
+    dt, c = scn.control_period_s, scn.ecu.lockstep_deadline * scn.control_period_s
+    hb = int(round(scn.ecu.heartbeat_period_s / dt))
+    layout = bus_layout(scn)
+    model = BusTimingModel(scn.bus.bitrate_bps, stuffing="worst")
+    out = []
+    for k in range(scn.n_ticks + 1):
+        for m in layout.messages:
+            sender = "plant" if m.ecu == 0 else f"n{m.ecu}"
+            at = {"sync": 0.0, "reference": 0.0, "reference_pos": 0.0, "state": 0.0, "cmd": c,
+                  "heartbeat": 0.0 if k % hb == 0 else None}.get(m.kind)
+            if at is not None:
+                model.submit(sender, m.frame_id, m.extended, m.length, None, k * dt + at)
+        out += [(d.t_end_s, d.arbitration_id) for d in model.advance((k + 1) * dt)]
+    return out
+
+
+@pytest.mark.parametrize("period_s", [0.001, 0.005])
+def test_timing_model_stamps_are_the_modelled_wire_end_times(tmp_path, period_s):
+    """bus.timing: model — each frame is stamped with the modelled end of its transmission: the
+    n-th frame of an identifier in the log carries the n-th completion of that identifier on a
+    timing model fed here with the scenario's nominal traffic; the log is monotonic and each
+    period holds exactly the frames the lockstep delivered in it. At 1 ms the 6 cars' traffic
+    does not fit 1 Mbit/s: frames finish periods late on the modelled bus and are stamped then."""
+    import csv
+
+    from canbrake.build import bus_layout
+
+    scn = load_scenario(CASE1, overrides={"duration_s": 0.03, "control_period_s": period_s,
+                                          "bus.timing": "model", "bus.bitrate_bps": 1_000_000})
+    s = run_scenario(scn, tmp_path, backend="inprocess", plots=False)
+    assert s["status"] == "ok"
+    dt, n = period_s, scn.n_ticks
+    done = [(t, aid) for t, aid in _model_completions(scn) if t <= n * dt - dt * 1e-9]  # the run's periods
+    frames = [m for m in can.LogReader(str(tmp_path / "frames.log"))][:-1]  # without the end SYNC
+    stamps = [m.timestamp for m in frames]
+    assert stamps == sorted(stamps)
+    layout = bus_layout(scn)
+    kinds = {m.frame_id: m.kind for m in layout.messages}
+    from_plant = {m.frame_id for m in layout.messages if m.ecu == 0}
+    hb = int(round(scn.ecu.heartbeat_period_s / dt))
+    per_period = [0] * n
+    for aid in {m.arbitration_id for m in frames}:
+        got = [m.timestamp for m in frames if m.arbitration_id == aid]
+        if kinds[aid] == "sensor":  # local wiring, not on the modelled bus: the period's start
+            assert got == pytest.approx([round(t / dt) * dt for t in got], abs=1e-9)
+            continue
+        ends = [t for t, a in done if a == aid]
+        if aid in from_plant:  # sent in its own period whatever the bus: the model's end if it falls
+            want = []          # in that period's window (t_k - e, t_k + T - e], else the period's start
+            for k in range(0, n, hb if kinds[aid] == "heartbeat" else 1):
+                w = [t for t in ends if k * dt - dt * 1e-9 < t <= (k + 1) * dt - dt * 1e-9]
+                want.append(w[0] if w else k * dt)
+                per_period[k] += 1
+        else:  # an ECU holds each frame until the model has it off the wire: every end is logged
+            want = ends
+            for t in want:  # in the period whose release window holds the end
+                per_period[int(math.ceil(t / dt - (1 - 1e-9)))] += 1
+        assert len(got) == len(want), (hex(aid), len(got), len(want))
+        assert got == pytest.approx(want, abs=1e-6), hex(aid)
+    with open(tmp_path / "bus_load.csv") as f:
+        delivered = [int(r["frames"]) for r in csv.DictReader(f)]  # frames the recorder got per period
+    assert per_period == delivered
+    if period_s == 0.001:  # the premise: the bus falls behind, commands end periods after their own
+        states = sum(1 for t, aid in done if kinds[aid] == "state")
+        assert states < 6 * n / 2, states  # most STATE frames wait for the bus far beyond their period
+    # the same stamps on another backend (the recorder's model replica decides, not the medium)
+    run_scenario(scn, tmp_path / "v", backend="virtual", plots=False)
+    assert (tmp_path / "v" / "frames.log").read_bytes() == (tmp_path / "frames.log").read_bytes()

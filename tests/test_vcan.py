@@ -11,6 +11,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -330,6 +331,7 @@ def socketcan_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]
     candump = _start_candump(dump, rcvbuf=16 << 20)
     env = {**os.environ, "CANBRAKE_START_TIMEOUT_S": START_TIMEOUT_S}
     sent: list[str] = []
+    viewers = _start_viewers(root)  # canbrake monitor, can.viewer, cantools monitor on vcan0
     try:
         t0 = time.monotonic()
         with can.Bus(interface="socketcan", channel=CHANNEL,
@@ -351,8 +353,69 @@ def socketcan_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]
         time.sleep(1.0)  # let candump write the last frames
     finally:
         _stop(candump)
+        shown = _stop_viewers(viewers)
     done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    return {"proc": done, "out": out, "candump": dump, "wall": wall, "sent": sent}
+    return {"proc": done, "out": out, "candump": dump, "wall": wall, "sent": sent, "viewers": shown}
+
+
+#: the viewers' text once they are up (can.viewer's column header, cantools monitor's status line)
+_VIEWER_READY = {"viewer": "Count", "cantools": "Received:"}
+
+
+def _start_viewers(root: Path) -> dict[str, object]:
+    """``canbrake monitor`` (plain output, the way a script or CI runs it) and, when tmux is there,
+    python-can's ``can.viewer`` and ``cantools monitor`` in tmux panes, all on vcan0; returns once
+    each listens (a Python process needs ~45 s to start in the VM: they start side by side)."""
+    mon_out, mon_err = (root / "monitor.out").open("w"), (root / "monitor.err").open("w")
+    mon = subprocess.Popen([sys.executable, "-m", "canbrake", "monitor", "--channel", CHANNEL, "--scenario",
+                            str(SCENARIO), "--duration", "1500"], stdout=mon_out, stderr=mon_err, text=True)
+    mon_out.close()
+    mon_err.close()
+    panes: dict[str, str] = {}
+    # tmux's socket must be on a file system that holds sockets (the VM's /tmp is 9p: it cannot)
+    os.environ.setdefault("TMUX_TMPDIR", tempfile.gettempdir())
+    if shutil.which("tmux"):
+        tag = f"{os.getpid()}"
+        py = f"PYTHONPATH={Path(__file__).resolve().parents[1]} {sys.executable}"
+        cmds = {"viewer": f"{py} -m can.viewer -i socketcan -c {CHANNEL}",
+                "cantools": f"{py} -c 'import sys, cantools; sys.argv[0] = \"cantools\"; cantools._main()' "
+                            f"monitor -c {CHANNEL} {SCENARIO.parents[1] / 'dbc' / 'canbrake.dbc'}"}
+        for name, cmd in cmds.items():
+            panes[name] = f"cb{name}{tag}"
+            subprocess.run(["tmux", "new-session", "-d", "-s", panes[name], "-x", "150", "-y", "60",
+                            cmd + "; sleep 3600"], check=True)
+    deadline = time.monotonic() + 600
+    while time.monotonic() < deadline and mon.poll() is None:
+        up = "listening on" in (root / "monitor.err").read_text()
+        up = up and all(_VIEWER_READY[n] in _pane(s) for n, s in panes.items())
+        if up:
+            break
+        time.sleep(1)
+    print(f"viewers up after {time.monotonic() - deadline + 600:.0f} s", file=sys.stderr)
+    return {"monitor": mon, "root": root, "panes": panes}
+
+
+def _pane(session: str) -> str:
+    return subprocess.run(["tmux", "capture-pane", "-p", "-t", session], capture_output=True, text=True).stdout
+
+
+def _stop_viewers(v: dict[str, object]) -> dict[str, object]:
+    """Wait for ``canbrake monitor`` to stop by itself at the end-of-run SYNC (killed after 300 s),
+    capture the panes and close them; returns what each showed."""
+    mon: subprocess.Popen[str] = v["monitor"]  # type: ignore[assignment]
+    try:
+        rc = mon.wait(timeout=300)
+    except subprocess.TimeoutExpired:
+        mon.kill()
+        rc = mon.wait()
+    root: Path = v["root"]  # type: ignore[assignment]
+    shown: dict[str, object] = {"monitor_rc": rc, "monitor": (root / "monitor.out").read_text(),
+                                "monitor_err": (root / "monitor.err").read_text()}
+    panes: dict[str, str] = v["panes"]  # type: ignore[assignment]
+    for name, session in panes.items():
+        shown[name] = _pane(session)
+        subprocess.run(["tmux", "kill-session", "-t", session], capture_output=True)
+    return shown
 
 
 @pytest.fixture(scope="module")
@@ -378,6 +441,26 @@ def test_canbrake_run_on_vcan0_exits_0(socketcan_run: dict[str, object]) -> None
         assert (out / name).is_file(), name
     first = (out / "frames.log").read_text().splitlines()[0]
     assert first.split()[1] == CHANNEL
+
+
+def test_monitor_and_viewers_follow_the_run_on_vcan0(socketcan_run: dict[str, object]) -> None:
+    """Attached to vcan0 before the run: ``canbrake monitor`` stops by itself at the end-of-run SYNC
+    and shows the train at the run's last period; ``can.viewer`` and ``cantools monitor`` (tmux)
+    show the run's frames decoded or raw."""
+    import json
+
+    _check(socketcan_run["proc"])  # type: ignore[arg-type]
+    out = socketcan_run["out"]
+    assert isinstance(out, Path)
+    ticks = json.loads((out / "summary.json").read_text())["ticks"]
+    shown: dict[str, object] = socketcan_run["viewers"]  # type: ignore[assignment]
+    text = str(shown["monitor"])
+    assert shown["monitor_rc"] == 0, shown["monitor_err"]
+    assert f"train — tick {ticks - 1}" in text and f"periods {ticks - 1}" in text, text
+    assert "speed (km/h)" in text and "Δl to next (cm)" in text
+    if "viewer" in shown:
+        assert all(f"0x{i:03X}" in str(shown["viewer"]) for i in (0x010, 0x011, 0x081)), shown["viewer"]
+        assert "BRAKE_CMD_C1(" in str(shown["cantools"]) and "Received:" in str(shown["cantools"]), shown["cantools"]
 
 
 def test_socketcan_run_signals_equal_memory_run(

@@ -68,7 +68,8 @@ def plot_meta(scn: Any, bus: str = "") -> PlotMeta:
     jerk = COMFORT_JERK_MPS3
     if getattr(act, "model", "") == "realistic" and getattr(act, "jerk_limit_mps3", None):
         jerk = float(act.jerk_limit_mps3)
-    return PlotMeta(scenario=scn.name, profile=scn.profile, controller=scn.controller.name,
+    ctrl = " + ".join(dict.fromkeys(p.controller.name for p in scn.placement()))  # every ECU's, in order
+    return PlotMeta(scenario=scn.name, profile=scn.profile, controller=ctrl,
                     bus=_short_bus(bus), mode=scn.mode, ref_decel_mps2=float(scn.reference.decel_mps2),
                     emergency_decel_mps2=emergency, jerk_limit_mps3=jerk)
 
@@ -83,20 +84,39 @@ def _short_bus(bus: str) -> str:
 
 
 # ----------------------------------------------------------------------------- panels
+#: more per-vehicle series than this: the legend names only the first and the last vehicle
+LEGEND_MAX_SERIES = 12
+
+
 def _legend(ax: Axes, n: int) -> None:
     ax.grid(alpha=0.3)
-    ax.legend(ncol=2 if n > 3 else 1, fontsize=7, loc="best")
+    if n <= LEGEND_MAX_SERIES:
+        ax.legend(ncol=2 if n > 3 else 1, fontsize=7, loc="best")
+        return
+    # a long train (106 vehicles): a legend entry per vehicle would leave no room for the axes
+    handles, labels = ax.get_legend_handles_labels()
+    series = [i for i, lb in enumerate(labels) if lb.split(" ")[0] in ("car", "coupler", "vehicle")]
+    keep = [i for i in range(len(labels)) if i not in series] + series[:1] + series[-1:]
+    ax.legend([handles[i] for i in keep], [labels[i] for i in keep], fontsize=7, loc="best",
+              title=f"{n} series, first and last named", title_fontsize=7)
 
 
-def _symlog_if_extreme(ax: Axes, values: np.ndarray, unit_scale: float = 1.0) -> bool:
+def _symlog_if_extreme(ax: Axes, values: np.ndarray, unit_scale: float = 1.0, limit: float | None = None) -> bool:
     """Use a symmetric-log y axis when the largest |value| is over 20 times the 90th percentile (a
-    few extreme instants would flatten the rest); linear below the 90th percentile. True if set."""
+    few extreme instants would flatten the rest). ``values`` in SI, plotted times ``unit_scale``.
+    Linear up to the power of ten at or below 1.5 × the 90th percentile (a decade, so that no decade
+    tick crowds into the linear part, and the bulk of the values shows in the first log decade), or up
+    to the decade of ``limit`` (a band drawn at ±limit, in plotted units) when that is smaller, so that
+    the band stays visible. True if set."""
     v = np.abs(values[np.isfinite(values)]) * unit_scale
     if v.size == 0:
         return False
     p90 = float(np.percentile(v, 90))
     if p90 > 0 and v.max() > 20 * p90:
-        ax.set_yscale("symlog", linthresh=max(p90 * 1.5, 1e-9))
+        lin = 10.0 ** np.floor(np.log10(max(p90 * 1.5, 1e-12)))
+        if limit is not None and limit > 0:
+            lin = min(lin, 10.0 ** np.ceil(np.log10(limit)))
+        ax.set_yscale("symlog", linthresh=float(lin))
         return True
     return False
 
@@ -115,7 +135,7 @@ def _errors(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
         ax.plot(tr.t_s, err[:, i], lw=1, label=f"car {i + 1}")
     ax.axhspan(-meta.band_kmh, meta.band_kmh, color="g", alpha=0.1, label=f"±{meta.band_kmh:g} km/h band")
     ax.set(xlabel="time (s)", ylabel="v − v* (km/h)", title="speed tracking error")
-    _symlog_if_extreme(ax, err)
+    _symlog_if_extreme(ax, err, limit=meta.band_kmh)
     _legend(ax, tr.n_cars)
 
 
@@ -145,7 +165,7 @@ def _jerk(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
     ax.axhspan(-meta.jerk_limit_mps3, meta.jerk_limit_mps3, color="g", alpha=0.1,
                label=f"comfort ±{meta.jerk_limit_mps3:g} m/s³")
     ax.set(xlabel="time (s)", ylabel="jerk da/dt (m/s³)", title="jerk against the comfort limit")
-    _symlog_if_extreme(ax, jerk)
+    _symlog_if_extreme(ax, jerk, limit=meta.jerk_limit_mps3)
     _legend(ax, tr.n_cars)
 
 
@@ -156,7 +176,7 @@ def _deflections(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
     ax.axhline(b, color="r", ls=":", lw=1.2)
     ax.axhline(-b, color="r", ls=":", lw=1.2, label=f"bound ±{b:g} cm")
     ax.set(xlabel="time (s)", ylabel="deflection Δl (cm, + stretched)", title="coupler deflection against its bound")
-    _symlog_if_extreme(ax, tr.deflection_m, 100)
+    _symlog_if_extreme(ax, tr.deflection_m, 100, limit=b)
     _legend(ax, tr.deflection_m.shape[1])
 
 
@@ -164,7 +184,7 @@ def _coupler_forces(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
     for j in range(tr.coupler_force_n.shape[1]):
         ax.plot(tr.t_s, tr.coupler_force_n[:, j] / 1000, lw=1, label=f"coupler {j + 1}–{j + 2}")
     ax.set(xlabel="time (s)", ylabel="coupler force (kN)", title="coupler force")
-    _symlog_if_extreme(ax, tr.coupler_force_n)
+    _symlog_if_extreme(ax, tr.coupler_force_n, 1e-3)  # plotted in kN
     _legend(ax, tr.coupler_force_n.shape[1])
 
 

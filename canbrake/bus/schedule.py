@@ -113,6 +113,9 @@ class LockstepBusTiming:
         self._done: dict[tuple[int, str, int], float] = {}
         self._babble_next = [0] * len(self.babblers)
         self._query_tick = 0  # latest tick asked about; deliveries older than it are forgotten
+        #: when a list, every frame the model carries is appended as (t_end_s, arbitration_id,
+        #: is_extended) in bus order (the recorder's stamps: canbrake.nodes.recorder)
+        self.delivery_log: list[tuple[float, int, bool]] | None = None
 
     def _submit_tick(self, k: int) -> None:
         t = k * self.dt
@@ -136,6 +139,7 @@ class LockstepBusTiming:
 
     def simulate_through(self, t_s: float) -> None:
         """Simulate every tick that starts before ``t_s`` (keeps the latencies for ``latency_s``)."""
+        self._query_tick = max(self._query_tick, int(t_s / self.dt) - 1)  # older latencies can go
         while self._next_tick * self.dt < t_s - 1e-12:
             self._step()
 
@@ -149,7 +153,10 @@ class LockstepBusTiming:
     def _step(self) -> None:
         k = self._next_tick
         self._submit_tick(k)
+        log = self.delivery_log
         for d in self.model.advance((k + 1) * self.dt):
+            if log is not None:
+                log.append((d.t_end_s, d.arbitration_id, d.is_extended))
             tag = d.tag
             if tag[2] >= 0:
                 self._done[tag] = d.t_end_s

@@ -4,15 +4,29 @@ The log is written by python-can's own writer (``can.Logger`` picks the format b
 ``frames.log`` candump -L, ``.asc``, ``.blf``, ``.trc``, ``.mf4``), so candump/canplayer,
 python-can, ``cantools decode``, CANoe and asammdf read it.
 
-What a frame's timestamp means (lockstep mode): simulated time, the instant the frame's last bit
-would leave an ideal bus carrying the control period's frames back to back from the period's
-start t_k, in the order a CAN bus would carry them if every node queued its frames of a phase at
-the same instant (phase by phase, then by identifier — arbitration; actual bit stuffing at the
-scenario's bit rate). A stamp never runs ahead of the period: when the period's frames need more
-wire time W than the period T (bus load > 100 %), their wire times are scaled by T/W so that the
-last one ends at t_k + T; ``bus_stats.json`` (and the summary's bus load) says by how much the
-traffic did not fit. That makes the log identical byte for byte between runs and backends for
-the same seed.
+What a frame's timestamp means (lockstep mode) — simulated time, identical byte for byte between
+runs and backends for the same seed, and never outside the frame's control period
+[t_k, t_k + T) (the period in which the lockstep delivers it), so the log is monotonic:
+
+* ``bus.timing: ideal`` (default): the instant the frame's last bit would leave an ideal bus
+  carrying the control period's frames back to back from the period's start t_k, in the order a
+  CAN bus would carry them if every node queued its frames of a phase at the same instant (phase
+  by phase, then by identifier — arbitration; actual bit stuffing at the scenario's bit rate).
+  When the period's frames need more wire time W than the period T (bus load > 100 %), their
+  wire times are scaled by T/W so that the last one ends at t_k + T; ``bus_stats.json`` (and the
+  summary's bus load) says by how much the traffic did not fit.
+* ``bus.timing: model``: the modelled wire time — the instant the frame's transmission completes
+  on the modelled bus (:mod:`canbrake.bus.schedule`, the same replica every sender uses for its
+  latencies; worst-case stuffing, IFS included). A sender holds a frame until the model has it
+  off the wire, so the frames the lockstep delivers in period k are the frames the model
+  completes in (t_k − ε, t_k + T − ε] (ε = 1e-9 T, the senders' release horizon): the recorder
+  gives the frames of each identifier seen in period k the model's completion times of that
+  identifier in that window, in order (arrival order within an identifier). A frame the model does
+  not carry in that window — the plant's sensor frames (local wiring unless
+  ``bus.plant_io_on_bus``), a frame added or moved by an impairment other than babbling, a
+  frame from outside the run, a plant frame the model finishes only after its period — is
+  stamped at the start of its phase (t_k; a command at the decision instant t_k + c·T). The
+  frames of a period are written in stamp order (ties: phase, identifier, payload).
 
 Simulation-control frames (the lockstep barrier's STATE_DONE/CMD_DONE, which carry no train data
 and are only sent when an impairment needs them) are never written to the log, so a log holds the
@@ -266,7 +280,12 @@ class RecorderNode(Node):
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
         self.frames_by_id: dict[int, int] = {}
-        # bus errors: own replica of the timing model (canbrake.bus.schedule.LockstepBusTiming)
+        # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
+        # modelled wire times for the stamps and, with bus errors, the error frames
+        self.wire_model = bus_timing if bus_timing is not None and mode == "lockstep" else None
+        self._wire_done: list[tuple[float, int, bool]] = []  # model completions not matched yet
+        if self.wire_model is not None:
+            self.wire_model.delivery_log = self._wire_done
         self.timing = bus_timing if bus_timing is not None and getattr(bus_timing, "faults", None) else None
         self._ev_i = 0
         self.error_frames = 0
@@ -333,6 +352,8 @@ class RecorderNode(Node):
         wire = sum(durs)
         scale = min(1.0, self.dt / wire) if wire > 0 else 1.0  # stamps stay inside [t_k, t_k + T]
         out = []
+        seen = {id(f[3]): i for i, f in enumerate(self._tick_frames)}
+        arrival: list[int] = []  # each logged frame's place in the order frames arrived
         busy = 0.0
         in_period = 0.0
         for (_phase, aid, _data, msg), dur in zip(ordered, durs):
@@ -343,7 +364,10 @@ class RecorderNode(Node):
             in_period += dur
             if not is_sim_control(aid, self.layout):
                 out.append(self._stamp(msg, t_k + in_period * scale))
+                arrival.append(seen[id(msg)])
         self._bus_free_s = t
+        if self.wire_model is not None:
+            out = self._model_stamps(out, arrival, t_k)
         n_out = len(out)
         if self.timing is not None:
             out = self._with_errors(out)
@@ -351,6 +375,31 @@ class RecorderNode(Node):
         self._write(out)
         self._flush_file()
         self._tick_frames = []
+
+    def _model_stamps(self, out: list[can.Message], arrival: list[int], t_k: float) -> list[can.Message]:
+        """Restamp the period's frames with the timing model's completion times (module
+        docstring, ``bus.timing: model``) and put them in stamp order."""
+        horizon = t_k + self.dt * (1 - 1e-9)  # the senders' last release horizon of the period
+        self.wire_model.simulate_through(t_k + self.dt)
+        done: dict[tuple[int, bool], list[float]] = {}
+        later = []
+        for t_end, aid, ext in self._wire_done:
+            if t_end <= horizon:
+                done.setdefault((aid, ext), []).append(t_end)
+            else:
+                later.append((t_end, aid, ext))
+        self._wire_done[:] = later  # the rest ends in a later period; unmatched ones are dropped
+        phase_start = {2: t_k + self.wire_model.c}
+        stamped = []
+        for _n, m in sorted(zip(arrival, out), key=lambda x: x[0]):  # arrival order within an identifier
+            aid = m.arbitration_id
+            phase = 0 if aid == dbc.HEARTBEAT_BASE and not m.is_extended_id else _PHASE.get(self._kinds.get(aid, "other"), 1)
+            times = done.get((m.arbitration_id, m.is_extended_id))
+            t = min(max(times.pop(0), t_k), horizon) if times else phase_start.get(phase, t_k)
+            m.timestamp = self.epoch + t
+            stamped.append((t, phase, m.arbitration_id, bytes(m.data), m))
+        stamped.sort(key=lambda x: x[:4])
+        return [x[-1] for x in stamped]
 
     def _with_errors(self, out: list[can.Message]) -> list[can.Message]:
         """Add the error frames of tick ``self._k`` (in time order) and sample the error states."""
