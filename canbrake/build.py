@@ -137,16 +137,44 @@ def _train_plant(scn: Scenario):
                                                  frequency_hz=ev.frequency_hz, start_s=ev.start_s, end_s=end,
                                                  offset_n=per_car(ev.bias_n, n, "bias"), phase_rad=ev.phase_rad))
     c = t.coupler
+    blending, wheels, valve_lag = _brake_equipment(scn)
     return TrainPlant(
         t.mass_kg, scn.initial_position_m(), scn.initial_speed_mps(),
         coupler_stiffness_n_per_m=c.stiffness_n_per_m if n > 1 else [],
         coupler_nonlinearity_per_m2=c.epsilon_per_m2 if n > 1 else [],
         coupler_spacing_m=c.spacing_m, end_stop_m=c.end_stop_m,
+        end_stop_stiffness_n_per_m=c.end_stop_stiffness_n_per_m,
         resistance=resistance, grade_rad=math.atan(t.grade_permille / 1000.0),
         curve_resistance_n=per_car(t.curve_resistance_n, n, "curve"),
         actuator=actuator, rail=RailConditions(base_adhesion_mu=per_car(a.adhesion_mu, n, "mu"), events=rail_events),
         disturbances=disturbances, max_substep_s=scn.control_period_s / scn.plant.substeps,
+        blending=blending, wheels=wheels, wsp_valve_lag_s=valve_lag,
+        wsp_max_vent_s=t.brakes.wsp.max_vent_s if t.brakes is not None and t.brakes.wsp is not None else math.inf,
     )
+
+
+def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
+    """(blending, wheelsets, dump-valve lag) of a coupled train's ``train.brakes`` (None where absent)."""
+    b = scn.train.brakes  # type: ignore[union-attr]
+    if b is None:
+        return None, None, 0.05
+    from canbrake.physics.brakes import BrakeBlending, Wheelsets
+    from canbrake.physics.wheel_adhesion import RailCondition
+
+    blending = wheels = None
+    if b.blending is not None:
+        e = b.blending
+        blending = BrakeBlending(ed_max_decel_mps2=e.ed_max_decel_mps2,
+                                 ed_power_w_per_kg=math.inf if e.ed_power_kw_per_t is None else e.ed_power_kw_per_t,
+                                 fade_start_mps=e.fade_start_kmh / 3.6, fade_end_mps=e.fade_end_kmh / 3.6,
+                                 friction_lag_s=e.friction_lag_s)
+    if b.wheels is not None:
+        w = b.wheels
+        curve = RailCondition(b1=w.b1, b2=w.b2, b3=w.b3, c1=w.c1, c2=w.c2, c3=w.c3, peak_mu0=1.0)
+        wheels = Wheelsets(scn.vehicle_masses_kg(), w.axles, w.radius_m, w.inertia_kgm2, scn.initial_speed_mps(),
+                           curve=curve, v_floor_mps=w.v_floor_mps)
+    lag = b.wsp.valve_lag_s if b.wsp is not None else 0.05
+    return blending, wheels, lag
 
 
 def needs_barrier(scn: Scenario) -> bool:
@@ -223,8 +251,14 @@ def _build_layout(scn: Scenario) -> dbc.BusLayout:
 def build_controller(scn: Scenario, ecu_index: int) -> Controller:
     """Controller of the ECU at ``ecu_index`` (1-based, placement order)."""
     p = scn.placement()[ecu_index - 1]
-    return make_controller(p.controller.name, p.controller.params, car_index=ecu_index - 1, n_cars=scn.n_ecus,
+    ctrl = make_controller(p.controller.name, p.controller.params, car_index=ecu_index - 1, n_cars=scn.n_ecus,
                            mass_kg=float(scn.vehicle_masses_kg()[p.vehicle - 1]), dt_s=scn.control_period_s)
+    brakes = getattr(scn.train, "brakes", None)
+    if brakes is not None and (brakes.easing is not None or (brakes.wsp is not None and brakes.wsp.enabled)):
+        from canbrake.control.brake_functions import brake_functions_of
+
+        ctrl = brake_functions_of(ctrl, brakes, scn.actuator)
+    return ctrl
 
 
 def build_send_path(scn: Scenario, node: str) -> SendPath:
@@ -259,9 +293,10 @@ def hosted_babblers(scn: Scenario) -> list[SendPath]:
 
 class CoupledPlant:
     """A :class:`~canbrake.physics.train.TrainPlant` behind the plant contract: one command,
-    ``brake_force_n`` (NaN = no command = no force)."""
+    ``brake_force_n`` (NaN = no command = no force), and ``wsp_release`` (the dump valves of
+    wheel-slide protection, with ``train.brakes.wheels``)."""
 
-    command_names = ("brake_force_n",)
+    command_names = ("brake_force_n", "wsp_release")
 
     def __init__(self, plant: Any) -> None:
         self.plant = plant
@@ -271,13 +306,20 @@ class CoupledPlant:
 
     def step(self, dt_s: float, commands: Any) -> None:
         f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
-        self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f))
+        wsp = commands.get("wsp_release")
+        if wsp is None:
+            self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f))
+        else:
+            self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f), wsp_release=np.asarray(wsp, dtype=float))
 
     def measurements(self) -> dict[str, np.ndarray]:
         s = self.plant.snapshot()
-        return {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
-                "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,
-                "coupler_force_n": s.coupler_force_n}
+        out = {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
+               "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,
+               "coupler_force_n": s.coupler_force_n}
+        if self.plant.blending is not None or self.plant.wheels is not None:
+            out.update(self.plant.equipment_measurements())
+        return out
 
 
 PlantAdapter = CoupledPlant  # the former name

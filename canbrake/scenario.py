@@ -22,6 +22,7 @@ from canbrake.bus.txbuffer import TxBufferConfig
 from canbrake.bus.segments import GatewayConfig, SegmentConfig
 from canbrake.consist import TRAIN_MODELS
 from canbrake.consist.base import VehicleEntry, expand_vehicles
+from canbrake.consist.brakes import BrakeSystemConfig
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
 
 KMH = 1.0 / 3.6  # m/s per km/h
@@ -104,6 +105,7 @@ class CouplerConfig(_Model):
     epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
     spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
     end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear goes solid (none by default)")
+    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0, description="stiffness beyond the end stop (solid gear)")
 
     @field_validator("stiffness_n_per_m")
     @classmethod
@@ -151,6 +153,8 @@ class TrainConfig(_Model):
     coupler: CouplerConfig = CouplerConfig()
     grade_permille: float = Field(0.0, ge=-100, le=100, description="track grade, positive uphill (‰)")
     curve_resistance_n: PerCar = Field(0.0, description="extra resistance per car, e.g. 0.004·m·D_c (N)")
+    brakes: BrakeSystemConfig | None = Field(None, description="brake equipment: blending, easing, wheels with "
+                                                               "adhesion, wheel-slide protection (canbrake.consist.brakes)")
 
     @field_validator("mass_kg")
     @classmethod
@@ -517,6 +521,7 @@ class Scenario(_Model):
                 checks.append(("train.coupler.spacing_m", c.spacing_m, n - 1))
         if self.initial.position_m is not None:
             checks.append(("initial.position_m", self.initial.position_m, n))
+        self._check_easing()
         for i, ev in enumerate(self.events):
             for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "bias_n"):
                 if hasattr(ev, fname) and getattr(ev, fname) is not None:
@@ -532,6 +537,19 @@ class Scenario(_Model):
             per_car(value, k, name)
         self._check_spacing()
         return self._check_times()
+
+    def _check_easing(self) -> None:
+        """Easing anticipates the brake's lag: its time constant must be longer (canbrake.control.brake_functions)."""
+        b = self.train.brakes  # type: ignore[union-attr]
+        if b is None or b.easing is None:
+            return
+        from canbrake.consist.brakes import easing_lag_s
+
+        lag = easing_lag_s(b, self.actuator)
+        if not b.easing.time_constant_s > lag:
+            raise ValueError(f"@train.brakes.easing.time_constant_s: must exceed the brake lag it anticipates "
+                             f"({lag:g} s: actuator.lag_s + blending.friction_lag_s, or easing.lag_s), "
+                             f"got {b.easing.time_constant_s:g}")
 
     def _check_spacing(self) -> None:
         """Initial positions and a given coupler spacing must agree: a coupler that would start

@@ -68,6 +68,10 @@ CATALOGUE: dict[str, SignalFormat] = {
     # g m q = 10 1/s x 96 t x 1e-6 m/s ~ 1 N of estimation noise (1e-4 m/s would give ~100 N, a few
     # % of the resistance); signed, +-134 m/s, because a wrong-signed control drives the train backwards.
     "ground_speed_mps": _signed("GroundSpeed", 28, 1e-6, "m/s", "speed of the train over ground (radar)"),
+    # wheel-slide protection: dump-valve command of a car's brake unit, 1/1000 of full venting
+    # (10 bits, like EcpDemand: the valve's own lag, ~50 ms, smooths far coarser steps)
+    "wsp_release": SignalFormat("WspRelease", 10, 0.001, 0.0, False, 0.0, 1.023, None,
+                                "wheel-slide protection: dump valve opening, 0 closed .. 1 vented"),
     "deflection_front_m": _signed("DeflFront", 16, 5e-5, "m", "deflection of the coupler to the vehicle ahead"),
     "deflection_rear_m": _signed("DeflRear", 16, 5e-5, "m", "deflection of the coupler to the vehicle behind"),
 }

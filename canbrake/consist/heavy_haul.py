@@ -111,8 +111,20 @@ class Envelope(StrictModel):
         return hh.TractionEnvelope(**self.model_dump())
 
 
+class Adhesion(StrictModel):
+    """Wheel–rail adhesion limit of a locomotive's traction and dynamic brake, |u| ≤ μ(v)·m·g: μ = ``mu``
+    (``constant``) or Curtius–Kniffler's μ(v) = 0.161 + 7.5/(v + 44) (v km/h) scaled to μ(0) = ``mu``."""
+
+    mu: float = Field(0.33, gt=0, le=1)
+    curve: Literal["constant", "curtius_kniffler"] = "constant"
+
+    def physics(self) -> hh.LocoAdhesion:
+        return hh.LocoAdhesion(mu0=self.mu, curve=self.curve)
+
+
 class VehicleType(StrictModel):
-    """One kind of vehicle; ``traction`` makes it a locomotive (it takes ``brake_force_n``)."""
+    """One kind of vehicle; ``traction`` makes it a locomotive (it takes ``brake_force_n``);
+    ``adhesion`` limits its traction and dynamic brake (none by default)."""
 
     mass_kg: float = Field(gt=0)
     length_m: float = Field(gt=0)
@@ -120,6 +132,7 @@ class VehicleType(StrictModel):
     draft_gear: str
     brake: BrakeEquipment
     traction: Envelope | None = None
+    adhesion: Adhesion | None = None
 
 
 class Route(StrictModel):
@@ -135,6 +148,29 @@ class Route(StrictModel):
     long_downgrade_min_length_m: float = Field(500.0, ge=0)
 
 
+class BrakePipe(StrictModel):
+    """Brake-pipe pressure along the train (:class:`canbrake.physics.heavy_haul.BrakePipe`): the driver's
+    valve lowers the pipe from ``pressure_kpa`` by ``reduction_kpa``; the change reaches vehicle k after
+    D_k / wave speed and then drains (recharges) with the lag ``tau_s + tau_per_km_s · D_k``; each control
+    valve sets its cylinder to ``ratio`` × the local pipe reduction (capped at the full cylinder pressure)."""
+
+    pressure_kpa: float = Field(600.0, gt=0)
+    reduction_kpa: float = Field(170.0, gt=0)
+    ratio: float = Field(2.6, gt=0)
+    tau_s: float = Field(1.0, gt=0)
+    tau_per_km_s: float = Field(4.0, ge=0)
+
+    @model_validator(mode="after")
+    def _below(self) -> "BrakePipe":
+        if self.reduction_kpa >= self.pressure_kpa:
+            raise ValueError(f"@reduction_kpa: must be below pressure_kpa ({self.pressure_kpa:g}), got {self.reduction_kpa:g}")
+        return self
+
+    def physics(self) -> hh.BrakePipe:
+        return hh.BrakePipe(p0_pa=1000.0 * self.pressure_kpa, reduction_pa=1000.0 * self.reduction_kpa,
+                            ratio=self.ratio, tau_s=self.tau_s, tau_per_km_s=self.tau_per_km_s)
+
+
 class AirBrake(StrictModel):
     """Automatic air brake (eqs. 10-15, section 1.2) or ECP.
 
@@ -145,6 +181,8 @@ class AirBrake(StrictModel):
     """
 
     mode: Literal["pneumatic", "ecp"] = "pneumatic"
+    pipe: BrakePipe | None = Field(None, description="brake-pipe pressure per vehicle (null: the brake signal "
+                                                       "plus one first-order cylinder fill)")
     apply_wave_mps: float = Field(gt=0)
     release_wave_mps: float = Field(gt=0)
     cylinder_tau_s: float = Field(gt=0)
@@ -233,7 +271,8 @@ class HeavyHaulTrain(StrictModel):
                            cylinder_tau_s=ab.cylinder_tau_s, beta_c=ab.service_factor, mode=ab.mode, block_force_kn=np.array([v.brake.block_force_kn() for v in vs]),
                            n_blocks=np.array([v.brake.blocks() for v in vs], dtype=float),
                            friction_coef=np.array([v.brake.friction_coefficient for v in vs]),
-                           cylinder_pressure_pa=np.array([1000.0 * v.brake.cylinder_pressure_kpa for v in vs]))
+                           cylinder_pressure_pa=np.array([1000.0 * v.brake.cylinder_pressure_kpa for v in vs]),
+                           pipe=None if ab.pipe is None else ab.pipe.physics())
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> hh.HeavyHaulModel:
         """The plant model; from the scenario ``scn`` it takes ``initial.speed_kmh`` (one value, or one per
@@ -263,4 +302,5 @@ class HeavyHaulTrain(StrictModel):
             disturbance_on=on, disturbance_coef=(d.c0_mps2, d.c1_mps2, d.c2),
             integration_step_s=self.integration_step_s, line_lookahead_m=self.route.lookahead_m,
             line_min_grade_permille=self.route.long_downgrade_permille,
-            line_min_length_m=self.route.long_downgrade_min_length_m)
+            line_min_length_m=self.route.long_downgrade_min_length_m,
+            adhesion=[vt.adhesion.physics() if vt.adhesion is not None else None for _, vt in ex])

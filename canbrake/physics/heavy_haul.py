@@ -103,6 +103,24 @@ class TractionEnvelope:
         return min(max(u_n, -1000.0 * lo), 1000.0 * hi)
 
 
+@dataclass(frozen=True)
+class LocoAdhesion:
+    """Adhesion limit of a locomotive's traction and dynamic brake: |u| ≤ μ(v)·m·g.
+
+    ``curve`` "constant": μ = ``mu0``; "curtius_kniffler": μ(v) = ``mu0`` · (0.161 + 7.5/(v + 44)) / (0.161 +
+    7.5/44), v in km/h (Curtius & Kniffler's locomotive adhesion on dry rail, 0.33 at standstill and
+    0.22 at 80 km/h, scaled so that μ(0) = ``mu0``)."""
+
+    mu0: float = 0.33
+    curve: str = "constant"
+
+    def mu(self, v_mps: float) -> float:
+        """Usable adhesion coefficient at speed ``v_mps`` (m/s)."""
+        if self.curve == "curtius_kniffler":
+            return self.mu0 * (0.161 + 7.5 / (abs(v_mps) / KMH + 44.0)) / (0.161 + 7.5 / 44.0)
+        return self.mu0
+
+
 # ------------------------------------------------------------------------------------ consist
 @dataclass(frozen=True)
 class Consist:
@@ -350,6 +368,28 @@ def friction_coefficient(k_kn, v_kmh, coef):
     return coef * (k + 200.0) / (4.0 * k + 200.0) * (2.0 * v + 150.0) / (3.0 * v + 150.0)
 
 
+@dataclass(frozen=True)
+class BrakePipe:
+    """Brake-pipe pressure per vehicle (opt-in refinement of the pneumatic brake, SI: Pa, s).
+
+    The driver's valve lowers the pipe pressure at the locomotive from ``p0_pa`` by ``reduction_pa``
+    (apply) or restores it (release). The change travels along the pipe at the apply / release wave
+    speed of :class:`AirBrake`; once it has reached vehicle k (distance D_k behind the locomotive)
+    the local pipe pressure moves towards its new value with a first-order lag
+    τ_k = ``tau_s`` + ``tau_per_km_s`` · D_k / 1000 (the pipe's flow resistance: the rear drains and
+    recharges more slowly, so the pressure drop and the brake build up along the train). Each
+    vehicle's control valve (distributor) sets its cylinder target to ``ratio`` × (p0 − p_pipe),
+    clipped to [0, the vehicle's full cylinder pressure]; the cylinder follows with the air brake's
+    ``cylinder_tau_s``.
+    """
+
+    p0_pa: float = 600e3
+    reduction_pa: float = 170e3
+    ratio: float = 2.6
+    tau_s: float = 1.0
+    tau_per_km_s: float = 4.0
+
+
 class AirBrake:
     """Brake-pipe signal propagation and cylinder fill (pneumatic), or per-vehicle demands (ECP).
 
@@ -364,7 +404,7 @@ class AirBrake:
 
     def __init__(self, consist: Consist, *, apply_wave_mps: float, release_wave_mps: float, cylinder_tau_s: float,
                  beta_c: float, block_force_kn: np.ndarray, n_blocks: np.ndarray, friction_coef: np.ndarray,
-                 cylinder_pressure_pa: np.ndarray, mode: str = "pneumatic"):
+                 cylinder_pressure_pa: np.ndarray, mode: str = "pneumatic", pipe: BrakePipe | None = None):
         if mode not in ("pneumatic", "ecp"):
             raise ValueError(f"air brake mode must be 'pneumatic' or 'ecp', got {mode!r}")
         self.consist = consist
@@ -385,6 +425,10 @@ class AirBrake:
         self.n_blocks = np.asarray(n_blocks, dtype=float)
         self.friction_coef = np.asarray(friction_coef, dtype=float)
         self.cylinder_pressure_pa = np.asarray(cylinder_pressure_pa, dtype=float)
+        self.pipe = pipe if mode == "pneumatic" else None
+        if self.pipe is not None:
+            self.pipe_tau_s = self.pipe.tau_s + self.pipe.tau_per_km_s * self.dist / 1000.0
+            self.pipe_pressure_pa = np.full(consist.n, self.pipe.p0_pa)
 
     def command(self, t_s: float, apply: bool) -> None:
         """Driver's valve: issue an apply (True) or a release (False) at time ``t_s``."""
@@ -414,6 +458,13 @@ class AirBrake:
             target = self.ecp_target
         elif self.t_apply == -np.inf:
             return self.last_force_n
+        elif self.pipe is not None:
+            pp = self.pipe
+            pipe_target = pp.p0_pa - pp.reduction_pa * self.signal(t_s)
+            self.pipe_pressure_pa = self.pipe_pressure_pa + (pipe_target - self.pipe_pressure_pa) * (
+                1.0 - np.exp(-dt_s / self.pipe_tau_s))
+            cyl = np.clip(pp.ratio * (pp.p0_pa - self.pipe_pressure_pa), 0.0, self.cylinder_pressure_pa)
+            target = cyl / self.cylinder_pressure_pa
         else:
             target = self.signal(t_s).astype(float)
         self.fill += (target - self.fill) * (1.0 - np.exp(-dt_s / self.tau))
@@ -485,7 +536,8 @@ class HeavyHaulModel:
                  uncertainty: float = 0.0, disturbance_on: np.ndarray | None = None,
                  disturbance_coef: tuple[float, float, float] = (0.0, 0.0, 0.0),
                  integration_step_s: float = DEFAULT_DT_S, line_lookahead_m: float = 2500.0,
-                 line_min_grade_permille: float = 8.0, line_min_length_m: float = 500.0):
+                 line_min_grade_permille: float = 8.0, line_min_length_m: float = 500.0,
+                 adhesion: list[LocoAdhesion | None] | None = None):
         if len(gears) != consist.n - 1 or len(envelopes) != consist.n:
             raise ValueError("one draft gear per coupler and one envelope (or None) per vehicle")
         self.c = consist
@@ -499,6 +551,8 @@ class HeavyHaulModel:
         self.envelopes = list(envelopes)
         self.powered = np.array([e is not None for e in envelopes])
         self.line = (line_lookahead_m, line_min_grade_permille, line_min_length_m)
+        self.adhesion = list(adhesion) if adhesion is not None else [None] * consist.n
+        self._adh = [(i, a) for i, a in enumerate(self.adhesion) if a is not None]
         self.cp = CouplerBank(gears)
         self.ab = airbrake
         self.t = 0.0
@@ -542,7 +596,7 @@ class HeavyHaulModel:
             bf = np.asarray(bf, dtype=float)
             for i in np.flatnonzero(self.powered & np.isfinite(bf)):
                 u[i] = self.envelopes[i].saturate_n(-float(bf[i]), float(self.v[i]))  # type: ignore[union-attr]
-        self.u = u
+        self.u = self._adhesion_limit(u)
         changed = False
         if self.ab.mode == "pneumatic":
             ap = commands.get("airbrake_apply")
@@ -606,9 +660,17 @@ class HeavyHaulModel:
         self._take_commands(commands)
         for _ in range(n):
             if self.powered.any() and _ > 0:
-                self.u = np.array([e.saturate_n(float(u), float(v)) if e is not None else 0.0
-                                   for e, u, v in zip(self.envelopes, self.u, self.v)])
+                self.u = self._adhesion_limit(np.array([e.saturate_n(float(u), float(v)) if e is not None else 0.0
+                                                        for e, u, v in zip(self.envelopes, self.u, self.v)]))
             self._substep()
+
+    def _adhesion_limit(self, u: np.ndarray) -> np.ndarray:
+        """Clip traction and dynamic-brake forces (N) at the wheel–rail adhesion μ(v)·m·g of the
+        vehicles that have an adhesion limit."""
+        for i, a in self._adh:
+            cap = a.mu(float(self.v[i])) * float(self.c.mass_kg[i]) * G
+            u[i] = min(max(u[i], -cap), cap)
+        return u
 
     def downgrade_ahead(self) -> bool:
         """Line data: a long downgrade under the train or within the look-ahead of its front."""
@@ -633,4 +695,6 @@ class HeavyHaulModel:
             "brake_cylinder_pressure_pa": self.ab.fill * self.ab.cylinder_pressure_pa,
             "downgrade_ahead": np.full(self.n_vehicles, float(self.downgrade_ahead())),
         }
+        if self.ab.pipe is not None:
+            self._meas["brake_pipe_pressure_pa"] = self.ab.pipe_pressure_pa.copy()
         return self._meas

@@ -43,6 +43,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
+from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets, valve_step
 from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
 from canbrake.physics.resistance import DavisResistance, davis_1926
 
@@ -111,6 +112,10 @@ class TrainPlant:
         end_stop_stiffness_n_per_m: float = 2.0e7,
         max_substep_s: float = 1e-3,
         gravity_mps2: float = GRAVITY_MPS2,
+        blending: BrakeBlending | None = None,
+        wheels: Wheelsets | None = None,
+        wsp_valve_lag_s: float = 0.05,
+        wsp_max_vent_s: float = math.inf,
     ) -> None:
         self.mass_kg = np.asarray(mass_kg, dtype=float).copy()
         n = self.mass_kg.size
@@ -167,6 +172,11 @@ class TrainPlant:
             self._incidence[i, i] = -1.0
             self._incidence[i + 1, i] = 1.0
         self._has_grade = self._grade_force is not None and bool(np.any(self._grade_force != 0.0))
+        self.blending = blending
+        self.wheels = wheels
+        self.wsp_valve_lag_s = float(wsp_valve_lag_s)
+        self.wsp_max_vent_s = float(wsp_max_vent_s)
+        self._wheels0 = None if wheels is None else wheels.omega.copy()
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -182,6 +192,11 @@ class TrainPlant:
         self._mu = self._base_mu.copy()
         self._eff = np.ones(self.n_cars)
         self._plain_rail = not self.actuator.adhesion_limited
+        self._blend = None if self.blending is None else BlendingState(self.blending, self.mass_kg)
+        self.wsp_valve = np.zeros(self.n_cars)
+        self._vent_s = np.zeros(self.n_cars)
+        if self.wheels is not None and self._wheels0 is not None:
+            self.wheels.omega = self._wheels0.copy()
 
     @property
     def deflection_m(self) -> np.ndarray:
@@ -253,11 +268,15 @@ class TrainPlant:
                 f = f + off + amp * math.sin(w * (time_s - start) + ph)
         return f
 
-    def step(self, dt_s: float, brake_command_n: Sequence[float] | np.ndarray) -> None:
-        """Advance ``dt_s`` seconds holding ``brake_command_n`` (N per car, + = brake, − = traction)."""
+    def step(self, dt_s: float, brake_command_n: Sequence[float] | np.ndarray,
+             wsp_release: np.ndarray | None = None) -> None:
+        """Advance ``dt_s`` seconds holding ``brake_command_n`` (N per car, + = brake, − = traction) and,
+        with wheelsets, the wheel-slide-protection valve command ``wsp_release`` (0..1 per car, NaN = none)."""
         cmd = np.asarray(brake_command_n, dtype=float)
         if cmd.shape != (self.n_cars,):
             raise ValueError(f"brake_command_n must have shape ({self.n_cars},)")
+        if self.blending is not None or self.wheels is not None:
+            return self._step_equipped(dt_s, cmd, wsp_release)
         n_sub = 1 if dt_s <= self.max_substep_s * (1 + 1e-9) else int(math.ceil(dt_s / self.max_substep_s - 1e-9))
         h = dt_s / n_sub
         inv_m = self._inv_m
@@ -337,3 +356,88 @@ class TrainPlant:
         self.accel_mps2 = (v - v_before) / h
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+
+    # ------------------------------------------------------------------ brake equipment (opt-in)
+    def _step_equipped(self, dt_s: float, cmd: np.ndarray, wsp_release: np.ndarray | None) -> None:
+        """:meth:`step` with blending and/or wheelsets (:mod:`canbrake.physics.brakes`): the same
+        forces, sub-steps and Coulomb treatment of brake and resistance, plus the brake equipment."""
+        n_sub = 1 if dt_s <= self.max_substep_s * (1 + 1e-9) else int(math.ceil(dt_s / self.max_substep_s - 1e-9))
+        h = dt_s / n_sub
+        wsp = None if wsp_release is None else np.asarray(wsp_release, dtype=float)
+        act, wheels, g = self._act, self.wheels, self.gravity_mps2
+        x, v = self.position_m, self.speed_mps
+        v_before = v
+        c1, c2 = self.resistance.c1_n_per_mps, self.resistance.c2_n_per_mps2
+        dl = np.zeros(0)
+        for _ in range(n_sub):
+            t = self.time_s
+            self._update_rail(t)
+            effort = act.advance(cmd, h)
+            total = effort if self._blend is None else self._blend.advance(effort, v, h)
+            brake = np.maximum(total, 0.0) * self._eff
+            traction = np.minimum(total, 0.0)
+            if wsp is not None:
+                # the dump valves' watchdog: a command to vent for longer than wsp_max_vent_s is ignored
+                # until it is withdrawn (the brake comes back even if the ECU keeps venting)
+                want = np.clip(np.where(np.isnan(wsp), 0.0, wsp), 0.0, 1.0)
+                self._vent_s = np.where(want > 0.5, self._vent_s + h, 0.0)
+                want = np.where(self._vent_s > self.wsp_max_vent_s, 0.0, want)
+                self.wsp_valve = valve_step(self.wsp_valve, want, h, self.wsp_valve_lag_s)
+                brake = brake * (1.0 - self.wsp_valve)
+            dl = x[:-1] - x[1:] - self.coupler_spacing_m
+            f = self._incidence.dot(self.coupler_force_from_deflection(dl))
+            if self._grade_fn is not None:
+                f = f - self.mass_kg * g * np.sin(np.asarray(self._grade_fn(x), dtype=float))
+            elif self._has_grade:
+                f = f + self._grade_force
+            if self._dist:
+                f = f + self.external_force_n(t)
+            speed = np.abs(v)
+            r = self._c_static + speed * (c1 + c2 * speed)
+            if wheels is not None:
+                # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
+                other = f - np.sign(v) * r
+                per_axle = (wheels.R / wheels.p)
+                v_new = wheels.step(h, v, self.mass_kg, other, np.repeat((brake * per_axle)[:, None], wheels.p, 1),
+                                    np.repeat((-traction * per_axle)[:, None], wheels.p, 1), self._mu)
+                v_new = np.where((v != 0.0) & (v_new * v < 0.0), 0.0, v_new)
+                rail = -wheels.force_n.sum(axis=1)
+            else:
+                rail = brake + traction
+                if self.actuator.adhesion_limited:
+                    cap = self._mu * self.mass_kg * g
+                    rail = np.minimum(np.maximum(rail, -cap), cap)
+                f = f - np.minimum(rail, 0.0)
+                rr = np.maximum(rail, 0.0) + r
+                moving = v != 0.0
+                sgn = np.where(moving, np.sign(v), np.sign(f))
+                breakaway = moving | (np.abs(f) > rr)
+                v_new = v + np.where(breakaway, (h / self.mass_kg) * (f - sgn * rr), 0.0)
+                v_new = np.where(moving & (v_new * v < 0.0), 0.0, v_new)
+            x = x + h * v_new
+            v_before, v = v, v_new
+            self.time_s = t + h
+        if not math.isfinite(float(v.sum())):
+            raise PlantDiverged(f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = "
+                                f"{float(np.max(np.abs(dl))) if dl.size else 0.0:.3g} m")
+        self.accel_mps2 = (v - v_before) / h
+        self.position_m, self.speed_mps = x, v
+        self.applied_force_n = rail
+
+    def equipment_measurements(self) -> dict[str, np.ndarray]:
+        """Per-car quantities of the brake equipment (empty without it): ``ed_brake_n`` and
+        ``friction_brake_n`` (blending), ``wsp_valve`` (dump-valve opening 0..1), and per axle j
+        ``axle<j>_speed_radps``, ``axle<j>_slip`` (λ, < 0 braking), ``axle<j>_adhesion_n`` (creep
+        force, + forward)."""
+        out: dict[str, np.ndarray] = {}
+        if self._blend is not None:
+            out["ed_brake_n"] = self._blend.ed_n.copy()
+            out["friction_brake_n"] = self._blend.friction_n.copy()
+        if self.wheels is not None:
+            out["wsp_valve"] = self.wsp_valve.copy()
+            w = self.wheels
+            for j in range(w.p):
+                out[f"axle{j + 1}_speed_radps"] = w.omega[:, j].copy()
+                out[f"axle{j + 1}_slip"] = w.slip[:, j].copy()
+                out[f"axle{j + 1}_adhesion_n"] = w.force_n[:, j].copy()
+        return out

@@ -1,0 +1,113 @@
+"""Brake equipment of the coupled (Chen) train as data: ``train.brakes`` (every part opt-in).
+
+Example (``scenarios/chen2023_case2_low_adhesion.yaml``)::
+
+    train:
+      brakes:
+        blending: {ed_max_decel_mps2: 1.0, fade_start_kmh: 10, fade_end_kmh: 3, friction_lag_s: 0.2}
+        easing: {time_constant_s: 1.0}
+        wheels: {axles: 4, radius_m: 0.42, inertia_kgm2: 120}
+        wsp: {enabled: true, slip_release: 0.2, slip_reapply: 0.1}
+
+Physics: :mod:`canbrake.physics.brakes` (blending, wheelsets, dump valve); ECU functions (easing,
+wheel-slide protection): :mod:`canbrake.control.brake_functions`. Units in the field names.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import Field, model_validator
+
+from canbrake.consist.base import StrictModel
+
+
+class BlendingConfig(StrictModel):
+    """Electro-dynamic / friction blending with the ED brake fading at low speed."""
+
+    ed_max_decel_mps2: float = Field(1.0, ge=0, description="ED brake force per unit mass at full capacity")
+    ed_power_kw_per_t: float | None = Field(None, gt=0, description="ED power per tonne (F <= P/v; null: no limit)")
+    fade_start_kmh: float = Field(10.0, gt=0, description="the ED force starts to fade below this speed")
+    fade_end_kmh: float = Field(3.0, ge=0, description="the ED force is zero below this speed")
+    friction_lag_s: float = Field(0.2, ge=0, description="first-order lag of the friction brake behind its share")
+
+    @model_validator(mode="after")
+    def _order(self) -> "BlendingConfig":
+        if not self.fade_start_kmh > self.fade_end_kmh:
+            raise ValueError(f"@fade_end_kmh: must be below fade_start_kmh ({self.fade_start_kmh:g}), "
+                             f"got {self.fade_end_kmh:g}")
+        return self
+
+
+class EasingConfig(StrictModel):
+    """Jerk-limited easing before standstill (an ECU function): below the speed where it bites, each
+    car's brake demand is capped so that its deceleration falls as v / ``time_constant_s``, reaching
+    zero at standstill; the cap anticipates the brake's lag (``lag_s``, default the actuator's)."""
+
+    time_constant_s: float = Field(1.0, gt=0, description="deceleration cap = v / time_constant (1/s)")
+    lag_s: float | None = Field(None, ge=0, description="brake lag the ECU anticipates (default: actuator.lag_s "
+                                                          "for a realistic actuator, 0 for an ideal one, plus "
+                                                          "blending.friction_lag_s)")
+
+
+class WheelsConfig(StrictModel):
+    """Wheelsets of every car, with wheel–rail adhesion per axle (Cai 2014's slip curve, eqs. 10–15,
+    its peak scaled to the car's μ: ``actuator.adhesion_mu`` and rail events' ``adhesion_mu``)."""
+
+    axles: int = Field(4, ge=1, le=8)
+    radius_m: float = Field(0.42, gt=0, description="rolling radius (840 mm wheels)")
+    inertia_kgm2: float = Field(120.0, gt=0, description="wheelset with discs, gear and motor rotor referred to the axle")
+    v_floor_mps: float = Field(0.1, gt=0, description="floor of the slip denominator max(wR, v, floor)")
+    b1: float = Field(1.786, gt=0, description="slip curve eq. 13 (Cai's dry rail, eq. 41)")
+    b2: float = Field(40.0, gt=0)
+    b3: float = Field(10.0, gt=0)
+    c1: float = Field(0.040, ge=0, description="speed decay eq. 15 (Cai's dry rail)")
+    c2: float = Field(3.78, ge=0)
+    c3: float = Field(33.3, gt=0)
+
+
+class WspConfig(StrictModel):
+    """Wheel-slide protection (an ECU function driving each car's dump valves; needs ``wheels``):
+    vents the brake when an axle's slip passes ``slip_release``, re-applies (ramping the valve shut
+    at ``reapply_per_s``) once every axle's slip is back below ``slip_reapply``."""
+
+    enabled: bool = True
+    slip_release: float = Field(0.2, gt=0, lt=1, description="|λ| above which the brake is vented")
+    slip_reapply: float = Field(0.1, gt=0, lt=1, description="|λ| below which the brake is re-applied")
+    reapply_per_s: float = Field(4.0, gt=0, description="rate at which the valve closes again (1/s)")
+    valve_lag_s: float = Field(0.05, ge=0, description="dump valve first-order lag (s)")
+    min_speed_kmh: float = Field(3.0, ge=0, description="below this speed WSP is inactive (slip is ill-defined)")
+    max_vent_s: float = Field(5.0, gt=0, description="dump-valve watchdog: a car's brake comes back after venting "
+                                                     "this long without a break, whatever the ECU commands")
+
+    @model_validator(mode="after")
+    def _order(self) -> "WspConfig":
+        if not self.slip_reapply < self.slip_release:
+            raise ValueError(f"@slip_reapply: must be below slip_release ({self.slip_release:g}), got {self.slip_reapply:g}")
+        return self
+
+
+class BrakeSystemConfig(StrictModel):
+    """``train.brakes`` of the coupled family; every part is off unless given."""
+
+    blending: BlendingConfig | None = None
+    easing: EasingConfig | None = None
+    wheels: WheelsConfig | None = None
+    wsp: WspConfig | None = None
+
+    @model_validator(mode="after")
+    def _wsp_needs_wheels(self) -> "BrakeSystemConfig":
+        if self.wsp is not None and self.wsp.enabled and self.wheels is None:
+            raise ValueError("@wsp: wheel-slide protection needs wheels (train.brakes.wheels)")
+        return self
+
+
+def easing_lag_s(brakes: BrakeSystemConfig, actuator: Any) -> float:
+    """The brake lag (s) easing anticipates: ``easing.lag_s`` if given, else the realistic actuator's
+    lag (0 for an ideal one) plus the friction brake's lag behind the blend."""
+    e = brakes.easing
+    if e is not None and e.lag_s is not None:
+        return float(e.lag_s)
+    lag = float(actuator.lag_s) if getattr(actuator, "model", "ideal") == "realistic" else 0.0
+    if brakes.blending is not None:
+        lag += brakes.blending.friction_lag_s
+    return lag
