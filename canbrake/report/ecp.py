@@ -38,9 +38,9 @@ class Spec:
 
 SPECS = (Spec("ecp-250k", None, "ECP, 250 kbit/s"), Spec("ecp-125k", "kbps125", "ECP, 125 kbit/s"),
          Spec("ecp-500k", "kbps500", "ECP, 500 kbit/s"), Spec("pneumatic-250k", "pneumatic", "pneumatic brake pipe"),
-         Spec("ecp-silent-wagon", "silent_wagon", f"ECP, wagon {SILENT}'s ECU silent from 4 s"),
+         Spec("ecp-silent-wagon", "silent_wagon", f"ECP, wagon {SILENT}'s ECU silent"),
          Spec("ecp-silent-failsafe", "silent_wagon_failsafe",
-              f"ECP, wagon {SILENT}'s ECU silent from 4 s, fail-safe after 0.5 s"))
+              f"ECP, wagon {SILENT}'s ECU silent, with the fail-safe"))
 #: the step-size check: these runs again with the plant's integration step halved twice
 STEP_BASES = ("ecp-250k", "pneumatic-250k")
 STEP_DIVISORS = (2, 4)
@@ -247,9 +247,12 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
       "ECUs send their command frames in the pneumatic run too (the plant ignores ECP demands there), so its "
       "bus columns equal ECP's at the same bit rate.")
     w("")
+    # the silent wagon's settings as the scenario's profiles give them (not restated here)
+    fs_cfg = _load(Spec("", "silent_wagon_failsafe", ""), duration_s, sd).safety
+    silent_at = _load(Spec("", "silent_wagon", ""), duration_s, sd).bus.impairments[0].start_s
     sil = res.get("ecp-silent-wagon")
     if sil is not None:
-        w(f"**A silent wagon ECU.** Wagon {SILENT}'s ECU stops sending at 4 s, before the demand. The plant holds the "
+        w(f"**A silent wagon ECU.** Wagon {SILENT}'s ECU stops sending at {silent_at:g} s, before the demand. The plant holds the "
           f"last command it received (zero-order hold: the papers' assumption, no fail-safe configured), which was "
           f"\"released\": its cylinder stays at {sil['silent_cyl_max_pa'] / 1e3:.1f} kPa while its neighbours reach "
           f"{max(np.asarray(sil['cyl_pa'])[:, 1].max(), np.asarray(sil['cyl_pa'])[:, 3].max()) / 1e3:.0f} kPa. "
@@ -258,8 +261,10 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
         w("")
     fsr = res.get("ecp-silent-failsafe")
     if fsr is not None:
-        w(f"**The same with a fail-safe.** With `safety: {{command_timeout_s: 0.5, failsafe_commands: {{ecp_demand: 1.0}}}}` "
-          f"(profile `silent_wagon_failsafe`) wagon {SILENT}'s brake unit applies in full on its own after 0.5 s "
+        fs_cmds = ", ".join(f"{k}: {v:g}" for k, v in (fs_cfg.failsafe_commands or {}).items())
+        w(f"**The same with a fail-safe.** With `safety: {{command_timeout_s: {fs_cfg.command_timeout_s:g}, "
+          f"failsafe_commands: {{{fs_cmds}}}}}` (profile `silent_wagon_failsafe`) wagon {SILENT}'s brake unit "
+          f"applies on its own after {fs_cfg.command_timeout_s:g} s "
           f"without a command: its cylinder reaches {fsr['silent_cyl_max_pa'] / 1e3:.0f} kPa, before the demand at "
           f"{fsr['brake_at_s']:.0f} s, so the train runs with one wagon braking until the demand "
           + (f"and stops in {fsr['stopping_distance_m']:.0f} m" if np.isfinite(fsr["stopping_distance_m"]) else "")
