@@ -123,7 +123,13 @@ class EcuNode(Node):
                        | {"speed_mps", "position_m"})
         self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
         self.peer_origin = np.full(self.n, -(10 ** 12), dtype=np.int64)
-        self._page_fresh = np.zeros(self.n, dtype=np.int64)  # pages of this tick seen, per ECU
+        # per ECU: pages of this tick seen, and the newest origin as a Python int (a frame touches
+        # single elements, which numpy scalars make several times dearer; peer_origin is the array)
+        self._page_fresh: list[int] = [0] * self.n
+        self._origin_of: list[int] = [-(10 ** 12)] * self.n
+        self._multi_page = {j: c > 1 for j, c in self._pages_of.items()}  # ECU index (1-based) -> bool
+        self._state_dec = {fid: (codec.by_id[fid].decode, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
+        self._listened_idx = np.asarray([j - 1 for j in self._listens], dtype=np.int64)
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
@@ -176,6 +182,17 @@ class EcuNode(Node):
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
+        st = self._state_pages.get(aid) or self._auth_of.get(aid)  # peers' state: most of what an ECU hears
+        if st is not None:
+            j = st[0] - 1
+            if self.rx_path is not None:
+                self._receive_linked(msg, j, now)
+                return []
+            bit = 1 << self._slot[j + 1]
+            if self._on_state(j, msg) and (not self.barrier or self._ext_bits & bit):
+                if self._page_fresh[j] == self._pages_of[j + 1]:
+                    return self._peer_done(bit, now)
+            return []
         if aid == self._sync_id and not msg.is_extended_id:
             verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
                                    tick_complete=self.phase == 2 or self.k < 0, final_tick=self.final_tick)
@@ -190,7 +207,7 @@ class EcuNode(Node):
             self.k = int(self.codec.by_id[aid].decode(msg.data)["Tick"])
             self.phase = 0
             self._done = 0
-            self._page_fresh[:] = 0
+            self._page_fresh = [0] * self.n
             if self._candidates:
                 self._expire_candidates()
             return []
@@ -211,17 +228,6 @@ class EcuNode(Node):
             return []
         if aid == dbc.REFERENCE_POS_ID:
             self.x_ref = self.codec.by_id[aid].decode(msg.data)["RefPosition"]
-            return []
-        st = self._state_pages.get(aid) or self._auth_of.get(aid)
-        if st is not None:
-            j = st[0] - 1
-            if self.rx_path is not None:
-                self._receive_linked(msg, j, now)
-                return []
-            bit = 1 << self._slot[j + 1]
-            if self._on_state(j, msg) and (not self.barrier or self._ext_bits & bit):
-                if self._page_fresh[j] == self._pages_of[j + 1]:
-                    return self._peer_done(bit, now)
             return []
         src = self._state_done_ids.get(aid)
         if src is not None:
@@ -272,8 +278,8 @@ class EcuNode(Node):
         page of this tick was accepted."""
         if msg.arbitration_id in self._auth_of:
             return self._on_state_auth(j, msg)
-        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, int(self.peer_origin[j]),
-                                   same_tick_ok=self._pages_of[j + 1] > 1)
+        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, self._origin_of[j],
+                                   same_tick_ok=self._multi_page[j + 1])
         if origin is None:
             self._count_peer_rejection()
             return False
@@ -303,7 +309,7 @@ class EcuNode(Node):
             self.guard.reject("crc")
             self._count_peer_rejection()
             return False
-        tick, last = authenticator_tick(data), int(self.peer_origin[j])
+        tick, last = authenticator_tick(data), self._origin_of[j]
         if tick > self.k or self.k - tick > self.guard.max_lag or tick < last or (
                 tick == last and self._pages_of[j + 1] == 1):
             self.guard.reject("freshness")  # an authenticator of an earlier (or no) period: a replay
@@ -334,11 +340,13 @@ class EcuNode(Node):
 
     def _apply_state(self, j: int, state_id: int, data: bytes | bytearray, origin: int) -> bool:
         """Use an accepted state page of ECU index j+1 sent at tick ``origin``."""
-        _, _page, sigs = self._state_pages[state_id]
-        d = self.codec.by_id[state_id].decode(data)
+        decode, sigs = self._state_dec[state_id]
+        d = decode(data)
+        ps = self.peer_signals
         for sig, dbc_name in sigs:
-            self.peer_signals[sig][j] = d[dbc_name]
-        if origin > self.peer_origin[j]:
+            ps[sig][j] = d[dbc_name]
+        if origin > self._origin_of[j]:
+            self._origin_of[j] = origin
             self.peer_origin[j] = origin
             self._page_fresh[j] = 0
         self.stats.peer_frames += 1
@@ -426,9 +434,9 @@ class EcuNode(Node):
             self._peer_fallback(origin, peers)
         speed = peers["speed_mps"]
         age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
-        listened = [j - 1 for j in self._listens]
-        fresh = int((origin[listened] == self.k).sum()) + 1 if listened else 1
-        self.stats.peer_missing += len(listened) + 1 - fresh
+        listened = self._listened_idx
+        fresh = int((origin[listened] == self.k).sum()) + 1 if listened.size else 1
+        self.stats.peer_missing += listened.size + 1 - fresh
         obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
@@ -464,7 +472,7 @@ class EcuNode(Node):
         """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
         the controller runs on its own sensors for them); counts entries and ticks in fallback."""
         lost = np.zeros(self.n, dtype=bool)
-        listened = [j - 1 for j in self._listens]
+        listened = self._listened_idx
         lost[listened] = (self.k - origin[listened]) > self.peer_hold_periods
         for arr in peers.values():
             arr[lost] = np.nan
