@@ -286,6 +286,8 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             sched = setup_realtime(role)
             if role == "plant" and hasattr(node, "stats"):
                 node.stats.extra["scheduling"] = sched
+            for m in getattr(node, "members", [node]):  # every node's own stats say what it obtained
+                m.scheduling = sched
             spin_s = min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * scn.control_period_s)
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")

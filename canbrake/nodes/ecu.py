@@ -42,6 +42,7 @@ class EcuStats:
     fallback_ticks: int = 0      # ticks computed on own sensors with at least one peer dropped
     timer_slips: int = 0         # realtime with ecu.clocks: periods whose timer instant fell past the next SYNC
     can_errors: dict = field(default_factory=dict)  # realtime bus errors: state, TEC, error frames, bus-off
+    scheduling: str | None = None  # realtime: SCHED_FIFO / fallback and CPUs obtained (canbrake.nodes.rt)
     external_timeouts: int = 0   # lockstep: periods computed without an external peer's state (it was late)
 
 
@@ -512,6 +513,7 @@ class EcuNode(Node):
             self._trace.close()
         self.stats.status = "ok" if self.finished else status
         self.stats.guard = self.guard.stats()
+        self.stats.scheduling = self.scheduling
         if self.rt_errors is not None:
             self.stats.can_errors = self.rt_errors.summary()
         for kind, vals in self._latency.items():

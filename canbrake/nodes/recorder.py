@@ -687,4 +687,6 @@ class RecorderNode(Node):
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
             stats["guard"] = self.guard.stats()
+            if self.scheduling is not None:
+                stats["scheduling"] = self.scheduling
             (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
