@@ -147,9 +147,9 @@ class EcuNode(Node):
                              for m in layout.messages if m.kind == "state" and m.ecu == self.index]
                             if spec.listeners else [])
         self._broadcast: dict[str, float] = {}
-        self._auth_id = {sm.frame_id: am.frame_id for sm in layout.messages for am in layout.messages
-                         if sm.kind == "state" and am.kind == "state_auth" and sm.ecu == am.ecu == self.index
-                         and sm.page == am.page}
+        own = [m for m in layout.messages if m.ecu == self.index]  # (not all pairs of the layout: 106 ECUs)
+        self._auth_id = {sm.frame_id: am.frame_id for sm in own for am in own
+                         if sm.kind == "state" and am.kind == "state_auth" and sm.page == am.page}
         self._hb_id = layout.plan.heartbeat(self.index)
         self._sdone_id = layout.plan.state_done(self.index)
         self._cdone_id = layout.plan.cmd_done(self.index)
