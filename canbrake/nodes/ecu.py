@@ -436,7 +436,7 @@ class EcuNode(Node):
         speed = peers["speed_mps"]
         age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
         listened = self._listened_idx
-        fresh = int((origin[listened] == self.k).sum()) + 1 if listened.size else 1
+        fresh = int(np.count_nonzero(origin[listened] == self.k)) + 1 if listened.size else 1
         self.stats.peer_missing += listened.size + 1 - fresh
         obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
@@ -463,10 +463,10 @@ class EcuNode(Node):
             out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
         if self._trace is not None:
-            finite_age = age[np.isfinite(age)]
+            max_age = float(np.max(age, where=np.isfinite(age), initial=-np.inf))  # -inf: none finite
             self._trace.append([self.k, result.brake_force_n,
                                 *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
-                                float(finite_age.max()) if finite_age.size else np.inf, fresh])
+                                max_age if max_age > -np.inf else np.inf, fresh])
         return out
 
     def _peer_fallback(self, origin: np.ndarray, peers: dict[str, np.ndarray]) -> None:
