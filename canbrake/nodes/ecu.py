@@ -120,6 +120,7 @@ class EcuNode(Node):
             self._auth_of = {m.frame_id: (m.ecu, state_id[(m.ecu, m.page)]) for m in layout.messages
                              if m.kind == "state_auth" and m.ecu in self._slot}
         self._candidates: dict[int, list[tuple[int, bytes]]] = {}
+        self._peer_ids = {**self._state_pages, **self._auth_of}  # id -> (ECU index, ...): one lookup per frame
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
         self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
@@ -183,7 +184,7 @@ class EcuNode(Node):
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
-        st = self._state_pages.get(aid) or self._auth_of.get(aid)  # peers' state: most of what an ECU hears
+        st = self._peer_ids.get(aid)  # peers' state pages and authenticators: most of what an ECU hears
         if st is not None:
             j = st[0] - 1
             if self.rx_path is not None:
