@@ -153,6 +153,12 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     for k in ("cmd_latency_p50_s", "cmd_latency_p99_s", "cmd_latency_max_s", "cmd_latency_missing", "scheduling"):
         if k in plant.get("extra", {}):
             out[k] = plant["extra"][k]
+    rt = s.get("realtime") or {}  # canbrake.analysis.summary.realtime_figures
+    if rt:
+        out["slipped_s"] = rt.get("slipped_s")
+        out["periods"] = rt.get("periods")
+        sched = {v for k, v in (rt.get("scheduling") or {}).items() if k.startswith("ecu_")}
+        out["ecu_scheduling"] = "; ".join(sorted(x for x in sched if x))
     return out
 
 
@@ -316,10 +322,14 @@ def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict
         if res.get("status") not in ("ok", "diverged") or not res.get("ticks"):
             rows.append(_failed(name, res, f"< {target:g} %"))
             continue
-        pct = 100.0 * (res.get("deadline_misses") or 0) / res["ticks"]
-        note = (f"{res['ticks']} periods, {res.get('ecu_deadline_misses')} ECU misses, {res.get('late_periods')} late "
-                f"periods, worst lateness {1e3 * (res.get('max_lateness_s') or 0):.2f} ms; run {res['status']}"
-                f"{' (' + res['message'] + ')' if res.get('message') else ''}; scheduling: {res.get('scheduling', '?')}")
+        periods = res.get("periods") or res["ticks"]  # periods that ended (a diverged run: one more than ticks)
+        pct = 100.0 * (res.get("deadline_misses") or 0) / periods
+        note = (f"{periods} periods, {res.get('ecu_deadline_misses')} ECU misses, {res.get('late_periods')} late "
+                f"periods, worst lateness {1e3 * (res.get('max_lateness_s') or 0):.2f} ms, grid moved on "
+                f"{1e3 * (res.get('slipped_s') or 0):.1f} ms; run {res['status']}"
+                f"{' (' + res['message'] + ')' if res.get('message') else ''}; scheduling: plant "
+                f"{res.get('scheduling', '?')}, ECUs {res.get('ecu_scheduling') or '?'}; 1-min load average after the run "
+                f"{os.getloadavg()[0]:.1f}")
         rows.append(_row(name, pct, "% of periods", target=f"< {target:g} %",
                          met=pct < target and res["status"] == "ok", note=note,
                          status="ok" if res["status"] == "ok" else res["status"]))
@@ -332,7 +342,7 @@ def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict
                              (p99 is not None and p99 < 0.5e-3) if period < 0.005 else None,
                              note=f"SYNC sent -> last command of the period in (a period whose commands "
                                   f"missed the deadline counts as late: {res.get('cmd_latency_missing')} of "
-                                  f"{res['ticks']}); p50 {ms(res.get('cmd_latency_p50_s'))}, "
+                                  f"{periods}); p50 {ms(res.get('cmd_latency_p50_s'))}, "
                                   f"max {ms(res.get('cmd_latency_max_s'))}"))
     return rows
 
