@@ -386,9 +386,12 @@ def scale_figures(ticks: int, log: Callable[[str], None], cars: tuple[int, ...] 
         res = run_case_subprocess(case, timeout_s=1800.0)
         label = f"scale {n} {'vehicles (ECP 1+105)' if n == 106 else 'cars (Chen)'}, {how}"
         log(f"  {label}: {res.get('status')} {res.get('ticks_per_s') or res.get('message')}")
-        if res.get("status") != "ok" or not res.get("ticks_per_s"):
+        ran_all = res.get("status") == "diverged" and res.get("ticks_per_s") and res.get("ticks") == ticks
+        if (res.get("status") != "ok" or not res.get("ticks_per_s")) and not ran_all:
             rows.append(_failed(label, res, ">= 1x real time at 10 ms" if n == 106 else ""))
             continue
+        why = (f"; {res['message']}, after which every period still ran (the scaled train's result, not the "
+               "engine's: the rate counts)") if ran_all else ""
         extra = {"cars": n, "backend": backend, "per_process": per, "peak_rss_mb": res["peak_rss_mb"],
                  "real_time_factor": res["real_time_factor"], "ticks_per_s": res["ticks_per_s"]}
         if n == 106:
@@ -397,10 +400,10 @@ def scale_figures(ticks: int, log: Callable[[str], None], cars: tuple[int, ...] 
                              ">= 1x real time at 10 ms", bool(rtf >= 1.0),
                              note=f"{res['ticks_per_s']:.0f} periods/s, peak RSS {res['peak_rss_mb']:.0f} MB; "
                                   "10 ms period, ideal bus timing at 1 Mbit/s (the timing model's bus is "
-                                  "overloaded at 10 ms)",
+                                  f"overloaded at 10 ms){why}",
                              **extra))
         else:
-            rows.append(_row(label, res["ticks_per_s"], "periods/s", note=f"peak RSS {res['peak_rss_mb']:.0f} MB",
+            rows.append(_row(label, res["ticks_per_s"], "periods/s", note=f"peak RSS {res['peak_rss_mb']:.0f} MB{why}",
                              **extra))
     return rows
 
@@ -583,11 +586,11 @@ def plot_106(result: dict[str, Any], path: str | Path) -> Path | None:
     ax.axvline(1.0, color="tab:red", ls="--", label="real time (target >= 1x)")
     for b, v, r in zip(bars, vals, rows):
         ax.text(v, b.get_y() + b.get_height() / 2, f" {v:.2f}x ({r['peak_rss_mb']:,.0f} MB)", va="center", fontsize=8)
-    ax.set(xscale="log", xlabel="simulated seconds per wall second (x real time)")
-    ax.set_xlim(min(min(vals) / 2, 0.5), max(max(vals) * 4, 2.0))
+    ax.set(xlabel="simulated seconds per wall second (x real time)")
+    ax.set_xlim(0.0, max(max(vals) * 1.4, 1.5))
     ax.invert_yaxis()
     ax.legend(fontsize=8, loc="lower right")
-    ax.grid(True, which="both", axis="x", alpha=0.3)
+    ax.grid(True, axis="x", alpha=0.3)
     ax.set_title(_title(result, "106 ECUs (ECP heavy haul 1+105), 10 ms period, lockstep"), fontsize=9)
     fig.tight_layout()
     p = Path(path)
