@@ -353,8 +353,9 @@ def test_the_end_stop_changes_nothing_while_it_is_not_reached():
 # ------------------------------------------------------------------ the low-adhesion scenario
 @pytest.mark.slow
 def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
-    """chen2023_case2_low_adhesion.yaml with its poor rail from 0.5 s, for 3 s: car 3's skid comes
-    from μ per car over time; the profile ``wsp`` keeps its axles near the adhesion peak."""
+    """chen2023_case2_low_adhesion.yaml with its poor rail from 0.5 s, for 3.5 s: car 3's skid comes
+    from μ per car over time; the profile ``wsp`` keeps its axles near the adhesion peak. 3.5 s: with
+    the end stops on, the neighbours push car 3 through their buffers and its slip passes -0.5 at ~3.1 s."""
     import pandas as pd
 
     from canbrake.run import run_scenario
@@ -362,7 +363,7 @@ def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
     path = ROOT / "scenarios" / "chen2023_case2_low_adhesion.yaml"
     slips = {}
     for prof in (None, "wsp"):
-        scn = load_scenario(path, profile=prof, overrides={"duration_s": 3.0, "events.0.start_s": 0.5})
+        scn = load_scenario(path, profile=prof, overrides={"duration_s": 3.5, "events.0.start_s": 0.5})
         assert (scn.train.brakes.wsp.enabled) == (prof == "wsp")
         s = run_scenario(scn, tmp_path / str(prof), backend="inprocess", plots=False)
         assert s["status"] == "ok"
