@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -45,7 +45,6 @@ class SweepSpec:
     separate: bool = False
     controllers: tuple[str, ...] = CONTROLLERS
     maps: bool = True
-    extra_grids: tuple[str, ...] = field(default=())
 
 
 SWEEPS = (
