@@ -34,6 +34,7 @@ def test_delay_report_finds_the_e2e_window_where_the_lockstep_rules_put_it(tmp_p
     assert float(coast["final_speed_error_kmh_max"]) == pytest.approx(a_kmh_s * dur, rel=0.25)
 
 
+@pytest.mark.slow
 def test_delay_report_writes_its_tables_and_commands(tmp_path):
     sweeps = (D.SweepSpec("paper", "paper profile", "paper", ("delay=0,2ms", "loss=0,50%"), seeds=1,
                           duration_s=0.02, controllers=("chen2023",)),)
