@@ -143,7 +143,7 @@ def _train_plant(scn: Scenario):
         coupler_stiffness_n_per_m=c.stiffness_n_per_m if n > 1 else [],
         coupler_nonlinearity_per_m2=c.epsilon_per_m2 if n > 1 else [],
         coupler_spacing_m=c.spacing_m, end_stop_m=c.end_stop_m,
-        end_stop_stiffness_n_per_m=c.end_stop_stiffness_n_per_m,
+        end_stop_stiffness_n_per_m=c.end_stop_stiffness_n_per_m, end_stop_absorption=c.end_stop_absorption,
         resistance=resistance, grade_rad=math.atan(t.grade_permille / 1000.0),
         curve_resistance_n=per_car(t.curve_resistance_n, n, "curve"),
         actuator=actuator, rail=RailConditions(base_adhesion_mu=per_car(a.adhesion_mu, n, "mu"), events=rail_events),

@@ -16,7 +16,7 @@ def register(sub: Any) -> None:
                                    "finished ok; --force reruns everything.")
     p.add_argument("name", choices=sorted(REPORTS), help="which report")
     p.add_argument("--out", default=None, help="where the report and figures/ go "
-                                               "(default docs/reproduction; docs for safety)")
+                                               "(default docs/reproduction; docs for safety, ecp, delay)")
     p.add_argument("--runs", default=None, help="run directories (default runs/report-NAME)")
     p.add_argument("--force", action="store_true", help="rerun every run instead of reusing")
     p.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1),

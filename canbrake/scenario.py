@@ -104,8 +104,11 @@ class CouplerConfig(_Model):
     stiffness_n_per_m: PerCar = Field(80000.0, description="κ per coupler (n-1 values or one)")
     epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
     spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
-    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear goes solid (none by default)")
-    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0, description="stiffness beyond the end stop (solid gear)")
+    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear's travel ends and its "
+                                     "buffer acts (none by default; docs/braking-models.md)")
+    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0, description="the buffer's loading stiffness beyond the end stop")
+    end_stop_absorption: float = Field(0.6, ge=0, lt=1, description="share of an impact's energy the buffer absorbs "
+                                       "(unloading stiffness (1 - a) x loading)")
 
     @field_validator("stiffness_n_per_m")
     @classmethod

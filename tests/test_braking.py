@@ -305,11 +305,57 @@ def test_end_stop_bounds_the_deflection_by_the_stop_plus_the_solid_overrun():
     assert 0.1 < worst <= 0.1 + overrun * 1.01
 
 
+def _impact(absorption: float, v0: float = 1.5, m1: float = 18_000.0, m2: float = 22_000.0,
+            k_b: float = 2e7, stop: float = 0.08) -> tuple[float, float, float, float]:
+    """Two cars on a (nearly) force-free coupler closing at v0 into the end stop; returns the peak
+    buffer force (N), the peak overrun (m), the relative speed after they separate (m/s, + = apart)
+    and the reduced mass (kg)."""
+    p = TrainPlant([m1, m2], [0.0, 10.0], [v0 + 5.0, 5.0], resistance=DavisResistance.zero(2),
+                   coupler_stiffness_n_per_m=1e-6, coupler_nonlinearity_per_m2=0.0, end_stop_m=stop,
+                   end_stop_stiffness_n_per_m=k_b, end_stop_absorption=absorption, max_substep_s=1e-3)
+    f_peak = over_peak = 0.0
+    for _ in range(400):  # contact at 53 ms, lasts ~70 ms; stop when the cars have parted
+        p.step(1e-3, np.zeros(2))
+        f = float(np.abs(p.end_stop_force_n(p.deflection_m, p.speed_mps[:-1] - p.speed_mps[1:]))[0])
+        if f_peak > 0.0 and f == 0.0:
+            break
+        f_peak = max(f_peak, f)
+        over_peak = max(over_peak, float(np.abs(p.deflection_m)[0]) - stop)
+    assert f_peak > 0.0 and f == 0.0
+    return f_peak, over_peak, float(p.speed_mps[1] - p.speed_mps[0]), m1 * m2 / (m1 + m2)
+
+
+@pytest.mark.parametrize("absorption", [0.0, 0.6])
+def test_end_stop_impact_force_and_absorbed_energy_follow_the_two_mass_derivation(absorption):
+    # loading curve elastic: peak force v0·sqrt(k_b μ), overrun v0·sqrt(μ/k_b) (μ reduced mass);
+    # unloading at (1 - a)·k_b returns (1 - a) of the energy: the cars part at sqrt(1 - a)·v0
+    v0, k_b = 1.5, 2e7
+    f, over, v_out, mu = _impact(absorption, v0=v0, k_b=k_b)
+    assert f == pytest.approx(v0 * math.sqrt(k_b * mu), rel=0.01)
+    assert over == pytest.approx(v0 * math.sqrt(mu / k_b), rel=0.01)
+    assert v_out == pytest.approx(math.sqrt(1.0 - absorption) * v0, rel=0.02)
+    absorbed = 0.5 * mu * (v0**2 - v_out**2)
+    assert absorbed == pytest.approx(absorption * 0.5 * mu * v0**2, abs=0.02 * 0.5 * mu * v0**2)
+
+
+def test_the_end_stop_changes_nothing_while_it_is_not_reached():
+    # the fine sub-step is taken only near the stop: a run that stays within the travel is bit-identical
+    kw = dict(resistance=DavisResistance.zero(3), max_substep_s=1e-2)
+    a = TrainPlant([20_000.0] * 3, [0.0, 10.0, 20.0], [20.0, 20.2, 20.1], **kw)
+    b = TrainPlant([20_000.0] * 3, [0.0, 10.0, 20.0], [20.0, 20.2, 20.1], end_stop_m=0.08, **kw)
+    for _ in range(300):
+        a.step(0.01, np.full(3, 1e4))
+        b.step(0.01, np.full(3, 1e4))
+    assert np.max(np.abs(b.deflection_m)) < 0.08
+    assert np.array_equal(a.position_m, b.position_m) and np.array_equal(a.speed_mps, b.speed_mps)
+
+
 # ------------------------------------------------------------------ the low-adhesion scenario
 @pytest.mark.slow
 def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
-    """chen2023_case2_low_adhesion.yaml with its poor rail from 0.5 s, for 3 s: car 3's skid comes
-    from μ per car over time; the profile ``wsp`` keeps its axles near the adhesion peak."""
+    """chen2023_case2_low_adhesion.yaml with its poor rail from 0.5 s, for 3.5 s: car 3's skid comes
+    from μ per car over time; the profile ``wsp`` keeps its axles near the adhesion peak. 3.5 s: with
+    the end stops on, the neighbours push car 3 through their buffers and its slip passes -0.5 at ~3.1 s."""
     import pandas as pd
 
     from canbrake.run import run_scenario
@@ -317,7 +363,7 @@ def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
     path = ROOT / "scenarios" / "chen2023_case2_low_adhesion.yaml"
     slips = {}
     for prof in (None, "wsp"):
-        scn = load_scenario(path, profile=prof, overrides={"duration_s": 3.0, "events.0.start_s": 0.5})
+        scn = load_scenario(path, profile=prof, overrides={"duration_s": 3.5, "events.0.start_s": 0.5})
         assert (scn.train.brakes.wsp.enabled) == (prof == "wsp")
         s = run_scenario(scn, tmp_path / str(prof), backend="inprocess", plots=False)
         assert s["status"] == "ok"

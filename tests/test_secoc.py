@@ -197,12 +197,13 @@ def test_forged_end_frames_from_a_foreign_process_cannot_end_a_run(tmp_path, sec
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
 @pytest.mark.parametrize("backend", ["inprocess", "memory"])
 def test_a_diverged_run_still_ends_though_its_early_end_frame_is_not_trusted(tmp_path, backend):
-    """The paper's gains with a realistic brake diverge at ~4.1 s (docs/reproduction/chen2023.md):
+    """The paper's gains with a realistic brake and the paper's coupler without end stops diverge:
     the plant's unauthenticated early END is ignored by the other nodes, and the driver or the
     orchestrator ends them once the plant has finished; the run's verdict is "diverged", safety clean."""
     from canbrake.report.chen2023 import _PAPER_GAINS
 
-    scn = load_scenario(CASE1, profile="realistic", overrides={"duration_s": 5.0, **_PAPER_GAINS})
+    scn = load_scenario(CASE1, profile="realistic", overrides={"duration_s": 5.0, **_PAPER_GAINS,
+                                                                "train.coupler.end_stop_m": None})
     s = run_scenario(scn, tmp_path, backend=backend, plots=False)
     # status: how it executed (ok); verdict: the physics (issue 11, canbrake/analysis/verdict.py)
     assert s["status"] == "ok" and s["verdict"] == "diverged" and s["ticks"] < 500

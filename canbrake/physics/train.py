@@ -15,7 +15,22 @@ compression (buff), with the opposite numbering (s_i > 0) it is tension. In both
 
 ε < 0 (Table 2: −0.5 1/m²) makes the spring *softening*: Φ peaks at |Δl| = 1/sqrt(−3ε) (0.816 m,
 43.5 kN for Table 2) and reverses beyond sqrt(−1/ε) (1.41 m). An optional end stop (``end_stop_m``)
-models the draft gear going solid; it is off by default (the paper has none).
+models the end of the draft gear's travel; it is off by default (the paper has none).
+
+End stop (draft gear travel limit, then a buffer that absorbs energy)
+----------------------------------------------------------------------
+Beyond |Δl| = ``end_stop_m`` the gear has used its travel and a stiff buffer element acts in
+series with the end of the travel: on loading (|Δl| growing) it pushes back with
+k_b·(|Δl| − end_stop_m), on unloading with (1 − a)·k_b·(|Δl| − end_stop_m), a = ``end_stop_absorption``
+— the loading/unloading hysteresis of a friction or elastomer draft gear as longitudinal train
+dynamics models it (two force curves, the area between them absorbed). The buffer only pushes
+(never pulls cars together) and switches between the curves smoothly over a relative speed of
+±``END_STOP_TRANSITION_MPS``. For two masses closing at v (reduced mass μ) this gives: the
+loading curve is elastic, so the peak force is v·sqrt(k_b μ) and the overrun v·sqrt(μ/k_b); the
+unloading curve returns (1 − a) of the stored energy, so the cars separate at sqrt(1 − a)·v and the
+buffer absorbs a·μv²/2 per impact. While a coupler is within reach of its stop in a control period,
+the plant sub-steps at most 0.05/ω_b (ω_b = sqrt(k_b/μ), the stop's frequency), and only then: a
+run that never comes near a stop is integrated exactly as without one.
 
 Forces
 ------
@@ -48,6 +63,10 @@ from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
 from canbrake.physics.resistance import DavisResistance, davis_1926
 
 GRAVITY_MPS2 = 9.81
+#: relative speed over which the end stop's buffer switches between its loading and unloading curves (m/s)
+END_STOP_TRANSITION_MPS = 0.01
+#: a coupler this close to its end stop (plus twice its closing travel in the period) gets the fine sub-step (m)
+END_STOP_MARGIN_M = 0.001
 
 class PlantDiverged(FloatingPointError):
     """The state became non-finite (e.g. a softening coupler was driven past its force peak)."""
@@ -87,8 +106,10 @@ class TrainPlant:
     actuator: :class:`BrakeActuator` (default ideal).
     rail: :class:`RailConditions` (base μ and events); default μ = 0.3 everywhere, no events.
     disturbances: external forces, :class:`DisturbanceForce` list.
-    end_stop_m: |Δl| beyond which the draft gear is solid (m); ``None`` = no end stop.
-    end_stop_stiffness_n_per_m: stiffness added beyond the end stop (N/m).
+    end_stop_m: |Δl| at which the draft gear's travel ends and the buffer acts (m); ``None`` = no end stop.
+    end_stop_stiffness_n_per_m: the buffer's loading stiffness beyond the end stop, k_b (N/m).
+    end_stop_absorption: share a of an impact's energy the buffer absorbs (0 ≤ a < 1; unloading
+        stiffness (1 − a)·k_b). 0 = a lossless solid stop.
     max_substep_s: longest integration sub-step (s).
     gravity_mps2: g (m/s²).
     """
@@ -110,6 +131,7 @@ class TrainPlant:
         disturbances: Sequence[DisturbanceForce] = (),
         end_stop_m: float | None = None,
         end_stop_stiffness_n_per_m: float = 2.0e7,
+        end_stop_absorption: float = 0.6,
         max_substep_s: float = 1e-3,
         gravity_mps2: float = GRAVITY_MPS2,
         blending: BrakeBlending | None = None,
@@ -160,6 +182,11 @@ class TrainPlant:
         self._base_mu = _per_car(self.rail.base_adhesion_mu, n, "base_adhesion_mu")
         self.end_stop_m = end_stop_m
         self.end_stop_stiffness_n_per_m = float(end_stop_stiffness_n_per_m)
+        if not 0.0 <= end_stop_absorption < 1.0:
+            raise ValueError(f"end_stop_absorption must be in [0, 1), got {end_stop_absorption}")
+        self.end_stop_absorption = float(end_stop_absorption)
+        if end_stop_m is not None and not end_stop_m > 0:
+            raise ValueError(f"end_stop_m must be > 0, got {end_stop_m}")
         if not max_substep_s > 0:
             raise ValueError("max_substep_s must be > 0")
         self.max_substep_s = float(max_substep_s)
@@ -206,7 +233,7 @@ class TrainPlant:
     @property
     def coupler_force_n(self) -> np.ndarray:
         """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1."""
-        return self.coupler_force_from_deflection(self.deflection_m)
+        return self.coupler_force_from_deflection(self.deflection_m, self.speed_mps[:-1] - self.speed_mps[1:])
 
     @property
     def brake_effort_n(self) -> np.ndarray:
@@ -223,13 +250,41 @@ class TrainPlant:
         """Brake effectiveness per car in force for the current step."""
         return self._eff
 
-    def coupler_force_from_deflection(self, dl: np.ndarray) -> np.ndarray:
-        """Φ(Δl) = κ(1 + εΔl²)Δl (N), plus the end stop if configured."""
+    def coupler_force_from_deflection(self, dl: np.ndarray, rate_mps: np.ndarray | None = None) -> np.ndarray:
+        """Φ(Δl) = κ(1 + εΔl²)Δl (N), plus the end stop's buffer if configured (module docstring);
+        ``rate_mps`` = dΔl/dt (m/s) picks its loading or unloading curve (None: loading)."""
         phi = self.coupler_stiffness_n_per_m * (1.0 + self.coupler_nonlinearity_per_m2 * dl * dl) * dl
         if self.end_stop_m is not None:
-            over = np.abs(dl) - self.end_stop_m
-            phi = phi + np.where(over > 0.0, np.sign(dl) * over * self.end_stop_stiffness_n_per_m, 0.0)
+            phi = phi + self.end_stop_force_n(dl, rate_mps)
         return phi
+
+    def end_stop_force_n(self, dl: np.ndarray, rate_mps: np.ndarray | None = None) -> np.ndarray:
+        """The buffer's force beyond the end stop (N, same sign as Δl; 0 within the travel)."""
+        if self.end_stop_m is None:
+            return np.zeros_like(dl)
+        over = np.abs(dl) - self.end_stop_m
+        sgn = np.sign(dl)
+        if rate_mps is None:
+            share = 1.0
+        else:  # 1 loading (moving into the stop), 1 - a unloading, linear across ±v_t
+            loading = np.clip(0.5 + sgn * rate_mps / (2.0 * END_STOP_TRANSITION_MPS), 0.0, 1.0)
+            share = 1.0 - self.end_stop_absorption * (1.0 - loading)
+        return np.where(over > 0.0, sgn * over * self.end_stop_stiffness_n_per_m * share, 0.0)
+
+    def _substeps(self, dt_s: float) -> int:
+        """Sub-steps for a control period of ``dt_s``: ``max_substep_s``, and at most 0.05/ω_b while a
+        coupler can reach its end stop within the period (module docstring)."""
+        n_sub = 1 if dt_s <= self.max_substep_s * (1 + 1e-9) else int(math.ceil(dt_s / self.max_substep_s - 1e-9))
+        if self.end_stop_m is None or self.n_cars < 2:
+            return n_sub
+        dl = self.deflection_m
+        rate = self.speed_mps[:-1] - self.speed_mps[1:]
+        if np.all(np.abs(dl) + 2.0 * np.abs(rate) * dt_s + END_STOP_MARGIN_M < self.end_stop_m):
+            return n_sub
+        m = self.mass_kg
+        mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
+        h_stop = 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
+        return max(n_sub, int(math.ceil(dt_s / h_stop - 1e-9)))
 
     def coupler_energy_j(self) -> float:
         """Potential energy stored in the couplers (J), without end stop: Σ κ(Δl²/2 + εΔl⁴/4)."""
@@ -277,7 +332,7 @@ class TrainPlant:
             raise ValueError(f"brake_command_n must have shape ({self.n_cars},)")
         if self.blending is not None or self.wheels is not None:
             return self._step_equipped(dt_s, cmd, wsp_release)
-        n_sub = 1 if dt_s <= self.max_substep_s * (1 + 1e-9) else int(math.ceil(dt_s / self.max_substep_s - 1e-9))
+        n_sub = self._substeps(dt_s)
         h = dt_s / n_sub
         inv_m = self._inv_m
         self._update_rail(self.time_s)
@@ -308,7 +363,7 @@ class TrainPlant:
             # non-dissipative forces: couplers, traction, grade, disturbances
             dl = x[:-1] - x[1:] - spacing
             if end_stop:
-                phi = self.coupler_force_from_deflection(dl)
+                phi = self.coupler_force_from_deflection(dl, v[:-1] - v[1:])
             else:
                 phi = dl * (kappa + kappa_eps * (dl * dl))
             f = fc = incidence.dot(phi)  # f_i = Φ_{i-1} − Φ_i
@@ -361,7 +416,7 @@ class TrainPlant:
     def _step_equipped(self, dt_s: float, cmd: np.ndarray, wsp_release: np.ndarray | None) -> None:
         """:meth:`step` with blending and/or wheelsets (:mod:`canbrake.physics.brakes`): the same
         forces, sub-steps and Coulomb treatment of brake and resistance, plus the brake equipment."""
-        n_sub = 1 if dt_s <= self.max_substep_s * (1 + 1e-9) else int(math.ceil(dt_s / self.max_substep_s - 1e-9))
+        n_sub = self._substeps(dt_s)
         h = dt_s / n_sub
         wsp = None if wsp_release is None else np.asarray(wsp_release, dtype=float)
         act, wheels, g = self._act, self.wheels, self.gravity_mps2
@@ -385,7 +440,7 @@ class TrainPlant:
                 self.wsp_valve = valve_step(self.wsp_valve, want, h, self.wsp_valve_lag_s)
                 brake = brake * (1.0 - self.wsp_valve)
             dl = x[:-1] - x[1:] - self.coupler_spacing_m
-            f = self._incidence.dot(self.coupler_force_from_deflection(dl))
+            f = self._incidence.dot(self.coupler_force_from_deflection(dl, v[:-1] - v[1:]))
             if self._grade_fn is not None:
                 f = f - self.mass_kg * g * np.sin(np.asarray(self._grade_fn(x), dtype=float))
             elif self._has_grade:

@@ -6,4 +6,5 @@ that runs (or reuses) its runs and writes a Markdown document with figures.
 from __future__ import annotations
 
 REPORTS = {"chen2023": "canbrake.report.chen2023", "li2024": "canbrake.report.li2024",
-           "cai2014": "canbrake.report.cai2014", "safety": "canbrake.report.safety", "ecp": "canbrake.report.ecp"}
+           "cai2014": "canbrake.report.cai2014", "safety": "canbrake.report.safety", "ecp": "canbrake.report.ecp",
+           "delay": "canbrake.report.delay"}

@@ -933,6 +933,7 @@ def _chosen_values(res: dict[str, RunResult]) -> list[list[str]]:
     s2, s3 = res["case2-paper-proposed"].scenario, res["case3-paper-proposed"].scenario
     c = build_controller(p1, OBS_CAR)
     cq = build_controller(q1, OBS_CAR)
+    c, cq = getattr(c, "inner", c), getattr(cq, "inner", cq)  # the ECU's brake functions wrap the controller
     obs, obsq = c._obs, cq._obs  # noqa: SLF001 - reporting the observer's effective parameters
     plant = build_plant_model(p1)
     plant = getattr(plant, "plant", plant)  # the coupled family wraps its TrainPlant

@@ -153,6 +153,50 @@ def _fmt_s(x: float) -> str:
     return "—" if not np.isfinite(x) else f"{x:.2f} s"
 
 
+#: the headline numbers of the step-size check (keys of a run's report.json)
+STEP_HEADS = ("stopping_distance_m", "max_compression_n", "max_tension_n", "last_wagon_half_s")
+
+
+def step_table(res: dict[str, dict[str, Any]], h0: float,
+               specs: Sequence[Spec] = SPECS) -> tuple[list[str], bool, float | None]:
+    """The step-size table's Markdown lines and whether the scenario's step ``h0`` (s) is converged,
+    from the runs ``res`` (key -> report.json) of ``STEP_BASES`` at h0, h0/2, h0/4. The changes are
+    those of :func:`canbrake.analysis.metrics.step_convergence` (one definition for every report);
+    a number that is "never" (not finite: the train did not stop, the cylinder did not fill) on two
+    neighbouring steps counts as unchanged, on one of them as changed. Converged: halving h0
+    changes every headline number of every base run by less than ``metrics.STEP_TOL``; the third
+    value is the largest relative change of that first halving (None: finite at one step, "never"
+    at the other)."""
+    from canbrake.analysis import metrics as M
+
+    lines = ["| run | step | stopping distance (m) | peak compression (kN) | peak tension (kN) | "
+             "last wagon half pressure | largest change to the next finer step |",
+             "|---|---|---|---|---|---|---|"]
+    converged = True
+    worst: float | None = 0.0
+    for base in STEP_BASES:
+        if base not in res:
+            continue
+        chain = [(h0, res[base])] + [(h0 / d, res[f"{base}-h{1000 * h0 / d:g}ms"]) for d in STEP_DIVISORS]
+        tab = M.step_convergence([(h, {k: (float(r[k]) if np.isfinite(r[k]) else None) for k in STEP_HEADS})
+                                  for h, r in chain])
+        converged = converged and M.first_converged_step(tab) == h0
+        first = list(tab[1]["change"].values()) if len(tab) > 1 else []
+        worst = None if (worst is None or None in first) else max([worst, *first])
+        label = next(sp.label for sp in specs if sp.key == base)
+        for i, (h, r) in enumerate(chain):
+            if i + 1 < len(chain):
+                ch = list(tab[i + 1]["change"].values())
+                chs = ("changed (a number is finite at one step and \"never\" at the other)" if None in ch
+                       else f"{100 * max(ch):.2f} %")
+            else:
+                chs = "—"
+            sd_m = "—" if not np.isfinite(r["stopping_distance_m"]) else f"{r['stopping_distance_m']:.1f}"
+            lines.append(f"| {label} | {1000 * h:g} ms | {sd_m} | {-r['max_compression_n'] / 1e3:.1f} | "
+                         f"{r['max_tension_n'] / 1e3:.1f} | {_fmt_s(r['last_wagon_half_s'])} | {chs} |")
+    return lines, converged, worst
+
+
 DEFAULT_OUT = "docs"  # `canbrake report ecp` writes docs/ecp-over-can.md
 
 
@@ -277,32 +321,13 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
           f"{int(round(_load(specs[0], duration_s, sd).control_period_s / h0))} sub-steps per control period). "
           "The same runs with h / 2 and h / 4 (change: relative to the next finer step):")
         w("")
-        w("| run | step | stopping distance (m) | peak compression (kN) | peak tension (kN) | last wagon half pressure | largest change to the next finer step |")
-        w("|---|---|---|---|---|---|---|")
-        heads = ("stopping_distance_m", "max_compression_n", "max_tension_n", "last_wagon_half_s")
-        worst_all = 0.0
-        for base in STEP_BASES:
-            if base not in res:
-                continue
-            chain = [(h0, res[base])] + [(h0 / d, res[f"{base}-h{1000 * h0 / d:g}ms"]) for d in STEP_DIVISORS]
-            label = next(sp.label for sp in specs if sp.key == base)
-            for i, (h, r) in enumerate(chain):
-                if i + 1 < len(chain):
-                    nxt = chain[i + 1][1]
-                    ch = max((abs(r[k] - nxt[k]) / max(abs(nxt[k]), 1e-12) for k in heads
-                              if np.isfinite(r[k]) and np.isfinite(nxt[k])), default=float("nan"))
-                    chs = f"{100 * ch:.2f} %"
-                    if i == 0 and np.isfinite(ch):
-                        worst_all = max(worst_all, ch)
-                else:
-                    chs = "—"
-                sd_m = "—" if not np.isfinite(r["stopping_distance_m"]) else f"{r['stopping_distance_m']:.1f}"
-                w(f"| {label} | {1000 * h:g} ms | {sd_m} | {-r['max_compression_n'] / 1e3:.1f} | "
-                  f"{r['max_tension_n'] / 1e3:.1f} | {_fmt_s(r['last_wagon_half_s'])} | {chs} |")
+        table, converged, worst = step_table(res, h0, specs)
+        L.extend(table)
         w("")
+        by = "between finite and \"never\"" if worst is None else f"by {100 * worst:.1f} %"
         verdict = ("converged: every headline number changes by less than 1 % when the step is halved"
-                   if worst_all < 0.01 else
-                   f"**not converged to 1 %**: halving the step changes a headline number by {100 * worst_all:.1f} %; "
+                   if converged else
+                   f"**not converged to 1 %**: halving the step changes a headline number {by}; "
                    "read the table's finest-step row")
         w(f"At the scenario's step the numbers above are {verdict}.")
         w("")
