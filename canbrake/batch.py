@@ -110,7 +110,7 @@ def _layout_key(scn: Scenario) -> tuple:
 
     lay = bus_layout(scn)
     return (scn.n_cars, scn.n_ticks, scn.control_period_s, scn.ecu.lockstep_deadline, scn.plant.trace_every,
-            tuple((m.kind, m.ecu, m.frame_id, tuple((sig, sp.name, sp.scale, sp.offset, sp.length, sp.is_signed)
+            tuple((m.kind, m.ecu, m.frame_id, tuple((sig, sp.name, sp.scale, sp.offset, sp.length, sp.signed)
                                                     for sig, sp in m.signals)) for m in lay.messages),
             tuple((e.sensors, e.commands, e.broadcast, e.listens, e.listeners) for e in lay.ecus))
 

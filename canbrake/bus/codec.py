@@ -132,7 +132,8 @@ class Quantiser:
     The same arithmetic as the compiled codec: raw = round((v - offset) / scale) (round half to
     even, as Python's ``round``; ``v / scale`` when the offset is 0), saturated to the raw range,
     decoded as raw * scale + offset. A value that is not finite is left out of the frame by the
-    nodes, so it decodes as the signal's default, ``offset``."""
+    nodes, so it decodes as the signal's default, ``offset``; a finite value whose raw value
+    overflows to infinity raises OverflowError, as the codec does."""
 
     __slots__ = ("scale", "offset", "lo", "hi", "scaled")
 
@@ -144,12 +145,14 @@ class Quantiser:
         import numpy as np
 
         v = np.asarray(values, dtype=float)
-        finite = np.isfinite(v)
-        x = np.where(finite, v, self.offset)
-        if self.scaled:
-            raw = np.rint(x / self.scale if self.offset == 0.0 else (x - self.offset) / self.scale)
-        else:
-            raw = np.rint(x)
+        x = np.where(np.isfinite(v), v, self.offset)
+        with np.errstate(over="ignore"):
+            if self.scaled:
+                raw = np.rint(x / self.scale if self.offset == 0.0 else (x - self.offset) / self.scale)
+            else:
+                raw = np.rint(x)
+        if np.isinf(raw).any():  # the codec cannot encode it either (round(inf)): fail as a node would
+            raise OverflowError("cannot convert float infinity to integer")
         raw = np.clip(raw, self.lo, self.hi)
         return raw * self.scale + self.offset if self.scaled else raw
 
