@@ -176,6 +176,8 @@ class BatchEngine:
         self.sensor_q = self._quantisers("sensor")
         self.state_q = self._quantisers("state")
         self.cmd_q = self._quantisers("cmd")
+        # one quantiser call per signal for every ECU whose frame has the same format
+        self.sensor_g, self.state_g, self.cmd_g = (self._groups(x) for x in (self.sensor_q, self.state_q, self.cmd_q))
         ref = codec["REFERENCE"]
         self.q_ref_v, self.q_ref_a = ref.quantiser("RefSpeed"), ref.quantiser("RefDecel")
         self.has_state = np.asarray([bool(e.listeners) for e in self.ecus])
@@ -219,6 +221,18 @@ class BatchEngine:
         self.peer = {nm: np.full((P, m, m), np.nan) for nm in self.peer_names}
         self.origin = np.full((P, m, m), -(10 ** 12), dtype=np.int64)
         self.cols = self.points[0].plant.columns()
+        self._nan_n = np.full(self.points[0].plant.n, np.nan)
+
+    @staticmethod
+    def _groups(qs: list[tuple[int, str, Any]]) -> list[tuple[str, np.ndarray, Any]]:
+        """(signal, ECU slots, quantiser): the slots whose frames carry the signal in the same format."""
+        groups: dict[tuple, tuple[str, list[int], Any]] = {}
+        for slot, sig, q in qs:
+            key = (sig, q.scale, q.offset, q.lo, q.hi)
+            if key not in groups:
+                groups[key] = (sig, [], q)
+            groups[key][1].append(slot)
+        return [(sig, np.asarray(slots), q) for sig, slots, q in groups.values()]
 
     def _quantisers(self, kind: str) -> list[tuple[int, str, Any]]:
         """(ECU slot, signal name, quantiser) of every signal of the ``kind`` frames, in frame order."""
@@ -257,25 +271,25 @@ class BatchEngine:
         P = len(pts)
         alive = [p.alive for p in pts]
         # phase 0 (plant): measurements and reference, as the ECUs decode them
-        meas = [p.plant.model.measurements() for p in pts]
-        refs = [p.reference(t) for p in pts]
+        meas = [p.plant.model.measurements() if p.alive else None for p in pts]
+        refs = [p.reference(t) if p.alive else (0.0, 0.0) for p in pts]
         v_ref = self.q_ref_v(np.array([r[0] for r in refs]))
         a_ref = self.q_ref_a(np.array([r[1] for r in refs]))
         sensors: dict[str, np.ndarray] = {}
         raw: dict[str, np.ndarray] = {}
-        for slot, sig, q in self.sensor_q:
+        for sig, slots, q in self.sensor_g:
             if sig not in raw:
-                raw[sig] = np.stack([mm[sig] for mm in meas])[:, self.veh]  # (P, ECUs)
+                raw[sig] = np.stack([mm[sig] if mm is not None else self._nan_n for mm in meas])[:, self.veh]
                 sensors[sig] = np.full((P, m), np.nan)
-            sensors[sig][:, slot] = q(raw[sig][:, slot])
+            sensors[sig][:, slots] = q(raw[sig][:, slots])
         # phase 1: STATE frames (sensor values as measured, else the controller's broadcast of tick k-1)
         state: dict[str, np.ndarray] = {}
-        for slot, sig, q in self.state_q:
+        for sig, slots, q in self.state_g:
             if sig in sensors:
-                v = sensors[sig][:, slot]
+                v = sensors[sig][:, slots]
             else:
-                v = np.array([p.broadcast[slot].get(sig, math.nan) for p in pts], dtype=float)
-            state.setdefault(sig, np.full((P, m), np.nan))[:, slot] = q(v)
+                v = np.array([[p.broadcast[s].get(sig, math.nan) for s in slots] for p in pts], dtype=float)
+            state.setdefault(sig, np.full((P, m), np.nan))[:, slots] = q(v)
         horizon1 = t + self.c * dt
         plain = [i for i, p in enumerate(pts) if p.alive and p.paths is None]
         if plain:
@@ -300,7 +314,9 @@ class BatchEngine:
                     continue
                 if vals is not None:
                     path.submit(TxFrame(self.state_id[j], False, b"", 8, self.names[j], t, t, origin=(k, vals)))
-                for f in path.release(t) + path.release(horizon1):
+                # release(t) then release(horizon1), as the ECU node does, hands out the same frames in
+                # the same order as release(horizon1) alone: frames by (release time, submission)
+                for f in path.release(horizon1):
                     self._deliver(i, j, f, k, phase2=False)
         # phase 2: every ECU computes
         cmds: dict[str, np.ndarray] = {sig: np.full((P, m), np.nan) for _, sig, _ in self.cmd_q}
@@ -309,8 +325,8 @@ class BatchEngine:
             if p.alive:
                 self._compute(i, p, k, sensors, float(v_ref[i]), float(a_ref[i]), cmds, views)
         qcmd: dict[str, np.ndarray] = {}
-        for slot, sig, q in self.cmd_q:
-            qcmd.setdefault(sig, np.full((P, m), np.nan))[:, slot] = q(cmds[sig][:, slot])
+        for sig, slots, q in self.cmd_g:
+            qcmd.setdefault(sig, np.full((P, m), np.nan))[:, slots] = q(cmds[sig][:, slots])
         t2, horizon2 = t + self.c * dt, t + dt * (1 - 1e-9)
         for i, p in enumerate(pts):
             if not p.alive:
@@ -330,11 +346,11 @@ class BatchEngine:
                         self._cmd_in(p, j, k, vals, k)
                         continue
                     path.submit(TxFrame(self.cmd_id[j], False, b"", 8, self.names[j], t2, t2, origin=(k, vals)))
-                    for f in path.release(t2) + path.release(horizon2):
+                    for f in path.release(horizon2):
                         self._deliver(i, j, f, k, phase2=True)
                 for j, origin, vals in p.late:  # state frames released after the receivers computed
                     self._state_in(i, j, origin, vals, k)
-            self._advance(p, k)
+            self._advance(p, k, meas[i], refs[i])
 
     def _deliver(self, i: int, j: int, f: Any, k: int, *, phase2: bool) -> None:
         origin, vals = f.origin
@@ -431,12 +447,13 @@ class BatchEngine:
         p.n_ecu_rows += 1
 
     # ------------------------------------------------------------------ plant
-    def _record(self, p: _Point, final: bool = False) -> None:
-        """One signals.csv row (the layout of PlantNode.columns / _record)."""
+    def _record(self, p: _Point, final: bool = False, mm: Any = None, ref: Any = None) -> None:
+        """One signals.csv row (the layout of PlantNode.columns / _record); ``mm``, ``ref``: the
+        measurements and reference of this tick if already taken."""
         plant = p.plant
-        mm = plant.model.measurements()
+        mm = plant.model.measurements() if mm is None else mm
         t = plant.k * self.dt
-        v_ref, a_ref = p.reference(t)
+        v_ref, a_ref = p.reference(t) if ref is None else ref
         n = plant.n
         row = p.rows[p.n_rows]
         row[0], row[1], row[2], row[3] = plant.k, t, v_ref, a_ref
@@ -461,7 +478,7 @@ class BatchEngine:
             col += n
         p.n_rows += 1
 
-    def _advance(self, p: _Point, k: int) -> None:
+    def _advance(self, p: _Point, k: int, mm: Any = None, ref: Any = None) -> None:
         """The plant's end of tick k (PlantNode._advance without frames)."""
         plant = p.plant
         fresh = plant._fresh
@@ -470,7 +487,7 @@ class BatchEngine:
             plant.stats.commands_missed_per_car[s] += 1
         applied = plant._applied_commands()
         if plant.k % plant.trace_every == 0:
-            self._record(p)
+            self._record(p, mm=mm, ref=ref)
         try:
             plant.model.step(self.dt, applied)
         except FloatingPointError as e:  # diverged: the run's result (PlantNode does the same)
