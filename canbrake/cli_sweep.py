@@ -112,9 +112,10 @@ def register(sub: Any) -> None:
     s.add_argument("--keep", choices=["summary", "all"], default="summary",
                    help="what to keep of each run: summary.json and stats (default) or all traces")
     s.add_argument("--engine", choices=["auto", "batch", "points"], default="auto",
-                   help="auto/batch: run the points the batch engine supports many at once in one process "
-                        "(canbrake.batch; the others one by one, with a line saying why); points: every point "
-                        "by itself with the in-process node engine (default auto)")
+                   help="auto: run the points the batch engine supports many at once in one process "
+                        "(canbrake.batch; the others one by one, with a line saying why); batch: only the batch "
+                        "engine (exit 2 if a point needs the per-point engine); points: every point by itself "
+                        "with the in-process node engine (default auto)")
     s.add_argument("--no-plots", action="store_true", help="do not draw the heatmaps")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_sweep)

@@ -49,6 +49,7 @@ Engine (``engine``): by default the points the batch engine supports (:mod:`canb
 coupled family with chen2023 / chen2023_compensated / pi and delay/loss/jitter axes, lockstep,
 ideal timing) run many at once in one process, equal to their per-point runs (signals, metrics,
 verdict; no frames.log or bus statistics); the others run one by one, and a line says why.
+``engine="batch"`` insists on the batch engine (an error names what it cannot run);
 ``engine="points"`` runs every point by itself.
 
 Execution: serially in this process (``workers=0`` or ``scheduler="none"``), on a local Dask
@@ -732,7 +733,8 @@ def execute(tasks: Sequence[PointTask], on_row: Callable[[dict[str, Any]], None]
     ``scheduler`` None: a LocalCluster of ``workers`` processes (serial here if ``workers`` is 0);
     "none": serial here; anything else: the address of a Dask scheduler. ``engine``: "auto" runs the
     points the batch engine supports in batches (one Dask task per batch) and the others one by
-    one, saying why on ``log``; "batch" the same; "points" every point by itself.
+    one, saying why on ``log``; "batch" only the batch engine (GridError if a point needs the
+    per-point engine); "points" every point by itself.
     """
     if engine not in ENGINES:
         raise GridError(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
@@ -741,6 +743,10 @@ def execute(tasks: Sequence[PointTask], on_row: Callable[[dict[str, Any]], None]
         batches, single = [], list(tasks)
     else:
         batches, single, reasons = plan_batches(tasks, 1 if serial else workers)
+        if engine == "batch" and reasons:
+            why, n = next(iter(reasons.items()))
+            raise GridError(f"--engine batch: the batch engine cannot run {n} point(s): {why}; "
+                            f"use --engine auto (those points one by one) or --engine points")
         if log is not None:
             for why, n in reasons.items():
                 log(f"batch engine: {why}; running {n} point(s) one by one")

@@ -148,6 +148,18 @@ def test_sweep_falls_back_and_says_why(tmp_path):
     assert res.rows[0]["frames_on_bus"]  # per-point runs: the recorder's figures are there
 
 
+def test_engine_batch_refuses_what_it_cannot_run(tmp_path, capsys):
+    from canbrake.cli import main
+
+    code = main(["sweep", str(CASE1), "--grid", "delay=0,20ms", "--duration", "0.02", "--seeds", "1",
+                 "--workers", "0", "--out", str(tmp_path / "s"), "--no-plots", "-q", "--engine", "batch",
+                 "--set", "bus.timing=model"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "--engine batch: the batch engine cannot run 2 point(s): not with the bus timing model" in err
+    assert "Traceback" not in err
+
+
 @pytest.mark.parametrize("overrides,reason", [
     ({"bus.timing": "model"}, "bus timing model"),
     ({"mode": "realtime"}, "realtime"),
