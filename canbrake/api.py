@@ -43,14 +43,17 @@ def _dotted(overrides: Mapping[str, Any]) -> dict[str, Any]:
     return {k.replace("__", "."): v for k, v in overrides.items()}
 
 
-def load_scenario(path: str | Path | Scenario, profile: str | None = None, **overrides: Any) -> Scenario:
+def load_scenario(path: str | Path | Scenario, profile: str | None = None, *,
+                  external: Sequence[str] | None = None, **overrides: Any) -> Scenario:
     """Read and validate a scenario.
 
     ``path``: a YAML file, or the name of a built-in scenario (``canbrake scenarios`` lists them),
     or a :class:`Scenario` to derive from. ``profile``: one of the scenario's ``profiles:``.
     ``overrides``: scenario fields, nested with ``__`` (``duration_s=1.0``, ``seed=3``,
     ``controller__params__k=20``, ``bus__bitrate_bps=500000``), values in the units of the field
-    names. Raises :class:`canbrake.ScenarioError` naming the file and field on bad input.
+    names. ``external``: ECU names that run outside canbrake (as ``canbrake run --external``; see
+    docs/lockstep-protocol.md). Raises :class:`canbrake.ScenarioError` naming the file and field on
+    bad input.
     """
     from canbrake.builtin import find_scenario
     from canbrake.scenario import load_scenario as _load
@@ -59,8 +62,10 @@ def load_scenario(path: str | Path | Scenario, profile: str | None = None, **ove
         data = path.model_dump(mode="json")
         if profile is not None:
             data.pop("profile", None)
-        return resolve(data, f"<scenario {path.name}>", profile, _dotted(overrides))
-    return _load(find_scenario(path), profile=profile, overrides=_dotted(overrides))
+        return resolve(data, f"<scenario {path.name}>", profile, _dotted(overrides),
+                       list(external) if external else None)
+    return _load(find_scenario(path), profile=profile, overrides=_dotted(overrides),
+                 external=list(external) if external else None)
 
 
 @dataclass
@@ -174,7 +179,7 @@ def open_run(run_dir: str | Path) -> RunResult:
 def run(scenario: str | Path | Scenario, *, out: str | Path | None = None, bus: str = "memory",
         mode: str | None = None, profile: str | None = None, channel: str | None = None,
         interface: str | None = None, log_format: str | None = None, plots: bool = True,
-        **overrides: Any) -> RunResult:
+        external: Sequence[str] | None = None, **overrides: Any) -> RunResult:
     """Run a scenario and return its results.
 
     ``scenario``: a YAML file, a built-in scenario's name, or a :class:`Scenario`.
@@ -182,7 +187,9 @@ def run(scenario: str | Path | Scenario, *, out: str | Path | None = None, bus: 
     (one OS process per node over the in-memory bus), ``socketcan`` (``channel`` e.g. vcan0),
     ``virtual`` (python-can virtual bus, one process) or ``inprocess`` (fastest).
     ``mode``: ``lockstep`` or ``realtime``. ``log_format``: ``log`` (candump -L, default),
-    ``asc``, ``blf``, ``trc`` or ``mf4``. ``overrides``: scenario fields as in
+    ``asc``, ``blf``, ``trc`` or ``mf4``. ``external``: ECU names the run does not start but waits
+    for on the bus (their heartbeat within ``ecu.external_start_timeout_s``; the user's own program
+    or a real ECU). ``overrides``: scenario fields as in
     :func:`load_scenario` (``duration_s=0.5``, ``seed=2``, ``controller__params__k=20``).
 
     Bad input raises :class:`canbrake.ScenarioError` before anything runs. A run that fails while
@@ -195,7 +202,7 @@ def run(scenario: str | Path | Scenario, *, out: str | Path | None = None, bus: 
         overrides["mode"] = mode
     if log_format is not None:
         overrides["bus__log_format"] = log_format
-    scn = load_scenario(scenario, profile=profile, **overrides)
+    scn = load_scenario(scenario, profile=profile, external=external, **overrides)
     backend = None if bus == "memory" and scn.bus.backend != "memory" else bus
     preflight(scn, backend, channel, interface)
     run_dir = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix=f"canbrake-{scn.name}-"))

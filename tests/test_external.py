@@ -216,3 +216,19 @@ def test_c_foreign_ecu_compiles(tmp_path):
     assert (build / "foreign_ecu").exists()
     h = subprocess.run([str(build / "foreign_ecu"), "--help"], capture_output=True, text=True, timeout=30)
     assert h.returncode == 0 and "usage" in h.stdout.lower()
+
+
+@pytest.mark.slow
+def test_python_api_takes_external_ecus(tmp_path):
+    """``canbrake.run(..., external=[...])`` as ``--external``: the ECU is marked in the scenario and
+    a run whose external ECU never appears raises RunFailure naming it, with the logs kept."""
+    import canbrake
+
+    chen = ROOT / "scenarios" / "chen2023_case1_fine_rail.yaml"
+    scn = canbrake.load_scenario(chen, external=["ecu2"])
+    assert [p.name for p in scn.placement() if p.external] == ["ecu2"]
+    channel = f"fe{uuid.uuid4().hex[:8]}"
+    with pytest.raises(canbrake.RunFailure, match=r"external ECU ecu2") as ei:
+        canbrake.run(chen, out=tmp_path / "api", channel=channel, external=["ecu2"], plots=False,
+                     duration_s=0.05, ecu__external_start_timeout_s=1)
+    assert (tmp_path / "api" / "summary.json").is_file() and ei.value.run_dir == tmp_path / "api"
