@@ -680,10 +680,12 @@ def plan_batches(tasks: Sequence[PointTask], workers: int) -> tuple[list[list[Po
             continue
         groups.setdefault(_layout_key(Scenario.model_validate(t.scenario)), []).append(t)
     batches: list[list[PointTask]] = []
+    w = max(1, workers)
     for g in groups.values():
-        n = max(1, -(-len(g) // max(1, workers)))  # spread over the workers ...
-        n = min(n, BATCH_MAX_POINTS)               # ... in batches of at most BATCH_MAX_POINTS
-        batches += [g[i:i + n] for i in range(0, len(g), n)]
+        # a multiple of the workers' number of batches of at most BATCH_MAX_POINTS points, dealt
+        # round robin (neighbouring grid points cost alike: e.g. a row of early divergences)
+        nb = w * -(-(-(-len(g) // BATCH_MAX_POINTS)) // w) if len(g) > w else len(g)
+        batches += [b for b in (g[i::nb] for i in range(nb)) if b]
     return batches, single, reasons
 
 
