@@ -135,7 +135,7 @@ class _Point:
     reference: Any
     rows: np.ndarray                            # signals.csv rows
     n_rows: int = 0
-    ecu_rows: list[np.ndarray] = field(default_factory=list)  # per ECU: its trace rows (ecu_c<v>.csv)
+    ecu_rows: list[list[list[Any]]] = field(default_factory=list)  # per ECU: its trace rows (ecu_c<v>.csv)
     n_ecu_rows: int = 0
     alive: bool = True
     broadcast: list[dict[str, float]] = field(default_factory=list)
@@ -210,7 +210,7 @@ class BatchEngine:
             ctrls = [build_controller(scn, i) for i in range(1, m + 1)]
             pt = _Point(scn, run_dir, plant, ctrls, paths,
                         reference_fn(scn), np.full((n_rows, len(plant.columns())), np.nan),
-                        ecu_rows=[np.full((self.n_ticks, 4 + len(c.diagnostic_names)), np.nan) for c in ctrls],
+                        ecu_rows=[[] for _ in ctrls],
                         broadcast=[{} for _ in range(m)],
                         plant_origin=np.full(m, -1, dtype=np.int64),
                         peer_frames=np.zeros(m, dtype=np.int64), peer_stale=np.zeros(m, dtype=np.int64),
@@ -423,8 +423,10 @@ class BatchEngine:
         p.peer_missing += missing[i]
         t = k * self.dt
         sp, ps = peers["speed_mps"][i], peers["position_m"][i]
+        rows = {nm: arr[i].tolist() for nm, arr in sensors.items()}  # Python floats, as decoded
+        max_age_i, fresh_i = max_age[i].tolist(), fresh[i].tolist()
         for s, e in enumerate(self.ecus):
-            sens = {nm: float(sensors[nm][i, s]) for nm in e.sensors}
+            sens = {nm: rows[nm][s] for nm in e.sensors}
             obs = Observation(tick=k, time_s=t, speed_mps=sens.get("speed_mps", math.nan),
                               position_m=sens.get("position_m", math.nan), ref_speed_mps=v_ref,
                               ref_decel_mps2=a_ref, peer_speed_mps=sp[s], peer_position_m=ps[s],
@@ -441,9 +443,8 @@ class BatchEngine:
             else:
                 cmds["brake_force_n"][i, s] = float(res.brake_force_n)
             diag = res.diagnostics
-            row = p.ecu_rows[s][p.n_ecu_rows]
-            row[0], row[1], row[-2], row[-1] = k, res.brake_force_n, max_age[i, s], fresh[i, s]
-            row[2:-2] = [diag.get(n, np.nan) for n in ctrl.diagnostic_names]
+            p.ecu_rows[s].append([k, res.brake_force_n, *[diag.get(n, np.nan) for n in ctrl.diagnostic_names],
+                                  max_age_i[s], fresh_i[s]])
         p.n_ecu_rows += 1
 
     # ------------------------------------------------------------------ plant
@@ -521,7 +522,8 @@ class BatchEngine:
         for s, e in enumerate(self.ecus):
             ctrl = p.ctrls[s]
             header = ["tick", "brake_cmd_n", *ctrl.diagnostic_names, "max_peer_age_s", "peers_fresh"]
-            _write_csv(rd / f"ecu_c{e.vehicle}.csv", header, p.ecu_rows[s][:p.n_ecu_rows], last_int=True)
+            _write_csv(rd / f"ecu_c{e.vehicle}.csv", header, np.array(p.ecu_rows[s], dtype=float).reshape(
+                -1, len(header)), last_int=True)
             stats = {"ticks": p.n_ecu_rows, "peer_frames": int(p.peer_frames[s]),
                      "peer_corrupted": 0, "peer_stale_or_duplicate": int(p.peer_stale[s]),
                      "peer_missing": int(p.peer_missing[s]), "deadline_misses": 0, "status": "ok",
