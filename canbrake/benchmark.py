@@ -397,14 +397,24 @@ def sweep_case(case: dict[str, Any]) -> dict[str, Any]:
         rows: list[dict[str, Any]] = []
         msgs: list[str] = []
         workers = int(case.get("workers", 0))
+        import resource
+
+        def cpu() -> float:  # this process and every reaped descendant (the Dask workers at the end)
+            a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+            return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+        c0 = cpu()
         t0 = time.perf_counter()
         execute(tasks, rows.append, workers=workers, scheduler=None if workers else "none", progress=False,
                 engine=case["engine"], log=msgs.append)
         wall = time.perf_counter() - t0
+        cpu_s = cpu() - c0
     bad = [r for r in rows if r.get("status") not in ("ok", "diverged")]
-    return {"status": "ok" if not bad else "failed", "wall_s": wall, "points": len(tasks),
+    n_ticks = int(round(float(case["duration_s"]) / plan.base.control_period_s))
+    return {"status": "ok" if not bad else "failed", "wall_s": wall, "cpu_s": cpu_s, "points": len(tasks),
             "message": f"{len(bad)} point(s) ended in {bad[0].get('status')}: {bad[0].get('message')}" if bad else "",
-            "log": msgs, "diverged": sum(r.get("status") == "diverged" for r in rows)}
+            "log": msgs, "ended_early": sum((r.get("ticks") or 0) < n_ticks for r in rows),
+            "load_avg": os.getloadavg()[0]}
 
 
 def sweep_figures(duration_s: float = SWEEP_DURATION_S, log: Callable[[str], None] = lambda s: None
@@ -431,15 +441,29 @@ def sweep_figures(duration_s: float = SWEEP_DURATION_S, log: Callable[[str], Non
     else:
         rows.append(_row(label, full["wall_s"], "s", "per-point engine, estimate", est,
                          est / full["wall_s"] if est else None, "<= 60 s", full["wall_s"] <= 60.0,
+                         cpu_s=full.get("cpu_s"),
                          note=f"Chen case 1 (paper, 1 ms), default grid {' x '.join(SWEEP_GRID)}, one seed; "
-                              f"{full['diverged']} points diverge early; baseline = per-point wall time on every "
-                              f"{SWEEP_STRIDE}th point ({per.get('points')} points, one process) x {n_all} / 2 workers"))
+                              f"{full['ended_early']} points end early (the plant diverged); baseline = per-point "
+                              f"wall time on every {SWEEP_STRIDE}th point ({per.get('points')} points, one process) "
+                              f"x {n_all} / 2 workers; CPU time of the batch sweep {full.get('cpu_s', 0):.0f} s "
+                              f"(= {full.get('cpu_s', 0) / 2:.0f} s on 2 otherwise idle cores), load "
+                              f"{full.get('load_avg', 0):.1f} at its end"))
+        if full.get("cpu_s"):
+            rows.append(_row(f"sweep {n_all} points x {duration_s:g} s, batch engine, CPU time / 2 cores",
+                             full["cpu_s"] / 2, "s", "per-point engine CPU, estimate",
+                             per["cpu_s"] / per["points"] * n_all / 2 if per.get("cpu_s") else None,
+                             (per["cpu_s"] / per["points"] * n_all / full["cpu_s"]) if per.get("cpu_s") else None,
+                             "<= 60 s", full["cpu_s"] / 2 <= 60.0,
+                             note="CPU seconds (this process and its Dask workers) / 2: the wall time on 2 idle "
+                                  "cores, less sensitive to the other tasks of a shared machine than the wall time"))
     label = f"sweep subset ({sub.get('points', '?')} points), batch vs per-point, one process"
     if sub.get("status") != "ok" or per.get("status") != "ok":
         rows.append(_failed(label, sub if sub.get("status") != "ok" else per))
     else:
         rows.append(_row(label, sub["wall_s"], "s", "per-point engine", per["wall_s"], per["wall_s"] / sub["wall_s"],
-                         note="the same points, serially in one process: the batch engine's own gain"))
+                         cpu_s=sub.get("cpu_s"), baseline_cpu_s=per.get("cpu_s"),
+                         note=f"the same points, serially in one process: the batch engine's own gain (CPU "
+                              f"{sub.get('cpu_s', 0):.1f} s vs {per.get('cpu_s', 0):.1f} s)"))
     return rows
 
 
