@@ -104,7 +104,7 @@ def unsupported(scn: Scenario, base_impairments: int = 0) -> str | None:
     return None
 
 
-def _layout_key(scn: Scenario) -> tuple:
+def batch_key(scn: Scenario) -> tuple:
     """Points that share this key run in one batch: same cars, ECUs, signals and number of ticks."""
     from canbrake.build import bus_layout
 
@@ -119,7 +119,7 @@ def batch_groups(scns: Sequence[Scenario]) -> list[list[int]]:
     """Indices of ``scns`` grouped into batches that can run together (same layout and length)."""
     groups: dict[tuple, list[int]] = {}
     for i, s in enumerate(scns):
-        groups.setdefault(_layout_key(s), []).append(i)
+        groups.setdefault(batch_key(s), []).append(i)
     return list(groups.values())
 
 
@@ -269,7 +269,6 @@ class BatchEngine:
         t = k * dt
         pts = self.points
         P = len(pts)
-        alive = [p.alive for p in pts]
         # phase 0 (plant): measurements and reference, as the ECUs decode them
         meas = [p.plant.model.measurements() if p.alive else None for p in pts]
         refs = [p.reference(t) if p.alive else (0.0, 0.0) for p in pts]

@@ -667,7 +667,7 @@ def batch_unsupported(task: PointTask) -> str | None:
 
 def plan_batches(tasks: Sequence[PointTask], workers: int) -> tuple[list[list[PointTask]], list[PointTask], dict[str, int]]:
     """(batches for the batch engine, tasks to run one by one, fallback reasons -> count)."""
-    from canbrake.batch import _layout_key
+    from canbrake.batch import batch_key
 
     reasons: dict[str, int] = {}
     groups: dict[tuple, list[PointTask]] = {}
@@ -678,7 +678,7 @@ def plan_batches(tasks: Sequence[PointTask], workers: int) -> tuple[list[list[Po
             reasons[why] = reasons.get(why, 0) + 1
             single.append(t)
             continue
-        groups.setdefault(_layout_key(Scenario.model_validate(t.scenario)), []).append(t)
+        groups.setdefault(batch_key(Scenario.model_validate(t.scenario)), []).append(t)
     batches: list[list[PointTask]] = []
     w = max(1, workers)
     for g in groups.values():
