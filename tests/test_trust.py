@@ -67,6 +67,19 @@ def test_impossible_speed_is_diverged(scn):
     assert judge(scn, {}, tr)["diverged_at_s"] == pytest.approx(0.20)
 
 
+def test_accelerating_reference_is_not_an_impossible_speed():
+    """Cai's train starts at rest and follows a ramp up to 200 km/h: its speed bound comes from the
+    reference (the ramp's end speed and the run's v* trace), not from the initial speed 0."""
+    cai = load_scenario(Path(__file__).resolve().parents[1] / "scenarios" / "cai2014_case4.yaml")
+    assert plausible_speed_mps(cai) == pytest.approx(1.5 * 200 / 3.6 + 20 / 3.6)
+    tr = _trace(2, 100)
+    tr.ref_speed_mps[:] = np.linspace(0.0, 60.0, 100)      # a v* trace above the ramp's 200 km/h
+    tr.speed_mps[:] = tr.ref_speed_mps[:, None]
+    assert judge(cai, {}, tr)["verdict"] == "ok"
+    tr.speed_mps[70, 1] = plausible_speed_mps(cai, tr.ref_speed_mps) * 1.001
+    assert judge(cai, {}, tr)["diverged_at_s"] == pytest.approx(0.70)
+
+
 def test_deflection_beyond_the_controllers_bound_is_unsafe(scn):
     tr = _trace(6, 100)
     tr.deflection_m[10, 1] = 0.0101  # case 1's theta bounds are ±0.01 m

@@ -84,11 +84,21 @@ def coupler_limits_m(scn: Any) -> np.ndarray:
     return lim
 
 
-def plausible_speed_mps(scn: Any) -> float:
-    """Highest |v| (m/s) a car can reach in this scenario without the loop having diverged."""
+def plausible_speed_mps(scn: Any, ref_speed_mps: np.ndarray | None = None) -> float:
+    """Highest |v| (m/s) a car can reach in this scenario without the loop having diverged:
+    1.5 × the highest of the initial speeds and the reference v* (+ 20 km/h). ``ref_speed_mps``:
+    the run's v* trace (m/s, shape (T,)), which covers accelerating ramps and table references;
+    without it, the ramp's start and end speeds."""
     v0 = float(np.max(np.abs(scn.initial_speed_mps()))) if scn.n_cars else 0.0
-    vmax = max(v0, scn.reference.speed_mps)
-    return SPEED_FACTOR * vmax + SPEED_MARGIN_KMH / KMH
+    r = scn.reference
+    vref = max(r.speed_mps, float(getattr(r, "target_kmh", 0.0) or 0.0) / KMH)
+    if ref_speed_mps is not None and np.size(ref_speed_mps):
+        with np.errstate(all="ignore"):
+            finite = np.asarray(ref_speed_mps, dtype=float)
+            finite = finite[np.isfinite(finite)]
+        if finite.size:
+            vref = max(vref, float(np.max(np.abs(finite))))
+    return SPEED_FACTOR * max(v0, vref) + SPEED_MARGIN_KMH / KMH
 
 
 def deflection_bound_m(scn: Any) -> float | None:
@@ -140,7 +150,7 @@ def judge(scn: Any, summary: dict[str, Any], trace: Trace | None,
     diverged_at: float | None = None
     if trace is not None and len(trace.t_s):
         lim = coupler_limits_m(scn)
-        vmax = plausible_speed_mps(scn)
+        vmax = plausible_speed_mps(scn, trace.ref_speed_mps)
         k, why = _first_bad_row(trace, lim, vmax)
         if k is not None:
             diverged_at = float(trace.t_s[k])

@@ -270,6 +270,8 @@ def execute(spec: RunSpec, runs_dir: str | Path, force: bool = False,
     summary = run_scenario(scn, run_dir, backend="inprocess", plots=False)
     if summary.get("status") != "ok":
         raise RuntimeError(f"{spec.command()}: status {summary.get('status')}: {summary.get('message', '')}")
+    if summary.get("verdict") == "diverged":  # a report never publishes a diverged run's numbers
+        raise RuntimeError(f"{spec.command()}: the closed loop diverged ({run_dir}/summary.json: findings)")
     arrays = trace_from_signals(read_signals(run_dir / "signals.csv"), CaiSetup.of(scn), spec.case)
     summary["report_trace_version"] = TRACE_VERSION
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))

@@ -248,6 +248,8 @@ def execute(scenario: str, profile: str | None, overrides: dict[str, Any], key: 
     summary = run_scenario(scn, run_dir, backend="inprocess", plots=False)
     if summary.get("status") != "ok":
         raise RuntimeError(f"{key}: run ended with status {summary.get('status')!r} ({run_dir})")
+    if summary.get("verdict") == "diverged":  # a report never publishes a diverged run's numbers
+        raise RuntimeError(f"{key}: the closed loop diverged ({run_dir}/summary.json: findings)")
     d = reduce_run(run_dir, float(scn.control_period_s))
     np.savez(run_dir / "report.npz", **d)
     # the full trace of 106 vehicles is large; the report keeps its reduction, the command remakes it
