@@ -157,6 +157,12 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     for k in ("cmd_latency_p50_s", "cmd_latency_p99_s", "cmd_latency_max_s", "cmd_latency_missing", "scheduling"):
         if k in plant.get("extra", {}):
             out[k] = plant["extra"][k]
+    rt = s.get("realtime") or {}  # canbrake.analysis.summary.realtime_figures
+    if rt:
+        out["slipped_s"] = rt.get("slipped_s")
+        out["periods"] = rt.get("periods")
+        sched = {v for k, v in (rt.get("scheduling") or {}).items() if k.startswith("ecu_")}
+        out["ecu_scheduling"] = "; ".join(sorted(x for x in sched if x))
     return out
 
 
@@ -251,7 +257,7 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
     """Chen case 1 lockstep: rounds alternate the backends; medians of ``repeat`` rounds."""
     cases = {"inprocess": {"backend": "inprocess"}, "virtual": {"backend": "virtual"},
              "memory": {"backend": "memory"},
-             "memory_noyield": {"backend": "memory", "env": {"CANBRAKE_MEMORY_YIELD": "0"}},
+             "memory_yield": {"backend": "memory", "env": {"CANBRAKE_MEMORY_YIELD": "1"}},
              "timing": {"backend": "inprocess", "overrides": {"bus.timing": "model"}}}
     vals: dict[str, list[float]] = {k: [] for k in cases}
     fail: dict[str, dict[str, Any]] = {}
@@ -290,11 +296,15 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
         rows.append(_failed("lockstep one process per ECU (memory bus)", fail["memory"], ">= 4x"))
     if "virtual" in fail:
         rows.append(_failed("lockstep python-can virtual", fail["virtual"]))
-    if "memory_noyield" in med:
-        rows.append(_row("lockstep processes, CANBRAKE_MEMORY_YIELD=0", med["memory_noyield"], "periods/s",
-                         "processes (yield before sleep)", med.get("memory"),
-                         med["memory_noyield"] / med["memory"] if "memory" in med else None, "(knob)", None,
-                         note=note))
+    if "memory_yield" in med:
+        from canbrake.run import memory_yield
+
+        auto = "yields" if memory_yield() else "does not yield (load average >= CPUs)"
+        rows.append(_row("lockstep processes, CANBRAKE_MEMORY_YIELD=1", med["memory_yield"], "periods/s",
+                         "processes (default: auto)", med.get("memory"),
+                         med["memory_yield"] / med["memory"] if "memory" in med else None, "(knob)", None,
+                         note=f"{note}; always sched_yield before blocking on the memory bus vs the default, "
+                              f"which at this bench's start {auto}"))
     if "timing" in med:
         rows.append(_row("lockstep in-process + CAN timing model", med["timing"], "periods/s", "in-process engine",
                          med.get("inprocess"), med["timing"] / med["inprocess"] if "inprocess" in med else None,
@@ -316,10 +326,14 @@ def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict
         if res.get("status") not in ("ok", "diverged") or not res.get("ticks"):
             rows.append(_failed(name, res, f"< {target:g} %"))
             continue
-        pct = 100.0 * (res.get("deadline_misses") or 0) / res["ticks"]
-        note = (f"{res['ticks']} periods, {res.get('ecu_deadline_misses')} ECU misses, {res.get('late_periods')} late "
-                f"periods, worst lateness {1e3 * (res.get('max_lateness_s') or 0):.2f} ms; run {res['status']}"
-                f"{' (' + res['message'] + ')' if res.get('message') else ''}; scheduling: {res.get('scheduling', '?')}")
+        periods = res.get("periods") or res["ticks"]  # periods that ended (a diverged run: one more than ticks)
+        pct = 100.0 * (res.get("deadline_misses") or 0) / periods
+        note = (f"{periods} periods, {res.get('ecu_deadline_misses')} ECU misses, {res.get('late_periods')} late "
+                f"periods, worst lateness {1e3 * (res.get('max_lateness_s') or 0):.2f} ms, grid moved on "
+                f"{1e3 * (res.get('slipped_s') or 0):.1f} ms; run {res['status']}"
+                f"{' (' + res['message'] + ')' if res.get('message') else ''}; scheduling: plant "
+                f"{res.get('scheduling', '?')}, ECUs {res.get('ecu_scheduling') or '?'}; 1-min load average after the run "
+                f"{os.getloadavg()[0]:.1f}")
         rows.append(_row(name, pct, "% of periods", target=f"< {target:g} %",
                          met=pct < target and res["status"] == "ok", note=note,
                          status="ok" if res["status"] == "ok" else res["status"]))
@@ -332,49 +346,69 @@ def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict
                              (p99 is not None and p99 < 0.5e-3) if period < 0.005 else None,
                              note=f"SYNC sent -> last command of the period in (a period whose commands "
                                   f"missed the deadline counts as late: {res.get('cmd_latency_missing')} of "
-                                  f"{res['ticks']}); p50 {ms(res.get('cmd_latency_p50_s'))}, "
+                                  f"{periods}); p50 {ms(res.get('cmd_latency_p50_s'))}, "
                                   f"max {ms(res.get('cmd_latency_max_s'))}"))
     return rows
 
 
 SCALE_CARS = (6, 12, 24, 48)
+#: train sizes run with one process per ECU by default; the others (48) only with ``heavy``
+SCALE_PROCESS_CARS = (6, 12, 24)
 
 
-def scale_figures(ticks: int, log: Callable[[str], None], cars: tuple[int, ...] = SCALE_CARS) -> list[dict[str, Any]]:
-    """Ticks/s and peak memory per train size, in process and with processes."""
+def scale_cases(cars: tuple[int, ...] = SCALE_CARS, heavy: bool = False) -> list[tuple[int, str, int | None]]:
+    """(ECUs, backend, ECUs per process or None) of the scale group: every size in process; with
+    processes the small Chen trains and the 106-ECU train hosted 8 ECUs per process; ``heavy``
+    adds the larger Chen trains with one process per ECU and the 106-ECU train with one each."""
+    out: list[tuple[int, str, int | None]] = []
+    for n in cars:
+        out.append((n, "inprocess", None))
+        if heavy or n in SCALE_PROCESS_CARS:
+            out.append((n, "memory", 1))
+    out += [(106, "inprocess", None), (106, "memory", 8)] + ([(106, "memory", 1)] if heavy else [])
+    return out
+
+
+def scale_figures(ticks: int, log: Callable[[str], None], cars: tuple[int, ...] = SCALE_CARS,
+                  heavy: bool = False) -> list[dict[str, Any]]:
+    """Ticks/s and peak memory per train size, in process and with processes (:func:`scale_cases`)."""
     rows = []
-    for n in (*cars, 106):
-        for backend in ("inprocess", "memory"):
-            if n == 106:
-                # at 10 ms the ECP train's ~110 frames per period (~14,000 bits) do not fit classic
-                # CAN even at 1 Mbit/s: the timing model's queue would grow without bound, so the
-                # 10 ms figure runs with ideal bus timing at 1 Mbit/s (frames, E2E, nodes unchanged)
-                case = {"scenario": ECP, "backend": backend,
-                        "overrides": {"duration_s": round(ticks * 0.01, 6), "control_period_s": 0.01,
-                                      "bus.timing": "ideal", "bus.bitrate_bps": 1000000}}
-                how = "in process" if backend == "inprocess" else "hosted, 8 ECUs per process"
-            else:
-                case = {"cars": n, "backend": backend, "overrides": {"duration_s": round(ticks * 0.001, 6)}}
-                how = "in process" if backend == "inprocess" else "one process per ECU"
-            res = run_case_subprocess(case)
-            label = f"scale {n} {'vehicles (ECP 1+105)' if n == 106 else 'cars (Chen)'}, {how}"
-            log(f"  {label}: {res.get('status')} {res.get('ticks_per_s') or res.get('message')}")
-            if res.get("status") != "ok" or not res.get("ticks_per_s"):
-                rows.append(_failed(label, res, ">= 1x real time at 10 ms" if n == 106 else ""))
-                continue
-            extra = {"cars": n, "backend": backend, "peak_rss_mb": res["peak_rss_mb"],
-                     "real_time_factor": res["real_time_factor"]}
-            if n == 106:
-                rtf = res["real_time_factor"]
-                rows.append(_row(label, rtf, "x real time", "real time (10 ms period)", 1.0, rtf,
-                                 ">= 1x real time at 10 ms", rtf >= 1.0,
-                                 note=f"{res['ticks_per_s']:.0f} periods/s, peak RSS {res['peak_rss_mb']:.0f} MB; "
-                                      "10 ms period, ideal bus timing at 1 Mbit/s (the timing model's bus is "
-                                      "overloaded at 10 ms)",
-                                 **extra))
-            else:
-                rows.append(_row(label, res["ticks_per_s"], "periods/s", note=f"peak RSS {res['peak_rss_mb']:.0f} MB",
-                                 **extra))
+    for n, backend, per in scale_cases(cars, heavy):
+        if n == 106:
+            # at 10 ms the ECP train's ~110 frames per period (~14,000 bits) do not fit classic
+            # CAN even at 1 Mbit/s: the timing model's queue would grow without bound, so the
+            # 10 ms figure runs with ideal bus timing at 1 Mbit/s (frames, E2E, nodes unchanged)
+            case = {"scenario": ECP, "backend": backend,
+                    "overrides": {"duration_s": round(ticks * 0.01, 6), "control_period_s": 0.01,
+                                  "bus.timing": "ideal", "bus.bitrate_bps": 1000000,
+                                  **({"ecu.per_process": per} if per else {})}}
+            how = ("in process" if backend == "inprocess" else
+                   f"hosted, {per} ECUs per process" if per > 1 else "one process per ECU")
+        else:
+            case = {"cars": n, "backend": backend, "overrides": {"duration_s": round(ticks * 0.001, 6)}}
+            how = "in process" if backend == "inprocess" else "one process per ECU"
+        res = run_case_subprocess(case, timeout_s=1800.0)
+        label = f"scale {n} {'vehicles (ECP 1+105)' if n == 106 else 'cars (Chen)'}, {how}"
+        log(f"  {label}: {res.get('status')} {res.get('ticks_per_s') or res.get('message')}")
+        ran_all = res.get("status") == "diverged" and res.get("ticks_per_s") and res.get("ticks") == ticks
+        if (res.get("status") != "ok" or not res.get("ticks_per_s")) and not ran_all:
+            rows.append(_failed(label, res, ">= 1x real time at 10 ms" if n == 106 else ""))
+            continue
+        why = (f"; {res['message']}, after which every period still ran (the scaled train's result, not the "
+               "engine's: the rate counts)") if ran_all else ""
+        extra = {"cars": n, "backend": backend, "per_process": per, "peak_rss_mb": res["peak_rss_mb"],
+                 "real_time_factor": res["real_time_factor"], "ticks_per_s": res["ticks_per_s"]}
+        if n == 106:
+            rtf = res["real_time_factor"]
+            rows.append(_row(label, rtf, "x real time", "real time (10 ms period)", 1.0, rtf,
+                             ">= 1x real time at 10 ms", bool(rtf >= 1.0),
+                             note=f"{res['ticks_per_s']:.0f} periods/s, peak RSS {res['peak_rss_mb']:.0f} MB; "
+                                  "10 ms period, ideal bus timing at 1 Mbit/s (the timing model's bus is "
+                                  f"overloaded at 10 ms){why}",
+                             **extra))
+        else:
+            rows.append(_row(label, res["ticks_per_s"], "periods/s", note=f"peak RSS {res['peak_rss_mb']:.0f} MB{why}",
+                             **extra))
     return rows
 
 
@@ -484,7 +518,8 @@ def machine() -> dict[str, Any]:
 
 def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat: int = 3,
               realtime_s: float = 5.0, scale_ticks: int = 200, scale_cars: tuple[int, ...] = SCALE_CARS,
-              log: Callable[[str], None] = lambda s: None, sweep_s: float | None = None) -> dict[str, Any]:
+              heavy: bool = False, log: Callable[[str], None] = lambda s: None,
+              sweep_s: float | None = None) -> dict[str, Any]:
     """Every figure of ``only``; returns {"machine": ..., "figures": [...]}. Never raises for a
     failed case: the row says ``failed`` with the reason."""
     start = machine()
@@ -503,12 +538,12 @@ def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat
     guarded("codec", codec_figures)
     guarded("lockstep", lambda: lockstep_figures(duration_s, repeat, log))
     guarded("realtime", lambda: realtime_figures(realtime_s, log))
-    guarded("scale", lambda: scale_figures(scale_ticks, log, scale_cars))
+    guarded("scale", lambda: scale_figures(scale_ticks, log, scale_cars, heavy))
     guarded("sweep", lambda: sweep_figures(SWEEP_DURATION_S if sweep_s is None else sweep_s, log=log))
     end = machine()
     return {"machine": start, "load_avg_at_end": end["load_avg_1_5_15"], "bench_wall_s": time.perf_counter() - t0,
             "settings": {"duration_s": duration_s, "repeat": repeat, "realtime_s": realtime_s,
-                         "scale_ticks": scale_ticks, "only": list(only),
+                         "scale_ticks": scale_ticks, "heavy": heavy, "only": list(only),
                          "sweep_s": SWEEP_DURATION_S if sweep_s is None else sweep_s},
             "figures": rows}
 
@@ -546,10 +581,42 @@ def notes(result: dict[str, Any]) -> str:
     return "\n".join(f"- {r['figure']}: {r['note']}" for r in result["figures"] if r.get("note"))
 
 
+def _scale_rows(result: dict[str, Any]) -> list[dict[str, Any]]:
+    return [r for r in result["figures"] if r.get("cars") and r["status"] == "ok"]
+
+
+def _config(r: dict[str, Any]) -> str:
+    if r["backend"] == "inprocess":
+        return "in process"
+    per = r.get("per_process") or 1
+    return "one process per ECU" if per == 1 else f"hosted, {per} ECUs per process"
+
+
+def scale_table(result: dict[str, Any]) -> str:
+    """The scale rows as a Markdown table: ECUs, configuration, periods/s, x real time, peak RSS."""
+    rows = sorted(_scale_rows(result), key=lambda r: (r["cars"], r["backend"] != "inprocess", -(r.get("per_process") or 1)))
+    out = ["| ECUs | train | configuration | periods/s | x real time (period) | peak RSS, sum of processes (MB) |",
+           "|---|---|---|---|---|---|"]
+    for r in rows:
+        period = "10 ms" if r["cars"] == 106 else "1 ms"
+        tps = r.get("ticks_per_s") or r["real_time_factor"] / (0.01 if r["cars"] == 106 else 0.001)
+        out.append(f"| {r['cars']} | {'ECP 1+105' if r['cars'] == 106 else 'Chen'} | {_config(r)} | {tps:,.1f} | "
+                   f"{r['real_time_factor']:.3f} ({period}) | {r['peak_rss_mb']:,.0f} |")
+    failed = [r for r in result["figures"] if r["figure"].startswith("scale ") and r["status"] != "ok"]
+    out += [f"| - | - | {r['figure']} | {r['status'].upper()}: {r['note']} | - | - |" for r in failed]
+    return "\n".join(out)
+
+
+def _title(result: dict[str, Any], what: str) -> str:
+    m = result["machine"]
+    return (f"{what}\n{m['cores']} cores, load average {m['load_avg_1_5_15'][0]:.1f} at the start, "
+            f"{m['utc']} UTC")
+
+
 def plot_scale(result: dict[str, Any], path: str | Path) -> Path | None:
     """Periods per second and peak memory against the number of ECUs (the ``scale`` rows), as a
     PNG; None if the result has no scale rows."""
-    rows = [r for r in result["figures"] if r.get("cars") and r["status"] == "ok"]
+    rows = _scale_rows(result)
     if not rows:
         return None
     import matplotlib
@@ -557,26 +624,116 @@ def plot_scale(result: dict[str, Any], path: str | Path) -> Path | None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4))
-    for backend, label in (("inprocess", "in process"), ("memory", "processes (106: 8 ECUs per process)")):
-        rs = sorted((r for r in rows if r["backend"] == backend), key=lambda r: r["cars"])
-        if not rs:
-            continue
-        x = [r["cars"] for r in rs]
-        a1.plot(x, [r["real_time_factor"] / (0.01 if r["cars"] == 106 else 0.001) for r in rs], "o-", label=label)
-        a2.plot(x, [r["peak_rss_mb"] for r in rs], "o-", label=label)
-    a1.set(xscale="log", yscale="log", xlabel="ECUs (Chen 6-48, ECP 106)", ylabel="control periods per second")
-    a2.set(xscale="log", xlabel="ECUs (Chen 6-48, ECP 106)", ylabel="peak RSS of the run's processes (MB)")
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 4.2))
+    configs = sorted({_config(r) for r in rows}, key=lambda c: (c != "in process", c))
+    for c, cfg in enumerate(configs):
+        for ecp in (False, True):  # Chen (1 ms, all-to-all) joined by a line; the ECP train on its own
+            rs = sorted((r for r in rows if _config(r) == cfg and (r["cars"] == 106) == ecp), key=lambda r: r["cars"])
+            if not rs:
+                continue
+            x = [r["cars"] for r in rs]
+            style = dict(color=f"C{c}", marker="*" if ecp else "o", ms=11 if ecp else 6, ls="none" if ecp else "-",
+                         label=f"{'ECP 1+105 (10 ms)' if ecp else 'Chen (1 ms)'}, {cfg}")
+            a1.plot(x, [r.get("ticks_per_s") or r["real_time_factor"] / (0.01 if ecp else 0.001) for r in rs], **style)
+            a2.plot(x, [r["peak_rss_mb"] for r in rs], **style)
+    a1.set(xscale="log", yscale="log", xlabel="ECUs (Chen 6-48 at 1 ms, ECP 106 at 10 ms)",
+           ylabel="control periods per wall second")
+    a2.set(xscale="log", yscale="log", xlabel="ECUs (Chen 6-48 at 1 ms, ECP 106 at 10 ms)",
+           ylabel="peak RSS, sum of the run's processes (MB)")
     for a in (a1, a2):
         a.grid(True, which="both", alpha=0.3)
-        a.legend()
-    m = result["machine"]
-    fig.suptitle(f"canbrake lockstep scale, {m['cores']} cores, load {m['load_avg_1_5_15'][0]:.1f}, {m['utc']} UTC")
+        a.legend(fontsize=8)
+    fig.suptitle(_title(result, "canbrake lockstep: throughput and memory by train size"), fontsize=10)
     fig.tight_layout()
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(p, dpi=100)
     plt.close(fig)
+    return p
+
+
+def plot_106(result: dict[str, Any], path: str | Path) -> Path | None:
+    """The 106-ECU heavy-haul train (ECP 1 + 105) at a 10 ms period: real-time factor of each
+    configuration against real time (1x), as a PNG; None without those rows."""
+    rows = [r for r in _scale_rows(result) if r["cars"] == 106]
+    if not rows:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows.sort(key=lambda r: (r["backend"] != "inprocess", -(r.get("per_process") or 1)))
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    labels = [_config(r) for r in rows]
+    vals = [r["real_time_factor"] for r in rows]
+    bars = ax.barh(labels, vals, color="tab:blue")
+    ax.axvline(1.0, color="tab:red", ls="--", label="real time (target >= 1x)")
+    for b, v, r in zip(bars, vals, rows):
+        ax.text(v, b.get_y() + b.get_height() / 2, f" {v:.2f}x ({r['peak_rss_mb']:,.0f} MB)", va="center", fontsize=8)
+    ax.set(xlabel="simulated seconds per wall second (x real time)")
+    ax.set_xlim(0.0, max(max(vals) * 1.4, 1.5))
+    ax.invert_yaxis()
+    ax.legend(fontsize=8, loc="lower right")
+    ax.grid(True, axis="x", alpha=0.3)
+    ax.set_title(_title(result, "106 ECUs (ECP heavy haul 1+105), 10 ms period, lockstep"), fontsize=9)
+    fig.tight_layout()
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+DOC_BEGIN = "<!-- canbrake bench: generated from here -->"
+DOC_END = "<!-- canbrake bench: generated up to here -->"
+
+
+def doc_section(result: dict[str, Any], figures_rel: str = "figures") -> str:
+    """The generated part of docs/performance.md: machine and load, the figure table, the notes,
+    the scale table and the two plots (paths relative to the doc)."""
+    m = result["machine"]
+    end = result.get("load_avg_at_end") or [float("nan")] * 3
+    st = result.get("settings", {})
+    head = (f"`canbrake bench` {' '.join(_argv_of(st))}".rstrip() + f", {m['utc']} UTC, "
+            f"{result['bench_wall_s'] / 60:.1f} min, on {m['cpu'] or 'an unnamed CPU'} x{m['cores']} "
+            f"({m['platform']}, Python {m['python']}). **Load average (1/5/15 min): "
+            f"{'/'.join(f'{x:.1f}' for x in m['load_avg_1_5_15'])} at the start, "
+            f"{'/'.join(f'{x:.1f}' for x in end)} at the end** on {m['cores']} cores.")
+    parts = [DOC_BEGIN, "", head, "", table(result, markdown=True), "", "Notes (from `bench/results.json`):", "",
+             notes(result)]
+    if _scale_rows(result):
+        parts += ["", "### Scale", "", scale_table(result), "",
+                  f"![scale]({figures_rel}/performance_scale.png)", ""]
+        if any(r["cars"] == 106 for r in _scale_rows(result)):
+            parts += [f"![106 ECUs at 10 ms against real time]({figures_rel}/performance_106.png)", ""]
+    parts.append(DOC_END)
+    return "\n".join(parts)
+
+
+def _argv_of(settings: dict[str, Any]) -> list[str]:
+    out = []
+    if settings.get("only") and list(settings["only"]) != list(GROUPS):
+        out.append("--only " + ",".join(settings["only"]))
+    if settings.get("heavy"):
+        out.append("--heavy")
+    return out
+
+
+def write_doc(result: dict[str, Any], doc: str | Path) -> Path:
+    """Replace the generated section of ``doc`` (between :data:`DOC_BEGIN` and :data:`DOC_END`,
+    appended if absent) with :func:`doc_section`; the plots go to ``figures/`` beside it."""
+    p = Path(doc)
+    text = p.read_text() if p.exists() else "# Performance\n"
+    plot_scale(result, p.parent / "figures" / "performance_scale.png")
+    plot_106(result, p.parent / "figures" / "performance_106.png")
+    sec = doc_section(result)
+    if DOC_BEGIN in text and DOC_END in text:
+        a, rest = text.split(DOC_BEGIN, 1)
+        text = a + sec + rest.split(DOC_END, 1)[1]
+    else:
+        text = text.rstrip("\n") + "\n\n" + sec + "\n"
+    p.write_text(text)
     return p
 
 

@@ -126,8 +126,16 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
     dm = s.get("deadline_misses") or {}
     if s.get("mode") == "realtime" and dm:
         ticks = s.get("ticks") or 0
-        rate = f" ({dm.get('plant', 0) / ticks * 100:.1f} % of periods)" if ticks else ""
+        periods = (s.get("realtime") or {}).get("periods") or ticks  # periods that ended (a diverged run: one more)
+        rate = f" ({dm.get('plant', 0) / periods * 100:.1f} % of periods)" if periods else ""
         lines.append(f"deadline misses: plant {dm.get('plant', 0)}{rate}, ECUs {dm.get('ecus', 0)}")
+        rt = s.get("realtime") or {}
+        if rt:  # canbrake.analysis.summary.realtime_figures
+            ms = (lambda x: "late" if x is None else f"{x * 1e3:.3f} ms")
+            lines.append(f"command latency (SYNC -> last command): p50 {ms(rt.get('cmd_latency_p50_s'))}, "
+                         f"p99 {ms(rt.get('cmd_latency_p99_s'))}; late periods {rt.get('late_periods', 0)} "
+                         f"(grid moved on {rt.get('slipped_s', 0.0) * 1e3:.1f} ms); "
+                         f"plant scheduling: {(rt.get('scheduling') or {}).get('plant') or '?'}")
     if s.get("finalize_error"):
         lines.append(f"summary incomplete: {s['finalize_error']}")
     sf = s.get("safety") or {}

@@ -20,9 +20,11 @@ def _cmd(a: argparse.Namespace) -> int:
     if a.quick:
         a.duration, a.repeat, a.realtime, a.scale_ticks = min(a.duration, 0.5), 1, min(a.realtime, 2.0), 50
         a.sweep_duration = min(a.sweep_duration, 0.5)
+    if a.heavy:  # the 60 s realtime runs (the 10 ms run twice as long: 12,000 periods resolve 0.01 %)
+        a.realtime = max(a.realtime, 60.0)
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if not a.quiet else (lambda s: None)
     res = run_bench(only=only, duration_s=a.duration, repeat=a.repeat, realtime_s=a.realtime,
-                    scale_ticks=a.scale_ticks, log=log, sweep_s=a.sweep_duration)
+                    scale_ticks=a.scale_ticks, heavy=a.heavy, log=log, sweep_s=a.sweep_duration)
     out = Path(a.out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -35,10 +37,17 @@ def _cmd(a: argparse.Namespace) -> int:
           f"{m['utc']} UTC, {res['bench_wall_s']:.0f} s")
     print(table(res, markdown=a.markdown))
     print(notes(res))
-    from canbrake.benchmark import plot_scale
+    from canbrake.benchmark import plot_106, plot_scale, write_doc
 
-    png = plot_scale(res, a.plot) if "scale" in only else None
-    print(f"written: {out}" + (f", {png}" if png else ""))
+    pngs = [p for p in ((plot_scale(res, a.plot), plot_106(res, Path(a.plot).with_name("scale_106.png")))
+                        if "scale" in only else ()) if p]
+    if a.doc:
+        try:
+            pngs.append(write_doc(res, a.doc))
+        except OSError as e:
+            print(f"canbrake bench: --doc: cannot write {a.doc}: {e.strerror or e}", file=sys.stderr)
+            return 2
+    print(f"written: {out}" + "".join(f", {p}" for p in pngs))
     return 0
 
 
@@ -58,6 +67,12 @@ def register(sub: Any) -> None:
                    help="simulated seconds per point of the sweep figure (default 10)")
     p.add_argument("--only", default="", help="comma-separated groups: codec,lockstep,realtime,scale,sweep")
     p.add_argument("--quick", action="store_true", help="short runs, one round (a smoke test of the bench)")
+    p.add_argument("--heavy", action="store_true",
+                   help="scale: also 48 cars with one process per ECU and the 106-ECU train with one process "
+                        "per ECU (108 processes); realtime runs of at least 60 s (long)")
+    p.add_argument("--doc", default="", metavar="MD",
+                   help="also write the figures into this Markdown file's generated section (e.g. "
+                        "docs/performance.md; its plots go to figures/ beside it)")
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     p.add_argument("--out", default="bench/results.json", help="where to write the results (JSON)")

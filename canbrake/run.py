@@ -208,6 +208,20 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
 
 
 # ----------------------------------------------------------------------------- child processes
+def memory_yield() -> bool:
+    """Does a node yield the CPU before it blocks on canbrake's memory bus? ``CANBRAKE_MEMORY_YIELD``
+    1 = yes, 0 = no; unset (auto): yes unless the machine is already busy with other work (1-minute
+    load average at or above the number of CPUs), where a yield gives the CPU away for a whole time
+    slice (measured with `canbrake bench`, docs/performance.md)."""
+    v = os.environ.get("CANBRAKE_MEMORY_YIELD", "auto")
+    if v in ("0", "1"):
+        return v == "1"
+    try:
+        return os.getloadavg()[0] < (os.cpu_count() or 1)
+    except OSError:
+        return True
+
+
 def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", lockstep: bool = False) -> can.BusABC:
     if choice.backend == "socketcan" and choice.interface == "socketcan":
         from canbrake.bus.vcan import open_socketcan_bus
@@ -225,7 +239,7 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", loc
         # a lockstep node waits for every frame it filters for: a flood may not overwrite those
         # (it is held back instead), frames it filters out may go by (canbrake.bus.memory)
         kwargs["backpressure"] = "accepted"
-    if choice.interface == "canbrake" and os.environ.get("CANBRAKE_MEMORY_YIELD") == "0":
+    if choice.interface == "canbrake" and not memory_yield():
         # no sched_yield before a blocking recv: on a machine loaded by other work a yield hands
         # the CPU to them for a whole time slice (`canbrake bench`, docs/performance.md)
         kwargs["yield_before_sleep"] = False
@@ -286,6 +300,8 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             sched = setup_realtime(role)
             if role == "plant" and hasattr(node, "stats"):
                 node.stats.extra["scheduling"] = sched
+            for m in getattr(node, "members", [node]):  # every node's own stats say what it obtained
+                m.scheduling = sched
             spin_s = min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * scn.control_period_s)
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")

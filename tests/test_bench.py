@@ -22,3 +22,60 @@ def test_realtime_scheduling_can_be_turned_off_and_says_so(monkeypatch):
     monkeypatch.setenv("CANBRAKE_RT_SCHED", "off")
     assert setup_realtime("plant") == "SCHED_OTHER (CANBRAKE_RT_SCHED=off)"
     assert os.sched_getscheduler(0) == os.SCHED_OTHER
+
+
+def test_memory_yield_follows_the_knob_and_in_auto_the_load(monkeypatch):
+    from canbrake import run
+
+    monkeypatch.setenv("CANBRAKE_MEMORY_YIELD", "0")
+    assert run.memory_yield() is False
+    monkeypatch.setenv("CANBRAKE_MEMORY_YIELD", "1")
+    assert run.memory_yield() is True
+    monkeypatch.delenv("CANBRAKE_MEMORY_YIELD")
+    cpus = os.cpu_count() or 1
+    monkeypatch.setattr(run.os, "getloadavg", lambda: (cpus - 0.5, 0.0, 0.0))
+    assert run.memory_yield() is True
+    monkeypatch.setattr(run.os, "getloadavg", lambda: (float(cpus), 0.0, 0.0))
+    assert run.memory_yield() is False
+
+
+def _scale_result() -> dict:
+    from canbrake.benchmark import _row
+
+    rows = [_row(f"scale {n} x", n * 10.0, "periods/s", cars=n, backend=b, per_process=per, peak_rss_mb=100.0 * n,
+                 real_time_factor=rtf, ticks_per_s=rtf / (0.01 if n == 106 else 0.001))
+            for n, b, per, rtf in ((6, "inprocess", None, 0.5), (6, "memory", 1, 0.2), (106, "inprocess", None, 0.3),
+                                   (106, "memory", 8, 0.6))]
+    rows.append(_row("scale 48 cars (Chen), one process per ECU", None, "", status="failed", note="timed out"))
+    return {"machine": {"cpu": "cpu", "cores": 2, "load_avg_1_5_15": [3.25, 2.0, 1.0], "python": "3.11",
+                        "platform": "Linux", "utc": "2026-12-01 22:00:00"},
+            "load_avg_at_end": [4.5, 2.5, 1.5], "bench_wall_s": 120.0, "settings": {"only": ["scale"], "heavy": False},
+            "figures": rows}
+
+
+def test_bench_doc_section_is_replaced_in_place_with_load_scale_table_and_plots(tmp_path):
+    """--doc rewrites only the generated section: the load average, a row per scale case (periods/s
+    from the real-time factor and the period), failed cases named, both plots written."""
+    from canbrake.benchmark import DOC_BEGIN, DOC_END, write_doc
+
+    doc = tmp_path / "performance.md"
+    doc.write_text(f"# P\n\nhand text\n\n{DOC_BEGIN}\nold figures\n{DOC_END}\n\nafter\n")
+    write_doc(_scale_result(), doc)
+    text = doc.read_text()
+    assert text.startswith("# P\n\nhand text\n\n") and text.endswith("\n\nafter\n") and "old figures" not in text
+    assert "3.2/2.0/1.0 at the start, 4.5/2.5/1.5 at the end" in text
+    assert "| 6 | Chen | one process per ECU | 200.0 | 0.200 (1 ms) | 600 |" in text
+    assert "| 106 | ECP 1+105 | hosted, 8 ECUs per process | 60.0 | 0.600 (10 ms) | 10,600 |" in text
+    assert "FAILED: timed out" in text
+    assert (tmp_path / "figures" / "performance_scale.png").stat().st_size > 0
+    assert (tmp_path / "figures" / "performance_106.png").stat().st_size > 0
+
+
+def test_scale_cases_put_the_heavy_ones_behind_the_option():
+    from canbrake.benchmark import scale_cases
+
+    light, heavy = scale_cases(), scale_cases(heavy=True)
+    assert (48, "memory", 1) not in light and (48, "memory", 1) in heavy
+    assert (106, "memory", 1) not in light and (106, "memory", 1) in heavy
+    assert {(n, "inprocess", None) for n in (6, 12, 24, 48, 106)} <= set(light)
+    assert (106, "memory", 8) in light

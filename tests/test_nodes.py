@@ -99,6 +99,38 @@ def test_realtime_mode_is_paced_by_the_wall_clock(tmp_path):
     assert isinstance(dm["plant"], int) and isinstance(dm["ecus"], int) and dm["max_lateness_s"] >= 0
 
 
+def test_realtime_run_reports_scheduling_latency_and_miss_share_in_summary(tmp_path):
+    """summary.json's realtime section: misses over the periods that ended, p99 latency (or null
+    when over 1 % of periods were late), and what scheduling every process obtained."""
+    scn = load_scenario(CASE1, profile="realistic", overrides={"mode": "realtime", "duration_s": 0.2})
+    s = run_scenario(scn, tmp_path, backend="memory", plots=False)
+    rt = s["realtime"]
+    assert rt["periods"] == s["ticks"] == 20
+    assert rt["plant_deadline_misses"] == s["deadline_misses"]["plant"]
+    assert rt["plant_deadline_miss_pct"] == pytest.approx(100 * rt["plant_deadline_misses"] / 20)
+    assert (rt["cmd_latency_p99_s"] is None) == (rt["cmd_latency_missing"] > 0.01 * 20)
+    assert set(rt["scheduling"]) == {"plant", "recorder", *(f"ecu_c{c}" for c in range(1, 7))}
+    assert all(v.startswith(("SCHED_FIFO", "SCHED_OTHER")) for v in rt["scheduling"].values())
+
+
+def test_a_late_realtime_wakeup_moves_the_grid_on_instead_of_bursting(tmp_path):
+    """The plant's timer fires 3.5 periods late: one late period, the grid moves on by the
+    lateness (slipped_s), and the next deadline is a whole period away (no catch-up burst)."""
+    from canbrake.build import build_node
+
+    scn = load_scenario(CASE1, overrides={"mode": "realtime", "duration_s": 0.1})
+    plant = build_node(scn, "plant", run_dir=None)
+    plant.start(100.0)
+    dt = scn.control_period_s
+    late = 100.0 + dt + 3.5 * dt  # the first deadline is 100 + dt
+    plant.on_timer(late)
+    assert plant.k == 1 and plant.stats.late_periods == 1 and plant.stats.deadline_misses == 1
+    assert plant.stats.slipped_s == pytest.approx(3.5 * dt)
+    assert plant.next_deadline() == pytest.approx(late + dt)
+    plant.on_timer(late + dt + 0.1 * dt)  # on time again (within a period): the grid stays
+    assert plant.stats.late_periods == 1 and plant.next_deadline() == pytest.approx(late + 2 * dt)
+
+
 def test_virtual_and_inprocess_refuse_realtime(tmp_path):
     from canbrake.scenario import ScenarioError
 

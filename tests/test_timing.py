@@ -316,3 +316,18 @@ def test_load_stats_and_window_validation() -> None:
         m.bus_load(0.0, 1.0)
     with pytest.raises(RuntimeError, match="record_history"):
         BusTimingModel(500_000, record_history=False).bus_load(0.0, 1.0)
+
+
+def test_actual_frame_bits_is_frame_bits_with_actual_stuffing():
+    """The recorder's fast path equals the checked function on random frames (both ID kinds, every DLC)."""
+    from canbrake.bus.timing import actual_frame_bits
+
+    rng = random.Random(13)
+    for _ in range(3000):
+        ext = rng.random() < 0.5
+        aid = rng.randrange(0x1FFFFFFF if ext else 0x7FF)
+        n = rng.randrange(9)
+        data = bytes(rng.randrange(256) for _ in range(n))
+        assert actual_frame_bits(aid, ext, n, data) == frame_bits(aid, ext, n, data, stuffing="actual")
+    with pytest.raises(ValueError):
+        actual_frame_bits(0x100, False, 8, b"\x00")  # DLC and data disagree: the checked path says so

@@ -227,6 +227,25 @@ def finalize_run(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any]
     return summary
 
 
+def realtime_figures(plant: dict[str, Any], ecus: list[dict[str, Any]], busst: dict[str, Any]) -> dict[str, Any]:
+    """A realtime run's timing as measured (canbrake.nodes.plant): plant deadline misses as a share
+    of the periods that ended, command latency (SYNC sent -> last command of the period in, s;
+    null when the percentile falls on a missed period), late periods and the wall time (s) the
+    grid moved on after them, and the scheduling every process obtained (SCHED_FIFO or the
+    fallback, and its CPUs; canbrake.nodes.rt)."""
+    ex = plant.get("extra") or {}
+    periods = int(ex.get("cmd_latency_periods") or plant.get("ticks") or 0)
+    misses = int(plant.get("deadline_misses", 0))
+    sched = {"plant": ex.get("scheduling"), "recorder": busst.get("scheduling")}
+    sched.update({f"ecu_c{c}": e.get("scheduling") for c, e in enumerate(ecus, 1)})
+    return {"periods": periods, "plant_deadline_misses": misses,
+            "plant_deadline_miss_pct": round(100.0 * misses / periods, 4) if periods else None,
+            **{k: ex.get(k) for k in ("cmd_latency_p50_s", "cmd_latency_p99_s", "cmd_latency_max_s",
+                                      "cmd_latency_missing")},
+            "late_periods": plant.get("late_periods", 0), "max_lateness_s": plant.get("max_lateness_s", 0.0),
+            "slipped_s": plant.get("slipped_s", 0.0), "scheduling": sched}
+
+
 def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], *, plots: bool) -> dict[str, Any]:
     from canbrake.analysis.verdict import judge
 
@@ -322,6 +341,8 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
                                   "max_lateness_s": plant.get("max_lateness_s", 0.0)}
     if scn.mode != "realtime":
         summary["deadline_misses"]["missed_commands_per_car"] = None  # lockstep: missing = lost, not late
+    else:
+        summary["realtime"] = realtime_figures(plant, ecus, busst)
     summary["clock"] = clock_figures(scn, plant, int(summary["ticks"] or 0))
     if plant.get("response_s"):
         summary["ecu_response_s"] = plant["response_s"]

@@ -309,6 +309,20 @@ def frame_bits(arbitration_id: int, is_extended: bool, dlc: int,
     return total
 
 
+@lru_cache(maxsize=4096)
+def _unstuffed_bits(arbitration_id: int, is_extended: bool, dlc: int) -> int:
+    return frame_bits(arbitration_id, is_extended, dlc, stuffing="none")
+
+
+def actual_frame_bits(arbitration_id: int, is_extended: bool, dlc: int, data: bytes) -> int:
+    """``frame_bits(arbitration_id, is_extended, dlc, data, stuffing="actual")`` of a data frame
+    (bits, with IFS), the identifier checked once per (id, dlc): the recorder's per-frame path."""
+    if len(data) != dlc:
+        return frame_bits(arbitration_id, is_extended, dlc, data, stuffing="actual")
+    return _unstuffed_bits(arbitration_id, is_extended, dlc) + _actual_stuff_bits(
+        arbitration_id, is_extended, dlc, data, False)
+
+
 def frame_time_s(bits: int, bitrate_bps: float) -> float:
     """Seconds ``bits`` bit times take at ``bitrate_bps`` bit/s."""
     return bits / _check_bitrate(bitrate_bps)

@@ -56,6 +56,8 @@ class Node(ABC):
 
     name: str = "node"
     finished: bool = False
+    #: realtime: the scheduling this node's process obtained (canbrake.nodes.rt), None otherwise
+    scheduling: str | None = None
     #: the node whose end is the end of the run (the plant): once it has finished, a driver ends
     #: the others that are still waiting (e.g. for an END frame they would not trust)
     time_master: bool = False

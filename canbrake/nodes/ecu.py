@@ -42,6 +42,7 @@ class EcuStats:
     fallback_ticks: int = 0      # ticks computed on own sensors with at least one peer dropped
     timer_slips: int = 0         # realtime with ecu.clocks: periods whose timer instant fell past the next SYNC
     can_errors: dict = field(default_factory=dict)  # realtime bus errors: state, TEC, error frames, bus-off
+    scheduling: str | None = None  # realtime: SCHED_FIFO / fallback and CPUs obtained (canbrake.nodes.rt)
     external_timeouts: int = 0   # lockstep: periods computed without an external peer's state (it was late)
 
 
@@ -119,11 +120,18 @@ class EcuNode(Node):
             self._auth_of = {m.frame_id: (m.ecu, state_id[(m.ecu, m.page)]) for m in layout.messages
                              if m.kind == "state_auth" and m.ecu in self._slot}
         self._candidates: dict[int, list[tuple[int, bytes]]] = {}
+        self._peer_ids = {**self._state_pages, **self._auth_of}  # id -> (ECU index, ...): one lookup per frame
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
         self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
         self.peer_origin = np.full(self.n, -(10 ** 12), dtype=np.int64)
-        self._page_fresh = np.zeros(self.n, dtype=np.int64)  # pages of this tick seen, per ECU
+        # per ECU: pages of this tick seen, and the newest origin as a Python int (a frame touches
+        # single elements, which numpy scalars make several times dearer; peer_origin is the array)
+        self._page_fresh: list[int] = [0] * self.n
+        self._origin_of: list[int] = [-(10 ** 12)] * self.n
+        self._multi_page = {j: c > 1 for j, c in self._pages_of.items()}  # ECU index (1-based) -> bool
+        self._state_dec = {fid: (codec.by_id[fid].decode, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
+        self._listened_idx = np.asarray([j - 1 for j in self._listens], dtype=np.int64)
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
@@ -140,9 +148,9 @@ class EcuNode(Node):
                              for m in layout.messages if m.kind == "state" and m.ecu == self.index]
                             if spec.listeners else [])
         self._broadcast: dict[str, float] = {}
-        self._auth_id = {sm.frame_id: am.frame_id for sm in layout.messages for am in layout.messages
-                         if sm.kind == "state" and am.kind == "state_auth" and sm.ecu == am.ecu == self.index
-                         and sm.page == am.page}
+        own = [m for m in layout.messages if m.ecu == self.index]  # (not all pairs of the layout: 106 ECUs)
+        self._auth_id = {sm.frame_id: am.frame_id for sm in own for am in own
+                         if sm.kind == "state" and am.kind == "state_auth" and sm.page == am.page}
         self._hb_id = layout.plan.heartbeat(self.index)
         self._sdone_id = layout.plan.state_done(self.index)
         self._cdone_id = layout.plan.cmd_done(self.index)
@@ -176,6 +184,17 @@ class EcuNode(Node):
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         aid = msg.arbitration_id
+        st = self._peer_ids.get(aid)  # peers' state pages and authenticators: most of what an ECU hears
+        if st is not None:
+            j = st[0] - 1
+            if self.rx_path is not None:
+                self._receive_linked(msg, j, now)
+                return []
+            bit = 1 << self._slot[j + 1]
+            if self._on_state(j, msg) and (not self.barrier or self._ext_bits & bit):
+                if self._page_fresh[j] == self._pages_of[j + 1]:
+                    return self._peer_done(bit, now)
+            return []
         if aid == self._sync_id and not msg.is_extended_id:
             verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
                                    tick_complete=self.phase == 2 or self.k < 0, final_tick=self.final_tick)
@@ -190,7 +209,7 @@ class EcuNode(Node):
             self.k = int(self.codec.by_id[aid].decode(msg.data)["Tick"])
             self.phase = 0
             self._done = 0
-            self._page_fresh[:] = 0
+            self._page_fresh = [0] * self.n
             if self._candidates:
                 self._expire_candidates()
             return []
@@ -211,17 +230,6 @@ class EcuNode(Node):
             return []
         if aid == dbc.REFERENCE_POS_ID:
             self.x_ref = self.codec.by_id[aid].decode(msg.data)["RefPosition"]
-            return []
-        st = self._state_pages.get(aid) or self._auth_of.get(aid)
-        if st is not None:
-            j = st[0] - 1
-            if self.rx_path is not None:
-                self._receive_linked(msg, j, now)
-                return []
-            bit = 1 << self._slot[j + 1]
-            if self._on_state(j, msg) and (not self.barrier or self._ext_bits & bit):
-                if self._page_fresh[j] == self._pages_of[j + 1]:
-                    return self._peer_done(bit, now)
             return []
         src = self._state_done_ids.get(aid)
         if src is not None:
@@ -272,8 +280,8 @@ class EcuNode(Node):
         page of this tick was accepted."""
         if msg.arbitration_id in self._auth_of:
             return self._on_state_auth(j, msg)
-        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, int(self.peer_origin[j]),
-                                   same_tick_ok=self._pages_of[j + 1] > 1)
+        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, self._origin_of[j],
+                                   same_tick_ok=self._multi_page[j + 1])
         if origin is None:
             self._count_peer_rejection()
             return False
@@ -303,7 +311,7 @@ class EcuNode(Node):
             self.guard.reject("crc")
             self._count_peer_rejection()
             return False
-        tick, last = authenticator_tick(data), int(self.peer_origin[j])
+        tick, last = authenticator_tick(data), self._origin_of[j]
         if tick > self.k or self.k - tick > self.guard.max_lag or tick < last or (
                 tick == last and self._pages_of[j + 1] == 1):
             self.guard.reject("freshness")  # an authenticator of an earlier (or no) period: a replay
@@ -334,11 +342,13 @@ class EcuNode(Node):
 
     def _apply_state(self, j: int, state_id: int, data: bytes | bytearray, origin: int) -> bool:
         """Use an accepted state page of ECU index j+1 sent at tick ``origin``."""
-        _, _page, sigs = self._state_pages[state_id]
-        d = self.codec.by_id[state_id].decode(data)
+        decode, sigs = self._state_dec[state_id]
+        d = decode(data)
+        ps = self.peer_signals
         for sig, dbc_name in sigs:
-            self.peer_signals[sig][j] = d[dbc_name]
-        if origin > self.peer_origin[j]:
+            ps[sig][j] = d[dbc_name]
+        if origin > self._origin_of[j]:
+            self._origin_of[j] = origin
             self.peer_origin[j] = origin
             self._page_fresh[j] = 0
         self.stats.peer_frames += 1
@@ -426,9 +436,9 @@ class EcuNode(Node):
             self._peer_fallback(origin, peers)
         speed = peers["speed_mps"]
         age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
-        listened = [j - 1 for j in self._listens]
-        fresh = int((origin[listened] == self.k).sum()) + 1 if listened else 1
-        self.stats.peer_missing += len(listened) + 1 - fresh
+        listened = self._listened_idx
+        fresh = int(np.count_nonzero(origin[listened] == self.k)) + 1 if listened.size else 1
+        self.stats.peer_missing += listened.size + 1 - fresh
         obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
@@ -454,17 +464,17 @@ class EcuNode(Node):
             out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
         if self._trace is not None:
-            finite_age = age[np.isfinite(age)]
+            max_age = float(np.max(age, where=np.isfinite(age), initial=-np.inf))  # -inf: none finite
             self._trace.append([self.k, result.brake_force_n,
                                 *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
-                                float(finite_age.max()) if finite_age.size else np.inf, fresh])
+                                max_age if max_age > -np.inf else np.inf, fresh])
         return out
 
     def _peer_fallback(self, origin: np.ndarray, peers: dict[str, np.ndarray]) -> None:
         """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
         the controller runs on its own sensors for them); counts entries and ticks in fallback."""
         lost = np.zeros(self.n, dtype=bool)
-        listened = [j - 1 for j in self._listens]
+        listened = self._listened_idx
         lost[listened] = (self.k - origin[listened]) > self.peer_hold_periods
         for arr in peers.values():
             arr[lost] = np.nan
@@ -504,6 +514,7 @@ class EcuNode(Node):
             self._trace.close()
         self.stats.status = "ok" if self.finished else status
         self.stats.guard = self.guard.stats()
+        self.stats.scheduling = self.scheduling
         if self.rt_errors is not None:
             self.stats.can_errors = self.rt_errors.summary()
         for kind, vals in self._latency.items():

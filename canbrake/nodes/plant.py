@@ -53,6 +53,8 @@ class PlantStats:
     deadline_misses: int = 0          # realtime: periods that ended before every command arrived
     late_periods: int = 0             # realtime: period started late by more than one period
     max_lateness_s: float = 0.0
+    # realtime: wall seconds the period grid was moved on after late periods (no catch-up burst)
+    slipped_s: float = 0.0
     wall_time_s: float = 0.0
     failsafe_activations: int = 0     # car entries into fail-safe braking
     failsafe_ticks: int = 0           # ticks x cars spent in fail-safe braking
@@ -392,6 +394,11 @@ class PlantNode(Node):
         self.stats.max_lateness_s = max(self.stats.max_lateness_s, lateness)
         if lateness > self.dt / self.time_scale:
             self.stats.late_periods += 1
+            # a period missed as a whole (a late wake-up): move the grid on instead of catching up
+            # with a burst of back-to-back periods no ECU could answer in time; the next period
+            # gets its full length and simulated time falls behind the wall clock by `slipped_s`
+            self._t0_wall += lateness
+            self.stats.slipped_s += lateness
         return self._advance(now)
 
     def _applied_commands(self) -> dict[str, np.ndarray]:

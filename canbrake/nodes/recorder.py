@@ -56,7 +56,7 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.guard import FrameGuard, sync_verdict
-from canbrake.bus.timing import frame_bits
+from canbrake.bus.timing import actual_frame_bits, frame_bits
 from canbrake.nodes.base import Node
 
 class LogHistogram:
@@ -366,8 +366,7 @@ class RecorderNode(Node):
         """The frame's time on the wire (s), actual stuffing; 0 for frames the accounting leaves out."""
         if self._untimed(msg.arbitration_id):
             return 0.0
-        return frame_bits(msg.arbitration_id, msg.is_extended_id, msg.dlc, bytes(msg.data),
-                          stuffing="actual") / self.bitrate
+        return actual_frame_bits(msg.arbitration_id, msg.is_extended_id, msg.dlc, bytes(msg.data)) / self.bitrate
 
     def _flush_tick(self) -> None:
         if self.net is not None:
@@ -688,4 +687,6 @@ class RecorderNode(Node):
             stats = self.bus_stats()
             stats["status"] = "ok" if self.finished else status
             stats["guard"] = self.guard.stats()
+            if self.scheduling is not None:
+                stats["scheduling"] = self.scheduling
             (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
