@@ -13,8 +13,10 @@ Figures (``FIGURES``; ``--only`` picks groups):
 - ``scale``: ticks per second and peak memory (sum of the RSS of the run's process tree) for
   6, 12, 24, 48 cars and the 1 + 105 ECP train (106 ECUs, hosted ``ecu.per_process`` per
   process), in process and with processes; the 106-ECU train's real-time factor at 10 ms.
-- ``sweep``: the batch engine (issue 13 item 3) is not implemented; the row says so and gives
-  the per-point estimate of today's sweep path.
+- ``sweep``: the default 121-point delay x loss sweep of Chen case 1 (10 s per point, one seed)
+  with the batch engine (:mod:`canbrake.batch`) on 2 local Dask workers, against the per-point
+  engine measured on every 20th point in the same bench run (scaled to 121 points on 2 workers),
+  and both engines on that subset in one process.
 
 Every case runs in a fresh Python process (``python -m canbrake.benchmark CASE-JSON``) so its
 memory is its own and a crash or a diverged run is a row marked ``failed`` with the reason, not a
@@ -124,6 +126,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     from canbrake.run import run_scenario
     from canbrake.scenario import load_scenario
 
+    if case.get("kind") == "sweep":
+        return sweep_case(case)
     ov = dict(case.get("overrides") or {})
     if case.get("cars"):
         scn = _scaled_chen(int(case["cars"]), ov)
@@ -408,13 +412,93 @@ def scale_figures(ticks: int, log: Callable[[str], None], cars: tuple[int, ...] 
     return rows
 
 
-def sweep_figures(inprocess_tps: float | None) -> list[dict[str, Any]]:
-    """The batch engine is not implemented: the row says so, with today's per-point estimate."""
-    est = 121 * 10_000 / inprocess_tps / 2 if inprocess_tps else None
-    return [_row("sweep 121 points x 10 s (batch engine)", est, "s (estimate)", target="<= 60 s", met=False,
-                 status="not implemented",
-                 note="batch engine not implemented; estimate = 121 points x 10,000 periods / in-process "
-                      "periods/s / 2 cores (per-point runs)")]
+#: the sweep figure: the default grid of `canbrake sweep` (11 x 11), one seed, 10 s per point
+SWEEP_GRID = ("delay=0:50ms:11", "loss=0:0.5:11")
+SWEEP_DURATION_S = 10.0
+#: every SWEEP_STRIDE-th point of the grid is also run by the per-point engine (the baseline)
+SWEEP_STRIDE = 20
+
+
+def sweep_case(case: dict[str, Any]) -> dict[str, Any]:
+    """Run (part of) the default delay x loss sweep of Chen case 1 with ``engine`` ("batch" or
+    "points") on ``workers`` local Dask workers (0: in this process); returns the wall time (s)."""
+    from canbrake.sweep import execute, parse_grid, plan_sweep
+
+    axes = [parse_grid(g) for g in SWEEP_GRID]
+    with tempfile.TemporaryDirectory() as d:
+        plan = plan_sweep(scenario_path(CASE1), axes, Path(d), duration_s=float(case["duration_s"]), seeds=1)
+        tasks = plan.tasks[::int(case.get("stride", 1))]
+        rows: list[dict[str, Any]] = []
+        msgs: list[str] = []
+        workers = int(case.get("workers", 0))
+        import resource
+
+        def cpu() -> float:  # this process and every reaped descendant (the Dask workers at the end)
+            a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+            return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+        c0 = cpu()
+        t0 = time.perf_counter()
+        execute(tasks, rows.append, workers=workers, scheduler=None if workers else "none", progress=False,
+                engine=case["engine"], log=msgs.append)
+        wall = time.perf_counter() - t0
+        cpu_s = cpu() - c0
+    bad = [r for r in rows if r.get("status") not in ("ok", "diverged")]
+    n_ticks = int(round(float(case["duration_s"]) / plan.base.control_period_s))
+    return {"status": "ok" if not bad else "failed", "wall_s": wall, "cpu_s": cpu_s, "points": len(tasks),
+            "message": f"{len(bad)} point(s) ended in {bad[0].get('status')}: {bad[0].get('message')}" if bad else "",
+            "log": msgs, "ended_early": sum((r.get("ticks") or 0) < n_ticks for r in rows),
+            "load_avg": os.getloadavg()[0]}
+
+
+def sweep_figures(duration_s: float = SWEEP_DURATION_S, log: Callable[[str], None] = lambda s: None
+                  ) -> list[dict[str, Any]]:
+    """The batch engine (canbrake.batch) on the default 121-point sweep on 2 workers against the
+    per-point engine measured on every SWEEP_STRIDE-th point in the same bench run."""
+    rows = []
+    log("  sweep: per-point engine on the subset ...")
+    per = run_case_subprocess({"kind": "sweep", "engine": "points", "workers": 0, "stride": SWEEP_STRIDE,
+                               "duration_s": duration_s}, timeout_s=1800)
+    log("  sweep: batch engine on the subset ...")
+    sub = run_case_subprocess({"kind": "sweep", "engine": "batch", "workers": 0, "stride": SWEEP_STRIDE,
+                               "duration_s": duration_s}, timeout_s=1800)
+    log("  sweep: batch engine, all points, 2 workers ...")
+    full = run_case_subprocess({"kind": "sweep", "engine": "batch", "workers": 2, "stride": 1,
+                                "duration_s": duration_s}, timeout_s=1800)
+    n_all = 121
+    est = None
+    if per.get("status") == "ok":
+        est = per["wall_s"] / per["points"] * n_all / 2
+    label = f"sweep {n_all} points x {duration_s:g} s, batch engine, 2 workers"
+    if full.get("status") != "ok":
+        rows.append(_failed(label, full, "<= 60 s"))
+    else:
+        rows.append(_row(label, full["wall_s"], "s", "per-point engine, estimate", est,
+                         est / full["wall_s"] if est else None, "<= 60 s", full["wall_s"] <= 60.0,
+                         cpu_s=full.get("cpu_s"),
+                         note=f"Chen case 1 (paper, 1 ms), default grid {' x '.join(SWEEP_GRID)}, one seed; "
+                              f"{full['ended_early']} points end early (the plant diverged); baseline = per-point "
+                              f"wall time on every {SWEEP_STRIDE}th point ({per.get('points')} points, one process) "
+                              f"x {n_all} / 2 workers; CPU time of the batch sweep {full.get('cpu_s', 0):.0f} s "
+                              f"(= {full.get('cpu_s', 0) / 2:.0f} s on 2 otherwise idle cores), load "
+                              f"{full.get('load_avg', 0):.1f} at its end"))
+        if full.get("cpu_s"):
+            rows.append(_row(f"sweep {n_all} points x {duration_s:g} s, batch engine, CPU time / 2 cores",
+                             full["cpu_s"] / 2, "s", "per-point engine CPU, estimate",
+                             per["cpu_s"] / per["points"] * n_all / 2 if per.get("cpu_s") else None,
+                             (per["cpu_s"] / per["points"] * n_all / full["cpu_s"]) if per.get("cpu_s") else None,
+                             "<= 60 s", full["cpu_s"] / 2 <= 60.0,
+                             note="CPU seconds (this process and its Dask workers) / 2: the wall time on 2 idle "
+                                  "cores, less sensitive to the other tasks of a shared machine than the wall time"))
+    label = f"sweep subset ({sub.get('points', '?')} points), batch vs per-point, one process"
+    if sub.get("status") != "ok" or per.get("status") != "ok":
+        rows.append(_failed(label, sub if sub.get("status") != "ok" else per))
+    else:
+        rows.append(_row(label, sub["wall_s"], "s", "per-point engine", per["wall_s"], per["wall_s"] / sub["wall_s"],
+                         cpu_s=sub.get("cpu_s"), baseline_cpu_s=per.get("cpu_s"),
+                         note=f"the same points, serially in one process: the batch engine's own gain (CPU "
+                              f"{sub.get('cpu_s', 0):.1f} s vs {per.get('cpu_s', 0):.1f} s)"))
+    return rows
 
 
 def machine() -> dict[str, Any]:
@@ -434,7 +518,8 @@ def machine() -> dict[str, Any]:
 
 def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat: int = 3,
               realtime_s: float = 5.0, scale_ticks: int = 200, scale_cars: tuple[int, ...] = SCALE_CARS,
-              heavy: bool = False, log: Callable[[str], None] = lambda s: None) -> dict[str, Any]:
+              heavy: bool = False, log: Callable[[str], None] = lambda s: None,
+              sweep_s: float | None = None) -> dict[str, Any]:
     """Every figure of ``only``; returns {"machine": ..., "figures": [...]}. Never raises for a
     failed case: the row says ``failed`` with the reason."""
     start = machine()
@@ -454,12 +539,12 @@ def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat
     guarded("lockstep", lambda: lockstep_figures(duration_s, repeat, log))
     guarded("realtime", lambda: realtime_figures(realtime_s, log))
     guarded("scale", lambda: scale_figures(scale_ticks, log, scale_cars, heavy))
-    inproc = next((r["value"] for r in rows if r["figure"] == "lockstep in-process engine"), None)
-    guarded("sweep", lambda: sweep_figures(inproc))
+    guarded("sweep", lambda: sweep_figures(SWEEP_DURATION_S if sweep_s is None else sweep_s, log=log))
     end = machine()
     return {"machine": start, "load_avg_at_end": end["load_avg_1_5_15"], "bench_wall_s": time.perf_counter() - t0,
             "settings": {"duration_s": duration_s, "repeat": repeat, "realtime_s": realtime_s,
-                         "scale_ticks": scale_ticks, "heavy": heavy, "only": list(only)},
+                         "scale_ticks": scale_ticks, "heavy": heavy, "only": list(only),
+                         "sweep_s": SWEEP_DURATION_S if sweep_s is None else sweep_s},
             "figures": rows}
 
 

@@ -19,11 +19,12 @@ def _cmd(a: argparse.Namespace) -> int:
         return 2
     if a.quick:
         a.duration, a.repeat, a.realtime, a.scale_ticks = min(a.duration, 0.5), 1, min(a.realtime, 2.0), 50
+        a.sweep_duration = min(a.sweep_duration, 0.5)
     if a.heavy:  # the 60 s realtime runs (the 10 ms run twice as long: 12,000 periods resolve 0.01 %)
         a.realtime = max(a.realtime, 60.0)
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if not a.quiet else (lambda s: None)
     res = run_bench(only=only, duration_s=a.duration, repeat=a.repeat, realtime_s=a.realtime,
-                    scale_ticks=a.scale_ticks, heavy=a.heavy, log=log)
+                    scale_ticks=a.scale_ticks, heavy=a.heavy, log=log, sweep_s=a.sweep_duration)
     out = Path(a.out)
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -62,6 +63,8 @@ def register(sub: Any) -> None:
     p.add_argument("--realtime", type=float, default=5.0,
                    help="seconds of each 1 ms realtime run (the 10 ms run is twice as long; default 5)")
     p.add_argument("--scale-ticks", type=int, default=200, help="periods per scale run (default 200)")
+    p.add_argument("--sweep-duration", type=float, default=10.0,
+                   help="simulated seconds per point of the sweep figure (default 10)")
     p.add_argument("--only", default="", help="comma-separated groups: codec,lockstep,realtime,scale,sweep")
     p.add_argument("--quick", action="store_true", help="short runs, one round (a smoke test of the bench)")
     p.add_argument("--heavy", action="store_true",

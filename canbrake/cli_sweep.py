@@ -61,7 +61,7 @@ def _cmd_sweep(a: argparse.Namespace) -> int:
     try:
         res = run_sweep(a.scenario, axes, out, profile=a.profile, sets=sets, duration_s=a.duration, seeds=a.seeds,
                         workers=workers, scheduler=scheduler, keep=a.keep, plots=not a.no_plots,
-                        progress=not a.quiet, log=log)
+                        progress=not a.quiet, log=log, engine=a.engine)
     except GridError as e:
         raise InputError(str(e)) from None
     done = len(res.rows)
@@ -111,6 +111,11 @@ def register(sub: Any) -> None:
     s.add_argument("--out", help="output directory (default runs/sweep-<scenario>[-<profile>])")
     s.add_argument("--keep", choices=["summary", "all"], default="summary",
                    help="what to keep of each run: summary.json and stats (default) or all traces")
+    s.add_argument("--engine", choices=["auto", "batch", "points"], default="auto",
+                   help="auto: run the points the batch engine supports many at once in one process "
+                        "(canbrake.batch; the others one by one, with a line saying why); batch: only the batch "
+                        "engine (exit 2 if a point needs the per-point engine); points: every point by itself "
+                        "with the in-process node engine (default auto)")
     s.add_argument("--no-plots", action="store_true", help="do not draw the heatmaps")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_sweep)

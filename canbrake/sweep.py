@@ -45,6 +45,13 @@ Classification of a run (columns of results.csv, and the safety map):
   times the band: the loop does not bring the train back to the reference);
 * ``safety``: the worst of ``ok`` < ``degraded`` < ``violation`` < ``unstable``.
 
+Engine (``engine``): by default the points the batch engine supports (:mod:`canbrake.batch`: the
+coupled family with chen2023 / chen2023_compensated / pi and delay/loss/jitter axes, lockstep,
+ideal timing) run many at once in one process, equal to their per-point runs (signals, metrics,
+verdict; no frames.log or bus statistics); the others run one by one, and a line says why.
+``engine="batch"`` insists on the batch engine (an error names what it cannot run);
+``engine="points"`` runs every point by itself.
+
 Execution: serially in this process (``workers=0`` or ``scheduler="none"``), on a local Dask
 cluster of ``workers`` single-threaded worker processes bound to 127.0.0.1 (default), or on an
 existing Dask cluster (``scheduler="tcp://host:8786"``; its workers need canbrake installed and
@@ -348,6 +355,7 @@ class PointTask:
     scenario: dict[str, Any]     # resolved scenario (model_dump, JSON mode)
     run_dir: str
     keep: str = "summary"
+    base_impairments: int = 0    # how many of scenario.bus.impairments are the scenario's own (not the axes')
 
 
 @dataclass
@@ -417,7 +425,8 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
             where = ", ".join(f"{a.name}={a.display(params[a.name])}{a.unit}" for a in axes) or "the base point"
             resolved = resolve(base_data, f"{scenario} ({where})", None, o).model_dump(mode="json")
             pid = _point_id(axes, params, seed, resolved)
-            tasks.append(PointTask(pid, params, seed, resolved, str(out / "points" / pid), keep))
+            tasks.append(PointTask(pid, params, seed, resolved, str(out / "points" / pid), keep,
+                                   len(base_data["bus"]["impairments"] or [])))
     return SweepPlan(str(scenario), base.profile, axes, tasks, base, out, seeds, dur, sets)
 
 
@@ -639,21 +648,124 @@ def _done_summary(task: PointTask) -> dict[str, Any] | None:
     return s if s.get("status") == "ok" else None
 
 
+#: at most this many points per batch (a Dask task); more points per batch amortise more, fewer
+#: balance the workers and report progress more often
+BATCH_MAX_POINTS = 32
+ENGINES = ("auto", "batch", "points")
+
+
+def batch_unsupported(task: PointTask) -> str | None:
+    """Why the batch engine (:mod:`canbrake.batch`) cannot run this point, or None."""
+    from canbrake.batch import unsupported
+
+    try:
+        scn = Scenario.model_validate(task.scenario)
+    except Exception:  # noqa: BLE001 - an invalid point is reported by its per-point run
+        return "not for an invalid scenario"
+    return unsupported(scn, task.base_impairments)
+
+
+def plan_batches(tasks: Sequence[PointTask], workers: int) -> tuple[list[list[PointTask]], list[PointTask], dict[str, int]]:
+    """(batches for the batch engine, tasks to run one by one, fallback reasons -> count)."""
+    from canbrake.batch import batch_key
+
+    reasons: dict[str, int] = {}
+    groups: dict[tuple, list[PointTask]] = {}
+    single: list[PointTask] = []
+    for t in tasks:
+        why = batch_unsupported(t)
+        if why is not None:
+            reasons[why] = reasons.get(why, 0) + 1
+            single.append(t)
+            continue
+        groups.setdefault(batch_key(Scenario.model_validate(t.scenario)), []).append(t)
+    batches: list[list[PointTask]] = []
+    w = max(1, workers)
+    for g in groups.values():
+        # a multiple of the workers' number of batches of at most BATCH_MAX_POINTS points, dealt
+        # round robin (neighbouring grid points cost alike: e.g. a row of early divergences)
+        nb = w * -(-(-(-len(g) // BATCH_MAX_POINTS)) // w) if len(g) > w else len(g)
+        batches += [b for b in (g[i::nb] for i in range(nb)) if b]
+    return batches, single, reasons
+
+
+def run_batch_points(tasks: Sequence[PointTask | dict[str, Any]]) -> list[dict[str, Any]]:
+    """Run several points at once with the batch engine (in a worker); returns their rows. If the
+    batch cannot be set up or fails, its points are run one by one (never raises)."""
+    from canbrake.batch import run_batch
+
+    import canbrake.control.chen_compensated  # noqa: F401  (registers chen2023_compensated)
+
+    from canbrake.run import preflight
+
+    tasks = [PointTask(**t) if isinstance(t, dict) else t for t in tasks]
+    rows: list[dict[str, Any]] = []
+    ok: list[PointTask] = []
+    scns: list[Scenario] = []
+    for t in tasks:  # what run_scenario checks before it runs (an invalid point is reported by run_point)
+        try:
+            scn = Scenario.model_validate(t.scenario)
+            preflight(scn, "inprocess")
+        except Exception:  # noqa: BLE001
+            rows.append(run_point(t))
+            continue
+        ok.append(t)
+        scns.append(scn)
+    tasks = ok
+    if not tasks:
+        return rows
+    try:
+        summaries = run_batch(scns, [Path(t.run_dir) for t in tasks])
+    except Exception:  # noqa: BLE001 - the per-point runs say what is wrong with which point
+        return rows + [run_point(t) for t in tasks]
+    for t, summary in zip(tasks, summaries):
+        if summary.get("status") not in ("ok",) and "message" in summary:
+            summary["message"] = _normalise_message(summary)
+        if t.keep != "all":
+            _trim_run_dir(Path(t.run_dir))
+        rows.append(make_row(t, summary))
+    return rows
+
+
 def execute(tasks: Sequence[PointTask], on_row: Callable[[dict[str, Any]], None], *, workers: int = 2,
-            scheduler: str | None = None, progress: bool = True) -> None:
+            scheduler: str | None = None, progress: bool = True, engine: str = "auto",
+            log: Callable[[str], None] | None = None) -> None:
     """Run ``tasks``; call ``on_row`` in this process for each finished one (any order).
 
     ``scheduler`` None: a LocalCluster of ``workers`` processes (serial here if ``workers`` is 0);
-    "none": serial here; anything else: the address of a Dask scheduler.
+    "none": serial here; anything else: the address of a Dask scheduler. ``engine``: "auto" runs the
+    points the batch engine supports in batches (one Dask task per batch) and the others one by
+    one, saying why on ``log``; "batch" only the batch engine (GridError if a point needs the
+    per-point engine); "points" every point by itself.
     """
+    if engine not in ENGINES:
+        raise GridError(f"--engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    serial = scheduler == "none" or (scheduler is None and workers <= 0)
+    if engine == "points":
+        batches, single = [], list(tasks)
+    else:
+        batches, single, reasons = plan_batches(tasks, 1 if serial else workers)
+        if engine == "batch" and reasons:
+            why, n = next(iter(reasons.items()))
+            raise GridError(f"--engine batch: the batch engine cannot run {n} point(s): {why}; "
+                            f"use --engine auto (those points one by one) or --engine points")
+        if log is not None:
+            for why, n in reasons.items():
+                log(f"batch engine: {why}; running {n} point(s) one by one")
+            if batches:
+                log(f"batch engine: {sum(map(len, batches))} point(s) in {len(batches)} batch(es)")
     bar = _progress_bar(len(tasks), progress)
     try:
-        if scheduler == "none" or (scheduler is None and workers <= 0):
-            for t in tasks:
+        if serial:
+            for b in batches:
+                for row in run_batch_points(b):
+                    on_row(row)
+                    bar.update(1)
+            for t in single:
                 on_row(run_point(t))
                 bar.update(1)
             return
-        _execute_dask(tasks, on_row, bar, workers=workers, scheduler=scheduler)
+        _execute_dask(single, on_row, bar, workers=workers, scheduler=scheduler, batches=batches)
     finally:
         bar.close()
 
@@ -693,7 +805,7 @@ def _probe_scheduler(address: str) -> None:
 
 
 def _execute_dask(tasks: Sequence[PointTask], on_row: Callable[[dict[str, Any]], None], bar: Any, *,
-                  workers: int, scheduler: str | None) -> None:
+                  workers: int, scheduler: str | None, batches: Sequence[Sequence[PointTask]] = ()) -> None:
     try:
         from distributed import Client, LocalCluster, as_completed
     except ImportError:
@@ -727,16 +839,24 @@ def _execute_dask(tasks: Sequence[PointTask], on_row: Callable[[dict[str, Any]],
         if masked:
             masked = False
             signal.pthread_sigmask(signal.SIG_UNBLOCK, hold)
-        futures = [client.submit(run_point, t.__dict__, key=f"canbrake-point-{t.point_id}", pure=False,
-                                 retries=1) for t in tasks]
+        # a batch of points is one task (canbrake.batch); the batches go first, they are the long ones
+        work: list[list[PointTask]] = [list(b) for b in batches]
+        futures = [client.submit(run_batch_points, [t.__dict__ for t in b],
+                                 key=f"canbrake-batch-{b[0].point_id}-{len(b)}", pure=False, retries=1)
+                   for b in work]
+        work += [[t] for t in tasks]
+        futures += [client.submit(run_point, t.__dict__, key=f"canbrake-point-{t.point_id}", pure=False,
+                                  retries=1) for t in tasks]
         for fut in as_completed(futures):
+            group = work[futures.index(fut)]
             try:
-                row = fut.result()
+                res = fut.result()
+                rows = res if isinstance(res, list) else [res]
             except Exception as e:  # noqa: BLE001 - e.g. a worker died twice on this point
-                t = tasks[futures.index(fut)]
-                row = make_row(t, {"status": "error", "message": f"{type(e).__name__}: {e}"})
-            on_row(row)
-            bar.update(1)
+                rows = [make_row(t, {"status": "error", "message": f"{type(e).__name__}: {e}"}) for t in group]
+            for row in rows:
+                on_row(row)
+                bar.update(1)
     finally:
         if masked:
             signal.pthread_sigmask(signal.SIG_UNBLOCK, hold)
@@ -761,7 +881,7 @@ def dask_setup(worker: Any) -> None:
 def run_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, profile: str | None = None,
               sets: dict[str, Any] | None = None, duration_s: float | None = None, seeds: int = 3,
               workers: int = 2, scheduler: str | None = None, keep: str = "summary", plots: bool = True,
-              progress: bool = True, log: Callable[[str], None] | None = None) -> SweepResult:
+              progress: bool = True, log: Callable[[str], None] | None = None, engine: str = "auto") -> SweepResult:
     """Plan, resume, run and plot a sweep. Ctrl-C (or SIGTERM) stops it cleanly: every finished point
     is in results.csv and the same call resumes."""
     log = log or (lambda s: None)
@@ -823,7 +943,7 @@ def run_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, pr
         old_term = signal.signal(signal.SIGTERM, _on_term)
     try:
         if todo:
-            execute(todo, on_row, workers=workers, scheduler=scheduler, progress=progress)
+            execute(todo, on_row, workers=workers, scheduler=scheduler, progress=progress, engine=engine, log=log)
     except KeyboardInterrupt:
         interrupted = True
     finally:

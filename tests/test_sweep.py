@@ -174,7 +174,14 @@ def test_resume_skips_done_points(tiny, monkeypatch):
         calls.append(task.point_id)
         return real(task)
 
+    real_batch = sw.run_batch_points
+
+    def counting_batch(tasks):  # the batch engine runs these points (canbrake.batch)
+        calls.extend(t.point_id for t in tasks)
+        return real_batch(tasks)
+
     monkeypatch.setattr(sw, "run_point", counting)
+    monkeypatch.setattr(sw, "run_batch_points", counting_batch)
     axes = [sw.parse_grid(g) for g in AXES]
     res = sw.run_sweep(CASE1, axes, out, duration_s=DUR, seeds=2, workers=0, progress=False, plots=False)
     assert calls == [] and res.skipped == 6 and len(res.rows) == 6

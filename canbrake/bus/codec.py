@@ -95,6 +95,15 @@ class MessageCodec:
         self.decode: Callable[[bytes | bytearray], dict[str, float]]
         self.encode, self.decode = _compile(message, self._fields, self.protected)
 
+    def quantiser(self, signal: str) -> "Quantiser":
+        """The value a receiver decodes for ``signal`` of this message, as an array function
+        (what ``decode(encode({signal: v}))`` gives, for many values at once: the batch engine,
+        :mod:`canbrake.batch`). tests/test_batch_sweep.py checks it against encode/decode."""
+        for name, _start, _mask, _nbits, _signed, scale, offset, lo, hi in self._fields:
+            if name == signal:
+                return Quantiser(scale, offset, lo, hi)
+        raise KeyError(f"{self.name} has no signal {signal!r}")
+
     def encode_reference(self, values: Mapping[str, float], counter: int | None = None,
                          tick: int | None = None) -> bytes:
         """The interpreted encoder the compiled one replaced (kept as the tests' second oracle)."""
@@ -115,6 +124,37 @@ class MessageCodec:
         if self.protected:
             data[0] = e2e_crc(self.frame_id, data)
         return bytes(data)
+
+
+class Quantiser:
+    """``decode(encode(v))`` of one signal, vectorised (numpy arrays of any shape, SI).
+
+    The same arithmetic as the compiled codec: raw = round((v - offset) / scale) (round half to
+    even, as Python's ``round``; ``v / scale`` when the offset is 0), saturated to the raw range,
+    decoded as raw * scale + offset. A value that is not finite is left out of the frame by the
+    nodes, so it decodes as the signal's default, ``offset``; a finite value whose raw value
+    overflows to infinity raises OverflowError, as the codec does."""
+
+    __slots__ = ("scale", "offset", "lo", "hi", "scaled")
+
+    def __init__(self, scale: float, offset: float, lo: int, hi: int) -> None:
+        self.scale, self.offset, self.lo, self.hi = scale, offset, lo, hi
+        self.scaled = scale != 1.0 or offset != 0.0
+
+    def __call__(self, values: Any) -> Any:
+        import numpy as np
+
+        v = np.asarray(values, dtype=float)
+        x = np.where(np.isfinite(v), v, self.offset)
+        with np.errstate(over="ignore"):
+            if self.scaled:
+                raw = np.rint(x / self.scale if self.offset == 0.0 else (x - self.offset) / self.scale)
+            else:
+                raw = np.rint(x)
+        if np.isinf(raw).any():  # the codec cannot encode it either (round(inf)): fail as a node would
+            raise OverflowError("cannot convert float infinity to integer")
+        raw = np.clip(raw, self.lo, self.hi)
+        return raw * self.scale + self.offset if self.scaled else raw
 
 
 class FrameCodec:
