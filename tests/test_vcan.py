@@ -370,7 +370,10 @@ def _start_viewers(root: Path) -> dict[str, object]:
     each listens (a Python process needs ~45 s to start in the VM: they start side by side)."""
     mon_out, mon_err = (root / "monitor.out").open("w"), (root / "monitor.err").open("w")
     mon = subprocess.Popen([sys.executable, "-m", "canbrake", "monitor", "--channel", CHANNEL, "--scenario",
-                            str(SCENARIO), "--duration", "1500"], stdout=mon_out, stderr=mon_err, text=True)
+                            str(SCENARIO), "--duration", "1500"], stdout=mon_out, stderr=mon_err, text=True,
+                           # plain output to a file is 80 columns wide by default (rich): the table's
+                           # headers would wrap; a terminal this wide shows them on one line
+                           env={**os.environ, "COLUMNS": "200"})
     mon_out.close()
     mon_err.close()
     panes: dict[str, str] = {}
