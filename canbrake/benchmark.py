@@ -644,6 +644,13 @@ def plot_scale(result: dict[str, Any], path: str | Path) -> Path | None:
         a.grid(True, which="both", alpha=0.3)
         a.legend(fontsize=8)
     fig.suptitle(_title(result, "canbrake lockstep: throughput and memory by train size"), fontsize=10)
+    return _save(fig, path)
+
+
+def _save(fig: Any, path: str | Path) -> Path:
+    """Lay out ``fig``, write it as a PNG to ``path`` (folders made as needed), close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
@@ -677,12 +684,7 @@ def plot_106(result: dict[str, Any], path: str | Path) -> Path | None:
     ax.legend(fontsize=8, loc="lower right")
     ax.grid(True, axis="x", alpha=0.3)
     ax.set_title(_title(result, "106 ECUs (ECP heavy haul 1+105), 10 ms period, lockstep"), fontsize=9)
-    fig.tight_layout()
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
-    return p
+    return _save(fig, path)
 
 
 DOC_BEGIN = "<!-- canbrake bench: generated from here -->"
