@@ -97,7 +97,7 @@ def _print_attach(channel: str | None, out: Path) -> None:
     print(f"canbrake: channel {channel}; to watch it while the run lasts:\n"
           f"  python -m can.logger -i canbrake -c {channel}\n"
           f"  python -m can.viewer -i canbrake -c {channel}\n"
-          f"  cantools monitor -b canbrake -c {channel} {out}/canbrake.dbc", file=sys.stderr)
+          f"  cantools monitor -i canbrake -c {channel} {out}/canbrake.dbc", file=sys.stderr)
 
 
 def _print_summary(s: dict[str, Any], out: Path) -> None:

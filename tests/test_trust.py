@@ -417,7 +417,7 @@ def test_run_prints_its_channel_and_how_to_attach(shm, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "channel train7" in err
     for cmd in ("python -m can.logger -i canbrake -c train7", "python -m can.viewer -i canbrake -c train7",
-                "cantools monitor -b canbrake -c train7"):
+                "cantools monitor -i canbrake -c train7"):
         assert cmd in err
 
 

@@ -384,7 +384,7 @@ def _start_viewers(root: Path) -> dict[str, object]:
         py = f"PYTHONPATH={Path(__file__).resolve().parents[1]} {sys.executable}"
         cmds = {"viewer": f"{py} -m can.viewer -i socketcan -c {CHANNEL}",
                 "cantools": f"{py} -c 'import sys, cantools; sys.argv[0] = \"cantools\"; cantools._main()' "
-                            f"monitor -c {CHANNEL} {SCENARIO.parents[1] / 'dbc' / 'canbrake.dbc'}"}
+                            f"monitor -i socketcan -c {CHANNEL} {SCENARIO.parents[1] / 'dbc' / 'canbrake.dbc'}"}
         for name, cmd in cmds.items():
             panes[name] = f"cb{name}{tag}"
             subprocess.run(["tmux", "new-session", "-d", "-s", panes[name], "-x", "150", "-y", "60",
