@@ -104,7 +104,10 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
     from canbrake.analysis.verdict import fmt_quantity as q
 
     m = s.get("metrics", {})
-    lines = [f"status: {s['status']}  verdict: {s.get('verdict')}  ticks: {s.get('ticks')}  "
+    verdict = s.get("verdict")
+    if s["status"] != "ok" and verdict not in (None, "unknown"):
+        verdict = f"{verdict} (of the ticks that ran: the run did not finish)"
+    lines = [f"status: {s['status']}  verdict: {verdict}  ticks: {s.get('ticks')}  "
              f"wall: {s.get('wall_time_s') or 0:.1f} s"]
     for f in s.get("findings") or []:
         lines.append(f"  {f['kind']}: {f['message']}")

@@ -19,7 +19,7 @@ import traceback
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import can
 
@@ -433,6 +433,56 @@ def _mp_context() -> Any:
     return ctx
 
 
+class StallWatch:
+    """Decides when a multi-process run has stalled: no new plant tick for ``stall_s`` seconds
+    (``start_s`` before the first tick) while the nodes are not computing. Nodes that used more
+    than ``busy_share`` of one CPU over a window without a tick (e.g. every ECU process simulating
+    the bus timing model ahead) are making progress, for at most ``grace`` windows in all, so a
+    node looping forever still ends the run."""
+
+    def __init__(self, start_s: float, stall_s: float, *, busy_share: float = 0.2, grace: int = 10) -> None:
+        self.start_s, self.stall_s, self.busy_share, self.grace = start_s, stall_s, busy_share, grace
+        self.tick: int | None = None
+        self.changed = self.window = 0.0
+        self.cpu: float | None = None
+
+    def update(self, tick: int, now: float, cpu_s: Callable[[], float | None]) -> str | None:
+        """``tick``: the plant's progress; ``now`` (s); ``cpu_s()``: the nodes' CPU seconds so far.
+        Returns the failure message once the run has stalled, else None."""
+        if tick != self.tick:
+            self.tick, self.changed, self.window, self.cpu = tick, now, now, cpu_s()
+            return None
+        limit = self.start_s if tick < 0 else self.stall_s
+        if now - self.window <= limit:
+            return None
+        cpu = cpu_s()
+        busy = cpu is not None and self.cpu is not None and cpu - self.cpu > self.busy_share * (now - self.window)
+        if busy and now - self.changed < self.grace * limit:
+            self.window, self.cpu = now, cpu
+            return None
+        where = "before the first tick" if tick < 0 else f"at tick {tick}"
+        why = ("while its nodes kept computing" if busy else
+               "(a node is waiting for frames that never came, or is stopped: see frames.log)")
+        return f"run stalled {where}: no progress for {now - self.changed:.0f} s {why}"
+
+
+def _processes_cpu_s(pids: list[int]) -> float | None:
+    """User + system CPU seconds used so far by the processes ``pids`` (Linux /proc; None elsewhere).
+    Written by hand: psutil is not a dependency, and two fields of /proc/PID/stat are all it takes."""
+    tck = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    total = 0.0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat", "rb") as f:
+                fields = f.read().rsplit(b")", 1)[1].split()
+        except (OSError, IndexError):
+            if not os.path.isdir("/proc"):
+                return None
+            continue  # it has just exited
+        total += (int(fields[11]) + int(fields[12])) / tck  # utime, stime (fields 14, 15 of stat)
+    return total
+
+
 def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_timeout_s: float = 60.0,
                   start_timeout_s: float | None = None) -> dict[str, Any]:
     """Run plant, ECUs and recorder as separate OS processes; supervise until done.
@@ -481,7 +531,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
                 p.start()
             procs[name] = p
             starts[name] = _pid_start(p.pid)
-        last_tick, last_change = -1, time.time()
+        watch = StallWatch(start_timeout_s, stall_timeout_s)
         while True:
             alive = [p for p in procs.values() if p.exitcode is None]
             failed = [(n, p) for n, p in procs.items() if p.exitcode not in (None, 0)]
@@ -519,14 +569,9 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
                 continue
             mp.connection.wait([p.sentinel for p in alive], timeout=0.5)
             tick = progress.value
-            now = time.time()
-            if tick != last_tick:
-                last_tick, last_change = tick, now
-            limit = start_timeout_s if tick < 0 else stall_timeout_s
-            if now - last_change > limit:
-                where = "before the first tick" if tick < 0 else f"at tick {tick}"
-                raise RunFailure(f"run stalled {where}: no progress for {limit:.0f} s (a node is waiting for "
-                                 f"frames that never came, or is stopped: see frames.log)")
+            verdict = watch.update(tick, time.time(), lambda: _processes_cpu_s([p.pid for p in alive]))
+            if verdict is not None:
+                raise RunFailure(verdict)
     except Terminated:
         outcome = {"status": "interrupted", "message": "terminated by SIGTERM"}
     except KeyboardInterrupt:

@@ -90,6 +90,29 @@ def test_timing_model_runs_are_deterministic_across_backends(tmp_path):
     assert other["status"] == "ok"
 
 
+def test_a_frame_still_queued_when_the_run_ends_is_starved_without_looking_past_the_end():
+    """13x overloaded (6 cars at 1 ms on 125 kbit/s): the lowest-priority frame (a heartbeat)
+    never gets on the bus. With the run's length as horizon the model answers 'starved' after
+    simulating the run's ticks only; without, it looks max_wait_ticks periods ahead. Frames that
+    do get through have the same latency either way."""
+    import math
+
+    def model(horizon):
+        t = LockstepBusTiming(6, 0.001, 125_000, decision_offset_s=0.0005, heartbeat_every=1, max_wait_ticks=300)
+        t.horizon_ticks = horizon
+        return t
+
+    bounded, free = model(30), model(None)
+    hb6 = dbc.HEARTBEAT_BASE + 6
+    assert bounded.latency_s(0, "ecu6", hb6, 0.0) == math.inf
+    assert bounded._next_tick == 30             # simulated up to the run's end, not beyond
+    assert free.latency_s(0, "ecu6", hb6, 0.0) == math.inf
+    assert free._next_tick == 301               # max_wait_ticks periods of look-ahead
+    for k, node, fid in ((0, "plant", dbc.SYNC_ID), (2, "plant", dbc.SYNC_ID), (0, "plant", dbc.REFERENCE_ID)):
+        t_q = k * 0.001 + (0.0005 if node == "ecu1" else 0.0)
+        assert model(30).latency_s(k, node, fid, t_q) == model(None).latency_s(k, node, fid, t_q) < 0.03
+
+
 def test_overloaded_bus_delays_and_starves_frames(tmp_path):
     """Chen's 6 cars every 1 ms do not fit even 1 Mbit/s: the model must show it."""
     scn = _scn(duration_s=0.1, bus={"timing": "model", "bitrate_bps": 1_000_000})

@@ -137,3 +137,54 @@ def test_virtual_and_inprocess_refuse_realtime(tmp_path):
     scn = load_scenario(CASE1, overrides={"mode": "realtime", "duration_s": 0.1})
     with pytest.raises(ScenarioError, match="lockstep only"):
         run_scenario(scn, tmp_path, backend="virtual")
+
+
+def test_stall_watch_tells_a_stall_from_nodes_that_compute():
+    """No new tick for the limit: a stall, unless the nodes used CPU meanwhile (then at most
+    ``grace`` limits in all); a new tick resets it; a stopped node uses no CPU."""
+    from canbrake.run import StallWatch
+
+    w = StallWatch(start_s=30.0, stall_s=10.0, busy_share=0.2, grace=3)
+    cpu = [0.0]
+    assert w.update(-1, 0.0, lambda: cpu[0]) is None
+    assert w.update(-1, 29.0, lambda: cpu[0]) is None          # before the first tick: start_s applies
+    assert w.update(5, 31.0, lambda: cpu[0]) is None           # a tick: progress
+    assert w.update(5, 40.0, lambda: cpu[0]) is None
+    msg = w.update(5, 41.5, lambda: cpu[0])                    # 10.5 s, no CPU used: stalled
+    assert msg is not None and "at tick 5" in msg and "waiting for frames" in msg
+    w = StallWatch(start_s=30.0, stall_s=10.0, busy_share=0.2, grace=3)
+    w.update(7, 0.0, lambda: 0.0)
+    assert w.update(7, 11.0, lambda: 8.0) is None              # 8 CPU s in 11 s: computing
+    msg = w.update(7, 22.5, lambda: 9.0)                       # then 1 CPU s in 11.5 s: stalled
+    assert msg is not None and "no progress for 22 s" in msg
+    w = StallWatch(start_s=30.0, stall_s=10.0, busy_share=0.2, grace=3)
+    w.update(7, 0.0, lambda: 0.0)
+    assert w.update(7, 11.0, lambda: 8.0) is None
+    assert w.update(7, 22.0, lambda: 16.0) is None
+    msg = w.update(7, 33.0, lambda: 24.0)                      # computing, but for 3 limits: a loop
+    assert msg is not None and "kept computing" in msg
+    assert w.update(8, 34.0, lambda: 25.0) is None             # (a new tick would have reset it)
+
+
+def test_processes_cpu_s_counts_a_busy_child_not_a_sleeping_one():
+    import subprocess
+    import sys
+    import time
+
+    from canbrake.run import _processes_cpu_s
+
+    busy = subprocess.Popen([sys.executable, "-c", "import time\nt = time.process_time()\n"
+                             "while time.process_time() - t < 0.6: pass\ntime.sleep(30)"])
+    idle = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        deadline = time.time() + 30
+        while (_processes_cpu_s([busy.pid]) or 0.0) < 0.5 and time.time() < deadline:
+            time.sleep(0.1)
+        assert _processes_cpu_s([busy.pid]) >= 0.5
+        assert _processes_cpu_s([idle.pid]) < 0.5
+        assert _processes_cpu_s([2 ** 22 + 7]) == 0.0  # no such process: nothing counted
+    finally:
+        busy.kill()
+        idle.kill()
+        busy.wait()
+        idle.wait()

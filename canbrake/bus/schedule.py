@@ -113,6 +113,10 @@ class LockstepBusTiming:
         self._done: dict[tuple[int, str, int], float] = {}
         self._babble_next = [0] * len(self.babblers)
         self._query_tick = 0  # latest tick asked about; deliveries older than it are forgotten
+        #: the run's number of ticks (None: unbounded). A frame still queued when the run ends is
+        #: starved for this run: ``latency_s`` never simulates the bus past it (a starved frame
+        #: otherwise costs ``max_wait_ticks`` periods of look-ahead in every process that asks)
+        self.horizon_ticks: int | None = None
         #: when a list, every frame the model carries is appended as (t_end_s, arbitration_id,
         #: is_extended) in bus order (the recorder's stamps: canbrake.nodes.recorder)
         self.delivery_log: list[tuple[float, int, bool]] | None = None
@@ -174,12 +178,15 @@ class LockstepBusTiming:
 
     def latency_s(self, k: int, node: str, msg_id: int, t_queue_s: float) -> float:
         """Bus latency (queueing + transmission, s) of ``node``'s frame ``msg_id`` of tick ``k``;
-        ``math.inf`` if it would wait more than ``max_wait_ticks`` periods (starved) or never
+        ``math.inf`` if it would wait more than ``max_wait_ticks`` periods (starved), is still queued
+        when the run ends (``horizon_ticks``: it never arrives within the run), or never
         reaches the bus (its node is bus-off, its transmit buffer was full)."""
         key = (k, node, msg_id)
         self._query_tick = max(self._query_tick, k)
+        end = k + self.max_wait_ticks if self.horizon_ticks is None else min(k + self.max_wait_ticks,
+                                                                            self.horizon_ticks - 1)
         while key not in self._done:
-            if self._next_tick > k + self.max_wait_ticks:
+            if self._next_tick > end:
                 return math.inf
             self._step()
         return self._done.pop(key) - t_queue_s
@@ -336,7 +343,9 @@ def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
     """The in-loop timing model of ``scn`` (None unless lockstep with ``bus.timing: model``)."""
     if scn.mode != "lockstep" or scn.bus.timing != "model":
         return None
-    return timing_of(scn)
+    t = timing_of(scn)
+    t.horizon_ticks = scn.n_ticks
+    return t
 
 
 def message_set(scn: Any) -> list[Any]:
