@@ -32,11 +32,13 @@ def _compile(message: Message, fields: tuple[tuple, ...], protected: bool) -> tu
         scaled = scale != 1.0 or offset != 0.0
         if name != "CRC":  # the CRC is computed (protected messages) or left 0
             # (v - 0.0) / s == v / s for every float and int v, so a zero offset is left out
-            conv = ("round(v)" if not scaled else f"round(v / {scale!r})" if offset == 0.0
-                    else f"round((v - {offset!r}) / {scale!r})")
-            body = [f"v = g({name!r}, {offset!r})", f"r = {conv}",
+            get = f"g({name!r}, {offset!r})"
+            conv = (f"round({get})" if not scaled else f"round({get} / {scale!r})" if offset == 0.0
+                    else f"round(({get} - {offset!r}) / {scale!r})")
+            body = [f"r = {conv}",
                     f"r = {lo} if r < {lo} else {hi} if r > {hi} else r",
-                    f"w |= (r & {mask}) << {start}"]
+                    # saturated to [lo, hi]: an unsigned r is already within the mask
+                    f"w |= (r & {mask}) << {start}" if signed else f"w |= r << {start}"]
             if name in ("Counter", "CounterExt"):
                 # Counter: tick mod 15 as given; CounterExt: floor(tick / 15) (canbrake.bus.dbc)
                 given = "counter" if name == "Counter" else "tick"
@@ -51,18 +53,26 @@ def _compile(message: Message, fields: tuple[tuple, ...], protected: bool) -> tu
         if signed:
             half = 1 << (nbits - 1)
             raw = f"(({raw} ^ {half}) - {half})"  # sign extension
-        dec_items.append(f"{name!r}: {raw} * {scale!r} + {offset!r}" if scaled else f"{name!r}: {raw}")
+        if not scaled:
+            dec_items.append(f"{name!r}: {raw}")
+        elif offset == 0.0 and scale > 0.0:  # x + 0.0 == x unless x is -0.0, which int * (s > 0) never is
+            dec_items.append(f"{name!r}: {raw} * {scale!r}")
+        else:
+            dec_items.append(f"{name!r}: {raw} * {scale!r} + {offset!r}")
     if protected:
         # e2e_crc with the data-ID part of the CRC as a constant of the message
         fid = message.frame_id
         c0 = _TABLE[_TABLE[0xFF ^ (fid & 0xFF)] ^ ((fid >> 8) & 0xFF)]
-        enc.append(f"    c = {c0}")
-        enc.append(f"    for b in w.to_bytes({length}, 'little')[1:]:")
-        enc.append("        c = T[c ^ b]")
-        enc.append("    w |= c ^ 255")
+        # unrolled over the payload bytes after the CRC byte: c = T[c ^ b] for each
+        enc.append(f"    b = w.to_bytes({length}, 'little')")
+        crc = str(c0)
+        for i in range(1, length):
+            crc = f"T[{crc} ^ b[{i}]]"
+        enc.append(f"    w |= {crc} ^ 255")
     enc.append(f"    return w.to_bytes({length}, 'little')")
     dec = ["def decode(data):",
-           f"    w = int.from_bytes(data[:{length}], 'little')",
+           # no data[:length]: bytes past the message's length only set bits no field reads
+           "    w = int.from_bytes(data, 'little')",
            "    return {" + ", ".join(dec_items) + "}"]
     ns: dict[str, Any] = {"T": _TABLE}
     exec(compile("\n".join(enc) + "\n\n" + "\n".join(dec) + "\n", f"<codec {message.name}>", "exec"), ns)
