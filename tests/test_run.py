@@ -240,3 +240,53 @@ def test_case1_acceptance_over_the_bus(tmp_path):
     assert m["convergence_time_s"] is not None and m["convergence_time_s"] < 1.0
     assert m["speed_max_abs_error_after_convergence_kmh"] <= 0.5
     assert max(abs(e) for e in m["final_speed_error_kmh"]) < 0.5
+
+
+def _fake_run(d, damaged: bool = False):
+    """signals.csv (ticks 0..49) and two ECU traces: one missing tick 7 and writing tick 9 twice."""
+    import csv as _csv
+
+    d.mkdir()
+    with open(d / "signals.csv", "w", newline="") as f:
+        w = _csv.writer(f)
+        w.writerow(["tick", "t_s", "speed_mps_c1", "brake_cmd_n_c1"])
+        for k in range(50):
+            w.writerow([k, f"{k * 0.001:.9g}", f"{25 - k / 3:.9g}", "nan" if k % 11 == 0 else f"{k * 1e5 / 7:.9g}"])
+    for c in (1, 2):
+        with open(d / f"ecu_c{c}.csv", "w", newline="") as f:
+            w = _csv.writer(f)
+            w.writerow(["tick", "brake_cmd_n", "observer_accel_mps2"])
+            for k in range(50):
+                if c == 2 and k == 7:
+                    continue
+                w.writerow([k, f"{k * 3.0:.9g}", f"{-k / 9:.9g}"])
+                if c == 2 and k == 9:
+                    w.writerow([k, "1", "2"])
+    if damaged:  # a writer killed mid-row
+        with open(d / "ecu_c1.csv", "a") as f:
+            f.write("50,1.5")
+        with open(d / "signals.csv", "a") as f:
+            f.write("50,0.05,2")
+
+
+@pytest.mark.parametrize("damaged", [False, True])
+def test_the_fast_readers_give_the_bytes_and_floats_of_the_row_by_row_ones(tmp_path, damaged, monkeypatch):
+    """summary.read_signals / merge_ecu_columns read complete files with pandas / on the lines'
+    text: the same floats and the same merged bytes as the careful row-by-row code."""
+    from canbrake.analysis import summary as S
+
+    _fake_run(tmp_path / "fast", damaged)
+    _fake_run(tmp_path / "slow", damaged)
+    a = S.read_signals(tmp_path / "fast" / "signals.csv")
+    b = S._read_signals_rows(tmp_path / "slow" / "signals.csv")
+    assert list(a) == list(b) and all(np.array_equal(a[k], b[k], equal_nan=True) for k in a)
+    assert len(a["tick"]) == 50 and np.isnan(a["brake_cmd_n_c1"][11])
+    S.merge_ecu_columns(tmp_path / "fast", 2)
+    monkeypatch.setattr(S, "_merge_ecu_columns_fast", lambda *x: False)
+    S.merge_ecu_columns(tmp_path / "slow", 2)
+    merged = (tmp_path / "fast" / "signals.csv").read_bytes()
+    assert merged == (tmp_path / "slow" / "signals.csv").read_bytes()
+    lines = merged.decode().splitlines()
+    assert lines[0].endswith(",ecu_brake_cmd_n_c1,observer_accel_mps2_c1,brake_cmd_n_c2,observer_accel_mps2_c2")
+    assert lines[1 + 7].endswith(",,")                   # ECU 2 has no tick 7
+    assert lines[1 + 9].endswith(",1,2")                 # its tick 9 written twice: the last one

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 from pathlib import Path
@@ -13,8 +14,43 @@ from canbrake.analysis.metrics import Trace, compute_metrics
 from canbrake.scenario import Scenario
 
 
+def _complete_rows(path: str | Path) -> tuple[list[str], bytes] | None:
+    """(header, body) of a CSV whose every complete data row has the header's width, the body
+    cut after its last newline (a writer killed mid-row leaves a partial last line: dropped);
+    None when some row is damaged otherwise (the careful row-by-row readers handle those)."""
+    data = Path(path).read_bytes()
+    nl = data.find(b"\n")
+    if nl < 0:
+        return None
+    header = next(csv.reader([data[:nl].decode()]))
+    body = data[nl + 1:data.rfind(b"\n") + 1]
+    if body.count(b",") != body.count(b"\n") * (len(header) - 1) or b'"' in body:
+        return None  # a short or long row (or quoting) somewhere: row by row
+    return header, body
+
+
 def read_signals(path: str | Path) -> dict[str, np.ndarray]:
-    """signals.csv as a dict of float columns."""
+    """signals.csv as a dict of float columns. pandas' C parser reads a file of complete rows
+    (exactly the floats Python's ``float`` gives: tests/test_run.py); a damaged file is read row
+    by row, dropping rows cut short and stopping at the first cell that is not a number."""
+    import pandas as pd
+
+    ok = _complete_rows(path)
+    if ok is not None:
+        header, body = ok
+        try:
+            df = pd.read_csv(io.BytesIO(body), header=None, names=range(len(header)), dtype=float,
+                             keep_default_na=False, na_values=["", "nan"], engine="c")
+        except (ValueError, pd.errors.ParserError):
+            pass
+        else:
+            arr = df.to_numpy(dtype=float)
+            return {name: arr[:, j].copy() for j, name in enumerate(header)}
+    return _read_signals_rows(path)
+
+
+def _read_signals_rows(path: str | Path) -> dict[str, np.ndarray]:
+    """:func:`read_signals`, row by row (damaged files)."""
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
     if len(rows) < 2:
@@ -61,6 +97,8 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
     sig = run_dir / "signals.csv"
     if not sig.exists():
         return
+    if _merge_ecu_columns_fast(run_dir, n):
+        return
     with open(sig, newline="") as f:
         rows = list(csv.reader(f))
     if not rows:
@@ -102,6 +140,50 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
             e = extra.get(int(float(r[0])), [])
             w.writerow(r + e + [""] * (total - len(e)))
     os.replace(tmp, sig)
+
+
+def _merge_ecu_columns_fast(run_dir: Path, n: int) -> bool:
+    """:func:`merge_ecu_columns` on the lines' text (no CSV parsing: no cell of ours is quoted),
+    ~5x faster for long runs; False when a file is damaged (short rows, a tick that is not a
+    number, quoting) and the row-by-row merge must do it. Same bytes out (tests/test_run.py)."""
+    sig = run_dir / "signals.csv"
+    ok = _complete_rows(sig)
+    if ok is None:
+        return False
+    header, body = ok
+    extra_header: list[str] = []
+    extras: list[tuple[dict[int, str], str]] = []  # per ECU: tick -> its cells' text; the empty cells
+    for c in range(1, n + 1):
+        p = run_dir / f"ecu_c{c}.csv"
+        if not p.exists() or p.stat().st_size == 0:
+            continue
+        got = _complete_rows(p)
+        if got is None:
+            return False
+        eh, eb = got
+        if eh[0] != "tick":
+            return False
+        names = eh[1:]
+        extra_header += [f"ecu_{h}_c{c}" if f"{h}_c{c}" in header else f"{h}_c{c}" for h in names]
+        rows: dict[int, str] = {}
+        for line in eb.decode().splitlines():
+            tick, _, rest = line.partition(",")
+            if not tick.isdigit():
+                return False
+            rows[int(tick)] = rest  # a tick written twice: the last one
+        extras.append((rows, "," * (len(names) - 1)))
+    if not extra_header or set(extra_header) & set(header):
+        return True  # nothing to add, or already merged (never duplicate columns)
+    out = io.StringIO()
+    csv.writer(out).writerow(header + extra_header)
+    for line in body.decode().splitlines():
+        k = int(float(line[:line.index(",")] if "," in line else line))
+        out.write(",".join([line, *[r.get(k, empty) for r, empty in extras]]) + "\r\n")
+    tmp = sig.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        f.write(out.getvalue())
+    os.replace(tmp, sig)
+    return True
 
 
 def merge_tick_file(run_dir: Path, name: str) -> None:
