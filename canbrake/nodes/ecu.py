@@ -132,6 +132,8 @@ class EcuNode(Node):
         self._multi_page = {j: c > 1 for j, c in self._pages_of.items()}  # ECU index (1-based) -> bool
         self._state_dec = {fid: (codec.by_id[fid].decode, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
         self._listened_idx = np.asarray([j - 1 for j in self._listens], dtype=np.int64)
+        self._age_alone = np.full(self.n, np.inf)  # peer ages of an ECU that listens to no one
+        self._age_alone[self.i] = 0.0
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
@@ -430,15 +432,22 @@ class EcuNode(Node):
         for nm, arr in peers.items():
             if nm in self.sensors:
                 arr[self.i] = self.sensors[nm]
-        origin = self.peer_origin.copy()
-        origin[self.i] = self.k
-        if self.peer_hold_periods is not None:
-            self._peer_fallback(origin, peers)
-        speed = peers["speed_mps"]
-        age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
         listened = self._listened_idx
-        fresh = int(np.count_nonzero(origin[listened] == self.k)) + 1 if listened.size else 1
-        self.stats.peer_missing += listened.size + 1 - fresh
+        speed = peers["speed_mps"]
+        if not listened.size and self.peer_hold_periods is None:
+            # listening to no one (an ECP wagon): only its own entry is known, with age 0; every
+            # other is NaN with age inf (what the general branch below computes, without its
+            # array operations: a fifth of a 106-ECU train's period)
+            age = self._age_alone.copy()
+            fresh = 1
+        else:
+            origin = self.peer_origin.copy()
+            origin[self.i] = self.k
+            if self.peer_hold_periods is not None:
+                self._peer_fallback(origin, peers)
+            age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
+            fresh = int(np.count_nonzero(origin[listened] == self.k)) + 1 if listened.size else 1
+            self.stats.peer_missing += listened.size + 1 - fresh
         obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
@@ -464,7 +473,8 @@ class EcuNode(Node):
             out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
         if self._trace is not None:
-            max_age = float(np.max(age, where=np.isfinite(age), initial=-np.inf))  # -inf: none finite
+            max_age = 0.0 if fresh == 1 and not listened.size else \
+                float(np.max(age, where=np.isfinite(age), initial=-np.inf))  # -inf: none finite
             self._trace.append([self.k, result.brake_force_n,
                                 *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
                                 max_age if max_age > -np.inf else np.inf, fresh])
