@@ -749,6 +749,7 @@ def _reap(procs: dict[str, mp.process.BaseProcess], starts: dict[str, int] | Non
 def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> dict[str, Any]:
     """All nodes in this process (python-can virtual buses, or direct delivery)."""
     from canbrake.build import build_nodes
+    from canbrake.nodes.base import buffered_traces
     from canbrake.nodes.driver import NodeFailure, run_inprocess
 
     import warnings
@@ -760,7 +761,7 @@ def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> di
     status = "failed"
     try:
         # a diverging plant overflows before it notices: the verdict reports it, not numpy's warnings
-        with warnings.catch_warnings(), np.errstate(over="ignore", invalid="ignore"):
+        with warnings.catch_warnings(), np.errstate(over="ignore", invalid="ignore"), buffered_traces():
             warnings.simplefilter("ignore", RuntimeWarning)
             run_inprocess(nodes, medium="virtual" if choice.backend == "virtual" else "direct")
         status = "ok"
