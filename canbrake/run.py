@@ -750,7 +750,7 @@ def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> di
     """All nodes in this process (python-can virtual buses, or direct delivery)."""
     from canbrake.build import build_nodes
     from canbrake.nodes.base import buffered_traces
-    from canbrake.nodes.driver import NodeFailure, run_inprocess
+    from canbrake.nodes.driver import NodeCrash, NodeFailure, run_inprocess
 
     import warnings
 
@@ -767,7 +767,16 @@ def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> di
         status = "ok"
         return {"status": "ok", "message": "", "wall_time_s": time.time() - t0}
     except NodeFailure as e:
-        return {"status": "failed", "message": str(e), "wall_time_s": time.time() - t0}
+        msg = str(e)
+        if isinstance(e, NodeCrash) and run_dir is not None:  # its traceback where a node process leaves it
+            logs = run_dir / "logs"
+            try:
+                logs.mkdir(exist_ok=True)
+                (logs / f"{e.node}.log").write_text("".join(traceback.format_exception(e.__cause__)))
+                msg += f" (traceback in {logs / f'{e.node}.log'})"
+            except OSError:
+                pass
+        return {"status": "failed", "message": msg, "wall_time_s": time.time() - t0}
     finally:
         for n in nodes:
             n.close(status)

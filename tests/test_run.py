@@ -140,6 +140,18 @@ def test_frames_log_is_decoded_by_cantools_cli(tmp_path, case1_short):
     assert not any("Unknown" in ln for ln in decoded)
 
 
+@pytest.mark.parametrize("backend", ["inprocess", "virtual"])
+def test_a_node_that_raises_in_process_ends_the_run_named_with_its_traceback_kept(tmp_path, backend):
+    """In one process as in a node process: status failed, the message names the ECU and the
+    error, the traceback is in logs/ecu3.log, the traces and summary are written."""
+    scn = load_scenario(CASE1, overrides={"duration_s": 0.2, "ecu": {"crash": {"car": 3, "at_s": 0.05}}})
+    s = run_scenario(scn, tmp_path, backend=backend, plots=False)
+    assert s["status"] == "failed"
+    assert s["message"].startswith("ecu3: RuntimeError: injected crash of ecu3")
+    assert "Traceback" in (tmp_path / "logs" / "ecu3.log").read_text()
+    assert (tmp_path / "summary.json").exists() and 40 <= s["ticks"] <= 51
+
+
 def test_canbrake_decode_reads_the_log(tmp_path, case1_short, capsys):
     from canbrake.cli import main
 

@@ -26,6 +26,25 @@ class NodeFailure(RuntimeError):
     """A node's process failed; the message names the node."""
 
 
+class NodeCrash(NodeFailure):
+    """A node's own code raised in an in-process run: ``node`` names it; the exception is the
+    ``__cause__`` (its traceback goes to the run's logs/<node>.log, as a node process's does)."""
+
+    def __init__(self, node: str, exc: BaseException) -> None:
+        super().__init__(f"{node}: {type(exc).__name__}: {exc}")
+        self.node = node
+
+
+def _call(node: Node, fn: Callable[..., list[can.Message]], *args: object) -> list[can.Message]:
+    """``fn(*args)`` of ``node``; an exception of the node's code becomes a :class:`NodeCrash`."""
+    try:
+        return fn(*args)
+    except NodeFailure:
+        raise
+    except Exception as e:  # noqa: BLE001 - any bug of a node (or a user's controller) ends the run, named
+        raise NodeCrash(node.name, e) from e
+
+
 def _matches(filters: list[dict] | None, msg: can.Message) -> bool:
     if not filters:
         return True
@@ -151,7 +170,7 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
 
     queue: deque[tuple[int, can.Message]] = deque()
     for idx, node in enumerate(nodes):
-        queue.extend((idx, m) for m in node.start(0.0))
+        queue.extend((idx, m) for m in _call(node, node.start, 0.0))
     moved = 0
     popleft, extend = queue.popleft, queue.extend
     while queue:
@@ -166,7 +185,12 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
                 continue
             if flt is not None and not _matches(flt, msg):
                 continue
-            out = node.handle(msg, 0.0)
+            try:
+                out = node.handle(msg, 0.0)
+            except Exception as e:  # noqa: BLE001 - named, as a node process's failure is
+                if isinstance(e, NodeFailure):
+                    raise
+                raise NodeCrash(node.name, e) from e
             if out:
                 extend([(idx, m) for m in out])
     _end_with_time_master(nodes)
@@ -185,7 +209,7 @@ def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
     moved = 0
     try:
         for node, bus in zip(nodes, buses):
-            _send_all(bus, node.start(0.0))
+            _send_all(bus, _call(node, node.start, 0.0))
         progress = True
         while progress:
             progress = False
@@ -196,7 +220,7 @@ def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
                     if max_frames is not None and moved > max_frames:
                         raise NodeFailure(f"in-process run exceeded {max_frames} frames")
                     if not node.finished and _matches(flt, msg):
-                        _send_all(bus, node.handle(msg, 0.0))
+                        _send_all(bus, _call(node, node.handle, msg, 0.0))
     finally:
         for bus in buses:
             bus.shutdown()
