@@ -25,6 +25,7 @@ traceback. Results go to ``bench/results.json``; the table is printed and return
 from __future__ import annotations
 
 import json
+import math
 import os
 import platform
 import statistics
@@ -344,8 +345,14 @@ def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict
                 f"{' (' + res['message'] + ')' if res.get('message') else ''}; scheduling: plant "
                 f"{res.get('scheduling', '?')}, ECUs {res.get('ecu_scheduling') or '?'}; 1-min load average after the run "
                 f"{os.getloadavg()[0]:.1f}")
+        # a share below the target is only shown by a run of at least 100 / target periods
+        # (0 misses in 1,000 periods says < 0.1 %, not < 0.01 %): shorter runs are not judged
+        need = math.ceil(100.0 / target)
+        judged = periods >= need or pct >= target or res["status"] != "ok"
+        if not judged:
+            note += f"; too few periods to judge < {target:g} % (needs {need:,}: --heavy)"
         rows.append(_row(name, pct, "% of periods", target=f"< {target:g} %",
-                         met=pct < target and res["status"] == "ok", note=note,
+                         met=(pct < target and res["status"] == "ok") if judged else None, note=note,
                          status="ok" if res["status"] == "ok" else res["status"]))
         if "cmd_latency_p99_s" in res:
             p99 = res["cmd_latency_p99_s"]
@@ -483,8 +490,11 @@ def sweep_figures(duration_s: float = SWEEP_DURATION_S, log: Callable[[str], Non
     if full.get("status") != "ok":
         rows.append(_failed(label, full, "<= 60 s"))
     else:
+        # the target is for 10 s points: a shorter (--quick) sweep is measured, not judged
+        judged = duration_s == SWEEP_DURATION_S
+        target = "<= 60 s" if judged else f"<= 60 s at {SWEEP_DURATION_S:g} s points (not judged)"
         rows.append(_row(label, full["wall_s"], "s", "per-point engine, estimate", est,
-                         est / full["wall_s"] if est else None, "<= 60 s", full["wall_s"] <= 60.0,
+                         est / full["wall_s"] if est else None, target, full["wall_s"] <= 60.0 if judged else None,
                          cpu_s=full.get("cpu_s"),
                          note=f"Chen case 1 (paper, 1 ms), default grid {' x '.join(SWEEP_GRID)}, one seed; "
                               f"{full['ended_early']} points end early (the plant diverged); baseline = per-point "
@@ -497,7 +507,7 @@ def sweep_figures(duration_s: float = SWEEP_DURATION_S, log: Callable[[str], Non
                              full["cpu_s"] / 2, "s", "per-point engine CPU, estimate",
                              per["cpu_s"] / per["points"] * n_all / 2 if per.get("cpu_s") else None,
                              (per["cpu_s"] / per["points"] * n_all / full["cpu_s"]) if per.get("cpu_s") else None,
-                             "<= 60 s", full["cpu_s"] / 2 <= 60.0,
+                             target, full["cpu_s"] / 2 <= 60.0 if judged else None,
                              note="CPU seconds (this process and its Dask workers) / 2: the wall time on 2 idle "
                                   "cores, less sensitive to the other tasks of a shared machine than the wall time"))
     label = f"sweep subset ({sub.get('points', '?')} points), batch vs per-point, one process"
