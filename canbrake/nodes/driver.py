@@ -185,12 +185,7 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
                 continue
             if flt is not None and not _matches(flt, msg):
                 continue
-            try:
-                out = node.handle(msg, 0.0)
-            except Exception as e:  # noqa: BLE001 - named, as a node process's failure is
-                if isinstance(e, NodeFailure):
-                    raise
-                raise NodeCrash(node.name, e) from e
+            out = _call(node, node.handle, msg, 0.0)
             if out:
                 extend([(idx, m) for m in out])
     _end_with_time_master(nodes)
