@@ -1,12 +1,30 @@
 """The batch engine: many lockstep runs (sweep points) of one scenario family at once, in one process.
 
-What it reuses, unchanged, per point: the controllers (:func:`canbrake.build.build_controller`,
-so the same ``chen2023`` / ``chen2023_compensated`` / ``pi`` objects, brake functions included),
-the plant (:func:`canbrake.build.build_plant_model`) held by a real
-:class:`~canbrake.nodes.plant.PlantNode` (its command hold, fail-safe-free applied commands,
-column layout and statistics), the impairment chains (:func:`canbrake.build.build_send_path`:
-the same seeded :class:`~canbrake.bus.impair.SendPath` objects, so every loss draw and delay is
-the one the node engine makes) and the summary (:func:`canbrake.analysis.summary.finalize_run`).
+What it reuses per point: the controllers (:func:`canbrake.build.build_controller`: the same
+``chen2023`` / ``chen2023_compensated`` / ``pi`` classes, brake functions included), the plant
+(:func:`canbrake.build.build_plant_model`) and a :class:`~canbrake.nodes.plant.PlantNode` for
+its column layout, initial command hold and statistics, the impairment chains
+(:func:`canbrake.build.build_send_path`: the same seeded :class:`~canbrake.bus.impair.SendPath`
+objects, so every loss draw and delay is the one the node engine makes) and the summary
+(:func:`canbrake.analysis.summary.finalize_run`).
+
+Vectorised over the points (issue 13, item 3: one numpy call serves every point, so a tick costs
+about the same for 8 points as for 64):
+
+* **frames' fates**: every frame an ECU will send is known before the run (a STATE frame at t_k, a
+  command frame at t_k + c·T), so :meth:`~canbrake.bus.impair.SendPath.fates` draws each one's
+  release time (or loss) up front, from the same generators in the same order as ``submit``;
+  the frames are then handed out per release window as arrays (:meth:`BatchEngine._schedule`).
+* **controllers**: where every point runs the same controller on an ECU slot and the controller
+  offers a batch form (:meth:`~canbrake.control.chen.ChenConsensusController.step_batch`, the
+  same operations in the same order on arrays of shape (points,)), one object steps every point;
+  otherwise each point's own controller steps (``chen2023_compensated``, ``pi``).
+* **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no brake
+  equipment, no end stop) step as one stack with a leading points axis; otherwise each its own.
+
+Every path gives each point the floats its per-point run computes: tests/test_batch_sweep.py
+compares them text for text, tests/test_control.py, test_physics.py and test_impair.py the batch
+forms against the scalar ones.
 
 What it does instead of the nodes: it moves *values*, not frames. A frame's payload is what the
 receiver decodes, :meth:`canbrake.bus.codec.MessageCodec.quantiser` (the DBC scale, offset and
@@ -125,7 +143,8 @@ def batch_groups(scns: Sequence[Scenario]) -> list[list[int]]:
 
 @dataclass
 class _Point:
-    """One sweep point: its scenario, plant node, controllers, send paths and receiver state."""
+    """One sweep point: its scenario, run directory, plant node (its statistics, command layout and
+    per-point plant), controllers (used where a slot has no batch form) and send paths."""
 
     scn: Scenario
     run_dir: Path | None
@@ -133,17 +152,23 @@ class _Point:
     ctrls: list[Any]
     paths: list[Any] | None                     # per ECU: canbrake.bus.impair.SendPath, or None (no impairment)
     reference: Any
-    rows: np.ndarray                            # signals.csv rows
-    n_rows: int = 0
-    ecu_rows: list[list[list[Any]]] = field(default_factory=list)  # per ECU: its trace rows (ecu_c<v>.csv)
-    n_ecu_rows: int = 0
-    alive: bool = True
     broadcast: list[dict[str, float]] = field(default_factory=list)
-    plant_origin: np.ndarray | None = None      # per ECU: newest accepted command tick
-    late: list[tuple[int, int, Any]] = field(default_factory=list)  # (sender, origin, values) after phase 2
-    peer_frames: np.ndarray | None = None
-    peer_stale: np.ndarray | None = None
-    peer_missing: np.ndarray | None = None
+
+
+@dataclass
+class _Deliveries:
+    """Every frame of one kind (STATE or command) that reaches its receivers, sorted by the window
+    it is released in, then point, sender, release time and origin (the order a SendPath hands them
+    out). Window w is tick w // 2, phase 1 (w even: released by t_k + c·T) or 2 (w odd: by the end
+    of the period). ``rank``: the frame's place among those of the same point and sender in its
+    window (0 for the first); ``bounds[w]:bounds[w + 1]`` are window w's frames."""
+
+    point: np.ndarray
+    sender: np.ndarray
+    origin: np.ndarray
+    rank: np.ndarray
+    bounds: np.ndarray
+    max_rank: np.ndarray                        # per window
 
 
 class BatchEngine:
@@ -186,16 +211,18 @@ class BatchEngine:
         for i, e in enumerate(self.ecus):
             for j in e.listens:
                 self.listen[i, j - 1] = True
-        self.listeners = [np.flatnonzero(self.listen[:, j]) for j in range(m)]
         self.peer_names = sorted({sig for _, sig, _ in self.state_q} | {"speed_mps", "position_m"})
+        self.state_sigs = sorted({sig for _, sig, _ in self.state_q})
+        self.cmd_sigs = sorted({sig for _, sig, _ in self.cmd_q})
         self.state_ids = {mm.frame_id for mm in lay.messages if mm.kind == "state"}
         self.n_listened = self.listen.sum(axis=1)
         self.state_id = [(lay.ids("state", e.index) or [0])[0] for e in self.ecus]
         self.cmd_id = [lay.ids("cmd", e.index)[0] for e in self.ecus]
         self.names = [e.name for e in self.ecus]
         self.points: list[_Point] = []
+        dbc_text = lay.database().as_dbc_string()  # every point's (batch_key: the same layout)
         for scn, rd in zip(scns, run_dirs):
-            run_dir = prepare_run_dir(scn, rd) if rd is not None else None
+            run_dir = prepare_run_dir(scn, rd, dbc_text=dbc_text) if rd is not None else None
             plant = PlantNode(build_plant_model(scn), codec, layout=lay, dt_s=scn.control_period_s,
                               n_ticks=scn.n_ticks, reference=reference_fn(scn), mode=scn.mode,
                               heartbeat_period_s=scn.ecu.heartbeat_period_s, out_dir=run_dir, barrier=True,
@@ -206,22 +233,55 @@ class BatchEngine:
                 for e in self.ecus:
                     sp = build_send_path(scn, e.name)
                     paths.append(None if isinstance(sp, PassThrough) else sp.path.path)  # the impair.SendPath
-            n_rows = self.n_ticks // self.trace_every + 2
             ctrls = [build_controller(scn, i) for i in range(1, m + 1)]
-            pt = _Point(scn, run_dir, plant, ctrls, paths,
-                        reference_fn(scn), np.full((n_rows, len(plant.columns())), np.nan),
-                        ecu_rows=[[] for _ in ctrls],
-                        broadcast=[{} for _ in range(m)],
-                        plant_origin=np.full(m, -1, dtype=np.int64),
-                        peer_frames=np.zeros(m, dtype=np.int64), peer_stale=np.zeros(m, dtype=np.int64),
-                        peer_missing=np.zeros(m, dtype=np.int64))
-            self.points.append(pt)
-        P = len(self.points)
+            self.points.append(_Point(scn, run_dir, plant, ctrls, paths, reference_fn(scn),
+                                      broadcast=[{} for _ in range(m)]))
+        P = self.P = len(self.points)
+        pn0 = self.points[0].plant
+        self.n = pn0.n
+        self.cols = pn0.columns()
+        self.command_names = list(pn0.command_names)
+        self.extra_meas = list(pn0._extra_measurements())
+        self.alive = np.ones(P, dtype=bool)
         # what every receiver holds of its peers (the ECU node's peer_signals / peer_origin)
         self.peer = {nm: np.full((P, m, m), np.nan) for nm in self.peer_names}
         self.origin = np.full((P, m, m), -(10 ** 12), dtype=np.int64)
-        self.cols = self.points[0].plant.columns()
-        self._nan_n = np.full(self.points[0].plant.n, np.nan)
+        self.peer_frames = np.zeros((P, m), dtype=np.int64)
+        self.peer_stale = np.zeros((P, m), dtype=np.int64)
+        self.peer_missing = np.zeros((P, m), dtype=np.int64)
+        # the brake units: newest command per vehicle (PlantNode.commands), its origin per ECU
+        self.hold = {c: np.stack([p.plant.commands[c] for p in self.points]) for c in self.command_names}
+        self.plant_origin = np.full((P, m), -1, dtype=np.int64)
+        self.fresh = np.zeros((P, m), dtype=bool)
+        self.received = np.zeros(P, dtype=np.int64)
+        self.rejected = np.zeros(P, dtype=np.int64)
+        self.missed = np.zeros((P, m), dtype=np.int64)
+        self.k_plant = np.zeros(P, dtype=np.int64)
+        self.bcast = {sig: np.full((P, m), np.nan) for sig in self.state_sigs}
+        # the controllers: one batch object per ECU slot where every point runs the same one
+        self.batch_ctrl: list[Any] = []
+        for s in range(m):
+            c0 = self.points[0].ctrls[s]
+            same = all(_ctrl_key(p.scn, s) == _ctrl_key(scns[0], s) for p in self.points)
+            ok = same and callable(getattr(c0, "batchable", None)) and c0.batchable()
+            self.batch_ctrl.append(build_controller(scns[0], s + 1) if ok else None)
+        # the plant: one stacked plant for every point where they qualify, else each its own
+        from canbrake.build import CoupledPlant
+        from canbrake.physics.train import stack_plants
+
+        models = [p.plant.model for p in self.points]
+        self.stack = None
+        if all(type(mo) is CoupledPlant for mo in models):
+            self.stack = stack_plants([mo.plant for mo in models])
+        # traces: signals.csv rows and the ECU traces, per point (filled while the point is alive)
+        self.n_rows = np.zeros(P, dtype=np.int64)
+        self.rows = np.full((self.n_ticks // self.trace_every + 2, P, len(self.cols)), np.nan)
+        self.n_ecu_rows = np.zeros(P, dtype=np.int64)
+        # per slot: [tick, command, diagnostics (as many as the point's controller has, NaN padded),
+        # oldest peer age, fresh peers]; each point's trace has its own controller's columns
+        n_diag = [max(len(p.ctrls[s].diagnostic_names) for p in self.points) for s in range(m)]
+        self.ecu_rows = [np.full((self.n_ticks, P, nd + 4), np.nan) for nd in n_diag]
+        self._schedule()
 
     @staticmethod
     def _groups(qs: list[tuple[int, str, Any]]) -> list[tuple[str, np.ndarray, Any]]:
@@ -243,6 +303,126 @@ class BatchEngine:
                 out += [(mm.ecu - 1, sig, q.quantiser(sp.name)) for sig, sp in mm.signals if sig]
         return out
 
+    # ------------------------------------------------------------------ the frames' fates
+    def _schedule(self) -> None:
+        """Every frame every ECU will send is known before the run (one STATE frame at t_k, one
+        command frame at t_k + c·T per tick), so its fate is drawn up front: each send path's
+        :meth:`~canbrake.bus.impair.SendPath.fates` gives the release times its ``submit`` would,
+        from the same generators in the same order. A frame is handed out in the first release
+        window (t_k + c·T, then t_k + T(1 − 1e-9), as the ECU node releases) at or after its
+        release time and not before it was submitted."""
+        n, m, dt = self.n_ticks, self.n_ecus, self.dt
+        t = np.arange(n) * dt
+        t2 = t + self.c * dt
+        win = np.empty(2 * n)
+        win[0::2] = t + self.c * dt
+        win[1::2] = t + dt * (1 - 1e-9)
+        ks = np.arange(n)
+        per_kind: dict[str, list[tuple[np.ndarray, ...]]] = {"state": [], "cmd": []}
+        hmax = 1
+        for i, p in enumerate(self.points):
+            for j in range(m):
+                path = p.paths[j] if p.paths is not None else None
+                st = bool(self.has_state[j])
+                if st:
+                    t_sub = np.empty(2 * n)
+                    t_sub[0::2], t_sub[1::2] = t, t2
+                    ids = np.empty(2 * n, dtype=np.int64)
+                    ids[0::2], ids[1::2] = self.state_id[j], self.cmd_id[j]
+                else:
+                    t_sub, ids = t2.copy(), np.full(n, self.cmd_id[j], dtype=np.int64)
+                rel = t_sub if path is None else path.fates(t_sub, ids)
+                parts = (("state", rel[0::2], 0), ("cmd", rel[1::2], 1)) if st else (("cmd", rel, 1),)
+                for kind, r, phase in parts:
+                    w = np.maximum(np.searchsorted(win, r, side="left"), 2 * ks + phase)
+                    got = w < 2 * n
+                    if got.any():
+                        hmax = max(hmax, int((w[got] // 2 - ks[got]).max()) + 1)
+                    per_kind[kind].append((w[got], np.full(int(got.sum()), i), np.full(int(got.sum()), j),
+                                           ks[got], r[got]))
+        self.H = hmax
+        self.deliveries = {kind: self._sorted(parts, 2 * n) for kind, parts in per_kind.items()}
+        P = self.P
+        self.state_hist = {sig: np.full((hmax, P, m), np.nan) for sig in self.state_sigs}
+        self.cmd_hist = {sig: np.full((hmax, P, m), np.nan) for sig in self.cmd_sigs}
+
+    @staticmethod
+    def _sorted(parts: list[tuple[np.ndarray, ...]], n_win: int) -> _Deliveries:
+        if parts:
+            w, i, j, k, r = (np.concatenate(a) for a in zip(*parts))
+        else:
+            w = i = j = k = np.zeros(0, dtype=np.int64)
+            r = np.zeros(0)
+        order = np.lexsort((k, r, j, i, w))  # by window, point, sender, release time, origin
+        w, i, j, k = w[order], i[order], j[order], k[order]
+        new = np.ones(w.size, dtype=bool)
+        new[1:] = (w[1:] != w[:-1]) | (i[1:] != i[:-1]) | (j[1:] != j[:-1])
+        idx = np.arange(w.size)
+        rank = idx - np.maximum.accumulate(np.where(new, idx, 0))
+        max_rank = np.full(n_win, -1, dtype=np.int64)
+        np.maximum.at(max_rank, w, rank)
+        return _Deliveries(i, j, k, rank, np.searchsorted(w, np.arange(n_win + 1)), max_rank)
+
+    def _window(self, kind: str, w: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Window w's frames of ``kind`` of the points still running, as rounds (point, sender,
+        origin) in which each point and sender appears at most once, in release order."""
+        d = self.deliveries[kind]
+        a, b = d.bounds[w], d.bounds[w + 1]
+        if a == b:
+            return []
+        pt, snd, org = d.point[a:b], d.sender[a:b], d.origin[a:b]
+        live = self.alive[pt]
+        if d.max_rank[w] == 0:
+            return [(pt[live], snd[live], org[live])]
+        rank = d.rank[a:b]
+        return [(pt[sel], snd[sel], org[sel]) for r in range(int(d.max_rank[w]) + 1)
+                for sel in [live & (rank == r)]]
+
+    def _state_in(self, w: int, k: int) -> None:
+        """STATE frames released in window w reach their listeners at their tick k; each listener
+        dates a frame by its alive counter and keeps only newer ones (canbrake.nodes.ecu)."""
+        m = self.n_ecus
+        recv = np.arange(m)
+        for pt, snd, org in self._window("state", w):
+            if pt.size == 0:
+                continue
+            lag = (k - org) % COUNTER_MODULO  # the receiver knows only the alive counter
+            origin = k - lag
+            listens = self.listen[:, snd].T                                   # (F, m): frame, receiver
+            last = self.origin[pt[:, None], recv[None, :], snd[:, None]]
+            ok = listens & (lag <= ECU_MAX_LAG)[:, None] & (origin[:, None] > last)
+            np.add.at(self.peer_stale, (pt[:, None].repeat(m, 1), recv[None, :].repeat(pt.size, 0)),
+                      listens & ~ok)
+            f, r = np.nonzero(ok)
+            if f.size == 0:
+                continue
+            pi, si, oi = pt[f], snd[f], org[f]
+            self.origin[pi, r, si] = origin[f]
+            slot = oi % self.H
+            for sig in self.state_sigs:
+                self.peer[sig][pi, r, si] = self.state_hist[sig][slot, pi, si]
+            np.add.at(self.peer_frames, (pi, r), 1)
+
+    def _cmd_in(self, w: int, k: int) -> None:
+        """Command frames released in window w reach the brake units at the plant's tick k, which
+        date them by the alive counter (lag window PLANT_MAX_LAG) and keep only newer ones."""
+        for pt, snd, org in self._window("cmd", w):
+            if pt.size == 0:
+                continue
+            lag = (k - org) % COUNTER_MODULO
+            origin = k - lag
+            ok = (lag <= PLANT_MAX_LAG) & (origin > self.plant_origin[pt, snd])
+            np.add.at(self.rejected, pt[~ok], 1)
+            pt, snd, org, origin = pt[ok], snd[ok], org[ok], origin[ok]
+            self.plant_origin[pt, snd] = origin
+            veh = self.veh[snd]
+            slot = org % self.H
+            for sig in self.cmd_sigs:
+                self.hold[sig][pt, veh] = self.cmd_hist[sig][slot, pt, snd]
+            np.add.at(self.received, pt, 1)
+            now = origin == k
+            self.fresh[pt[now], snd[now]] = True
+
     # ------------------------------------------------------------------ run
     def run(self) -> list[dict[str, Any]]:
         """Run every point to its end; write each run directory; returns the outcomes (as
@@ -253,151 +433,63 @@ class BatchEngine:
         with warnings.catch_warnings(), np.errstate(all="ignore"):
             warnings.simplefilter("ignore", RuntimeWarning)
             for k in range(self.n_ticks):
-                if not any(p.alive for p in self.points):
+                if not self.alive.any():
                     break
                 self._tick(k)
-            for p in self.points:
-                if p.alive:
-                    self._finish(p)
-        wall = (time.time() - t0) / len(self.points)
+            for i in np.flatnonzero(self.alive):
+                self._finish(int(i))
+        wall = (time.time() - t0) / self.P
         return [{"status": "ok", "message": "", "wall_time_s": wall} for _ in self.points]
 
-    def _tick(self, k: int) -> None:
-        from canbrake.bus.impair import TxFrame
+    def _measurements(self) -> dict[str, np.ndarray]:
+        """Every point's plant measurements, arrays (P, n) / (P, n - 1) (NaN rows: ended points)."""
+        st = self.stack
+        if st is not None:
+            return {"position_m": st.position_m, "speed_mps": st.speed_mps, "accel_mps2": st.accel_mps2,
+                    "applied_brake_n": st.applied_force_n, "deflection_m": st.deflection_m,
+                    "coupler_force_n": st.coupler_force_n}
+        mms = [p.plant.model.measurements() if a else None for p, a in zip(self.points, self.alive)]
+        first = next(mm for mm in mms if mm is not None)
+        return {nm: np.stack([np.full(np.shape(v), np.nan) if mm is None else np.asarray(mm[nm], dtype=float)
+                              for mm in mms]) for nm, v in first.items()}
 
-        dt, m = self.dt, self.n_ecus
+    def _tick(self, k: int) -> None:
+        dt, m, P = self.dt, self.n_ecus, self.P
         t = k * dt
         pts = self.points
-        P = len(pts)
         # phase 0 (plant): measurements and reference, as the ECUs decode them
-        meas = [p.plant.model.measurements() if p.alive else None for p in pts]
-        refs = [p.reference(t) if p.alive else (0.0, 0.0) for p in pts]
-        v_ref = self.q_ref_v(np.array([r[0] for r in refs]))
-        a_ref = self.q_ref_a(np.array([r[1] for r in refs]))
+        meas = self._measurements()
+        refs = np.array([p.reference(t) if a else (0.0, 0.0) for p, a in zip(pts, self.alive)], dtype=float)
+        v_ref, a_ref = self.q_ref_v(refs[:, 0]), self.q_ref_a(refs[:, 1])
         sensors: dict[str, np.ndarray] = {}
-        raw: dict[str, np.ndarray] = {}
         for sig, slots, q in self.sensor_g:
-            if sig not in raw:
-                raw[sig] = np.stack([mm[sig] if mm is not None else self._nan_n for mm in meas])[:, self.veh]
+            if sig not in sensors:
                 sensors[sig] = np.full((P, m), np.nan)
-            sensors[sig][:, slots] = q(raw[sig][:, slots])
+            sensors[sig][:, slots] = q(meas[sig][:, self.veh[slots]])
         # phase 1: STATE frames (sensor values as measured, else the controller's broadcast of tick k-1)
-        state: dict[str, np.ndarray] = {}
+        h = k % self.H
         for sig, slots, q in self.state_g:
-            if sig in sensors:
-                v = sensors[sig][:, slots]
-            else:
-                v = np.array([[p.broadcast[s].get(sig, math.nan) for s in slots] for p in pts], dtype=float)
-            state.setdefault(sig, np.full((P, m), np.nan))[:, slots] = q(v)
-        horizon1 = t + self.c * dt
-        plain = [i for i, p in enumerate(pts) if p.alive and p.paths is None]
-        if plain:
-            idx = np.asarray(plain)
-            for sig, arr in state.items():
-                blk = self.peer[sig][idx]
-                self.peer[sig][idx] = np.where(self.listen[None, :, :], arr[idx][:, None, :], blk)
-            org = self.origin[idx]
-            self.origin[idx] = np.where(self.listen[None, :, :], k, org)
-            for i in plain:
-                pts[i].peer_frames += self.n_listened
-        for i, p in enumerate(pts):
-            if not p.alive or p.paths is None:
-                continue
-            p.late = []
-            for j in range(m):
-                path = p.paths[j]
-                vals = {sig: float(state[sig][i, j]) for sig in state} if self.has_state[j] else None
-                if path is None:
-                    if vals is not None:
-                        self._state_in(i, j, k, vals, k)
-                    continue
-                if vals is not None:
-                    path.submit(TxFrame(self.state_id[j], False, b"", 8, self.names[j], t, t, origin=(k, vals)))
-                # release(t) then release(horizon1), as the ECU node does, hands out the same frames in
-                # the same order as release(horizon1) alone: frames by (release time, submission)
-                for f in path.release(horizon1):
-                    self._deliver(i, j, f, k, phase2=False)
+            v = sensors[sig][:, slots] if sig in sensors else self.bcast[sig][:, slots]
+            self.state_hist[sig][h][:, slots] = q(v)
+        self._state_in(2 * k, k)
         # phase 2: every ECU computes
-        cmds: dict[str, np.ndarray] = {sig: np.full((P, m), np.nan) for _, sig, _ in self.cmd_q}
-        views = self._views(k, sensors)
-        for i, p in enumerate(pts):
-            if p.alive:
-                self._compute(i, p, k, sensors, float(v_ref[i]), float(a_ref[i]), cmds, views)
-        qcmd: dict[str, np.ndarray] = {}
+        cmds = {sig: np.full((P, m), np.nan) for sig in self.cmd_sigs}
+        self._compute(k, sensors, v_ref, a_ref, cmds)
         for sig, slots, q in self.cmd_g:
-            qcmd.setdefault(sig, np.full((P, m), np.nan))[:, slots] = q(cmds[sig][:, slots])
-        t2, horizon2 = t + self.c * dt, t + dt * (1 - 1e-9)
-        for i, p in enumerate(pts):
-            if not p.alive:
-                continue
-            plant = p.plant
-            if p.paths is None:  # every command arrives in its tick
-                for sig, arr in qcmd.items():
-                    plant.commands[sig][self.veh] = arr[i]
-                plant._fresh[:] = True
-                plant.stats.commands_received += m
-                p.plant_origin[:] = k
-            else:
-                for j in range(m):
-                    path = p.paths[j]
-                    vals = {sig: float(qcmd[sig][i, j]) for sig in qcmd}
-                    if path is None:
-                        self._cmd_in(p, j, k, vals, k)
-                        continue
-                    path.submit(TxFrame(self.cmd_id[j], False, b"", 8, self.names[j], t2, t2, origin=(k, vals)))
-                    for f in path.release(horizon2):
-                        self._deliver(i, j, f, k, phase2=True)
-                for j, origin, vals in p.late:  # state frames released after the receivers computed
-                    self._state_in(i, j, origin, vals, k)
-            self._advance(p, k, meas[i], refs[i])
+            self.cmd_hist[sig][h][:, slots] = q(cmds[sig][:, slots])
+        self._cmd_in(2 * k, k)      # command frames released by t_k + c·T (sent in earlier ticks)
+        self._cmd_in(2 * k + 1, k)  # ... and by the end of the period
+        self._state_in(2 * k + 1, k)  # STATE frames released after the receivers computed
+        self._advance(k, meas, refs)
 
-    def _deliver(self, i: int, j: int, f: Any, k: int, *, phase2: bool) -> None:
-        origin, vals = f.origin
-        if f.arbitration_id in self.state_ids:
-            if phase2:
-                self.points[i].late.append((j, origin, vals))
-            else:
-                self._state_in(i, j, origin, vals, k)
-        else:
-            self._cmd_in(self.points[i], j, origin, vals, k)
+    def _compute(self, k: int, sensors: dict[str, np.ndarray], v_ref: np.ndarray, a_ref: np.ndarray,
+                 cmds: dict[str, np.ndarray]) -> None:
+        """Phase 2 of every ECU of every point: the Observation the ECU node builds (peer values
+        with its own sensors in its own entry, ages in s, inf if never received), the controller
+        step (the slot's batch form for every point at once, else each point's own controller)."""
+        from canbrake.control.base import Observation
 
-    def _state_in(self, i: int, j: int, sent: int, vals: dict[str, float], k: int) -> None:
-        """ECU j's STATE frame sent at tick ``sent`` reaches its listeners at their tick ``k``."""
-        p = self.points[i]
-        lag = (k - sent) % COUNTER_MODULO  # the receiver knows only the alive counter
-        origin = k - lag
-        for r in self.listeners[j]:
-            last = int(self.origin[i, r, j])
-            if lag > ECU_MAX_LAG or origin <= last:
-                p.peer_stale[r] += 1
-                continue
-            for sig, v in vals.items():
-                self.peer[sig][i, r, j] = v
-            self.origin[i, r, j] = origin
-            p.peer_frames[r] += 1
-
-    def _cmd_in(self, p: _Point, j: int, sent: int, vals: dict[str, float], k: int) -> None:
-        """ECU j's command frame sent at tick ``sent`` reaches the brake unit at the plant's tick ``k``."""
-        lag = (k - sent) % COUNTER_MODULO
-        origin = k - lag
-        plant = p.plant
-        if lag > PLANT_MAX_LAG or origin <= p.plant_origin[j]:
-            plant.guard.reject("counter")
-            return
-        p.plant_origin[j] = origin
-        v = self.veh[j]
-        for sig, x in vals.items():
-            plant.commands[sig][v] = x
-        plant.stats.commands_received += 1
-        if origin == k:
-            plant._fresh[j] = True
-
-    def _views(self, k: int, sensors: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray,
-                                                                        np.ndarray, np.ndarray]:
-        """What every ECU of every point knows at phase 2 of tick k, as the ECU node builds it:
-        peer values with its own sensors in its own entry, ages (s; inf if never received),
-        fresh values (peers of this tick + itself), the oldest finite age. Shapes (P, m, m) / (P, m)."""
-        m = self.n_ecus
+        m, t = self.n_ecus, k * self.dt
         diag = np.arange(m)
         peers = {}
         for nm in self.peer_names:
@@ -411,126 +503,180 @@ class BatchEngine:
         fresh = ((origin == k) & self.listen[None]).sum(axis=2) + 1
         finite = np.isfinite(age)
         max_age = np.where(finite.any(axis=2), np.where(finite, age, -np.inf).max(axis=2), np.inf)
-        return peers, age, fresh, max_age, self.n_listened + 1 - fresh
-
-    def _compute(self, i: int, p: _Point, k: int, sensors: dict[str, np.ndarray], v_ref: float,
-                 a_ref: float, cmds: dict[str, np.ndarray], views: tuple) -> None:
-        """Phase 2 of every ECU of point ``i``: the Observation the ECU node builds, the controller step."""
-        from canbrake.control.base import Observation
-
-        peers, age, fresh, max_age, missing = views
-        p.peer_missing += missing[i]
-        t = k * self.dt
-        sp, ps = peers["speed_mps"][i], peers["position_m"][i]
-        rows = {nm: arr[i].tolist() for nm, arr in sensors.items()}  # Python floats, as decoded
-        max_age_i, fresh_i = max_age[i].tolist(), fresh[i].tolist()
+        live = self.alive
+        self.peer_missing[live] += (self.n_listened + 1 - fresh)[live]
+        nan = math.nan
         for s, e in enumerate(self.ecus):
-            sens = {nm: rows[nm][s] for nm in e.sensors}
-            obs = Observation(tick=k, time_s=t, speed_mps=sens.get("speed_mps", math.nan),
-                              position_m=sens.get("position_m", math.nan), ref_speed_mps=v_ref,
-                              ref_decel_mps2=a_ref, peer_speed_mps=sp[s], peer_position_m=ps[s],
-                              peer_age_s=age[i, s], deflection_front_m=None, deflection_rear_m=None,
-                              ref_position_m=math.nan, sensors=sens,
-                              peer_signals={nm: arr[i, s] for nm, arr in peers.items()})
-            ctrl = p.ctrls[s]
-            res = ctrl.step(obs)
-            p.broadcast[s] = res.broadcast
-            if res.commands:
-                values = {"brake_force_n": res.brake_force_n, **res.commands}
+            rows = self.ecu_rows[s][k]
+            bc = self.batch_ctrl[s]
+            if bc is not None:
+                sens = {nm: sensors[nm][:, s] for nm in e.sensors}
+                obs = Observation(tick=k, time_s=t, speed_mps=sens["speed_mps"], position_m=sens["position_m"],
+                                  ref_speed_mps=v_ref, ref_decel_mps2=a_ref,
+                                  peer_speed_mps=peers["speed_mps"][:, s], peer_position_m=peers["position_m"][:, s],
+                                  peer_age_s=age[:, s], deflection_front_m=None, deflection_rear_m=None,
+                                  ref_position_m=nan, sensors=sens,
+                                  peer_signals={nm: arr[:, s] for nm, arr in peers.items()})
+                res = bc.step_batch(obs)
+                force = np.broadcast_to(res.brake_force_n, (self.P,))
                 for sig in cmds:
-                    cmds[sig][i, s] = float(values.get(sig, math.nan))
+                    val = force if sig == "brake_force_n" else res.commands.get(sig, nan)
+                    cmds[sig][:, s] = val
+                for sig, val in res.broadcast.items():
+                    if sig in self.bcast:
+                        self.bcast[sig][:, s] = val
+                rows[:, 1] = force
+                for c, name in enumerate(bc.diagnostic_names):
+                    rows[:, 2 + c] = res.diagnostics.get(name, nan)
             else:
-                cmds["brake_force_n"][i, s] = float(res.brake_force_n)
-            diag = res.diagnostics
-            p.ecu_rows[s].append([k, res.brake_force_n, *[diag.get(n, np.nan) for n in ctrl.diagnostic_names],
-                                  max_age_i[s], fresh_i[s]])
-        p.n_ecu_rows += 1
+                sv = {nm: sensors[nm][:, s].tolist() for nm in e.sensors}
+                vr, ar = v_ref.tolist(), a_ref.tolist()
+                for i in np.flatnonzero(live).tolist():
+                    p = self.points[i]
+                    sens = {nm: sv[nm][i] for nm in e.sensors}
+                    obs = Observation(tick=k, time_s=t, speed_mps=sens.get("speed_mps", nan),
+                                      position_m=sens.get("position_m", nan), ref_speed_mps=vr[i],
+                                      ref_decel_mps2=ar[i], peer_speed_mps=peers["speed_mps"][i, s],
+                                      peer_position_m=peers["position_m"][i, s], peer_age_s=age[i, s],
+                                      deflection_front_m=None, deflection_rear_m=None, ref_position_m=nan,
+                                      sensors=sens, peer_signals={nm: arr[i, s] for nm, arr in peers.items()})
+                    ctrl = p.ctrls[s]
+                    res = ctrl.step(obs)
+                    if res.commands:
+                        values = {"brake_force_n": res.brake_force_n, **res.commands}
+                        for sig in cmds:
+                            cmds[sig][i, s] = float(values.get(sig, nan))
+                    else:
+                        cmds["brake_force_n"][i, s] = float(res.brake_force_n)
+                    for sig, val in res.broadcast.items():
+                        if sig in self.bcast:
+                            self.bcast[sig][i, s] = val
+                    rows[i, 1] = res.brake_force_n
+                    d = res.diagnostics
+                    rows[i, 2:2 + len(ctrl.diagnostic_names)] = [d.get(nm, np.nan) for nm in ctrl.diagnostic_names]
+            rows[:, 0] = k
+            rows[:, -2] = max_age[:, s]
+            rows[:, -1] = fresh[:, s]
+        self.n_ecu_rows[live] += 1
 
     # ------------------------------------------------------------------ plant
-    def _record(self, p: _Point, final: bool = False, mm: Any = None, ref: Any = None) -> None:
-        """One signals.csv row (the layout of PlantNode.columns / _record); ``mm``, ``ref``: the
-        measurements and reference of this tick if already taken."""
-        plant = p.plant
-        mm = plant.model.measurements() if mm is None else mm
-        t = plant.k * self.dt
-        v_ref, a_ref = p.reference(t) if ref is None else ref
-        n = plant.n
-        row = p.rows[p.n_rows]
-        row[0], row[1], row[2], row[3] = plant.k, t, v_ref, a_ref
-        per_car = row[4:4 + 5 * n]
-        per_car[0::5] = mm["position_m"]
-        per_car[1::5] = mm["speed_mps"]
-        per_car[2::5] = mm["accel_mps2"]
-        per_car[3::5] = np.nan if final else plant.cmd_n
-        per_car[4::5] = mm["applied_brake_n"]
-        cpl = row[4 + 5 * n:4 + 5 * n + 2 * (n - 1)]
-        cpl[0::2] = mm["deflection_m"]
-        cpl[1::2] = mm["coupler_force_n"]
+    def _record(self, k: int, meas: dict[str, np.ndarray], refs: np.ndarray, final: bool = False,
+                which: np.ndarray | None = None) -> None:
+        """One signals.csv row for every point in ``which`` (default: those running), in the
+        layout of PlantNode.columns / _record; ``meas``, ``refs``: this tick's measurements and
+        reference (v*, a*) per point."""
+        which = self.alive if which is None else which
+        r = int(self.n_rows[which].max()) if which.any() else 0
+        n = self.n
+        row = np.full((self.P, len(self.cols)), np.nan)
+        row[:, 0], row[:, 1], row[:, 2], row[:, 3] = k, k * self.dt, refs[:, 0], refs[:, 1]
+        per_car = row[:, 4:4 + 5 * n]
+        per_car[:, 0::5] = meas["position_m"]
+        per_car[:, 1::5] = meas["speed_mps"]
+        per_car[:, 2::5] = meas["accel_mps2"]
+        per_car[:, 3::5] = np.nan if final else self.hold["brake_force_n"]
+        per_car[:, 4::5] = meas["applied_brake_n"]
+        cpl = row[:, 4 + 5 * n:4 + 5 * n + 2 * (n - 1)]
+        cpl[:, 0::2] = meas["deflection_m"]
+        cpl[:, 1::2] = meas["coupler_force_n"]
         col = 4 + 5 * n + 2 * (n - 1)
-        for name in plant.command_names:
+        for name in self.command_names:
             if name != "brake_force_n":
                 for e in self.ecus:
                     if name in e.commands:
-                        row[col] = np.nan if final else float(plant.commands[name][e.vehicle - 1])
+                        row[:, col] = np.nan if final else self.hold[name][:, e.vehicle - 1]
                         col += 1
-        for name in plant._extra_measurements():
-            row[col:col + n] = mm[name]
+        for name in self.extra_meas:
+            row[:, col:col + n] = meas[name]
             col += n
-        p.n_rows += 1
+        self.rows[r][which] = row[which]
+        self.n_rows[which] = r + 1
 
-    def _advance(self, p: _Point, k: int, mm: Any = None, ref: Any = None) -> None:
-        """The plant's end of tick k (PlantNode._advance without frames)."""
-        plant = p.plant
-        fresh = plant._fresh
-        plant.stats.commands_missed += int((~fresh).sum())
-        for s in np.flatnonzero(~fresh):
-            plant.stats.commands_missed_per_car[s] += 1
-        applied = plant._applied_commands()
-        if plant.k % plant.trace_every == 0:
-            self._record(p, mm=mm, ref=ref)
-        try:
-            plant.model.step(self.dt, applied)
-        except FloatingPointError as e:  # diverged: the run's result (PlantNode does the same)
-            plant.finished = True
-            plant.stats.status = "diverged"
-            plant.stats.extra["diverged_at_s"] = plant.k * self.dt
-            plant.stats.extra["message"] = str(e)
-            self._close(p)
-            return
-        plant.k += 1
-        plant.stats.ticks = plant.k
-        fresh[:] = False
-        if plant.k >= plant.n_ticks:
-            self._finish(p)
+    def _advance(self, k: int, meas: dict[str, np.ndarray], refs: np.ndarray) -> None:
+        """The plants' end of tick k (PlantNode._advance without frames), for every point running."""
+        from canbrake.physics.train import diverged_message
 
-    def _finish(self, p: _Point) -> None:
-        self._record(p, final=True)
-        p.plant.finished = True
-        p.plant.stats.status = "ok"
-        self._close(p)
+        live = self.alive.copy()
+        self.missed[live] += ~self.fresh[live]
+        if k % self.trace_every == 0:
+            self._record(k, meas, refs)
+        st = self.stack
+        if st is not None:
+            f = self.hold["brake_force_n"]
+            st.step(self.dt, np.where(np.isnan(f), 0.0, f))
+            gone = st.diverged_rows & live
+            for i in np.flatnonzero(gone).tolist():
+                self._diverged(i, k, diverged_message(st.time_s, float(st.diverged_dl_m[i])))
+        else:
+            for i in np.flatnonzero(live).tolist():
+                p = self.points[i]
+                applied = {c: a[i].copy() for c, a in self.hold.items()}
+                try:
+                    p.plant.model.step(self.dt, applied)
+                except FloatingPointError as e:  # diverged: the run's result (PlantNode does the same)
+                    self._diverged(i, k, str(e))
+        self.k_plant[self.alive] = k + 1
+        self.fresh[:] = False
+        if k + 1 >= self.n_ticks:
+            done = self.alive.copy()
+            if done.any():
+                self._record(k + 1, self._measurements(),
+                             np.array([p.reference((k + 1) * self.dt) for p in self.points], dtype=float),
+                             final=True, which=done)
+                for i in np.flatnonzero(done).tolist():
+                    self.points[i].plant.stats.status = "ok"
+                    self._close(i)
 
-    def _close(self, p: _Point) -> None:
-        """Write the run directory of a point that has ended (signals.csv, ECU traces, statistics)."""
+    def _diverged(self, i: int, k: int, message: str) -> None:
+        stats = self.points[i].plant.stats
+        stats.status = "diverged"
+        stats.extra["diverged_at_s"] = k * self.dt
+        stats.extra["message"] = message
+        self.k_plant[i] = k
+        self._close(i)
+
+    def _finish(self, i: int) -> None:
+        """A point still running when the loop stops early (never: every point ends at n_ticks)."""
+        self.points[i].plant.stats.status = "ok"
+        self._close(i)
+
+    def _close(self, i: int) -> None:
+        """Write the run directory of point ``i``, which has ended (signals.csv, ECU traces,
+        statistics)."""
         import json
 
-        p.alive = False
+        self.alive[i] = False
+        p = self.points[i]
+        plant = p.plant
+        plant.finished = True
+        plant.k = int(self.k_plant[i])
+        plant.stats.ticks = plant.k
+        plant.stats.commands_received = int(self.received[i])
+        plant.stats.commands_missed = int(self.missed[i].sum())
+        plant.stats.commands_missed_per_car = [int(x) for x in self.missed[i]]
+        for _ in range(int(self.rejected[i])):
+            plant.guard.reject("counter")
         rd = p.run_dir
         if rd is None:
             return
-        _write_csv(rd / "signals.csv", self.cols, p.rows[:p.n_rows])
+        _write_csv(rd / "signals.csv", self.cols, self.rows[:self.n_rows[i], i])
         for s, e in enumerate(self.ecus):
-            ctrl = p.ctrls[s]
-            header = ["tick", "brake_cmd_n", *ctrl.diagnostic_names, "max_peer_age_s", "peers_fresh"]
-            _write_csv(rd / f"ecu_c{e.vehicle}.csv", header, np.array(p.ecu_rows[s], dtype=float).reshape(
-                -1, len(header)), last_int=True)
-            stats = {"ticks": p.n_ecu_rows, "peer_frames": int(p.peer_frames[s]),
-                     "peer_corrupted": 0, "peer_stale_or_duplicate": int(p.peer_stale[s]),
-                     "peer_missing": int(p.peer_missing[s]), "deadline_misses": 0, "status": "ok",
+            names = p.ctrls[s].diagnostic_names
+            cols = [0, 1, *range(2, 2 + len(names)), -2, -1]
+            _write_csv(rd / f"ecu_c{e.vehicle}.csv", ["tick", "brake_cmd_n", *names, "max_peer_age_s", "peers_fresh"],
+                       self.ecu_rows[s][:self.n_ecu_rows[i], i][:, cols], last_int=True)
+            stats = {"ticks": int(self.n_ecu_rows[i]), "peer_frames": int(self.peer_frames[i, s]),
+                     "peer_corrupted": 0, "peer_stale_or_duplicate": int(self.peer_stale[i, s]),
+                     "peer_missing": int(self.peer_missing[i, s]), "deadline_misses": 0, "status": "ok",
                      "engine": "batch"}
             (rd / f"ecu_c{e.vehicle}_stats.json").write_text(json.dumps(stats, indent=1))
-        p.plant.close("ok")  # plant_stats.json (its trace was never opened)
-        p.ecu_rows = []
-        p.rows = p.rows[:0]
+        plant.close(plant.stats.status)  # plant_stats.json (its trace was never opened)
+
+
+def _ctrl_key(scn: Scenario, slot: int) -> tuple:
+    """What makes ECU ``slot``'s controller (0-based): its spec and its vehicle's mass."""
+    pl = scn.placement()[slot]
+    return (pl.controller.model_dump_json(), float(scn.vehicle_masses_kg()[pl.vehicle - 1]))
 
 
 def _write_csv(path: Path, header: list[str], rows: np.ndarray, last_int: bool = False) -> None:

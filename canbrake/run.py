@@ -144,18 +144,20 @@ def _clear_run_dir(out: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | None = None) -> Path:
+def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | None = None,
+                    dbc_text: str | None = None) -> Path:
     """Create ``out_dir`` afresh (an earlier run there is replaced as a whole, see
     :func:`check_out_dir`) and write the resolved scenario and the DBC used (checked against the
-    scenario). Raises :class:`ScenarioError` for bad input before anything is removed or written."""
+    scenario; ``dbc_text``: the scenario's own DBC already generated, as the batch engine does once
+    for all its points). Raises :class:`ScenarioError` for bad input before anything is removed or
+    written."""
     from canbrake.bus import dbc
 
     out = check_out_dir(out_dir)
-    dbc_text = None
-    if dbc_path is not None:
+    if dbc_path is not None and dbc_text is None:
         check_dbc_matches(scn, dbc_path)
         dbc_text = Path(dbc_path).read_text()  # before the old run (which may hold it) is removed
-    else:
+    elif dbc_text is None:
         from canbrake.build import bus_layout
 
         dbc_text = bus_layout(scn).database().as_dbc_string()

@@ -202,3 +202,20 @@ def test_quantiser_is_decode_of_encode(x, which):
         return
     got = mc.quantiser(sig)(np.array([x]))[0]
     assert got == want and math.copysign(1.0, got) == math.copysign(1.0, want)
+
+
+@pytest.mark.slow
+def test_paper_points_run_vectorised_and_equal_per_point_runs_over_half_a_second(tmp_path):
+    """Chen's paper profile (the default sweep's): every ECU slot runs the controller's batch form
+    (ChenConsensusController.step_batch) and the plants run as one stack (stack_plants), and each
+    point still equals its per-point run over 500 ticks (spacing latch, loss, delay, jitter)."""
+    from canbrake.batch import BatchEngine
+
+    specs = [({"delay": 0.0, "loss": 0.0}, 1, {}), ({"delay": 0.0, "loss": 0.05}, 5, {}),
+             ({"jitter": 0.0004}, 2, {})]
+    scns = _points("paper", 0.5, specs)
+    eng = BatchEngine(scns, [None] * len(scns))
+    assert eng.stack is not None and all(c is not None for c in eng.batch_ctrl)
+    sb, sp = _run_both(tmp_path, scns)
+    for i, spec in enumerate(specs):
+        assert _compare(tmp_path / f"batch{i}", tmp_path / f"point{i}", sb[i], sp[i]) == [], spec

@@ -222,3 +222,55 @@ def test_per_mass_ratings_scale_with_the_car():
     assert c.brake_force_max_n == pytest.approx(1.4 * M) and c.traction_force_max_n == pytest.approx(M)
     p = PISpeedController(0, 1, 18_000.0, 1e-3, brake_rating_mps2=1.4, brake_force_max_n=20_000.0)
     assert p.brake_force_max_n == 20_000.0  # the tighter limit wins
+
+
+# ---------------------------------------------------------------- the batch form (canbrake.batch)
+@pytest.mark.parametrize("car", [0, 2, 5])
+@pytest.mark.parametrize("kw", [
+    {},
+    {"nominal_spacing_m": None, "barrier": "log", "velocity_graph": "neighbours"},
+    {"observer_cancellation": "kd", "brake_rating_mps2": 1.2, "traction_rating_mps2": 0.8,
+     "observer_actuator_lag_s": 0.3, "feedforward": "velocity"},
+    {"consensus": False, "potential_field": False, "observer": False},
+])
+def test_step_batch_equals_step_point_by_point(car, kw):
+    """step_batch on P points at once gives every point the floats its own controller's step gives,
+    over 300 ticks of noisy, partly missing peer data (NaN, which delays the spacing latch) and
+    deflections beyond the barrier's bounds and the ratings (so every branch is taken)."""
+    n, P, dt = 6, 7, 1e-3
+    kw = {"nominal_spacing_m": -10.0, **kw}
+    rng = np.random.default_rng(car)
+    mk = lambda: ChenConsensusController(car_index=car, n_cars=n, mass_kg=M, dt_s=dt, **kw)  # noqa: E731
+    batch, singles = mk(), [mk() for _ in range(P)]
+    assert batch.batchable()
+    x0 = np.arange(n) * 10.0 + 10.0
+    for k in range(300):
+        v = 25.0 - 0.001 * k + rng.normal(0, 0.05, (P, n))
+        x = x0 + 25.0 * k * dt + rng.normal(0, 0.008 * (1 + k % 3), (P, n))
+        px = x.copy()
+        px[rng.random((P, n)) < (0.6 if k < 20 else 0.1)] = np.nan
+        pv = np.where(np.isnan(px), np.nan, v)
+        pv[:, car], px[:, car] = v[:, car], x[:, car]
+        age = np.where(np.isnan(px), np.inf, 0.0)
+        vr = np.full(P, V_REF) - 0.01 * k
+        ar = np.full(P, A_REF)
+        out = batch.step_batch(Observation(tick=k, time_s=k * dt, speed_mps=v[:, car], position_m=x[:, car],
+                                           ref_speed_mps=vr, ref_decel_mps2=ar, peer_speed_mps=pv,
+                                           peer_position_m=px, peer_age_s=age))
+        for p, ctrl in enumerate(singles):
+            ref = ctrl.step(Observation(tick=k, time_s=k * dt, speed_mps=float(v[p, car]), position_m=float(x[p, car]),
+                                        ref_speed_mps=float(vr[p]), ref_decel_mps2=float(ar[p]), peer_speed_mps=pv[p],
+                                        peer_position_m=px[p], peer_age_s=age[p]))
+            assert np.float64(out.brake_force_n[p]).tobytes() == np.float64(ref.brake_force_n).tobytes(), (k, p)
+            for name in ChenConsensusController.diagnostic_names:
+                got = np.broadcast_to(out.diagnostics[name], (P,))[p]
+                assert got == ref.diagnostics[name] or (math.isnan(got) and math.isnan(ref.diagnostics[name])), \
+                    (k, p, name)
+
+
+def test_step_batch_is_offered_only_where_it_is_exact():
+    assert not chen(stale_policy="extrapolate").batchable()
+    assert not chen(deflection_source="local").batchable()
+    from canbrake.control.chen_compensated import ChenCompensatedController
+
+    assert not ChenCompensatedController(1, 4, M, 1e-3, nominal_spacing_m=-10.0).batchable()

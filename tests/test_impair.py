@@ -432,3 +432,48 @@ def test_constructor_validation() -> None:
         Babbler("b", 1, 0.0)
     with pytest.raises(ValueError, match="direction"):
         build_impairments([], 0, "ecu1", direction="up")  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------- fates: the batch engine's form of submit
+_CHAINS = [
+    [{"type": "loss", "probability": 0.3}, {"type": "delay", "delay_s": 0.0037}],
+    [{"type": "delay", "delay_s": 0.002}, {"type": "loss", "probability": 0.5},
+     {"type": "jitter", "distribution": "uniform", "low_s": 0.0, "high_s": 0.004}],
+    [{"type": "jitter", "distribution": "normal", "mean_s": 0.001, "std_s": 0.002},
+     {"type": "loss", "probability": 0.2, "ids": [0x201], "start_s": 0.5, "stop_s": 1.5}],
+    [{"type": "jitter", "distribution": "exponential", "shift_s": 0.0005, "scale_s": 0.003},
+     {"type": "delay", "delay_s": 0.01, "senders": ["ecu2"]}],
+]
+
+
+@pytest.mark.parametrize("chain", _CHAINS)
+@pytest.mark.parametrize("seed", [1, 99])
+def test_fates_are_the_release_times_submit_schedules(chain, seed):
+    """SendPath.fates (the batch engine's whole-run form) gives, frame for frame, the release time
+    the same chain's submit() schedules one frame at a time (inf where submit loses it), from the
+    same generators in the same order. A frame of an exempt identifier skips the chain."""
+    a = build_impairments(chain, seed, "ecu1", exempt_ids=[0x7F0])
+    b = build_impairments(chain, seed, "ecu1", exempt_ids=[0x7F0])
+    n = 1500
+    t = np.repeat(np.arange(n) * 0.001, 2)
+    t[1::2] += 0.0005
+    ids = np.tile([0x101, 0x201], n)
+    ids[::97] = 0x7F0
+    rel = a.fates(t, ids)
+    got: dict[int, float] = {}
+    for k, (ts, i) in enumerate(zip(t.tolist(), ids.tolist())):
+        for f in b.submit(TxFrame(i, False, b"", 8, "ecu1", ts, ts, origin=k)):
+            got[f.origin] = f.t_release_s
+    ref = np.array([got.get(k, math.inf) for k in range(2 * n)])
+    assert np.array_equal(rel, ref)
+    assert np.isfinite(rel[::97]).all() and np.array_equal(rel[::97], t[::97])
+    # the generators are left where single draws leave them: later frames agree too
+    f_a = a.fates(np.array([2.0, 2.001]), np.array([0x101, 0x201]))
+    f_b = [b.submit(TxFrame(0x101, False, b"", 8, "ecu1", x, x, origin=x)) for x in (2.0, 2.001)]
+    assert f_a.tolist() == [fs[0].t_release_s if fs else math.inf for fs in f_b]
+
+
+def test_fates_refuse_what_they_cannot_reproduce():
+    path = build_impairments([{"type": "duplicate", "probability": 0.5}], 1, "ecu1")
+    with pytest.raises(NotImplementedError):
+        path.fates(np.zeros(3), np.full(3, 0x101))

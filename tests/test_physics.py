@@ -200,3 +200,57 @@ def test_softening_coupler_past_its_reversal_point_raises_instead_of_nan():
     run(stopped, [0.0, 0.0], 5.0)
     assert np.all(np.isfinite(stopped.speed_mps))
     assert np.max(np.abs(stopped.deflection_m)) < 0.3  # 0.1 m + ≈ v·sqrt(μ/k_stop) = 0.11 m overrun
+
+
+# ---------------------------------------------------------------- stacked plants (the batch engine)
+def test_a_stack_of_plants_steps_each_row_as_its_own_plant():
+    """stack_plants: P plants with different masses, couplers and commands stepped as one give every
+    row the floats of its own plant, bit for bit, including cars stopping under friction and a
+    point that diverges (flagged, parked, its neighbours untouched)."""
+    from canbrake.physics.train import PlantDiverged, TrainPlant, stack_plants
+
+    rng = np.random.default_rng(3)
+    P, n = 5, 6
+    mk = lambda p: TrainPlant(18000 + 500 * p + 100 * np.arange(n), 10.0 * np.arange(n),  # noqa: E731
+                              2.0 + rng.normal(0, 0.3, n), coupler_stiffness_n_per_m=80_000 + 1000 * p,
+                              grade_rad=0.001 * p)
+    singles = [mk(p) for p in range(P)]
+    st = stack_plants([TrainPlant(s.mass_kg, s._x0, s._v0, coupler_stiffness_n_per_m=s.coupler_stiffness_n_per_m,
+                                  grade_rad=0.001 * p) for p, s in enumerate(singles)])
+    assert st is not None
+    dead = None
+    with np.errstate(all="ignore"):
+        _step_both(st, singles, rng, P, n)
+
+
+def _step_both(st, singles, rng, P, n):
+    from canbrake.physics.train import PlantDiverged
+
+    dead = None
+    for k in range(3000):
+        cmd = rng.normal(20_000, 15_000, (P, n))
+        if k == 1500:
+            cmd[3, 0] = -1e9  # traction on one car drives point 3's softening couplers past their peak
+        st.step(1e-3, cmd)
+        for p, s in enumerate(singles):
+            if p == dead:
+                continue
+            try:
+                s.step(1e-3, cmd[p])
+            except PlantDiverged:
+                dead = p
+                assert st.diverged_rows[p]
+                continue
+            for name in ("position_m", "speed_mps", "accel_mps2", "applied_force_n"):
+                assert getattr(s, name).tobytes() == getattr(st, name)[p].tobytes(), (k, p, name)
+    assert dead == 3 and st.diverged_rows.tolist() == [False, False, False, True, False]
+    assert (st.speed_mps[[0, 1, 2, 4]] == 0.0).any()  # some cars stopped under friction (the other branch)
+
+
+def test_plants_that_cannot_be_stacked_are_refused():
+    from canbrake.physics.train import TrainPlant, stack_plants
+
+    a = TrainPlant([1e4, 1e4], [0.0, 10.0], [1.0, 1.0])
+    b = TrainPlant([1e4, 1e4], [0.0, 10.0], [1.0, 1.0], end_stop_m=0.08)
+    assert stack_plants([a, a]) is not None
+    assert stack_plants([a, b]) is None

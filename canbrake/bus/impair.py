@@ -149,6 +149,15 @@ class Selector:
             return False
         return True
 
+    def matches_many(self, t_submit_s: np.ndarray, ids: np.ndarray, sender: str) -> np.ndarray:
+        """:meth:`matches` for many frames of one ``sender``: bool array, shape of ``t_submit_s``."""
+        if self.senders is not None and sender not in self.senders:
+            return np.zeros(t_submit_s.shape, dtype=bool)
+        ok = (t_submit_s >= self.start_s) & (t_submit_s < self.stop_s)
+        if self.ids is not None:
+            ok &= np.isin(ids, np.fromiter(self.ids, dtype=np.int64))
+        return ok
+
 
 _ALL = Selector()
 
@@ -226,6 +235,39 @@ class FrameImpairment:
     def _apply(self, frame: TxFrame) -> list[TxFrame]:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def apply_many(self, t_submit_s: np.ndarray, ids: np.ndarray, sender: str, release_s: np.ndarray,
+                   alive: np.ndarray) -> None:
+        """:meth:`apply` on a whole sequence of frames of one ``sender``, submitted in array order
+        (for the batch engine, :meth:`SendPath.fates`): ``release_s`` (s) and ``alive`` (False =
+        lost) are updated in place; the random draws are those ``apply`` would make, in the same
+        order. Only impairments that pass, delay or drop a frame (no copies) implement it."""
+        raise NotImplementedError(f"{type(self).__name__} has no vectorised form")
+
+    def _draws(self, n: int, normal: bool = False) -> np.ndarray:
+        """The next ``n`` values :meth:`_uniform` (or :meth:`_normal`) would return, in order; the
+        block buffer is left where ``n`` single draws would leave it."""
+        buf, i = (self._n, self._ni) if normal else (self._u, self._ui)
+        rest = buf[i:]
+        if n <= len(rest):
+            out = np.asarray(rest[:n], dtype=float)
+            if normal:
+                self._ni = i + n
+            else:
+                self._ui = i + n
+            return out
+        need = n - len(rest)
+        nb = -(-need // self._BLOCK)
+        # a Generator draws the same stream in one call of k·256 as in k calls of 256
+        new = self.rng.standard_normal(nb * self._BLOCK) if normal else self.rng.random(nb * self._BLOCK)
+        out = np.concatenate([np.asarray(rest, dtype=float), new[:need]])
+        last = new[(nb - 1) * self._BLOCK:].tolist()
+        used = need - (nb - 1) * self._BLOCK
+        if normal:
+            self._n, self._ni = last, used
+        else:
+            self._u, self._ui = last, used
+        return out
+
     def _uniform(self) -> float:
         """Next uniform draw in [0, 1)."""
         i = self._ui
@@ -271,6 +313,14 @@ class Delay(FrameImpairment):
         self.n_modified += 1
         return [frame]
 
+    def apply_many(self, t_submit_s: np.ndarray, ids: np.ndarray, sender: str, release_s: np.ndarray,
+                   alive: np.ndarray) -> None:
+        hit = alive & self.selector.matches_many(t_submit_s, ids, sender)
+        release_s[hit] += self.delay_s
+        n = int(hit.sum())
+        self.n_matched += n
+        self.n_modified += n
+
 
 class _Jitter(FrameImpairment):
     kind = "jitter"
@@ -282,6 +332,18 @@ class _Jitter(FrameImpairment):
         frame.t_release_s += self._sample()
         self.n_modified += 1
         return [frame]
+
+    def _samples(self, n: int) -> np.ndarray:
+        """The next ``n`` values of :meth:`_sample`, in order."""
+        return np.asarray([self._sample() for _ in range(n)], dtype=float)
+
+    def apply_many(self, t_submit_s: np.ndarray, ids: np.ndarray, sender: str, release_s: np.ndarray,
+                   alive: np.ndarray) -> None:
+        hit = alive & self.selector.matches_many(t_submit_s, ids, sender)
+        n = int(hit.sum())
+        release_s[hit] += self._samples(n)
+        self.n_matched += n
+        self.n_modified += n
 
 
 class UniformJitter(_Jitter):
@@ -297,6 +359,9 @@ class UniformJitter(_Jitter):
 
     def _sample(self) -> float:
         return self.low_s + (self.high_s - self.low_s) * self._uniform()
+
+    def _samples(self, n: int) -> np.ndarray:
+        return self.low_s + (self.high_s - self.low_s) * self._draws(n)
 
 
 class NormalJitter(_Jitter):
@@ -349,6 +414,16 @@ class BernoulliLoss(FrameImpairment):
             self.n_dropped += 1
             return []
         return [frame]
+
+    def apply_many(self, t_submit_s: np.ndarray, ids: np.ndarray, sender: str, release_s: np.ndarray,
+                   alive: np.ndarray) -> None:
+        hit = alive & self.selector.matches_many(t_submit_s, ids, sender)
+        n = int(hit.sum())
+        lost = self._draws(n) < self.probability
+        idx = np.flatnonzero(hit)[lost]
+        alive[idx] = False
+        self.n_matched += n
+        self.n_dropped += int(lost.sum())
 
 
 class GilbertElliottLoss(FrameImpairment):
@@ -601,6 +676,28 @@ class SendPath:
             self._seq += 1
         self.n_scheduled += len(frames)
         return frames
+
+    def fates(self, t_submit_s: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Release times (s; ``inf`` = lost) of a known sequence of frames of this node, submitted in
+        array order (shape (n,)), as :meth:`submit` would schedule them one by one: the same
+        impairments, draws and float operations. For the batch engine (:mod:`canbrake.batch`), which
+        knows every frame a node will send before the run. Raises NotImplementedError for chains
+        with traffic sources or impairments that copy frames (duplicate) or act on payloads."""
+        if self.sources:
+            raise NotImplementedError("a send path with traffic sources")
+        rel = np.array(t_submit_s, dtype=float)
+        alive = ~np.isin(ids, np.fromiter(self.exempt_ids, dtype=np.int64)) if self.exempt_ids else \
+            np.ones(rel.shape, dtype=bool)
+        chained = alive.copy()
+        for imp in self.impairments:
+            if not isinstance(imp, FrameImpairment):
+                raise NotImplementedError(f"{type(imp).__name__}")
+            imp.apply_many(t_submit_s, ids, self.node, rel, chained)
+        n = rel.size
+        self.n_submitted += n
+        self.n_scheduled += int(chained.sum()) + int((~alive).sum())
+        rel[~chained & alive] = math.inf
+        return rel
 
     def release(self, t_now_s: float) -> list[TxFrame]:
         """Frames with ``t_release_s <= t_now_s``, in release-time order; the rest stay held."""

@@ -34,7 +34,7 @@ value as is, ``"extrapolate"`` advances it by its age (x + v·age − a*·age²/
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -59,7 +59,27 @@ def barrier_gradient(z: float, z_lower: float, z_upper: float, kind: str = "inve
     elif z < zl:
         z = zl
     if kind == "inverse_square":
-        g = 2.0 / (z_upper - z) ** 3 - 2.0 / (z - z_lower) ** 3
+        # cubes as products, not ** 3: numpy's vectorised power rounds differently from libm's pow in
+        # ~5 % of cases, and barrier_gradient_many must give the same floats
+        a, b = z_upper - z, z - z_lower
+        g = 2.0 / (a * a * a) - 2.0 / (b * b * b)
+        g0 = 2.0 / z_upper**3 - 2.0 / (-z_lower) ** 3
+    elif kind == "log":
+        g = 1.0 / (z_upper - z) - 1.0 / (z - z_lower)
+        g0 = 1.0 / z_upper - 1.0 / (-z_lower)
+    else:  # pragma: no cover - validated in the constructor
+        raise ValueError(kind)
+    return g - g0
+
+
+def barrier_gradient_many(z: np.ndarray, z_lower: float, z_upper: float, kind: str = "inverse_square",
+                          clip: float = 0.99) -> np.ndarray:
+    """:func:`barrier_gradient` elementwise (the same operations, so the same floats)."""
+    zl, zu = z_lower * clip, z_upper * clip
+    z = np.where(z > zu, zu, np.where(z < zl, zl, z))
+    if kind == "inverse_square":
+        a, b = z_upper - z, z - z_lower
+        g = 2.0 / (a * a * a) - 2.0 / (b * b * b)
         g0 = 2.0 / z_upper**3 - 2.0 / (-z_lower) ** 3
     elif kind == "log":
         g = 1.0 / (z_upper - z) - 1.0 / (z - z_lower)
@@ -204,6 +224,7 @@ class ChenConsensusController(Controller):
             adj[max(i - 1, 0): i + 2] = True
         adj[i] = False
         self._adj_a = adj
+        self._adj_idx = np.flatnonzero(adj).tolist()
         self._adj_f = adj.astype(float)
         self._n_adj = int(np.count_nonzero(adj))
         self._spacing_cfg = nominal_spacing_m
@@ -290,9 +311,14 @@ class ChenConsensusController(Controller):
         """Σ_j a_ij (v_i − v_j) over the usable peers (m/s)."""
         pv = obs.peer_speed_mps
         if self.stale_policy == "hold":
-            total = float(self._adj_f.dot(pv))
-            if total == total:  # fast path: every peer known
-                return self._n_adj * obs.speed_mps - total
+            # summed peer by peer in index order (not a BLAS dot, whose order depends on n): the
+            # batch engine's step_batch sums in the same order and gets the same floats
+            total, cnt = 0.0, 0
+            for pj in pv[self._adj_idx].tolist():
+                if pj == pj:
+                    total += pj
+                    cnt += 1
+            return cnt * obs.speed_mps - total if cnt else 0.0
         ok = self._adj_a & (pv == pv)
         if self.stale_policy == "drop":
             ok &= obs.peer_age_s <= self.stale_timeout_s
@@ -360,5 +386,98 @@ class ChenConsensusController(Controller):
                 "u_observer_n": force_obs,
                 "deflection_front_m": math.nan if front is None else front,
                 "deflection_rear_m": math.nan if rear is None else rear,
+            },
+        )
+
+    # ------------------------------------------------------------------ batch form
+    def batchable(self) -> bool:
+        """Whether :meth:`step_batch` covers this configuration (peer positions held as received)."""
+        return (type(self).step is ChenConsensusController.step and self.stale_policy == "hold"
+                and self.deflection_source == "peer_position")
+
+    def step_batch(self, obs: Observation) -> ControlOutput:
+        """:meth:`step` for P sweep points at once (the batch engine, :mod:`canbrake.batch`).
+
+        Every scalar field of ``obs`` has shape (P,), every peer array (P, n_cars); the result's
+        fields have shape (P,). The first call makes the state per point (this object then serves
+        only batches). The operations are those of :meth:`step` in the same order, so each point's
+        force equals the one its own controller computes, bit for bit (tests/test_batch_sweep.py)."""
+        v, x = obs.speed_mps, obs.position_m
+        P = v.shape[0]
+        if not hasattr(self, "_b_latched"):
+            self._obs.reset_many(P)
+            self._force_model_n = np.zeros(P)
+            self._b_latched = np.full(P, self._latched)
+            self._b_front = np.full(P, np.nan if self._spacing_front is None else self._spacing_front)
+            self._b_rear = np.full(P, np.nan if self._spacing_rear is None else self._spacing_rear)
+        m, kb = self.mass_kg, self.brake_gain
+        i, n = self.car_index, self.n_cars
+        px = obs.peer_position_m
+        # deflections: the spacing is latched once both neighbours' positions have arrived
+        ok_f = np.ones(P, dtype=bool) if i == 0 else ~np.isnan(px[:, i - 1])
+        ok_r = np.ones(P, dtype=bool) if i == n - 1 else ~np.isnan(px[:, i + 1])
+        new = ~self._b_latched & ok_f & ok_r
+        if new.any():
+            if i > 0:
+                self._b_front = np.where(new, px[:, i - 1] - x, self._b_front)
+            if i < n - 1:
+                self._b_rear = np.where(new, x - px[:, i + 1], self._b_rear)
+            self._b_latched = self._b_latched | new
+        front = (px[:, i - 1] - x) - self._b_front if i > 0 else None  # NaN = unknown
+        rear = (x - px[:, i + 1]) - self._b_rear if i < n - 1 else None
+        f_ok = None if front is None else ~np.isnan(front)
+        r_ok = None if rear is None else ~np.isnan(rear)
+
+        u1: Any = 0.0
+        if self.consensus:
+            pos: Any = 0.0
+            if rear is not None:
+                pos = pos + np.where(r_ok, rear, 0.0)
+            if front is not None:
+                pos = pos - np.where(f_ok, front, 0.0)
+            pv = obs.peer_speed_mps
+            total, cnt = np.zeros(P), np.zeros(P)
+            for j in self._adj_idx:
+                pj = pv[:, j]
+                ok = pj == pj
+                total = total + np.where(ok, pj, 0.0)
+                cnt = cnt + ok
+            sd = np.where(cnt > 0, cnt * v - total, 0.0)
+            u1 = self._scale * (self.alpha1 * sd + self.alpha2 * pos)
+
+        u2: Any = 0.0
+        if self.potential_field:
+            unit, zl, zu, kind, clip = self.barrier_unit_m, self._z_lower, self._z_upper, self.barrier, self.barrier_clip
+            g: Any = 0.0
+            if rear is not None:
+                g = g + np.where(r_ok, barrier_gradient_many(rear / unit, zl, zu, kind, clip), 0.0)
+            if front is not None:
+                g = g - np.where(f_ok, barrier_gradient_many(front / unit, zl, zu, kind, clip), 0.0)
+            u2 = self._scale * self.delta * g
+
+        ff = obs.ref_decel_mps2 if self.feedforward == "decel" else obs.ref_speed_mps
+        u3 = m * (self.k * (v - obs.ref_speed_mps) + ff)
+
+        phi_hat = self._obs.update_many(x, v)
+        force_obs: Any = 0.0
+        if self.observer:
+            force_obs = m * phi_hat if self.observer_cancellation == "mass" else kb * self.k_d * phi_hat
+
+        force = kb * (u1 + u2 + u3) + force_obs
+        bmax, tmax = self.brake_force_max_n, -self.traction_force_max_n
+        force = np.where(force > bmax, bmax, np.where(force < tmax, tmax, force))
+        self._force_model_n = self._force_model_n + self._lag_alpha * (force - self._force_model_n)
+        self._obs.predict_many(self._force_model_n)
+        nan = np.full(P, np.nan)
+        return ControlOutput(
+            brake_force_n=force,
+            diagnostics={
+                "observer_accel_mps2": phi_hat,
+                "u_consensus_n": kb * u1,
+                "u_potential_n": kb * u2,
+                "u_tracking_n": kb * u3,
+                "u_observer_n": force_obs,
+                "deflection_front_m": nan if front is None else front,
+                "deflection_rear_m": nan if rear is None else rear,
             },
         )

@@ -32,9 +32,16 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 
 def _sat(z: float) -> float:
     return 1.0 if z > 1.0 else (-1.0 if z < -1.0 else z)
+
+
+def _sat_many(z: np.ndarray) -> np.ndarray:
+    """:func:`_sat` elementwise (NaN stays NaN, as in the scalar form)."""
+    return np.where(z > 1.0, 1.0, np.where(z < -1.0, -1.0, z))
 
 
 class SlidingModeObserver:
@@ -95,6 +102,43 @@ class SlidingModeObserver:
         self.phi_hat_mps2 = lim if phi > lim else (-lim if phi < -lim else phi)
         self._e1 = position_m - self.x_hat
         return self.phi_hat_mps2
+
+    def reset_many(self, n_points: int) -> None:
+        """Batch form (:mod:`canbrake.batch`): the state becomes arrays of shape (n_points,), one
+        observer per sweep point; use :meth:`update_many` / :meth:`predict_many` from then on."""
+        self.x_hat = np.full(n_points, np.nan)
+        self.v_hat = np.full(n_points, np.nan)
+        self.phi_hat_mps2 = np.zeros(n_points)
+        self.phi_raw_mps2 = np.zeros(n_points)
+
+    def update_many(self, position_m: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
+        """:meth:`update` for every point at once (shape (P,)): the same operations in the same
+        order, so each point's estimate equals its scalar observer's bit for bit."""
+        init = np.isnan(self.v_hat)
+        if init.any():
+            self.x_hat = np.where(init, position_m, self.x_hat)
+            self.v_hat = np.where(init, speed_mps, self.v_hat)
+        e2 = speed_mps - self.v_hat
+        emax = self.error_limit_mps
+        hi, lo = e2 > emax, e2 < -emax
+        wound = hi | lo
+        if wound.any():
+            e2 = np.where(hi, emax, np.where(lo, -emax, e2))
+            self.v_hat = np.where(wound, speed_mps - e2, self.v_hat)
+        raw = self.gamma2_mps2 * _sat_many(e2 / self.boundary_vel_mps)
+        self.phi_raw_mps2 = raw
+        phi = self.phi_hat_mps2 + self._alpha * (raw - self.phi_hat_mps2)
+        lim = self.limit_mps2
+        self.phi_hat_mps2 = np.where(phi > lim, lim, np.where(phi < -lim, -lim, phi))
+        self._e1 = position_m - self.x_hat
+        return self.phi_hat_mps2
+
+    def predict_many(self, brake_force_n: np.ndarray) -> None:
+        """:meth:`predict` for every point at once (shape (P,))."""
+        dt = self.dt_s
+        s1 = _sat_many(self._e1 / self.boundary_pos_m)
+        self.x_hat = self.x_hat + dt * (self.v_hat + self.gamma1_mps * s1)
+        self.v_hat = self.v_hat + dt * (-brake_force_n / self.mass_kg + self.phi_raw_mps2)
 
     def predict(self, brake_force_n: float) -> None:
         """Propagate to the next tick with the force held over the period (N, + = brake)."""

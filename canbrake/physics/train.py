@@ -72,6 +72,12 @@ class PlantDiverged(FloatingPointError):
     """The state became non-finite (e.g. a softening coupler was driven past its force peak)."""
 
 
+def diverged_message(time_s: float, max_deflection_m: float) -> str:
+    """What a coupled train's divergence is reported as (time after the step, s; last max |Δl|, m)."""
+    return (f"train state not finite at t = {time_s:.3f} s; last max |Δl| = {max_deflection_m:.3g} m "
+            "(a softening coupler, ε < 0, reverses beyond |Δl| = sqrt(-1/ε); consider end_stop_m)")
+
+
 GradeSpec = float | Sequence[float] | np.ndarray | Callable[[np.ndarray], np.ndarray]
 
 
@@ -204,6 +210,8 @@ class TrainPlant:
         self.wsp_valve_lag_s = float(wsp_valve_lag_s)
         self.wsp_max_vent_s = float(wsp_max_vent_s)
         self._wheels0 = None if wheels is None else wheels.omega.copy()
+        #: a stack of plants (stack_plants): arrays have a leading points axis
+        self.stacked = False
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -228,12 +236,12 @@ class TrainPlant:
     @property
     def deflection_m(self) -> np.ndarray:
         """Coupler deflections Δl_i = x_i − x_{i+1} − s_i (m), shape ``(n-1,)``."""
-        return self.position_m[:-1] - self.position_m[1:] - self.coupler_spacing_m
+        return self.position_m[..., :-1] - self.position_m[..., 1:] - self.coupler_spacing_m
 
     @property
     def coupler_force_n(self) -> np.ndarray:
         """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1."""
-        return self.coupler_force_from_deflection(self.deflection_m, self.speed_mps[:-1] - self.speed_mps[1:])
+        return self.coupler_force_from_deflection(self.deflection_m, self.speed_mps[..., :-1] - self.speed_mps[..., 1:])
 
     @property
     def brake_effort_n(self) -> np.ndarray:
@@ -328,8 +336,8 @@ class TrainPlant:
         """Advance ``dt_s`` seconds holding ``brake_command_n`` (N per car, + = brake, − = traction) and,
         with wheelsets, the wheel-slide-protection valve command ``wsp_release`` (0..1 per car, NaN = none)."""
         cmd = np.asarray(brake_command_n, dtype=float)
-        if cmd.shape != (self.n_cars,):
-            raise ValueError(f"brake_command_n must have shape ({self.n_cars},)")
+        if cmd.shape != self.speed_mps.shape:
+            raise ValueError(f"brake_command_n must have shape {self.speed_mps.shape}")
         if self.blending is not None or self.wheels is not None:
             return self._step_equipped(dt_s, cmd, wsp_release)
         n_sub = self._substeps(dt_s)
@@ -361,12 +369,14 @@ class TrainPlant:
                 effort = act.advance(cmd, h)
                 rail = effort if plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
             # non-dissipative forces: couplers, traction, grade, disturbances
-            dl = x[:-1] - x[1:] - spacing
+            dl = x[..., :-1] - x[..., 1:] - spacing
             if end_stop:
-                phi = self.coupler_force_from_deflection(dl, v[:-1] - v[1:])
+                phi = self.coupler_force_from_deflection(dl, v[..., :-1] - v[..., 1:])
             else:
                 phi = dl * (kappa + kappa_eps * (dl * dl))
-            f = fc = incidence.dot(phi)  # f_i = Φ_{i-1} − Φ_i
+            # f_i = Φ_{i-1} − Φ_i (entries ±1 and 0: exact in any summation order, so a stacked
+            # plant's rows equal the single plants' values)
+            f = fc = incidence.dot(phi) if phi.ndim == 1 else phi @ incidence.T
             brake = rail
             if ideal_no_traction is None or not ideal_no_traction:
                 has_traction = rail.min() < 0.0
@@ -386,7 +396,7 @@ class TrainPlant:
             # dissipative forces: brake + resistance, Coulomb-like
             speed = np.abs(v)
             r = brake + c_static + speed * (c1 + c2 * speed)
-            if np.count_nonzero(v) == n_cars:  # every car moving
+            if np.count_nonzero(v) == v.size:  # every car moving
                 sgn = np.sign(v)
                 v_new = v + (h * inv_m) * (f - sgn * r)
                 if (sgn * v_new).min() < 0.0:  # friction stops a car, never reverses it
@@ -402,12 +412,18 @@ class TrainPlant:
             x = x + (0.5 * h) * (v + v_new) + np.where((v != 0.0) | (v_new != 0.0), (0.5 * h * h) * inv_m * fc, 0.0)
             v_before, v = v, v_new
             self.time_s = t + h
-        if not math.isfinite(float(v.sum())):
-            raise PlantDiverged(
-                f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = "
-                f"{float(np.max(np.abs(dl))) if dl.size else 0.0:.3g} m (a softening coupler, ε < 0, "
-                "reverses beyond |Δl| = sqrt(-1/ε); consider end_stop_m)"
-            )
+        if self.stacked:  # rows of points that diverged: noted, and parked at rest (see stack_plants)
+            bad = ~np.isfinite(v).all(axis=-1)
+            if bad.any():
+                first = bad & ~self.diverged_rows
+                if first.any():
+                    self.diverged_dl_m = np.where(first, np.max(np.abs(dl), axis=-1) if dl.shape[-1] else 0.0,
+                                                  self.diverged_dl_m)
+                self.diverged_rows = self.diverged_rows | bad
+                x, v, rail = (np.where(bad[:, None], 0.0, a) for a in (x, v, np.broadcast_to(rail, x.shape)))
+                v_before = np.where(bad[:, None], 0.0, v_before)
+        elif not math.isfinite(float(v.sum())):
+            raise PlantDiverged(diverged_message(self.time_s, float(np.max(np.abs(dl))) if dl.size else 0.0))
         self.accel_mps2 = (v - v_before) / h
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
@@ -472,7 +488,17 @@ class TrainPlant:
             x = x + h * v_new
             v_before, v = v, v_new
             self.time_s = t + h
-        if not math.isfinite(float(v.sum())):
+        if self.stacked:  # rows of points that diverged: noted, and parked at rest (see stack_plants)
+            bad = ~np.isfinite(v).all(axis=-1)
+            if bad.any():
+                first = bad & ~self.diverged_rows
+                if first.any():
+                    self.diverged_dl_m = np.where(first, np.max(np.abs(dl), axis=-1) if dl.shape[-1] else 0.0,
+                                                  self.diverged_dl_m)
+                self.diverged_rows = self.diverged_rows | bad
+                x, v, rail = (np.where(bad[:, None], 0.0, a) for a in (x, v, np.broadcast_to(rail, x.shape)))
+                v_before = np.where(bad[:, None], 0.0, v_before)
+        elif not math.isfinite(float(v.sum())):
             raise PlantDiverged(f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = "
                                 f"{float(np.max(np.abs(dl))) if dl.size else 0.0:.3g} m")
         self.accel_mps2 = (v - v_before) / h
@@ -496,3 +522,50 @@ class TrainPlant:
                 out[f"axle{j + 1}_slip"] = w.slip[:, j].copy()
                 out[f"axle{j + 1}_adhesion_n"] = w.force_n[:, j].copy()
         return out
+
+
+#: per-car arrays of a plant that a stack holds per point (shape (P, n) or (P, n-1))
+_STACKED = ("mass_kg", "_inv_m", "coupler_spacing_m", "coupler_stiffness_n_per_m", "coupler_nonlinearity_per_m2",
+            "_kappa_eps", "_c_static", "position_m", "speed_mps", "accel_mps2", "applied_force_n")
+
+
+def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
+    """One plant that steps P plants of the same kind at once (the batch engine's sweep points):
+    a copy of the first whose per-car arrays and state have a leading points axis, shape (P, n).
+    :meth:`TrainPlant.step` then computes every point's row with the operations a single plant
+    uses, so each row equals its own plant's state bit for bit (tests/test_batch_sweep.py). A
+    point whose state becomes non-finite is flagged in ``diverged_rows`` and parked at rest.
+
+    None where the plants do not qualify: brake equipment (blending, wheelsets), an end stop (its
+    sub-step depends on each point's state), a grade function, or plants that differ in anything
+    but their per-car arrays (actuator, rail conditions, disturbances, sub-step, gravity)."""
+    import copy
+
+    p0 = plants[0]
+    for p in plants:
+        if (p.blending is not None or p.wheels is not None or p.end_stop_m is not None or p._grade_fn is not None
+                or p.n_cars != p0.n_cars or repr(p.actuator) != repr(p0.actuator) or repr(p.rail) != repr(p0.rail)
+                or repr(p.disturbances) != repr(p0.disturbances) or p.max_substep_s != p0.max_substep_s
+                or p.gravity_mps2 != p0.gravity_mps2 or p.time_s != p0.time_s
+                or p._act.params.kind != "ideal" and np.any(p._act.effort_n != 0.0)):
+            return None
+    st = copy.copy(p0)
+    st.stacked = True
+    for name in _STACKED:
+        setattr(st, name, np.stack([np.broadcast_to(np.asarray(getattr(p, name), dtype=float),
+                                                    np.shape(getattr(p0, name))) for p in plants]))
+    res = copy.copy(p0.resistance)
+    for name in ("c0_n", "c1_n_per_mps", "c2_n_per_mps2"):
+        object.__setattr__(res, name, np.stack([np.asarray(getattr(p.resistance, name), dtype=float)
+                                                for p in plants]))
+    st.resistance = res
+    st._has_grade = any(p._has_grade for p in plants)
+    st._grade_force = None if p0._grade_force is None else np.stack([p._grade_force for p in plants])
+    st._act = ActuatorState(p0.actuator, st.mass_kg)
+    st._mu = np.broadcast_to(p0._mu, st.speed_mps.shape).copy()
+    st._eff = np.ones(st.speed_mps.shape)
+    st._base_mu = p0._base_mu
+    st._rail_key = None
+    st.diverged_rows = np.zeros(len(plants), dtype=bool)
+    st.diverged_dl_m = np.zeros(len(plants))
+    return st
