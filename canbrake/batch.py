@@ -133,6 +133,14 @@ def batch_key(scn: Scenario) -> tuple:
             tuple((e.sensors, e.commands, e.broadcast, e.listens, e.listeners) for e in lay.ecus))
 
 
+def point_bytes(scn: Scenario) -> int:
+    """Memory (bytes, estimate) a point takes in a batch: its signals.csv rows and ECU traces (held
+    until the point ends, floats) and its frames' schedule (two kinds, four int32 per frame)."""
+    n, m, ticks = scn.n_cars, len(scn.placement()), scn.n_ticks
+    cols = 4 + 7 * n + m * (4 + 12)  # per-car and coupler columns; per ECU up to 12 diagnostics
+    return ticks * (8 * cols + 2 * m * 16)
+
+
 def batch_groups(scns: Sequence[Scenario]) -> list[list[int]]:
     """Indices of ``scns`` grouped into batches that can run together (same layout and length)."""
     groups: dict[tuple, list[int]] = {}
@@ -361,7 +369,8 @@ class BatchEngine:
         rank = idx - np.maximum.accumulate(np.where(new, idx, 0))
         max_rank = np.full(n_win, -1, dtype=np.int64)
         np.maximum.at(max_rank, w, rank)
-        return _Deliveries(i, j, k, rank, np.searchsorted(w, np.arange(n_win + 1)), max_rank)
+        return _Deliveries(i.astype(np.int32), j.astype(np.int32), k.astype(np.int32), rank.astype(np.int32),
+                           np.searchsorted(w, np.arange(n_win + 1)), max_rank)
 
     def _window(self, kind: str, w: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """Window w's frames of ``kind`` of the points still running, as rounds (point, sender,

@@ -652,6 +652,9 @@ def _done_summary(task: PointTask) -> dict[str, Any] | None:
 #: the batch engine costs about the same for 8 points as for 64: numpy per-call overhead), fewer
 #: balance the workers and report progress more often
 BATCH_MAX_POINTS = 64
+#: a batch holds its points' traces in memory until they end (canbrake.batch.point_bytes): at most
+#: this much per batch, i.e. per worker (64 points of Chen case 1 x 10 s: ~0.9 GB)
+BATCH_MEMORY_BYTES = 1 << 30
 ENGINES = ("auto", "batch", "points")
 
 
@@ -670,8 +673,11 @@ def plan_batches(tasks: Sequence[PointTask], workers: int) -> tuple[list[list[Po
     """(batches for the batch engine, tasks to run one by one, fallback reasons -> count)."""
     from canbrake.batch import batch_key
 
+    from canbrake.batch import point_bytes
+
     reasons: dict[str, int] = {}
     groups: dict[tuple, list[PointTask]] = {}
+    size: dict[tuple, int] = {}
     single: list[PointTask] = []
     for t in tasks:
         why = batch_unsupported(t)
@@ -679,13 +685,18 @@ def plan_batches(tasks: Sequence[PointTask], workers: int) -> tuple[list[list[Po
             reasons[why] = reasons.get(why, 0) + 1
             single.append(t)
             continue
-        groups.setdefault(batch_key(Scenario.model_validate(t.scenario)), []).append(t)
+        scn = Scenario.model_validate(t.scenario)
+        key = batch_key(scn)
+        groups.setdefault(key, []).append(t)
+        size.setdefault(key, point_bytes(scn))
     batches: list[list[PointTask]] = []
     w = max(1, workers)
-    for g in groups.values():
-        # a multiple of the workers' number of batches of at most BATCH_MAX_POINTS points, dealt
-        # round robin (neighbouring grid points cost alike: e.g. a row of early divergences)
-        nb = w * -(-(-(-len(g) // BATCH_MAX_POINTS)) // w) if len(g) > w else len(g)
+    for key, g in groups.items():
+        # a multiple of the workers' number of batches of at most BATCH_MAX_POINTS points (fewer
+        # where a batch would hold more than BATCH_MEMORY_BYTES of traces), dealt round robin
+        # (neighbouring grid points cost alike: e.g. a row of early divergences)
+        most = max(1, min(BATCH_MAX_POINTS, BATCH_MEMORY_BYTES // size[key]))
+        nb = w * -(-(-(-len(g) // most)) // w) if len(g) > w else len(g)
         batches += [b for b in (g[i::nb] for i in range(nb)) if b]
     return batches, single, reasons
 

@@ -219,3 +219,21 @@ def test_paper_points_run_vectorised_and_equal_per_point_runs_over_half_a_second
     sb, sp = _run_both(tmp_path, scns)
     for i, spec in enumerate(specs):
         assert _compare(tmp_path / f"batch{i}", tmp_path / f"point{i}", sb[i], sp[i]) == [], spec
+
+
+def test_batches_hold_at_most_their_memory_budget(tmp_path):
+    """Long points make smaller batches: a batch keeps its points' traces until they end, so
+    plan_batches caps it at BATCH_MEMORY_BYTES (10 s points of Chen case 1: the full 64)."""
+    from canbrake.batch import point_bytes
+
+    axes = [sw.parse_grid("delay=0:20ms:9"), sw.parse_grid("loss=0:0.2:9")]
+    caps = {}
+    for dur in (10.0, 120.0):
+        plan = sw.plan_sweep(CASE1, axes, tmp_path / f"p{dur:g}", duration_s=dur, seeds=1)
+        batches, single, _ = sw.plan_batches(plan.tasks, 1)
+        assert not single and sum(map(len, batches)) == 81
+        caps[dur] = sw.BATCH_MEMORY_BYTES // point_bytes(plan.base.model_copy(update={"duration_s": dur}))
+        assert max(map(len, batches)) <= min(sw.BATCH_MAX_POINTS, caps[dur])
+        if dur == 120.0:
+            assert len(batches) >= 81 / caps[dur]
+    assert caps[10.0] >= sw.BATCH_MAX_POINTS > caps[120.0] * 8
