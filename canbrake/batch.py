@@ -123,14 +123,17 @@ def unsupported(scn: Scenario, base_impairments: int = 0) -> str | None:
 
 
 def batch_key(scn: Scenario) -> tuple:
-    """Points that share this key run in one batch: same cars, ECUs, signals and number of ticks."""
+    """Points that share this key run in one batch: same cars, ECUs, signals, number of ticks and
+    controllers."""
     from canbrake.build import bus_layout
 
     lay = bus_layout(scn)
     return (scn.n_cars, scn.n_ticks, scn.control_period_s, scn.ecu.lockstep_deadline, scn.plant.trace_every,
             tuple((m.kind, m.ecu, m.frame_id, tuple((sig, sp.name, sp.scale, sp.offset, sp.length, sp.signed)
                                                     for sig, sp in m.signals)) for m in lay.messages),
-            tuple((e.sensors, e.commands, e.broadcast, e.listens, e.listeners) for e in lay.ecus))
+            tuple((e.sensors, e.commands, e.broadcast, e.listens, e.listeners) for e in lay.ecus),
+            # the same controllers (and vehicle masses): each ECU slot steps all points in one batch call
+            tuple(_ctrl_key(scn, s) for s in range(len(lay.ecus))))
 
 
 def point_bytes(scn: Scenario) -> int:

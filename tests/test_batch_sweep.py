@@ -237,3 +237,14 @@ def test_batches_hold_at_most_their_memory_budget(tmp_path):
         if dur == 120.0:
             assert len(batches) >= 81 / caps[dur]
     assert caps[10.0] >= sw.BATCH_MAX_POINTS > caps[120.0] * 8
+
+
+def test_points_with_different_controllers_batch_apart(tmp_path):
+    """A grid over the controller makes one batch per controller, so each ECU slot of a batch runs
+    one controller (chen2023's batch form for all its points at once)."""
+    axes = [sw.parse_grid("delay=0,1ms"), sw.parse_grid("set:controller.name=chen2023,chen2023_compensated")]
+    plan = sw.plan_sweep(CASE1, axes, tmp_path / "p", duration_s=0.01, seeds=1)
+    batches, single, _ = sw.plan_batches(plan.tasks, 1)
+    assert not single and len(batches) == 2
+    names = sorted(tuple(sorted({t.scenario["controller"]["name"] for t in b})) for b in batches)
+    assert names == [("chen2023",), ("chen2023_compensated",)]
