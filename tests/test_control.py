@@ -274,3 +274,24 @@ def test_step_batch_is_offered_only_where_it_is_exact():
     from canbrake.control.chen_compensated import ChenCompensatedController
 
     assert not ChenCompensatedController(1, 4, M, 1e-3, nominal_spacing_m=-10.0).batchable()
+
+
+@pytest.mark.parametrize("kw", [{}, {"ki": 0.3, "kp": 1.5, "brake_rating_mps2": 1.0, "traction_rating_mps2": 0.5},
+                                {"ki": 2.0, "feedforward": False, "brake_force_max_n": 5000.0}])
+def test_pi_step_batch_equals_step_point_by_point(kw):
+    """The PI controller's batch form: every point's force, error and integral equal its own
+    controller's, through saturation in both directions (the integral frozen there)."""
+    P, dt = 9, 0.01
+    rng = np.random.default_rng(7)
+    batch = PISpeedController(2, 6, M, dt, **kw)
+    singles = [PISpeedController(2, 6, M, dt, **kw) for _ in range(P)]
+    assert batch.batchable()
+    for k in range(400):
+        v = V_REF + rng.normal(0, 2.0, P) + 3 * math.sin(k / 40)
+        vr, ar = np.full(P, V_REF), np.full(P, A_REF)
+        out = batch.step_batch(Observation(tick=k, time_s=k * dt, speed_mps=v, position_m=np.zeros(P),
+                                           ref_speed_mps=vr, ref_decel_mps2=ar, peer_speed_mps=np.zeros((P, 6)),
+                                           peer_position_m=np.zeros((P, 6)), peer_age_s=np.zeros((P, 6))))
+        for p, c in enumerate(singles):
+            ref = c.step(obs(0, np.array([v[p]]), np.zeros(1), tick=k))
+            assert out.brake_force_n[p] == ref.brake_force_n and out.diagnostics["integral_m"][p] == c.integral_m

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from canbrake.control.base import ControlOutput, Controller, Observation, register
 
 
@@ -71,4 +73,27 @@ class PISpeedController(Controller):
                 self.integral_m = trial_integral
         else:
             self.integral_m = trial_integral
+        return ControlOutput(brake_force_n=force, diagnostics={"speed_error_mps": e, "integral_m": self.integral_m})
+
+    # ------------------------------------------------------------------ batch form
+    def batchable(self) -> bool:
+        """:meth:`step_batch` covers every configuration of this class (not a subclass's own step)."""
+        return type(self).step is PISpeedController.step
+
+    def step_batch(self, obs: Observation) -> ControlOutput:
+        """:meth:`step` for P sweep points at once (:mod:`canbrake.batch`): every scalar of ``obs``
+        has shape (P,), so do the fields of the result; the integral becomes one per point at the
+        first call. The same operations in the same order as :meth:`step`: the same floats."""
+        e = obs.speed_mps - obs.ref_speed_mps
+        if np.ndim(self.integral_m) == 0:
+            self.integral_m = np.full(np.shape(e), float(self.integral_m))
+        ff = obs.ref_decel_mps2 if self.feedforward else 0.0
+        trial = self.integral_m + e * self.dt_s
+        force = self.mass_kg * (ff + self.kp * e + self.ki * trial)
+        hi, lo = force > self.brake_force_max_n, force < -self.traction_force_max_n
+        lo = lo & ~hi
+        # conditional integration: frozen while saturated in the direction the error pushes
+        keep = (hi & ~(e < 0)) | (lo & ~(e > 0))
+        self.integral_m = np.where(keep, self.integral_m, trial)
+        force = np.where(hi, self.brake_force_max_n, np.where(lo, -self.traction_force_max_n, force))
         return ControlOutput(brake_force_n=force, diagnostics={"speed_error_mps": e, "integral_m": self.integral_m})
