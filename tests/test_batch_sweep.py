@@ -248,3 +248,23 @@ def test_points_with_different_controllers_batch_apart(tmp_path):
     assert not single and len(batches) == 2
     names = sorted(tuple(sorted({t.scenario["controller"]["name"] for t in b})) for b in batches)
     assert names == [("chen2023",), ("chen2023_compensated",)]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("profile,duration,extra", [
+    ("realistic", 1.5, {"controller.name": "chen2023_compensated"}),
+    ("paper", 0.3, {"controller.name": "chen2023_compensated"}),
+    ("realistic", 1.5, {"controller": {"name": "pi", "params": {"kp": 2.0, "ki": 0.5}}}),
+], ids=["compensated-realistic", "compensated-paper", "pi-realistic"])
+def test_other_controllers_run_their_batch_forms_and_equal_per_point_runs(tmp_path, profile, duration, extra):
+    """Points that all run chen2023_compensated (or pi) step each ECU slot with the controller's
+    batch form, and still equal their per-point runs: delays past the counter's window, loss."""
+    from canbrake.batch import BatchEngine
+
+    specs = [({"delay": 0.0, "loss": 0.0}, 1, extra), ({"delay": 0.02, "loss": 0.2}, 3, extra),
+             ({"delay": 0.004, "loss": 0.5}, 2, extra)]
+    scns = _points(profile, duration, specs)
+    assert all(c is not None for c in BatchEngine(scns, [None] * len(scns)).batch_ctrl)
+    sb, sp = _run_both(tmp_path, scns)
+    for i, spec in enumerate(specs):
+        assert _compare(tmp_path / f"batch{i}", tmp_path / f"point{i}", sb[i], sp[i]) == [], spec

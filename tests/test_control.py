@@ -273,7 +273,7 @@ def test_step_batch_is_offered_only_where_it_is_exact():
     assert not chen(deflection_source="local").batchable()
     from canbrake.control.chen_compensated import ChenCompensatedController
 
-    assert not ChenCompensatedController(1, 4, M, 1e-3, nominal_spacing_m=-10.0).batchable()
+    assert not ChenCompensatedController(1, 12, M, 1e-3, nominal_spacing_m=-10.0).batchable()  # > 9 cars
 
 
 @pytest.mark.parametrize("kw", [{}, {"ki": 0.3, "kp": 1.5, "brake_rating_mps2": 1.0, "traction_rating_mps2": 0.5},
@@ -295,3 +295,68 @@ def test_pi_step_batch_equals_step_point_by_point(kw):
         for p, c in enumerate(singles):
             ref = c.step(obs(0, np.array([v[p]]), np.zeros(1), tick=k))
             assert out.brake_force_n[p] == ref.brake_force_n and out.diagnostics["integral_m"][p] == c.integral_m
+
+
+@pytest.mark.parametrize("kw", [{}, {"speed_alignment": "reference", "predict": False, "command_latency_s": 0.004},
+                                {"align": False, "gain_schedule": False, "observer_delay": False},
+                                {"barrier": "log", "delay_margin": 0.3, "latency_decay_s": 0.05}])
+@pytest.mark.parametrize("car", [0, 3])
+def test_compensated_step_batch_equals_step_point_by_point(kw, car):
+    """chen2023_compensated's batch form: per point the same latency estimate, scheduled gains
+    (the barrier clip's bisection included), time-aligned peers and delayed observer input as its
+    own controller, bit for bit, with peer ages that jump between 0 and 30 periods and lost peers."""
+    from canbrake.control.chen_compensated import ChenCompensatedController
+
+    n, P, dt = 6, 6, 1e-3
+    rng = np.random.default_rng(11 + car)
+    mk = lambda: ChenCompensatedController(car, n, M, dt, nominal_spacing_m=-10.0, **kw)  # noqa: E731
+    batch, singles = mk(), [mk() for _ in range(P)]
+    assert batch.batchable()
+    x0 = np.arange(n) * 10.0 + 10.0
+    for k in range(400):
+        v = 25.0 - 0.001 * k + rng.normal(0, 0.02, (P, n))
+        x = x0 + 25.0 * k * dt + rng.normal(0, 0.004, (P, n))
+        lag = rng.integers(0, 30, (P, n)) * (rng.random((P, n)) < 0.5)
+        age = lag * dt
+        px, pv = x.copy(), v.copy()
+        lost = rng.random((P, n)) < 0.1
+        px[lost], pv[lost], age[lost] = np.nan, np.nan, np.inf
+        px[:, car], pv[:, car], age[:, car] = x[:, car], v[:, car], 0.0
+        ar = np.full(P, A_REF)
+        out = batch.step_batch(Observation(tick=k, time_s=k * dt, speed_mps=x[:, car] * 0 + v[:, car],
+                                           position_m=x[:, car], ref_speed_mps=np.full(P, V_REF), ref_decel_mps2=ar,
+                                           peer_speed_mps=pv, peer_position_m=px, peer_age_s=age))
+        for p, c in enumerate(singles):
+            ref = c.step(Observation(tick=k, time_s=k * dt, speed_mps=float(v[p, car]), position_m=float(x[p, car]),
+                                     ref_speed_mps=V_REF, ref_decel_mps2=A_REF, peer_speed_mps=pv[p],
+                                     peer_position_m=px[p], peer_age_s=age[p]))
+            assert np.float64(out.brake_force_n[p]).tobytes() == np.float64(ref.brake_force_n).tobytes(), (k, p)
+            for name in ("latency_estimate_s", "gain_scale", "u_potential_n", "observer_accel_mps2"):
+                got = np.broadcast_to(out.diagnostics[name], (P,))[p]
+                assert got == ref.diagnostics[name] or (math.isnan(got) and math.isnan(ref.diagnostics[name])), \
+                    (k, p, name)
+
+
+def test_brake_functions_easing_batch_form_equals_step():
+    """Easing around a batch-capable controller: the cap (speeds near and at rest) per point as the
+    scalar wrapper applies it; WSP has no batch form."""
+    from canbrake.control.brake_functions import BrakeFunctions
+
+    P = 8
+    mk = lambda: BrakeFunctions(PISpeedController(1, 4, M, 0.01, kp=3.0), easing_tau_s=1.0, lag_s=0.3)  # noqa: E731
+    batch, singles = mk(), [mk() for _ in range(P)]
+    assert batch.batchable() and not BrakeFunctions(PISpeedController(1, 4, M, 0.01), wsp=object()).batchable()
+    v = np.array([0.0, 5e-4, 0.2, 0.5, 1.0, 3.0, 10.0, np.nan])
+    for k in range(50):
+        vr = np.full(P, 2.0 - 0.04 * k)
+        out = batch.step_batch(Observation(tick=k, time_s=k * 0.01, speed_mps=v, position_m=np.zeros(P),
+                                           ref_speed_mps=vr, ref_decel_mps2=np.full(P, 1.0),
+                                           peer_speed_mps=np.zeros((P, 4)), peer_position_m=np.zeros((P, 4)),
+                                           peer_age_s=np.zeros((P, 4))))
+        for p, c in enumerate(singles):
+            ref = c.step(Observation(tick=k, time_s=k * 0.01, speed_mps=float(v[p]), position_m=0.0,
+                                     ref_speed_mps=float(vr[p]), ref_decel_mps2=1.0, peer_speed_mps=np.zeros(4),
+                                     peer_position_m=np.zeros(4), peer_age_s=np.zeros(4)))
+            for a, b in ((out.brake_force_n[p], ref.brake_force_n),
+                         (out.diagnostics["easing_cap_n"][p], ref.diagnostics["easing_cap_n"])):
+                assert a == b or (math.isnan(a) and math.isnan(b)), (k, p)

@@ -26,6 +26,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
+
 from canbrake.control.base import ControlOutput, Controller, Observation
 
 
@@ -97,6 +99,26 @@ class BrakeFunctions(Controller):
             out.commands = dict(out.commands)
             out.commands["wsp_release"] = r
             diag["wsp_slip"] = worst
+        out.diagnostics = diag
+        return out
+
+    # ------------------------------------------------------------------ batch form
+    def batchable(self) -> bool:
+        """:meth:`step_batch` covers easing around a controller that has a batch form (not WSP)."""
+        inner_ok = getattr(self.inner, "batchable", None)
+        return (self.wsp is None and type(self).step is BrakeFunctions.step and callable(inner_ok)
+                and bool(inner_ok()))
+
+    def step_batch(self, obs: Observation) -> ControlOutput:
+        """:meth:`step` for P sweep points at once (:mod:`canbrake.batch`; arrays of shape (P,)):
+        the inner controller's batch form, then the easing cap, the same operations as :meth:`step`."""
+        out = self.inner.step_batch(obs)
+        diag = dict(out.diagnostics)
+        if self.ease_gain is not None:
+            v = obs.speed_mps
+            cap = np.where(v <= 1e-3, np.inf, self.mass_kg * self.ease_gain * np.abs(v))
+            out.brake_force_n = np.where(out.brake_force_n > cap, cap, out.brake_force_n)
+            diag["easing_cap_n"] = np.where(cap != np.inf, cap, np.nan)
         out.diagnostics = diag
         return out
 

@@ -79,6 +79,22 @@ class _DelayedInputObserver:
         d = min(self.delay_ticks, len(self._fifo) - 1)
         self.inner.predict(self._fifo[-1 - d])
 
+    # batch form (canbrake.batch): one FIFO per point, as a ring of the last maxlen forces
+    def reset_many(self, n_points: int) -> None:
+        self.inner.reset_many(n_points)
+        self._ring = np.zeros((self._fifo.maxlen or 1, n_points))
+        self._n_in = 0
+
+    def update_many(self, position_m: np.ndarray, speed_mps: np.ndarray) -> np.ndarray:
+        return self.inner.update_many(position_m, speed_mps)
+
+    def predict_many(self, brake_force_n: np.ndarray) -> None:
+        size = self._ring.shape[0]
+        self._ring[self._n_in % size] = brake_force_n
+        self._n_in += 1
+        d = np.minimum(self.delay_ticks, min(self._n_in, size) - 1)
+        self.inner.predict_many(self._ring[(self._n_in - 1 - d) % size, np.arange(self._ring.shape[1])])
+
 
 @register("chen2023_compensated")
 class ChenCompensatedController(ChenConsensusController):
@@ -247,3 +263,138 @@ class ChenCompensatedController(ChenConsensusController):
         out.diagnostics["latency_estimate_s"] = self._latency_s
         out.diagnostics["gain_scale"] = scale
         return out
+
+    # ------------------------------------------------------------------ batch form
+    def batchable(self) -> bool:
+        """Whether :meth:`step_batch` covers this configuration: peer positions as received and at
+        most 9 cars (the mean peer age is summed as numpy sums at most 8 values: in order)."""
+        return (type(self).step is ChenCompensatedController.step and self.deflection_source == "peer_position"
+                and self.n_cars <= 9)
+
+    def step_batch(self, obs: Observation) -> ControlOutput:
+        """:meth:`step` for P sweep points at once (:mod:`canbrake.batch`): scalars of ``obs`` of
+        shape (P,), peer arrays (P, n_cars); the gains, the latency estimate and the history become
+        one per point at the first call. The same operations in the same order as :meth:`step`, so
+        the same floats (tests/test_control.py)."""
+        P = obs.speed_mps.shape[0]
+        if not hasattr(self, "_b_hist_x"):
+            self._b_hist_x = np.full((self._n_hist, P), np.nan)
+            self._b_hist_v = np.full((self._n_hist, P), np.nan)
+            self._b_hist_tick = np.full((self._n_hist, P), -1, dtype=np.int64)
+            self._b_latency = np.zeros(P)
+            self._b_key_r = np.full(P, -1, dtype=np.int64)
+            self._b_key_s = np.full(P, np.nan)
+            self._b_clip = np.full(P, self._nominal[4])
+        # latency: peak detector on the mean finite peer age (_update_latency)
+        ages = np.delete(obs.peer_age_s, self.car_index, axis=1)
+        fin = np.isfinite(ages)
+        cnt = fin.sum(axis=1)
+        now = np.where(cnt > 0, np.where(fin, ages, 0.0).sum(axis=1) / np.maximum(cnt, 1), 0.0)
+        dec = self._b_latency * self._decay
+        self._b_latency = np.where(dec > now, dec, now)
+        scale = self._schedule_many()
+        slot = obs.tick % self._n_hist
+        self._b_hist_x[slot], self._b_hist_v[slot], self._b_hist_tick[slot] = obs.position_m, obs.speed_mps, obs.tick
+        out = ChenConsensusController.step_batch(self, self._aligned_many(obs))
+        out.diagnostics["latency_estimate_s"] = self._b_latency
+        out.diagnostics["gain_scale"] = scale
+        return out
+
+    def _schedule_many(self) -> np.ndarray:
+        """:meth:`_schedule` per point; the barrier clip is re-solved for the points whose key
+        (τ in periods, α1's scale) changed, by the same bisection on arrays."""
+        a1, a2, dl, k, clip = self._nominal
+        lat = self._b_latency
+        cmd = lat if self.command_latency_s is None else np.full_like(lat, self.command_latency_s)
+        tau = cmd + lat
+        s = np.ones_like(tau)
+        kk = np.full_like(tau, k)
+        clip_now = np.full_like(tau, clip)
+        if self.gain_schedule:
+            on = tau > 0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                if a1 > 0:
+                    s = np.where(on, np.minimum(1.0, self.delay_margin / (self._eig * a1 * tau)), 1.0)
+                kk = np.where(on, np.minimum(k, self.delay_margin / tau), k)
+                r = np.where(on, np.round(tau / self.dt_s), -1).astype(np.int64)
+                changed = on & ((r != self._b_key_r) | (s != self._b_key_s))
+                if changed.any():
+                    idx = np.flatnonzero(changed)
+                    self._b_key_r[idx], self._b_key_s[idx] = r[idx], s[idx]
+                    om = self.delay_margin / tau[idx]
+                    self._b_clip[idx] = self._barrier_clip_for_many(om * om, dl * s[idx] * s[idx], clip)
+            clip_now = np.where(on, self._b_clip, clip)
+        self.alpha1, self.alpha2, self.delta, self.k, self.barrier_clip = a1 * s, a2 * s * s, dl * s * s, kk, clip_now
+        if self.observer_delay:
+            self._obs.delay_ticks = np.round(cmd / self.dt_s).astype(np.int64)
+        return s
+
+    def _barrier_stiffness_many(self, z: np.ndarray, delta: np.ndarray) -> np.ndarray:
+        from canbrake.control.chen import barrier_gradient_many
+
+        h = 1e-4
+        lo, hi = self._z_lower, self._z_upper
+        g = (barrier_gradient_many(z + h, lo, hi, self.barrier, 0.999999)
+             - barrier_gradient_many(z - h, lo, hi, self.barrier, 0.999999)) / (2 * h)
+        return delta * g / self.barrier_unit_m
+
+    def _barrier_clip_for_many(self, omega2_max: np.ndarray, delta: np.ndarray, nominal_clip: float) -> np.ndarray:
+        """:meth:`_barrier_clip_for` on arrays (one bisection per entry, the same steps)."""
+        limit = 0.5 * omega2_max
+
+        def stiff(c: np.ndarray) -> np.ndarray:
+            a = self._barrier_stiffness_many(c * self._z_upper, delta)
+            b = self._barrier_stiffness_many(c * self._z_lower, delta)
+            return np.where(b > a, b, a)
+
+        out = np.full(limit.shape, nominal_clip)
+        todo = (delta > 0) & ~(stiff(np.full(limit.shape, nominal_clip)) <= limit)
+        lo, hi = np.full(limit.shape, 1e-3), np.full(limit.shape, nominal_clip)
+        floor = todo & (stiff(lo) > limit)
+        out[floor] = 1e-3
+        todo &= ~floor
+        if todo.any():
+            for _ in range(40):
+                mid = 0.5 * (lo + hi)
+                ok = stiff(mid) <= limit
+                lo = np.where(ok, mid, lo)
+                hi = np.where(ok, hi, mid)
+            out[todo] = lo[todo]
+        return out
+
+    def _aligned_many(self, obs: Observation) -> Observation:
+        """:meth:`_aligned` for every point: peer values predicted to this instant (NaN if unusable)."""
+        n, i = self.n_cars, self.car_index
+        px = obs.peer_position_m.astype(float).copy()
+        pv = obs.peer_speed_mps.astype(float).copy()
+        ages = obs.peer_age_s
+        x_now, v_now = obs.position_m, obs.speed_mps
+        pts = np.arange(px.shape[0])
+        for j in range(n):
+            if j == i:
+                continue
+            a = ages[:, j]
+            valid = ~np.isnan(px[:, j]) & np.isfinite(a)
+            lag = np.where(valid, np.round(np.where(valid, a, 0.0) / self.dt_s), 0).astype(np.int64)
+            use = valid & (lag > 0)
+            if not use.any():
+                continue
+            then = obs.tick - lag
+            slot = then % self._n_hist
+            held = use & (then >= 0) & (self._b_hist_tick[slot, pts] == then)
+            if self.align:
+                gone = use & ~held
+                px[gone, j] = np.nan
+                pv[gone, j] = np.nan
+            x_then, v_then = self._b_hist_x[slot, pts], self._b_hist_v[slot, pts]
+            if self.align:
+                rel = px[:, j] - x_then
+                if self.predict:
+                    rel = rel + (pv[:, j] - v_then) * a
+                px[:, j] = np.where(held, x_now + rel, px[:, j])
+            if self.speed_alignment == "own_motion":
+                pv[:, j] = np.where(held, pv[:, j] + (v_now - v_then), pv[:, j])
+            elif self.speed_alignment == "reference":
+                pv[:, j] = np.where(held, pv[:, j] - obs.ref_decel_mps2 * a, pv[:, j])
+        return replace(obs, peer_position_m=px, peer_speed_mps=pv,
+                       peer_age_s=np.where(np.isnan(pv), np.inf, 0.0))
