@@ -58,26 +58,22 @@ def barrier_gradient(z: float, z_lower: float, z_upper: float, kind: str = "inve
         z = zu
     elif z < zl:
         z = zl
+    return _barrier_terms(z, z_lower, z_upper, kind)
+
+
+def barrier_gradient_many(z: np.ndarray, z_lower: float, z_upper: float, kind: Any = "inverse_square",
+                          clip: Any = 0.99) -> np.ndarray:
+    """:func:`barrier_gradient` elementwise (the same operations, so the same floats); ``clip`` may
+    be an array of the shape of ``z``."""
+    zl, zu = z_lower * clip, z_upper * clip
+    return _barrier_terms(np.where(z > zu, zu, np.where(z < zl, zl, z)), z_lower, z_upper, kind)
+
+
+def _barrier_terms(z: Any, z_lower: float, z_upper: float, kind: str) -> Any:
+    """∇U(z) − ∇U(0) for a clipped z, a float or an array (operators only, so both give the same floats)."""
     if kind == "inverse_square":
         # cubes as products, not ** 3: numpy's vectorised power rounds differently from libm's pow in
-        # ~5 % of cases, and barrier_gradient_many must give the same floats
-        a, b = z_upper - z, z - z_lower
-        g = 2.0 / (a * a * a) - 2.0 / (b * b * b)
-        g0 = 2.0 / z_upper**3 - 2.0 / (-z_lower) ** 3
-    elif kind == "log":
-        g = 1.0 / (z_upper - z) - 1.0 / (z - z_lower)
-        g0 = 1.0 / z_upper - 1.0 / (-z_lower)
-    else:  # pragma: no cover - validated in the constructor
-        raise ValueError(kind)
-    return g - g0
-
-
-def barrier_gradient_many(z: np.ndarray, z_lower: float, z_upper: float, kind: str = "inverse_square",
-                          clip: float = 0.99) -> np.ndarray:
-    """:func:`barrier_gradient` elementwise (the same operations, so the same floats)."""
-    zl, zu = z_lower * clip, z_upper * clip
-    z = np.where(z > zu, zu, np.where(z < zl, zl, z))
-    if kind == "inverse_square":
+        # ~5 % of cases, and the batch form must give the same floats
         a, b = z_upper - z, z - z_lower
         g = 2.0 / (a * a * a) - 2.0 / (b * b * b)
         g0 = 2.0 / z_upper**3 - 2.0 / (-z_lower) ** 3
@@ -376,6 +372,13 @@ class ChenConsensusController(Controller):
         self._force_model_n += self._lag_alpha * (force - self._force_model_n)
         self._obs.predict(self._force_model_n)
 
+        return self._output(force, phi_hat, kb, u1, u2, u3, force_obs, front, rear, math.nan)
+
+    @staticmethod
+    def _output(force: Any, phi_hat: Any, kb: float, u1: Any, u2: Any, u3: Any, force_obs: Any, front: Any,
+                rear: Any, nan: Any) -> ControlOutput:
+        """The step's result (scalars, or arrays of the batch form); ``nan`` stands for an unknown
+        deflection (None)."""
         return ControlOutput(
             brake_force_n=force,
             diagnostics={
@@ -384,8 +387,8 @@ class ChenConsensusController(Controller):
                 "u_potential_n": kb * u2,
                 "u_tracking_n": kb * u3,
                 "u_observer_n": force_obs,
-                "deflection_front_m": math.nan if front is None else front,
-                "deflection_rear_m": math.nan if rear is None else rear,
+                "deflection_front_m": nan if front is None else front,
+                "deflection_rear_m": nan if rear is None else rear,
             },
         )
 
@@ -468,16 +471,4 @@ class ChenConsensusController(Controller):
         force = np.where(force > bmax, bmax, np.where(force < tmax, tmax, force))
         self._force_model_n = self._force_model_n + self._lag_alpha * (force - self._force_model_n)
         self._obs.predict_many(self._force_model_n)
-        nan = np.full(P, np.nan)
-        return ControlOutput(
-            brake_force_n=force,
-            diagnostics={
-                "observer_accel_mps2": phi_hat,
-                "u_consensus_n": kb * u1,
-                "u_potential_n": kb * u2,
-                "u_tracking_n": kb * u3,
-                "u_observer_n": force_obs,
-                "deflection_front_m": nan if front is None else front,
-                "deflection_rear_m": nan if rear is None else rear,
-            },
-        )
+        return self._output(force, phi_hat, kb, u1, u2, u3, force_obs, front, rear, np.full(P, np.nan))

@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from canbrake.control.base import ControlOutput, Observation, register
-from canbrake.control.chen import ChenConsensusController, barrier_gradient
+from canbrake.control.chen import ChenConsensusController, barrier_gradient, barrier_gradient_many
 
 _SPEED = ("own_motion", "reference", "none")
 
@@ -201,12 +201,12 @@ class ChenCompensatedController(ChenConsensusController):
         now = float(ages.mean()) if ages.size else 0.0
         self._latency_s = max(now, self._latency_s * self._decay)
 
-    def _barrier_stiffness(self, z: float, delta: float) -> float:
-        """δ·U''(z) per metre of deflection (1/s², mass-scaled), by differencing the parent's ∇U."""
+    def _barrier_stiffness(self, z: Any, delta: Any, grad: Any = barrier_gradient) -> Any:
+        """δ·U''(z) per metre of deflection (1/s², mass-scaled), by differencing the parent's ∇U
+        (``grad``: barrier_gradient, or barrier_gradient_many for arrays)."""
         h = 1e-4
         lo, hi = self._z_lower, self._z_upper
-        g = (barrier_gradient(z + h, lo, hi, self.barrier, 0.999999)
-             - barrier_gradient(z - h, lo, hi, self.barrier, 0.999999)) / (2 * h)
+        g = (grad(z + h, lo, hi, self.barrier, 0.999999) - grad(z - h, lo, hi, self.barrier, 0.999999)) / (2 * h)
         return delta * g / self.barrier_unit_m
 
     def _barrier_clip_for(self, omega2_max: float, delta: float, nominal_clip: float) -> float:
@@ -329,22 +329,13 @@ class ChenCompensatedController(ChenConsensusController):
             self._obs.delay_ticks = np.round(cmd / self.dt_s).astype(np.int64)
         return s
 
-    def _barrier_stiffness_many(self, z: np.ndarray, delta: np.ndarray) -> np.ndarray:
-        from canbrake.control.chen import barrier_gradient_many
-
-        h = 1e-4
-        lo, hi = self._z_lower, self._z_upper
-        g = (barrier_gradient_many(z + h, lo, hi, self.barrier, 0.999999)
-             - barrier_gradient_many(z - h, lo, hi, self.barrier, 0.999999)) / (2 * h)
-        return delta * g / self.barrier_unit_m
-
     def _barrier_clip_for_many(self, omega2_max: np.ndarray, delta: np.ndarray, nominal_clip: float) -> np.ndarray:
         """:meth:`_barrier_clip_for` on arrays (one bisection per entry, the same steps)."""
         limit = 0.5 * omega2_max
 
         def stiff(c: np.ndarray) -> np.ndarray:
-            a = self._barrier_stiffness_many(c * self._z_upper, delta)
-            b = self._barrier_stiffness_many(c * self._z_lower, delta)
+            a = self._barrier_stiffness(c * self._z_upper, delta, barrier_gradient_many)
+            b = self._barrier_stiffness(c * self._z_lower, delta, barrier_gradient_many)
             return np.where(b > a, b, a)
 
         out = np.full(limit.shape, nominal_clip)

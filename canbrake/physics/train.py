@@ -488,17 +488,7 @@ class TrainPlant:
             x = x + h * v_new
             v_before, v = v, v_new
             self.time_s = t + h
-        if self.stacked:  # rows of points that diverged: noted, and parked at rest (see stack_plants)
-            bad = ~np.isfinite(v).all(axis=-1)
-            if bad.any():
-                first = bad & ~self.diverged_rows
-                if first.any():
-                    self.diverged_dl_m = np.where(first, np.max(np.abs(dl), axis=-1) if dl.shape[-1] else 0.0,
-                                                  self.diverged_dl_m)
-                self.diverged_rows = self.diverged_rows | bad
-                x, v, rail = (np.where(bad[:, None], 0.0, a) for a in (x, v, np.broadcast_to(rail, x.shape)))
-                v_before = np.where(bad[:, None], 0.0, v_before)
-        elif not math.isfinite(float(v.sum())):
+        if not math.isfinite(float(v.sum())):  # never stacked (stack_plants refuses brake equipment)
             raise PlantDiverged(f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = "
                                 f"{float(np.max(np.abs(dl))) if dl.size else 0.0:.3g} m")
         self.accel_mps2 = (v - v_before) / h
