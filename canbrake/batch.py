@@ -19,8 +19,9 @@ about the same for 8 points as for 64):
   offers a batch form (:meth:`~canbrake.control.chen.ChenConsensusController.step_batch`, the
   same operations in the same order on arrays of shape (points,)), one object steps every point;
   otherwise each point's own controller steps (``chen2023_compensated``, ``pi``).
-* **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no brake
-  equipment, no end stop) step as one stack with a leading points axis; otherwise each its own.
+* **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no wheelsets, no
+  end stop that refines the sub-step) step as one stack with a leading points axis; otherwise
+  each its own.
 
 Every path gives each point the floats its per-point run computes: tests/test_batch_sweep.py
 compares them text for text, tests/test_control.py, test_physics.py and test_impair.py the batch
@@ -456,10 +457,10 @@ class BatchEngine:
     def _measurements(self) -> dict[str, np.ndarray]:
         """Every point's plant measurements, arrays (P, n) / (P, n - 1) (NaN rows: ended points)."""
         st = self.stack
-        if st is not None:
+        if st is not None:  # what CoupledPlant.measurements gives, for every point at once
             return {"position_m": st.position_m, "speed_mps": st.speed_mps, "accel_mps2": st.accel_mps2,
                     "applied_brake_n": st.applied_force_n, "deflection_m": st.deflection_m,
-                    "coupler_force_n": st.coupler_force_n}
+                    "coupler_force_n": st.coupler_force_n, **st.equipment_measurements()}
         mms = [p.plant.model.measurements() if a else None for p, a in zip(self.points, self.alive)]
         first = next(mm for mm in mms if mm is not None)
         return {nm: np.stack([np.full(np.shape(v), np.nan) if mm is None else np.asarray(mm[nm], dtype=float)

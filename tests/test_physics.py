@@ -254,3 +254,42 @@ def test_plants_that_cannot_be_stacked_are_refused():
     b = TrainPlant([1e4, 1e4], [0.0, 10.0], [1.0, 1.0], end_stop_m=0.08)
     assert stack_plants([a, a]) is not None
     assert stack_plants([a, b]) is None
+
+
+def test_a_stack_with_blending_a_lagged_actuator_and_end_stops_steps_as_its_plants():
+    """The equipped path stacked: ED/friction blending, a realistic (lagged, jerk-limited, rated)
+    actuator and draft-gear end stops whose own step never refines the 1 ms sub-step; each row
+    equals its plant bit for bit while traction on one car drives couplers into their stops and
+    the train brakes to a stand (the ED fade and friction at rest). An end stop that can refine
+    the sub-step (it would depend on each point's state) is not stacked."""
+    from canbrake.physics.actuator import BrakeActuator
+    from canbrake.physics.brakes import BrakeBlending
+    from canbrake.physics.train import TrainPlant, stack_plants
+
+    P, n = 4, 5
+    act = BrakeActuator.realistic(time_constant_s=0.3, jerk_limit_mps3=2.0, brake_rating_mps2=1.4,
+                                  traction_rating_mps2=1.0, adhesion_limited=True)
+    mk = lambda p: TrainPlant(30000 + 2000 * p + 500 * np.arange(n), 15.0 * np.arange(n), 4.0 - 0.3 * p,  # noqa: E731
+                              actuator=act, blending=BrakeBlending(friction_lag_s=0.2), end_stop_m=0.02,
+                              end_stop_stiffness_n_per_m=5e6, end_stop_absorption=0.5, max_substep_s=1e-3)
+    singles = [mk(p) for p in range(P)]
+    st = stack_plants([mk(p) for p in range(P)])
+    assert st is not None
+    rng = np.random.default_rng(5)
+    stops = 0
+    for k in range(1500):
+        cmd = np.full((P, n), 30000.0) + rng.normal(0, 3000, (P, n))
+        if k < 300:
+            cmd[:, 0] = -60000.0  # traction on the last car: the couplers close onto their stops
+        st.step(0.01, cmd)
+        for p, s in enumerate(singles):
+            s.step(0.01, cmd[p])
+            for name in ("position_m", "speed_mps", "accel_mps2", "applied_force_n"):
+                assert getattr(s, name).tobytes() == getattr(st, name)[p].tobytes(), (k, p, name)
+            assert s.equipment_measurements()["friction_brake_n"].tobytes() == \
+                st.equipment_measurements()["friction_brake_n"][p].tobytes()
+        stops += int((np.abs(st.deflection_m) > 0.02).any())
+    assert stops > 0 and (st.speed_mps == 0.0).all()
+    coarse = TrainPlant([3e4, 3e4], [0.0, 15.0], [4.0, 4.0], end_stop_m=0.02, end_stop_stiffness_n_per_m=5e6,
+                        max_substep_s=0.01)
+    assert stack_plants([coarse, coarse]) is None

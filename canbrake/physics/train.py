@@ -283,7 +283,7 @@ class TrainPlant:
         """Sub-steps for a control period of ``dt_s``: ``max_substep_s``, and at most 0.05/ω_b while a
         coupler can reach its end stop within the period (module docstring)."""
         n_sub = 1 if dt_s <= self.max_substep_s * (1 + 1e-9) else int(math.ceil(dt_s / self.max_substep_s - 1e-9))
-        if self.end_stop_m is None or self.n_cars < 2:
+        if self.end_stop_m is None or self.n_cars < 2 or self.stacked:  # a stack's is fixed (_substeps_fixed)
             return n_sub
         dl = self.deflection_m
         rate = self.speed_mps[:-1] - self.speed_mps[1:]
@@ -412,21 +412,30 @@ class TrainPlant:
             x = x + (0.5 * h) * (v + v_new) + np.where((v != 0.0) | (v_new != 0.0), (0.5 * h * h) * inv_m * fc, 0.0)
             v_before, v = v, v_new
             self.time_s = t + h
-        if self.stacked:  # rows of points that diverged: noted, and parked at rest (see stack_plants)
-            bad = ~np.isfinite(v).all(axis=-1)
-            if bad.any():
-                first = bad & ~self.diverged_rows
-                if first.any():
-                    self.diverged_dl_m = np.where(first, np.max(np.abs(dl), axis=-1) if dl.shape[-1] else 0.0,
-                                                  self.diverged_dl_m)
-                self.diverged_rows = self.diverged_rows | bad
-                x, v, rail = (np.where(bad[:, None], 0.0, a) for a in (x, v, np.broadcast_to(rail, x.shape)))
-                v_before = np.where(bad[:, None], 0.0, v_before)
+        if self.stacked:
+            x, v, v_before, rail = self._park_diverged(x, v, v_before, rail, dl)
         elif not math.isfinite(float(v.sum())):
             raise PlantDiverged(diverged_message(self.time_s, float(np.max(np.abs(dl))) if dl.size else 0.0))
         self.accel_mps2 = (v - v_before) / h
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+
+    def _park_diverged(self, x: np.ndarray, v: np.ndarray, v_before: np.ndarray, rail: np.ndarray,
+                       dl: np.ndarray) -> tuple[np.ndarray, ...]:
+        """A stack's rows whose state became non-finite: noted (``diverged_rows``, the last max |Δl|
+        in ``diverged_dl_m``) and parked at rest, so they cannot disturb the others (see stack_plants)."""
+        bad = ~np.isfinite(v).all(axis=-1)
+        if not bad.any():
+            return x, v, v_before, rail
+        first = bad & ~self.diverged_rows
+        if first.any():
+            self.diverged_dl_m = np.where(first, np.max(np.abs(dl), axis=-1) if dl.shape[-1] else 0.0,
+                                          self.diverged_dl_m)
+        self.diverged_rows = self.diverged_rows | bad
+        if self._blend is not None:
+            self._blend.friction_n = np.where(bad[:, None], 0.0, self._blend.friction_n)
+        x, v, rail, v_before = (np.where(bad[:, None], 0.0, a) for a in (x, v, np.broadcast_to(rail, x.shape), v_before))
+        return x, v, v_before, rail
 
     # ------------------------------------------------------------------ brake equipment (opt-in)
     def _step_equipped(self, dt_s: float, cmd: np.ndarray, wsp_release: np.ndarray | None) -> None:
@@ -455,8 +464,9 @@ class TrainPlant:
                 want = np.where(self._vent_s > self.wsp_max_vent_s, 0.0, want)
                 self.wsp_valve = valve_step(self.wsp_valve, want, h, self.wsp_valve_lag_s)
                 brake = brake * (1.0 - self.wsp_valve)
-            dl = x[:-1] - x[1:] - self.coupler_spacing_m
-            f = self._incidence.dot(self.coupler_force_from_deflection(dl, v[:-1] - v[1:]))
+            dl = x[..., :-1] - x[..., 1:] - self.coupler_spacing_m
+            phi = self.coupler_force_from_deflection(dl, v[..., :-1] - v[..., 1:])
+            f = self._incidence.dot(phi) if phi.ndim == 1 else phi @ self._incidence.T
             if self._grade_fn is not None:
                 f = f - self.mass_kg * g * np.sin(np.asarray(self._grade_fn(x), dtype=float))
             elif self._has_grade:
@@ -488,7 +498,9 @@ class TrainPlant:
             x = x + h * v_new
             v_before, v = v, v_new
             self.time_s = t + h
-        if not math.isfinite(float(v.sum())):  # never stacked (stack_plants refuses brake equipment)
+        if self.stacked:
+            x, v, v_before, rail = self._park_diverged(x, v, v_before, rail, dl)
+        elif not math.isfinite(float(v.sum())):
             raise PlantDiverged(f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = "
                                 f"{float(np.max(np.abs(dl))) if dl.size else 0.0:.3g} m")
         self.accel_mps2 = (v - v_before) / h
@@ -526,14 +538,18 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     uses, so each row equals its own plant's state bit for bit (tests/test_batch_sweep.py). A
     point whose state becomes non-finite is flagged in ``diverged_rows`` and parked at rest.
 
-    None where the plants do not qualify: brake equipment (blending, wheelsets), an end stop (its
-    sub-step depends on each point's state), a grade function, or plants that differ in anything
-    but their per-car arrays (actuator, rail conditions, disturbances, sub-step, gravity)."""
+    None where the plants do not qualify: wheelsets, an end stop that can refine the sub-step (it
+    would depend on each point's state), a grade function, or plants that differ in anything but
+    their per-car arrays (actuator, blending, end stop, rail conditions, disturbances, sub-step,
+    gravity)."""
     import copy
 
     p0 = plants[0]
     for p in plants:
-        if (p.blending is not None or p.wheels is not None or p.end_stop_m is not None or p._grade_fn is not None
+        if (p.wheels is not None or p._grade_fn is not None or not _substeps_fixed(p)
+                or repr(p.blending) != repr(p0.blending) or p.end_stop_m != p0.end_stop_m
+                or p.end_stop_stiffness_n_per_m != p0.end_stop_stiffness_n_per_m
+                or p.end_stop_absorption != p0.end_stop_absorption
                 or p.n_cars != p0.n_cars or repr(p.actuator) != repr(p0.actuator) or repr(p.rail) != repr(p0.rail)
                 or repr(p.disturbances) != repr(p0.disturbances) or p.max_substep_s != p0.max_substep_s
                 or p.gravity_mps2 != p0.gravity_mps2 or p.time_s != p0.time_s
@@ -552,6 +568,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     st._has_grade = any(p._has_grade for p in plants)
     st._grade_force = None if p0._grade_force is None else np.stack([p._grade_force for p in plants])
     st._act = ActuatorState(p0.actuator, st.mass_kg)
+    st._blend = None if p0.blending is None else BlendingState(p0.blending, st.mass_kg)
     st._mu = np.broadcast_to(p0._mu, st.speed_mps.shape).copy()
     st._eff = np.ones(st.speed_mps.shape)
     st._base_mu = p0._base_mu
@@ -559,3 +576,13 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     st.diverged_rows = np.zeros(len(plants), dtype=bool)
     st.diverged_dl_m = np.zeros(len(plants))
     return st
+
+
+def _substeps_fixed(p: TrainPlant) -> bool:
+    """Whether ``p``'s sub-step never depends on its state: no end stop, or one whose own step
+    (0.05/ω_b for the lightest pair of cars) is no shorter than ``max_substep_s``."""
+    if p.end_stop_m is None or p.n_cars < 2:
+        return True
+    m = p.mass_kg
+    mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
+    return 0.05 / math.sqrt(p.end_stop_stiffness_n_per_m / mu) >= p.max_substep_s
