@@ -449,6 +449,9 @@ class EcuNode(Node):
             age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
             fresh = int(np.count_nonzero(origin[listened] == self.k)) + 1 if listened.size else 1
             self.stats.peer_missing += listened.size + 1 - fresh
+            if listened.size == 1:  # one peer (an ECP wagon hears its locomotive): the oldest finite age
+                a = float(age[listened[0]])  # is its, or the ECU's own 0 (every other entry is inf)
+                max_age = a if a > 0.0 and a != math.inf else 0.0
         obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
