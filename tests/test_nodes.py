@@ -1,6 +1,8 @@
 """Node state machines and modes: realtime pacing, divergence, the plant's command handling."""
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -111,6 +113,27 @@ def test_realtime_run_reports_scheduling_latency_and_miss_share_in_summary(tmp_p
     assert (rt["cmd_latency_p99_s"] is None) == (rt["cmd_latency_missing"] > 0.01 * 20)
     assert set(rt["scheduling"]) == {"plant", "recorder", *(f"ecu_c{c}" for c in range(1, 7))}
     assert all(v.startswith(("SCHED_FIFO", "SCHED_OTHER")) for v in rt["scheduling"].values())
+    # every node froze what its garbage collector held after setting up (canbrake.nodes.rt)
+    assert all(re.search(r"gc: [\d,]+ objects frozen$", v) for v in rt["scheduling"].values())
+
+
+def test_realtime_setup_freezes_the_garbage_collector_unless_told_not_to(monkeypatch):
+    """A full collection walks every object of a node (tens of ms, a missed 10 ms deadline);
+    setup_realtime collects once and freezes them, so later full collections skip them."""
+    import gc
+
+    from canbrake.nodes.rt import setup_realtime
+
+    monkeypatch.setenv("CANBRAKE_RT_AFFINITY", "none")
+    try:
+        got = setup_realtime("not-a-role")
+        assert got.startswith("SCHED_OTHER (not a realtime role)") and gc.get_freeze_count() > 1000
+        assert got.endswith(f"gc: {gc.get_freeze_count():,} objects frozen")
+        gc.unfreeze()
+        monkeypatch.setenv("CANBRAKE_RT_GC", "off")
+        assert "gc" not in setup_realtime("not-a-role") and gc.get_freeze_count() == 0
+    finally:
+        gc.unfreeze()
 
 
 def test_a_late_realtime_wakeup_moves_the_grid_on_instead_of_bursting(tmp_path):
