@@ -54,7 +54,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -163,8 +163,6 @@ class _Point:
     plant: Any                                  # canbrake.nodes.plant.PlantNode (holds the model)
     ctrls: list[Any]
     paths: list[Any] | None                     # per ECU: canbrake.bus.impair.SendPath, or None (no impairment)
-    reference: Any
-    broadcast: list[dict[str, float]] = field(default_factory=list)
 
 
 @dataclass
@@ -226,11 +224,9 @@ class BatchEngine:
         self.peer_names = sorted({sig for _, sig, _ in self.state_q} | {"speed_mps", "position_m"})
         self.state_sigs = sorted({sig for _, sig, _ in self.state_q})
         self.cmd_sigs = sorted({sig for _, sig, _ in self.cmd_q})
-        self.state_ids = {mm.frame_id for mm in lay.messages if mm.kind == "state"}
         self.n_listened = self.listen.sum(axis=1)
         self.state_id = [(lay.ids("state", e.index) or [0])[0] for e in self.ecus]
         self.cmd_id = [lay.ids("cmd", e.index)[0] for e in self.ecus]
-        self.names = [e.name for e in self.ecus]
         self.points: list[_Point] = []
         dbc_text = lay.database().as_dbc_string()  # every point's (batch_key: the same layout)
         for scn, rd in zip(scns, run_dirs):
@@ -246,8 +242,7 @@ class BatchEngine:
                     sp = build_send_path(scn, e.name)
                     paths.append(None if isinstance(sp, PassThrough) else sp.path.path)  # the impair.SendPath
             ctrls = [build_controller(scn, i) for i in range(1, m + 1)]
-            self.points.append(_Point(scn, run_dir, plant, ctrls, paths, reference_fn(scn),
-                                      broadcast=[{} for _ in range(m)]))
+            self.points.append(_Point(scn, run_dir, plant, ctrls, paths))
         P = self.P = len(self.points)
         pn0 = self.points[0].plant
         self.n = pn0.n
@@ -272,11 +267,12 @@ class BatchEngine:
         self.bcast = {sig: np.full((P, m), np.nan) for sig in self.state_sigs}
         # the controllers: one batch object per ECU slot where every point runs the same one
         self.batch_ctrl: list[Any] = []
+        # (the first point's, stepped in its batch form; the other points' are then never stepped)
         for s in range(m):
-            c0 = self.points[0].ctrls[s]
-            same = all(_ctrl_key(p.scn, s) == _ctrl_key(scns[0], s) for p in self.points)
+            c0, key = self.points[0].ctrls[s], _ctrl_key(scns[0], s)
+            same = all(_ctrl_key(p.scn, s) == key for p in self.points[1:])
             ok = same and callable(getattr(c0, "batchable", None)) and c0.batchable()
-            self.batch_ctrl.append(build_controller(scns[0], s + 1) if ok else None)
+            self.batch_ctrl.append(c0 if ok else None)
         # the plant: one stacked plant for every point where they qualify, else each its own
         from canbrake.build import CoupledPlant
         from canbrake.physics.train import stack_plants
@@ -448,9 +444,7 @@ class BatchEngine:
             for k in range(self.n_ticks):
                 if not self.alive.any():
                     break
-                self._tick(k)
-            for i in np.flatnonzero(self.alive):
-                self._finish(int(i))
+                self._tick(k)  # every point is closed by its last tick (_advance) or its divergence
         wall = (time.time() - t0) / self.P
         return [{"status": "ok", "message": "", "wall_time_s": wall} for _ in self.points]
 
@@ -472,7 +466,7 @@ class BatchEngine:
         pts = self.points
         # phase 0 (plant): measurements and reference, as the ECUs decode them
         meas = self._measurements()
-        refs = np.array([p.reference(t) if a else (0.0, 0.0) for p, a in zip(pts, self.alive)], dtype=float)
+        refs = np.array([p.plant.reference(t) if a else (0.0, 0.0) for p, a in zip(pts, self.alive)], dtype=float)
         v_ref, a_ref = self.q_ref_v(refs[:, 0]), self.q_ref_a(refs[:, 1])
         sensors: dict[str, np.ndarray] = {}
         for sig, slots, q in self.sensor_g:
@@ -607,8 +601,6 @@ class BatchEngine:
 
     def _advance(self, k: int, meas: dict[str, np.ndarray], refs: np.ndarray) -> None:
         """The plants' end of tick k (PlantNode._advance without frames), for every point running."""
-        from canbrake.physics.train import diverged_message
-
         live = self.alive.copy()
         self.missed[live] += ~self.fresh[live]
         if k % self.trace_every == 0:
@@ -619,7 +611,7 @@ class BatchEngine:
             st.step(self.dt, np.where(np.isnan(f), 0.0, f))
             gone = st.diverged_rows & live
             for i in np.flatnonzero(gone).tolist():
-                self._diverged(i, k, diverged_message(st.time_s, float(st.diverged_dl_m[i])))
+                self._diverged(i, k, st.diverged_text(float(st.diverged_dl_m[i])))
         else:
             for i in np.flatnonzero(live).tolist():
                 p = self.points[i]
@@ -634,7 +626,7 @@ class BatchEngine:
             done = self.alive.copy()
             if done.any():
                 self._record(k + 1, self._measurements(),
-                             np.array([p.reference((k + 1) * self.dt) for p in self.points], dtype=float),
+                             np.array([p.plant.reference((k + 1) * self.dt) for p in self.points], dtype=float),
                              final=True, which=done)
                 for i in np.flatnonzero(done).tolist():
                     self.points[i].plant.stats.status = "ok"
@@ -646,11 +638,6 @@ class BatchEngine:
         stats.extra["diverged_at_s"] = k * self.dt
         stats.extra["message"] = message
         self.k_plant[i] = k
-        self._close(i)
-
-    def _finish(self, i: int) -> None:
-        """A point still running when the loop stops early (never: every point ends at n_ticks)."""
-        self.points[i].plant.stats.status = "ok"
         self._close(i)
 
     def _close(self, i: int) -> None:

@@ -671,9 +671,7 @@ def batch_unsupported(task: PointTask) -> str | None:
 
 def plan_batches(tasks: Sequence[PointTask], workers: int) -> tuple[list[list[PointTask]], list[PointTask], dict[str, int]]:
     """(batches for the batch engine, tasks to run one by one, fallback reasons -> count)."""
-    from canbrake.batch import batch_key
-
-    from canbrake.batch import point_bytes
+    from canbrake.batch import batch_key, point_bytes
 
     reasons: dict[str, int] = {}
     groups: dict[tuple, list[PointTask]] = {}

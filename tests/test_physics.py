@@ -293,3 +293,22 @@ def test_a_stack_with_blending_a_lagged_actuator_and_end_stops_steps_as_its_plan
     coarse = TrainPlant([3e4, 3e4], [0.0, 15.0], [4.0, 4.0], end_stop_m=0.02, end_stop_stiffness_n_per_m=5e6,
                         max_substep_s=0.01)
     assert stack_plants([coarse, coarse]) is None
+
+
+@pytest.mark.parametrize("equipped", [False, True])
+def test_a_stacked_point_that_diverges_is_reported_as_its_own_plant(equipped):
+    """The divergence text of a stack's row is the PlantDiverged message its own plant raises
+    (the equipped step words it without the softening-coupler hint), at the same time."""
+    from canbrake.physics.brakes import BrakeBlending
+    from canbrake.physics.train import PlantDiverged, TrainPlant, stack_plants
+
+    mk = lambda: TrainPlant([2e4, 2e4, 2e4], [0.0, 10.0, 20.0], [5.0, 5.0, 5.0],  # noqa: E731
+                            blending=BrakeBlending() if equipped else None)
+    single, st = mk(), stack_plants([mk(), mk()])
+    cmd = np.array([-1e9, 0.0, 0.0])
+    with np.errstate(all="ignore"), pytest.raises(PlantDiverged) as err:
+        for _ in range(1000):
+            st.step(1e-3, np.stack([cmd, np.zeros(3)]))
+            single.step(1e-3, cmd)
+    assert st.diverged_rows.tolist() == [True, False]
+    assert st.diverged_text(float(st.diverged_dl_m[0])) == str(err.value)

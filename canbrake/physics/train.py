@@ -72,12 +72,6 @@ class PlantDiverged(FloatingPointError):
     """The state became non-finite (e.g. a softening coupler was driven past its force peak)."""
 
 
-def diverged_message(time_s: float, max_deflection_m: float) -> str:
-    """What a coupled train's divergence is reported as (time after the step, s; last max |Δl|, m)."""
-    return (f"train state not finite at t = {time_s:.3f} s; last max |Δl| = {max_deflection_m:.3g} m "
-            "(a softening coupler, ε < 0, reverses beyond |Δl| = sqrt(-1/ε); consider end_stop_m)")
-
-
 GradeSpec = float | Sequence[float] | np.ndarray | Callable[[np.ndarray], np.ndarray]
 
 
@@ -289,10 +283,13 @@ class TrainPlant:
         rate = self.speed_mps[:-1] - self.speed_mps[1:]
         if np.all(np.abs(dl) + 2.0 * np.abs(rate) * dt_s + END_STOP_MARGIN_M < self.end_stop_m):
             return n_sub
+        return max(n_sub, int(math.ceil(dt_s / self._end_stop_substep_s() - 1e-9)))
+
+    def _end_stop_substep_s(self) -> float:
+        """The sub-step near an end stop (s): 0.05/ω_b, ω_b = sqrt(k_b/μ) for the lightest pair of cars."""
         m = self.mass_kg
         mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
-        h_stop = 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
-        return max(n_sub, int(math.ceil(dt_s / h_stop - 1e-9)))
+        return 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
 
     def coupler_energy_j(self) -> float:
         """Potential energy stored in the couplers (J), without end stop: Σ κ(Δl²/2 + εΔl⁴/4)."""
@@ -415,10 +412,18 @@ class TrainPlant:
         if self.stacked:
             x, v, v_before, rail = self._park_diverged(x, v, v_before, rail, dl)
         elif not math.isfinite(float(v.sum())):
-            raise PlantDiverged(diverged_message(self.time_s, float(np.max(np.abs(dl))) if dl.size else 0.0))
+            raise PlantDiverged(self.diverged_text(float(np.max(np.abs(dl))) if dl.size else 0.0))
         self.accel_mps2 = (v - v_before) / h
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+
+    def diverged_text(self, max_deflection_m: float) -> str:
+        """What this plant's divergence is reported as, now (after the step), given the last max |Δl|
+        (m); a stack's rows are reported as their own plants would be."""
+        text = f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = {max_deflection_m:.3g} m"
+        if self.blending is not None or self.wheels is not None:
+            return text
+        return text + " (a softening coupler, ε < 0, reverses beyond |Δl| = sqrt(-1/ε); consider end_stop_m)"
 
     def _park_diverged(self, x: np.ndarray, v: np.ndarray, v_before: np.ndarray, rail: np.ndarray,
                        dl: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -501,8 +506,7 @@ class TrainPlant:
         if self.stacked:
             x, v, v_before, rail = self._park_diverged(x, v, v_before, rail, dl)
         elif not math.isfinite(float(v.sum())):
-            raise PlantDiverged(f"train state not finite at t = {self.time_s:.3f} s; last max |Δl| = "
-                                f"{float(np.max(np.abs(dl))) if dl.size else 0.0:.3g} m")
+            raise PlantDiverged(self.diverged_text(float(np.max(np.abs(dl))) if dl.size else 0.0))
         self.accel_mps2 = (v - v_before) / h
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
@@ -581,8 +585,4 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
 def _substeps_fixed(p: TrainPlant) -> bool:
     """Whether ``p``'s sub-step never depends on its state: no end stop, or one whose own step
     (0.05/ω_b for the lightest pair of cars) is no shorter than ``max_substep_s``."""
-    if p.end_stop_m is None or p.n_cars < 2:
-        return True
-    m = p.mass_kg
-    mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
-    return 0.05 / math.sqrt(p.end_stop_stiffness_n_per_m / mu) >= p.max_substep_s
+    return p.end_stop_m is None or p.n_cars < 2 or p._end_stop_substep_s() >= p.max_substep_s
