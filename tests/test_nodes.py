@@ -211,3 +211,43 @@ def test_processes_cpu_s_counts_a_busy_child_not_a_sleeping_one():
         idle.kill()
         busy.wait()
         idle.wait()
+
+
+def _csv_reference(rows: list[list]) -> bytes:
+    """What the traces wrote before their per-row format: csv.writer, floats as f"{v:.9g}"."""
+    import csv
+    import io
+
+    buf = io.StringIO(newline="")
+    w = csv.writer(buf)
+    for row in rows:
+        w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+    return buf.getvalue().encode()
+
+
+def test_trace_rows_are_written_as_the_csv_module_writes_them(tmp_path):
+    """CsvTrace's compiled per-row %-format writes the bytes csv.writer would, for every value
+    type the nodes append (floats incl. NaN/inf/-0/huge, numpy scalars, ints, bools) and falls
+    back to csv.writer for the rest (a str needing quotes, None)."""
+    from hypothesis import given, settings, strategies as st
+
+    from canbrake.nodes.base import CsvTrace
+
+    value = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-2 ** 62, 2 ** 62),
+                      st.booleans(), st.floats(allow_nan=True).map(np.float64),
+                      st.integers(-2 ** 31, 2 ** 31 - 1).map(np.int64), st.booleans().map(np.bool_),
+                      st.sampled_from(["a,b", 'q"t', "plain", None]))
+    n = [0]
+
+    @settings(max_examples=150, deadline=None)
+    @given(st.lists(st.lists(value, max_size=6), min_size=1, max_size=4))
+    def check(rows):
+        n[0] += 1
+        path = tmp_path / f"t{n[0]}.csv"
+        t = CsvTrace(path, ["h1", "h2"])
+        for row in rows:
+            t.append(list(row))
+        t.close()
+        assert path.read_bytes() == _csv_reference([["h1", "h2"], *rows])
+
+    check()

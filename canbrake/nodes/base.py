@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Iterator, Protocol
 
 import can
+import numpy as np
 
 
 class SendPath(Protocol):
@@ -111,6 +112,20 @@ def buffered_traces() -> Iterator[None]:
         _ROW_BY_ROW.pop()
 
 
+#: %-conversions that write a value as csv.writer (excel dialect) does, by exact type; floats
+#: (and numpy's float64, a float) as f"{v:.9g}"
+_CONVERSION: dict[type, str] = {float: "%.9g", np.float64: "%.9g", int: "%d", np.int64: "%d", np.int32: "%d",
+                                bool: "%s", np.bool_: "%s"}
+
+
+def _row_format(types: tuple[type, ...]) -> str:
+    """The %-format of a csv row whose values have ``types``; "" if a type is not covered."""
+    parts = [_CONVERSION.get(t) for t in types]
+    if None in parts:
+        return ""
+    return ",".join(parts) + "\r\n"  # type: ignore[arg-type]
+
+
 class CsvTrace:
     """A CSV trace written as it goes: the header at once, then every row handed to the OS as it
     is appended (one ``write`` per row through a buffered file: one control period per row), so
@@ -123,15 +138,29 @@ class CsvTrace:
         self._row_by_row = _ROW_BY_ROW[-1]
         self._file = open(path, "w", newline="") if path is not None else None
         self._writer = csv.writer(self._file) if self._file is not None else None
+        self._formats: dict[tuple[type, ...], str] = {}
         if self._writer is not None:
             self._writer.writerow(header)
             self._file.flush()  # type: ignore[union-attr]
 
     def append(self, row: list[Any]) -> None:
-        if self._writer is not None:
+        if self._writer is None:
+            return
+        # One %-format per row, compiled per row shape (the types of its values), instead of a
+        # format call per value and the csv module's per-field checks: the same bytes as
+        # csv.writer with floats as f"{v:.9g}" (signals.csv of a 106-vehicle train is ~1,100
+        # values per period). Shapes with values the format cannot write as csv would (str,
+        # None, ...) take the csv writer.
+        key = tuple(map(type, row))
+        fmt = self._formats.get(key)
+        if fmt is None:
+            fmt = self._formats[key] = _row_format(key)
+        if fmt:
+            self._file.write(fmt % tuple(row))  # type: ignore[union-attr]
+        else:
             self._writer.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
-            if self._row_by_row:
-                self._file.flush()  # type: ignore[union-attr]
+        if self._row_by_row:
+            self._file.flush()  # type: ignore[union-attr]
 
     def flush(self) -> None:
         if self._file is not None:

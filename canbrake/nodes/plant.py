@@ -504,12 +504,11 @@ class PlantNode(Node):
         if self._ref_pos is not None:
             row.append(self.reference.position(t))
         cmd = np.full(self.n, np.nan) if final else self.cmd_n
-        pos, spd, acc, app = m["position_m"], m["speed_mps"], m["accel_mps2"], m["applied_brake_n"]
-        for i in range(self.n):
-            row += [pos[i], spd[i], acc[i], cmd[i], app[i]]
-        d, f = m["deflection_m"], m["coupler_force_n"]
-        for j in range(self.n - 1):
-            row += [d[j], f[j]]
+        # per vehicle (position, speed, accel, command, applied), then per coupler (deflection,
+        # force): interleaved by numpy, Python floats by tolist (not a numpy scalar per value)
+        row += np.column_stack([m["position_m"], m["speed_mps"], m["accel_mps2"], cmd,
+                                m["applied_brake_n"]]).ravel().tolist()
+        row += np.column_stack([m["deflection_m"], m["coupler_force_n"]]).ravel().tolist()
         if self.failsafe is not None:
             row += [int(x) for x in self._in_failsafe]
         for name in self.command_names:
@@ -517,7 +516,7 @@ class PlantNode(Node):
                 arr = self.commands[name]
                 row += [np.nan if final else float(arr[e.vehicle - 1]) for e in self.ecus if name in e.commands]
         for name in self._extra_measurements():
-            row += [float(x) for x in m[name]]
+            row += np.asarray(m[name], dtype=float).tolist()
         if self._trace is not None:
             self._trace.append(row)
             if final:
