@@ -134,6 +134,7 @@ class EcuNode(Node):
         self._listened_idx = np.asarray([j - 1 for j in self._listens], dtype=np.int64)
         self._age_alone = np.full(self.n, np.inf)  # peer ages of an ECU that listens to no one
         self._age_alone[self.i] = 0.0
+        self._one_peer = self._listens[0] - 1 if len(self._listens) == 1 else -1  # its index (0-based)
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
@@ -208,7 +209,7 @@ class EcuNode(Node):
             if self._p1_at is not None:  # the drifting timer did not fire within the period: a sample slip
                 self.stats.timer_slips += 1
                 self._p1_at = None
-            self.k = int(self.codec.by_id[aid].decode(msg.data)["Tick"])
+            self.k = int.from_bytes(msg.data[:4], "little")  # SYNC's Tick (bits 0-31, LE): as sync_verdict reads it
             self.phase = 0
             self._done = 0
             self._page_fresh = [0] * self.n
@@ -441,6 +442,18 @@ class EcuNode(Node):
             # array operations: ~6 % of a 106-ECU run)
             age = self._age_alone.copy()
             fresh, max_age = 1, 0.0
+        elif listened.size == 1 and self.peer_hold_periods is None:
+            # one listened peer (an ECP wagon hears its locomotive): its entry is the one to
+            # compute, every other is as for an ECU that listens to no one (the general branch's
+            # values, without its array operations)
+            p = self._one_peer
+            o = self._origin_of[p]
+            a = math.inf if o < 0 and math.isnan(speed[p]) else (self.k - o) * self.dt
+            age = self._age_alone.copy()
+            age[p] = a
+            fresh = 2 if o == self.k else 1
+            self.stats.peer_missing += 2 - fresh
+            max_age = a if a > 0.0 and a != math.inf else 0.0  # its, or the ECU's own 0 (others: inf)
         else:
             origin = self.peer_origin.copy()
             origin[self.i] = self.k
@@ -449,9 +462,6 @@ class EcuNode(Node):
             age = np.where(np.isnan(speed) & (origin < 0), np.inf, (self.k - origin) * self.dt)
             fresh = int(np.count_nonzero(origin[listened] == self.k)) + 1 if listened.size else 1
             self.stats.peer_missing += listened.size + 1 - fresh
-            if listened.size == 1:  # one peer (an ECP wagon hears its locomotive): the oldest finite age
-                a = float(age[listened[0]])  # is its, or the ECU's own 0 (every other entry is inf)
-                max_age = a if a > 0.0 and a != math.inf else 0.0
         obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +81,7 @@ class LogHistogram:
         if x <= self.LO_S:
             i = 0
         else:
-            i = min(self.bins - 1, 1 + int(np.log(x / self.LO_S) / self._log_ratio))
+            i = min(self.bins - 1, 1 + int(math.log(x / self.LO_S) / self._log_ratio))  # not np.log: a scalar
         self.counts[i] += 1
 
     def quantile(self, q: float) -> float:
@@ -252,6 +253,7 @@ class RecorderNode(Node):
         self.layout = layout
         self._kinds = {m.frame_id: m.kind for m in layout.messages}
         self._untimed_memo: dict[int, bool] = {}
+        self._sim_control_memo: dict[int, bool] = {}
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
         self.mode = mode
@@ -392,7 +394,7 @@ class RecorderNode(Node):
                 busy += dur
                 self._latency.add(t - t_k)
             in_period += dur
-            if not is_sim_control(aid, self.layout):
+            if not self._sim_control(aid):
                 out.append(self._stamp(msg, t_k + in_period * scale))
                 arrival.append(seen[id(msg)])
         self._bus_free_s = t
@@ -597,6 +599,13 @@ class RecorderNode(Node):
             self.error_frames += 1
         elif not self._untimed(aid):
             self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual")
+
+    def _sim_control(self, aid: int) -> bool:
+        """:func:`is_sim_control` of the layout, memoised per identifier."""
+        r = self._sim_control_memo.get(aid)
+        if r is None:
+            r = self._sim_control_memo[aid] = is_sim_control(aid, self.layout)
+        return r
 
     def _untimed(self, aid: int) -> bool:
         """Frames that take no bus time in the accounting: barrier frames, and the plant's sensor
