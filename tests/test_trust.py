@@ -190,10 +190,10 @@ def test_recorder_statistics_use_bounded_memory():
     rng = np.random.default_rng(1)
     x = rng.lognormal(-8, 1.5, 100_000)
     h = LogHistogram()
-    size = h.counts.nbytes
+    size = len(h.counts)
     for v in x:
         h.add(float(v))
-    assert h.counts.nbytes == size and h.max == x.max()
+    assert len(h.counts) == size and h.max == x.max()
     for q in (0.5, 0.99):
         assert h.quantile(q) == pytest.approx(np.quantile(x, q), rel=2e-3)
 

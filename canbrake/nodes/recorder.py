@@ -68,9 +68,11 @@ class LogHistogram:
     LO_S, HI_S, RATIO = 1e-7, 1e4, 1.001
 
     def __init__(self) -> None:
-        self._log_ratio = np.log(self.RATIO)
+        self._log_ratio = float(np.log(self.RATIO))  # a Python float: add() divides by it per frame
         self.bins = int(np.ceil(np.log(self.HI_S / self.LO_S) / self._log_ratio)) + 2
-        self.counts = np.zeros(self.bins, dtype=np.int64)
+        # a list, not a numpy array: add() touches one element per frame (a numpy element
+        # update costs several times a list's); quantile() converts
+        self.counts: list[int] = [0] * self.bins
         self.n = 0
         self.max = 0.0
 
@@ -79,16 +81,16 @@ class LogHistogram:
         if x > self.max:
             self.max = x
         if x <= self.LO_S:
-            i = 0
+            self.counts[0] += 1
         else:
-            i = min(self.bins - 1, 1 + int(math.log(x / self.LO_S) / self._log_ratio))  # not np.log: a scalar
-        self.counts[i] += 1
+            i = 1 + int(math.log(x / self.LO_S) / self._log_ratio)  # math.log: numpy's costs more on a scalar
+            self.counts[i if i < self.bins else self.bins - 1] += 1
 
     def quantile(self, q: float) -> float:
         """The ``q`` quantile (0..1), as the geometric middle of its bin (0 when empty)."""
         if not self.n:
             return 0.0
-        k = int(np.searchsorted(np.cumsum(self.counts), max(1, int(np.ceil(q * self.n)))))
+        k = int(np.searchsorted(np.cumsum(np.asarray(self.counts, dtype=np.int64)), max(1, int(np.ceil(q * self.n)))))
         if k == 0:
             return min(self.LO_S, self.max)
         return float(min(self.max, self.LO_S * self.RATIO ** (k - 0.5)))
@@ -254,6 +256,7 @@ class RecorderNode(Node):
         self._kinds = {m.frame_id: m.kind for m in layout.messages}
         self._untimed_memo: dict[int, bool] = {}
         self._sim_control_memo: dict[int, bool] = {}
+        self._wire_memo: dict[tuple[int, bool, int, bytes], float] = {}
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
         self.mode = mode
@@ -368,7 +371,15 @@ class RecorderNode(Node):
         """The frame's time on the wire (s), actual stuffing; 0 for frames the accounting leaves out."""
         if self._untimed(msg.arbitration_id):
             return 0.0
-        return actual_frame_bits(msg.arbitration_id, msg.is_extended_id, msg.dlc, bytes(msg.data)) / self.bitrate
+        # memoised by frame: a sender's frames repeat every 15 periods (the alive counter) while
+        # its values hold, and the stuffing walk costs ~20x the lookup
+        key = (msg.arbitration_id, msg.is_extended_id, msg.dlc, bytes(msg.data))
+        s = self._wire_memo.get(key)
+        if s is None:
+            if len(self._wire_memo) >= 16384:
+                self._wire_memo.clear()
+            s = self._wire_memo[key] = actual_frame_bits(*key) / self.bitrate
+        return s
 
     def _flush_tick(self) -> None:
         if self.net is not None:
@@ -384,8 +395,9 @@ class RecorderNode(Node):
         wire = sum(durs)
         scale = min(1.0, self.dt / wire) if wire > 0 else 1.0  # stamps stay inside [t_k, t_k + T]
         out = []
-        seen = {id(f[3]): i for i, f in enumerate(self._tick_frames)}
-        arrival: list[int] = []  # each logged frame's place in the order frames arrived
+        modelled = self.wire_model is not None
+        seen = {id(f[3]): i for i, f in enumerate(self._tick_frames)} if modelled else {}
+        arrival: list[int] = []  # each logged frame's place in the order frames arrived (wire model)
         busy = 0.0
         in_period = 0.0
         for (_phase, aid, _data, msg), dur in zip(ordered, durs):
@@ -396,9 +408,10 @@ class RecorderNode(Node):
             in_period += dur
             if not self._sim_control(aid):
                 out.append(self._stamp(msg, t_k + in_period * scale))
-                arrival.append(seen[id(msg)])
+                if modelled:
+                    arrival.append(seen[id(msg)])
         self._bus_free_s = t
-        if self.wire_model is not None:
+        if modelled:
             out = self._model_stamps(out, arrival, t_k)
         n_out = len(out)
         if self.timing is not None:
