@@ -101,3 +101,15 @@ def test_codec_saturates_like_the_interpreted_encoder(data):
     if counter is None and "Counter" in vals:
         vals["Counter"] = float(data.draw(st.integers(-100, 100)))
     assert c.encode(vals, counter=counter) == c.encode_reference(vals, counter=counter)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.binary(min_size=8, max_size=8), min_size=1, max_size=6))
+def test_decode_shared_is_decode_and_follows_each_new_payload(payloads):
+    """The read-only decode shared by the ECUs of one process gives decode's values for every
+    payload, also when payloads alternate (a stale cache would repeat the previous one)."""
+    _db, fc = _database("chen6")
+    m = fc["STATE_C1"]
+    for p in payloads:
+        for data in (p, bytearray(p)):
+            assert m.decode_shared(data) == m.decode(p)

@@ -104,6 +104,18 @@ class MessageCodec:
         self.encode: Callable[..., bytes]
         self.decode: Callable[[bytes | bytearray], dict[str, float]]
         self.encode, self.decode = _compile(message, self._fields, self.protected)
+        self._shared_key: bytes | None = None
+        self._shared: dict[str, float] = {}
+
+    def decode_shared(self, data: bytes | bytearray) -> Mapping[str, float]:
+        """``decode(data)`` for callers that only read the result: a payload equal to the last
+        one returns the same dict, so a broadcast frame is decoded once for all the ECUs of one
+        process (the in-process engine, hosted ECUs) instead of once per ECU."""
+        b = bytes(data)
+        if b != self._shared_key:
+            self._shared = self.decode(b)
+            self._shared_key = b
+        return self._shared
 
     def quantiser(self, signal: str) -> "Quantiser":
         """The value a receiver decodes for ``signal`` of this message, as an array function

@@ -56,11 +56,12 @@ class FrameGuard:
         self.unknown_ids[key] = self.unknown_ids.get(key, 0) + 1
 
     def origin(self, data_id: int, payload: bytes | bytearray, k: int, last_origin: int,
-               *, authenticated: bool = False, same_tick_ok: bool = False) -> int | None:
+               *, authenticated: bool = False, same_tick_ok: bool = False, crc_checked: bool = False) -> int | None:
         """Tick the frame was sent in, or None (rejected and counted). ``k``: the receiver's tick;
         ``last_origin``: tick of the newest frame accepted from this sender (per data ID, or per
-        sender with ``same_tick_ok`` when it sends several pages per tick)."""
-        if len(payload) < 2 or payload[0] != e2e_crc(data_id, payload):
+        sender with ``same_tick_ok`` when it sends several pages per tick); ``crc_checked``: the
+        caller has checked the E2E CRC already (an E2E receiver's check)."""
+        if not crc_checked and (len(payload) < 2 or payload[0] != e2e_crc(data_id, payload)):
             self.reject("crc")
             return None
         if payload[1] & 0x0F >= COUNTER_MODULO:

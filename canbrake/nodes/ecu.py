@@ -130,7 +130,7 @@ class EcuNode(Node):
         self._page_fresh: list[int] = [0] * self.n
         self._origin_of: list[int] = [-(10 ** 12)] * self.n
         self._multi_page = {j: c > 1 for j, c in self._pages_of.items()}  # ECU index (1-based) -> bool
-        self._state_dec = {fid: (codec.by_id[fid].decode, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
+        self._state_dec = {fid: (codec.by_id[fid].decode_shared, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
         self._listened_idx = np.asarray([j - 1 for j in self._listens], dtype=np.int64)
         self._age_alone = np.full(self.n, np.inf)  # peer ages of an ECU that listens to no one
         self._age_alone[self.i] = 0.0
@@ -228,7 +228,7 @@ class EcuNode(Node):
                 return []
             return self._phase1(now)
         if aid == dbc.REFERENCE_ID:
-            d = self.codec.by_id[aid].decode(msg.data)
+            d = self.codec.by_id[aid].decode_shared(msg.data)
             self.v_ref, self.a_ref = d["RefSpeed"], d["RefDecel"]
             return []
         if aid == dbc.REFERENCE_POS_ID:

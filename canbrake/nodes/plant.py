@@ -147,6 +147,8 @@ class PlantNode(Node):
         self._ref_pos = codec["REFERENCE_POS"] if layout.ref_position else None
         self._sensor_msgs = [(m.frame_id, codec[m.name], m.ecu, [(sig, sp.name) for sig, sp in m.signals if sig])
                              for m in layout.messages if m.kind == "sensor"]
+        self._sensor_arrays = sorted({"deflection_m" if sig in ("deflection_front_m", "deflection_rear_m") else sig
+                                      for *_x, sigs in self._sensor_msgs for sig, _d in sigs})
         self._hb = codec["HEARTBEAT_PLANT"]
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
@@ -188,13 +190,14 @@ class PlantNode(Node):
         return [exact_filter(i) for i in ids]
 
     @staticmethod
-    def _vehicle_value(meas: dict[str, np.ndarray], name: str, v: int, n: int) -> float:
-        """Measurement ``name`` of vehicle index ``v`` (0-based) for its ECU's sensor frame."""
+    def _vehicle_value(meas: dict[str, list[float]], name: str, v: int, n: int) -> float:
+        """Measurement ``name`` of vehicle index ``v`` (0-based) for its ECU's sensor frame
+        (``meas``: the model's measurements as lists of floats)."""
         if name == "deflection_front_m":
-            return float(meas["deflection_m"][v - 1]) if v > 0 else 0.0
+            return meas["deflection_m"][v - 1] if v > 0 else 0.0
         if name == "deflection_rear_m":
-            return float(meas["deflection_m"][v]) if v < n - 1 else 0.0
-        return float(meas[name][v])
+            return meas["deflection_m"][v] if v < n - 1 else 0.0
+        return meas[name][v]
 
     def _tick_frames(self) -> list[can.Message]:
         k = self.k
@@ -209,6 +212,10 @@ class PlantNode(Node):
         if k % self.heartbeat_every == 0:
             out.append(frame(dbc.HEARTBEAT_BASE, self._hb.encode({"NodeState": 5})))
         n = self.n
+        lists: dict[str, list[float]] = {}  # the arrays the frames read, as Python floats (one tolist each)
+        for name in self._sensor_arrays:
+            lists[name] = np.asarray(meas[name], dtype=float).tolist()
+        meas = lists  # type: ignore[assignment]
         for fid, codec, ecu, sigs in self._sensor_msgs:
             v = self.ecus[ecu - 1].vehicle - 1
             vals = {}
@@ -336,7 +343,8 @@ class PlantNode(Node):
         # The sender's counter is its tick mod 15; accept only the frame of the current tick or a
         # newer-looking one, never an older (delayed/reordered) one; with SecOC only an authentic
         # frame of exactly that tick (canbrake.bus.guard).
-        origin = self.guard.origin(aid, msg.data, self.k, self._page_origin[aid], authenticated=True)
+        origin = self.guard.origin(aid, msg.data, self.k, self._page_origin[aid], authenticated=True,
+                                   crc_checked=True)  # by the E2E receiver above
         if origin is None:
             return False
         self._page_origin[aid] = origin
