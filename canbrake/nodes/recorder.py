@@ -256,7 +256,6 @@ class RecorderNode(Node):
         self._kinds = {m.frame_id: m.kind for m in layout.messages}
         self._untimed_memo: dict[int, bool] = {}
         self._sim_control_memo: dict[int, bool] = {}
-        self._wire_memo: dict[tuple[int, bool, int, bytes], float] = {}
         self.dt = dt_s
         self.bitrate = float(bitrate_bps)
         self.mode = mode
@@ -371,15 +370,7 @@ class RecorderNode(Node):
         """The frame's time on the wire (s), actual stuffing; 0 for frames the accounting leaves out."""
         if self._untimed(msg.arbitration_id):
             return 0.0
-        # memoised by frame: a sender's frames repeat every 15 periods (the alive counter) while
-        # its values hold, and the stuffing walk costs ~20x the lookup
-        key = (msg.arbitration_id, msg.is_extended_id, msg.dlc, bytes(msg.data))
-        s = self._wire_memo.get(key)
-        if s is None:
-            if len(self._wire_memo) >= 16384:
-                self._wire_memo.clear()
-            s = self._wire_memo[key] = actual_frame_bits(*key) / self.bitrate
-        return s
+        return actual_frame_bits(msg.arbitration_id, msg.is_extended_id, msg.dlc, bytes(msg.data)) / self.bitrate
 
     def _flush_tick(self) -> None:
         if self.net is not None:
