@@ -303,8 +303,11 @@ class CoupledPlant:
         self.n_vehicles = plant.n_cars
         self.n_cars = plant.n_cars
         self.mass_kg = plant.mass_kg
+        self._meas: dict[str, np.ndarray] | None = None
+        self._meas_t = math.nan
 
     def step(self, dt_s: float, commands: Any) -> None:
+        self._meas = None
         f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
         wsp = commands.get("wsp_release")
         if wsp is None:
@@ -313,6 +316,15 @@ class CoupledPlant:
             self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f), wsp_release=np.asarray(wsp, dtype=float))
 
     def measurements(self) -> dict[str, np.ndarray]:
+        """The contract's measurements, computed once per state (the plant node reads them for
+        the sensor frames and for the trace; do not modify the arrays)."""
+        if self._meas is not None and self._meas_t == self.plant.time_s:
+            return self._meas
+        self._meas = self._measure()
+        self._meas_t = self.plant.time_s
+        return self._meas
+
+    def _measure(self) -> dict[str, np.ndarray]:
         s = self.plant.snapshot()
         out = {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
                "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,

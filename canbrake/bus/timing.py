@@ -264,9 +264,9 @@ def _actual_stuff_bits(arbitration_id: int, is_extended: bool, dlc: int, data: b
     if not _STUFF_TABLE:
         _build_tables()
     if not is_remote and data:
-        crc = _crc15_bytes(data, crc)
-        table = _STUFF_TABLE
-        for byte in data:
+        table, crc_table = _STUFF_TABLE, _CRC_TABLE
+        for byte in data:  # the CRC-15 register and the stuffing state in one pass (_crc15_bytes inlined)
+            crc = ((crc << 8) & 0x7FFF) ^ crc_table[((crc >> 7) ^ byte) & 0xFF]
             k, code = table[code][byte]
             n += k
     # the 15 CRC bits: the high 8 through the byte table, the low 7 through the 7-bit one
