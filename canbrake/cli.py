@@ -131,8 +131,10 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
         ticks = s.get("ticks") or 0
         periods = (s.get("realtime") or {}).get("periods") or ticks  # periods that ended (a diverged run: one more)
         rate = f" ({dm.get('plant', 0) / periods * 100:.1f} % of periods)" if periods else ""
-        lines.append(f"deadline misses: plant {dm.get('plant', 0)}{rate}, ECUs {dm.get('ecus', 0)}")
         rt = s.get("realtime") or {}
+        skipped = rt.get("ecu_skipped_periods") or 0
+        lines.append(f"deadline misses: plant {dm.get('plant', 0)}{rate}, ECUs {dm.get('ecus', 0)}"
+                     + (f"; ECU periods skipped (the next began first): {skipped}" if skipped else ""))
         if rt:  # canbrake.analysis.summary.realtime_figures
             ms = (lambda x: "late" if x is None else f"{x * 1e3:.3f} ms")
             lines.append(f"command latency (SYNC -> last command): p50 {ms(rt.get('cmd_latency_p50_s'))}, "

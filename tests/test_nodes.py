@@ -251,3 +251,56 @@ def test_trace_rows_are_written_as_the_csv_module_writes_them(tmp_path):
         assert path.read_bytes() == _csv_reference([["h1", "h2"], *rows])
 
     check()
+
+
+def test_paused_ecus_count_the_realtime_periods_they_never_commanded(tmp_path):
+    """SIGSTOP every ECU process at once for 0.25 s of a 10 ms realtime run (what a pause of the
+    machine does to them while the plant, pinned and at a higher priority, runs on): on SIGCONT
+    each takes the SYNCs it missed in a row, and the periods whose next SYNC came before their
+    peers' states are counted (skipped_periods, the summary's realtime.ecu_skipped_periods).
+    Before, those periods left no trace on the ECUs' side: no ECU timer had fired for them."""
+    import json
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "canbrake", "run", str(CASE1), "--profile", "realistic",
+                             "--mode", "realtime", "--duration", "2.5", "--no-plots", "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        ecus: list = []
+        until = time.monotonic() + 60
+        while len(ecus) < 6 and time.monotonic() < until and proc.poll() is None:
+            ecus = []
+            for c in psutil.Process(proc.pid).children(recursive=True):
+                try:
+                    if " ".join(c.cmdline()).startswith("canbrake ecu"):
+                        ecus.append(c)
+                except psutil.Error:
+                    pass
+            time.sleep(0.02)
+        assert len(ecus) == 6, "the six ECU processes never appeared"
+        until = time.monotonic() + 60
+        while not (out / "bus_load.csv").exists() and time.monotonic() < until:  # the recorder saw a period
+            time.sleep(0.02)
+        time.sleep(0.3)
+        for e in ecus:
+            os.kill(e.pid, signal.SIGSTOP)
+        time.sleep(0.25)
+        for e in ecus:
+            os.kill(e.pid, signal.SIGCONT)
+        assert proc.wait(timeout=120) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    s = json.loads((out / "summary.json").read_text())
+    skipped = [json.loads((out / f"ecu_c{c}_stats.json").read_text())["skipped_periods"] for c in range(1, 7)]
+    assert min(skipped) >= 10, skipped  # ~25 periods of 10 ms stopped
+    assert s["realtime"]["ecu_skipped_periods"] == sum(skipped)
+    assert min(s["deadline_misses"]["missed_commands_per_car"]) >= 10

@@ -325,7 +325,9 @@ def realtime_figures(plant: dict[str, Any], ecus: list[dict[str, Any]], busst: d
             **{k: ex.get(k) for k in ("cmd_latency_p50_s", "cmd_latency_p99_s", "cmd_latency_max_s",
                                       "cmd_latency_missing")},
             "late_periods": plant.get("late_periods", 0), "max_lateness_s": plant.get("max_lateness_s", 0.0),
-            "slipped_s": plant.get("slipped_s", 0.0), "scheduling": sched}
+            "slipped_s": plant.get("slipped_s", 0.0),
+            # periods an ECU never commanded because the next one began first (its process paused)
+            "ecu_skipped_periods": sum(int(e.get("skipped_periods", 0)) for e in ecus), "scheduling": sched}
 
 
 def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], *, plots: bool) -> dict[str, Any]:

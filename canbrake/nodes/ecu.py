@@ -41,6 +41,7 @@ class EcuStats:
     fallback_entries: int = 0    # times peers were lost (older than safety.peer_hold_periods)
     fallback_ticks: int = 0      # ticks computed on own sensors with at least one peer dropped
     timer_slips: int = 0         # realtime with ecu.clocks: periods whose timer instant fell past the next SYNC
+    skipped_periods: int = 0     # realtime: periods that ended (the next SYNC came) before this ECU sent their commands
     can_errors: dict = field(default_factory=dict)  # realtime bus errors: state, TEC, error frames, bus-off
     scheduling: str | None = None  # realtime: SCHED_FIFO / fallback and CPUs obtained (canbrake.nodes.rt)
     external_timeouts: int = 0   # lockstep: periods computed without an external peer's state (it was late)
@@ -209,7 +210,12 @@ class EcuNode(Node):
             if self._p1_at is not None:  # the drifting timer did not fire within the period: a sample slip
                 self.stats.timer_slips += 1
                 self._p1_at = None
-            self.k = int.from_bytes(msg.data[:4], "little")  # SYNC's Tick (bits 0-31, LE): as sync_verdict reads it
+            k_new = int.from_bytes(msg.data[:4], "little")  # SYNC's Tick (bits 0-31, LE): as sync_verdict reads it
+            if self.mode != "lockstep" and self.k >= 0:
+                # periods this ECU never commanded (a pause of its process: it takes the SYNCs it
+                # missed in a row): the current one unless done, and any it never saw the start of
+                self.stats.skipped_periods += k_new - self.k - 1 + (self.phase != 2)
+            self.k = k_new
             self.phase = 0
             self._done = 0
             self._page_fresh = [0] * self.n
