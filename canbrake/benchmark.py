@@ -162,6 +162,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     if rt:
         out["slipped_s"] = rt.get("slipped_s")
         out["periods"] = rt.get("periods")
+        out["ecu_skipped_periods"] = rt.get("ecu_skipped_periods")
         sched = {v for k, v in (rt.get("scheduling") or {}).items() if k.startswith("ecu_")}
         out["ecu_scheduling"] = "; ".join(sorted(x for x in sched if x))
     return out
@@ -339,7 +340,8 @@ def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict
             continue
         periods = res.get("periods") or res["ticks"]  # periods that ended (a diverged run: one more than ticks)
         pct = 100.0 * (res.get("deadline_misses") or 0) / periods
-        note = (f"{periods} periods, {res.get('ecu_deadline_misses')} ECU misses, {res.get('late_periods')} late "
+        note = (f"{periods} periods, {res.get('ecu_deadline_misses')} ECU misses, "
+                f"{res.get('ecu_skipped_periods') or 0} ECU periods skipped, {res.get('late_periods')} late "
                 f"periods, worst lateness {1e3 * (res.get('max_lateness_s') or 0):.2f} ms, grid moved on "
                 f"{1e3 * (res.get('slipped_s') or 0):.1f} ms; run {res['status']}"
                 f"{' (' + res['message'] + ')' if res.get('message') else ''}; scheduling: plant "
