@@ -250,7 +250,7 @@ class BatchEngine:
         self.command_names = list(pn0.command_names)
         self.extra_meas = list(pn0._extra_measurements())
         self.alive = np.ones(P, dtype=bool)
-        # what every receiver holds of its peers (the ECU node's peer_signals / peer_origin)
+        # what every receiver holds of its peers (the ECU node's peer_signals / _origin_of)
         self.peer = {nm: np.full((P, m, m), np.nan) for nm in self.peer_names}
         self.origin = np.full((P, m, m), -(10 ** 12), dtype=np.int64)
         self.peer_frames = np.zeros((P, m), dtype=np.int64)

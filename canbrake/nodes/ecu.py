@@ -125,9 +125,8 @@ class EcuNode(Node):
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
         self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
-        self.peer_origin = np.full(self.n, -(10 ** 12), dtype=np.int64)
-        # per ECU: pages of this tick seen, and the newest origin as a Python int (a frame touches
-        # single elements, which numpy scalars make several times dearer; peer_origin is the array)
+        # per ECU: pages of this tick seen, and the newest origin (tick) as a Python int (a frame
+        # touches single elements, which numpy scalars make several times dearer)
         self._page_fresh: list[int] = [0] * self.n
         self._origin_of: list[int] = [-(10 ** 12)] * self.n
         self._multi_page = {j: c > 1 for j, c in self._pages_of.items()}  # ECU index (1-based) -> bool
@@ -135,7 +134,6 @@ class EcuNode(Node):
         self._listened = [j - 1 for j in self._listens]  # listened ECUs' indices (0-based)
         self._age_alone = np.full(self.n, np.inf)  # peer ages of an ECU that listens to no one
         self._age_alone[self.i] = 0.0
-        self._one_peer = self._listens[0] - 1 if len(self._listens) == 1 else -1  # its index (0-based)
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
@@ -358,7 +356,6 @@ class EcuNode(Node):
             ps[sig][j] = d[dbc_name]
         if origin > self._origin_of[j]:
             self._origin_of[j] = origin
-            self.peer_origin[j] = origin
             self._page_fresh[j] = 0
         self.stats.peer_frames += 1
         if origin == self.k:
@@ -442,24 +439,21 @@ class EcuNode(Node):
         n_listened = len(self._listened)
         speed = peers["speed_mps"]
         max_age: float  # the oldest finite peer age, for the trace (-inf: none finite)
-        if not n_listened and self.peer_hold_periods is None:
-            # listening to no one (an ECP wagon): only its own entry is known, with age 0; every
-            # other is NaN with age inf (what the general branch below computes, without its
-            # array operations: ~6 % of a 106-ECU run)
+        if n_listened <= 1 and self.peer_hold_periods is None:
+            # listening to no one or to one peer (ECP wagons: their locomotive): only its own entry
+            # (age 0) and that peer's are known, every other is NaN with age inf; the general
+            # branch's values without its loop over every ECU of the train
             age = self._age_alone.copy()
             fresh, max_age = 1, 0.0
-        elif n_listened == 1 and self.peer_hold_periods is None:
-            # one listened peer (an ECP wagon hears its locomotive): its entry is the one to
-            # compute, every other is as for an ECU that listens to no one (the general branch's
-            # values, without its array operations)
-            p = self._one_peer
-            o = self._origin_of[p]
-            a = math.inf if o < 0 and math.isnan(speed[p]) else (self.k - o) * self.dt
-            age = self._age_alone.copy()
-            age[p] = a
-            fresh = 2 if o == self.k else 1
-            self.stats.peer_missing += 2 - fresh
-            max_age = a if a > 0.0 and a != math.inf else 0.0  # its, or the ECU's own 0 (others: inf)
+            if n_listened:
+                p = self._listened[0]
+                o = self._origin_of[p]
+                a = math.inf if o < 0 and math.isnan(speed[p]) else (self.k - o) * self.dt
+                age[p] = a
+                fresh += o == self.k
+                self.stats.peer_missing += 2 - fresh
+                if 0.0 < a < math.inf:  # the oldest finite age: the peer's, or the ECU's own 0
+                    max_age = a
         else:
             # over Python lists: an ECU hears a few to a few dozen peers, where numpy's per-call
             # cost exceeds the loop's (13 us vs 4 us for 6 ECUs, measured; even at ~50)
