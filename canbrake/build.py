@@ -303,8 +303,7 @@ class CoupledPlant:
         self.n_vehicles = plant.n_cars
         self.n_cars = plant.n_cars
         self.mass_kg = plant.mass_kg
-        self._meas: dict[str, np.ndarray] | None = None
-        self._meas_t = math.nan
+        self._meas: dict[str, np.ndarray] | None = None  # of the current state; step() drops it
 
     def step(self, dt_s: float, commands: Any) -> None:
         self._meas = None
@@ -318,10 +317,8 @@ class CoupledPlant:
     def measurements(self) -> dict[str, np.ndarray]:
         """The contract's measurements, computed once per state (the plant node reads them for
         the sensor frames and for the trace; do not modify the arrays)."""
-        if self._meas is not None and self._meas_t == self.plant.time_s:
-            return self._meas
-        self._meas = self._measure()
-        self._meas_t = self.plant.time_s
+        if self._meas is None:
+            self._meas = self._measure()
         return self._meas
 
     def _measure(self) -> dict[str, np.ndarray]:

@@ -212,15 +212,13 @@ class PlantNode(Node):
         if k % self.heartbeat_every == 0:
             out.append(frame(dbc.HEARTBEAT_BASE, self._hb.encode({"NodeState": 5})))
         n = self.n
-        lists: dict[str, list[float]] = {}  # the arrays the frames read, as Python floats (one tolist each)
-        for name in self._sensor_arrays:
-            lists[name] = np.asarray(meas[name], dtype=float).tolist()
-        meas = lists  # type: ignore[assignment]
+        # the arrays the frames read, as Python floats (one tolist each, not a numpy scalar per value)
+        lists = {name: np.asarray(meas[name], dtype=float).tolist() for name in self._sensor_arrays}
         for fid, codec, ecu, sigs in self._sensor_msgs:
             v = self.ecus[ecu - 1].vehicle - 1
             vals = {}
             for sig, dbc_name in sigs:
-                x = self._vehicle_value(meas, sig, v, n)
+                x = self._vehicle_value(lists, sig, v, n)
                 if math.isfinite(x):
                     vals[dbc_name] = x
             out.append(frame(fid, codec.encode(vals)))
