@@ -126,6 +126,13 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
                 f"{v['bitrate_bps'] / 1000:g} kbit/s" for seg, v in bl["segments"].items()) + \
                 f"  frames: {s['frames']['on_bus']}"
 
+    comp = s.get("compute") or {}  # canbrake.analysis.summary.compute_figures
+    if comp:
+        us = (lambda x: "?" if x is None else f"{x * 1e6:.0f} us")
+        ms, cs = comp["model_step_s"], comp["control_step_s"]
+        lines.append(f"compute per period: plant model {us(ms.get('mean_s'))}, controllers {cs['ecus']} x "
+                     f"{us(cs['mean_s'])} (worst p99 {us(cs['p99_s'])}, {cs['worst_p99_ecu']}); "
+                     f"run loop {us(comp.get('loop_per_period_s'))} per period")
     dm = s.get("deadline_misses") or {}
     if s.get("mode") == "realtime" and dm:
         ticks = s.get("ticks") or 0

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 from canbrake.benchmark import _failed, _row, run_case_subprocess, table
 from canbrake.nodes.rt import setup_realtime
 
@@ -79,3 +81,14 @@ def test_scale_cases_put_the_heavy_ones_behind_the_option():
     assert (106, "memory", 1) not in light and (106, "memory", 1) in heavy
     assert {(n, "inprocess", None) for n in (6, 12, 24, 48, 106)} <= set(light)
     assert (106, "memory", 8) in light
+
+
+def test_a_lockstep_case_carries_the_physics_and_control_time_of_a_period():
+    """The ceiling row's input: the nodes' own step times, less than the loop's time per period."""
+    from canbrake.benchmark import CASE1, run_case
+
+    res = run_case({"scenario": CASE1, "backend": "inprocess", "overrides": {"duration_s": 0.02}})
+    assert res["status"] == "ok"
+    per = res["compute_per_period_s"]
+    assert per == pytest.approx(res["model_step_mean_s"] + 6 * res["control_step_mean_s"], rel=1e-9)
+    assert 0 < per < 1.0 / res["ticks_per_s"]

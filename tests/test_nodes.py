@@ -304,3 +304,35 @@ def test_paused_ecus_count_the_realtime_periods_they_never_commanded(tmp_path):
     assert min(skipped) >= 10, skipped  # ~25 periods of 10 ms stopped
     assert s["realtime"]["ecu_skipped_periods"] == sum(skipped)
     assert min(s["deadline_misses"]["missed_commands_per_car"]) >= 10
+
+
+def test_summary_reports_the_time_of_the_model_and_controller_steps(tmp_path, monkeypatch):
+    """summary.json's compute: the plant model's and every controller's step wall time, measured
+    by the nodes; a controller made 2 ms slower shows as such, the physics does not move."""
+    import time as _time
+
+    from canbrake.control.chen import ChenConsensusController
+
+    scn = load_scenario(CASE1, overrides={"duration_s": 0.02})
+    s = run_scenario(scn, tmp_path / "a", backend="inprocess", plots=False)
+    c = s["compute"]
+    assert c["model_step_s"]["n"] == s["ticks"] == 20
+    assert c["control_step_s"]["n"] == 6 * 20 and c["control_step_s"]["ecus"] == 6
+    assert 0 < c["control_step_s"]["mean_s"] <= c["control_step_s"]["max_s"]
+    assert c["control_step_s"]["p99_s"] <= c["control_step_s"]["max_s"] * 1.001
+    assert c["per_period_s"] == pytest.approx(c["model_step_s"]["mean_s"] + 6 * c["control_step_s"]["mean_s"])
+    assert 0 < c["per_period_s"] < c["loop_per_period_s"]  # the engine does more than the formulas
+
+    step = ChenConsensusController.step
+
+    def slow(self, obs):
+        t_end = _time.perf_counter() + 2e-3
+        while _time.perf_counter() < t_end:
+            pass
+        return step(self, obs)
+
+    monkeypatch.setattr(ChenConsensusController, "step", slow)
+    s2 = run_scenario(scn, tmp_path / "b", backend="inprocess", plots=False)
+    c2 = s2["compute"]["control_step_s"]
+    assert c2["mean_s"] >= 2e-3 and c2["p99_s"] >= 2e-3 * 0.999
+    assert s2["compute"]["model_step_s"]["mean_s"] < 2e-3  # the plant's figure is its own

@@ -196,6 +196,10 @@ def test_recorder_statistics_use_bounded_memory():
     assert len(h.counts) == size and h.max == x.max()
     for q in (0.5, 0.99):
         assert h.quantile(q) == pytest.approx(np.quantile(x, q), rel=2e-3)
+    f = h.figures()
+    assert f["n"] == x.size and f["max_s"] == x.max()
+    assert f["total_s"] == pytest.approx(x.sum(), rel=1e-9) and f["mean_s"] == pytest.approx(x.mean(), rel=1e-9)
+    assert f["p99_s"] == h.quantile(0.99)
 
 
 @pytest.mark.slow

@@ -428,6 +428,11 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
     else:
         summary["realtime"] = realtime_figures(plant, ecus, busst)
     summary["clock"] = clock_figures(scn, plant, int(summary["ticks"] or 0))
+    # the loop's wall time: the plant's (start-up excluded); in process the engine's loop (outcome)
+    comp = compute_figures(plant, ecus, int(summary["ticks"] or 0),
+                           plant.get("wall_time_s") or summary.get("wall_time_s") or 0.0)
+    if comp is not None:
+        summary["compute"] = comp
     if plant.get("response_s"):
         summary["ecu_response_s"] = plant["response_s"]
     from canbrake.external import external_finding, external_summary
@@ -447,6 +452,35 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
     summary["findings"] = v["findings"]
     summary["diverged_at_s"] = v["diverged_at_s"]
     return summary
+
+
+def compute_figures(plant: dict[str, Any], ecus: list[dict[str, Any]], ticks: int,
+                    loop_wall_s: float) -> dict[str, Any] | None:
+    """``summary.json``'s ``compute``: the wall time (s) of the plant model's step and of every
+    controller's step on this host (preemption included), from the nodes' statistics; None when
+    no node measured any (a run that never stepped).
+
+    ``model_step_s`` and ``control_step_s`` each hold n, mean, p99 and max (for the controllers:
+    every ECU's steps together, p99 the worst ECU's and ``worst_p99_ecu`` which); ``per_period_s``
+    is the physics and control work of one period (the model's mean step plus every ECU's mean
+    step), ``loop_per_period_s`` the run loop's wall time per period (``loop_wall_s``): in process their
+    ratio is the share of the run spent in the train's own formulas, the rest is the bus and the
+    nodes; with one process per ECU the ECUs' steps run beside each other."""
+    model = plant.get("model_step_s") or {}
+    steps = [(f"ecu_c{c}", e["control_step_s"]) for c, e in enumerate(ecus, 1)
+             if (e.get("control_step_s") or {}).get("n")]
+    if not model.get("n") and not steps:
+        return None
+    n = sum(st["n"] for _, st in steps)
+    total = sum(st["total_s"] for _, st in steps)
+    worst = max(steps, key=lambda x: x[1]["p99_s"]) if steps else None
+    control = {"n": n, "mean_s": total / n if n else None,
+               "p99_s": worst[1]["p99_s"] if worst else None, "worst_p99_ecu": worst[0] if worst else None,
+               "max_s": max(st["max_s"] for _, st in steps) if steps else None, "ecus": len(steps)}
+    per_period = (model.get("mean_s") or 0.0) + sum(st["mean_s"] for _, st in steps)
+    return {"model_step_s": {k: model.get(k) for k in ("n", "mean_s", "p99_s", "max_s")},
+            "control_step_s": control, "per_period_s": per_period,
+            "loop_per_period_s": loop_wall_s / ticks if loop_wall_s and ticks else None}
 
 
 def clock_figures(scn: Scenario, plant: dict[str, Any], ticks: int) -> dict[str, Any]:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any
 from pathlib import Path
@@ -23,7 +24,7 @@ from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
-from canbrake.nodes.base import CsvTrace, Node, PassThrough, SendPath, exact_filter, frame
+from canbrake.nodes.base import CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame
 
 
 @dataclass
@@ -45,6 +46,9 @@ class EcuStats:
     can_errors: dict = field(default_factory=dict)  # realtime bus errors: state, TEC, error frames, bus-off
     scheduling: str | None = None  # realtime: SCHED_FIFO / fallback and CPUs obtained (canbrake.nodes.rt)
     external_timeouts: int = 0   # lockstep: periods computed without an external peer's state (it was late)
+    #: wall time of the controller's step per period (s): n, mean, p50, p99, max, total
+    #: (LogHistogram.figures); the host's execution time, preemption included
+    control_step_s: dict = field(default_factory=dict)
 
 
 class EcuNode(Node):
@@ -77,6 +81,7 @@ class EcuNode(Node):
         self.out_dir = Path(out_dir) if out_dir else None
         self.flush_every = flush_every
         self.stats = EcuStats()
+        self._control_time = LogHistogram()  # the controller step's wall time per period
         self.crash_at_tick = crash_at_tick
         self.lockstep_deadline = lockstep_deadline
         self.bus_timing = bus_timing  # canbrake.bus.schedule.LockstepBusTiming or None
@@ -474,7 +479,9 @@ class EcuNode(Node):
                           deflection_rear_m=(self.sensors.get("deflection_rear_m")
                                              if "deflection_rear_m" in self.sensors and not self._last_vehicle() else None),
                           ref_position_m=self.x_ref, sensors=dict(self.sensors), peer_signals=peers)
+        t0 = time.perf_counter()
         result = self.controller.step(obs)
+        self._control_time.add(time.perf_counter() - t0)
         self._broadcast = result.broadcast
         out: list[can.Message] = []
         values = {"brake_force_n": result.brake_force_n, **result.commands}
@@ -541,6 +548,7 @@ class EcuNode(Node):
         self.stats.status = "ok" if self.finished else status
         self.stats.guard = self.guard.stats()
         self.stats.scheduling = self.scheduling
+        self.stats.control_step_s = self._control_time.figures()
         if self.rt_errors is not None:
             self.stats.can_errors = self.rt_errors.summary()
         for kind, vals in self._latency.items():

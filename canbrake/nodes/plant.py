@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
@@ -19,7 +20,7 @@ from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import E2EReceiver, E2EStatus
 from canbrake.bus.guard import FrameGuard, sign_control
-from canbrake.nodes.base import CsvTrace, Node, exact_filter, frame
+from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame
 
 
 from canbrake.physics.contract import PlantModel  # noqa: E402  (the contract every model implements)
@@ -68,6 +69,9 @@ class PlantStats:
     #: wall time from a period's SYNC to each ECU's complete commands (s): p50/p99/max per ECU
     response_s: dict = field(default_factory=dict)
     time_scale: float = 1.0
+    #: wall time of the plant model's step per period (s): n, mean, p50, p99, max, total
+    #: (LogHistogram.figures); the physics' execution time on this host, preemption included
+    model_step_s: dict = field(default_factory=dict)
 
 
 class PlantNode(Node):
@@ -105,6 +109,7 @@ class PlantNode(Node):
         self.barrier = barrier
         self.k = 0
         self.stats = PlantStats(commands_missed_per_car=[0] * self.n_ecus)
+        self._model_time = LogHistogram()  # the model step's wall time per period
         # commands by name, per vehicle (NaN: no ECU commands it); 0 until a vehicle's first command
         self.command_names = sorted({c for e in self.ecus for c in e.commands})
         self.commands = {c: np.full(self.n, np.nan) for c in self.command_names}
@@ -173,7 +178,6 @@ class PlantNode(Node):
         self._ext_deadline: float | None = None
         self._lost = 0  # bit i: external ECU slot i is silent (not waited for)
         self._tick_wall = 0.0
-        from canbrake.nodes.recorder import LogHistogram
 
         self._resp = [LogHistogram() for _ in self.ecus]
         for s_ in self._ext_slots:
@@ -440,6 +444,7 @@ class PlantNode(Node):
         applied = self._applied_commands()
         if self.k % self.trace_every == 0:
             self._record()
+        t0 = time.perf_counter()
         try:
             self.model.step(self.dt, applied)
         except FloatingPointError as e:
@@ -449,6 +454,7 @@ class PlantNode(Node):
             self.stats.extra["diverged_at_s"] = self.k * self.dt
             self.stats.extra["message"] = str(e)  # type: ignore[assignment]
             return self._end_frames()
+        self._model_time.add(time.perf_counter() - t0)
         self.k += 1
         self.stats.ticks = self.k
         if self.progress is not None:
@@ -534,6 +540,7 @@ class PlantNode(Node):
         if self.stats.status == "running":
             self.stats.status = status
         self.stats.guard = self.guard.stats()
+        self.stats.model_step_s = self._model_time.figures()
         if self._cmd_latency:
             # missed periods count as infinitely late: a percentile among them is null (JSON)
             lat = np.asarray(self._cmd_latency)

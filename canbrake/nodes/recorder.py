@@ -58,43 +58,7 @@ import numpy as np
 from canbrake.bus import dbc
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes.base import Node
-
-class LogHistogram:
-    """Quantiles of positive durations (s) in bounded memory: logarithmic bins 0.1 % wide from
-    1e-7 s to 1e4 s (~25 000 counters whatever the run length); a quantile is exact to 0.1 %,
-    the maximum exactly."""
-
-    LO_S, HI_S, RATIO = 1e-7, 1e4, 1.001
-
-    def __init__(self) -> None:
-        self._log_ratio = float(np.log(self.RATIO))  # a Python float: add() divides by it per frame
-        self.bins = int(np.ceil(np.log(self.HI_S / self.LO_S) / self._log_ratio)) + 2
-        # a list, not a numpy array: add() touches one element per frame (a numpy element
-        # update costs several times a list's); quantile() converts
-        self.counts: list[int] = [0] * self.bins
-        self.n = 0
-        self.max = 0.0
-
-    def add(self, x: float) -> None:
-        self.n += 1
-        if x > self.max:
-            self.max = x
-        if x <= self.LO_S:
-            self.counts[0] += 1
-        else:
-            i = 1 + int(math.log(x / self.LO_S) / self._log_ratio)  # math.log: numpy's costs more on a scalar
-            self.counts[i if i < self.bins else self.bins - 1] += 1
-
-    def quantile(self, q: float) -> float:
-        """The ``q`` quantile (0..1), as the geometric middle of its bin (0 when empty)."""
-        if not self.n:
-            return 0.0
-        k = int(np.searchsorted(np.cumsum(np.asarray(self.counts, dtype=np.int64)), max(1, int(np.ceil(q * self.n)))))
-        if k == 0:
-            return min(self.LO_S, self.max)
-        return float(min(self.max, self.LO_S * self.RATIO ** (k - 0.5)))
-
+from canbrake.nodes.base import LogHistogram, Node  # noqa: F401  (LogHistogram: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
 #: 2 their command phase (frames a sender held back are written with the phase of their kind)
