@@ -200,6 +200,11 @@ def test_recorder_statistics_use_bounded_memory():
     assert f["n"] == x.size and f["max_s"] == x.max()
     assert f["total_s"] == pytest.approx(x.sum(), rel=1e-9) and f["mean_s"] == pytest.approx(x.mean(), rel=1e-9)
     assert f["p99_s"] == h.quantile(0.99)
+    coarse = LogHistogram(1.01)  # the nodes' step times: 1 % bins, a tenth of the counters
+    assert len(coarse.counts) < size / 9
+    for v in x[:20_000]:
+        coarse.add(float(v))
+    assert coarse.quantile(0.99) == pytest.approx(np.quantile(x[:20_000], 0.99), rel=1.5e-2)
 
 
 @pytest.mark.slow

@@ -34,13 +34,14 @@ import numpy as np
 
 
 class LogHistogram:
-    """Quantiles of positive durations (s) in bounded memory: logarithmic bins 0.1 % wide from
-    1e-7 s to 1e4 s (~25 000 counters whatever the run length); a quantile is exact to 0.1 %,
-    the maximum exactly."""
+    """Quantiles of positive durations (s) in bounded memory: logarithmic bins ``ratio - 1`` wide
+    (default 0.1 %) from 1e-7 s to 1e4 s (~25 000 counters at the default, whatever the run
+    length); a quantile is exact to that width, the maximum and the total exactly."""
 
     LO_S, HI_S, RATIO = 1e-7, 1e4, 1.001
 
-    def __init__(self) -> None:
+    def __init__(self, ratio: float = RATIO) -> None:
+        self.RATIO = ratio
         self._log_ratio = float(np.log(self.RATIO))  # a Python float: add() divides by it per frame
         self.bins = int(np.ceil(np.log(self.HI_S / self.LO_S) / self._log_ratio)) + 2
         # a list, not a numpy array: add() touches one element per frame (a numpy element

@@ -81,7 +81,7 @@ class EcuNode(Node):
         self.out_dir = Path(out_dir) if out_dir else None
         self.flush_every = flush_every
         self.stats = EcuStats()
-        self._control_time = LogHistogram()  # the controller step's wall time per period
+        self._control_time = LogHistogram(1.01)  # the controller step's wall time per period, 1 % bins
         self.crash_at_tick = crash_at_tick
         self.lockstep_deadline = lockstep_deadline
         self.bus_timing = bus_timing  # canbrake.bus.schedule.LockstepBusTiming or None

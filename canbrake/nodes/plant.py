@@ -109,7 +109,7 @@ class PlantNode(Node):
         self.barrier = barrier
         self.k = 0
         self.stats = PlantStats(commands_missed_per_car=[0] * self.n_ecus)
-        self._model_time = LogHistogram()  # the model step's wall time per period
+        self._model_time = LogHistogram(1.01)  # the model step's wall time per period, 1 % bins
         # commands by name, per vehicle (NaN: no ECU commands it); 0 until a vehicle's first command
         self.command_names = sorted({c for e in self.ecus for c in e.commands})
         self.commands = {c: np.full(self.n, np.nan) for c in self.command_names}
