@@ -9,6 +9,8 @@ Nothing else in canbrake reads YAML.
 """
 from __future__ import annotations
 
+import math
+
 import copy
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
@@ -55,6 +57,19 @@ def _non_finite(value: Any, path: str) -> str | None:
     return None
 
 
+def _raw_non_finite(x: Any) -> str | None:
+    """``x`` as written if it is a NaN or infinite number, or a string that reads as one
+    (pydantic turns "nan" into a float), else None."""
+    if isinstance(x, str):
+        try:
+            x = float(x)
+        except ValueError:
+            return None
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    return None
+
+
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_default=True)
 
@@ -71,6 +86,12 @@ class _Model(BaseModel):
                     vals = v if isinstance(v, list) else [v]
                     if any(isinstance(x, bool) for x in vals):
                         raise ValueError(f"@{name}: expected a number, got {str(v).lower()}")
+                    # NaN/inf before the field's bounds: `le=1` would call a NaN "greater than 1"
+                    for i, x in enumerate(vals):
+                        bad = _raw_non_finite(x)
+                        if bad is not None and not (name in _INF_OK and bad == "inf"):
+                            where = f"{name}.{i}" if isinstance(v, list) else name
+                            raise ValueError(f"@{where}: must be a finite number, got {bad}")
         return data
 
     @model_validator(mode="after")
