@@ -55,7 +55,12 @@ def _cmd_run(a: argparse.Namespace) -> int:
         if a.time_scale is not None and str(e).startswith("--set time_scale:"):
             raise ScenarioError("--time-scale" + str(e)[len("--set time_scale"):]) from None
         raise
-    choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
+    try:
+        choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
+    except ScenarioError as e:  # a controller parameter given with --set: name --set, not the file
+        from canbrake.scenario import _blame_overrides
+
+        raise ScenarioError(_blame_overrides(str(e), a.scenario, overrides)) from None
     out = Path(a.out) if a.out else Path("runs") / scn.name
     from canbrake.run import check_out_dir
 

@@ -199,6 +199,11 @@ def check_params(name: str, params: Mapping[str, Any]) -> dict[str, Any]:
         raise ControllerError(f"{err['msg']} (controller {name!r})", where) from None
     out = dict(params)
     out.update({k: getattr(checked, k) for k in given})
+    for k, v in out.items():  # after conversion too: the YAML string "nan" becomes a float NaN
+        vals = v if isinstance(v, (list, tuple)) else [v]
+        bad = next((x for x in vals if isinstance(x, float) and not math.isfinite(x)), None)
+        if bad is not None:
+            raise ControllerError(f"must be a finite number, got {bad} (controller {name!r})", k)
     return out
 
 
