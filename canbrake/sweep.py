@@ -403,6 +403,13 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
     base = load_scenario(scenario, profile=profile, overrides=sets)
     if base.mode != "lockstep":
         raise ScenarioError(f"{scenario}: sweeps run the in-process lockstep engine; mode is {base.mode!r}")
+    from canbrake.run import check_buildable
+    from canbrake.scenario import _blame_overrides
+
+    try:  # controller parameters and data files, as `canbrake run` checks them (exit 2, not a traceback)
+        check_buildable(base)
+    except ScenarioError as e:
+        raise ScenarioError(_blame_overrides(f"{scenario}: {e}", str(scenario), sets)) from None
     dur = float(duration_s) if duration_s is not None else default_duration_s(base)
     if not dur > 0:
         raise GridError(f"--duration must be > 0, got {dur:g}")
@@ -423,11 +430,27 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
             o = dict(ov)
             o["seed"] = seed
             where = ", ".join(f"{a.name}={a.display(params[a.name])}{a.unit}" for a in axes) or "the base point"
-            resolved = resolve(base_data, f"{scenario} ({where})", None, o).model_dump(mode="json")
+            pscn = resolve(base_data, f"{scenario} ({where})", None, o)
+            if any(k.startswith(("controller", "ecus")) for k in ov):  # a grid axis over controller parameters
+                _check_point_controllers(pscn, f"--grid ({where})")
+            resolved = pscn.model_dump(mode="json")
             pid = _point_id(axes, params, seed, resolved)
             tasks.append(PointTask(pid, params, seed, resolved, str(out / "points" / pid), keep,
                                    len(base_data["bus"]["impairments"] or [])))
     return SweepPlan(str(scenario), base.profile, axes, tasks, base, out, seeds, dur, sets)
+
+
+def _check_point_controllers(scn: Scenario, where: str) -> None:
+    """A point's controller parameters against each controller's schema (canbrake.control.base):
+    a bad value on a grid axis is an input error before any run, not a worker's traceback."""
+    from canbrake.control.base import ControllerError, check_params
+
+    for p in scn.placement():
+        if p.controller is not None:
+            try:
+                check_params(p.controller.name, p.controller.params)
+            except ControllerError as e:
+                raise ScenarioError(f"{where}: controller.params.{e.param}: {e}" if e.param else f"{where}: {e}") from None
 
 
 # ----------------------------------------------------------------------------- one point

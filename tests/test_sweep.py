@@ -84,6 +84,24 @@ def test_cli_bad_grid_exits_2_with_one_line(capsys):
     assert "given twice" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("args, expect", [
+    (["--set", "controller.params.k=nan"], "--set controller.params.k: must be a finite number, got nan"),
+    (["--set", "controller.params.bogus=1"], "--set controller.params.bogus: unknown parameter"),
+    (["--grid", "set:controller.params.k=1,nan"], "(set:controller.params.k=nan): controller.params.k: must be a finite"),
+    (["--grid", "set:controller.params.bogus=1,2"], "controller.params.bogus: unknown parameter"),
+])
+def test_cli_bad_controller_parameters_exit_2_before_any_run(args, expect, tmp_path, capsys):
+    """Controller parameters of the base scenario and of grid points are checked against the
+    controller's schema while planning: one line, exit 2, no sweep directory."""
+    from canbrake.cli import main
+
+    out = tmp_path / "sw"
+    assert main(["sweep", str(CASE1), *args, "--duration", "0.01", "--workers", "0", "--out", str(out), "-q"]) == 2
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("canbrake: error:")]
+    assert len(err) == 1 and expect in err[0], err
+    assert not out.exists()
+
+
 # ----------------------------------------------------------------------------- overrides
 def test_delay_and_loss_map_onto_state_and_command_frames_of_every_ecu():
     base = load_scenario(CASE1).model_dump(mode="json")
