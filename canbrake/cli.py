@@ -217,6 +217,14 @@ def _cmd_monitor(a: argparse.Namespace) -> int:
         bus = open_monitor_bus(a.channel, a.interface)
     except (can.CanError, OSError, ValueError, ImportError) as e:
         raise InputError(f"--channel {a.channel}: cannot listen: {str(e).splitlines()[0] if str(e) else e}") from None
+    if getattr(bus, "channel_name", None) is not None and hasattr(bus, "stats"):  # canbrake's in-memory bus
+        from canbrake.bus import memory_shm as shm
+
+        users = {it["channel"]: len(it.get("pids") or []) for it in shm.channel_info()}
+        running = [ch for ch, n in users.items() if n and ch != a.channel]
+        if users.get(a.channel, 0) <= 1:  # only this monitor: a typo shows at once; waiting for a run is fine
+            print(f"canbrake monitor: no run on channel {a.channel!r} yet, waiting for one"
+                  + (f" (channels in use: {', '.join(running)})" if running else ""), file=sys.stderr, flush=True)
     title = f"canbrake monitor — {a.channel}" + (f" — {scn.name}" if scn is not None else "")
     print(f"canbrake monitor: listening on {a.channel}", file=sys.stderr, flush=True)  # scripts wait for it
     try:
