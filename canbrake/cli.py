@@ -58,9 +58,9 @@ def _cmd_run(a: argparse.Namespace) -> int:
     try:
         choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     except ScenarioError as e:  # a controller parameter given with --set: name --set, not the file
-        from canbrake.scenario import _blame_overrides
+        from canbrake.scenario import blame_overrides
 
-        raise ScenarioError(_blame_overrides(str(e), a.scenario, overrides)) from None
+        raise ScenarioError(blame_overrides(str(e), a.scenario, overrides)) from None
     out = Path(a.out) if a.out else Path("runs") / scn.name
     from canbrake.run import check_out_dir
 

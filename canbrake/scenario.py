@@ -9,9 +9,8 @@ Nothing else in canbrake reads YAML.
 """
 from __future__ import annotations
 
-import math
-
 import copy
+import math
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
@@ -802,10 +801,10 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
-        raise ScenarioError(_blame_overrides(format_validation_error(source, e), source, overrides or {})) from None
+        raise ScenarioError(blame_overrides(format_validation_error(source, e), source, overrides or {})) from None
 
 
-def _blame_overrides(message: str, source: str, overrides: dict[str, Any]) -> str:
+def blame_overrides(message: str, source: str, overrides: dict[str, Any]) -> str:
     """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file."""
     out = []
     for line in message.splitlines():

@@ -404,12 +404,12 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
     if base.mode != "lockstep":
         raise ScenarioError(f"{scenario}: sweeps run the in-process lockstep engine; mode is {base.mode!r}")
     from canbrake.run import check_buildable
-    from canbrake.scenario import _blame_overrides
+    from canbrake.scenario import blame_overrides
 
     try:  # controller parameters and data files, as `canbrake run` checks them (exit 2, not a traceback)
         check_buildable(base)
     except ScenarioError as e:
-        raise ScenarioError(_blame_overrides(f"{scenario}: {e}", str(scenario), sets)) from None
+        raise ScenarioError(blame_overrides(f"{scenario}: {e}", str(scenario), sets)) from None
     dur = float(duration_s) if duration_s is not None else default_duration_s(base)
     if not dur > 0:
         raise GridError(f"--duration must be > 0, got {dur:g}")
