@@ -217,7 +217,9 @@ def _cmd_monitor(a: argparse.Namespace) -> int:
         bus = open_monitor_bus(a.channel, a.interface)
     except (can.CanError, OSError, ValueError, ImportError) as e:
         raise InputError(f"--channel {a.channel}: cannot listen: {str(e).splitlines()[0] if str(e) else e}") from None
-    if getattr(bus, "channel_name", None) is not None and hasattr(bus, "stats"):  # canbrake's in-memory bus
+    from canbrake.bus.memory import MemoryBus
+
+    if isinstance(bus, MemoryBus):
         from canbrake.bus import memory_shm as shm
 
         users = {it["channel"]: len(it.get("pids") or []) for it in shm.channel_info()}

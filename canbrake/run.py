@@ -950,22 +950,28 @@ def _check_adapter(choice: BusChoice) -> None:
     bus.shutdown()
 
 
+def check_controller_params(scn: Scenario) -> None:
+    """Every placed controller's parameters against its schema (canbrake.control.base.check_params);
+    raises :class:`ScenarioError` naming the field (``controller.params.k``, ``ecus.2.controller...``)."""
+    from canbrake.control.base import ControllerError, check_params
+
+    where = {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
+    for p in scn.placement():
+        field = where.get(id(p.controller), "controller")
+        try:
+            check_params(p.controller.name, p.controller.params)
+        except ControllerError as e:
+            raise ScenarioError(f"{field}.params.{e.param}: {e}" if e.param else f"{field}.name: {e}") from None
+
+
 def check_buildable(scn: Scenario) -> None:
     """Build the plant, the bus layout and every controller once in this process, so that
     parameters the schema passes through (``controller.params``, data files) fail here with
     exit 2 rather than in a child."""
     from canbrake.build import build_controller, build_plant_model, bus_layout, reference_fn
-    from canbrake.control.base import ControllerError, check_params
 
+    check_controller_params(scn)
     placed = scn.placement()
-    where = {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
-    for p in placed:
-        field = where.get(id(p.controller), "controller")
-        try:
-            check_params(p.controller.name, p.controller.params)
-        except ControllerError as e:
-            where = f"{field}.params.{e.param}" if e.param else f"{field}.name"
-            raise ScenarioError(f"{where}: {e}") from None
     try:
         for i in range(1, len(placed) + 1):
             build_controller(scn, i)

@@ -403,7 +403,7 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
     base = load_scenario(scenario, profile=profile, overrides=sets)
     if base.mode != "lockstep":
         raise ScenarioError(f"{scenario}: sweeps run the in-process lockstep engine; mode is {base.mode!r}")
-    from canbrake.run import check_buildable
+    from canbrake.run import check_buildable, check_controller_params
     from canbrake.scenario import blame_overrides
 
     try:  # controller parameters and data files, as `canbrake run` checks them (exit 2, not a traceback)
@@ -432,25 +432,15 @@ def plan_sweep(scenario: str | Path, axes: Sequence[Axis], out: str | Path, *, p
             where = ", ".join(f"{a.name}={a.display(params[a.name])}{a.unit}" for a in axes) or "the base point"
             pscn = resolve(base_data, f"{scenario} ({where})", None, o)
             if any(k.startswith(("controller", "ecus")) for k in ov):  # a grid axis over controller parameters
-                _check_point_controllers(pscn, f"--grid ({where})")
+                try:
+                    check_controller_params(pscn)
+                except ScenarioError as e:  # an input error before any run, not a worker's traceback
+                    raise ScenarioError(f"--grid ({where}): {e}") from None
             resolved = pscn.model_dump(mode="json")
             pid = _point_id(axes, params, seed, resolved)
             tasks.append(PointTask(pid, params, seed, resolved, str(out / "points" / pid), keep,
                                    len(base_data["bus"]["impairments"] or [])))
     return SweepPlan(str(scenario), base.profile, axes, tasks, base, out, seeds, dur, sets)
-
-
-def _check_point_controllers(scn: Scenario, where: str) -> None:
-    """A point's controller parameters against each controller's schema (canbrake.control.base):
-    a bad value on a grid axis is an input error before any run, not a worker's traceback."""
-    from canbrake.control.base import ControllerError, check_params
-
-    for p in scn.placement():
-        if p.controller is not None:
-            try:
-                check_params(p.controller.name, p.controller.params)
-            except ControllerError as e:
-                raise ScenarioError(f"{where}: controller.params.{e.param}: {e}" if e.param else f"{where}: {e}") from None
 
 
 # ----------------------------------------------------------------------------- one point

@@ -186,10 +186,6 @@ def check_params(name: str, params: Mapping[str, Any]) -> dict[str, Any]:
     if unknown and not accepts_any:
         raise ControllerError(f"unknown parameter of controller {name!r} "
                               f"(parameters: {', '.join(sorted(fields)) or 'none'})", unknown[0])
-    for k, v in params.items():
-        vals = v if isinstance(v, (list, tuple)) else [v]
-        if any(isinstance(x, float) and math.isnan(x) for x in vals):
-            raise ControllerError(f"not a number (controller {name!r})", k)
     given = {k: v for k, v in params.items() if k in fields}
     try:
         checked = model(**given)
@@ -199,7 +195,7 @@ def check_params(name: str, params: Mapping[str, Any]) -> dict[str, Any]:
         raise ControllerError(f"{err['msg']} (controller {name!r})", where) from None
     out = dict(params)
     out.update({k: getattr(checked, k) for k in given})
-    for k, v in out.items():  # after conversion too: the YAML string "nan" becomes a float NaN
+    for k, v in out.items():  # after conversion: the YAML string "nan" becomes a float NaN
         vals = v if isinstance(v, (list, tuple)) else [v]
         bad = next((x for x in vals if isinstance(x, float) and not math.isfinite(x)), None)
         if bad is not None:
