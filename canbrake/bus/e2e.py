@@ -11,60 +11,11 @@ from __future__ import annotations
 
 from enum import Enum
 
-# CRC-8 SAE J1850: poly 0x1D, init 0xFF, final XOR 0xFF (check value of b"123456789" is 0x4B).
-# Written by hand as a table lookup because crccheck's generic implementation (already installed
-# with cantools) costs ~11 us per frame and this runs for every protected frame on the hot path;
-# tests verify it against crccheck.
-_POLY = 0x1D
+# The CRC itself is compiled (canbrake/bus/_crc.pyx): it runs for every protected frame.
+from canbrake.bus._crc import TABLE as _TABLE  # noqa: E402  (byte table, for batch forms)
+from canbrake.bus._crc import crc8_sae_j1850, e2e_crc  # noqa: E402,F401
 
-
-def _make_table() -> tuple[int, ...]:
-    table = []
-    for byte in range(256):
-        crc = byte
-        for _ in range(8):
-            crc = ((crc << 1) ^ _POLY) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-        table.append(crc)
-    return tuple(table)
-
-
-_TABLE = _make_table()
 COUNTER_MODULO = 15
-
-
-def crc8_sae_j1850(data: bytes | bytearray, crc: int = 0xFF) -> int:
-    """CRC-8 SAE J1850 of ``data`` (init 0xFF, xor-out 0xFF)."""
-    t = _TABLE
-    for b in data:
-        crc = t[crc ^ b]
-    return crc ^ 0xFF
-
-
-_CRC_MEMO: dict[tuple[int, bytes], int] = {}
-
-
-def e2e_crc(data_id: int, payload: bytes | bytearray) -> int:
-    """CRC of a protected frame: over data ID low/high byte, then ``payload[1:]``.
-
-    Memoised (bounded): every receiver of a broadcast frame checks the same bytes, and in one
-    process (the in-process engine, hosted ECUs) that is computed once instead of once per ECU."""
-    key = (data_id, bytes(payload[1:]))
-    crc = _CRC_MEMO.get(key)
-    if crc is not None:
-        return crc
-    if len(_CRC_MEMO) >= 4096:
-        _CRC_MEMO.clear()
-    crc = _CRC_MEMO[key] = _e2e_crc(data_id, payload)
-    return crc
-
-
-def _e2e_crc(data_id: int, payload: bytes | bytearray) -> int:
-    t = _TABLE
-    crc = t[0xFF ^ (data_id & 0xFF)]
-    crc = t[crc ^ ((data_id >> 8) & 0xFF)]
-    for b in payload[1:]:
-        crc = t[crc ^ b]
-    return crc ^ 0xFF
 
 
 def counter_modulus(ext_bits: int) -> int:
