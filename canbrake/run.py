@@ -34,6 +34,12 @@ class RunFailure(RuntimeError):
     """The run failed after it started (exit status 1); the message names the failed process."""
 
 
+#: the interface column of frames.log for runs on the in-memory, virtual and in-process buses: a
+#: fixed name (the in-memory channel is a random rendezvous name by default), the one the README's
+#: ``canplayer -I frames.log vcan0=canbrake0`` maps
+LOG_INTERFACE = "canbrake0"
+
+
 @dataclass
 class BusChoice:
     """Which bus a run uses. ``interface`` is a python-can interface name."""
@@ -42,8 +48,11 @@ class BusChoice:
     interface: str | None
     channel: str | None
 
-    #: channel name written into frames.log (stable across backends so logs compare byte for byte)
-    log_channel: str = "canbrake0"
+    #: interface name written into frames.log's candump column: :data:`LOG_INTERFACE` for the
+    #: in-memory and one-process buses (whatever their channel, random or named, so logs compare byte
+    #: for byte and ``canplayer -I frames.log vcan0=canbrake0`` replays any of them), the interface
+    #: itself on SocketCAN or an adapter (what candump writes there)
+    log_channel: str = LOG_INTERFACE
     #: keyword arguments for ``can.Bus`` beyond interface/channel (an adapter's bit rate, options)
     bus_kwargs: dict[str, Any] = field(default_factory=dict)
 
@@ -59,7 +68,7 @@ def choose_bus(scn: Scenario, backend: str | None = None, channel: str | None = 
     if backend not in BACKENDS:
         raise ScenarioError(f"--bus: unknown backend {backend!r} (choose from {', '.join(BACKENDS)})")
     channel = channel or scn.bus.channel
-    log_channel = channel or "canbrake0"
+    log_channel = LOG_INTERFACE
     if interface not in (None, "canbrake", "socketcan") and backend in ("memory", "socketcan"):
         return _adapter_choice(scn, interface, channel)
     if scn.bus.interface_args:

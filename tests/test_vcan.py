@@ -601,3 +601,29 @@ def test_every_scenario_runs_on_vcan0(scenario: str, tmp_path: Path, memory_run:
     assert main(["run", path, "--bus", "inprocess", "--out", str(tmp_path / "ip"), *common]) == 0
     assert (tmp_path / "sc" / "signals.csv").read_bytes() == (tmp_path / "ip" / "signals.csv").read_bytes()
     assert _log_rows(tmp_path / "sc" / "frames.log") == _log_rows(tmp_path / "ip" / "frames.log")
+
+
+def test_readme_canplayer_line_replays_a_memory_run(memory_run: dict[str, object]) -> None:
+    """The README's ``canplayer -I runs/c1/frames.log vcan0=canbrake0``, as written there, replays a
+    run of the in-memory bus started by the CLI (random channel) onto vcan0: ``candump -L vcan0``
+    records every frame of its frames.log, in order (issue 28: the log named the random channel and
+    canplayer, mapping ``canbrake0``, replayed nothing)."""
+    import shlex
+
+    _check(memory_run["proc"])  # type: ignore[arg-type]
+    log = memory_run["out"] / "frames.log"  # type: ignore[operator]
+    readme = Path(__file__).resolve().parents[1] / "README.md"
+    line = next(ln for ln in readme.read_text().splitlines() if ln.startswith("canplayer -I runs/c1/frames.log"))
+    argv = [str(log) if a == "runs/c1/frames.log" else a for a in shlex.split(line.split("#")[0])]
+    assert argv[-1] == f"{CHANNEL}=canbrake0", argv
+    dump = log.parent / "replayed.log"
+    proc = _start_candump(dump, rcvbuf=16 << 20)
+    try:
+        subprocess.run([_tool("canplayer"), *argv[1:]], check=True, timeout=120)
+        time.sleep(1.0)  # let candump write the last frames
+    finally:
+        _stop(proc)
+    logged = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(log)]
+    replayed = [(m.arbitration_id, bytes(m.data)) for m in can.LogReader(dump) if m.arbitration_id != PROBE_ID]
+    assert len(logged) > 1000
+    assert replayed == logged

@@ -133,9 +133,10 @@ def out_closed(e: BaseException) -> bool:
 
 
 def format_frame(db: cantools.database.can.Database, msg: can.Message, only: str | None = None) -> str:
+    ch = "-" if msg.channel is None else msg.channel  # (channel 0: the first of a numbered format)
     if msg.is_error_frame:  # python-can's readers keep no id/data for error frames
-        return "" if only else f"({msg.timestamp:.6f}) {msg.channel or '-'} ERRORFRAME ::\n"
-    head = f"({msg.timestamp:.6f}) {msg.channel or '-'} {msg.arbitration_id:03X}#{bytes(msg.data).hex().upper()}"
+        return "" if only else f"({msg.timestamp:.6f}) {ch} ERRORFRAME ::\n"
+    head = f"({msg.timestamp:.6f}) {ch} {msg.arbitration_id:03X}#{bytes(msg.data).hex().upper()}"
     try:
         m = db.get_message_by_frame_id(msg.arbitration_id)
     except KeyError:

@@ -76,7 +76,7 @@ CAN_ERR_CRTL_TX_PASSIVE = 0x20
 CAN_ERR_PROT_BIT = 0x01
 
 
-def error_frame(event: Any, t_s: float, channel: str, rec: int = 0) -> can.Message:
+def error_frame(event: Any, t_s: float, channel: str | int, rec: int = 0) -> can.Message:
     """A :class:`canbrake.bus.faults.ErrorEvent` as a python-can error frame (SocketCAN layout)."""
     aid = CAN_ERR_FLAG | CAN_ERR_PROT | CAN_ERR_CNT
     ctrl = 0
@@ -98,6 +98,23 @@ def check_log_format(fmt: str) -> None:
         except ImportError:
             raise ValueError("bus.log_format: mf4 needs asammdf (pip install 'canbrake[mf4]' or pip install "
                              "asammdf)") from None
+
+
+def log_channels(fmt: str, names: list[str]) -> dict[str, str | int]:
+    """The channel each bus (or bus segment, in ``names`` order) gets in a frame log of format ``fmt``.
+
+    candump ``.log``: the name itself (the interface column; candump writes several interfaces so).
+    ``.asc``/``.blf``/``.trc``/``.mf4``: the numbers 1..n in ``names`` order, as CANoe numbers its
+    channels (CAN 1, CAN 2, ...) and asammdf's bus logging expects (0 there means "any channel").
+    A name is never read for a number: python-can's writers would take a name's trailing digits
+    (``train999`` -> 999, overflowing MF4's uint8 BusChannel; ``car1`` -> 1 beside ``backbone`` -> the
+    default 1), so the recorder hands them integers: python-can's 0-based convention for ASC, BLF
+    and TRC (their writers add 1) and the 1-based number itself for MF4 (its writer stores it as given).
+    """
+    if fmt == "log":
+        return {n: n for n in names}
+    base = 1 if fmt == "mf4" else 0
+    return {n: base + i for i, n in enumerate(names)}
 
 
 def is_sim_control(aid: int, layout: Any = None) -> bool:
@@ -225,6 +242,9 @@ class RecorderNode(Node):
         self.mode = mode
         self.log_path = Path(log_path) if log_path else None
         self.channel = channel
+        fmt = self.log_path.suffix.lstrip(".").lower() if self.log_path is not None else "log"
+        #: the channel frames carry into the log (module function :func:`log_channels`)
+        self._log_ch: str | int = log_channels(fmt, [channel])[channel]
         self.epoch = epoch_s
         self.plant_io_on_bus = plant_io_on_bus
         self.barrier = barrier  # without barrier frames, the n-th STATE frame ends phase 1
@@ -275,16 +295,20 @@ class RecorderNode(Node):
             self._seg_series = {seg: LoadSeries(None, dt_s) for seg in self.topo.names}
             self._seg_frames = {seg: 0 for seg in self.topo.names}
             self.wire_model = None  # the stamps come from the segmented network
+            self._seg_ch = log_channels(fmt, list(self.topo.names))
 
     def start(self, now: float) -> list[can.Message]:
         if self.log_path is not None:
             self._writer = can.Logger(str(self.log_path))
-            if self.mode == "lockstep" and isinstance(self._writer, can.ASCWriter):
-                # ASC stamps are relative to the start of measurement: make that simulated time 0
-                self._writer.log_event("canbrake: simulated time", timestamp=self.epoch)
+            writers = [self._writer]
             if self.net is not None:
                 for seg in self.topo.names:
                     self._seg_writers[seg] = can.Logger(str(self._seg_log(seg)))
+                    writers.append(self._seg_writers[seg])
+            for w in writers:
+                if self.mode == "lockstep" and isinstance(w, can.ASCWriter):
+                    # ASC stamps are relative to the start of measurement: make that simulated time 0
+                    w.log_event("canbrake: simulated time", timestamp=self.epoch)
         return []
 
     def _seg_log(self, seg: str) -> Path:
@@ -381,7 +405,8 @@ class RecorderNode(Node):
         """Bus segments: the period's frames go through the recorder's own segmented network
         (actual stuffing), queued at t_k (phase 0/1) or at the decision instant t_k + c·T
         (commands) on their sender's segment and forwarded by the gateways; each end of frame on
-        a segment is one line, stamped with that time, channel = the segment's name."""
+        a segment is one line, stamped with that time, channel = the segment's name (its number
+        in the numbered formats, :func:`log_channels`)."""
         if self._k < 0:
             self._tick_frames = []
             return
@@ -437,7 +462,7 @@ class RecorderNode(Node):
         order = {seg: i for i, seg in enumerate(self.topo.names)}
         out.sort(key=lambda sm: (sm[1].timestamp, order[sm[0]]))
         for seg, m in out:
-            m.channel = seg
+            m.channel = self._seg_ch[seg]
         self._write([m for _seg, m in out])
         for seg, m in out:
             w = self._seg_writers.get(seg)
@@ -455,7 +480,9 @@ class RecorderNode(Node):
                                "bus_load_peak_window": max([self._seg_series[seg].peak_window,
                                                             *self._seg_series[seg].window_list()]),
                                "nodes": sorted(n for n, g in self.topo.segment_of.items() if g == seg),
-                               "log": f"frames_{seg}{fmt}"} for seg in self.topo.names},
+                               "log": f"frames_{seg}{fmt}",
+                               # its number in .asc/.blf/.trc/.mf4 logs (CANoe's CAN 1..n)
+                               "channel": i + 1} for i, seg in enumerate(self.topo.names)},
             "gateways": {gw: {"delay_s": d, "frames_forwarded": self.net.forwarded.get(gw, 0)}
                          for gw, d in sorted(self.topo.delay.items())},
             "forwarding_tables": forwarding_tables(self.layout, self.topo),
@@ -495,7 +522,7 @@ class RecorderNode(Node):
         new = []
         while self._ev_i < len(events) and events[self._ev_i].t_start_s < t_next:
             ev = events[self._ev_i]
-            new.append(error_frame(ev, self.epoch + ev.t_start_s, self.channel))
+            new.append(error_frame(ev, self.epoch + ev.t_start_s, self._log_ch))
             self._ev_i += 1
         self.error_frames += len(new)
         row = [self._k]
@@ -543,7 +570,7 @@ class RecorderNode(Node):
         return can.Message(timestamp=self.epoch + t_s, arbitration_id=msg.arbitration_id,
                            is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
                            is_error_frame=msg.is_error_frame, dlc=msg.dlc, data=msg.data,
-                           channel=self.channel, is_rx=True)
+                           channel=self._log_ch, is_rx=True)
 
     def _realtime(self, msg: can.Message, now: float) -> None:
         m = self._stamp(msg, 0.0)
