@@ -778,12 +778,61 @@ def format_validation_error(source: str, err: ValidationError) -> str:
     return "\n".join(lines)
 
 
+def _controller_name(data: dict[str, Any]) -> Any:
+    """The top-level controller's name in a scenario mapping (ControllerConfig's default if none)."""
+    c = data.get("controller")
+    default = ControllerConfig.model_fields["name"].default
+    if c is None:
+        return default
+    return c.get("name", default) if isinstance(c, dict) else c  # not a mapping: validation says so
+
+
+def _switch_controller(data: dict[str, Any], name: Any) -> None:
+    """Make ``name`` the top-level controller of ``data`` without the previous controller's
+    parameters (they are that controller's: another one refuses them or reads them otherwise).
+    The scenario's deflection bound stays: when the previous controller's barrier bounds
+    ``theta_lower_m``/``theta_upper_m`` were the bound (no ``safety.max_abs_deflection_m``), they
+    become ``safety.max_abs_deflection_m``, so every controller is judged against the same bound."""
+    old = data.get("controller")
+    params = old.get("params") if isinstance(old, dict) else None
+    if isinstance(params, dict):
+        lo, hi = params.get("theta_lower_m"), params.get("theta_upper_m")
+        safety = data.get("safety")
+        if safety is None:
+            safety = data["safety"] = {}
+        if (isinstance(safety, dict) and safety.get("max_abs_deflection_m") is None
+                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (lo, hi))):
+            safety["max_abs_deflection_m"] = float(min(abs(lo), abs(hi)))
+    data["controller"] = {"name": name}
+
+
+def _drop_stale_profile_params(data: dict[str, Any], written_for: Any) -> None:
+    """Profiles' ``controller`` sections that name no controller hold parameters of the controller
+    the document was written for (``written_for``): once the scenario runs another one, they can
+    never apply, and are dropped (a profile selected later must not bring them back)."""
+    profiles = data.get("profiles")
+    if _controller_name(data) == written_for or not isinstance(profiles, dict):
+        return
+    for body in profiles.values():
+        c = body.get("controller") if isinstance(body, dict) else None
+        if isinstance(c, dict) and "name" not in c:
+            c.pop("params", None)
+            if not c:
+                body.pop("controller")
+
+
 def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | None = None,
             overrides: dict[str, Any] | None = None, external: list[str] | None = None) -> Scenario:
-    """Validate a scenario mapping, applying a profile and dotted-key overrides."""
+    """Validate a scenario mapping, applying a profile and dotted-key overrides.
+
+    Switching the controller by name (a profile's ``controller.name``, ``--set controller.name=X``)
+    drops the previous controller's parameters; parameters given with the switch (the profile's,
+    ``--set controller.params.K=V``) stay, and the profiles' parameters of the previous controller
+    are dropped from the result (:func:`_switch_controller`, :func:`_drop_stale_profile_params`)."""
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
     data = copy.deepcopy(data)
+    written_for = _controller_name(data)
     profile = profile or data.get("profile")
     profiles = data.get("profiles") or {}
     if profile is not None:
@@ -792,10 +841,22 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
             raise ScenarioError(f"{source}: profile {profile!r} is not defined (profiles: {known})")
         if not isinstance(profiles[profile], dict):
             raise ScenarioError(f"{source}: profiles.{profile}: expected a mapping")
+        pc = profiles[profile].get("controller")
+        if isinstance(pc, dict) and "name" in pc and pc["name"] != written_for:
+            _switch_controller(data, pc["name"])
         data = _deep_merge(data, profiles[profile])
         data["profile"] = profile
-    for k, v in (overrides or {}).items():
+    overrides = overrides or {}
+    before = _controller_name(data)
+    for k, v in overrides.items():
         _set_dotted(data, k, v)
+    after = _controller_name(data)
+    if after != before and "controller" not in overrides and isinstance(data.get("controller"), dict):
+        given = {k: v for k, v in overrides.items() if k == "controller.params" or k.startswith("controller.params.")}
+        _switch_controller(data, after)
+        for k, v in given.items():
+            _set_dotted(data, k, v)
+    _drop_stale_profile_params(data, written_for)
     if external:
         data = mark_external(data, list(external))
     try:

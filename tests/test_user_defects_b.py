@@ -95,3 +95,109 @@ def test_candump_log_names_one_fixed_interface_on_the_memory_buses(tmp_path):
                  "--no-plots", "--out", str(out)]) == 0
     assert {ln.split()[1] for ln in (out / "frames.log").read_text().splitlines()} == {"canbrake0"}
     assert {m.channel for m in can.LogReader(str(out / "frames.log"))} == {"canbrake0"}
+
+
+# ------------------------------------------------------------------ 7. a user's controller by name
+ACME = '''
+from canbrake.control.base import ControlOutput, Controller
+
+
+class AcmePD(Controller):
+    """A user's speed PD (kp 1/s): each car tracks v* alone, nothing holds the couplers."""
+
+    def __init__(self, car_index, n_cars, mass_kg, dt_s, *, kp: float = 2.0):
+        super().__init__(car_index, n_cars, mass_kg, dt_s)
+        self.kp = kp
+
+    def step(self, obs):
+        return ControlOutput(self.mass_kg * (obs.ref_decel_mps2 + self.kp * (obs.speed_mps - obs.ref_speed_mps)))
+'''
+
+
+@pytest.fixture
+def acme(tmp_path, monkeypatch):
+    """``pip install acme`` as a test can do it: the package and its dist-info declaring
+    ``acme_pd`` in the ``canbrake.controllers`` entry points, on sys.path."""
+    import sys
+
+    site = tmp_path / "site"
+    (site / "acme").mkdir(parents=True)
+    (site / "acme" / "__init__.py").write_text(ACME)
+    info = site / "acme-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: acme\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[canbrake.controllers]\nacme_pd = acme:AcmePD\n")
+    monkeypatch.syspath_prepend(str(site))
+    yield "acme_pd"
+    sys.modules.pop("acme", None)
+    from canbrake.control import base
+
+    base._REGISTRY.pop("acme_pd", None)
+
+
+def test_switching_the_controller_by_name_drops_the_previous_parameters(acme, tmp_path):
+    """``--set controller.name=acme_pd`` on Chen's scenario runs acme_pd with its own defaults (not
+    Chen's alpha1...), with parameters given beside the switch; Chen's theta bounds stay the
+    scenario's deflection bound; no profile brings Chen's parameters back (file, API, Scenario)."""
+    import canbrake
+    from canbrake.cli import main
+    from canbrake.run import check_controller_params
+
+    scn = load_scenario(CASE1, overrides={"controller.name": acme})
+    assert scn.controller.name == acme and scn.controller.params == {}
+    check_controller_params(scn)  # "controller.params.alpha1: unknown parameter" before
+    assert scn.safety.max_abs_deflection_m == 0.01  # Chen's theta_lower_m/theta_upper_m: the scenario's bound
+    scn = load_scenario(CASE1, overrides={"controller.name": acme, "controller.params.kp": 3})
+    assert scn.controller.params == {"kp": 3}
+    for profile in ("paper", "realistic"):
+        scn = load_scenario(CASE1, profile=profile, overrides={"controller.name": acme})
+        assert scn.controller.params == {} and scn.profile == profile, profile
+        check_controller_params(scn)
+        api = canbrake.load_scenario("chen2023_case1_fine_rail", profile=profile, controller__name=acme)
+        assert api.controller.params == {}, profile
+        # a profile applied later to the derived scenario does not bring Chen's parameters back
+        again = canbrake.load_scenario(api, profile="realistic")
+        assert again.controller.name == acme and again.controller.params == {}
+        assert again.control_period_s == 0.01 and again.actuator.model == "realistic"  # the rest applies
+    kept = load_scenario(CASE1, profile="realistic", overrides={"controller.params.k": 2.0})  # no switch
+    assert kept.controller.name == "chen2023" and kept.controller.params["alpha1"] == 0.15
+    assert kept.controller.params["k"] == 2.0
+    r = canbrake.run("chen2023_case1_fine_rail", bus="inprocess", profile="realistic", duration_s=0.02,
+                     plots=False, out=tmp_path / "api", controller__name=acme)
+    assert r.status == "ok" and r.scenario.controller.params == {}
+    assert main(["run", str(CASE1), "--bus", "inprocess", "--set", f"controller.name={acme}", "--duration", "0.005",
+                 "--no-plots", "--out", str(tmp_path / "cli")]) == 0
+
+
+def test_unknown_controller_lists_entry_point_controllers(acme, capsys, tmp_path):
+    from canbrake.cli import main
+
+    code = main(["run", str(CASE1), "--bus", "inprocess", "--set", "controller.name=acme_typo", "--duration",
+                 "0.005", "--out", str(tmp_path / "x")])
+    err = capsys.readouterr().err
+    assert code == 2 and "unknown controller 'acme_typo'" in err
+    listed = err.split("available:")[1].split("\n")[0]
+    assert "acme_pd" in listed and "chen2023" in listed, err
+
+
+def test_every_controller_is_judged_against_the_scenario_bounds(acme, tmp_path):
+    """acme_pd on Chen's case 1 (cars 88..95.5 km/h, nothing holds the couplers) compresses them
+    by centimetres: verdict ``unsafe`` against the scenario's ±1 cm (Chen's theta, kept when the
+    controller was switched), and the deflection plot draws that bound; a scenario without any
+    bound draws none."""
+    from canbrake.analysis.plots import plot_meta
+    from canbrake.analysis.verdict import deflection_bound_m
+
+    scn = load_scenario(CASE1, overrides={"controller.name": acme, "duration_s": 0.3, "safety.max_speed_kmh": 91})
+    s = run_scenario(scn, tmp_path / "r", backend="inprocess", plots=False)
+    assert s["status"] == "ok"
+    unsafe = {f["quantity"]: f for f in s["findings"] if f["kind"] == "unsafe"}
+    assert s["verdict"] == "unsafe" and set(unsafe) == {"deflection", "speed"}, s["findings"]
+    assert unsafe["deflection"]["bound_m"] == 0.01 and unsafe["deflection"]["max_abs_deflection_m"] > 0.01
+    assert unsafe["speed"]["bound_kmh"] == 91
+    assert plot_meta(scn).bound_m == deflection_bound_m(scn) == 0.01
+    bare = load_scenario(SCENARIOS / "li2024_pid.yaml")
+    assert deflection_bound_m(bare) is None and plot_meta(bare).bound_m is None
+    mine = load_scenario(CASE1, overrides={"controller.name": acme, "safety.max_abs_deflection_m": 0.05})
+    assert plot_meta(mine).bound_m == deflection_bound_m(mine) == 0.05
+

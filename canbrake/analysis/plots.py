@@ -41,7 +41,7 @@ class PlotMeta:
     mode: str = ""
     ref_decel_mps2: float | None = None      # a* (m/s², > 0 decelerates)
     band_kmh: float = 0.5
-    bound_m: float = DEFLECTION_BOUND_M
+    bound_m: float | None = DEFLECTION_BOUND_M   # None: the scenario has no deflection bound, none drawn
     emergency_decel_mps2: float = EMERGENCY_DECEL_MPS2
     comfort_decel_mps2: float = COMFORT_DECEL_MPS2
     jerk_limit_mps3: float = COMFORT_JERK_MPS3
@@ -69,8 +69,11 @@ def plot_meta(scn: Any, bus: str = "") -> PlotMeta:
     if getattr(act, "model", "") == "realistic" and getattr(act, "jerk_limit_mps3", None):
         jerk = float(act.jerk_limit_mps3)
     ctrl = " + ".join(dict.fromkeys(p.controller.name for p in scn.placement()))  # every ECU's, in order
+    from canbrake.analysis.verdict import deflection_bound_m
+
     return PlotMeta(scenario=scn.name, profile=scn.profile, controller=ctrl,
                     bus=_short_bus(bus), mode=scn.mode, ref_decel_mps2=float(scn.reference.decel_mps2),
+                    bound_m=deflection_bound_m(scn),  # the verdict's bound, whatever the controller
                     emergency_decel_mps2=emergency, jerk_limit_mps3=jerk)
 
 
@@ -172,6 +175,12 @@ def _jerk(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
 def _deflections(ax: Axes, tr: Trace, meta: PlotMeta) -> None:
     for j in range(tr.deflection_m.shape[1]):
         ax.plot(tr.t_s, tr.deflection_m[:, j] * 100, lw=1, label=f"coupler {j + 1}–{j + 2}")
+    if meta.bound_m is None:  # no bound in the scenario: nothing to draw (and the verdict judges none)
+        ax.set(xlabel="time (s)", ylabel="deflection Δl (cm, + stretched)",
+               title="coupler deflection (no bound set: safety.max_abs_deflection_m)")
+        _symlog_if_extreme(ax, tr.deflection_m, 100)
+        _legend(ax, tr.deflection_m.shape[1])
+        return
     b = meta.bound_m * 100
     ax.axhline(b, color="r", ls=":", lw=1.2)
     ax.axhline(-b, color="r", ls=":", lw=1.2, label=f"bound ±{b:g} cm")
@@ -258,12 +267,16 @@ def figures(tr: Trace, meta: PlotMeta, only: str | None = None) -> dict[str, Fig
     return figs
 
 
-def plot_run(tr: Trace, out_dir: Path, title: str = "", band_kmh: float = 0.5, bound_m: float = DEFLECTION_BOUND_M,
-             meta: PlotMeta | None = None) -> list[str]:
-    """Write overview.png and one PNG per entry of :data:`PANELS` into ``out_dir``; returns the file names."""
+def plot_run(tr: Trace, out_dir: Path, title: str = "", band_kmh: float | None = None,
+             bound_m: float | None = None, meta: PlotMeta | None = None) -> list[str]:
+    """Write overview.png and one PNG per entry of :data:`PANELS` into ``out_dir``; returns the file names.
+    ``band_kmh``/``bound_m``: instead of ``meta``'s (the scenario's bound, :func:`plot_meta`)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     meta = meta or PlotMeta(scenario=title)
-    meta.band_kmh, meta.bound_m = band_kmh, bound_m
+    if band_kmh is not None:
+        meta.band_kmh = band_kmh
+    if bound_m is not None:
+        meta.bound_m = bound_m
     files = []
     for name, fig in figures(tr, meta).items():
         fig.savefig(out_dir / f"{name}.png", dpi=80 if name == "overview" else 100)

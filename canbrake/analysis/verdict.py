@@ -102,16 +102,20 @@ def plausible_speed_mps(scn: Any, ref_speed_mps: np.ndarray | None = None) -> fl
 
 
 def deflection_bound_m(scn: Any) -> float | None:
-    """The scenario's coupler deflection bound (m): ``safety.max_abs_deflection_m``, else the
-    controller's barrier bounds ``theta_lower_m``/``theta_upper_m`` if it takes them, else None."""
+    """The scenario's coupler deflection bound (m), whatever controller runs: ``safety.max_abs_deflection_m``,
+    else the tightest barrier bounds ``theta_lower_m``/``theta_upper_m`` among the controllers'
+    parameters (top level and per ECU), else None. (A controller switched by name leaves its
+    predecessor's bounds in ``safety.max_abs_deflection_m``: :func:`canbrake.scenario.resolve`.)
+    The verdict judges against it and the deflection plot draws it."""
     b = getattr(scn.safety, "max_abs_deflection_m", None)
     if b is not None:
         return float(b)
-    p = scn.controller.params
-    lo, hi = p.get("theta_lower_m"), p.get("theta_upper_m")
-    if isinstance(lo, (int, float)) and isinstance(hi, (int, float)):
-        return float(min(abs(lo), abs(hi)))
-    return None
+    bounds = []
+    for c in [scn.controller, *(e.controller for e in getattr(scn, "ecus", []) if e.controller is not None)]:
+        lo, hi = c.params.get("theta_lower_m"), c.params.get("theta_upper_m")
+        if isinstance(lo, (int, float)) and isinstance(hi, (int, float)):
+            bounds.append(float(min(abs(lo), abs(hi))))
+    return min(bounds) if bounds else None
 
 
 def _first_bad_row(tr: Trace, coupler_lim: np.ndarray, vmax: float) -> tuple[int | None, str]:

@@ -110,9 +110,12 @@ def register(name: str) -> Callable[[ControllerFactory], ControllerFactory]:
 
 
 def available() -> list[str]:
-    """Names of the registered controllers (built-in and from the ``canbrake.controllers`` entry points)."""
+    """Names of the controllers a scenario can name: built-in, registered, and those installed
+    through the ``canbrake.controllers`` entry points (listed by name, loaded only when used)."""
+    from importlib.metadata import entry_points
+
     _load_builtin()
-    return sorted(_REGISTRY)
+    return sorted(set(_REGISTRY) | {ep.name for ep in entry_points(group="canbrake.controllers")})
 
 
 class ControllerError(ValueError):
