@@ -118,9 +118,17 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
         lines.append(f"  {f['kind']}: {f['message']}")
     if m:
         tc = m.get("convergence_time_s")
+        lead = m.get("lead_vehicle") or {}
+        rmse = f"speed RMSE: {q(max(m['speed_rmse_kmh']), 'km/h')} (worst car)"
+        if len(m["speed_rmse_kmh"]) > 1 and lead.get("speed_rmse_kmh") is not None:
+            rmse += f", {q(lead['speed_rmse_kmh'], 'km/h')} (lead vehicle)"
         lines.append(f"convergence (±{m['band_kmh']} km/h): {'never' if tc is None else f'{tc:.3f} s'}  "
-                     f"max |deflection|: {q(m['max_abs_deflection_m'] * 100, 'cm')}  "
-                     f"speed RMSE: {q(max(m['speed_rmse_kmh']), 'km/h')} (worst car)")
+                     f"max |deflection|: {q(m['max_abs_deflection_m'] * 100, 'cm')}  {rmse}")
+        if lead.get("position_error_mean_abs_m") is not None:  # a reference position x*: Cai 2014 Fig. 7
+            w = lead["position_error_window_s"]
+            lines.append(f"position error x - x* (lead vehicle, {w[0]:g}-{w[1]:g} s): mean |e| "
+                         f"{q(lead['position_error_mean_abs_m'] * 1000, 'mm')}  max |e| "
+                         f"{q(lead['position_error_max_abs_m'] * 1000, 'mm')}")
     bl = s.get("bus_load", {}) or {}
     if bl.get("bus_load_mean") is not None:
         lines.append(f"bus load: mean {bl['bus_load_mean'] * 100:.1f} %  peak {bl['bus_load_peak'] * 100:.1f} % "

@@ -201,3 +201,54 @@ def test_every_controller_is_judged_against_the_scenario_bounds(acme, tmp_path):
     mine = load_scenario(CASE1, overrides={"controller.name": acme, "safety.max_abs_deflection_m": 0.05})
     assert plot_meta(mine).bound_m == deflection_bound_m(mine) == 0.05
 
+
+# ------------------------------------------------------------------ 9. the papers' headline figures
+def test_cai_run_reports_the_position_error_over_the_run(tmp_path, capsys):
+    """Cai 2014's headline (Fig. 7) is the position error x − x* of the train: summary.json has its
+    mean and max |e| over the run (the paper's window, the whole run), and the console prints them."""
+    import numpy as np
+
+    from canbrake.analysis.summary import read_signals
+    from canbrake.cli import main
+
+    out = tmp_path / "cai"
+    assert main(["run", str(SCENARIOS / "cai2014_case1.yaml"), "--bus", "inprocess", "--duration", "0.3",
+                 "--no-plots", "--out", str(out)]) == 0
+    console = capsys.readouterr().out
+    import json
+
+    lead = json.loads((out / "summary.json").read_text())["metrics"]["lead_vehicle"]
+    cols = read_signals(out / "signals.csv")
+    e = np.abs(cols["position_m_c1"] - cols["ref_position_m"])
+    assert lead["vehicle"] == 1 and lead["position_error_window_s"] == [0.0, 0.3]
+    assert lead["position_error_mean_abs_m"] == pytest.approx(float(np.mean(e)), rel=1e-12)
+    assert lead["position_error_max_abs_m"] == pytest.approx(float(np.max(e)), rel=1e-12)
+    assert 0 < lead["position_error_mean_abs_m"] < lead["position_error_max_abs_m"]
+    mm = lambda x: f"{x * 1000:.3g} mm"  # noqa: E731
+    assert (f"position error x - x* (lead vehicle, 0-0.3 s): mean |e| {mm(lead['position_error_mean_abs_m'])}  "
+            f"max |e| {mm(lead['position_error_max_abs_m'])}") in console, console
+
+
+def test_li_run_names_the_lead_vehicles_speed_rmse(tmp_path, capsys):
+    """Li 2024's Table 2 is the locomotive's (vehicle 1's) speed RMSE: summary.json names it beside the
+    per-vehicle list and the console prints it beside the worst car's."""
+    import json
+
+    import numpy as np
+
+    from canbrake.analysis.summary import read_signals
+    from canbrake.cli import main
+
+    out = tmp_path / "li"
+    assert main(["run", str(SCENARIOS / "li2024_pid.yaml"), "--bus", "inprocess", "--duration", "0.3",
+                 "--no-plots", "--out", str(out)]) == 0
+    console = capsys.readouterr().out
+    m = json.loads((out / "summary.json").read_text())["metrics"]
+    cols = read_signals(out / "signals.csv")
+    rmse = float(np.sqrt(np.mean(((cols["speed_mps_c1"] - cols["ref_speed_mps"]) * 3.6) ** 2)))
+    lead = m["lead_vehicle"]
+    assert lead["vehicle"] == 1 and lead["speed_rmse_kmh"] == pytest.approx(rmse, rel=1e-12)
+    assert lead["speed_rmse_kmh"] == m["speed_rmse_kmh"][0] != max(m["speed_rmse_kmh"])
+    assert "position_error_mean_abs_m" not in lead  # Li's scenario has no reference position
+    assert (f"{max(m['speed_rmse_kmh']):.3g} km/h (worst car), {lead['speed_rmse_kmh']:.3g} km/h (lead vehicle)"
+            in console), console

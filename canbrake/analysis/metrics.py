@@ -29,6 +29,7 @@ class Trace:
     coupler_force_n: np.ndarray  # (T, n-1)
     observer_accel_mps2: np.ndarray | None = None  # (T, n) ECU estimates, if reported
     mass_kg: np.ndarray | None = None  # (n,) car masses, if known (observer error, brake decel)
+    ref_position_m: np.ndarray | None = None  # (T,) reference position x*, if the run has one
 
     @property
     def n_cars(self) -> int:
@@ -55,7 +56,8 @@ def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
         last = int(keep[-1]) + 1 if keep.size else 1
         tr = Trace(*(getattr(tr, f)[:last] if getattr(tr, f) is not None else None
                      for f in ("t_s", "ref_speed_mps", "position_m", "speed_mps", "accel_mps2", "brake_cmd_n",
-                               "brake_applied_n", "deflection_m", "coupler_force_n", "observer_accel_mps2")))
+                               "brake_applied_n", "deflection_m", "coupler_force_n", "observer_accel_mps2")),
+                   ref_position_m=None if tr.ref_position_m is None else tr.ref_position_m[:last])
     t = tr.t_s
     err_kmh = (tr.speed_mps - tr.ref_speed_mps[:, None]) * KMH
     tc = convergence_time_s(t, err_kmh, band_kmh)
@@ -87,6 +89,7 @@ def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
         "final_speed_kmh": [float(x) for x in tr.speed_mps[-1] * KMH],
         "stopped": bool(np.all(tr.speed_mps[-1] < 0.01)),
     }
+    out["lead_vehicle"] = lead_vehicle_metrics(tr, rmse)
     if tr.observer_accel_mps2 is not None and np.isfinite(tr.observer_accel_mps2).any():
         out["observer_max_abs_estimate_mps2"] = float(np.nanmax(np.abs(tr.observer_accel_mps2)))
     out.update(distance_metrics(tr))
@@ -94,6 +97,19 @@ def compute_metrics(tr: Trace, band_kmh: float = DEFAULT_BAND_KMH) -> dict:
         out.update(brake_effort_metrics(tr))
         if tr.observer_accel_mps2 is not None and np.isfinite(tr.observer_accel_mps2).any():
             out.update(observer_metrics(tr))
+    return out
+
+
+def lead_vehicle_metrics(tr: Trace, speed_rmse_kmh: np.ndarray) -> dict:
+    """The lead vehicle's (vehicle 1: the locomotive of Li 2024's and Cai 2014's trains) figures, the
+    ones those papers report: its speed RMSE (km/h; Li 2024 Table 2) and, when the run has a reference
+    position x*, its position error x_1 − x* (:func:`position_error_m`) as mean and max |e| (m) over
+    the run (Cai 2014 Fig. 7's window: the whole run; :func:`position_error_metrics`)."""
+    out: dict = {"vehicle": 1, "speed_rmse_kmh": float(speed_rmse_kmh[0])}
+    if tr.ref_position_m is not None and np.isfinite(tr.ref_position_m).any():
+        e = position_error_metrics(tr.t_s, position_error_m(tr.position_m[:, 0], tr.ref_position_m))
+        out.update({"position_error_mean_abs_m": e["mean_abs_m"], "position_error_max_abs_m": e["max_abs_m"],
+                    "position_error_window_s": [float(tr.t_s[0]), float(tr.t_s[-1])]})
     return out
 
 
@@ -324,12 +340,27 @@ def within_band(err: np.ndarray, lo: float, hi: float) -> bool:
     return bool(np.all((e >= lo) & (e <= hi)))
 
 
+def position_error_m(position_m: np.ndarray, ref_position_m: np.ndarray) -> np.ndarray:
+    """The position error e = x − x* (m, + ahead of the reference), shape of ``position_m``: the
+    tracking error Cai 2014 plots in Fig. 7 (the train's position against the reference's)."""
+    return np.asarray(position_m, dtype=float) - np.asarray(ref_position_m, dtype=float)
+
+
+def position_error_metrics(t_s: np.ndarray, pos_err_m: np.ndarray, t0_s: float = 0.0,
+                           t1_s: float = np.inf) -> dict:
+    """Mean and max |e| (m) of a position error (T,) over ``t0_s`` ≤ t ≤ ``t1_s`` (s)."""
+    t = np.asarray(t_s)
+    e = np.abs(np.asarray(pos_err_m, dtype=float)[(t >= t0_s) & (t <= t1_s)])
+    return {"mean_abs_m": float(np.mean(e)), "max_abs_m": float(np.max(e))}
+
+
 def tracking_errors(t_s: np.ndarray, pos_err_m: np.ndarray, speed_err_mps: np.ndarray, t0_s: float = 0.0) -> dict:
-    """Mean and max |position error| (m), mean and max |speed error| (m/s) and the position error's
-    RMS for t ≥ ``t0_s``."""
+    """Mean and max |position error| (m; :func:`position_error_metrics`), mean and max |speed error|
+    (m/s) and the position error's RMS for t ≥ ``t0_s``."""
     sel = np.asarray(t_s) >= t0_s
     e, de = np.abs(np.asarray(pos_err_m)[sel]), np.abs(np.asarray(speed_err_mps)[sel])
-    return {"mean_abs_pos_err_m": float(np.mean(e)), "max_abs_pos_err_m": float(np.max(e)),
+    pe = position_error_metrics(t_s, pos_err_m, t0_s)
+    return {"mean_abs_pos_err_m": pe["mean_abs_m"], "max_abs_pos_err_m": pe["max_abs_m"],
             "mean_abs_speed_err_mps": float(np.mean(de)), "max_abs_speed_err_mps": float(np.max(de)),
             "rms_pos_err_m": rmse(e)}
 

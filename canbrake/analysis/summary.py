@@ -86,7 +86,7 @@ def trace_from_columns(cols: dict[str, np.ndarray], n: int) -> Trace:
                  speed_mps=stack("speed_mps_c", n), accel_mps2=stack("accel_mps2_c", n),
                  brake_cmd_n=stack("brake_cmd_n_c", n), brake_applied_n=stack("brake_applied_n_c", n),
                  deflection_m=stack("deflection_m_k", n - 1), coupler_force_n=stack("coupler_force_n_k", n - 1),
-                 observer_accel_mps2=obs)
+                 observer_accel_mps2=obs, ref_position_m=cols.get("ref_position_m"))
 
 
 def merge_ecu_columns(run_dir: Path, n: int) -> None:

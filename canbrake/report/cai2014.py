@@ -217,7 +217,9 @@ class CaiTrace:
 
     @property
     def position_error_m(self) -> np.ndarray:
-        return self.position_m - self.ref_position_m
+        """x − x* (m): :func:`canbrake.analysis.metrics.position_error_m`, as summary.json's
+        ``metrics.lead_vehicle.position_error_*`` (vehicle 1)."""
+        return M.position_error_m(self.position_m, self.ref_position_m)
 
     @property
     def speed_error_mps(self) -> np.ndarray:
