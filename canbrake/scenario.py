@@ -787,36 +787,54 @@ def _controller_name(data: dict[str, Any]) -> Any:
     return c.get("name", default) if isinstance(c, dict) else c  # not a mapping: validation says so
 
 
-def _switch_controller(data: dict[str, Any], name: Any) -> None:
-    """Make ``name`` the top-level controller of ``data`` without the previous controller's
-    parameters (they are that controller's: another one refuses them or reads them otherwise).
-    The scenario's deflection bound stays: when the previous controller's barrier bounds
-    ``theta_lower_m``/``theta_upper_m`` were the bound (no ``safety.max_abs_deflection_m``), they
-    become ``safety.max_abs_deflection_m``, so every controller is judged against the same bound."""
-    old = data.get("controller")
-    params = old.get("params") if isinstance(old, dict) else None
-    if isinstance(params, dict):
-        lo, hi = params.get("theta_lower_m"), params.get("theta_upper_m")
+def _kept_params(old: Any, new: Any, params: dict[str, Any]) -> dict[str, Any]:
+    """:func:`canbrake.control.base.inherited_params` (none for an unknown name: reported when the
+    scenario is checked)."""
+    from canbrake.control.base import inherited_params
+
+    try:
+        return inherited_params(old, new, params)
+    except (ValueError, TypeError):  # ControllerError: unknown or broken; a name that is no string
+        return {}
+
+
+def _switch_controller(data: dict[str, Any], old: Any, name: Any) -> None:
+    """Make ``name`` the top-level controller of ``data`` in place of ``old``, without ``old``'s
+    parameters (:func:`_kept_params`). The scenario's deflection bound stays: when ``old``'s barrier
+    bounds ``theta_lower_m``/``theta_upper_m`` were the bound (no ``safety.max_abs_deflection_m``)
+    and do not carry over, they become ``safety.max_abs_deflection_m``, so every controller is judged
+    against the same bound."""
+    cur = data.get("controller")
+    params = cur.get("params") if isinstance(cur, dict) else None
+    params = params if isinstance(params, dict) else {}
+    kept = _kept_params(old, name, params) if params else {}
+    lo, hi = params.get("theta_lower_m"), params.get("theta_upper_m")
+    if "theta_lower_m" not in kept and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (lo, hi)):
         safety = data.get("safety")
         if safety is None:
             safety = data["safety"] = {}
-        if (isinstance(safety, dict) and safety.get("max_abs_deflection_m") is None
-                and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in (lo, hi))):
+        if isinstance(safety, dict) and safety.get("max_abs_deflection_m") is None:
             safety["max_abs_deflection_m"] = float(min(abs(lo), abs(hi)))
-    data["controller"] = {"name": name}
+    data["controller"] = {"name": name, **({"params": kept} if kept else {})}
 
 
 def _drop_stale_profile_params(data: dict[str, Any], written_for: Any) -> None:
     """Profiles' ``controller`` sections that name no controller hold parameters of the controller
-    the document was written for (``written_for``): once the scenario runs another one, they can
-    never apply, and are dropped (a profile selected later must not bring them back)."""
+    the document was written for (``written_for``): once the scenario runs an unrelated one
+    (:func:`_kept_params`), they can never apply, and are dropped (a profile selected later must not
+    bring them back)."""
     profiles = data.get("profiles")
-    if _controller_name(data) == written_for or not isinstance(profiles, dict):
+    now = _controller_name(data)
+    if now == written_for or not isinstance(profiles, dict):
         return
     for body in profiles.values():
         c = body.get("controller") if isinstance(body, dict) else None
-        if isinstance(c, dict) and "name" not in c:
-            c.pop("params", None)
+        if isinstance(c, dict) and "name" not in c and isinstance(c.get("params"), dict):
+            kept = _kept_params(written_for, now, c["params"])
+            if kept:
+                c["params"] = kept
+            else:
+                c.pop("params")
             if not c:
                 body.pop("controller")
 
@@ -826,9 +844,10 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
     """Validate a scenario mapping, applying a profile and dotted-key overrides.
 
     Switching the controller by name (a profile's ``controller.name``, ``--set controller.name=X``)
-    drops the previous controller's parameters; parameters given with the switch (the profile's,
-    ``--set controller.params.K=V``) stay, and the profiles' parameters of the previous controller
-    are dropped from the result (:func:`_switch_controller`, :func:`_drop_stale_profile_params`)."""
+    drops the previous controller's parameters (a controller derived from it keeps those it
+    accepts); parameters given with the switch (the profile's, ``--set controller.params.K=V``)
+    stay, and the profiles' parameters of the previous controller are dropped from the result
+    (:func:`_switch_controller`, :func:`_drop_stale_profile_params`)."""
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
     data = copy.deepcopy(data)
@@ -843,7 +862,7 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
             raise ScenarioError(f"{source}: profiles.{profile}: expected a mapping")
         pc = profiles[profile].get("controller")
         if isinstance(pc, dict) and "name" in pc and pc["name"] != written_for:
-            _switch_controller(data, pc["name"])
+            _switch_controller(data, written_for, pc["name"])
         data = _deep_merge(data, profiles[profile])
         data["profile"] = profile
     overrides = overrides or {}
@@ -853,7 +872,7 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
     after = _controller_name(data)
     if after != before and "controller" not in overrides and isinstance(data.get("controller"), dict):
         given = {k: v for k, v in overrides.items() if k == "controller.params" or k.startswith("controller.params.")}
-        _switch_controller(data, after)
+        _switch_controller(data, before, after)
         for k, v in given.items():
             _set_dotted(data, k, v)
     _drop_stale_profile_params(data, written_for)

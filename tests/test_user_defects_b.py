@@ -252,3 +252,20 @@ def test_li_run_names_the_lead_vehicles_speed_rmse(tmp_path, capsys):
     assert "position_error_mean_abs_m" not in lead  # Li's scenario has no reference position
     assert (f"{max(m['speed_rmse_kmh']):.3g} km/h (worst car), {lead['speed_rmse_kmh']:.3g} km/h (lead vehicle)"
             in console), console
+
+
+def test_a_derived_controller_keeps_the_parameters_it_accepts():
+    """chen2023_compensated derives from chen2023 and accepts all of its parameters: switching to it
+    by name (as the delay report's sweeps do) keeps the gains of the scenario and of its profile;
+    back to chen2023 keeps those chen2023 accepts."""
+    base = load_scenario(CASE1, profile="realistic")
+    comp = load_scenario(CASE1, profile="realistic", overrides={"controller.name": "chen2023_compensated"})
+    assert comp.controller.params == base.controller.params and comp.controller.params["alpha1"] == 0.15
+    assert comp.profiles == base.profiles and comp.safety.max_abs_deflection_m is None
+    back = load_scenario(CASE1, overrides={"controller.name": "chen2023_compensated",
+                                           "controller.params.predict": False})
+    from canbrake.scenario import resolve
+
+    data = back.model_dump(mode="json")
+    chen = resolve(data, "<t>", overrides={"controller.name": "chen2023"})
+    assert "predict" not in chen.controller.params and chen.controller.params["alpha1"] == 120

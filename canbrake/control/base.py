@@ -172,6 +172,20 @@ def _param_schema(cls: Any, name: str) -> tuple[dict[str, Any], bool, Any]:
     return fields, accepts_any, model
 
 
+def inherited_params(old: str, new: str, params: Mapping[str, Any]) -> dict[str, Any]:
+    """The parameters ``params`` of controller ``old`` that controller ``new`` takes over when a
+    scenario switches to it by name: none when the two are unrelated (parameters belong to their
+    controller: another one refuses them or reads them otherwise); when one class derives from the
+    other (``chen2023_compensated`` from ``chen2023``, which accepts all of its parent's
+    parameters), those ``new``'s constructor accepts. Raises :class:`ControllerError` for an
+    unknown name."""
+    a, b = controller_class(old), controller_class(new)
+    if not (isinstance(a, type) and isinstance(b, type) and (issubclass(a, b) or issubclass(b, a))):
+        return {}
+    fields, accepts_any, _model = _param_schema(b, new)
+    return {k: v for k, v in params.items() if accepts_any or k in fields}
+
+
 _FIXED = frozenset({"car_index", "n_cars", "mass_kg", "dt_s"})
 _SCHEMAS: dict[Any, tuple[dict[str, Any], bool, Any]] = {}
 
