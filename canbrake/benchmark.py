@@ -5,12 +5,18 @@ Figures (``FIGURES``; ``--only`` picks groups):
 
 - ``codec``: the compiled codec (:mod:`canbrake.bus.codec`) against cantools ``Message.encode``
   / ``decode`` on the frames of a 6-car tick, microseconds per frame.
+- the floor (:mod:`canbrake.floor`, measured whenever lockstep, realtime or scale runs): a plant
+  and N ECU processes exchanging one word each per period over canbrake's memory bus, no model,
+  no codec; every lockstep, scale and realtime figure is also given as a ratio to it
+  (:func:`apply_floor`).
 - ``lockstep``: control periods per wall second of Chen case 1 (6 ECUs) in-process, on the
-  in-memory bus with one process per ECU, on python-can ``virtual`` and with the CAN timing model.
+  in-memory bus with one process per ECU, on python-can ``virtual`` and with the CAN timing model;
+  the memory of an ECU process (PSS).
 - ``realtime``: Chen case 1 in ``--mode realtime`` with one process per ECU at 1 ms (paper) and
   10 ms (realistic): plant deadline misses (%) and p99 command latency (SYNC sent -> last command
   of the period in), plus the scheduling the nodes obtained (SCHED_FIFO or the fallback).
-- ``scale``: ticks per second and peak memory (sum of the RSS of the run's process tree) for
+- ``scale``: ticks per second and peak memory (PSS of the run's processes, in total and per ECU
+  process; the RSS sum beside it) for
   6, 12, 24, 48 cars and the 1 + 105 ECP train (106 ECUs, hosted ``ecu.per_process`` per
   process), in process and with processes; the 106-ECU train's real-time factor at 10 ms.
 - ``sweep``: the default 121-point delay x loss sweep of Chen case 1 (10 s per point, one seed)
@@ -379,8 +385,8 @@ def apply_floor(rows: list[dict[str, Any]], floors: dict[int, dict[str, Any]]) -
     trips longer than the period. Rows without a comparable floor are left alone."""
     f6 = floors.get(FLOOR_ECUS)
     for r in rows:
-        if r.get("status") != "ok" or r.get("value") is None or r["figure"].startswith("floor:"):
-            continue
+        if r.get("value") is None or r["figure"].startswith("floor:"):
+            continue  # failed rows have no value; a diverged run's figure is still a figure
         fig, fl = r["figure"], None
         if fig.startswith("lockstep") or fig.startswith("in-process physics"):
             fl = f6 and f6["periods_per_s"]
@@ -803,7 +809,8 @@ def table(result: dict[str, Any], markdown: bool = False) -> str:
             met = f"{r['status'].upper()}" + (f" ({met})" if met and r["status"] not in ("failed",) else "")
         base = "-" if r["baseline"] is None else f"{_fmt(r['baseline'])} ({r['baseline_name']})"
         fr = r.get("floor_ratio")
-        vs = "-" if fr is None else f"{fr:.2f}x ({_fmt(r.get('floor'))})"
+        vs = ("-" if r.get("floor") is None else f"- ({_fmt(r['floor'])})") if fr is None else \
+            f"{fr:.2f}x ({_fmt(r.get('floor'))})"
         lines.append([r["figure"], _fmt(r["value"]), r["unit"], base,
                       "-" if r["ratio"] is None else f"{r['ratio']:.2f}x", vs, r["target"] or "-", met])
     if markdown:

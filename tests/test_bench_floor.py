@@ -119,3 +119,31 @@ def test_bench_puts_the_floor_of_the_same_run_beside_the_lockstep_and_realtime_f
     assert lat["floor"] == pytest.approx(floor["round_trip_p99_ms"]) and lat["floor_ratio"] == pytest.approx(0.4 / lat["floor"])
     assert rows["memory per ECU process (PSS), one process per ECU"]["floor"] == pytest.approx(floor["ecu_pss_mb"])
     assert "vs floor" in benchmark.table(res).splitlines()[0]
+
+
+def test_apply_floor_compares_rates_latency_misses_and_memory_with_the_floor_of_the_same_size():
+    from canbrake.benchmark import _row, apply_floor, table
+
+    floors = {6: {"periods_per_s": 2000.0, "round_trip_p99_s": 0.0005, "over_1ms_pct": 2.0, "over_10ms_pct": 0.0,
+                  "ecu_pss_mb": 20.0},
+              12: {"periods_per_s": 400.0, "round_trip_p99_s": 0.002, "over_1ms_pct": 50.0, "over_10ms_pct": 1.0}}
+    rows = [_row("floor: plant + 6 ECU processes, memory bus, no model", 2000.0, "periods/s", floor_ecus=6),
+            _row("lockstep in-process engine", 500.0, "periods/s"),
+            _row("scale 12 cars (Chen), one process per ECU", 100.0, "periods/s", cars=12),
+            _row("scale 48 cars (Chen), in process", 10.0, "periods/s", cars=48),  # no floor of 48 measured
+            _row("realtime 1 ms deadline misses", 5.0, "% of periods", status="diverged"),
+            _row("realtime 10 ms deadline misses", 0.0, "% of periods"),
+            _row("realtime 1 ms p99 command latency", None, "ms", status="ok"),
+            _row("memory per ECU process (PSS), one process per ECU", 22.0, "MB")]
+    apply_floor(rows, floors)
+    by = {r["figure"]: r for r in rows}
+    assert "floor_ratio" not in rows[0]
+    assert by["lockstep in-process engine"]["floor_ratio"] == 0.25
+    assert by["scale 12 cars (Chen), one process per ECU"]["floor_ratio"] == 0.25  # the 12-ECU floor
+    assert "floor_ratio" not in by["scale 48 cars (Chen), in process"]
+    assert by["realtime 1 ms deadline misses"]["floor_ratio"] == 2.5  # a diverged run's figure still compares
+    assert by["realtime 10 ms deadline misses"]["floor"] == 0.0 and by["realtime 10 ms deadline misses"]["floor_ratio"] is None
+    assert "floor_ratio" not in by["realtime 1 ms p99 command latency"]
+    assert by["memory per ECU process (PSS), one process per ECU"]["floor_ratio"] == pytest.approx(1.1)
+    lines = table({"figures": rows}).splitlines()
+    assert "0.25x (2,000)" in lines[2] and "- (0.00)" in lines[6]
