@@ -69,7 +69,8 @@ def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any) -> None:
             if tick == _END:
                 break
             words[i] = (sum(words) + tick) & 0xFFFFFFFF
-            bus.send(can.Message(arbitration_id=my_id, data=_II.pack(tick & 0xFFFFFFFF, words[i]), is_extended_id=False))
+            bus.send(can.Message(arbitration_id=my_id, data=_II.pack(tick & 0xFFFFFFFF, words[i]),
+                                 is_extended_id=False))
         out[i] = bus.stats().sleeps
     finally:
         bus.shutdown()
