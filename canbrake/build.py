@@ -268,7 +268,7 @@ def build_send_path(scn: Scenario, node: str) -> SendPath:
         return PassThrough()
     from canbrake.bus.sendpath import build_send_path as _build
 
-    return _build(scn, node)
+    return _build(scn, node, bus_layout(scn))
 
 
 def build_rx_path(scn: Scenario, node: str) -> Any:
@@ -352,7 +352,7 @@ def _error_timing(scn: Scenario) -> Any:
     the frames' modelled wire times for the log's stamps, and the bus errors if it has any."""
     from canbrake.bus.schedule import build_bus_timing
 
-    return build_bus_timing(scn)
+    return build_bus_timing(scn, bus_layout(scn))
 
 
 def _segments_of(scn: Scenario, layout: Any) -> Any:
@@ -406,7 +406,7 @@ def build_node(scn: Scenario, role: str, *, car: int = 0, run_dir: Path | None, 
         if bus_timing == "build":
             from canbrake.bus.schedule import build_bus_timing
 
-            bus_timing = build_bus_timing(scn)
+            bus_timing = build_bus_timing(scn, layout)
         spec = layout.ecus[car - 1]
         return EcuNode(spec, layout, build_controller(scn, car), codec, dt_s=scn.control_period_s,
                        bus_timing=bus_timing, barrier=needs_barrier(scn), rx_path=build_rx_path(scn, spec.name),
@@ -438,7 +438,7 @@ def build_nodes(scn: Scenario, run_dir: Path | None, channel: str = "can0") -> l
 
     layout = bus_layout(scn)
     codec = FrameCodec(layout.database())
-    timing = build_bus_timing(scn)  # one replica serves every node of an in-process run
+    timing = build_bus_timing(scn, layout)  # one replica serves every node of an in-process run
     kw = dict(run_dir=run_dir, codec=codec, layout=layout)
     nodes: list[Node] = [build_node(scn, "recorder", channel=channel, **kw)]  # type: ignore[arg-type]
     nodes += [build_node(scn, "ecu", car=i, bus_timing=timing, **kw)  # type: ignore[arg-type]

@@ -13,28 +13,31 @@ from typing import Any
 def simulate_latencies(scn: Any, n_ticks: int) -> dict[tuple[int, bool], Any]:
     """Per-message latency statistics (queued -> end of frame, s) of the nominal schedule over
     ``n_ticks`` control periods, from the same replicated model a ``bus.timing: model`` run uses."""
+    from canbrake.build import bus_layout
     from canbrake.bus.schedule import timing_of
 
-    t = timing_of(scn, record_history=True)
+    t = timing_of(scn, bus_layout(scn), record_history=True)
     t.run_ticks(n_ticks)
     return t.model.latency_by_message()
 
 
 def analyze_scenario(scn: Any, *, method: str = "davis2007", sim_ticks: int = 0) -> dict[str, Any]:
     """The analysis of ``scn`` as a JSON-ready dict (plus simulated latencies if ``sim_ticks``)."""
+    from canbrake.build import bus_layout
     from canbrake.bus.rta import analyze
     from canbrake.bus.schedule import dbc_cycle_times_s, fifo_like_nodes, message_set
 
-    msgs = message_set(scn)
+    layout = bus_layout(scn)
+    msgs = message_set(scn, layout)
     from canbrake.bus.segments import topology_of
 
-    if topology_of(scn) is not None:
+    if topology_of(scn, layout) is not None:
         return analyze_segmented(scn, msgs, method=method, sim_ticks=sim_ticks)
     res = analyze(msgs, scn.bus.bitrate_bps, method=method,  # type: ignore[arg-type]
                   fifo_nodes=fifo_like_nodes(scn, msgs))
     out = {"scenario": scn.name, "profile": scn.profile, "n_cars": scn.n_cars,
            "control_period_s": scn.control_period_s, **res.as_dict()}
-    cycles = dbc_cycle_times_s(scn)
+    cycles = dbc_cycle_times_s(layout)
     for m in out["messages"]:
         m["dbc_cycle_s"] = cycles.get(m["id"])
     if sim_ticks > 0:
@@ -64,10 +67,10 @@ def analyze_segmented(scn: Any, msgs: list[Any], *, method: str, sim_ticks: int)
     topo = topology_of(scn, layout)
     per_seg, e2e = analyze_network(msgs, topo, message_routes(layout, topo, scn.bus.plant_io_on_bus),
                                    method=method, fifo_nodes=lambda seg, on: fifo_like_nodes(scn, on))
-    cycles = dbc_cycle_times_s(scn)
+    cycles = dbc_cycle_times_s(layout)
     sim = None
     if sim_ticks > 0:
-        t = timing_of(scn, record_history=True)
+        t = timing_of(scn, layout, record_history=True)
         t.run_ticks(sim_ticks)
         sim = t
     f = (lambda x: None if x is None or not math.isfinite(x) else x)

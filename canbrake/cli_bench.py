@@ -53,9 +53,10 @@ def _cmd(a: argparse.Namespace) -> int:
 
 def register(sub: Any) -> None:
     p = sub.add_parser("bench", help="measure every performance figure against its baseline and target",
-                       description="Codec, lockstep, realtime, scale and sweep figures of issue 13, each beside "
-                                   "a baseline measured in the same run, the ratio and the target. Writes "
-                                   "bench/results.json.")
+                       description="Codec, lockstep, realtime, scale and sweep figures, each beside "
+                                   "a baseline measured in the same run, the ratio, the ratio to the floor of "
+                                   "canbrake's process layout measured in the same run (canbrake.floor) and the "
+                                   "target. Memory as PSS per process. Writes bench/results.json.")
     p.add_argument("scenario", nargs="?", default=None, help="ignored (kept for compatibility): the figures "
                    "use the repository's scenarios")
     p.add_argument("--duration", type=float, default=1.0, help="simulated seconds per lockstep run (default 1)")
@@ -65,7 +66,8 @@ def register(sub: Any) -> None:
     p.add_argument("--scale-ticks", type=int, default=200, help="periods per scale run (default 200)")
     p.add_argument("--sweep-duration", type=float, default=10.0,
                    help="simulated seconds per point of the sweep figure (default 10)")
-    p.add_argument("--only", default="", help="comma-separated groups: codec,lockstep,realtime,scale,sweep")
+    p.add_argument("--only", default="", help="comma-separated groups: codec,lockstep,realtime,scale,sweep (the "
+                   "floor, which lockstep, realtime and scale figures are compared with, runs with any of those three)")
     p.add_argument("--quick", action="store_true", help="short runs, one round (a smoke test of the bench)")
     p.add_argument("--heavy", action="store_true",
                    help="scale: also 48 cars with one process per ECU and the 106-ECU train with one process "

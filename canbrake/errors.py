@@ -8,3 +8,9 @@ class CanbrakeError(Exception):
 
 class InputError(CanbrakeError):
     """Bad input from the user: printed as one line, exit status 2."""
+
+
+class ScenarioError(CanbrakeError):
+    """A scenario cannot be used; the message names the file and the field (printed as one line,
+    exit status 2). Defined here, below every layer, so that bus/ can raise it without importing
+    :mod:`canbrake.scenario` (re-exported there)."""

@@ -297,7 +297,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             from canbrake.nodes.group import NodeGroup
 
             layout = bus_layout(scn)
-            codec, timing = FrameCodec(layout.database()), build_bus_timing(scn)
+            codec, timing = FrameCodec(layout.database()), build_bus_timing(scn, layout)
             node = NodeGroup([build_node(scn, "ecu", car=c, run_dir=Path(run_dir), codec=codec, layout=layout,
                                          bus_timing=timing) for c in car])
         else:
@@ -841,9 +841,10 @@ def preflight(scn: Scenario, backend: str | None = None, channel: str | None = N
     try:
         choice = choose_bus(scn, backend, channel, interface)
         check_buildable(scn)
+        from canbrake.build import bus_layout
         from canbrake.bus.schedule import check_faults
 
-        check_faults(scn)
+        check_faults(scn, bus_layout(scn))
         check_impairment_targets(scn)
         external = [p.name for p in scn.placement() if p.external]
         if external and choice.backend in ("virtual", "inprocess"):

@@ -32,8 +32,7 @@ KMH = 1.0 / 3.6  # m/s per km/h
 MAX_VEHICLES = 1024
 
 
-class ScenarioError(Exception):
-    """A scenario cannot be used; the message names the file and the field."""
+from canbrake.errors import ScenarioError  # noqa: E402 - defined below the layers (bus/ raises it too)
 
 
 #: fields where inf is meaningful ("unlimited"); NaN is refused everywhere

@@ -230,11 +230,11 @@ def run_threat(threat: Threat, base: Path, work: Path, key_file: Path | None) ->
     """Run ``threat`` (authenticated iff ``key_file``) and compare with the clean run."""
     from canbrake.analysis.summary import read_signals
     from canbrake.bus.codec import FrameCodec
-    from canbrake.bus.secoc import build_database
+    from canbrake.build import bus_layout
 
     clean = clean_run(base, work, key_file)
     scn0 = _scenario(base, key_file, [])
-    ctx = Context(clean, key_file is not None, FrameCodec(build_database(scn0)))
+    ctx = Context(clean, key_file is not None, FrameCodec(bus_layout(scn0).database()))
     out = work / f"{threat.key}{'_secured' if key_file else ''}"
     s = _run(_scenario(base, key_file, threat.impairments(ctx)), out)
     a, c = read_signals(out / "signals.csv"), read_signals(clean / "signals.csv")

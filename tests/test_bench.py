@@ -45,6 +45,7 @@ def _scale_result() -> dict:
     from canbrake.benchmark import _row
 
     rows = [_row(f"scale {n} x", n * 10.0, "periods/s", cars=n, backend=b, per_process=per, peak_rss_mb=100.0 * n,
+                 peak_pss_mb=20.0 * n + 10, ecu_pss_mb=None if b == "inprocess" else 22.0,
                  real_time_factor=rtf, ticks_per_s=rtf / (0.01 if n == 106 else 0.001))
             for n, b, per, rtf in ((6, "inprocess", None, 0.5), (6, "memory", 1, 0.2), (106, "inprocess", None, 0.3),
                                    (106, "memory", 8, 0.6))]
@@ -66,8 +67,8 @@ def test_bench_doc_section_is_replaced_in_place_with_load_scale_table_and_plots(
     text = doc.read_text()
     assert text.startswith("# P\n\nhand text\n\n") and text.endswith("\n\nafter\n") and "old figures" not in text
     assert "3.2/2.0/1.0 at the start, 4.5/2.5/1.5 at the end" in text
-    assert "| 6 | Chen | one process per ECU | 200.0 | 0.200 (1 ms) | 600 |" in text
-    assert "| 106 | ECP 1+105 | hosted, 8 ECUs per process | 60.0 | 0.600 (10 ms) | 10,600 |" in text
+    assert "| 6 | Chen | one process per ECU | 200.0 | 0.200 (1 ms) | - | 130 | 22.0 |" in text  # PSS, not RSS
+    assert "| 106 | ECP 1+105 | hosted, 8 ECUs per process | 60.0 | 0.600 (10 ms) | - | 2,130 | 22.0 |" in text
     assert "FAILED: timed out" in text
     assert (tmp_path / "figures" / "performance_scale.png").stat().st_size > 0
     assert (tmp_path / "figures" / "performance_106.png").stat().st_size > 0

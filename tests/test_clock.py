@@ -116,6 +116,10 @@ def test_realtime_accepts_clocks_lockstep_still_needs_the_timing_model() -> None
     from canbrake.scenario import ScenarioError, load_scenario
 
     path = "scenarios/chen2023_case1_fine_rail.yaml"
-    check_faults(load_scenario(path, overrides={"mode": "realtime", "ecu.clocks": [{"car": 2, "ppm": 50}]}))
+    from canbrake.build import bus_layout
+
+    scn = load_scenario(path, overrides={"mode": "realtime", "ecu.clocks": [{"car": 2, "ppm": 50}]})
+    check_faults(scn, bus_layout(scn))
+    scn = load_scenario(path, overrides={"ecu.clocks": [{"car": 2, "ppm": 50}]})
     with pytest.raises(ScenarioError, match="bus.timing: model"):
-        check_faults(load_scenario(path, overrides={"ecu.clocks": [{"car": 2, "ppm": 50}]}))
+        check_faults(scn, bus_layout(scn))

@@ -145,7 +145,9 @@ def test_scenario_message_set_by_hand() -> None:
 
     scn = load_scenario(SCENARIOS / "chen2023_case1_fine_rail.yaml", profile="realistic")
     assert scn.bus.bitrate_bps == 1_000_000 and scn.control_period_s == pytest.approx(0.01)
-    a = analyze(message_set(scn), scn.bus.bitrate_bps)
+    from canbrake.build import bus_layout
+
+    a = analyze(message_set(scn, bus_layout(scn)), scn.bus.bitrate_bps)
     r = a.by_name()
     assert len(a.results) == 2 + 1 + 6 * 3
     # everything fits in one period, so R = blocking by the longest lower frame + all above + itself

@@ -12,12 +12,17 @@ from canbrake.analysis.summary import read_signals
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import e2e_crc
 from canbrake.bus.guard import FrameGuard, sync_verdict
-from canbrake.bus.secoc import MAC_BYTES, SecOC, build_database, load_key, write_key
+from canbrake.build import bus_layout
+from canbrake.bus.secoc import MAC_BYTES, SecOC, load_key, write_key
 from canbrake.run import preflight, run_scenario
 from canbrake.scenario import ScenarioError, load_scenario
 from conftest import CASE1
 
 KEY = bytes(range(16))
+
+
+def build_database(scn):  # noqa: ANN001, ANN201 - the scenario's database (secured when security is set)
+    return bus_layout(scn).database()
 
 
 def test_mac_is_truncated_aes_cmac_over_id_freshness_and_body():

@@ -13,6 +13,7 @@ import pytest
 
 from canbrake.bus.segments import GatewayConfig, SegmentedNetwork, SegmentConfig, Topology
 from canbrake.bus.timing import frame_bits
+from canbrake.build import bus_layout
 
 ROOT = Path(__file__).resolve().parents[1]
 SEGMENTED = ROOT / "scenarios" / "chen2023_case1_segmented.yaml"
@@ -80,7 +81,7 @@ def test_segmented_timing_latency_is_the_farthest_receiver() -> None:
     from canbrake.scenario import load_scenario
 
     scn = load_scenario(SEGMENTED)
-    t = timing_of(scn)
+    t = timing_of(scn, bus_layout(scn))
     assert isinstance(t, SegmentedBusTiming)
     lat_state = t.latency_s(0, "ecu3", 0x143, 0.0)
     floor = _c(0x143, 8, 1e6) * 2 + _c(0x143, 8, 500_000) + 2 * 2e-4
@@ -156,7 +157,7 @@ def test_a_slow_backbone_makes_state_frames_late_as_the_timing_model_says(tmp_pa
     from canbrake.scenario import load_scenario
 
     scn = load_scenario(SEGMENTED, overrides={"duration_s": 0.1, "bus.segments.0.bitrate_bps": 125000})
-    t = timing_of(scn)
+    t = timing_of(scn, bus_layout(scn))
     c = scn.ecu.lockstep_deadline * scn.control_period_s
     late = 0
     for k in range(scn.n_ticks):

@@ -9,7 +9,7 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
-from canbrake.scenario import Scenario, ScenarioError
+from canbrake.errors import ScenarioError
 
 
 def socketcan_link(channel: str) -> dict[str, Any]:
@@ -38,7 +38,7 @@ def socketcan_link(channel: str) -> dict[str, Any]:
     return info
 
 
-def check_socketcan_link(scn: Scenario, channel: str) -> None:
+def check_socketcan_link(scn: Any, channel: str) -> None:
     """A real CAN interface must be up and run at ``bus.bitrate_bps``; a vcan has no bit rate."""
     try:
         link = socketcan_link(channel)

@@ -6,7 +6,7 @@ run. What can be done, and is done here, is at the *sender*: before a frame of a
 the bus, each transmission attempt is hit with the probability of the scenario's
 ``bit_error_rate`` (1 − (1 − ber)^n for its n bits, actual stuffing) or of its
 ``faulty_transceiver`` entry (in its time window, seconds since the run's first SYNC). A failed
-attempt puts a python-can error frame (SocketCAN layout, :func:`canbrake.nodes.recorder.error_frame`)
+attempt puts a python-can error frame (SocketCAN layout, :func:`error_frame`)
 on the bus, TEC += 8, and the frame is retried at once; a successful one TEC −= 1. The node is
 error-passive from TEC 128 and bus-off above 255: its frames are dropped (its peers' data about
 it goes stale, the plant misses its commands) until ``recovery_delay_s`` + 128 × 11 bit times
@@ -29,14 +29,40 @@ import can
 from canbrake.bus.faults import BUS_OFF_LIMIT, PASSIVE_LIMIT, RECESSIVE_SEQUENCE_BITS, RECOVERY_SEQUENCES
 from canbrake.bus.timing import frame_bits
 
-__all__ = ["RealtimeErrors", "realtime_errors_of"]
+__all__ = ["RealtimeErrors", "realtime_errors_of", "error_frame"]
 
 _MAX_ATTEMPTS = 64  # one frame is retried at most this often in one go (bus-off comes after 32 anyway)
 
 
+# SocketCAN error frame layout (linux/can/error.h)
+CAN_ERR_FLAG = 0x20000000
+CAN_ERR_CRTL = 0x00000004
+CAN_ERR_PROT = 0x00000008
+CAN_ERR_BUSOFF = 0x00000040
+CAN_ERR_CNT = 0x00000200
+CAN_ERR_CRTL_TX_PASSIVE = 0x20
+CAN_ERR_PROT_BIT = 0x01
+
+
+def error_frame(event: Any, t_s: float, channel: str | int, rec: int = 0) -> can.Message:
+    """A :class:`canbrake.bus.faults.ErrorEvent` (or anything with ``state`` and ``tec``) as a
+    python-can error frame (SocketCAN layout) stamped ``t_s`` (s) on ``channel``: the recorder
+    logs it, a realtime ECU's transceiver model (:class:`RealtimeErrors`) puts it on the bus."""
+    aid = CAN_ERR_FLAG | CAN_ERR_PROT | CAN_ERR_CNT
+    ctrl = 0
+    if event.state == "passive":
+        aid |= CAN_ERR_CRTL
+        ctrl = CAN_ERR_CRTL_TX_PASSIVE
+    elif event.state == "bus_off":
+        aid |= CAN_ERR_BUSOFF
+    data = bytes([0, ctrl, CAN_ERR_PROT_BIT, 0, 0, 0, min(event.tec, 255), min(rec, 255)])
+    return can.Message(timestamp=t_s, arbitration_id=aid, is_extended_id=True, is_error_frame=True, dlc=8,
+                       data=data, channel=channel, is_rx=True)
+
+
 @dataclass(frozen=True)
 class _Attempt:
-    """What :func:`canbrake.nodes.recorder.error_frame` needs of an error event."""
+    """What :func:`error_frame` needs of an error event."""
 
     tec: int
     state: str
@@ -81,8 +107,6 @@ class RealtimeErrors:
     def attempt(self, msg: can.Message, t_s: float) -> tuple[list[can.Message], bool]:
         """Send ``msg`` at ``t_s`` (s since the run's start): the error frames that precede it on
         the bus and whether it goes out at all (False: the node is or went bus-off)."""
-        from canbrake.nodes.recorder import error_frame
-
         if self.state == "bus_off":
             if t_s < self._recover_at:
                 self.frames_dropped += 1

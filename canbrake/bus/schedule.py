@@ -259,15 +259,12 @@ def faults_of(scn: Any) -> Any:
         recovery_delay_s=max(s.recovery_delay_s for s in specs))
 
 
-def check_faults(scn: Any) -> None:
+def check_faults(scn: Any, layout: Any) -> None:
     """Bus errors and ECU clock drift are modelled in simulated time only: refuse them elsewhere,
-    and refuse clocks of cars the train does not have (one clear message, exit 2)."""
-    from canbrake.scenario import ScenarioError as InputError
-
-    from canbrake.build import bus_layout
-
-    layout = bus_layout(scn)
+    and refuse clocks of cars the train does not have (one clear message, exit 2). ``layout``:
+    the run's :class:`~canbrake.bus.dbc.BusLayout` (:func:`canbrake.build.bus_layout`)."""
     from canbrake.bus.segments import topology_of
+    from canbrake.errors import ScenarioError as InputError
 
     if topology_of(scn, layout) is not None:
         if scn.mode != "lockstep":
@@ -302,14 +299,12 @@ def check_faults(scn: Any) -> None:
                              f"(plant, {', '.join(e.name for e in layout.ecus[:3])}, ...)")
 
 
-def timing_of(scn: Any, *, record_history: bool = False) -> LockstepBusTiming:
-    """The nominal-traffic timing model of ``scn``, whatever its mode and ``bus.timing``."""
-    from canbrake.build import bus_layout
-
+def timing_of(scn: Any, layout: Any, *, record_history: bool = False) -> LockstepBusTiming:
+    """The nominal-traffic timing model of ``scn`` with its bus ``layout``
+    (:func:`canbrake.build.bus_layout`), whatever its mode and ``bus.timing``."""
     from canbrake.bus.segments import topology_of
 
     dt = scn.control_period_s
-    layout = bus_layout(scn)
     topo = topology_of(scn, layout)
     if topo is not None:
         return SegmentedBusTiming(layout, topo, dt, decision_offset_s=scn.ecu.lockstep_deadline * dt,
@@ -339,16 +334,16 @@ def clocks_of(scn: Any, layout: Any) -> dict[str, Any]:
     return out
 
 
-def build_bus_timing(scn: Any) -> LockstepBusTiming | None:
+def build_bus_timing(scn: Any, layout: Any) -> LockstepBusTiming | None:
     """The in-loop timing model of ``scn`` (None unless lockstep with ``bus.timing: model``)."""
     if scn.mode != "lockstep" or scn.bus.timing != "model":
         return None
-    t = timing_of(scn)
+    t = timing_of(scn, layout)
     t.horizon_ticks = scn.n_ticks
     return t
 
 
-def message_set(scn: Any) -> list[Any]:
+def message_set(scn: Any, layout: Any) -> list[Any]:
     """The periodic messages of ``scn``'s nominal schedule as :class:`canbrake.bus.rta.CanMessage`
     (names from the scenario's DBC; period = ``every_ticks`` control periods, deadline = period;
     a babbler is a message with period 1/rate_hz). Lockstep barrier frames take no bus time and
@@ -356,7 +351,7 @@ def message_set(scn: Any) -> list[Any]:
     plus its phase, or a whole period if it drifts (the send instant slides over the period)."""
     from canbrake.bus.rta import CanMessage
 
-    t = timing_of(scn)
+    t = timing_of(scn, layout)
     dt = scn.control_period_s
     jitter: dict[str, float] = {}
     for node, clk in t.clocks.items():  # drift slides the send instant over a whole period
@@ -381,8 +376,6 @@ def fifo_like_nodes(scn: Any, messages: list[Any]) -> list[str]:
     return inverting_nodes(list(getattr(scn.bus, "tx_buffers", []) or []), per_node)
 
 
-def dbc_cycle_times_s(scn: Any) -> dict[int, float]:
-    """Cycle times (s) the scenario's DBC declares (``GenMsgCycleTime``), by frame id."""
-    from canbrake.build import bus_layout
-
-    return {m.frame_id: m.cycle_ms / 1000.0 for m in bus_layout(scn).messages if m.cycle_ms}
+def dbc_cycle_times_s(layout: Any) -> dict[int, float]:
+    """Cycle times (s) the bus ``layout``'s DBC declares (``GenMsgCycleTime``), by frame id."""
+    return {m.frame_id: m.cycle_ms / 1000.0 for m in layout.messages if m.cycle_ms}

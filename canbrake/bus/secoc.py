@@ -188,13 +188,6 @@ def secure_database(db):  # type: ignore[no-untyped-def]
     return db
 
 
-def build_database(scn):  # type: ignore[no-untyped-def]
-    """The cantools database of scenario ``scn`` (secured layouts when ``security`` is set)."""
-    from canbrake.build import bus_layout
-
-    return bus_layout(scn).database()
-
-
 def secoc_of(scn) -> SecOC | None:  # type: ignore[no-untyped-def]
     """The scenario's authenticator (reads the key file), or None when ``security`` is off."""
     sec = getattr(scn, "security", None)

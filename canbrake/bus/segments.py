@@ -130,10 +130,11 @@ class Topology:
         return t
 
 
-def topology_of(scn: Any, layout: Any = None) -> Topology | None:
-    """The scenario's :class:`Topology` (None without ``bus.segments``). Raises
-    :class:`canbrake.scenario.ScenarioError` naming the field on an inconsistent network."""
-    from canbrake.scenario import ScenarioError
+def topology_of(scn: Any, layout: Any) -> Topology | None:
+    """The scenario's :class:`Topology` (None without ``bus.segments``) on its bus ``layout``
+    (:func:`canbrake.build.bus_layout`). Raises :class:`canbrake.errors.ScenarioError` naming the
+    field on an inconsistent network."""
+    from canbrake.errors import ScenarioError
 
     segs = list(getattr(scn.bus, "segments", None) or [])
     gws = list(getattr(scn.bus, "gateways", None) or [])
@@ -141,10 +142,6 @@ def topology_of(scn: Any, layout: Any = None) -> Topology | None:
         if gws:
             raise ScenarioError("bus.gateways: gateways need bus.segments")
         return None
-    if layout is None:
-        from canbrake.build import bus_layout
-
-        layout = bus_layout(scn)
     names = [s.name for s in segs]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:

@@ -44,13 +44,8 @@ class HorizonSendPath:
         return self.path.counters()
 
 
-def build_send_path(scn: Any, node: str) -> HorizonSendPath:
-    """Send path of ``node`` ("ecu3", "plant", or a phantom babbler's name)."""
-    path = build_impairments(scn.bus.impairments, scn.seed, node, exempt_ids=exempt_ids(_layout(scn)))
+def build_send_path(scn: Any, node: str, layout: Any) -> HorizonSendPath:
+    """Send path of ``node`` ("ecu3", "plant", or a phantom babbler's name) on the bus ``layout``
+    (:func:`canbrake.build.bus_layout`)."""
+    path = build_impairments(scn.bus.impairments, scn.seed, node, exempt_ids=exempt_ids(layout))
     return HorizonSendPath(MessageSendPath(path, node))
-
-
-def _layout(scn: Any) -> Any:
-    from canbrake.build import bus_layout
-
-    return bus_layout(scn)

@@ -57,6 +57,7 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.guard import FrameGuard, sync_verdict
+from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
 from canbrake.nodes.base import LogHistogram, Node  # noqa: F401  (LogHistogram: also imported from here)
 
@@ -65,30 +66,6 @@ from canbrake.nodes.base import LogHistogram, Node  # noqa: F401  (LogHistogram:
 _PHASE = {"sync": 0, "reference": 0, "reference_pos": 0, "sensor": 0, "heartbeat": 1, "state": 1,
           "state_done": 1, "cmd": 2, "cmd_done": 2}
 _KIND_NAME = {"cmd": "brake_cmd"}
-
-# SocketCAN error frame layout (linux/can/error.h)
-CAN_ERR_FLAG = 0x20000000
-CAN_ERR_CRTL = 0x00000004
-CAN_ERR_PROT = 0x00000008
-CAN_ERR_BUSOFF = 0x00000040
-CAN_ERR_CNT = 0x00000200
-CAN_ERR_CRTL_TX_PASSIVE = 0x20
-CAN_ERR_PROT_BIT = 0x01
-
-
-def error_frame(event: Any, t_s: float, channel: str | int, rec: int = 0) -> can.Message:
-    """A :class:`canbrake.bus.faults.ErrorEvent` as a python-can error frame (SocketCAN layout)."""
-    aid = CAN_ERR_FLAG | CAN_ERR_PROT | CAN_ERR_CNT
-    ctrl = 0
-    if event.state == "passive":
-        aid |= CAN_ERR_CRTL
-        ctrl = CAN_ERR_CRTL_TX_PASSIVE
-    elif event.state == "bus_off":
-        aid |= CAN_ERR_BUSOFF
-    data = bytes([0, ctrl, CAN_ERR_PROT_BIT, 0, 0, 0, min(event.tec, 255), min(rec, 255)])
-    return can.Message(timestamp=t_s, arbitration_id=aid, is_extended_id=True, is_error_frame=True, dlc=8,
-                       data=data, channel=channel, is_rx=True)
-
 
 def check_log_format(fmt: str) -> None:
     """Raise ValueError when python-can cannot write ``fmt`` here (MF4 needs asammdf)."""
