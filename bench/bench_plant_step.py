@@ -4,7 +4,7 @@ Builds the plant of a scenario exactly as a run does (:func:`canbrake.build.buil
 and steps it with held commands: Chen case 1 (6 cars, 1 ms, ideal actuator, every car braking at
 its share of 0.97 m/s²), its realistic profile (10 ms, lagged actuator, end stops, blending) and
 Li 2024's 1 + 105 ECP train (every wagon at full service, the locomotive coasting) at 10 ms and at
-the scenario's own period. Prints microseconds per step (best of ``--repeat``); no assertions.
+the scenario's own period, Cai 2014's case 4 trains (2000 N·m on every driven axle, 1 ms). Prints microseconds per step (best of ``--repeat``); no assertions.
 
     python bench/bench_plant_step.py [--steps 2000] [--repeat 3]
 """
@@ -37,6 +37,13 @@ def ecp(dt_s: float | None) -> tuple[object, float, dict[str, np.ndarray]]:
     return plant, dt_s or scn.control_period_s, {"brake_force_n": np.full(n, np.nan), "ecp_demand": demand}
 
 
+def cai(name: str) -> tuple[object, float, dict[str, np.ndarray]]:
+    scn = load_scenario(ROOT / name)
+    plant = build_plant_model(scn)
+    n = plant.n_vehicles
+    return plant, scn.control_period_s, {c: np.full(n, 2000.0) for c in plant.command_names}
+
+
 def per_step_us(make, steps: int, repeat: int) -> float:
     best = float("inf")
     for _ in range(repeat):
@@ -57,7 +64,9 @@ def main() -> None:
     rows = [("chen case 1, paper (1 ms)", lambda: chen(None), a.steps),
             ("chen case 1, realistic (10 ms)", lambda: chen("realistic"), a.steps),
             ("li2024 1+105 ECP, 10 ms", lambda: ecp(0.01), max(a.steps // 10, 20)),
-            ("li2024 1+105 ECP, 50 ms (scenario)", lambda: ecp(None), max(a.steps // 50, 10))]
+            ("li2024 1+105 ECP, 50 ms (scenario)", lambda: ecp(None), max(a.steps // 50, 10)),
+            ("cai2014 case 4 (1 ms)", lambda: cai("cai2014_case4.yaml"), a.steps),
+            ("cai2014 CRH3 case 4 (1 ms)", lambda: cai("cai2014_crh3_case4.yaml"), a.steps)]
     for name, make, steps in rows:
         print(f"{name:40s} {per_step_us(make, steps, a.repeat):10.1f} us/step")
 

@@ -31,13 +31,13 @@ Two curve variants (``variant``):
 """
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
+from canbrake.physics import _adhesion_kernel
 from canbrake.physics.contract import PlantDiverged
 
 G0 = 9.8  # m/s², the paper's g0 (117.6 kN = 12 t · 9.8 m/s²)
@@ -149,7 +149,7 @@ class WheelSet:
 
     def step_coupled(self, torque_nm: np.ndarray, v_mps: float, cond: RailCondition, dt_s: float,
                      mass_kg: float | None, resistance: Callable[[float], tuple[float, float]] | None = None,
-                     newton_iters: int = 4) -> tuple[float, np.ndarray]:
+                     newton_iters: int = 4, davis: tuple[float, float, float] | None = None) -> tuple[float, np.ndarray]:
         """One backward-Euler step of the wheels and (unless ``mass_kg`` is None) the train body.
 
         Solves jointly, for ω (shape ``(p,)``, rad/s) and v (m/s)::
@@ -157,66 +157,25 @@ class WheelSet:
             J (ω − ω0) = dt (T − F_a(ω, v) R)
             m (v − v0) = dt (Σ F_a(ω, v) − F_d(v))
 
-        with ``resistance(v) -> (F_d in N, dF_d/dv in N·s/m)``. Both equations are stiff through
+        with ``resistance(v) -> (F_d in N, dF_d/dv in N·s/m)``, or ``davis`` = (a0, a1, a2) for
+        F_d = sgn(v) a0 + a1 v + a2 v|v| (sgn = 0 below 1e-6 m/s; evaluated in the compiled loop). Both equations are stiff through
         the slip: dF_a/dω ∝ N μ' R / v and dF_a/dv ∝ −N μ'/v give time constants of microseconds
         (wheel) and fractions of a millisecond (body) near standstill, so an explicit step of 1 ms
         is unstable there. Newton on the arrow-shaped Jacobian (Schur complement on v) solves the
         step; the speed-dependence of μ_max is left out of the Jacobian (it only slows Newton).
         Returns (v_new in m/s, F_a in N per axle); ω is updated in place.
         """
-        # Plain floats over the axles: a train has a handful of driven axles, where numpy's per-call
-        # overhead would cost ~10x the arithmetic (this runs once per control period per plant).
-        w0 = np.asarray(self.omega_radps, dtype=float).tolist()
-        p = len(w0)
-        J, R, N, T = (_floats(x, p) for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
-        w = list(w0)
-        v0 = v = float(v_mps)
-        b1, b2, b3 = cond.b1, cond.b2, cond.b3
+        # compiled (canbrake.physics._adhesion_kernel): a train has a handful of driven axles, where
+        # numpy's per-call overhead would cost ~10x the arithmetic (this runs every sub-step)
+        p = np.size(self.omega_radps)
+        J, R, N, T = (np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), (p,)))
+                      for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
         peak = 1.0 if self.variant == "paper" else float(_scale(0.0, cond, self.variant))
-        mu0 = float(cond.mu_max(0.0))
-        floor = self.v_floor_mps
-        exp = math.exp
-        for _ in range(newton_iters):
-            av = abs(v)
-            scale = (cond.c1 + cond.c2 / (cond.c3 + av)) / mu0 * peak  # eq. 14 (× the variant's peak)
-            r_w, a, b, c, fa = [0.0] * p, [0.0] * p, [0.0] * p, [0.0] * p, [0.0] * p
-            sum_fa = sum_fv = 0.0
-            for k in range(p):
-                wr = w[k] * R[k]
-                awr = abs(wr)
-                den = max(awr, av, floor)
-                lam = (wr - v) / den
-                if awr >= av and awr >= floor:       # denominator ωR
-                    dlam_dw, dlam_dv = R[k] * av / (wr * wr), -1.0 / den
-                elif av >= floor:                      # denominator v
-                    dlam_dw, dlam_dv = R[k] / den, -wr / (den * den)
-                else:                                  # floored denominator
-                    dlam_dw, dlam_dv = R[k] / den, -1.0 / den
-                alam = abs(lam)
-                ex = exp(-b2 * alam)
-                sN = scale * N[k]
-                dmu = sN * (b1 * b2 * ex - 1.0 / b3)   # dμ/dλ (eq. 13) × N
-                f = sN * (b1 * (1.0 - ex) - alam / b3)
-                f = f if lam > 0 else (-f if lam < 0 else 0.0)
-                fa[k] = f
-                fw, fv = dmu * dlam_dw, dmu * dlam_dv
-                r_w[k] = J[k] * (w[k] - w0[k]) - dt_s * (T[k] - f * R[k])
-                ak = J[k] + dt_s * R[k] * fw
-                a[k] = ak if ak > 0.1 * J[k] else J[k]  # past the adhesion peak the slope is negative: damped step
-                b[k] = dt_s * R[k] * fv
-                c[k] = -dt_s * fw
-                sum_fa += f
-                sum_fv += fv
-            if mass_kg is None:
-                w = [w[k] - r_w[k] / a[k] for k in range(p)]
-                continue
-            fd, dfd = resistance(v) if resistance is not None else (0.0, 0.0)
-            r_v = mass_kg * (v - v0) - dt_s * (sum_fa - fd)
-            d = mass_kg - dt_s * (sum_fv - dfd)
-            dv = (-r_v + sum(c[k] * r_w[k] / a[k] for k in range(p))) / (d - sum(c[k] * b[k] / a[k] for k in range(p)))
-            w = [w[k] + (-r_w[k] - b[k] * dv) / a[k] for k in range(p)]
-            v = v + dv
-        self.omega_radps = np.asarray(w, dtype=float)
+        v, w = _adhesion_kernel.step_coupled(
+            np.ascontiguousarray(self.omega_radps, dtype=float).reshape(p), J, R, N, T, float(v_mps), dt_s,
+            0.0 if mass_kg is None else float(mass_kg), mass_kg is not None, cond.b1, cond.b2, cond.b3, cond.c1,
+            cond.c2, cond.c3, peak, float(cond.mu_max(0.0)), self.v_floor_mps, newton_iters, davis, resistance)
+        self.omega_radps = w
         return v, self.adhesion(v, cond, self.omega_radps)[2]
 
 
@@ -295,6 +254,7 @@ class AdhesionTrain:
             raise ValueError(f"axles: {len(axles)} entries for {self.n_vehicles} vehicles")
         self.davis_n = np.asarray(davis_n, dtype=float).reshape(self.n_vehicles, 3)
         self._davis_sum = self.davis_n.sum(axis=0)
+        self._davis_terms = tuple(float(a) for a in self._davis_sum)  # (a0, a1, a2) of :meth:`resistance`
         self.total_mass_kg = float(self.mass_kg.sum())
         self.rail = rail
         self.substeps = int(substeps)
@@ -354,7 +314,7 @@ class AdhesionTrain:
         for _ in range(self.substeps):
             cond = self.rail.at(self.time_s)
             v_new, fa = self.wheels.step_coupled(torque, self.speed_mps, cond, h, mass_kg=self.total_mass_kg,
-                                                 resistance=self.resistance)
+                                                 davis=self._davis_terms)
             self._a_last = (v_new - self.speed_mps) / h
             self.position_m += 0.5 * h * (self.speed_mps + v_new)
             self.speed_mps = v_new
