@@ -31,6 +31,7 @@ Two curve variants (``variant``):
 """
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal
@@ -117,6 +118,21 @@ def _floats(x: np.ndarray | float, p: int) -> list[float]:
     return [float(a)] * p if a.ndim == 0 else a.tolist()
 
 
+def _axle_array(x: np.ndarray | float, p: int) -> np.ndarray:
+    """``x`` (a scalar or ``p`` values) as a C-contiguous float array of shape ``(p,)``."""
+    a = np.asarray(x, dtype=float)
+    if a.shape == (p,) and a.flags.c_contiguous:
+        return a
+    return np.full(p, float(a)) if a.ndim == 0 else np.ascontiguousarray(a.reshape(p))
+
+
+@functools.lru_cache(maxsize=64)
+def _curve_constants(cond: RailCondition, variant: Variant) -> tuple[float, float]:
+    """(the variant's peak factor, μ_max(0)) of a rail condition, as the Newton loop uses them."""
+    peak = 1.0 if variant == "paper" else float(_scale(0.0, cond, variant))
+    return peak, float(cond.mu_max(0.0))
+
+
 @dataclass
 class WheelSet:
     """Driven axles of a train: parameters and state, all arrays of shape ``(p,)``.
@@ -168,13 +184,12 @@ class WheelSet:
         # compiled (canbrake.physics._adhesion_kernel): a train has a handful of driven axles, where
         # numpy's per-call overhead would cost ~10x the arithmetic (this runs every sub-step)
         p = np.size(self.omega_radps)
-        J, R, N, T = (np.ascontiguousarray(np.broadcast_to(np.asarray(x, dtype=float), (p,)))
-                      for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
-        peak = 1.0 if self.variant == "paper" else float(_scale(0.0, cond, self.variant))
+        J, R, N, T = (_axle_array(x, p) for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
+        peak, mu0 = _curve_constants(cond, self.variant)
         v, w = _adhesion_kernel.step_coupled(
-            np.ascontiguousarray(self.omega_radps, dtype=float).reshape(p), J, R, N, T, float(v_mps), dt_s,
+            _axle_array(self.omega_radps, p), J, R, N, T, float(v_mps), dt_s,
             0.0 if mass_kg is None else float(mass_kg), mass_kg is not None, cond.b1, cond.b2, cond.b3, cond.c1,
-            cond.c2, cond.c3, peak, float(cond.mu_max(0.0)), self.v_floor_mps, newton_iters, davis, resistance)
+            cond.c2, cond.c3, peak, mu0, self.v_floor_mps, newton_iters, davis, resistance)
         self.omega_radps = w
         return v, self.adhesion(v, cond, self.omega_radps)[2]
 
