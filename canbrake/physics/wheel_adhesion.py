@@ -112,12 +112,6 @@ def adhesion_coefficient(lam: np.ndarray, v_mps: np.ndarray | float, cond: RailC
     return _scale(v_mps, cond, variant) * mu_curve(lam, cond)
 
 
-def _floats(x: np.ndarray | float, p: int) -> list[float]:
-    """``x`` (a scalar or shape ``(p,)``) as a list of ``p`` floats."""
-    a = np.asarray(x, dtype=float)
-    return [float(a)] * p if a.ndim == 0 else a.tolist()
-
-
 def _axle_array(x: np.ndarray | float, p: int) -> np.ndarray:
     """``x`` (a scalar or ``p`` values) as a C-contiguous float array of shape ``(p,)``."""
     a = np.asarray(x, dtype=float)
@@ -191,7 +185,10 @@ class WheelSet:
             0.0 if mass_kg is None else float(mass_kg), mass_kg is not None, cond.b1, cond.b2, cond.b3, cond.c1,
             cond.c2, cond.c3, peak, mu0, self.v_floor_mps, newton_iters, davis, resistance)
         self.omega_radps = w
-        return v, self.adhesion(v, cond, self.omega_radps)[2]
+        res = self.adhesion(v, cond, w)
+        #: (condition, v, ω, (λ, μ, F_a)) of the last step, for a measurement of the same state
+        self.last_adhesion = (cond, v, w, res)
+        return v, res[2]
 
 
 # ------------------------------------------------------------------------------ the plant model
@@ -298,6 +295,8 @@ class AdhesionTrain:
         self._inertia_force = np.zeros(len(num))
         self._fa_step: np.ndarray | None = None
         self._meas: dict[str, np.ndarray] | None = None  # measurements of the current state (cached)
+        self._mass_cumsum: np.ndarray | None = None
+        self._axle_keys: list[tuple[str, int, int]] = []
 
     # ---------------------------------------------------------------- physics
     def resistance(self, v_mps: float) -> tuple[float, float]:
@@ -355,10 +354,21 @@ class AdhesionTrain:
 
     def _measure(self) -> dict[str, np.ndarray]:
         n, v = self.n_vehicles, self.speed_mps
-        lam, mu, fa = self.wheels.adhesion(v, self.rail.at(self.time_s))
+        cond = self.rail.at(self.time_s)
+        last = getattr(self.wheels, "last_adhesion", None)
+        if last is not None and last[0] is cond and last[1] == v and last[2] is self.wheels.omega_radps:
+            lam, mu, fa = last[3]  # the step's own evaluation at this state
+        else:
+            lam, mu, fa = self.wheels.adhesion(v, cond)
         fd = self.vehicle_resistance_n(v)
-        out = {"position_m": np.full(n, self.position_m), "speed_mps": np.full(n, v), "ground_speed_mps": np.full(n, v),
-               "accel_mps2": np.full(n, self._accel), "applied_brake_n": -self._per_vehicle(fa),
+
+        def full(x: float) -> np.ndarray:
+            a = np.empty(n)
+            a[:] = x
+            return a
+
+        out = {"position_m": full(self.position_m), "speed_mps": full(v), "ground_speed_mps": full(v),
+               "accel_mps2": full(self._accel), "applied_brake_n": -self._per_vehicle(fa),
                "resistance_n": fd, "wheel_inertia_force_n": self._per_vehicle(self._inertia_force),
                "deflection_m": np.zeros(max(n - 1, 0))}
         if self._fa_step is None:
@@ -367,12 +377,14 @@ class AdhesionTrain:
         else:
             net = self._per_vehicle(self._fa_step) - fd
             a = self._a_last
-        out["coupler_force_n"] = (np.cumsum(self.mass_kg) * a - np.cumsum(net))[:-1]
-        names = ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")
-        per_axle = np.full((len(names), self.max_axles, n), np.nan)  # [quantity, axle j-1, vehicle]
+        if self._mass_cumsum is None:
+            self._mass_cumsum = np.cumsum(self.mass_kg)
+            self._axle_keys = [(f"axle{j}_{name}", q, j - 1) for q, name in enumerate(
+                ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")) for j in range(1, self.max_axles + 1)]
+        out["coupler_force_n"] = (self._mass_cumsum * a - np.cumsum(net))[:-1]
+        per_axle = np.full((5, self.max_axles, n), np.nan)  # [quantity, axle j-1, vehicle]
         per_axle[:, self.axle_number - 1, self.axle_vehicle] = np.stack(
             [self.wheels.omega_radps, lam, mu, fa, self.torque_nm])
-        for q, name in enumerate(names):
-            for j in range(1, self.max_axles + 1):
-                out[f"axle{j}_{name}"] = per_axle[q, j - 1]
+        for key, q, j in self._axle_keys:
+            out[key] = per_axle[q, j]
         return out
