@@ -164,7 +164,9 @@ cdef class CoupledKernel:
         sub-step, the last rail force (``rail0`` itself when ideal) and the number of points whose
         speeds are not all finite (flagged in :attr:`bad`, their last max |Δl| in :attr:`dl_max`)."""
         cdef Py_ssize_t P = self.points, n = self.n
-        shape = (int(P), int(n)) if P > 1 else (int(n),)
+        shape = np.shape(x0)
+        if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or (len(shape) == 2 and shape[0] != P):
+            raise ValueError(f"the plant kernel needs positions of shape ({n},) or ({P}, {n}), got {shape}")  # (n,) or (P, n), a stack of one point included
         x_out = np.empty(shape)
         v_out = np.empty(shape)
         a_out = np.empty(shape)
