@@ -114,15 +114,19 @@ class ActuatorState:
             self.effort_n = demand
             return self.effort_n
         # exact first-order lag over h, then the jerk (force-rate) limit
-        if h_s != self._lag_h:
-            self._lag_h = h_s
-            self._lag = 1.0 - math.exp(-h_s / p.time_constant_s)
-        step = (demand - self.effort_n) * self._lag
+        step = (demand - self.effort_n) * self.lag_factor(h_s)
         if math.isfinite(p.jerk_limit_mps3):
             lim = self._rate_max * h_s
             step = np.minimum(np.maximum(step, -lim), lim)
         self.effort_n = self.effort_n + step
         return self.effort_n
+
+    def lag_factor(self, h_s: float) -> float:
+        """The first-order lag's share of the gap closed over ``h_s`` seconds, 1 − e^(−h/τ) (realistic)."""
+        if h_s != self._lag_h:
+            self._lag_h = h_s
+            self._lag = 1.0 - math.exp(-h_s / self.params.time_constant_s)
+        return self._lag
 
     def rail_force_n(
         self, effort_n: np.ndarray, adhesion_mu: np.ndarray, effectiveness: np.ndarray, gravity_mps2: float

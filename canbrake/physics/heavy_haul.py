@@ -37,6 +37,7 @@ from typing import Mapping
 
 import numpy as np
 
+from canbrake.physics._heavy_haul_kernel import AirKernel, GearKernel, HeavyHaulKernel
 from canbrake.physics.contract import PlantDiverged
 
 G = 9.81
@@ -289,19 +290,10 @@ class CouplerBank:
         self.ks = np.array([g.k_solid_n_per_m for g in gears])
         self.c = np.array([g.damping_n_s_per_m for g in gears])
         assert npts >= 3
-        self._rows = np.arange(self.n)
         self.force_state = np.zeros(self.n)
         self.defl_prev = np.zeros(self.n)
-
-    def loading_n(self, d_abs: np.ndarray) -> np.ndarray:
-        """f_l(|d|) (N) for gear deflections |d| (m), vectorised over couplers."""
-        d = np.asarray(d_abs, dtype=float)
-        k = (d[:, None] > self.cx[:, 1:-1]).sum(axis=1)  # segment index per coupler
-        r = self._rows
-        x0, x1, f0, f1 = self.cx[r, k], self.cx[r, k + 1], self.cf[r, k], self.cf[r, k + 1]
-        out = f0 + (f1 - f0) * (d - x0) / (x1 - x0)
-        beyond = d > self.stroke
-        return np.where(beyond, self.fmax + self.ks * (d - self.stroke), out)
+        #: the compiled hysteresis step (canbrake.physics._heavy_haul_kernel)
+        self.kernel = GearKernel(self.cx, self.cf, self.ru, self.slack, self.ke, self.ks, self.c)
 
     def gear_deflection(self, stretch_m: np.ndarray) -> np.ndarray:
         s = np.asarray(stretch_m, dtype=float)
@@ -323,22 +315,15 @@ class CouplerBank:
     def step(self, stretch_m: np.ndarray, stretch_rate_mps: np.ndarray) -> np.ndarray:
         """Advance the hysteresis to the new stretches and return coupler forces (N, + tension).
 
-        Eq. (8): trial F = F_prev + k (d − d_prev); eq. (9)/(7): keep it inside the band between the
-        unloading and the loading curve at the current deflection d (|f_u(d)| ≤ |F| ≤ |f_l(d)|).
+        Eq. (8): trial F = F_prev + k (d − d_prev) with d the stretch beyond the slack; eq. (9)/(7):
+        keep it inside the band between the unloading curve f_u = r_u f_l and the loading curve f_l
+        (piecewise linear, then the solid stiffness beyond the stroke) at the current deflection d
+        (|f_u(d)| ≤ |F| ≤ |f_l(d)|); plus the viscous damping while engaged. Compiled (GearKernel).
         """
-        d = self.gear_deflection(stretch_m)
-        trial = self.force_state + self.ke * (d - self.defl_prev)
-        fl = self.loading_n(np.abs(d))
-        fu = self.ru * np.minimum(fl, self.fmax) + np.where(np.abs(d) > self.stroke, fl - self.fmax, 0.0)
-        pos = d >= 0
-        lo = np.where(pos, fu, -fl)
-        hi = np.where(pos, fl, -fu)
-        f = np.clip(trial, lo, hi)
-        f = np.where(d == 0.0, 0.0, f)
-        self.force_state = f
-        self.defl_prev = d
-        engaged = d != 0.0
-        return f + np.where(engaged, self.c * stretch_rate_mps, 0.0)
+        f, self.force_state, self.defl_prev = self.kernel.step(
+            np.ascontiguousarray(stretch_m, dtype=float), np.ascontiguousarray(stretch_rate_mps, dtype=float),
+            self.force_state, self.defl_prev)
+        return f
 
 
 # ------------------------------------------------------------------------------------ air brake
@@ -429,6 +414,13 @@ class AirBrake:
         if self.pipe is not None:
             self.pipe_tau_s = self.pipe.tau_s + self.pipe.tau_per_km_s * self.dist / 1000.0
             self.pipe_pressure_pa = np.full(consist.n, self.pipe.p0_pa)
+        pp = self.pipe or BrakePipe(0.0, 0.0, 0.0)
+        #: the compiled fill and force step (canbrake.physics._heavy_haul_kernel)
+        self.kernel = AirKernel(self.dist, self.k_full_kn, self.n_blocks, self.friction_coef, self.cylinder_pressure_pa,
+                                beta_c=float(beta_c), apply_wave=apply_wave_mps, release_wave=release_wave_mps,
+                                p0=pp.p0_pa, reduction=pp.reduction_pa, ratio=pp.ratio)
+        self._gains_dt = None
+        self._no_pipe = np.zeros(consist.n)
 
     def command(self, t_s: float, apply: bool) -> None:
         """Driver's valve: issue an apply (True) or a release (False) at time ``t_s``."""
@@ -452,30 +444,47 @@ class AirBrake:
             return got_a
         return got_a & ~got_r
 
-    def step(self, t_s: float, dt_s: float, v_mps: np.ndarray) -> np.ndarray:
-        """Advance cylinder fills by ``dt_s`` and return the air-brake force per vehicle (N, ≥ 0)."""
+    def kernel_mode(self) -> int:
+        """How a step moves the cylinders (:class:`AirKernel`): 0 ECP, 1 the pneumatic signal, 2 the
+        brake-pipe pressure, −1 not at all (pneumatic, never applied)."""
         if self.mode == "ecp":
-            target = self.ecp_target
-        elif self.t_apply == -np.inf:
+            return 0
+        if self.t_apply == -np.inf:
+            return -1
+        return 2 if self.pipe is not None else 1
+
+    def gains(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The first-order lags' gains over ``dt_s``, 1 − e^(−dt/τ), per vehicle: cylinders, brake pipe."""
+        if self._gains_dt != dt_s:
+            n = self.dist.size
+            fill = np.ascontiguousarray(np.broadcast_to(1.0 - np.exp(-dt_s / self.tau), (n,)), dtype=float)
+            pipe = self._no_pipe if self.pipe is None else 1.0 - np.exp(-dt_s / self.pipe_tau_s)
+            self._gains, self._gains_dt = (fill, pipe), dt_s
+        return self._gains
+
+    def step(self, t_s: float, dt_s: float, v_mps: np.ndarray) -> np.ndarray:
+        """Advance cylinder fills by ``dt_s`` and return the air-brake force per vehicle (N, ≥ 0).
+
+        ECP: each cylinder follows its ``ecp_target``; pneumatic: the signal that has arrived
+        (:meth:`signal`), or with a :class:`BrakePipe` the local pipe pressure (first-order lag
+        towards p0 or p0 − reduction) sets the target ``ratio`` (p0 − p_pipe), clipped to the full
+        pressure; the cylinder follows with ``cylinder_tau_s``. Compiled (:class:`AirKernel`)."""
+        mode = self.kernel_mode()
+        if mode < 0:
             return self.last_force_n
-        elif self.pipe is not None:
-            pp = self.pipe
-            pipe_target = pp.p0_pa - pp.reduction_pa * self.signal(t_s)
-            self.pipe_pressure_pa = self.pipe_pressure_pa + (pipe_target - self.pipe_pressure_pa) * (
-                1.0 - np.exp(-dt_s / self.pipe_tau_s))
-            cyl = np.clip(pp.ratio * (pp.p0_pa - self.pipe_pressure_pa), 0.0, self.cylinder_pressure_pa)
-            target = cyl / self.cylinder_pressure_pa
-        else:
-            target = self.signal(t_s).astype(float)
-        self.fill += (target - self.fill) * (1.0 - np.exp(-dt_s / self.tau))
-        self.last_force_n = self.force_n(v_mps)
+        fill_gain, pipe_gain = self.gains(dt_s)
+        pipe = self._no_pipe if self.pipe is None else self.pipe_pressure_pa.copy()
+        self.last_force_n = self.kernel.step(mode, t_s, np.ascontiguousarray(v_mps, dtype=float), self.fill,
+                                             np.ascontiguousarray(self.ecp_target, dtype=float), fill_gain, pipe,
+                                             pipe_gain, self.t_apply, self.t_release)
+        if self.pipe is not None:
+            self.pipe_pressure_pa = pipe
         return self.last_force_n
 
     def force_n(self, v_mps: np.ndarray) -> np.ndarray:
         """Eq. (10): F_a = β_c Σ φ K over the blocks of each vehicle, at the current fills (N)."""
-        k = self.k_full_kn * self.fill
-        phi = friction_coefficient(k, np.asarray(v_mps) / KMH, self.friction_coef)
-        return 1000.0 * self.beta_c * self.n_blocks * phi * k
+        z = self._no_pipe
+        return self.kernel.step(3, 0.0, np.ascontiguousarray(v_mps, dtype=float), self.fill, z, z, z, z, 0.0, 0.0)
 
 
 # ------------------------------------------------------------------------------------ disturbance
@@ -555,6 +564,11 @@ class HeavyHaulModel:
         self._adh = [(i, a) for i, a in enumerate(self.adhesion) if a is not None]
         self.cp = CouplerBank(gears)
         self.ab = airbrake
+        #: the compiled sub-step (canbrake.physics._heavy_haul_kernel)
+        self.kernel = HeavyHaulKernel(consist.mass_kg, consist.weight_kn, consist.davis_a, consist.davis_b,
+                                      consist.davis_c, consist.spacing_m, route._brk, route._val, self.cp.kernel,
+                                      self.ab.kernel)
+        self._powered = np.flatnonzero(self.powered).tolist()
         self.t = 0.0
         self.v = np.full(consist.n, float(v0_mps))
         # static initial tensions: each coupler carries the running + grade resistance behind it
@@ -578,14 +592,8 @@ class HeavyHaulModel:
 
     def passive_forces(self) -> np.ndarray:
         """Non-control force per vehicle F_i (N) at the current state (nominal: no δ, no σ)."""
-        if self._fi is None:
-            sgn = np.sign(self.v)
-            fw = basic_resistance_n(self.c, self.v) * sgn
-            ff = self.route.force_n(self.c, self.x)
-            fa = self.ab.last_force_n * sgn
-            front = np.concatenate([[0.0], self.fc])
-            rear = np.concatenate([self.fc, [0.0]])
-            self._fi = front - rear - fw - ff - fa
+        if self._fi is None:  # front coupler − rear coupler − resistance − grade/curve − air brake (compiled)
+            self._fi = self.kernel.passive(self.x, self.v, self.fc, self.ab.last_force_n)
         return self._fi
 
     # -- contract --------------------------------------------------------------------------------
@@ -620,35 +628,31 @@ class HeavyHaulModel:
             self._fi = None
 
     def _substep(self) -> None:
-        fi = self.passive_forces()
-        total = fi * (1.0 + self.unc)
-        total += self.u
+        """One integration step (compiled: HeavyHaulKernel.substep). Standstill: running resistance
+        and the brake only resist motion, they never reverse it: a vehicle at rest stays at rest
+        while the other forces do not exceed what its brake and resistance can hold; a moving vehicle
+        whose speed would cross zero within the step stops at zero (Karnopp's stick-slip model)."""
+        ab, cp = self.ab, self.cp
+        dist = None
         if self.dist_on is not None:
-            total += disturbance_n(self.c, self.t, self.v, self.dist_on, self.dist_coef)
-        # Standstill: running resistance and the brake only resist motion, they never reverse it.
-        # A vehicle at rest (its friction terms are zero in F_i, sign(0) = 0) stays at rest while the
-        # other forces do not exceed what its brake and resistance can hold; a moving vehicle whose
-        # speed would cross zero within the step stops at zero (Karnopp's stick-slip friction model).
-        rest = self.v == 0.0
-        if rest.any():
-            hold = (basic_resistance_n(self.c, self.v) + self.ab.last_force_n) * (1.0 + self.unc)
-            slip = np.sign(total) * np.maximum(np.abs(total) - hold, 0.0)
-            total = np.where(rest, slip, total)
-        acc = total / self.c.mass_kg
-        v_new = self.v + acc * self.dt
-        crossed = self.v * v_new < 0.0
-        if crossed.any():
-            v_new = np.where(crossed, 0.0, v_new)
-            acc = np.where(crossed, -self.v / self.dt, acc)
-        self.acc = acc
-        self.v = v_new
-        self.x = self.x + self.v * self.dt
-        self.t += self.dt
-        self.fc = self._coupler_forces()
-        self._fill_before = self.ab.fill.copy()
-        self.ab.step(self.t, self.dt, self.v)
+            dist = disturbance_n(self.c, self.t, self.v, self.dist_on, self.dist_coef)
+        self._fill_before = ab.fill.copy()
+        mode = ab.kernel_mode()
+        fill_gain, pipe_gain = ab.gains(self.dt)
+        pipe = ab._no_pipe if ab.pipe is None else ab.pipe_pressure_pa.copy()
+        t_new = self.t + self.dt
+        x, v, acc, fc, fs, dp, air, finite = self.kernel.substep(
+            self.x, self.v, self.fc, ab.last_force_n, self.u, self.unc, self.dt,
+            ab._no_pipe if dist is None else dist, dist is not None, cp.force_state, cp.defl_prev, mode, t_new,
+            ab.fill, ab.ecp_target, fill_gain, pipe, pipe_gain, ab.t_apply, ab.t_release)
+        self.acc, self.v, self.x, self.t = acc, v, x, t_new
+        self.fc, cp.force_state, cp.defl_prev = fc, fs, dp
+        if mode >= 0:
+            ab.last_force_n = air
+            if ab.pipe is not None:
+                ab.pipe_pressure_pa = pipe
         self._fi = None
-        if not (np.all(np.isfinite(self.v)) and np.all(np.isfinite(self.x))):
+        if not finite:
             raise PlantDiverged(f"heavy-haul state became non-finite at t = {self.t:.3f} s")
 
     def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
@@ -658,10 +662,12 @@ class HeavyHaulModel:
             raise ValueError(f"step {dt_s} s is not a whole number of integration steps of {self.dt} s")
         self._meas = None
         self._take_commands(commands)
-        for _ in range(n):
-            if self.powered.any() and _ > 0:
-                self.u = self._adhesion_limit(np.array([e.saturate_n(float(u), float(v)) if e is not None else 0.0
-                                                        for e, u, v in zip(self.envelopes, self.u, self.v)]))
+        for k in range(n):
+            if self._powered and k > 0:  # the envelopes at the new speeds (0 on unpowered vehicles)
+                u = np.zeros(self.n_vehicles)
+                for i in self._powered:
+                    u[i] = self.envelopes[i].saturate_n(float(self.u[i]), float(self.v[i]))  # type: ignore[union-attr]
+                self.u = self._adhesion_limit(u)
             self._substep()
 
     def _adhesion_limit(self, u: np.ndarray) -> np.ndarray:

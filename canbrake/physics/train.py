@@ -57,6 +57,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from canbrake.physics._train_kernel import CoupledKernel
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
 from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets, valve_step
 from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
@@ -206,6 +207,7 @@ class TrainPlant:
         self._wheels0 = None if wheels is None else wheels.omega.copy()
         #: a stack of plants (stack_plants): arrays have a leading points axis
         self.stacked = False
+        self._kern: CoupledKernel | None = None  # built at the first step
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -339,83 +341,54 @@ class TrainPlant:
             return self._step_equipped(dt_s, cmd, wsp_release)
         n_sub = self._substeps(dt_s)
         h = dt_s / n_sub
-        inv_m = self._inv_m
         self._update_rail(self.time_s)
         act = self._act
-        ideal = act.params.kind == "ideal"
-        plain_rail = self._plain_rail
-        spacing = self.coupler_spacing_m
-        kappa = self.coupler_stiffness_n_per_m
-        kappa_eps = self._kappa_eps
-        end_stop = self.end_stop_m is not None
-        c1 = self.resistance.c1_n_per_mps
-        c2 = self.resistance.c2_n_per_mps2
-        c_static = self._c_static
-        x, v = self.position_m, self.speed_mps
-        v_before = v
-        rail = self.applied_force_n
-        incidence = self._incidence
-        n_cars = self.n_cars
-        if ideal:
+        kernel = self._kern if self._kern is not None else self._kernel()
+        gcb = None if self._grade_fn is None else self._grade_force_fn
+        if act.params.kind == "ideal":  # the rail force is held over the period
             effort = act.advance(cmd, h)
-            rail = effort if plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
-        ideal_no_traction: bool | None = None
-        for _ in range(n_sub):
-            t = self.time_s
-            if not ideal:
-                effort = act.advance(cmd, h)
-                rail = effort if plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
-            # non-dissipative forces: couplers, traction, grade, disturbances
-            dl = x[..., :-1] - x[..., 1:] - spacing
-            if end_stop:
-                phi = self.coupler_force_from_deflection(dl, v[..., :-1] - v[..., 1:])
-            else:
-                phi = dl * (kappa + kappa_eps * (dl * dl))
-            # f_i = Φ_{i-1} − Φ_i (entries ±1 and 0: exact in any summation order, so a stacked
-            # plant's rows equal the single plants' values)
-            f = fc = incidence.dot(phi) if phi.ndim == 1 else phi @ incidence.T
-            brake = rail
-            if ideal_no_traction is None or not ideal_no_traction:
-                has_traction = rail.min() < 0.0
-                if ideal:
-                    ideal_no_traction = not has_traction
-            else:
-                has_traction = False
-            if has_traction:
-                f = f - np.minimum(rail, 0.0)  # traction pushes towards +x
-                brake = np.maximum(rail, 0.0)
-            if self._grade_fn is not None:
-                f = f - self.mass_kg * self.gravity_mps2 * np.sin(np.asarray(self._grade_fn(x), dtype=float))
-            elif self._has_grade:
-                f = f + self._grade_force
-            if self._dist:
-                f = f + self.external_force_n(t)
-            # dissipative forces: brake + resistance, Coulomb-like
-            speed = np.abs(v)
-            r = brake + c_static + speed * (c1 + c2 * speed)
-            if np.count_nonzero(v) == v.size:  # every car moving
-                sgn = np.sign(v)
-                v_new = v + (h * inv_m) * (f - sgn * r)
-                if (sgn * v_new).min() < 0.0:  # friction stops a car, never reverses it
-                    v_new = np.where(sgn * v_new < 0.0, 0.0, v_new)
-            else:
-                moving = v != 0.0
-                sgn = np.where(moving, np.sign(v), np.sign(f))
-                breakaway = moving | (np.abs(f) > r)
-                v_new = v + np.where(breakaway, (h * inv_m) * (f - sgn * r), 0.0)
-                v_new = np.where(moving & (v_new * v < 0.0), 0.0, v_new)
-            # position: the held forces (brake, traction, resistance, grade, disturbance) exactly for a
-            # constant force, x += h (v + v_new)/2; the couplers semi-implicitly (symplectic), + h² a_c/2
-            x = x + (0.5 * h) * (v + v_new) + np.where((v != 0.0) | (v_new != 0.0), (0.5 * h * h) * inv_m * fc, 0.0)
-            v_before, v = v, v_new
-            self.time_s = t + h
-        if self.stacked:
-            x, v, v_before, rail = self._park_diverged(x, v, v_before, rail, dl)
-        elif not math.isfinite(float(v.sum())):
-            raise PlantDiverged(self.diverged_text(float(np.max(np.abs(dl))) if dl.size else 0.0))
-        self.accel_mps2 = (v - v_before) / h
+            rail = effort if self._plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
+            self.time_s, x, v, acc, rail, n_bad = kernel.step(
+                self.position_m, self.speed_mps, cmd, rail, self._mu, self._mu, self._eff, self.time_s, h, n_sub,
+                True, self._plain_rail, 0.0, gcb)  # (the effort argument is not used when ideal)
+        else:
+            effort = np.array(np.broadcast_to(act.effort_n, cmd.shape), dtype=float)
+            self.time_s, x, v, acc, rail, n_bad = kernel.step(
+                self.position_m, self.speed_mps, cmd, self.applied_force_n, effort, self._mu, self._eff,
+                self.time_s, h, n_sub, False, self._plain_rail, act.lag_factor(h), gcb)
+            act.effort_n = effort
+        if n_bad:
+            if not self.stacked:
+                raise PlantDiverged(self.diverged_text(float(kernel.dl_max[0])))
+            x, v, acc, rail = self._park_diverged(x, v, acc, rail, kernel.bad.astype(bool), kernel.dl_max)
+        self.accel_mps2 = acc
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+
+    def _grade_force_fn(self, x: np.ndarray) -> np.ndarray:
+        """m g sin θ per car (N) at positions ``x`` (m), with a grade function (the kernel calls it)."""
+        return self.mass_kg * self.gravity_mps2 * np.sin(np.asarray(self._grade_fn(x), dtype=float))
+
+    def _kernel(self) -> CoupledKernel:
+        """The compiled integration loop with this plant's (or stack's) constant parameters."""
+        if self._kern is None:
+            act = self._act
+            d = self._dist
+            self._kern = CoupledKernel(
+                self.mass_kg, self._inv_m, self._c_static, self.resistance.c1_n_per_mps,
+                self.resistance.c2_n_per_mps2, self._grade_force if self._has_grade else None,
+                np.broadcast_to(act._brake_max, self.mass_kg.shape), np.broadcast_to(act._trac_max, self.mass_kg.shape),
+                np.broadcast_to(act._rate_max, self.mass_kg.shape), self.coupler_spacing_m,
+                self.coupler_stiffness_n_per_m, self.coupler_nonlinearity_per_m2, self._kappa_eps,
+                [e[0] for e in d], [e[1] for e in d], [e[4] for e in d], [e[5] for e in d],
+                np.reshape([e[2] for e in d], (len(d), self.n_cars)), np.reshape([e[3] for e in d], (len(d), self.n_cars)),
+                points=self.speed_mps.shape[0] if self.stacked else 1, gravity=self.gravity_mps2,
+                end_stop_m=self.end_stop_m,
+                end_stop_stiffness=self.end_stop_stiffness_n_per_m, end_stop_absorption=self.end_stop_absorption,
+                end_stop_transition=END_STOP_TRANSITION_MPS, unrated=act._unrated,
+                jerk_limited=math.isfinite(self.actuator.jerk_limit_mps3),
+                adhesion_limited=self.actuator.adhesion_limited)
+        return self._kern
 
     def diverged_text(self, max_deflection_m: float) -> str:
         """What this plant's divergence is reported as, now (after the step), given the last max |Δl|
@@ -425,22 +398,20 @@ class TrainPlant:
             return text
         return text + " (a softening coupler, ε < 0, reverses beyond |Δl| = sqrt(-1/ε); consider end_stop_m)"
 
-    def _park_diverged(self, x: np.ndarray, v: np.ndarray, v_before: np.ndarray, rail: np.ndarray,
-                       dl: np.ndarray) -> tuple[np.ndarray, ...]:
-        """A stack's rows whose state became non-finite: noted (``diverged_rows``, the last max |Δl|
-        in ``diverged_dl_m``) and parked at rest, so they cannot disturb the others (see stack_plants)."""
-        bad = ~np.isfinite(v).all(axis=-1)
+    def _park_diverged(self, x: np.ndarray, v: np.ndarray, acc: np.ndarray, rail: np.ndarray, bad: np.ndarray,
+                       dl_max: np.ndarray) -> tuple[np.ndarray, ...]:
+        """A stack's rows whose state became non-finite (``bad``, (P,) bool): noted (``diverged_rows``,
+        the last max |Δl| ``dl_max`` in ``diverged_dl_m``) and parked at rest, so they cannot disturb
+        the others (see stack_plants)."""
         if not bad.any():
-            return x, v, v_before, rail
+            return x, v, acc, rail
         first = bad & ~self.diverged_rows
         if first.any():
-            self.diverged_dl_m = np.where(first, np.max(np.abs(dl), axis=-1) if dl.shape[-1] else 0.0,
-                                          self.diverged_dl_m)
+            self.diverged_dl_m = np.where(first, dl_max, self.diverged_dl_m)
         self.diverged_rows = self.diverged_rows | bad
         if self._blend is not None:
             self._blend.friction_n = np.where(bad[:, None], 0.0, self._blend.friction_n)
-        x, v, rail, v_before = (np.where(bad[:, None], 0.0, a) for a in (x, v, np.broadcast_to(rail, x.shape), v_before))
-        return x, v, v_before, rail
+        return tuple(np.where(bad[:, None], 0.0, a) for a in (x, v, acc, np.broadcast_to(rail, x.shape)))
 
     # ------------------------------------------------------------------ brake equipment (opt-in)
     def _step_equipped(self, dt_s: float, cmd: np.ndarray, wsp_release: np.ndarray | None) -> None:
@@ -503,11 +474,14 @@ class TrainPlant:
             x = x + h * v_new
             v_before, v = v, v_new
             self.time_s = t + h
+        acc = (v - v_before) / h
         if self.stacked:
-            x, v, v_before, rail = self._park_diverged(x, v, v_before, rail, dl)
+            bad = ~np.isfinite(v).all(axis=-1)
+            dl_max = np.max(np.abs(dl), axis=-1) if dl.shape[-1] else np.zeros(bad.shape)
+            x, v, acc, rail = self._park_diverged(x, v, acc, rail, bad, dl_max)
         elif not math.isfinite(float(v.sum())):
             raise PlantDiverged(self.diverged_text(float(np.max(np.abs(dl))) if dl.size else 0.0))
-        self.accel_mps2 = (v - v_before) / h
+        self.accel_mps2 = acc
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
 
@@ -561,6 +535,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
             return None
     st = copy.copy(p0)
     st.stacked = True
+    st._kern = None
     for name in _STACKED:
         setattr(st, name, np.stack([np.broadcast_to(np.asarray(getattr(p, name), dtype=float),
                                                     np.shape(getattr(p0, name))) for p in plants]))

@@ -31,13 +31,14 @@ Two curve variants (``variant``):
 """
 from __future__ import annotations
 
-import math
+import functools
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 
+from canbrake.physics import _adhesion_kernel
 from canbrake.physics.contract import PlantDiverged
 
 G0 = 9.8  # m/s², the paper's g0 (117.6 kN = 12 t · 9.8 m/s²)
@@ -111,10 +112,19 @@ def adhesion_coefficient(lam: np.ndarray, v_mps: np.ndarray | float, cond: RailC
     return _scale(v_mps, cond, variant) * mu_curve(lam, cond)
 
 
-def _floats(x: np.ndarray | float, p: int) -> list[float]:
-    """``x`` (a scalar or shape ``(p,)``) as a list of ``p`` floats."""
+def _axle_array(x: np.ndarray | float, p: int) -> np.ndarray:
+    """``x`` (a scalar or ``p`` values) as a C-contiguous float array of shape ``(p,)``."""
     a = np.asarray(x, dtype=float)
-    return [float(a)] * p if a.ndim == 0 else a.tolist()
+    if a.shape == (p,) and a.flags.c_contiguous:
+        return a
+    return np.full(p, float(a)) if a.ndim == 0 else np.ascontiguousarray(a.reshape(p))
+
+
+@functools.lru_cache(maxsize=64)
+def _curve_constants(cond: RailCondition, variant: Variant) -> tuple[float, float]:
+    """(the variant's peak factor, μ_max(0)) of a rail condition, as the Newton loop uses them."""
+    peak = 1.0 if variant == "paper" else float(_scale(0.0, cond, variant))
+    return peak, float(cond.mu_max(0.0))
 
 
 @dataclass
@@ -149,7 +159,7 @@ class WheelSet:
 
     def step_coupled(self, torque_nm: np.ndarray, v_mps: float, cond: RailCondition, dt_s: float,
                      mass_kg: float | None, resistance: Callable[[float], tuple[float, float]] | None = None,
-                     newton_iters: int = 4) -> tuple[float, np.ndarray]:
+                     newton_iters: int = 4, davis: tuple[float, float, float] | None = None) -> tuple[float, np.ndarray]:
         """One backward-Euler step of the wheels and (unless ``mass_kg`` is None) the train body.
 
         Solves jointly, for ω (shape ``(p,)``, rad/s) and v (m/s)::
@@ -157,67 +167,28 @@ class WheelSet:
             J (ω − ω0) = dt (T − F_a(ω, v) R)
             m (v − v0) = dt (Σ F_a(ω, v) − F_d(v))
 
-        with ``resistance(v) -> (F_d in N, dF_d/dv in N·s/m)``. Both equations are stiff through
+        with ``resistance(v) -> (F_d in N, dF_d/dv in N·s/m)``, or ``davis`` = (a0, a1, a2) for
+        F_d = sgn(v) a0 + a1 v + a2 v|v| (sgn = 0 below 1e-6 m/s; evaluated in the compiled loop). Both equations are stiff through
         the slip: dF_a/dω ∝ N μ' R / v and dF_a/dv ∝ −N μ'/v give time constants of microseconds
         (wheel) and fractions of a millisecond (body) near standstill, so an explicit step of 1 ms
         is unstable there. Newton on the arrow-shaped Jacobian (Schur complement on v) solves the
         step; the speed-dependence of μ_max is left out of the Jacobian (it only slows Newton).
         Returns (v_new in m/s, F_a in N per axle); ω is updated in place.
         """
-        # Plain floats over the axles: a train has a handful of driven axles, where numpy's per-call
-        # overhead would cost ~10x the arithmetic (this runs once per control period per plant).
-        w0 = np.asarray(self.omega_radps, dtype=float).tolist()
-        p = len(w0)
-        J, R, N, T = (_floats(x, p) for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
-        w = list(w0)
-        v0 = v = float(v_mps)
-        b1, b2, b3 = cond.b1, cond.b2, cond.b3
-        peak = 1.0 if self.variant == "paper" else float(_scale(0.0, cond, self.variant))
-        mu0 = float(cond.mu_max(0.0))
-        floor = self.v_floor_mps
-        exp = math.exp
-        for _ in range(newton_iters):
-            av = abs(v)
-            scale = (cond.c1 + cond.c2 / (cond.c3 + av)) / mu0 * peak  # eq. 14 (× the variant's peak)
-            r_w, a, b, c, fa = [0.0] * p, [0.0] * p, [0.0] * p, [0.0] * p, [0.0] * p
-            sum_fa = sum_fv = 0.0
-            for k in range(p):
-                wr = w[k] * R[k]
-                awr = abs(wr)
-                den = max(awr, av, floor)
-                lam = (wr - v) / den
-                if awr >= av and awr >= floor:       # denominator ωR
-                    dlam_dw, dlam_dv = R[k] * av / (wr * wr), -1.0 / den
-                elif av >= floor:                      # denominator v
-                    dlam_dw, dlam_dv = R[k] / den, -wr / (den * den)
-                else:                                  # floored denominator
-                    dlam_dw, dlam_dv = R[k] / den, -1.0 / den
-                alam = abs(lam)
-                ex = exp(-b2 * alam)
-                sN = scale * N[k]
-                dmu = sN * (b1 * b2 * ex - 1.0 / b3)   # dμ/dλ (eq. 13) × N
-                f = sN * (b1 * (1.0 - ex) - alam / b3)
-                f = f if lam > 0 else (-f if lam < 0 else 0.0)
-                fa[k] = f
-                fw, fv = dmu * dlam_dw, dmu * dlam_dv
-                r_w[k] = J[k] * (w[k] - w0[k]) - dt_s * (T[k] - f * R[k])
-                ak = J[k] + dt_s * R[k] * fw
-                a[k] = ak if ak > 0.1 * J[k] else J[k]  # past the adhesion peak the slope is negative: damped step
-                b[k] = dt_s * R[k] * fv
-                c[k] = -dt_s * fw
-                sum_fa += f
-                sum_fv += fv
-            if mass_kg is None:
-                w = [w[k] - r_w[k] / a[k] for k in range(p)]
-                continue
-            fd, dfd = resistance(v) if resistance is not None else (0.0, 0.0)
-            r_v = mass_kg * (v - v0) - dt_s * (sum_fa - fd)
-            d = mass_kg - dt_s * (sum_fv - dfd)
-            dv = (-r_v + sum(c[k] * r_w[k] / a[k] for k in range(p))) / (d - sum(c[k] * b[k] / a[k] for k in range(p)))
-            w = [w[k] + (-r_w[k] - b[k] * dv) / a[k] for k in range(p)]
-            v = v + dv
-        self.omega_radps = np.asarray(w, dtype=float)
-        return v, self.adhesion(v, cond, self.omega_radps)[2]
+        # compiled (canbrake.physics._adhesion_kernel): a train has a handful of driven axles, where
+        # numpy's per-call overhead would cost ~10x the arithmetic (this runs every sub-step)
+        p = np.size(self.omega_radps)
+        J, R, N, T = (_axle_array(x, p) for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
+        peak, mu0 = _curve_constants(cond, self.variant)
+        v, w = _adhesion_kernel.step_coupled(
+            _axle_array(self.omega_radps, p), J, R, N, T, float(v_mps), dt_s,
+            0.0 if mass_kg is None else float(mass_kg), mass_kg is not None, cond.b1, cond.b2, cond.b3, cond.c1,
+            cond.c2, cond.c3, peak, mu0, self.v_floor_mps, newton_iters, davis, resistance)
+        self.omega_radps = w
+        res = self.adhesion(v, cond, w)
+        #: (condition, v, ω, (λ, μ, F_a)) of the last step, for a measurement of the same state
+        self.last_adhesion = (cond, v, w, res)
+        return v, res[2]
 
 
 # ------------------------------------------------------------------------------ the plant model
@@ -295,6 +266,7 @@ class AdhesionTrain:
             raise ValueError(f"axles: {len(axles)} entries for {self.n_vehicles} vehicles")
         self.davis_n = np.asarray(davis_n, dtype=float).reshape(self.n_vehicles, 3)
         self._davis_sum = self.davis_n.sum(axis=0)
+        self._davis_terms = tuple(float(a) for a in self._davis_sum)  # (a0, a1, a2) of :meth:`resistance`
         self.total_mass_kg = float(self.mass_kg.sum())
         self.rail = rail
         self.substeps = int(substeps)
@@ -323,6 +295,8 @@ class AdhesionTrain:
         self._inertia_force = np.zeros(len(num))
         self._fa_step: np.ndarray | None = None
         self._meas: dict[str, np.ndarray] | None = None  # measurements of the current state (cached)
+        self._mass_cumsum: np.ndarray | None = None
+        self._axle_keys: list[tuple[str, int, int]] = []
 
     # ---------------------------------------------------------------- physics
     def resistance(self, v_mps: float) -> tuple[float, float]:
@@ -354,7 +328,7 @@ class AdhesionTrain:
         for _ in range(self.substeps):
             cond = self.rail.at(self.time_s)
             v_new, fa = self.wheels.step_coupled(torque, self.speed_mps, cond, h, mass_kg=self.total_mass_kg,
-                                                 resistance=self.resistance)
+                                                 davis=self._davis_terms)
             self._a_last = (v_new - self.speed_mps) / h
             self.position_m += 0.5 * h * (self.speed_mps + v_new)
             self.speed_mps = v_new
@@ -380,10 +354,21 @@ class AdhesionTrain:
 
     def _measure(self) -> dict[str, np.ndarray]:
         n, v = self.n_vehicles, self.speed_mps
-        lam, mu, fa = self.wheels.adhesion(v, self.rail.at(self.time_s))
+        cond = self.rail.at(self.time_s)
+        last = getattr(self.wheels, "last_adhesion", None)
+        if last is not None and last[0] is cond and last[1] == v and last[2] is self.wheels.omega_radps:
+            lam, mu, fa = last[3]  # the step's own evaluation at this state
+        else:
+            lam, mu, fa = self.wheels.adhesion(v, cond)
         fd = self.vehicle_resistance_n(v)
-        out = {"position_m": np.full(n, self.position_m), "speed_mps": np.full(n, v), "ground_speed_mps": np.full(n, v),
-               "accel_mps2": np.full(n, self._accel), "applied_brake_n": -self._per_vehicle(fa),
+
+        def full(x: float) -> np.ndarray:
+            a = np.empty(n)
+            a[:] = x
+            return a
+
+        out = {"position_m": full(self.position_m), "speed_mps": full(v), "ground_speed_mps": full(v),
+               "accel_mps2": full(self._accel), "applied_brake_n": -self._per_vehicle(fa),
                "resistance_n": fd, "wheel_inertia_force_n": self._per_vehicle(self._inertia_force),
                "deflection_m": np.zeros(max(n - 1, 0))}
         if self._fa_step is None:
@@ -392,12 +377,14 @@ class AdhesionTrain:
         else:
             net = self._per_vehicle(self._fa_step) - fd
             a = self._a_last
-        out["coupler_force_n"] = (np.cumsum(self.mass_kg) * a - np.cumsum(net))[:-1]
-        names = ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")
-        per_axle = np.full((len(names), self.max_axles, n), np.nan)  # [quantity, axle j-1, vehicle]
+        if self._mass_cumsum is None:
+            self._mass_cumsum = np.cumsum(self.mass_kg)
+            self._axle_keys = [(f"axle{j}_{name}", q, j - 1) for q, name in enumerate(
+                ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")) for j in range(1, self.max_axles + 1)]
+        out["coupler_force_n"] = (self._mass_cumsum * a - np.cumsum(net))[:-1]
+        per_axle = np.full((5, self.max_axles, n), np.nan)  # [quantity, axle j-1, vehicle]
         per_axle[:, self.axle_number - 1, self.axle_vehicle] = np.stack(
             [self.wheels.omega_radps, lam, mu, fa, self.torque_nm])
-        for q, name in enumerate(names):
-            for j in range(1, self.max_axles + 1):
-                out[f"axle{j}_{name}"] = per_axle[q, j - 1]
+        for key, q, j in self._axle_keys:
+            out[key] = per_axle[q, j]
         return out
