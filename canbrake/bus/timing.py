@@ -40,6 +40,7 @@ from typing import Any, Literal, Sequence
 
 import numpy as np
 
+from canbrake.bus import _wire
 from canbrake.bus.faults import ERROR_FRAME_BITS, ErrorEvent
 
 __all__ = [
@@ -202,76 +203,12 @@ def _payload(data: bytes | Sequence[int] | None, dlc: int) -> bytes:
     return payload
 
 
-# fast path for stuffing="actual": cached header state + byte tables --------------------------
-
-# state encoding for the tables: last_level * 8 + run_length (run 0..4 between bits)
-def _enc(state: tuple[int, int]) -> int:
-    return state[0] * 8 + state[1]
-
-
-_CRC_TABLE: list[int] = []
-_STUFF_TABLE: list[list[tuple[int, int]]] = []
-_STUFF_TABLE7: list[list[int]] = []  # stuff bits of a 7-bit tail (the CRC's low bits) by state
-
-
-def _build_tables() -> None:
-    for byte in range(256):
-        _CRC_TABLE.append(_crc15_byte_entry(byte))
-    for code in range(16):
-        last, run = code >> 3, code & 7
-        row: list[tuple[int, int]] = []
-        for byte in range(256):
-            if run > 4:
-                row.append((0, code))  # unreachable state, keeps indices simple
-                continue
-            n, new = _stuff_run(_int_bits(byte, 8), (last, run))
-            row.append((n, _enc(new)))
-        _STUFF_TABLE.append(row)
-        _STUFF_TABLE7.append([_stuff_run(_int_bits(v, 7), (last, run))[0] if run <= 4 else 0 for v in range(128)])
-
-
-def _crc15_byte_entry(byte: int) -> int:
-    """Table entry for byte-wise MSB-first CRC-15: register contribution of ``byte``."""
-    crc = byte << 7
-    for _ in range(8):
-        crc = ((crc << 1) ^ _CRC15_POLY) if crc & 0x4000 else (crc << 1)
-        crc &= 0x7FFF
-    return crc
-
-
-def _crc15_bytes(data: bytes, crc: int) -> int:
-    """Continue a CRC-15 register over whole bytes (MSB first)."""
-    if not _CRC_TABLE:
-        _build_tables()
-    table = _CRC_TABLE
-    for byte in data:
-        crc = ((crc << 8) & 0x7FFF) ^ table[((crc >> 7) ^ byte) & 0xFF]
-    return crc
-
-
-@lru_cache(maxsize=4096)
-def _header_state(arbitration_id: int, is_extended: bool, dlc: int,
-                  is_remote: bool) -> tuple[int, int, int]:
-    """(crc register, stuff bits, encoded stuff state) after SOF..DLC."""
-    bits = _header_bits(arbitration_id, is_extended, dlc, is_remote)
-    n, state = _stuff_run(bits)
-    return crc15(bits), n, _enc(state)
-
-
 def _actual_stuff_bits(arbitration_id: int, is_extended: bool, dlc: int, data: bytes,
                        is_remote: bool) -> int:
-    crc, n, code = _header_state(int(arbitration_id), bool(is_extended), int(dlc), bool(is_remote))
-    if not _STUFF_TABLE:
-        _build_tables()
-    if not is_remote and data:
-        table, crc_table = _STUFF_TABLE, _CRC_TABLE
-        for byte in data:  # the CRC-15 register and the stuffing state in one pass (_crc15_bytes inlined)
-            crc = ((crc << 8) & 0x7FFF) ^ crc_table[((crc >> 7) ^ byte) & 0xFF]
-            k, code = table[code][byte]
-            n += k
-    # the 15 CRC bits: the high 8 through the byte table, the low 7 through the 7-bit one
-    k, code = _STUFF_TABLE[code][crc >> 7]
-    return n + k + _STUFF_TABLE7[code][crc & 0x7F]
+    """Stuff bits of a checked frame, computed by the compiled core (:mod:`canbrake.bus._wire`:
+    header bit by bit, payload and CRC-15 through byte tables); ``frame_bitstream`` and
+    ``stuff_bit_count`` above are the reference it is tested against."""
+    return _wire.stuff_bits(int(arbitration_id), bool(is_extended), int(dlc), data, bool(is_remote))
 
 
 # --------------------------------------------------------------------------------------------
