@@ -441,6 +441,11 @@ class BusTimingModel:
         self._future: list[tuple[float, int, _Pending]] = []  # not yet queued, by t_queue
         self._ready: dict[str, list[tuple[Any, _Pending]]] = {}  # per node, by node_key
         self._n_ready = 0
+        # the heads of the node queues by bus_key (a heap; an entry whose frame is no longer its
+        # queue's head is stale and skipped): arbitration in O(log nodes) instead of a scan of
+        # every node per frame (106 nodes on the ECP train). Entries (bus_key, n, pending, queue).
+        self._heads: list[tuple[Any, int, _Pending, list]] = []
+        self._head_n = 0
         self._seq = 0
         self._now = -math.inf
         self._bus_free_at = -math.inf
@@ -605,14 +610,18 @@ class BusTimingModel:
                 q = ready.get(p.ticket.node)
                 if q is None:
                     q = ready[p.ticket.node] = []
-                heappush(q, (p.node_key, p))
+                self._enqueue(q, p)
                 self._n_ready += 1
             # ... and the heads of the node queues arbitrate
             best_q: Any = None  # a node heap or a TxBuffer
             best_key: Any = None
-            for q in ready.values():
-                if q and (best_q is None or q[0][1].bus_key < best_key):
-                    best_q, best_key = q, q[0][1].bus_key
+            heads = self._heads
+            while heads:
+                _key, _n, hp, hq = heads[0]
+                if hq and hq[0][1] is hp:
+                    best_q, best_key = hq, _key
+                    break
+                heappop(heads)  # stale: sent, or its node's queue has a new head or was dropped
             best_b = None
             for b in self._buffers.values():
                 h = b.head()
@@ -625,6 +634,10 @@ class BusTimingModel:
                 continue
             else:
                 p = heappop(best_q)[1]
+                if best_q:  # the node's next frame is its new head
+                    h = best_q[0][1]
+                    self._head_n += 1
+                    heappush(self._heads, (h.bus_key, self._head_n, h, best_q))
             self._n_ready -= 1
             if fc is None:
                 self._transmit(p, t)
@@ -642,6 +655,13 @@ class BusTimingModel:
                     self._lat_node.setdefault((d.arbitration_id, d.is_extended, d.node),
                                               []).append(d.latency_s)
         return done
+
+    def _enqueue(self, q: list, p: _Pending) -> None:
+        """Put ``p`` in its node's queue ``q``; if it is the queue's new head, in the heads' heap."""
+        heapq.heappush(q, (p.node_key, p))
+        if q[0][1] is p:
+            self._head_n += 1
+            heapq.heappush(self._heads, (p.bus_key, self._head_n, p, q))
 
     def _drop(self, p: _Pending, t: float) -> None:
         tk = p.ticket
@@ -686,7 +706,7 @@ class BusTimingModel:
                     self._drop(x, t_end)
                     self._n_ready -= 1
         elif isinstance(queue, list):
-            heapq.heappush(queue, (p.node_key, p))  # automatic retransmission
+            self._enqueue(queue, p)  # automatic retransmission
             self._n_ready += 1
         else:
             queue.requeue(p)
