@@ -445,6 +445,7 @@ class BusTimingModel:
         # queue's head is stale and skipped): arbitration in O(log nodes) instead of a scan of
         # every node per frame (106 nodes on the ECP train). Entries (bus_key, n, pending, queue).
         self._heads: list[tuple[Any, int, _Pending, list]] = []
+        self._bits_memo: dict[tuple, int] = {}  # frame lengths without payload (submit)
         self._head_n = 0
         self._seq = 0
         self._now = -math.inf
@@ -530,8 +531,17 @@ class BusTimingModel:
             raise ValueError(f"t_queue_s={t_q!r} is before the model's current time "
                              f"now_s={self._now!r}: the bus has already been simulated past it")
         payload = None if data is None else bytes(data)
-        bits = frame_bits(msg_id, is_extended, dlc, payload, self.stuffing,
-                          is_remote=is_remote, include_ifs=self.include_ifs)
+        if payload is None and self.stuffing != "actual" and type(msg_id) is int and type(dlc) is int:
+            # the nominal schedule submits the same few frames every period: their length is
+            # checked and computed once (plain ints only: anything else takes frame_bits' checks)
+            key = (msg_id, bool(is_extended), dlc, bool(is_remote))
+            bits = self._bits_memo.get(key)
+            if bits is None:
+                bits = self._bits_memo[key] = frame_bits(msg_id, is_extended, dlc, None, self.stuffing,
+                                                         is_remote=is_remote, include_ifs=self.include_ifs)
+        else:
+            bits = frame_bits(msg_id, is_extended, dlc, payload, self.stuffing,
+                              is_remote=is_remote, include_ifs=self.include_ifs)
         ticket = Ticket(self._seq, node, int(msg_id), bool(is_extended), bits, t_q)
         if self.faults is not None:
             self.faults.register(node)

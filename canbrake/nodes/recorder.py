@@ -358,9 +358,7 @@ class RecorderNode(Node):
         t, busy, n_timed, latencies, out = ideal_period(
             ordered, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k, self.dt,
             self.bitrate, self.epoch)
-        add = self._latency.add
-        for x in latencies:
-            add(x)
+        self._latency.add_many(latencies)
         self._bus_free_s = t
         if self.wire_model is not None:
             seen = {id(f[3]): i for i, f in enumerate(self._tick_frames)}
