@@ -61,7 +61,7 @@ def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo
     """Add the durations ``xs`` (s) to a LogHistogram's ``counts`` as ``LogHistogram.add`` does,
     one by one; returns its new ``(n, total, max)``."""
     cdef Py_ssize_t bins = len(counts), i
-    cdef double x
+    cdef double x, y
     for v in xs:
         x = v
         n += 1
@@ -71,7 +71,11 @@ def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo
         if x <= lo:
             i = 0
         else:
-            i = 1 + <Py_ssize_t>(log(x / lo) / log_ratio)
+            y = log(x / lo) / log_ratio
+            if not y < 1e18:  # what int() says of a NaN or an infinite duration
+                raise ValueError("cannot convert float NaN to integer") if y != y else OverflowError(
+                    "cannot convert float infinity to integer")
+            i = 1 + <Py_ssize_t>y
             if i >= bins:
                 i = bins - 1
         counts[i] += 1
