@@ -32,6 +32,8 @@ from typing import Any, Iterator, Protocol
 import can
 import numpy as np
 
+from canbrake.nodes._trace import csv_row, hist_add
+
 
 class LogHistogram:
     """Quantiles of positive durations (s) in bounded memory: logarithmic bins ``ratio - 1`` wide
@@ -61,6 +63,11 @@ class LogHistogram:
         else:
             i = 1 + int(math.log(x / self.LO_S) / self._log_ratio)  # math.log: numpy's costs more on a scalar
             self.counts[i if i < self.bins else self.bins - 1] += 1
+
+    def add_many(self, xs: list[float]) -> None:
+        """:meth:`add` for each of ``xs`` (s), in order, in one compiled call."""
+        self.n, self.total, self.max = hist_add(self.counts, xs, self.n, self.total, self.max, self.LO_S,
+                                                self._log_ratio)
 
     def quantile(self, q: float) -> float:
         """The ``q`` quantile (0..1), as the geometric middle of its bin (0 when empty)."""
@@ -157,20 +164,6 @@ def buffered_traces() -> Iterator[None]:
         _ROW_BY_ROW.pop()
 
 
-#: %-conversions that write a value as csv.writer (excel dialect) does, by exact type; floats
-#: (and numpy's float64, a float) as f"{v:.9g}"
-_CONVERSION: dict[type, str] = {float: "%.9g", np.float64: "%.9g", int: "%d", np.int64: "%d", np.int32: "%d",
-                                bool: "%s", np.bool_: "%s"}
-
-
-def _row_format(types: tuple[type, ...]) -> str:
-    """The %-format of a csv row whose values have ``types``; "" if a type is not covered."""
-    parts = [_CONVERSION.get(t) for t in types]
-    if None in parts:
-        return ""
-    return ",".join(parts) + "\r\n"  # type: ignore[arg-type]
-
-
 class CsvTrace:
     """A CSV trace written as it goes: the header at once, then every row handed to the OS as it
     is appended (one ``write`` per row through a buffered file: one control period per row), so
@@ -183,7 +176,6 @@ class CsvTrace:
         self._row_by_row = _ROW_BY_ROW[-1]
         self._file = open(path, "w", newline="") if path is not None else None
         self._writer = csv.writer(self._file) if self._file is not None else None
-        self._formats: dict[tuple[type, ...], str] = {}
         if self._writer is not None:
             self._writer.writerow(header)
             self._file.flush()  # type: ignore[union-attr]
@@ -191,17 +183,13 @@ class CsvTrace:
     def append(self, row: list[Any]) -> None:
         if self._writer is None:
             return
-        # One %-format per row, compiled per row shape (the types of its values), instead of a
-        # format call per value and the csv module's per-field checks: the same bytes as
-        # csv.writer with floats as f"{v:.9g}" (signals.csv of a 106-vehicle train is ~1,100
-        # values per period). Shapes with values the format cannot write as csv would (str,
-        # None, ...) take the csv writer.
-        key = tuple(map(type, row))
-        fmt = self._formats.get(key)
-        if fmt is None:
-            fmt = self._formats[key] = _row_format(key)
-        if fmt:
-            self._file.write(fmt % tuple(row))  # type: ignore[union-attr]
+        # The row's text in one compiled call (canbrake.nodes._trace.csv_row) instead of the csv
+        # module's per-field work: the same bytes as csv.writer with floats as f"{v:.9g}"
+        # (signals.csv of a 106-vehicle train is ~1,100 values per period). Rows with values it
+        # does not write (str, None, ...) take the csv writer.
+        text = csv_row(row) if type(row) is list else None
+        if text is not None:
+            self._file.write(text)  # type: ignore[union-attr]
         else:
             self._writer.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
         if self._row_by_row:

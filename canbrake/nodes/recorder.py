@@ -49,6 +49,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,8 @@ import can
 import numpy as np
 
 from canbrake.bus import dbc
+from canbrake.bus._candump import write_candump
+from canbrake.bus._wire import ideal_period
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
@@ -66,6 +69,8 @@ from canbrake.nodes.base import LogHistogram, Node  # noqa: F401  (LogHistogram:
 _PHASE = {"sync": 0, "reference": 0, "reference_pos": 0, "sensor": 0, "heartbeat": 1, "state": 1,
           "state_done": 1, "cmd": 2, "cmd_done": 2}
 _KIND_NAME = {"cmd": "brake_cmd"}
+#: bus order of a period's frames: phase, then identifier (arbitration), then payload
+_BUS_ORDER = itemgetter(0, 1, 2)
 
 def check_log_format(fmt: str) -> None:
     """Raise ValueError when python-can cannot write ``fmt`` here (MF4 needs asammdf)."""
@@ -225,6 +230,9 @@ class RecorderNode(Node):
         self.epoch = epoch_s
         self.plant_io_on_bus = plant_io_on_bus
         self.barrier = barrier  # without barrier frames, the n-th STATE frame ends phase 1
+        for m in layout.messages:  # every identifier the layout knows; the rest are neither (ideal_period)
+            self._untimed(m.frame_id)
+            self._sim_control(m.frame_id)
         self._writer: can.Listener | None = None
         self._k = -1
         # a tick is complete once every CMD_DONE (without barrier: every command frame) is seen;
@@ -345,35 +353,23 @@ class RecorderNode(Node):
             self._tick_frames = []
             return
         t_k = self._k * self.dt
-        t = max(t_k, self._bus_free_s)  # the accounting: a busy bus carries over into this period
-        ordered = sorted(self._tick_frames, key=lambda f: (f[0], f[1], f[2]))
-        durs = [self._wire_s(msg) for *_x, msg in ordered]
-        wire = sum(durs)
-        scale = min(1.0, self.dt / wire) if wire > 0 else 1.0  # stamps stay inside [t_k, t_k + T]
-        out = []
-        modelled = self.wire_model is not None
-        seen = {id(f[3]): i for i, f in enumerate(self._tick_frames)} if modelled else {}
-        arrival: list[int] = []  # each logged frame's place in the order frames arrived (wire model)
-        busy = 0.0
-        in_period = 0.0
-        for (_phase, aid, _data, msg), dur in zip(ordered, durs):
-            if not self._untimed(aid):
-                t += dur
-                busy += dur
-                self._latency.add(t - t_k)
-            in_period += dur
-            if not self._sim_control(aid):
-                out.append(self._stamp(msg, t_k + in_period * scale))
-                if modelled:
-                    arrival.append(seen[id(msg)])
+        # the accounting (compiled, one call per period): a busy bus carries over into this
+        # period; frames back to back in bus order, actual stuffing; stamps kept in [t_k, t_k + T]
+        ordered = sorted(self._tick_frames, key=_BUS_ORDER)
+        t, busy, n_timed, latencies, out = ideal_period(
+            ordered, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k, self.dt,
+            self.bitrate, self.epoch)
+        self._latency.add_many(latencies)
         self._bus_free_s = t
-        if modelled:
-            out = self._model_stamps(out, arrival, t_k)
+        if self.wire_model is not None:
+            seen = {id(f[3]): i for i, f in enumerate(self._tick_frames)}
+            # each logged frame's place in the order frames arrived
+            out = self._model_stamps(out, [seen[id(m)] for _ts, m in out], t_k)
         n_out = len(out)
         if self.timing is not None:
             out = self._with_errors(out)
-        self._series.add(busy / self.dt, sum(1 for f in ordered if not self._untimed(f[1])), len(out) - n_out)
-        self._write(out)
+        self._series.add(busy / self.dt, n_timed, len(out) - n_out)
+        self._write_stamped(out)
         self._flush_file()
         self._tick_frames = []
 
@@ -465,7 +461,8 @@ class RecorderNode(Node):
             "forwarding_tables": forwarding_tables(self.layout, self.topo),
         }
 
-    def _model_stamps(self, out: list[can.Message], arrival: list[int], t_k: float) -> list[can.Message]:
+    def _model_stamps(self, out: list[tuple[float, can.Message]], arrival: list[int],
+                      t_k: float) -> list[tuple[float, can.Message]]:
         """Restamp the period's frames with the timing model's completion times (module
         docstring, ``bus.timing: model``) and put them in stamp order."""
         horizon = t_k + self.dt * (1 - 1e-9)  # the senders' last release horizon of the period
@@ -480,17 +477,16 @@ class RecorderNode(Node):
         self._wire_done[:] = later  # the rest ends in a later period; unmatched ones are dropped
         phase_start = {2: t_k + self.wire_model.c}
         stamped = []
-        for _n, m in sorted(zip(arrival, out), key=lambda x: x[0]):  # arrival order within an identifier
+        for _n, (_ts, m) in sorted(zip(arrival, out), key=lambda x: x[0]):  # arrival order within an identifier
             aid = m.arbitration_id
             phase = 0 if aid == dbc.HEARTBEAT_BASE and not m.is_extended_id else _PHASE.get(self._kinds.get(aid, "other"), 1)
             times = done.get((m.arbitration_id, m.is_extended_id))
             t = min(max(times.pop(0), t_k), horizon) if times else phase_start.get(phase, t_k)
-            m.timestamp = self.epoch + t
-            stamped.append((t, phase, m.arbitration_id, bytes(m.data), m))
+            stamped.append((t, phase, m.arbitration_id, bytes(m.data), self.epoch + t, m))
         stamped.sort(key=lambda x: x[:4])
-        return [x[-1] for x in stamped]
+        return [x[4:] for x in stamped]
 
-    def _with_errors(self, out: list[can.Message]) -> list[can.Message]:
+    def _with_errors(self, out: list[tuple[float, can.Message]]) -> list[tuple[float, can.Message]]:
         """Add the error frames of tick ``self._k`` (in time order) and sample the error states."""
         fc = self.timing.faults
         t_next = (self._k + 1) * self.dt
@@ -499,7 +495,7 @@ class RecorderNode(Node):
         new = []
         while self._ev_i < len(events) and events[self._ev_i].t_start_s < t_next:
             ev = events[self._ev_i]
-            new.append(error_frame(ev, self.epoch + ev.t_start_s, self._log_ch))
+            new.append((self.epoch + ev.t_start_s, error_frame(ev, self.epoch + ev.t_start_s, self._log_ch)))
             self._ev_i += 1
         self.error_frames += len(new)
         row = [self._k]
@@ -509,7 +505,7 @@ class RecorderNode(Node):
         self._error_row(row)
         if not new:
             return out
-        return sorted(out + new, key=lambda m: m.timestamp)
+        return sorted(out + new, key=lambda sm: sm[0])
 
     def _col_suffix(self, name: str) -> str:
         """Column suffix of a node: ``plant``, ``c3`` for the default ECU of car 3, else its name."""
@@ -544,7 +540,12 @@ class RecorderNode(Node):
         return dict(sorted(out.items()))
 
     def _stamp(self, msg: can.Message, t_s: float) -> can.Message:
-        return can.Message(timestamp=self.epoch + t_s, arbitration_id=msg.arbitration_id,
+        return self._stamped(msg, self.epoch + t_s)
+
+    def _stamped(self, msg: can.Message, timestamp: float) -> can.Message:
+        """``msg`` as the log holds it: ``timestamp`` (s), the recorder's channel, received
+        (:func:`canbrake.bus._candump.write_candump` writes the same for frames.log)."""
+        return can.Message(timestamp=timestamp, arbitration_id=msg.arbitration_id,
                            is_extended_id=msg.is_extended_id, is_remote_frame=msg.is_remote_frame,
                            is_error_frame=msg.is_error_frame, dlc=msg.dlc, data=msg.data,
                            channel=self._log_ch, is_rx=True)
@@ -593,6 +594,20 @@ class RecorderNode(Node):
         if self._writer is not None:
             for m in msgs:
                 self._writer.on_message_received(m)
+
+    def _write_stamped(self, stamped: list[tuple[float, can.Message]]) -> None:
+        """Write a period's (timestamp, frame) pairs, each as :meth:`_stamp` makes it (the
+        recorder's channel, received). candump -L (``frames.log``): the period's lines in one
+        compiled call that writes what python-can's ``CanutilsLogWriter`` writes, into its file
+        (:mod:`canbrake.bus._candump`); every other format through python-can's writer."""
+        w = self._writer
+        if w is None:
+            return
+        if type(w) is can.CanutilsLogWriter:
+            write_candump(w, stamped, self._log_ch)
+            return
+        for ts, m in stamped:
+            w.on_message_received(self._stamped(m, ts))
 
     # ---------------------------------------------------------------- results
     def _flush_file(self) -> None:

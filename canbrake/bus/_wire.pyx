@@ -1,0 +1,192 @@
+# cython: language_level=3
+# distutils: extra_compile_args = -O2 -ffp-contract=off
+"""Per-frame wire bookkeeping of classic CAN, compiled: actual bit stuffing with the CRC-15, and
+the recorder's accounting of one control period (:func:`ideal_period`).
+
+Written by hand because no library models the CAN wire (python-can and cantools stop at frames;
+see :mod:`canbrake.bus.timing`) and this runs for every frame of every period. The bit-level
+reference (:func:`canbrake.bus.timing.frame_bitstream`, ``stuff_bit_count``) stays in Python as
+the specification the tests check this against (``tests/test_wire_compiled.py``).
+
+Floating point: ``-ffp-contract=off`` keeps ``a + b * c`` two roundings as in Python (no fused
+multiply-add), so stamps and bus loads are bit-identical to the interpreter's arithmetic.
+"""
+from libc.stdint cimport uint8_t, uint16_t, uint32_t
+
+cdef uint16_t CRC_TABLE[256]     # byte-wise MSB-first CRC-15 (poly 0x4599)
+cdef uint8_t STUFF_N[16][256]    # stuff bits a byte adds from state (last level * 8 + run)
+cdef uint8_t STUFF_NEXT[16][256]  # ... and the state after it
+
+
+cdef inline void _bit(int b, int* last, int* run, int* n) noexcept nogil:
+    """One bit through the stuffing rule: after five equal bits a stuff bit of the opposite level
+    (which starts the next run)."""
+    if b == last[0]:
+        run[0] += 1
+    else:
+        last[0] = b
+        run[0] = 1
+    if run[0] == 5:
+        n[0] += 1
+        last[0] = 1 - last[0]
+        run[0] = 1
+
+
+cdef inline uint16_t _crc_bit(uint16_t crc, int b) noexcept nogil:
+    cdef int top = ((crc >> 14) & 1) ^ (b & 1)
+    crc = (crc << 1) & 0x7FFF
+    if top:
+        crc ^= 0x4599
+    return crc
+
+
+cdef void _make_tables() noexcept:
+    cdef int byte, i, code, last, run, n
+    cdef uint16_t crc
+    for byte in range(256):
+        crc = 0
+        for i in range(8):
+            crc = _crc_bit(crc, (byte >> (7 - i)) & 1)
+        CRC_TABLE[byte] = crc  # the register after ``byte`` from 0: linear, so it XORs in
+        for code in range(16):
+            last, run, n = code >> 3, code & 7, 0
+            if run > 4:  # unreachable state
+                STUFF_N[code][byte] = 0
+                STUFF_NEXT[code][byte] = code
+                continue
+            for i in range(8):
+                _bit((byte >> (7 - i)) & 1, &last, &run, &n)
+            STUFF_N[code][byte] = n
+            STUFF_NEXT[code][byte] = last * 8 + run
+
+
+_make_tables()
+
+
+cdef int _stuff_bits(uint32_t aid, bint ext, int dlc, const uint8_t* data, Py_ssize_t n_data,
+                     bint remote) noexcept nogil:
+    """Stuff bits of the SOF..CRC span of a classic frame (``n_data`` payload bytes)."""
+    cdef int last = 1, run = 0, n = 0, i, b, code
+    cdef uint16_t crc = 0
+    cdef uint8_t byte
+    # SOF
+    b = 0
+    _bit(b, &last, &run, &n)
+    crc = _crc_bit(crc, b)
+    if ext:
+        for i in range(10, -1, -1):  # base identifier
+            b = (aid >> (18 + i)) & 1
+            _bit(b, &last, &run, &n)
+            crc = _crc_bit(crc, b)
+        for i in range(2):  # SRR, IDE (recessive)
+            _bit(1, &last, &run, &n)
+            crc = _crc_bit(crc, 1)
+        for i in range(17, -1, -1):  # identifier extension
+            b = (aid >> i) & 1
+            _bit(b, &last, &run, &n)
+            crc = _crc_bit(crc, b)
+        b = 1 if remote else 0  # RTR, r1, r0
+        _bit(b, &last, &run, &n)
+        crc = _crc_bit(crc, b)
+        for i in range(2):
+            _bit(0, &last, &run, &n)
+            crc = _crc_bit(crc, 0)
+    else:
+        for i in range(10, -1, -1):
+            b = (aid >> i) & 1
+            _bit(b, &last, &run, &n)
+            crc = _crc_bit(crc, b)
+        b = 1 if remote else 0  # RTR, IDE, r0
+        _bit(b, &last, &run, &n)
+        crc = _crc_bit(crc, b)
+        for i in range(2):
+            _bit(0, &last, &run, &n)
+            crc = _crc_bit(crc, 0)
+    for i in range(3, -1, -1):  # DLC
+        b = (dlc >> i) & 1
+        _bit(b, &last, &run, &n)
+        crc = _crc_bit(crc, b)
+    code = last * 8 + run
+    if not remote:
+        for i in range(n_data):  # data: CRC register and stuffing state a byte at a time
+            byte = data[i]
+            crc = ((crc << 8) & 0x7FFF) ^ CRC_TABLE[((crc >> 7) ^ byte) & 0xFF]
+            n += STUFF_N[code][byte]
+            code = STUFF_NEXT[code][byte]
+    last, run = code >> 3, code & 7
+    for i in range(14, -1, -1):  # the CRC-15 sequence
+        _bit((crc >> i) & 1, &last, &run, &n)
+    return n
+
+
+def stuff_bits(unsigned int arbitration_id, bint is_extended, int dlc, const uint8_t[::1] data,
+               bint is_remote=False) -> int:
+    """Stuff bits CAN inserts into the SOF..CRC span of a classic frame (``data``: its payload,
+    ignored for a remote frame). Unchecked: :func:`canbrake.bus.timing.frame_bits` validates."""
+    cdef Py_ssize_t n = data.shape[0]
+    return _stuff_bits(arbitration_id, is_extended, dlc, &data[0] if n else NULL, n, is_remote)
+
+
+#: bits of a classic data frame before stuffing, IFS included: SOF..CRC (34 or 54 + 8n) + 10 + 3
+cdef int _plain_bits(bint ext, int n_data) noexcept nogil:
+    return (54 if ext else 34) + 8 * n_data + 13
+
+
+def ideal_period(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
+                 double bitrate, double epoch):
+    """The recorder's accounting of one control period under ``bus.timing: ideal``.
+
+    ``ordered``: the period's frames in bus order, tuples whose [1] is the identifier, [2] the
+    payload (bytes) and [3] the ``can.Message``; ``untimed`` / ``sim_control``: identifier ->
+    bool (absent = False). The frames run back to back from ``t`` (s; the bus carries over from
+    the last period) with actual stuffing at ``bitrate`` (bit/s); stamps are scaled into
+    ``[t_k, t_k + dt]`` when the period's wire time exceeds ``dt``.
+
+    Returns ``(t_end, busy_s, n_timed, latencies, stamped)``: the bus free time, the busy time,
+    the frames that take bus time, each one's latency from ``t_k`` (s, list) and
+    ``(epoch + stamp, message)`` for every frame the log holds (no barrier frames).
+    """
+    cdef Py_ssize_t i, n = len(ordered)
+    cdef list durs = [0.0] * n
+    cdef list lats = []
+    cdef list out = []
+    cdef bytes data
+    cdef double dur, wire, scale, busy = 0.0, in_period = 0.0
+    cdef bint ext, is_untimed
+    cdef int n_timed = 0
+    cdef object f, msg, aid, u
+    cdef list flags = [False] * n
+    for i in range(n):
+        f = ordered[i]
+        aid = f[1]
+        u = untimed.get(aid)
+        if u is not None and u:
+            flags[i] = True
+            continue
+        msg = f[3]
+        data = f[2]
+        ext = msg.is_extended_id
+        if len(data) != msg.dlc or not 0 <= aid <= (0x1FFFFFFF if ext else 0x7FF):
+            # a frame frame_bits refuses: the checked path raises what it says
+            from canbrake.bus.timing import frame_bits
+
+            durs[i] = frame_bits(aid, ext, msg.dlc, data, stuffing="actual") / bitrate
+            continue
+        durs[i] = (_plain_bits(ext, len(data)) + _stuff_bits(aid, ext, len(data), <const uint8_t*>(<char*>data),
+                                                             len(data), False)) / bitrate
+    wire = sum(durs)  # Python's own sum (its rounding, whatever the Python release)
+    scale = min(1.0, dt / wire) if wire > 0 else 1.0
+    for i in range(n):
+        dur = durs[i]
+        is_untimed = flags[i]
+        if not is_untimed:
+            t += dur
+            busy += dur
+            n_timed += 1
+            lats.append(t - t_k)
+        in_period += dur
+        f = ordered[i]
+        u = sim_control.get(f[1])
+        if u is None or not u:
+            out.append((epoch + (t_k + in_period * scale), f[3]))
+    return t, busy, n_timed, lats, out

@@ -1,0 +1,53 @@
+"""The compiled trace row and histogram batch (canbrake.nodes._trace) against the library and
+the Python they replace: csv.writer with floats as f"{v:.9g}", LogHistogram.add one by one."""
+from __future__ import annotations
+
+import csv
+import io
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canbrake.nodes._trace import csv_row
+from canbrake.nodes.base import CsvTrace, LogHistogram
+
+values = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True), st.floats(-1e-300, 1e-300), st.integers(-2**70, 2**70),
+    st.booleans(), st.floats(allow_nan=True).map(np.float64), st.integers(-2**63, 2**63 - 1).map(np.int64),
+    st.integers(-2**31, 2**31 - 1).map(np.int32), st.booleans().map(np.bool_))
+
+
+def csv_module(row):
+    buf = io.StringIO()
+    csv.writer(buf).writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+    return buf.getvalue()
+
+
+@settings(max_examples=500, deadline=None)
+@given(st.lists(values, max_size=40))
+def test_row_equals_the_csv_module(row):
+    assert csv_row(row) == csv_module(row)
+
+
+def test_other_values_are_left_to_the_csv_writer(tmp_path):
+    assert csv_row([1.0, "x"]) is None and csv_row([None]) is None
+    t = CsvTrace(tmp_path / "t.csv", ["a", "b", "c"])
+    t.append([1.5, "x,y", None])
+    t.append([0.1, 2, True])
+    t.close()
+    assert (tmp_path / "t.csv").read_bytes() == b'a,b,c\r\n1.5,"x,y",\r\n0.100000000,2,True\r\n'.replace(
+        b"0.100000000", b"0.1")
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.one_of(st.floats(0, 1e5), st.floats(0, 1e-6), st.sampled_from([0.0, 1e-7, 1e4, 2e4])),
+                max_size=60), st.sampled_from([1.001, 1.01]))
+def test_add_many_equals_add_one_by_one(xs, ratio):
+    a, b = LogHistogram(ratio), LogHistogram(ratio)
+    for x in xs:
+        a.add(x)
+    b.add_many(xs)
+    assert (a.counts, a.n, a.total, a.max) == (b.counts, b.n, b.total, b.max)
+    assert math.isclose(a.quantile(0.99), b.quantile(0.99)) or a.n == 0
