@@ -19,8 +19,9 @@ from cpython.dict cimport PyDict_GetItem, PyDict_SetItem
 from cpython.float cimport PyFloat_AS_DOUBLE, PyFloat_FromDouble
 from cpython.long cimport PyLong_AsDouble, PyLong_AsLongLongAndOverflow, PyLong_FromLongLong
 from cpython.object cimport PyObject
-from libc.math cimport isinf, isnan, rint
+from libc.math cimport INFINITY, isinf, isnan, rint
 from libc.stdint cimport int64_t, uint8_t, uint64_t
+from cpython.mem cimport PyMem_Free, PyMem_Realloc
 
 from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
 
@@ -269,3 +270,277 @@ cdef class FieldCodec:
             self._shared_word = w
             self._shared_valid = True
         return self._shared
+
+
+# ---------------------------------------------------------------- receivers' E2E origin
+# frame_origin's results below 0: rejected, by reason (canbrake.bus.guard.REASONS)
+REJECT_CRC = -1
+REJECT_COUNTER = -2
+DEF _CRC = -1
+DEF _COUNTER = -2
+DEF COUNTER_MODULO = 15
+
+
+cdef inline bint _payload(object data, const uint8_t** s, Py_ssize_t* n) except -1:
+    if PyBytes_CheckExact(data):
+        s[0] = <const uint8_t*>PyBytes_AS_STRING(data)
+        n[0] = PyBytes_GET_SIZE(data)
+    elif PyByteArray_Check(data):
+        s[0] = <const uint8_t*>PyByteArray_AS_STRING(data)
+        n[0] = PyByteArray_GET_SIZE(data)
+    else:
+        return False
+    return True
+
+
+cdef int _origin(const uint8_t* s, Py_ssize_t n, unsigned int data_id, int64_t k, int64_t last_origin,
+                 bint same_tick_ok, bint crc_checked, int ext_start, int ext_bits, int64_t max_lag,
+                 int64_t* out):
+    """The tick a protected frame was sent in (E2E CRC, alive counter, its extension) into
+    ``out``, and 0; or a REJECT_* code (< 0)."""
+    cdef uint8_t c
+    cdef Py_ssize_t i
+    cdef uint64_t w = 0
+    cdef int64_t counter, modulus, lag, origin
+    if not crc_checked:
+        if n < 2:
+            return _CRC
+        c = CRC_TABLE[CRC_TABLE[0xFF ^ (data_id & 0xFF)] ^ ((data_id >> 8) & 0xFF)]
+        for i in range(1, n):
+            c = CRC_TABLE[c ^ s[i]]
+        if s[0] != (c ^ 0xFF):
+            return _CRC
+    if s[1] & 0x0F >= COUNTER_MODULO:
+        return _COUNTER
+    counter = s[1] & 0x0F
+    modulus = COUNTER_MODULO
+    if ext_bits > 0:
+        for i in range(n if n < 8 else 8):
+            w |= (<uint64_t>s[i]) << (8 * i)
+        counter += COUNTER_MODULO * <int64_t>((w >> ext_start) & ((<uint64_t>1 << ext_bits) - 1))
+        modulus = COUNTER_MODULO << ext_bits
+    lag = (k - counter) % modulus
+    if lag < 0:  # Python's modulo: non-negative
+        lag += modulus
+    origin = k - lag
+    if lag > max_lag or origin < last_origin or (origin == last_origin and not same_tick_ok):
+        return _COUNTER
+    out[0] = origin
+    return 0
+
+
+def frame_origin(unsigned int data_id, object payload, int64_t k, int64_t last_origin, bint same_tick_ok,
+                 bint crc_checked, object ext, int64_t max_lag):
+    """(origin, 0) of a protected frame received at tick ``k``, or (None, REJECT_*): see
+    :meth:`canbrake.bus.guard.FrameGuard.origin`; ``ext``: (start bit, bits) of the counter's
+    extension or None."""
+    cdef const uint8_t* s
+    cdef Py_ssize_t n
+    cdef int ext_start = 0, ext_bits = 0
+    if not _payload(payload, &s, &n):
+        payload = bytes(payload)
+        _payload(payload, &s, &n)
+    if n < 2 and crc_checked:
+        payload[1]  # the IndexError of Python's indexing
+    if ext is not None:
+        ext_start, ext_bits = ext
+        if ext_start + ext_bits > 64:
+            raise ValueError(f"counter extension {ext} beyond a classical CAN frame")
+    cdef int64_t o = 0
+    cdef int code = _origin(s, n, data_id, k, last_origin, same_tick_ok, crc_checked, ext_start, ext_bits, max_lag, &o)
+    return (None, code) if code < 0 else (o, 0)
+
+
+# ---------------------------------------------------------------- a receiver's peer table
+cdef struct PageField:
+    Field* field     # the signal's field in its page's FieldCodec (kept alive by PeerTable._codecs)
+    double* target   # element j of the array the signal goes to (kept alive by PeerTable.values)
+
+
+cdef struct Page:
+    int j            # sender's ECU index (0-based)
+    bint same_tick_ok
+    int ext_start
+    int ext_bits
+    int first        # its fields: _fields[first:first + count]
+    int count
+
+
+cdef class PeerTable:
+    """What one ECU holds of its peers: per signal an array over the train's ECUs (NaN until
+    received), per ECU the newest origin (tick) and the state pages of that tick seen.
+
+    ``take`` checks a state page (E2E CRC, counter, origin: :func:`frame_origin`) and decodes it
+    straight into the arrays; ``ages`` gives the peers' ages once per period. ``values`` are
+    the arrays themselves (numpy, float64, shape (n,))."""
+
+    cdef readonly int n
+    cdef readonly dict values
+    cdef readonly object origin      # int64 array (n,)
+    cdef object _fresh_arr, _pages_arr
+    cdef int64_t* _origin
+    cdef int64_t* _fresh             # state pages of this tick seen, per ECU
+    cdef int64_t* _pages_of          # state pages per ECU and tick
+    cdef int64_t max_lag
+    cdef dict _index                 # frame id -> page number
+    cdef list _codecs
+    cdef Page* _pg
+    cdef int _npg
+    cdef PageField* _pf
+    cdef int _npf
+    cdef object _listened_arr
+    cdef int64_t* _listened
+    cdef int _nlistened
+
+    def __cinit__(self):
+        self._pg = NULL
+        self._pf = NULL
+
+    def __dealloc__(self):
+        PyMem_Free(self._pg)
+        PyMem_Free(self._pf)
+
+    def __init__(self, int n, signal_names, listened, int64_t max_lag):
+        import numpy as np
+
+        self.n = n
+        self.values = {nm: np.full(n, np.nan) for nm in signal_names}
+        self.origin = np.full(max(n, 1), -(10 ** 12), dtype=np.int64)
+        self._fresh_arr = np.zeros(max(n, 1), dtype=np.int64)
+        self._pages_arr = np.zeros(max(n, 1), dtype=np.int64)
+        self._origin = _i64(self.origin)
+        self._fresh = _i64(self._fresh_arr)
+        self._pages_of = _i64(self._pages_arr)
+        self.max_lag = max_lag
+        self._index = {}
+        self._codecs = []
+        self._npg = self._npf = 0
+        self._listened_arr = np.asarray(list(listened) or [0], dtype=np.int64)
+        self._listened = _i64(self._listened_arr)
+        self._nlistened = len(listened)
+
+    def add_page(self, unsigned int frame_id, int j, FieldCodec codec, signals, bint same_tick_ok, ext):
+        """A state page of ECU index j (0-based): ``signals`` = [(array name, signal name)];
+        ``ext``: its counter extension (start bit, bits) or None."""
+        ext_start, ext_bits = ext if ext is not None else (0, 0)
+        if ext_start + ext_bits > 64:
+            raise ValueError(f"counter extension {ext} beyond a classical CAN frame")
+        if not 0 <= j < self.n:
+            raise ValueError(f"ECU index {j} outside 0..{self.n - 1}")
+        self._pg = <Page*>PyMem_Realloc(self._pg, (self._npg + 1) * sizeof(Page))
+        self._pf = <PageField*>PyMem_Realloc(self._pf, (self._npf + len(signals)) * sizeof(PageField))
+        if self._pg is NULL or self._pf is NULL:
+            raise MemoryError()
+        cdef Page* pg = &self._pg[self._npg]
+        pg.j, pg.same_tick_ok, pg.ext_start, pg.ext_bits = j, same_tick_ok, ext_start, ext_bits
+        pg.first, pg.count = self._npf, len(signals)
+        cdef double[::1] arr
+        for sig, dbc_name in signals:
+            arr = self.values[sig]
+            self._pf[self._npf].field = &codec.f[codec.names.index(dbc_name)]
+            self._pf[self._npf].target = &arr[j]
+            self._npf += 1
+        self._codecs.append(codec)
+        self._index[frame_id] = self._npg
+        self._npg += 1
+        self._pages_of[j] += 1
+
+    def new_tick(self):
+        """A new period: no page of it seen yet."""
+        cdef int j
+        for j in range(self.n):
+            self._fresh[j] = 0
+
+    def origin_of(self, int j):
+        """The newest origin (tick) accepted from ECU index j."""
+        return self._origin[j]
+
+    cdef int _apply(self, int p, uint64_t w, int64_t origin, int64_t k):
+        cdef Page* pg = &self._pg[p]
+        cdef Field* fd
+        cdef int64_t raw
+        cdef uint64_t half
+        cdef int i
+        cdef int j = pg.j
+        for i in range(pg.first, pg.first + pg.count):
+            fd = self._pf[i].field
+            raw = <int64_t>((w >> fd.start) & fd.mask)
+            if fd.is_signed:
+                half = <uint64_t>1 << (fd.nbits - 1)
+                raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
+            # decode's values, as the float the array holds
+            if not fd.scaled:
+                self._pf[i].target[0] = <double>raw
+            elif fd.offset == 0.0 and fd.scale > 0.0:
+                self._pf[i].target[0] = <double>raw * fd.scale
+            else:
+                self._pf[i].target[0] = <double>raw * fd.scale + fd.offset
+        if origin > self._origin[j]:
+            self._origin[j] = origin
+            self._fresh[j] = 0
+        if origin == k:
+            self._fresh[j] += 1
+            return 2 if self._fresh[j] == self._pages_of[j] else 1
+        return 0
+
+    def apply(self, unsigned int frame_id, object data, int64_t origin, int64_t k):
+        """Use an accepted state page sent at tick ``origin`` (receiver at tick ``k``): 0 not of
+        this tick, 1 of this tick, 2 of this tick and the sender's last page of it."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        if not _payload(data, &s, &n):
+            data = bytes(data)
+            _payload(data, &s, &n)
+        return self._apply(self._index[frame_id], _le_word(s, n), origin, k)
+
+    def take(self, unsigned int frame_id, object data, int64_t k):
+        """Check (E2E, origin) and apply a state page received at tick ``k``: REJECT_* (< 0),
+        or as :meth:`apply`."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        cdef int p = self._index[frame_id]
+        cdef Page* pg = &self._pg[p]
+        if not _payload(data, &s, &n):
+            data = bytes(data)
+            _payload(data, &s, &n)
+        cdef int64_t o = 0
+        cdef int code = _origin(s, n, frame_id, k, self._origin[pg.j], pg.same_tick_ok, False,
+                                pg.ext_start, pg.ext_bits, self.max_lag, &o)
+        if code < 0:
+            return code
+        return self._apply(p, _le_word(s, n), o, k)
+
+    def ages(self, int64_t k, double dt, int own, const double[::1] speed):
+        """(age, fresh, max_age) at tick ``k``: per ECU the age in s of its newest value (own
+        entry 0; inf for an ECU never heard whose speed is unknown), the ECUs with a value of
+        this tick (own included) and the oldest finite age (-inf: none)."""
+        import numpy as np
+
+        age = np.empty(self.n)
+        cdef double[::1] a = age
+        cdef int j, fresh = 1
+        cdef int64_t o
+        cdef double x, max_age = -INFINITY
+        for j in range(self.n):
+            o = k if j == own else self._origin[j]
+            x = INFINITY if o < 0 and isnan(speed[j]) else <double>(k - o) * dt
+            a[j] = x
+            if x != INFINITY and x > max_age:
+                max_age = x
+        for j in range(self._nlistened):
+            if self._origin[self._listened[j]] == k:
+                fresh += 1
+        return age, fresh, max_age
+
+
+cdef int64_t* _i64(object arr):
+    cdef int64_t[::1] mv = arr
+    return &mv[0]
+
+
+cdef inline uint64_t _le_word(const uint8_t* s, Py_ssize_t n):
+    cdef uint64_t w = 0
+    cdef Py_ssize_t i
+    for i in range(n if n < 8 else 8):
+        w |= (<uint64_t>s[i]) << (8 * i)
+    return w
