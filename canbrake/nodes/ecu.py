@@ -447,7 +447,7 @@ class EcuNode(Node):
         # ECUs with a value of this tick (own included), the oldest finite age (-inf: none)
         age, fresh, max_age = self._peers.ages(self.k, self.dt, self.i, speed)
         self.stats.peer_missing += n_listened + 1 - fresh
-        obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
+        obs = Observation.of(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
                           deflection_front_m=self.sensors.get("deflection_front_m") if self.car > 1 else None,
