@@ -5,7 +5,8 @@ the emu8 example's paged frames) is encoded with random values of every signal d
 signal's whole raw range (as raw multiples of the scale, and as arbitrary physical values in
 range that cantools rounds the same way), and must give exactly cantools' bytes; decoding must
 give exactly cantools' values. The old interpreted encoder is a second oracle for values out of
-range (saturation), where cantools' strict mode refuses to encode.
+range (saturation), where cantools' strict mode refuses to encode: it lives here, in the tests,
+as :func:`_interpreted_encode` (the product has one codec, the compiled one).
 """
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ from hypothesis import strategies as st
 
 from canbrake.build import bus_layout
 from canbrake.bus import dbc
-from canbrake.bus.codec import FrameCodec
+from canbrake.bus.codec import FrameCodec, MessageCodec
+from canbrake.bus.e2e import e2e_crc
 from canbrake.scenario import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,6 +38,28 @@ def _database(which: str):
 # database -> examples (each example encodes and decodes every message of the database once;
 # the large plans repeat the small ones' message shapes hundreds of times, so fewer examples)
 DATABASES = {"chen6": 40, "emu8_example.yaml": 25, "chen63": 3, "li2024_ecp_over_can.yaml": 3}
+
+
+def _interpreted_encode(c: MessageCodec, values, counter=None, tick=None) -> bytes:
+    """The interpreted encoder the compiled one replaced: Python's round() (half to even) and
+    int arithmetic, saturated to the raw range; the tests' second oracle."""
+    word = 0
+    for name, start, mask, _length, _signed, scale, offset, lo, hi in c._fields:
+        if name == "CRC":
+            continue
+        if name == "Counter" and counter is not None:
+            raw = counter
+        elif name == "CounterExt" and tick is not None:
+            raw = tick // 15
+        else:
+            v = values.get(name, offset)
+            raw = round((v - offset) / scale) if scale != 1.0 or offset != 0.0 else round(v)
+            raw = lo if raw < lo else hi if raw > hi else raw
+        word |= (raw & mask) << start
+    data = bytearray(word.to_bytes(c.length, "little"))
+    if c.protected:
+        data[0] = e2e_crc(c.frame_id, data)
+    return bytes(data)
 
 
 def _raw_range(s) -> tuple[int, int]:
@@ -82,7 +106,7 @@ def _check_every_message(which, data, physical):
             theirs_vals["CRC"] = 0
         theirs = m.encode(theirs_vals, strict=True)
         assert ours == theirs, (m.name, vals)
-        assert ours == c.encode_reference(vals, counter=vals.get("Counter")), m.name
+        assert ours == _interpreted_encode(c, vals, counter=vals.get("Counter")), m.name
         dec_theirs = m.decode(theirs, decode_choices=False)
         assert c.decode(theirs) == dec_theirs, m.name
         # decoding random bytes (every bit pattern, CRC not checked by a decoder) agrees as well
@@ -100,7 +124,7 @@ def test_codec_saturates_like_the_interpreted_encoder(data):
     counter = data.draw(st.none() | st.integers(0, 14))
     if counter is None and "Counter" in vals:
         vals["Counter"] = float(data.draw(st.integers(-100, 100)))
-    assert c.encode(vals, counter=counter) == c.encode_reference(vals, counter=counter)
+    assert c.encode(vals, counter=counter) == _interpreted_encode(c, vals, counter=counter)
 
 
 @settings(max_examples=60, deadline=None)
@@ -113,3 +137,51 @@ def test_decode_shared_is_decode_and_follows_each_new_payload(payloads):
     for p in payloads:
         for data in (p, bytearray(p)):
             assert m.decode_shared(data) == m.decode(p)
+
+
+def _any_value(s):
+    """Values of every kind the nodes may pass: raw half-way points (ties to even), ints beyond
+    64 bits, floats of any magnitude, bools, numpy scalars."""
+    import numpy as np
+
+    lo, hi = _raw_range(s)
+    return st.one_of(st.integers(lo - 4, hi + 4).map(lambda r: (r + 0.5) * s.scale + s.offset),
+                     st.integers(-(1 << 70), 1 << 70), st.booleans(),
+                     st.floats(allow_nan=False, allow_infinity=False, width=64),
+                     st.floats(lo - 10.0, hi + 10.0).map(lambda r: np.float64(r * s.scale + s.offset)))
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.data())
+def test_codec_rounds_and_saturates_like_python_on_every_kind_of_value(data):
+    """Python's round() (half to even, exact ints) and saturation, as the interpreted encoder,
+    on the protected and extended-counter messages of the ECP plan too."""
+    which = data.draw(st.sampled_from(["chen6", "li2024_ecp_over_can.yaml"]))
+    db, fc = _database(which)
+    m = data.draw(st.sampled_from(db.messages))
+    c = fc.by_id[m.frame_id]
+    vals = {s.name: data.draw(_any_value(s), label=s.name) for s in m.signals if s.name != "CRC"}
+    counter = data.draw(st.none() | st.integers(0, 14))
+    tick = data.draw(st.none() | st.integers(0, 1 << 31))
+    try:
+        want = _interpreted_encode(c, vals, counter=counter, tick=tick)
+    except OverflowError as exc:  # a float beyond the int range of Python (e.g. 1e308 / 0.001)
+        with pytest.raises(OverflowError, match=str(exc)):
+            c.encode(vals, counter=counter, tick=tick)
+        return
+    assert c.encode(vals, counter=counter, tick=tick) == want
+
+
+@pytest.mark.parametrize("value, error", [(float("nan"), ValueError), (float("inf"), OverflowError),
+                                          (-float("inf"), OverflowError), (10 ** 400, OverflowError)])
+def test_codec_refuses_what_python_round_refuses(value, error):
+    """A value round() cannot convert fails with round()'s own error (the nodes leave non-finite
+    values out of their frames; the plant and tests rely on the error)."""
+    _db, fc = _database("chen6")
+    c = fc["STATE_C1"]
+    name = next(n for n, *_rest, scale, offset, _lo, _hi in c._fields if scale != 1.0)
+    with pytest.raises(error) as ours:
+        c.encode({name: value})
+    with pytest.raises(error) as theirs:
+        _interpreted_encode(c, {name: value})
+    assert str(ours.value) == str(theirs.value)

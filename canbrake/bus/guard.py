@@ -23,7 +23,8 @@ from __future__ import annotations
 
 from typing import Any
 
-from canbrake.bus.e2e import COUNTER_MODULO, counter_modulus, e2e_crc, extended_counter
+from canbrake.bus._codec import REJECT_CRC, frame_origin
+from canbrake.bus.e2e import COUNTER_MODULO, counter_modulus
 from canbrake.bus.secoc import STALE_ALIASES, SecOC
 
 REASONS = ("crc", "counter", "freshness", "authentication", "unknown_sender", "sync")
@@ -61,19 +62,12 @@ class FrameGuard:
         ``last_origin``: tick of the newest frame accepted from this sender (per data ID, or per
         sender with ``same_tick_ok`` when it sends several pages per tick); ``crc_checked``: the
         caller has checked the E2E CRC already (an E2E receiver's check)."""
-        if not crc_checked and (len(payload) < 2 or payload[0] != e2e_crc(data_id, payload)):
-            self.reject("crc")
-            return None
-        if payload[1] & 0x0F >= COUNTER_MODULO:
-            self.reject("counter")
-            return None
         ext = self.counter_ext.get(data_id)
-        modulus = COUNTER_MODULO if ext is None else counter_modulus(ext[1])
-        lag = (k - extended_counter(payload, ext)) % modulus
-        origin = k - lag
-        if lag > self.max_lag or origin < last_origin or (origin == last_origin and not same_tick_ok):
-            self.reject("counter")
+        origin, code = frame_origin(data_id, payload, k, last_origin, same_tick_ok, crc_checked, ext, self.max_lag)
+        if origin is None:
+            self.reject("crc" if code == REJECT_CRC else "counter")
             return None
+        modulus = COUNTER_MODULO if ext is None else counter_modulus(ext[1])
         if authenticated and self.secoc is not None:
             if not self.secoc.verify(data_id, payload, origin, has_crc=True):
                 stale = any(self.secoc.verify(data_id, payload, origin - modulus * m, has_crc=True)

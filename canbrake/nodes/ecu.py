@@ -19,6 +19,7 @@ import can
 import numpy as np
 
 from canbrake.bus import dbc
+from canbrake.bus._codec import REJECT_CRC, PeerTable
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
@@ -129,16 +130,16 @@ class EcuNode(Node):
         self._peer_ids = {**self._state_pages, **self._auth_of}  # id -> (ECU index, ...): one lookup per frame
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
-        self.peer_signals: dict[str, np.ndarray] = {nm: np.full(self.n, np.nan) for nm in names}
-        # per ECU: pages of this tick seen, and the newest origin (tick) as a Python int (a frame
-        # touches single elements, which numpy scalars make several times dearer)
-        self._page_fresh: list[int] = [0] * self.n
-        self._origin_of: list[int] = [-(10 ** 12)] * self.n
         self._multi_page = {j: c > 1 for j, c in self._pages_of.items()}  # ECU index (1-based) -> bool
-        self._state_dec = {fid: (codec.by_id[fid].decode_shared, sigs) for fid, (_e, _p, sigs) in self._state_pages.items()}
         self._listened = [j - 1 for j in self._listens]  # listened ECUs' indices (0-based)
-        self._age_alone = np.full(self.n, np.inf)  # peer ages of an ECU that listens to no one
-        self._age_alone[self.i] = 0.0
+        # peers' values (an array per signal over the train's ECUs), their newest origins (ticks)
+        # and the pages of this tick seen, filled by compiled code (canbrake.bus._codec.PeerTable):
+        # a state page is checked (E2E) and decoded straight into the arrays
+        self._peers = PeerTable(self.n, names, self._listened, self.guard.max_lag)
+        for fid, (e, _p, sigs) in self._state_pages.items():
+            self._peers.add_page(fid, e - 1, codec.by_id[fid]._c, sigs, self._multi_page[e],
+                                 self.guard.counter_ext.get(fid))
+        self.peer_signals: dict[str, np.ndarray] = self._peers.values
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
@@ -198,9 +199,8 @@ class EcuNode(Node):
                 self._receive_linked(msg, j, now)
                 return []
             bit = 1 << self._slot[j + 1]
-            if self._on_state(j, msg) and (not self.barrier or self._ext_bits & bit):
-                if self._page_fresh[j] == self._pages_of[j + 1]:
-                    return self._peer_done(bit, now)
+            if self._on_state(j, msg) == 2 and (not self.barrier or self._ext_bits & bit):
+                return self._peer_done(bit, now)  # the sender's last page of this tick
             return []
         if aid == self._sync_id and not msg.is_extended_id:
             verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
@@ -221,7 +221,7 @@ class EcuNode(Node):
             self.k = k_new
             self.phase = 0
             self._done = 0
-            self._page_fresh = [0] * self.n
+            self._peers.new_tick()
             if self._candidates:
                 self._expire_candidates()
             return []
@@ -287,24 +287,31 @@ class EcuNode(Node):
             m = f.to_message()
             self._on_state((self._state_pages.get(m.arbitration_id) or self._auth_of[m.arbitration_id])[0] - 1, m)
 
-    def _on_state(self, j: int, msg: can.Message) -> bool:
-        """Take a state frame (or, secured, its authenticator) of ECU index j+1; True if a state
-        page of this tick was accepted."""
+    def _on_state(self, j: int, msg: can.Message) -> int:
+        """Take a state frame (or, secured, its authenticator) of ECU index j+1: 0 nothing of
+        this tick accepted, 1 a state page of this tick, 2 the sender's last page of this tick."""
         if msg.arbitration_id in self._auth_of:
             return self._on_state_auth(j, msg)
-        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, self._origin_of[j],
+        if self.secoc is None:  # checked and applied in one compiled call
+            r = self._peers.take(msg.arbitration_id, msg.data, self.k)
+            if r < 0:
+                self.guard.reject("crc" if r == REJECT_CRC else "counter")
+                self._count_peer_rejection()
+                return 0
+            self.stats.peer_frames += 1
+            return r
+        origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, self._peers.origin_of(j),
                                    same_tick_ok=self._multi_page[j + 1])
         if origin is None:
             self._count_peer_rejection()
-            return False
-        if self.secoc is not None:  # applied only once its authenticator verifies it
-            cands = self._candidates.setdefault(msg.arbitration_id, [])
-            cands.append((origin, bytes(msg.data)))
-            if len(cands) > 2 * COUNTER_MODULO:  # a flood of forgeries: keep the newest
-                del cands[0]
-                self.guard.reject("authentication")
-            return False
-        return self._apply_state(j, msg.arbitration_id, msg.data, origin)
+            return 0
+        # secured: applied only once its authenticator verifies it
+        cands = self._candidates.setdefault(msg.arbitration_id, [])
+        cands.append((origin, bytes(msg.data)))
+        if len(cands) > 2 * COUNTER_MODULO:  # a flood of forgeries: keep the newest
+            del cands[0]
+            self.guard.reject("authentication")
+        return 0
 
     def _count_peer_rejection(self) -> None:
         if self.guard.last_reason == "crc":
@@ -312,7 +319,7 @@ class EcuNode(Node):
         else:
             self.stats.peer_stale_or_duplicate += 1
 
-    def _on_state_auth(self, j: int, msg: can.Message) -> bool:
+    def _on_state_auth(self, j: int, msg: can.Message) -> int:
         """A STATE_AUTH frame (canbrake.bus.secoc): apply the candidate state page it verifies."""
         from canbrake.bus.e2e import e2e_crc
         from canbrake.bus.secoc import authenticator_tick
@@ -322,13 +329,13 @@ class EcuNode(Node):
         if len(data) != 8 or data[0] != e2e_crc(aid, data):
             self.guard.reject("crc")
             self._count_peer_rejection()
-            return False
-        tick, last = authenticator_tick(data), self._origin_of[j]
+            return 0
+        tick, last = authenticator_tick(data), self._peers.origin_of(j)
         if tick > self.k or self.k - tick > self.guard.max_lag or tick < last or (
                 tick == last and self._pages_of[j + 1] == 1):
             self.guard.reject("freshness")  # an authenticator of an earlier (or no) period: a replay
             self._count_peer_rejection()
-            return False
+            return 0
         cands = self._candidates.get(state_id, [])
         hit = next((p for o, p in cands if o == tick and self.secoc.verify_state(state_id, p, data)), None)
         if hit is None:
@@ -337,7 +344,7 @@ class EcuNode(Node):
                 self._count_peer_rejection()
             else:
                 self.guard.state_auth_orphans += 1  # its state frame was lost (or never sent)
-            return False
+            return 0
         keep = [(o, p) for o, p in cands if o > tick]
         for _ in range(len(cands) - len(keep) - 1):  # the other candidates of that tick or older: forged/replayed
             self.guard.reject("authentication")
@@ -352,21 +359,10 @@ class EcuNode(Node):
                 self.guard.reject("authentication")
             self._candidates[sid] = keep
 
-    def _apply_state(self, j: int, state_id: int, data: bytes | bytearray, origin: int) -> bool:
-        """Use an accepted state page of ECU index j+1 sent at tick ``origin``."""
-        decode, sigs = self._state_dec[state_id]
-        d = decode(data)
-        ps = self.peer_signals
-        for sig, dbc_name in sigs:
-            ps[sig][j] = d[dbc_name]
-        if origin > self._origin_of[j]:
-            self._origin_of[j] = origin
-            self._page_fresh[j] = 0
+    def _apply_state(self, j: int, state_id: int, data: bytes | bytearray, origin: int) -> int:
+        """Use an accepted state page of ECU index j+1 sent at tick ``origin`` (as _on_state)."""
         self.stats.peer_frames += 1
-        if origin == self.k:
-            self._page_fresh[j] += 1
-            return True
-        return False
+        return self._peers.apply(state_id, data, origin, self.k)
 
     # ---------------------------------------------------------------- send
     def _emit(self, msg: can.Message, t_s: float, out: list[can.Message]) -> None:
@@ -443,36 +439,15 @@ class EcuNode(Node):
                 arr[self.i] = self.sensors[nm]
         n_listened = len(self._listened)
         speed = peers["speed_mps"]
-        max_age: float  # the oldest finite peer age, for the trace (-inf: none finite)
-        if n_listened <= 1 and self.peer_hold_periods is None:
-            # listening to no one or to one peer (ECP wagons: their locomotive): only its own entry
-            # (age 0) and that peer's are known, every other is NaN with age inf; the general
-            # branch's values without its loop over every ECU of the train
-            age = self._age_alone.copy()
-            fresh, max_age = 1, 0.0
-            if n_listened:
-                p = self._listened[0]
-                o = self._origin_of[p]
-                a = math.inf if o < 0 and math.isnan(speed[p]) else (self.k - o) * self.dt
-                age[p] = a
-                fresh += o == self.k
-                self.stats.peer_missing += 2 - fresh
-                if 0.0 < a < math.inf:  # the oldest finite age: the peer's, or the ECU's own 0
-                    max_age = a
-        else:
-            # over Python lists: an ECU hears a few to a few dozen peers, where numpy's per-call
-            # cost exceeds the loop's (13 us vs 4 us for 6 ECUs, measured; even at ~50)
-            k, dt = self.k, self.dt
-            origin = list(self._origin_of)
-            origin[self.i] = k
-            if self.peer_hold_periods is not None:
-                self._peer_fallback(origin, peers)
-            ages = [math.inf if o < 0 and v != v else (k - o) * dt for o, v in zip(origin, speed.tolist())]
-            age = np.array(ages)
-            fresh = sum(1 for j in self._listened if origin[j] == k) + 1
-            self.stats.peer_missing += n_listened + 1 - fresh
-            max_age = max((a for a in ages if a != math.inf), default=-math.inf)  # -inf: none finite
-        obs = Observation(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
+        if self.peer_hold_periods is not None:
+            origin = self._peers.origin.tolist()
+            origin[self.i] = self.k
+            self._peer_fallback(origin, peers)
+        # per ECU the age of its newest value (compiled: one pass over the train's ECUs), the
+        # ECUs with a value of this tick (own included), the oldest finite age (-inf: none)
+        age, fresh, max_age = self._peers.ages(self.k, self.dt, self.i, speed)
+        self.stats.peer_missing += n_listened + 1 - fresh
+        obs = Observation.of(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
                           deflection_front_m=self.sensors.get("deflection_front_m") if self.car > 1 else None,

@@ -1,0 +1,546 @@
+# cython: language_level=3
+"""Compiled encode/decode of one CAN message from a field table, with the E2E CRC.
+
+Written by hand because it runs for every frame of every node (cantools' ``Message.encode``
+costs ~2.3 us per frame non-strict); cantools stays the model (canbrake.bus.codec builds the
+table from a cantools message) and tests/test_codec.py checks this against cantools bit for bit.
+
+Every canbrake signal is a little-endian bit field of a classical CAN frame (at most 8 bytes),
+so a frame is one 64-bit little-endian word and a field is a shift and a mask. The arithmetic
+is Python's, operation for operation: raw = round((v - offset) / scale) (``v / scale`` when the
+offset is 0, ``round(v)`` unscaled; round half to even as Python's ``round``: ``rint`` under the
+default rounding mode), saturated to the raw range; decoded as raw * scale (+ offset unless it
+is 0 and scale > 0), unscaled signals as ints. Values that are neither ints nor floats take
+Python's own operators (same results, slower).
+"""
+from cpython.bytes cimport PyBytes_AS_STRING, PyBytes_FromStringAndSize, PyBytes_GET_SIZE
+from cpython.bytearray cimport PyByteArray_AS_STRING, PyByteArray_GET_SIZE
+from cpython.dict cimport PyDict_GetItem, PyDict_SetItem
+from cpython.float cimport PyFloat_AS_DOUBLE, PyFloat_FromDouble
+from cpython.long cimport PyLong_AsDouble, PyLong_AsLongLongAndOverflow, PyLong_FromLongLong
+from cpython.object cimport PyObject
+from libc.math cimport INFINITY, isinf, isnan, rint
+from libc.stdint cimport int64_t, uint8_t, uint64_t
+from cpython.mem cimport PyMem_Free, PyMem_Realloc
+
+from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
+
+cdef extern from "Python.h":
+    bint PyFloat_Check(object o)
+    bint PyLong_Check(object o)
+    bint PyDict_CheckExact(object o)
+    bint PyBytes_CheckExact(object o)
+    bint PyByteArray_Check(object o)
+
+# the CRC-8 SAE J1850 byte table of canbrake.bus._crc (one algorithm; this module only looks it up)
+cdef uint8_t CRC_TABLE[256]
+cdef int _i
+for _i in range(256):
+    CRC_TABLE[_i] = <uint8_t>_CRC_TABLE_TUPLE[_i]
+
+DEF MAX_FIELDS = 64
+
+# field roles
+cdef enum:
+    ROLE_VALUE = 0
+    ROLE_CRC = 1
+    ROLE_COUNTER = 2
+    ROLE_COUNTER_EXT = 3
+
+cdef struct Field:
+    int start
+    int nbits
+    uint64_t mask
+    bint is_signed
+    double scale
+    double offset
+    int64_t lo
+    int64_t hi
+    int role
+    bint scaled
+
+
+cdef inline int64_t _floordiv15(int64_t t):
+    """Python's ``t // 15`` (floor, also for negative t)."""
+    cdef int64_t q = t / 15
+    if t % 15 != 0 and t < 0:
+        q -= 1
+    return q
+
+
+cdef class FieldCodec:
+    """encode/decode of one message from its field table.
+
+    ``fields``: per signal (name, start bit, bits, signed, scale, offset, role) with role one of
+    "value", "crc", "counter", "counter_ext"; ``length``: payload bytes (<= 8); ``protected``:
+    the CRC field holds the E2E CRC over ``data_id`` and bytes 1.. (canbrake.bus.e2e)."""
+
+    cdef Field f[MAX_FIELDS]
+    cdef int n
+    cdef int length
+    cdef bint protected
+    cdef uint8_t crc0
+    cdef tuple names
+    cdef tuple defaults       # per field the default value object (its offset, a float)
+    cdef tuple lo_obj, hi_obj  # per field the raw range as Python ints (generic path)
+    cdef uint64_t _shared_word
+    cdef bint _shared_valid
+    cdef object _shared
+
+    def __init__(self, fields, int length, bint protected, unsigned int data_id):
+        if length > 8:
+            raise ValueError(f"payload of {length} bytes: only classical CAN frames (<= 8 bytes) are supported")
+        if len(fields) > MAX_FIELDS:
+            raise ValueError(f"{len(fields)} signals: at most {MAX_FIELDS} per message are supported")
+        roles = {"value": ROLE_VALUE, "crc": ROLE_CRC, "counter": ROLE_COUNTER, "counter_ext": ROLE_COUNTER_EXT}
+        self.n = len(fields)
+        self.length = length
+        self.protected = protected
+        names, defaults, lo_obj, hi_obj = [], [], [], []
+        cdef int i = 0
+        cdef Field* fd
+        for name, start, nbits, is_signed, scale, offset, role in fields:
+            if nbits > 63 or nbits < 1 or start + nbits > 8 * length:
+                raise ValueError(f"signal {name}: {nbits} bits at bit {start} do not fit a {length}-byte "
+                                 "frame as a field of at most 63 bits")
+            fd = &self.f[i]
+            fd.start = start
+            fd.nbits = nbits
+            fd.mask = (<uint64_t>1 << nbits) - 1
+            fd.is_signed = is_signed
+            fd.scale = scale
+            fd.offset = offset
+            if is_signed:
+                fd.lo = -(<int64_t>1 << (nbits - 1))
+                fd.hi = (<int64_t>1 << (nbits - 1)) - 1
+            else:
+                fd.lo = 0
+                fd.hi = <int64_t>fd.mask
+            fd.role = roles[role]
+            fd.scaled = scale != 1.0 or offset != 0.0
+            names.append(name)
+            defaults.append(float(offset))
+            lo_obj.append(int(fd.lo))
+            hi_obj.append(int(fd.hi))
+            i += 1
+        self.names = tuple(names)
+        self.defaults = tuple(defaults)
+        self.lo_obj = tuple(lo_obj)
+        self.hi_obj = tuple(hi_obj)
+        # the data-ID part of the E2E CRC (low byte, then high byte), a constant of the message
+        self.crc0 = CRC_TABLE[CRC_TABLE[0xFF ^ (data_id & 0xFF)] ^ ((data_id >> 8) & 0xFF)]
+        self._shared_valid = False
+        self._shared = None
+
+    cdef int64_t _raw(self, int i, object v) except? -1:
+        """The saturated raw value of field i for the physical value ``v``."""
+        cdef Field* fd = &self.f[i]
+        cdef double x
+        cdef int ovf = 0
+        cdef long long r
+        if PyFloat_Check(v):
+            x = PyFloat_AS_DOUBLE(v)
+            if fd.scaled:
+                x = x / fd.scale if fd.offset == 0.0 else (x - fd.offset) / fd.scale
+        elif PyLong_Check(v):
+            if not fd.scaled:
+                r = PyLong_AsLongLongAndOverflow(v, &ovf)
+                if ovf > 0:
+                    return fd.hi
+                if ovf < 0:
+                    return fd.lo
+                return fd.lo if r < fd.lo else fd.hi if r > fd.hi else r
+            x = PyLong_AsDouble(v)  # OverflowError for an int beyond floats, as Python's int - float
+            x = x / fd.scale if fd.offset == 0.0 else (x - fd.offset) / fd.scale
+        else:  # any other number type: Python's operators
+            if not fd.scaled:
+                ro = round(v)
+            elif fd.offset == 0.0:
+                ro = round(v / fd.scale)
+            else:
+                ro = round((v - fd.offset) / fd.scale)
+            lo, hi = self.lo_obj[i], self.hi_obj[i]
+            return lo if ro < lo else hi if ro > hi else ro
+        if isnan(x):
+            raise ValueError("cannot convert float NaN to integer")
+        if isinf(x):
+            raise OverflowError("cannot convert float infinity to integer")
+        x = rint(x)  # half to even, as Python's round()
+        if x >= 9223372036854775808.0:
+            return fd.hi
+        if x < -9223372036854775808.0:
+            return fd.lo
+        r = <long long>x
+        return fd.lo if r < fd.lo else fd.hi if r > fd.hi else r
+
+    def encode(self, values, counter=None, tick=None):
+        """``values`` (a mapping, physical units) -> payload bytes. Missing signals encode their
+        offset; out-of-range values saturate at the raw range. Protected messages: ``counter``
+        (tick mod 15) fills Counter and the E2E CRC is computed; ``tick`` fills CounterExt
+        (floor(tick / 15)). Without them those fields are taken from ``values``."""
+        cdef uint64_t w = 0
+        cdef int i
+        cdef Field* fd
+        cdef int64_t r
+        cdef PyObject* p
+        cdef bint exact = PyDict_CheckExact(values)
+        cdef uint8_t b[8]
+        cdef uint8_t crc
+        for i in range(self.n):
+            fd = &self.f[i]
+            if fd.role == ROLE_CRC:
+                continue
+            if fd.role == ROLE_COUNTER and counter is not None:
+                w |= (<uint64_t><int64_t>counter & fd.mask) << fd.start
+                continue
+            if fd.role == ROLE_COUNTER_EXT and tick is not None:
+                w |= (<uint64_t>_floordiv15(<int64_t>tick) & fd.mask) << fd.start
+                continue
+            if exact:
+                p = PyDict_GetItem(values, self.names[i])
+                v = self.defaults[i] if p is NULL else <object>p
+            else:
+                v = values.get(self.names[i], self.defaults[i])
+            r = self._raw(i, v)
+            w |= (<uint64_t>r & fd.mask) << fd.start
+        if self.protected:
+            for i in range(self.length):
+                b[i] = <uint8_t>(w >> (8 * i))
+            crc = self.crc0
+            for i in range(1, self.length):
+                crc = CRC_TABLE[crc ^ b[i]]
+            w |= <uint64_t>(crc ^ 0xFF)
+        for i in range(self.length):
+            b[i] = <uint8_t>(w >> (8 * i))
+        return PyBytes_FromStringAndSize(<char*>b, self.length)
+
+    cdef uint64_t _word(self, object data) except? 0xFFFFFFFFFFFFFFFF:
+        """The payload's first 8 bytes as a little-endian word (bytes past them set bits no
+        field reads; missing bytes are 0)."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n, i
+        cdef uint64_t w = 0
+        if PyBytes_CheckExact(data):
+            s = <const uint8_t*>PyBytes_AS_STRING(data)
+            n = PyBytes_GET_SIZE(data)
+        elif PyByteArray_Check(data):
+            s = <const uint8_t*>PyByteArray_AS_STRING(data)
+            n = PyByteArray_GET_SIZE(data)
+        else:
+            data = bytes(data)
+            s = <const uint8_t*>PyBytes_AS_STRING(data)
+            n = PyBytes_GET_SIZE(data)
+        if n > 8:
+            n = 8
+        for i in range(n):
+            w |= (<uint64_t>s[i]) << (8 * i)
+        return w
+
+    cdef dict _decode_word(self, uint64_t w):
+        cdef dict d = {}
+        cdef int i
+        cdef Field* fd
+        cdef int64_t raw
+        cdef uint64_t half
+        for i in range(self.n):
+            fd = &self.f[i]
+            raw = <int64_t>((w >> fd.start) & fd.mask)
+            if fd.is_signed:
+                half = <uint64_t>1 << (fd.nbits - 1)
+                raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
+            if not fd.scaled:
+                PyDict_SetItem(d, self.names[i], PyLong_FromLongLong(raw))
+            elif fd.offset == 0.0 and fd.scale > 0.0:
+                PyDict_SetItem(d, self.names[i], PyFloat_FromDouble(<double>raw * fd.scale))
+            else:
+                PyDict_SetItem(d, self.names[i], PyFloat_FromDouble(<double>raw * fd.scale + fd.offset))
+        return d
+
+    def decode(self, data):
+        """Payload (bytes-like) -> {signal: physical value} (ints for unscaled signals)."""
+        return self._decode_word(self._word(data))
+
+    def decode_shared(self, data):
+        """``decode(data)`` for callers that only read the result: a payload equal to the last
+        one returns the same dict, so a broadcast frame is decoded once for all the ECUs of one
+        process (the in-process engine, hosted ECUs) instead of once per ECU."""
+        cdef uint64_t w = self._word(data)
+        if not self._shared_valid or w != self._shared_word:
+            self._shared = self._decode_word(w)
+            self._shared_word = w
+            self._shared_valid = True
+        return self._shared
+
+
+# ---------------------------------------------------------------- receivers' E2E origin
+# frame_origin's results below 0: rejected, by reason (canbrake.bus.guard.REASONS)
+REJECT_CRC = -1
+REJECT_COUNTER = -2
+DEF _CRC = -1
+DEF _COUNTER = -2
+DEF COUNTER_MODULO = 15
+
+
+cdef inline bint _payload(object data, const uint8_t** s, Py_ssize_t* n) except -1:
+    if PyBytes_CheckExact(data):
+        s[0] = <const uint8_t*>PyBytes_AS_STRING(data)
+        n[0] = PyBytes_GET_SIZE(data)
+    elif PyByteArray_Check(data):
+        s[0] = <const uint8_t*>PyByteArray_AS_STRING(data)
+        n[0] = PyByteArray_GET_SIZE(data)
+    else:
+        return False
+    return True
+
+
+cdef int _origin(const uint8_t* s, Py_ssize_t n, unsigned int data_id, int64_t k, int64_t last_origin,
+                 bint same_tick_ok, bint crc_checked, int ext_start, int ext_bits, int64_t max_lag,
+                 int64_t* out):
+    """The tick a protected frame was sent in (E2E CRC, alive counter, its extension) into
+    ``out``, and 0; or a REJECT_* code (< 0)."""
+    cdef uint8_t c
+    cdef Py_ssize_t i
+    cdef uint64_t w = 0
+    cdef int64_t counter, modulus, lag, origin
+    if not crc_checked:
+        if n < 2:
+            return _CRC
+        c = CRC_TABLE[CRC_TABLE[0xFF ^ (data_id & 0xFF)] ^ ((data_id >> 8) & 0xFF)]
+        for i in range(1, n):
+            c = CRC_TABLE[c ^ s[i]]
+        if s[0] != (c ^ 0xFF):
+            return _CRC
+    if s[1] & 0x0F >= COUNTER_MODULO:
+        return _COUNTER
+    counter = s[1] & 0x0F
+    modulus = COUNTER_MODULO
+    if ext_bits > 0:
+        for i in range(n if n < 8 else 8):
+            w |= (<uint64_t>s[i]) << (8 * i)
+        counter += COUNTER_MODULO * <int64_t>((w >> ext_start) & ((<uint64_t>1 << ext_bits) - 1))
+        modulus = COUNTER_MODULO << ext_bits
+    lag = (k - counter) % modulus
+    if lag < 0:  # Python's modulo: non-negative
+        lag += modulus
+    origin = k - lag
+    if lag > max_lag or origin < last_origin or (origin == last_origin and not same_tick_ok):
+        return _COUNTER
+    out[0] = origin
+    return 0
+
+
+def frame_origin(unsigned int data_id, object payload, int64_t k, int64_t last_origin, bint same_tick_ok,
+                 bint crc_checked, object ext, int64_t max_lag):
+    """(origin, 0) of a protected frame received at tick ``k``, or (None, REJECT_*): see
+    :meth:`canbrake.bus.guard.FrameGuard.origin`; ``ext``: (start bit, bits) of the counter's
+    extension or None."""
+    cdef const uint8_t* s
+    cdef Py_ssize_t n
+    cdef int ext_start = 0, ext_bits = 0
+    if not _payload(payload, &s, &n):
+        payload = bytes(payload)
+        _payload(payload, &s, &n)
+    if n < 2 and crc_checked:
+        payload[1]  # the IndexError of Python's indexing
+    if ext is not None:
+        ext_start, ext_bits = ext
+        if ext_start + ext_bits > 64:
+            raise ValueError(f"counter extension {ext} beyond a classical CAN frame")
+    cdef int64_t o = 0
+    cdef int code = _origin(s, n, data_id, k, last_origin, same_tick_ok, crc_checked, ext_start, ext_bits, max_lag, &o)
+    return (None, code) if code < 0 else (o, 0)
+
+
+# ---------------------------------------------------------------- a receiver's peer table
+cdef struct PageField:
+    Field* field     # the signal's field in its page's FieldCodec (kept alive by PeerTable._codecs)
+    double* target   # element j of the array the signal goes to (kept alive by PeerTable.values)
+
+
+cdef struct Page:
+    int j            # sender's ECU index (0-based)
+    bint same_tick_ok
+    int ext_start
+    int ext_bits
+    int first        # its fields: _fields[first:first + count]
+    int count
+
+
+cdef class PeerTable:
+    """What one ECU holds of its peers: per signal an array over the train's ECUs (NaN until
+    received), per ECU the newest origin (tick) and the state pages of that tick seen.
+
+    ``take`` checks a state page (E2E CRC, counter, origin: :func:`frame_origin`) and decodes it
+    straight into the arrays; ``ages`` gives the peers' ages once per period. ``values`` are
+    the arrays themselves (numpy, float64, shape (n,))."""
+
+    cdef readonly int n
+    cdef readonly dict values
+    cdef readonly object origin      # int64 array (n,)
+    cdef object _fresh_arr, _pages_arr
+    cdef int64_t* _origin
+    cdef int64_t* _fresh             # state pages of this tick seen, per ECU
+    cdef int64_t* _pages_of          # state pages per ECU and tick
+    cdef int64_t max_lag
+    cdef dict _index                 # frame id -> page number
+    cdef list _codecs
+    cdef Page* _pg
+    cdef int _npg
+    cdef PageField* _pf
+    cdef int _npf
+    cdef object _listened_arr
+    cdef int64_t* _listened
+    cdef int _nlistened
+
+    def __cinit__(self):
+        self._pg = NULL
+        self._pf = NULL
+
+    def __dealloc__(self):
+        PyMem_Free(self._pg)
+        PyMem_Free(self._pf)
+
+    def __init__(self, int n, signal_names, listened, int64_t max_lag):
+        import numpy as np
+
+        self.n = n
+        self.values = {nm: np.full(n, np.nan) for nm in signal_names}
+        self.origin = np.full(max(n, 1), -(10 ** 12), dtype=np.int64)
+        self._fresh_arr = np.zeros(max(n, 1), dtype=np.int64)
+        self._pages_arr = np.zeros(max(n, 1), dtype=np.int64)
+        self._origin = _i64(self.origin)
+        self._fresh = _i64(self._fresh_arr)
+        self._pages_of = _i64(self._pages_arr)
+        self.max_lag = max_lag
+        self._index = {}
+        self._codecs = []
+        self._npg = self._npf = 0
+        self._listened_arr = np.asarray(list(listened) or [0], dtype=np.int64)
+        self._listened = _i64(self._listened_arr)
+        self._nlistened = len(listened)
+
+    def add_page(self, unsigned int frame_id, int j, FieldCodec codec, signals, bint same_tick_ok, ext):
+        """A state page of ECU index j (0-based): ``signals`` = [(array name, signal name)];
+        ``ext``: its counter extension (start bit, bits) or None."""
+        ext_start, ext_bits = ext if ext is not None else (0, 0)
+        if ext_start + ext_bits > 64:
+            raise ValueError(f"counter extension {ext} beyond a classical CAN frame")
+        if not 0 <= j < self.n:
+            raise ValueError(f"ECU index {j} outside 0..{self.n - 1}")
+        self._pg = <Page*>PyMem_Realloc(self._pg, (self._npg + 1) * sizeof(Page))
+        self._pf = <PageField*>PyMem_Realloc(self._pf, (self._npf + len(signals)) * sizeof(PageField))
+        if self._pg is NULL or self._pf is NULL:
+            raise MemoryError()
+        cdef Page* pg = &self._pg[self._npg]
+        pg.j, pg.same_tick_ok, pg.ext_start, pg.ext_bits = j, same_tick_ok, ext_start, ext_bits
+        pg.first, pg.count = self._npf, len(signals)
+        cdef double[::1] arr
+        for sig, dbc_name in signals:
+            arr = self.values[sig]
+            self._pf[self._npf].field = &codec.f[codec.names.index(dbc_name)]
+            self._pf[self._npf].target = &arr[j]
+            self._npf += 1
+        self._codecs.append(codec)
+        self._index[frame_id] = self._npg
+        self._npg += 1
+        self._pages_of[j] += 1
+
+    def new_tick(self):
+        """A new period: no page of it seen yet."""
+        cdef int j
+        for j in range(self.n):
+            self._fresh[j] = 0
+
+    def origin_of(self, int j):
+        """The newest origin (tick) accepted from ECU index j."""
+        return self._origin[j]
+
+    cdef int _apply(self, int p, uint64_t w, int64_t origin, int64_t k):
+        cdef Page* pg = &self._pg[p]
+        cdef Field* fd
+        cdef int64_t raw
+        cdef uint64_t half
+        cdef int i
+        cdef int j = pg.j
+        for i in range(pg.first, pg.first + pg.count):
+            fd = self._pf[i].field
+            raw = <int64_t>((w >> fd.start) & fd.mask)
+            if fd.is_signed:
+                half = <uint64_t>1 << (fd.nbits - 1)
+                raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
+            # decode's values, as the float the array holds
+            if not fd.scaled:
+                self._pf[i].target[0] = <double>raw
+            elif fd.offset == 0.0 and fd.scale > 0.0:
+                self._pf[i].target[0] = <double>raw * fd.scale
+            else:
+                self._pf[i].target[0] = <double>raw * fd.scale + fd.offset
+        if origin > self._origin[j]:
+            self._origin[j] = origin
+            self._fresh[j] = 0
+        if origin == k:
+            self._fresh[j] += 1
+            return 2 if self._fresh[j] == self._pages_of[j] else 1
+        return 0
+
+    def apply(self, unsigned int frame_id, object data, int64_t origin, int64_t k):
+        """Use an accepted state page sent at tick ``origin`` (receiver at tick ``k``): 0 not of
+        this tick, 1 of this tick, 2 of this tick and the sender's last page of it."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        if not _payload(data, &s, &n):
+            data = bytes(data)
+            _payload(data, &s, &n)
+        return self._apply(self._index[frame_id], _le_word(s, n), origin, k)
+
+    def take(self, unsigned int frame_id, object data, int64_t k):
+        """Check (E2E, origin) and apply a state page received at tick ``k``: REJECT_* (< 0),
+        or as :meth:`apply`."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        cdef int p = self._index[frame_id]
+        cdef Page* pg = &self._pg[p]
+        if not _payload(data, &s, &n):
+            data = bytes(data)
+            _payload(data, &s, &n)
+        cdef int64_t o = 0
+        cdef int code = _origin(s, n, frame_id, k, self._origin[pg.j], pg.same_tick_ok, False,
+                                pg.ext_start, pg.ext_bits, self.max_lag, &o)
+        if code < 0:
+            return code
+        return self._apply(p, _le_word(s, n), o, k)
+
+    def ages(self, int64_t k, double dt, int own, const double[::1] speed):
+        """(age, fresh, max_age) at tick ``k``: per ECU the age in s of its newest value (own
+        entry 0; inf for an ECU never heard whose speed is unknown), the ECUs with a value of
+        this tick (own included) and the oldest finite age (-inf: none)."""
+        import numpy as np
+
+        age = np.empty(self.n)
+        cdef double[::1] a = age
+        cdef int j, fresh = 1
+        cdef int64_t o
+        cdef double x, max_age = -INFINITY
+        for j in range(self.n):
+            o = k if j == own else self._origin[j]
+            x = INFINITY if o < 0 and isnan(speed[j]) else <double>(k - o) * dt
+            a[j] = x
+            if x != INFINITY and x > max_age:
+                max_age = x
+        for j in range(self._nlistened):
+            if self._origin[self._listened[j]] == k:
+                fresh += 1
+        return age, fresh, max_age
+
+
+cdef int64_t* _i64(object arr):
+    cdef int64_t[::1] mv = arr
+    return &mv[0]
+
+
+cdef inline uint64_t _le_word(const uint8_t* s, Py_ssize_t n):
+    cdef uint64_t w = 0
+    cdef Py_ssize_t i
+    for i in range(n if n < 8 else 8):
+        w |= (<uint64_t>s[i]) << (8 * i)
+    return w
