@@ -1,0 +1,87 @@
+"""Defects found trying canbrake as a new user (issue 28): each test failed before its fix."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from conftest import CASE1, ROOT
+
+
+# ----------------------------------------------------------------------------- a disk that fills
+def _small_fs_works() -> bool:
+    """A private mount namespace with a tmpfs of our own (unshare; root or user namespaces)."""
+    if shutil.which("unshare") is None:
+        return False
+    r = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c",
+                        "mount -t tmpfs -o size=64k tmpfs /mnt"], capture_output=True, timeout=30)
+    return r.returncode == 0
+
+
+def _valid_files(run: Path) -> list[str]:
+    """The files of a run directory that a reader could not take as they are: left-over
+    temporary files, JSON that does not parse, CSV/log text with a line cut short."""
+    import can
+    import cantools
+    import yaml
+
+    bad = []
+    for p in sorted(run.rglob("*")):
+        if p.is_dir():
+            continue
+        rel = str(p.relative_to(run))
+        data = p.read_bytes()
+        if ".tmp" in p.name:
+            bad.append(f"{rel}: a temporary file left behind")
+        elif p.suffix == ".json":
+            try:
+                json.loads(data)
+            except ValueError:
+                bad.append(f"{rel}: not JSON ({len(data)} bytes)")
+        elif p.suffix in (".csv", ".log") and data and not data.endswith(b"\n"):
+            bad.append(f"{rel}: last line cut short")
+        elif p.suffix == ".csv" and data:
+            rows = list(csv.reader(data.decode().splitlines()))
+            if any(len(r) != len(rows[0]) for r in rows):
+                bad.append(f"{rel}: rows of different widths")
+        elif p.parent == run and p.suffix == ".log":
+            n, lines = sum(1 for _ in can.LogReader(str(p))), data.count(b"\n")
+            if n != lines:
+                bad.append(f"{rel}: {lines} lines but {n} frames")
+        elif p.suffix == ".log" and not data:
+            bad.append(f"{rel}: an empty log")
+        elif p.suffix == ".yaml":
+            yaml.safe_load(data)
+        elif p.suffix == ".dbc":
+            cantools.database.load_string(data.decode())
+    return bad
+
+
+@pytest.mark.parametrize("bus", ["memory", "inprocess"])
+def test_a_disk_that_fills_during_a_run_gives_one_line_and_valid_files(tmp_path, bus):
+    """The run directory on a 160 kB file system: frames.log fills it within the first simulated
+    second. The recorder's flush fails with ENOSPC, then a node process must not print a
+    traceback (it used to, when writing its own log to the same full disk failed too); the one
+    line names the full disk, and every file left in the run directory is whole."""
+    if not _small_fs_works():
+        pytest.skip("no private mount namespace here (unshare --user --mount)")
+    keep = tmp_path / "kept"
+    script = (f"mount -t tmpfs -o size=160k tmpfs {tmp_path / 'mnt'} || exit 99; "
+              f"{sys.executable} -m canbrake.cli run {CASE1} --bus {bus} --duration 3 --no-plots "
+              f"--out {tmp_path / 'mnt' / 'run'}; rc=$?; cp -a {tmp_path / 'mnt' / 'run'} {keep}; exit $rc")
+    (tmp_path / "mnt").mkdir()
+    r = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c", script],
+                       capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert r.returncode == 1, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if ln.startswith("canbrake: error:")]
+    assert len(errors) == 1 and "No space left on device" in errors[0], r.stderr
+    others = [ln for ln in r.stderr.splitlines() if ln not in errors]
+    assert not [ln for ln in others if any(w in ln for w in ("Traceback", "Error", "Exception", "Errno"))], r.stderr
+    assert not any(ln.startswith(("Process ", "  File ")) for ln in others), r.stderr
+    assert (keep / "scenario.yaml").exists() and (keep / "frames.log").stat().st_size > 0
+    assert _valid_files(keep) == []
