@@ -20,13 +20,17 @@ from canbrake.errors import InputError  # noqa: E402  (re-exported for callers)
 
 
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
+    from canbrake.scenario import DuplicateKeyError, load_yaml
+
     out: dict[str, Any] = {}
     for item in items:
         if "=" not in item:
             raise InputError(f"--set {item!r}: expected KEY=VALUE, e.g. --set controller.params.k=20")
         k, v = item.split("=", 1)
         try:
-            out[k.strip()] = yaml.safe_load(v)
+            out[k.strip()] = load_yaml(v)
+        except DuplicateKeyError as e:
+            raise InputError(f"--set {item!r}: duplicate key {e.key!r} in the value") from None
         except yaml.YAMLError:
             raise InputError(f"--set {item!r}: the value is not valid YAML") from None
     return out

@@ -496,7 +496,12 @@ class Scenario(_Model):
     description: str = ""
     seed: int = Field(0, ge=0)
     duration_s: float = Field(..., gt=0)
-    control_period_s: float = Field(0.001, gt=0, le=1.0)
+    control_period_s: float = Field(0.001, gt=0, le=1.0,
+                                    description="lockstep/realtime control period, s; at least the wire time of the "
+                                                "SYNC frame that starts every period (95 bit times: 4 data bytes, "
+                                                "worst-case stuffing, interframe space) at the slowest bit rate "
+                                                "(bus.bitrate_bps, bus.segments), i.e. 95 us at 1 Mbit/s, 190 us at "
+                                                "500 kbit/s")
     mode: Literal["lockstep", "realtime"] = "lockstep"
     time_scale: float = Field(1.0, gt=0, le=100, description="realtime: simulated seconds per wall second "
                                                              "(0.5: half speed for slow hardware)")
@@ -590,7 +595,32 @@ class Scenario(_Model):
                              f"vehicle types' length_m with car 1 leading); list the positions with car 1 in "
                              f"front or set train.coupler.spacing_m")
 
+    def min_control_period_s(self) -> tuple[float, str]:
+        """The shortest control period (s) a CAN bus can carry, and the field of the bit rate it
+        follows from: every period begins with the plant's SYNC frame, so a period lasts at least
+        that frame's wire time (worst-case stuffing and the interframe space, bus/timing.py) at
+        the slowest bit rate the SYNC crosses (``bus.bitrate_bps``, ``bus.segments``). Whether the
+        rest of a period's traffic fits is the bus load's business (the ``overloaded`` finding)."""
+        from canbrake.bus.dbc import SYNC_DLC, SYNC_ID
+        from canbrake.bus.timing import frame_bits
+
+        rates = [(self.bus.bitrate_bps, "bus.bitrate_bps")] + [
+            (sg.bitrate_bps, f"bus.segments.{i}.bitrate_bps") for i, sg in enumerate(self.bus.segments)
+            if sg.bitrate_bps is not None]
+        rate, field = min(rates)
+        return frame_bits(SYNC_ID, False, SYNC_DLC, stuffing="worst") / rate, field
+
     def _check_times(self) -> "Scenario":
+        t_min, rate_field = self.min_control_period_s()
+        if self.control_period_s < t_min:
+            from canbrake.bus.dbc import SYNC_DLC
+
+            rate = min(r for r in [self.bus.bitrate_bps, *(sg.bitrate_bps for sg in self.bus.segments)] if r)
+            raise ValueError(f"@control_period_s: {self.control_period_s:g} s is shorter than the SYNC frame that "
+                             f"begins every period takes on the bus: {round(t_min * rate)} bit times ({SYNC_DLC} "
+                             f"data bytes, worst-case stuffing, interframe space) = {t_min * 1e6:g} us at "
+                             f"{rate / 1e3:g} kbit/s ({rate_field}); the control period must be at least "
+                             f"{t_min * 1e6:g} us")
         if self.time_scale != 1.0 and self.mode != "realtime":
             raise ValueError("@time_scale: only used in realtime mode (mode: realtime, --mode realtime)")
         t_out = self.safety.command_timeout_s
@@ -817,9 +847,21 @@ def blame_overrides(message: str, source: str, overrides: dict[str, Any]) -> str
     return "\n".join(out)
 
 
-class _NoAliasLoader(yaml.SafeLoader):
-    """YAML's safe loader without anchors/aliases: a few hundred bytes of nested aliases expand
-    to gigabytes (a "billion laughs"), and a scenario has no need for them."""
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping that names a key twice (``key``, 1-based ``first_line`` and ``line``)."""
+
+    def __init__(self, key: Any, first_line: int, node: yaml.Node) -> None:
+        super().__init__(None, None, f"duplicate key {key!r} (line {node.start_mark.line + 1}, first at "
+                                     f"line {first_line})", node.start_mark)
+        self.key, self.first_line, self.line = key, first_line, node.start_mark.line + 1
+
+
+class StrictLoader(yaml.SafeLoader):
+    """YAML's safe loader, strict: no anchors/aliases (a few hundred bytes of nested aliases
+    expand to gigabytes, a "billion laughs", and a scenario has no need for them) and no key
+    twice in one mapping (PyYAML keeps the last value silently; a scenario that says ``seed: 1``
+    and later ``seed: 2`` is refused rather than guessed at). Every scenario, ``--set`` value
+    and ``--grid`` value is read with it."""
 
     def compose_node(self, parent: Any, index: Any) -> Any:  # noqa: D102
         if self.check_event(yaml.AliasEvent):
@@ -827,6 +869,28 @@ class _NoAliasLoader(yaml.SafeLoader):
             raise yaml.composer.ComposerError(None, None, f"YAML aliases (*{ev.anchor}) are not supported in "
                                               "scenarios; write the values out", ev.start_mark)
         return super().compose_node(parent, index)
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:  # noqa: D102
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # `<<:` merges are overridden by the mapping's own keys, as YAML says
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    if key in seen:
+                        raise DuplicateKeyError(key, seen[key], key_node)
+                    seen[key] = key_node.start_mark.line + 1
+                except TypeError:
+                    continue  # an unhashable key: SafeConstructor reports it
+        return super().construct_mapping(node, deep)
+
+
+def load_yaml(text: str) -> Any:
+    """``text`` parsed with :class:`StrictLoader` (raises yaml.YAMLError)."""
+    return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader, stricter
+
+
 
 
 def load_scenario(path: str | Path, profile: str | None = None,
@@ -840,7 +904,10 @@ def load_scenario(path: str | Path, profile: str | None = None,
     except (OSError, UnicodeDecodeError) as e:
         raise ScenarioError(f"{p}: cannot read: {e}") from None
     try:
-        data = yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader without aliases
+        data = load_yaml(text)
+    except DuplicateKeyError as e:
+        raise ScenarioError(f"{p}: line {e.line}: duplicate key {e.key!r}, first at line {e.first_line} "
+                            f"(a key may appear once per mapping)") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""

@@ -85,3 +85,26 @@ def test_a_disk_that_fills_during_a_run_gives_one_line_and_valid_files(tmp_path,
     assert not any(ln.startswith(("Process ", "  File ")) for ln in others), r.stderr
     assert (keep / "scenario.yaml").exists() and (keep / "frames.log").stat().st_size > 0
     assert _valid_files(keep) == []
+
+
+# ----------------------------------------------------------------------------- control period bound
+def test_a_control_period_no_can_bus_can_carry_is_refused():
+    """Every period begins with the 4-byte SYNC frame (95 bit times with worst-case stuffing and
+    the interframe space): a shorter period is refused, naming the field, the bound and the bit
+    rate it follows from (the slowest the SYNC crosses); every built-in scenario is above it."""
+    from canbrake.builtin import builtin_scenarios
+    from canbrake.scenario import ScenarioError, load_scenario
+
+    with pytest.raises(ScenarioError, match=r"control_period_s: 1e-09 s is shorter .* 95 bit times .* "
+                                            r"= 95 us at 1000 kbit/s \(bus.bitrate_bps\)"):
+        load_scenario(CASE1, overrides={"control_period_s": 1e-9, "duration_s": 0.01})
+    assert load_scenario(CASE1, overrides={"control_period_s": 95e-6, "duration_s": 0.01}).n_ticks == 105
+    with pytest.raises(ScenarioError, match=r"at least 190 us"):
+        load_scenario(CASE1, overrides={"control_period_s": 150e-6, "bus.bitrate_bps": 500_000, "duration_s": 0.01})
+    seg = ROOT / "scenarios" / "chen2023_case1_segmented.yaml"  # car segments at 1 Mbit/s, backbone at 500 kbit/s
+    with pytest.raises(ScenarioError, match=r"190 us at 500 kbit/s \(bus\.segments\.\d+\.bitrate_bps\)"):
+        load_scenario(seg, overrides={"control_period_s": 150e-6})
+    for b in builtin_scenarios():
+        for profile in [None, *load_scenario(b.path).profiles]:
+            scn = load_scenario(b.path, profile=profile)
+            assert scn.control_period_s >= scn.min_control_period_s()[0], (b.name, profile)
