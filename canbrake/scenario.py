@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Mapping, Union
 
 import numpy as np
 import yaml
@@ -628,10 +628,11 @@ class Scenario(_Model):
             raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
                              f"({self.control_period_s} s)")
         if self.duration_s < self.control_period_s:
-            raise ValueError(f"duration_s ({self.duration_s:g} s) is shorter than one control period "
+            raise ValueError(f"@duration_s: {self.duration_s:g} s is shorter than one control period "
                              f"({self.control_period_s:g} s)")
         if self.duration_s / self.control_period_s > 10_000_000:
-            raise ValueError("duration_s / control_period_s exceeds 10 million ticks")
+            raise ValueError(f"@duration_s: {self.duration_s:g} s / control_period_s {self.control_period_s:g} s "
+                             f"exceeds 10 million ticks")
         return self
 
     def _check_placement(self) -> None:
@@ -769,14 +770,21 @@ def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any
     return out
 
 
-def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
+def _label(key: str, labels: Mapping[str, str] | None) -> str:
+    """How the user gave the override ``key``: ``--set KEY`` unless ``labels`` names it (a
+    command-line flag such as ``--duration``, or an API keyword argument)."""
+    return (labels or {}).get(key) or f"--set {key}"
+
+
+def _set_dotted(data: dict[str, Any], dotted: str, value: Any, labels: Mapping[str, str] | None = None) -> None:
     keys = dotted.split(".")
+    label = _label(dotted, labels)
     cur: Any = data
     for depth, k in enumerate(keys):
         last = depth == len(keys) - 1
         if isinstance(cur, list):
             if not k.isdigit() or int(k) >= len(cur):
-                raise ScenarioError(f"--set {dotted}: {k!r} is not an index of a list of {len(cur)}")
+                raise ScenarioError(f"{label}: {k!r} is not an index of a list of {len(cur)}")
             if last:
                 cur[int(k)] = value
             else:
@@ -787,7 +795,7 @@ def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
             else:
                 cur = cur.setdefault(k, {})
         else:
-            raise ScenarioError(f"--set {dotted}: {'.'.join(keys[:depth])} is not a mapping or list")
+            raise ScenarioError(f"{label}: {'.'.join(keys[:depth])} is not a mapping or list")
 
 
 def format_validation_error(source: str, err: ValidationError) -> str:
@@ -809,8 +817,11 @@ def format_validation_error(source: str, err: ValidationError) -> str:
 
 
 def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | None = None,
-            overrides: dict[str, Any] | None = None, external: list[str] | None = None) -> Scenario:
-    """Validate a scenario mapping, applying a profile and dotted-key overrides."""
+            overrides: dict[str, Any] | None = None, external: list[str] | None = None,
+            labels: Mapping[str, str] | None = None) -> Scenario:
+    """Validate a scenario mapping, applying a profile and dotted-key overrides. ``labels``: how
+    the user gave an override, by its key (``{"duration_s": "--duration"}``), for the messages;
+    default ``--set KEY``."""
     if not isinstance(data, dict):
         raise ScenarioError(f"{source}: expected a mapping at the top level, got {type(data).__name__}")
     data = copy.deepcopy(data)
@@ -825,25 +836,32 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
         data = _deep_merge(data, profiles[profile])
         data["profile"] = profile
     for k, v in (overrides or {}).items():
-        _set_dotted(data, k, v)
+        _set_dotted(data, k, v, labels)
     if external:
         data = mark_external(data, list(external))
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
-        raise ScenarioError(blame_overrides(format_validation_error(source, e), source, overrides or {})) from None
+        raise ScenarioError(blame_overrides(format_validation_error(source, e), source, overrides or {},
+                                            labels)) from None
 
 
-def blame_overrides(message: str, source: str, overrides: dict[str, Any]) -> str:
-    """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file."""
+def blame_overrides(message: str, source: str, overrides: dict[str, Any],
+                    labels: Mapping[str, str] | None = None) -> str:
+    """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file (or
+    the flag or keyword that set it, from ``labels``: ``--duration: must be > 0``)."""
     out = []
     for line in message.splitlines():
         rest = line[len(source) + 2:] if line.startswith(f"{source}: ") else line
         field = rest.split(": ", 1)[0]
         key = next((k for k in sorted(overrides, key=len, reverse=True)
                     if field == k or field.startswith(k + ".") or k.startswith(field + ".")), None)
-        out.append(f"--set {key}: {rest}" if key is not None and key != field else
-                   f"--set {rest}" if key is not None else line)
+        if key is None:
+            out.append(line)
+        elif key != field:
+            out.append(f"{_label(key, labels)}: {rest}")
+        else:
+            out.append(f"{_label(key, labels)}: {rest.split(': ', 1)[1] if ': ' in rest else rest}")
     return "\n".join(out)
 
 
@@ -894,9 +912,14 @@ def load_yaml(text: str) -> Any:
 
 
 def load_scenario(path: str | Path, profile: str | None = None,
-                  overrides: dict[str, Any] | None = None, external: list[str] | None = None) -> Scenario:
-    """Read and validate a scenario file; raises :class:`ScenarioError` with a clear message."""
-    p = Path(path)
+                  overrides: dict[str, Any] | None = None, external: list[str] | None = None,
+                  labels: Mapping[str, str] | None = None) -> Scenario:
+    """Read and validate a scenario file, or the built-in scenario of that name
+    (:func:`canbrake.builtin.find_scenario`); raises :class:`ScenarioError` with a clear message.
+    ``labels``: how the user gave each override (:func:`resolve`)."""
+    from canbrake.builtin import find_scenario
+
+    p = find_scenario(path)
     try:
         text = p.read_text()
     except FileNotFoundError:
@@ -915,4 +938,4 @@ def load_scenario(path: str | Path, profile: str | None = None,
         raise ScenarioError(f"{p}: malformed YAML{where}: {problem}") from None
     if isinstance(data, dict) and "base_dir" not in data:
         data["base_dir"] = str(p.resolve().parent)
-    return resolve(data, str(p), profile, overrides, external)
+    return resolve(data, str(p), profile, overrides, external, labels)

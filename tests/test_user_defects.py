@@ -108,3 +108,40 @@ def test_a_control_period_no_can_bus_can_carry_is_refused():
         for profile in [None, *load_scenario(b.path).profiles]:
             scn = load_scenario(b.path, profile=profile)
             assert scn.control_period_s >= scn.min_control_period_s()[0], (b.name, profile)
+
+
+# ----------------------------------------------------------------------------- built-in names everywhere
+BUILTIN = "chen2023_case1_fine_rail"
+
+
+def test_dbc_analyze_and_sweep_take_a_built_in_scenario_name(tmp_path, monkeypatch, capsys):
+    """`canbrake run NAME` took a built-in scenario's name; dbc, analyze and sweep said "no such
+    scenario file". Run from an empty directory, so no scenarios/ folder can stand in for it."""
+    import cantools
+
+    from canbrake.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["dbc", BUILTIN, "-o", "case1.dbc"]) == 0, capsys.readouterr().err
+    db = cantools.database.load_file("case1.dbc")
+    assert db.get_message_by_name("BRAKE_CMD_C6").frame_id == 0x086
+    assert main(["analyze", BUILTIN, "--ticks", "0"]) == 0, capsys.readouterr().err
+    assert "SYNC" in capsys.readouterr().out
+    assert main(["sweep", BUILTIN, "--grid", "delay=0,1ms", "--duration", "0.005", "--workers", "0",
+                 "--out", "sw", "--no-plots", "-q"]) == 0, capsys.readouterr().err
+    assert len((tmp_path / "sw" / "results.csv").read_text().splitlines()) == 3  # header + 2 points
+
+
+def test_overrides_are_named_as_the_user_gave_them():
+    """A bad value given as a keyword argument of the API names the keyword, not `--set`."""
+    import canbrake
+    from canbrake.scenario import ScenarioError
+
+    with pytest.raises(ScenarioError, match=r"^keyword argument duration_s: Input should be greater than 0$"):
+        canbrake.load_scenario(BUILTIN, duration_s=-1)
+    with pytest.raises(ScenarioError, match=r"^keyword argument initial__speed_kmh__9: '9' is not an index"):
+        canbrake.load_scenario(BUILTIN, initial__speed_kmh__9=3.0)
+    with pytest.raises(ScenarioError, match=r"^keyword argument log_format: Input should be 'log'"):
+        canbrake.run(BUILTIN, bus="inprocess", log_format="csv")
+    with pytest.raises(ScenarioError, match=r"^keyword argument controller__params__k: Input should be a valid number"):
+        canbrake.run(BUILTIN, bus="inprocess", controller__params__k="x")
