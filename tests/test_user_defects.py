@@ -145,3 +145,43 @@ def test_overrides_are_named_as_the_user_gave_them():
         canbrake.run(BUILTIN, bus="inprocess", log_format="csv")
     with pytest.raises(ScenarioError, match=r"^keyword argument controller__params__k: Input should be a valid number"):
         canbrake.run(BUILTIN, bus="inprocess", controller__params__k="x")
+
+
+# ----------------------------------------------------------------------------- reports from an installed package
+_REPORT_LOOKUPS = """
+import sys
+from pathlib import Path
+import canbrake
+assert Path(canbrake.__file__).resolve().is_relative_to(Path(sys.argv[1]).resolve()), canbrake.__file__
+from canbrake.scenario import load_scenario
+from canbrake.report import REPORTS, cai2014, chen2023, delay, ecp, li2024, safety
+assert sorted(REPORTS) == ["cai2014", "chen2023", "delay", "ecp", "li2024", "safety"], REPORTS  # all looked up below
+for spec in chen2023.run_specs():
+    chen2023.resolve_spec(spec)
+for spec in cai2014.run_specs():
+    cai2014.resolve_spec(spec)
+sd = li2024.scenario_dir()
+for spec in li2024.run_specs():
+    li2024._load(spec.scenario, spec.profile, spec.overrides(10.0), sd)
+li2024.train_of(sd).load_route(sd)
+for spec in ecp.SPECS:
+    ecp._load(spec, 10.0, ecp.scenario_dir())
+load_scenario(delay.scenario_path())
+load_scenario(safety.BASE)
+print("found")
+"""
+
+
+def test_every_report_finds_its_scenarios_from_an_installed_package(tmp_path):
+    """`pip install .` puts the built-in scenarios inside the package (canbrake/scenarios); the
+    reports looked for them beside it (site-packages/scenarios) or in the working directory.
+    The package is copied alone (its scenarios link followed, as the wheel does) and each
+    report's scenario lookup runs from an empty directory."""
+    site = tmp_path / "site"
+    shutil.copytree(ROOT / "canbrake", site / "canbrake", ignore=shutil.ignore_patterns("__pycache__"))
+    assert not (site / "scenarios").exists() and (site / "canbrake" / "scenarios" / CASE1.name).is_file()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    r = subprocess.run([sys.executable, "-c", _REPORT_LOOKUPS, str(site)], cwd=empty, capture_output=True,
+                       text=True, timeout=300, env={**__import__("os").environ, "PYTHONPATH": str(site)})
+    assert r.returncode == 0 and r.stdout.strip() == "found", r.stderr[-2000:]
