@@ -43,6 +43,15 @@ def _dotted(overrides: Mapping[str, Any]) -> dict[str, Any]:
     return {k.replace("__", "."): v for k, v in overrides.items()}
 
 
+def _keyword_labels(overrides: Mapping[str, Any], renamed: Mapping[str, str] | None = None) -> dict[str, str]:
+    """How messages name each override: by the keyword argument it came from
+    (``keyword argument duration_s``), not ``--set``; ``renamed``: dotted key -> keyword for
+    arguments that are not the field's own name (``log_format`` sets ``bus.log_format``)."""
+    out = {k.replace("__", "."): f"keyword argument {k}" for k in overrides}
+    out.update({k: f"keyword argument {kw}" for k, kw in (renamed or {}).items()})
+    return out
+
+
 def load_scenario(path: str | Path | Scenario, profile: str | None = None, *,
                   external: Sequence[str] | None = None, **overrides: Any) -> Scenario:
     """Read and validate a scenario.
@@ -55,17 +64,21 @@ def load_scenario(path: str | Path | Scenario, profile: str | None = None, *,
     docs/lockstep-protocol.md). Raises :class:`canbrake.ScenarioError` naming the file and field on
     bad input.
     """
-    from canbrake.builtin import find_scenario
-    from canbrake.scenario import load_scenario as _load
+    return _load(path, profile, external, overrides, _keyword_labels(overrides))
+
+
+def _load(path: str | Path | Scenario, profile: str | None, external: Sequence[str] | None,
+          overrides: Mapping[str, Any], labels: Mapping[str, str]) -> Scenario:
+    from canbrake.scenario import load_scenario as _load_file
 
     if isinstance(path, Scenario):
         data = path.model_dump(mode="json")
         if profile is not None:
             data.pop("profile", None)
         return resolve(data, f"<scenario {path.name}>", profile, _dotted(overrides),
-                       list(external) if external else None)
-    return _load(find_scenario(path), profile=profile, overrides=_dotted(overrides),
-                 external=list(external) if external else None)
+                       list(external) if external else None, labels)
+    return _load_file(path, profile=profile, overrides=_dotted(overrides),
+                      external=list(external) if external else None, labels=labels)
 
 
 @dataclass
@@ -198,13 +211,19 @@ def run(scenario: str | Path | Scenario, *, out: str | Path | None = None, bus: 
     """
     from canbrake.run import preflight, run_scenario
 
+    labels = _keyword_labels(overrides, {"mode": "mode", "bus.log_format": "log_format"})
     if mode is not None:
         overrides["mode"] = mode
     if log_format is not None:
         overrides["bus__log_format"] = log_format
-    scn = load_scenario(scenario, profile=profile, external=external, **overrides)
+    scn = _load(scenario, profile, external, overrides, labels)
     backend = None if bus == "memory" and scn.bus.backend != "memory" else bus
-    preflight(scn, backend, channel, interface)
+    try:
+        preflight(scn, backend, channel, interface)
+    except ScenarioError as e:  # a controller parameter given as a keyword: name the keyword
+        from canbrake.scenario import blame_overrides
+
+        raise ScenarioError(blame_overrides(str(e), "", _dotted(overrides), labels)) from None
     run_dir = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix=f"canbrake-{scn.name}-"))
     summary = run_scenario(scn, run_dir, backend=backend, channel=channel, interface=interface, plots=plots)
     if summary.get("status") == "interrupted":

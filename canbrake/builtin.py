@@ -13,7 +13,7 @@ from pathlib import Path
 
 import yaml
 
-from canbrake.scenario import ScenarioError
+from canbrake.scenario import ScenarioError, load_yaml
 
 #: file suffixes of scenario files
 SUFFIXES = (".yaml", ".yml")
@@ -45,7 +45,7 @@ def builtin_scenarios() -> list[BuiltinScenario]:
 
 def _description(p: Path) -> str:
     try:
-        data = yaml.safe_load(p.read_text())
+        data = load_yaml(p.read_text())
     except (OSError, yaml.YAMLError):
         return ""
     desc = data.get("description") if isinstance(data, dict) else None

@@ -20,13 +20,17 @@ from canbrake.errors import InputError  # noqa: E402  (re-exported for callers)
 
 
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
+    from canbrake.scenario import DuplicateKeyError, load_yaml
+
     out: dict[str, Any] = {}
     for item in items:
         if "=" not in item:
             raise InputError(f"--set {item!r}: expected KEY=VALUE, e.g. --set controller.params.k=20")
         k, v = item.split("=", 1)
         try:
-            out[k.strip()] = yaml.safe_load(v)
+            out[k.strip()] = load_yaml(v)
+        except DuplicateKeyError as e:
+            raise InputError(f"--set {item!r}: duplicate key {e.key!r} in the value") from None
         except yaml.YAMLError:
             raise InputError(f"--set {item!r}: the value is not valid YAML") from None
     return out
@@ -38,29 +42,21 @@ def _cmd_run(a: argparse.Namespace) -> int:
     from canbrake.scenario import ScenarioError, load_scenario
 
     overrides = _parse_set(a.set or [])
-    if a.log_format is not None:
-        overrides["bus.log_format"] = a.log_format
-    if a.seed is not None:
-        overrides["seed"] = a.seed
-    if a.duration is not None:
-        overrides["duration_s"] = a.duration
-    if a.mode is not None:
-        overrides["mode"] = a.mode
-    if a.time_scale is not None:
-        overrides["time_scale"] = a.time_scale
+    labels: dict[str, str] = {}  # an override given by its own flag is named by it in messages
+    for key, flag, value in (("bus.log_format", "--log-format", a.log_format), ("seed", "--seed", a.seed),
+                             ("duration_s", "--duration", a.duration), ("mode", "--mode", a.mode),
+                             ("time_scale", "--time-scale", a.time_scale)):
+        if value is not None:
+            overrides[key] = value
+            labels[key] = flag
     a.scenario = str(find_scenario(a.scenario))  # a file, else a built-in scenario's name
-    try:
-        scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides, external=a.external)
-    except ScenarioError as e:
-        if a.time_scale is not None and str(e).startswith("--set time_scale:"):
-            raise ScenarioError("--time-scale" + str(e)[len("--set time_scale"):]) from None
-        raise
+    scn = load_scenario(a.scenario, profile=a.profile, overrides=overrides, external=a.external, labels=labels)
     try:
         choice = preflight(scn, a.bus, a.channel, a.interface, source=a.scenario)
     except ScenarioError as e:  # a controller parameter given with --set: name --set, not the file
         from canbrake.scenario import blame_overrides
 
-        raise ScenarioError(blame_overrides(str(e), a.scenario, overrides)) from None
+        raise ScenarioError(blame_overrides(str(e), a.scenario, overrides, labels)) from None
     out = Path(a.out) if a.out else Path("runs") / scn.name
     from canbrake.run import check_out_dir
 
@@ -342,7 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "errors, per node frame rates and the bus load, as the run goes.")
     mo.add_argument("--channel", default="vcan0", help="in-memory channel printed by canbrake run, or vcan0/can0")
     mo.add_argument("--interface", help="python-can interface (default: socketcan for vcan*/can*, else canbrake)")
-    mo.add_argument("--scenario", help="the run's scenario.yaml: car count, bit rate, coupler spacing")
+    mo.add_argument("--scenario", help="the run's scenario.yaml (or a built-in scenario's name): car count, bit rate, "
+                                       "coupler spacing")
     mo.add_argument("--dbc", help="DBC to decode with (default: from --scenario, else 6 cars)")
     mo.add_argument("--bitrate", type=int, help="bit rate for the bus load (default: the scenario's, else 500000)")
     mo.add_argument("--duration", type=float, help="stop after this many seconds (default: at the end of the run)")
@@ -361,7 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("dbc", help="generate the CAN database",
                        description="Generate the canbrake DBC with cantools: from a scenario's consist and ECU "
                                    "placement, or Chen's one-ECU-per-car layout with --cars N.")
-    d.add_argument("scenario", nargs="?", help="scenario file (its placement defines the messages)")
+    d.add_argument("scenario", nargs="?", help="scenario file, or the name of a built-in scenario (its placement "
+                                               "defines the messages)")
     d.add_argument("--profile", help="profile of the scenario")
     d.add_argument("--cars", type=int, default=None, help="shortcut without a scenario: N cars (default 6)")
     d.add_argument("-o", "--output", help="output file (default stdout)")

@@ -200,7 +200,7 @@ def register(sub: Any) -> None:
                        description="Worst-case response time of every periodic message of the scenario's CAN schedule "
                                    "(Davis, Burns, Bril, Lukkien 2007: worst-case stuffing, blocking, busy period), "
                                    "schedulability and utilisation, beside the latencies the timing model simulates.")
-    p.add_argument("scenario", help="scenario YAML file")
+    p.add_argument("scenario", help="scenario YAML file, or the name of a built-in scenario (canbrake scenarios)")
     p.add_argument("--profile", help="a profile of the scenario")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a scenario field (repeatable)")
     p.add_argument("--json", metavar="FILE", help="also write the analysis as JSON")

@@ -96,7 +96,7 @@ def register(sub: Any) -> None:
                        description="Run SCENARIO over a grid (delay x loss by default) with the in-process lockstep "
                                    "engine, several seeds where randomness is involved, on Dask workers.",
                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    s.add_argument("scenario", help="scenario YAML file")
+    s.add_argument("scenario", help="scenario YAML file, or the name of a built-in scenario (canbrake scenarios)")
     s.add_argument("--grid", action="append", metavar="NAME=SPEC",
                    help=f"a grid axis (repeatable); default: {' '.join(DEFAULT_GRID)}")
     s.add_argument("--profile", help="a profile of the scenario (e.g. paper, realistic)")

@@ -260,9 +260,12 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", loc
 
 
 def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, choice: BusChoice,
-                barrier: Any, progress: Any, parent_pid: int, env: dict[str, str] | None = None) -> None:
+                barrier: Any, progress: Any, parent_pid: int, env: dict[str, str] | None = None,
+                failure: Any = None) -> None:
     """Entry point of one node process. ``env``: the parent's CANBRAKE_* variables at run start
-    (a forkserver child otherwise sees the environment of the moment the server started)."""
+    (a forkserver child otherwise sees the environment of the moment the server started).
+    ``failure``: a shared byte string (multiprocessing Array) for this process's last error line
+    when its log cannot be written either (a full disk)."""
     from canbrake.build import build_node
     from canbrake.nodes.driver import drive
 
@@ -328,11 +331,9 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         status = "terminated"
         raise
     except BaseException as e:  # noqa: BLE001 - report any failure of this process, then exit 1
-        logs = Path(run_dir) / "logs"
-        logs.mkdir(exist_ok=True)
-        (logs / f"{name}.log").write_text(traceback.format_exc())
         # the orchestrator reports it (one message naming this process and the last line of its
         # traceback, from logs/<name>.log); nothing is printed here
+        _leave_failure(Path(run_dir) / "logs" / f"{name}.log", traceback.format_exc(), failure)
         sys.exit(1)
     finally:
         if node is not None:
@@ -342,6 +343,23 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                 pass
         if bus is not None:
             bus.shutdown()
+
+
+def _leave_failure(log: Path, text: str, failure: Any) -> None:
+    """Write a failed node's traceback to ``log``; when that fails too (the full disk that made
+    the node fail), put its last line in the shared ``failure`` string for the orchestrator, so
+    that nothing reaches the console but the orchestrator's one line."""
+    from canbrake.nodes.base import write_text_atomic
+
+    try:
+        log.parent.mkdir(exist_ok=True)
+        write_text_atomic(log, text)
+    except OSError:
+        lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+        if failure is not None and lines:
+            with failure.get_lock():
+                if not failure.value:  # the first failure is the cause
+                    failure.value = f"{log.stem}\t{lines[-1]}".encode()[:len(failure) - 1]
 
 
 def _set_title(title: str) -> None:
@@ -518,6 +536,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     roles = [("recorder", 0)] + ecu_roles + [("plant", 0)]
     barrier = ctx.Barrier(len(roles))
     progress = ctx.Value("q", -1, lock=False)
+    failure = ctx.Array("c", 512)  # a node's last error line when it cannot write its log (_leave_failure)
     record = _write_run_record(ctx, barrier, choice)
     data = scn.model_dump(mode="json")
     data["_ecu_names"] = {str(i): p.name for i, p in enumerate(placed, start=1)}
@@ -537,7 +556,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             name = role if role != "ecu" else _ecu_process_name(placed, car)
             p = ctx.Process(target=_child_main, name=f"canbrake-{name}",
                             args=(role, car, data, str(run_dir), choice, barrier, progress, os.getpid(),
-                                  env))
+                                  env, failure))
             with children_skip_main():
                 p.start()
             procs[name] = p
@@ -551,7 +570,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
                 if _pid_running(p.pid, starts[n]):
                     raise RunFailure(f"lost contact with {n} (pid {p.pid}), which is still running: "
                                      f"multiprocessing's forkserver exited or was killed")
-                detail = _failure_detail(run_dir, n)
+                detail = _failure_detail(run_dir, n, failure)
                 raise RunFailure(f"{n} (pid {p.pid}) {_signal_name(p.exitcode)}{detail}")
             if not alive:
                 break
@@ -716,12 +735,19 @@ def _load_plant_status(run_dir: Path) -> str | None:
         return None
 
 
-def _failure_detail(run_dir: Path, name: str) -> str:
+def _failure_detail(run_dir: Path, name: str, failure: Any = None) -> str:
+    """The last line of a failed node's traceback: from logs/<name>.log, else from the shared
+    ``failure`` string the node left when its log could not be written (:func:`_leave_failure`)."""
     log = run_dir / "logs" / f"{name}.log"
-    if log.exists():
+    try:
         lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
-        if lines:
-            return f": {lines[-1].strip()} (traceback in {log})"
+    except OSError:
+        lines = []
+    if lines:
+        return f": {lines[-1].strip()} (traceback in {log})"
+    note = failure.value.decode(errors="replace") if failure is not None else ""
+    if note.startswith(f"{name}\t"):
+        return f": {note.split(chr(9), 1)[1]} (its log could not be written)"
     return ""
 
 
@@ -783,14 +809,22 @@ def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> di
             logs = run_dir / "logs"
             try:
                 logs.mkdir(exist_ok=True)
-                (logs / f"{e.node}.log").write_text("".join(traceback.format_exception(e.__cause__)))
+                from canbrake.nodes.base import write_text_atomic
+
+                write_text_atomic(logs / f"{e.node}.log", "".join(traceback.format_exception(e.__cause__)))
                 msg += f" (traceback in {logs / f'{e.node}.log'})"
             except OSError:
                 pass
         return {"status": "failed", "message": msg, "wall_time_s": time.time() - t0}
     finally:
-        for n in nodes:
-            n.close(status)
+        first: BaseException | None = None
+        for n in nodes:  # every node closes (and trims its files), also when one fails to (a full disk)
+            try:
+                n.close(status)
+            except BaseException as e:  # noqa: BLE001 - raised below, after the others closed
+                first = first or e
+        if first is not None:
+            raise first
 
 
 # ----------------------------------------------------------------------------- entry

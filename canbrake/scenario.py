@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Mapping, Union
 
 import numpy as np
 import yaml
@@ -495,7 +495,12 @@ class Scenario(_Model):
     description: str = ""
     seed: int = Field(0, ge=0)
     duration_s: float = Field(..., gt=0)
-    control_period_s: float = Field(0.001, gt=0, le=1.0)
+    control_period_s: float = Field(0.001, gt=0, le=1.0,
+                                    description="lockstep/realtime control period, s; at least the wire time of the "
+                                                "SYNC frame that starts every period (95 bit times: 4 data bytes, "
+                                                "worst-case stuffing, interframe space) at the slowest bit rate "
+                                                "(bus.bitrate_bps, bus.segments), i.e. 95 us at 1 Mbit/s, 190 us at "
+                                                "500 kbit/s")
     mode: Literal["lockstep", "realtime"] = "lockstep"
     time_scale: float = Field(1.0, gt=0, le=100, description="realtime: simulated seconds per wall second "
                                                              "(0.5: half speed for slow hardware)")
@@ -589,7 +594,32 @@ class Scenario(_Model):
                              f"vehicle types' length_m with car 1 leading); list the positions with car 1 in "
                              f"front or set train.coupler.spacing_m")
 
+    def min_control_period_s(self) -> tuple[float, str]:
+        """The shortest control period (s) a CAN bus can carry, and the field of the bit rate it
+        follows from: every period begins with the plant's SYNC frame, so a period lasts at least
+        that frame's wire time (worst-case stuffing and the interframe space, bus/timing.py) at
+        the slowest bit rate the SYNC crosses (``bus.bitrate_bps``, ``bus.segments``). Whether the
+        rest of a period's traffic fits is the bus load's business (the ``overloaded`` finding)."""
+        from canbrake.bus.dbc import SYNC_DLC, SYNC_ID
+        from canbrake.bus.timing import frame_bits
+
+        rates = [(self.bus.bitrate_bps, "bus.bitrate_bps")] + [
+            (sg.bitrate_bps, f"bus.segments.{i}.bitrate_bps") for i, sg in enumerate(self.bus.segments)
+            if sg.bitrate_bps is not None]
+        rate, field = min(rates)
+        return frame_bits(SYNC_ID, False, SYNC_DLC, stuffing="worst") / rate, field
+
     def _check_times(self) -> "Scenario":
+        t_min, rate_field = self.min_control_period_s()
+        if self.control_period_s < t_min:
+            from canbrake.bus.dbc import SYNC_DLC
+
+            rate = min(r for r in [self.bus.bitrate_bps, *(sg.bitrate_bps for sg in self.bus.segments)] if r)
+            raise ValueError(f"@control_period_s: {self.control_period_s:g} s is shorter than the SYNC frame that "
+                             f"begins every period takes on the bus: {round(t_min * rate)} bit times ({SYNC_DLC} "
+                             f"data bytes, worst-case stuffing, interframe space) = {t_min * 1e6:g} us at "
+                             f"{rate / 1e3:g} kbit/s ({rate_field}); the control period must be at least "
+                             f"{t_min * 1e6:g} us")
         if self.time_scale != 1.0 and self.mode != "realtime":
             raise ValueError("@time_scale: only used in realtime mode (mode: realtime, --mode realtime)")
         t_out = self.safety.command_timeout_s
@@ -597,10 +627,11 @@ class Scenario(_Model):
             raise ValueError(f"safety.command_timeout_s ({t_out}) is shorter than one control period "
                              f"({self.control_period_s} s)")
         if self.duration_s < self.control_period_s:
-            raise ValueError(f"duration_s ({self.duration_s:g} s) is shorter than one control period "
+            raise ValueError(f"@duration_s: {self.duration_s:g} s is shorter than one control period "
                              f"({self.control_period_s:g} s)")
         if self.duration_s / self.control_period_s > 10_000_000:
-            raise ValueError("duration_s / control_period_s exceeds 10 million ticks")
+            raise ValueError(f"@duration_s: {self.duration_s:g} s / control_period_s {self.control_period_s:g} s "
+                             f"exceeds 10 million ticks")
         return self
 
     def _check_placement(self) -> None:
@@ -738,14 +769,21 @@ def _deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any
     return out
 
 
-def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
+def _label(key: str, labels: Mapping[str, str] | None) -> str:
+    """How the user gave the override ``key``: ``--set KEY`` unless ``labels`` names it (a
+    command-line flag such as ``--duration``, or an API keyword argument)."""
+    return (labels or {}).get(key) or f"--set {key}"
+
+
+def _set_dotted(data: dict[str, Any], dotted: str, value: Any, labels: Mapping[str, str] | None = None) -> None:
     keys = dotted.split(".")
+    label = _label(dotted, labels)
     cur: Any = data
     for depth, k in enumerate(keys):
         last = depth == len(keys) - 1
         if isinstance(cur, list):
             if not k.isdigit() or int(k) >= len(cur):
-                raise ScenarioError(f"--set {dotted}: {k!r} is not an index of a list of {len(cur)}")
+                raise ScenarioError(f"{label}: {k!r} is not an index of a list of {len(cur)}")
             if last:
                 cur[int(k)] = value
             else:
@@ -756,7 +794,7 @@ def _set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
             else:
                 cur = cur.setdefault(k, {})
         else:
-            raise ScenarioError(f"--set {dotted}: {'.'.join(keys[:depth])} is not a mapping or list")
+            raise ScenarioError(f"{label}: {'.'.join(keys[:depth])} is not a mapping or list")
 
 
 def format_validation_error(source: str, err: ValidationError) -> str:
@@ -839,8 +877,11 @@ def _drop_stale_profile_params(data: dict[str, Any], written_for: Any) -> None:
 
 
 def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | None = None,
-            overrides: dict[str, Any] | None = None, external: list[str] | None = None) -> Scenario:
-    """Validate a scenario mapping, applying a profile and dotted-key overrides.
+            overrides: dict[str, Any] | None = None, external: list[str] | None = None,
+            labels: Mapping[str, str] | None = None) -> Scenario:
+    """Validate a scenario mapping, applying a profile and dotted-key overrides. ``labels``: how
+    the user gave an override, by its key (``{"duration_s": "--duration"}``), for the messages;
+    default ``--set KEY``.
 
     Switching the controller by name (a profile's ``controller.name``, ``--set controller.name=X``)
     drops the previous controller's parameters (a controller derived from it keeps those it
@@ -867,38 +908,57 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
     overrides = overrides or {}
     before = _controller_name(data)
     for k, v in overrides.items():
-        _set_dotted(data, k, v)
+        _set_dotted(data, k, v, labels)
     after = _controller_name(data)
     if after != before and "controller" not in overrides and isinstance(data.get("controller"), dict):
         given = {k: v for k, v in overrides.items() if k == "controller.params" or k.startswith("controller.params.")}
         _switch_controller(data, before, after)
         for k, v in given.items():
-            _set_dotted(data, k, v)
+            _set_dotted(data, k, v, labels)
     _drop_stale_profile_params(data, written_for)
     if external:
         data = mark_external(data, list(external))
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
-        raise ScenarioError(blame_overrides(format_validation_error(source, e), source, overrides or {})) from None
+        raise ScenarioError(blame_overrides(format_validation_error(source, e), source, overrides or {},
+                                            labels)) from None
 
 
-def blame_overrides(message: str, source: str, overrides: dict[str, Any]) -> str:
-    """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file."""
+def blame_overrides(message: str, source: str, overrides: dict[str, Any],
+                    labels: Mapping[str, str] | None = None) -> str:
+    """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file (or
+    the flag or keyword that set it, from ``labels``: ``--duration: must be > 0``)."""
     out = []
     for line in message.splitlines():
         rest = line[len(source) + 2:] if line.startswith(f"{source}: ") else line
         field = rest.split(": ", 1)[0]
         key = next((k for k in sorted(overrides, key=len, reverse=True)
                     if field == k or field.startswith(k + ".") or k.startswith(field + ".")), None)
-        out.append(f"--set {key}: {rest}" if key is not None and key != field else
-                   f"--set {rest}" if key is not None else line)
+        if key is None:
+            out.append(line)
+        elif key != field:
+            out.append(f"{_label(key, labels)}: {rest}")
+        else:
+            out.append(f"{_label(key, labels)}: {rest.split(': ', 1)[1] if ': ' in rest else rest}")
     return "\n".join(out)
 
 
-class _NoAliasLoader(yaml.SafeLoader):
-    """YAML's safe loader without anchors/aliases: a few hundred bytes of nested aliases expand
-    to gigabytes (a "billion laughs"), and a scenario has no need for them."""
+class DuplicateKeyError(yaml.constructor.ConstructorError):
+    """A mapping that names a key twice (``key``, 1-based ``first_line`` and ``line``)."""
+
+    def __init__(self, key: Any, first_line: int, node: yaml.Node) -> None:
+        super().__init__(None, None, f"duplicate key {key!r} (line {node.start_mark.line + 1}, first at "
+                                     f"line {first_line})", node.start_mark)
+        self.key, self.first_line, self.line = key, first_line, node.start_mark.line + 1
+
+
+class StrictLoader(yaml.SafeLoader):
+    """YAML's safe loader, strict: no anchors/aliases (a few hundred bytes of nested aliases
+    expand to gigabytes, a "billion laughs", and a scenario has no need for them) and no key
+    twice in one mapping (PyYAML keeps the last value silently; a scenario that says ``seed: 1``
+    and later ``seed: 2`` is refused rather than guessed at). Every scenario, ``--set`` value
+    and ``--grid`` value is read with it."""
 
     def compose_node(self, parent: Any, index: Any) -> Any:  # noqa: D102
         if self.check_event(yaml.AliasEvent):
@@ -907,11 +967,38 @@ class _NoAliasLoader(yaml.SafeLoader):
                                               "scenarios; write the values out", ev.start_mark)
         return super().compose_node(parent, index)
 
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:  # noqa: D102
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue  # `<<:` merges are overridden by the mapping's own keys, as YAML says
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    if key in seen:
+                        raise DuplicateKeyError(key, seen[key], key_node)
+                    seen[key] = key_node.start_mark.line + 1
+                except TypeError:
+                    continue  # an unhashable key: SafeConstructor reports it
+        return super().construct_mapping(node, deep)
+
+
+def load_yaml(text: str) -> Any:
+    """``text`` parsed with :class:`StrictLoader` (raises yaml.YAMLError)."""
+    return yaml.load(text, Loader=StrictLoader)  # noqa: S506 - a SafeLoader, stricter
+
+
+
 
 def load_scenario(path: str | Path, profile: str | None = None,
-                  overrides: dict[str, Any] | None = None, external: list[str] | None = None) -> Scenario:
-    """Read and validate a scenario file; raises :class:`ScenarioError` with a clear message."""
-    p = Path(path)
+                  overrides: dict[str, Any] | None = None, external: list[str] | None = None,
+                  labels: Mapping[str, str] | None = None) -> Scenario:
+    """Read and validate a scenario file, or the built-in scenario of that name
+    (:func:`canbrake.builtin.find_scenario`); raises :class:`ScenarioError` with a clear message.
+    ``labels``: how the user gave each override (:func:`resolve`)."""
+    from canbrake.builtin import find_scenario
+
+    p = find_scenario(path)
     try:
         text = p.read_text()
     except FileNotFoundError:
@@ -919,7 +1006,10 @@ def load_scenario(path: str | Path, profile: str | None = None,
     except (OSError, UnicodeDecodeError) as e:
         raise ScenarioError(f"{p}: cannot read: {e}") from None
     try:
-        data = yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - a SafeLoader without aliases
+        data = load_yaml(text)
+    except DuplicateKeyError as e:
+        raise ScenarioError(f"{p}: line {e.line}: duplicate key {e.key!r}, first at line {e.first_line} "
+                            f"(a key may appear once per mapping)") from None
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
@@ -927,4 +1017,4 @@ def load_scenario(path: str | Path, profile: str | None = None,
         raise ScenarioError(f"{p}: malformed YAML{where}: {problem}") from None
     if isinstance(data, dict) and "base_dir" not in data:
         data["base_dir"] = str(p.resolve().parent)
-    return resolve(data, str(p), profile, overrides, external)
+    return resolve(data, str(p), profile, overrides, external, labels)

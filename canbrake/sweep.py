@@ -81,7 +81,7 @@ import numpy as np
 import yaml
 
 from canbrake.bus import dbc
-from canbrake.scenario import Scenario, ScenarioError, load_scenario, resolve
+from canbrake.scenario import Scenario, ScenarioError, load_scenario, load_yaml, resolve
 
 #: Chen's safety bound on |coupler deflection| (m)
 DEFLECTION_BOUND_M = 0.01
@@ -198,7 +198,7 @@ def parse_grid(spec: str) -> Axis:
         if ":" in body and "," not in body:
             return _parse_range(name, body, spec, AxisKind(path, ("",), "", -math.inf, math.inf))
         try:
-            values = tuple(yaml.safe_load(v) for v in body.split(","))
+            values = tuple(load_yaml(v) for v in body.split(","))
         except yaml.YAMLError:
             raise GridError(f"--grid {spec!r}: a value is not valid YAML") from None
         if any(isinstance(v, (dict, list)) for v in values) or "" in [v.strip() for v in body.split(",")]:

@@ -1,12 +1,13 @@
 """Turn a finished (or failed) run directory into signals.csv with ECU columns, summary.json and plots."""
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -132,14 +133,12 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
     if not extra_header or set(extra_header) & set(header):
         return  # nothing to add, or already merged (never duplicate columns)
     total = sum(widths)
-    tmp = sig.with_suffix(".csv.tmp")
-    with open(tmp, "w", newline="") as f:
+    with _rewrite(sig) as f:
         w = csv.writer(f)
         w.writerow(header + extra_header)
         for r in body:
             e = extra.get(int(float(r[0])), [])
             w.writerow(r + e + [""] * (total - len(e)))
-    os.replace(tmp, sig)
 
 
 def _merge_ecu_columns_fast(run_dir: Path, n: int) -> bool:
@@ -179,10 +178,8 @@ def _merge_ecu_columns_fast(run_dir: Path, n: int) -> bool:
     for line in body.decode().splitlines():
         k = int(float(line[:line.index(",")] if "," in line else line))
         out.write(",".join([line, *[r.get(k, empty) for r, empty in extras]]) + "\r\n")
-    tmp = sig.with_suffix(".csv.tmp")
-    with open(tmp, "w", newline="") as f:
+    with _rewrite(sig) as f:
         f.write(out.getvalue())
-    os.replace(tmp, sig)
     return True
 
 
@@ -203,13 +200,26 @@ def merge_tick_file(run_dir: Path, name: str) -> None:
     if set(names) & set(rows[0]):
         return  # already merged
     by_tick = {int(r[col]): [v for j, v in enumerate(r) if j != col] for r in erows[1:]}
-    tmp = sig.with_suffix(".csv.tmp")
-    with open(tmp, "w", newline="") as f:
+    with _rewrite(sig) as f:
         w = csv.writer(f)
         w.writerow(rows[0] + names)
         for r in rows[1:]:
             w.writerow(r + by_tick.get(int(float(r[0])), [""] * len(names)))
-    os.replace(tmp, sig)
+
+
+@contextlib.contextmanager
+def _rewrite(path: Path) -> Iterator[Any]:
+    """A text file to write ``path``'s new content into, renamed over ``path`` when the block
+    ends: a failure (a full disk) leaves the old file and no temporary file behind."""
+    tmp = path.with_suffix(".csv.tmp")
+    try:
+        with open(tmp, "w", newline="") as f:
+            yield f
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def _load_json(p: Path) -> dict[str, Any]:

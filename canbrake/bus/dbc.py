@@ -40,6 +40,8 @@ from cantools.database.conversion import BaseConversion
 MAX_CARS = 63
 
 SYNC_ID = 0x010
+#: data bytes of SYNC (the 32-bit tick): the one frame every control period carries
+SYNC_DLC = 4
 REFERENCE_ID = 0x011
 REFERENCE_POS_ID = 0x012
 BRAKE_CMD_BASE = 0x080
@@ -303,7 +305,7 @@ class BusLayout:
         cyc = max(1, int(round(period_ms)))
         names = [e.dbc_node for e in self.ecus]
         msgs: list[MessageSpec] = [
-            MessageSpec(SYNC_ID, "SYNC", 4, PLANT, tuple(names), (("", SignalSpec(
+            MessageSpec(SYNC_ID, "SYNC", SYNC_DLC, PLANT, tuple(names), (("", SignalSpec(
                 "Tick", 0, 32, unit="tick", comment=f"control period counter k; {SYNC_END_TICK:#x} ends the simulation")),),
                 "Starts control period k (plant is the time master).", cyc, False, "sync"),
             MessageSpec(REFERENCE_ID, "REFERENCE", 5, PLANT, tuple(names), (

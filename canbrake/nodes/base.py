@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import math
+import os
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, Iterator, Protocol
@@ -204,8 +205,44 @@ class CsvTrace:
             try:
                 self._file.close()
             finally:
+                path = self._file.name
                 self._file = None
                 self._writer = None
+                trim_partial_line(path)  # a full disk may have cut the last row short
+
+
+def trim_partial_line(path: str | Path) -> None:
+    """Cut a text file after its last complete line: a write cut short (full disk, a killed
+    writer) must not leave half a frame or row that a reader takes for a shorter one."""
+    try:
+        with open(path, "rb+") as f:
+            size = f.seek(0, 2)
+            if size == 0:
+                return
+            back = min(size, 4096)
+            f.seek(size - back)
+            tail = f.read()
+            if tail.endswith(b"\n"):
+                return
+            cut = tail.rfind(b"\n")
+            f.truncate(size - back + cut + 1 if cut >= 0 else (0 if back == size else size))
+    except OSError:
+        pass
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to a temporary file beside ``path`` and rename it over ``path``: a reader
+    (and a full disk) leaves the old file or the whole new one, never an empty or partial one.
+    Raises OSError (the temporary file removed)."""
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        with open(tmp, "w") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def frame(arbitration_id: int, data: bytes) -> can.Message:

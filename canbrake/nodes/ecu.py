@@ -25,7 +25,8 @@ from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
-from canbrake.nodes.base import CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame
+from canbrake.nodes.base import (CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame,
+                                 write_text_atomic)
 
 
 @dataclass
@@ -536,4 +537,4 @@ class EcuNode(Node):
                 "max_s": float(fin.max()) if fin.size else None,
                 "late_frames": int((fin >= self.lockstep_deadline * self.dt).sum())}
         if self.out_dir is not None:
-            (self.out_dir / f"ecu_c{self.car}_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))
+            write_text_atomic(self.out_dir / f"ecu_c{self.car}_stats.json", json.dumps(self.stats.__dict__, indent=1))

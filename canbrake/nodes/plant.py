@@ -20,7 +20,7 @@ from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import E2EReceiver, E2EStatus
 from canbrake.bus.guard import FrameGuard, sign_control
-from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame
+from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
 
 
 from canbrake.physics.contract import PlantModel  # noqa: E402  (the contract every model implements)
@@ -553,4 +553,4 @@ class PlantNode(Node):
                 self.stats.response_s[e.name] = {"n": h.n, "p50_s": h.quantile(0.5), "p99_s": h.quantile(0.99),
                                                  "max_s": h.max}
         if self.out_dir is not None:
-            (self.out_dir / "plant_stats.json").write_text(json.dumps(self.stats.__dict__, indent=1))
+            write_text_atomic(self.out_dir / "plant_stats.json", json.dumps(self.stats.__dict__, indent=1))

@@ -62,7 +62,7 @@ from canbrake.bus._wire import ideal_period
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes.base import LogHistogram, Node  # noqa: F401  (LogHistogram: also imported from here)
+from canbrake.nodes.base import LogHistogram, Node, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
 #: 2 their command phase (frames a sender held back are written with the phase of their kind)
@@ -105,25 +105,6 @@ def is_sim_control(aid: int, layout: Any = None) -> bool:
         m = layout.by_id.get(aid)
         return m is not None and m.kind in ("state_done", "cmd_done")
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
-
-
-def trim_partial_line(path: Path) -> None:
-    """Cut a text log after its last complete line: a write cut short (full disk, a killed
-    writer) must not leave half a frame that a reader takes for a shorter one."""
-    try:
-        with open(path, "rb+") as f:
-            size = f.seek(0, 2)
-            if size == 0:
-                return
-            back = min(size, 4096)
-            f.seek(size - back)
-            tail = f.read()
-            if tail.endswith(b"\n"):
-                return
-            cut = tail.rfind(b"\n")
-            f.truncate(size - back + cut + 1 if cut >= 0 else (0 if back == size else size))
-    except OSError:
-        pass
 
 
 class LoadSeries:
@@ -685,4 +666,4 @@ class RecorderNode(Node):
             stats["guard"] = self.guard.stats()
             if self.scheduling is not None:
                 stats["scheduling"] = self.scheduling
-            (self.log_path.parent / "bus_stats.json").write_text(json.dumps(stats, indent=1))
+            write_text_atomic(self.log_path.parent / "bus_stats.json", json.dumps(stats, indent=1))

@@ -190,9 +190,11 @@ def step_window(profile: str, variant: str) -> float | None:
 
 
 def scenario_dir() -> Path:
-    """The repository's scenarios/ (next to the package in a checkout), else ./scenarios."""
-    here = Path(__file__).resolve().parents[2] / "scenarios"
-    return here if (here / CASE_FILES[1]).exists() else Path("scenarios")
+    """The built-in scenarios (package data: the repository's scenarios/ in a checkout, the
+    installed package's copy otherwise)."""
+    from canbrake.builtin import builtin_dir
+
+    return builtin_dir()
 
 
 def resolve_spec(spec: RunSpec, scen_dir: Path | None = None) -> Scenario:

@@ -105,7 +105,10 @@ def compare_old(old: str, axis: Any, new: Any) -> str | None:
 
 
 def scenario_path() -> Path:
-    return Path(__file__).resolve().parents[2] / "scenarios" / SCENARIO
+    """The built-in scenario the sweeps vary (package data, found from an installed package too)."""
+    from canbrake.builtin import builtin_dir
+
+    return builtin_dir() / SCENARIO
 
 
 def _axes(spec: SweepSpec) -> list[list[Any]]:

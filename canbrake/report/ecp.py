@@ -59,7 +59,11 @@ def step_specs(base_step_s: float, specs: Sequence[Spec] = SPECS) -> list[Spec]:
 
 
 def scenario_dir() -> Path:
-    return Path(__file__).resolve().parents[2] / "scenarios"
+    """The built-in scenarios (package data: the repository's scenarios/ in a checkout, the
+    installed package's copy otherwise)."""
+    from canbrake.builtin import builtin_dir
+
+    return builtin_dir()
 
 
 def command(spec: Spec, duration_s: float, runs_dir: str) -> str:

@@ -70,8 +70,11 @@ READING_TEXT = {
 
 
 def scenario_dir() -> Path:
-    """The repository's scenarios/ folder."""
-    return Path(__file__).resolve().parents[2] / "scenarios"
+    """The built-in scenarios (package data: the repository's scenarios/ in a checkout, the
+    installed package's copy otherwise)."""
+    from canbrake.builtin import builtin_dir
+
+    return builtin_dir()
 
 
 @dataclass(frozen=True)

@@ -14,8 +14,10 @@ import time
 from pathlib import Path
 from typing import Callable
 
+from canbrake.builtin import builtin_dir
+
 DEFAULT_OUT = "docs"
-BASE = Path(__file__).resolve().parents[2] / "scenarios" / "chen2023_case1_fine_rail.yaml"
+BASE = builtin_dir() / "chen2023_case1_fine_rail.yaml"  # package data: found from an installed package too
 RESIDUAL_FRAMES = 1_000_000
 
 
