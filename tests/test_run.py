@@ -241,6 +241,7 @@ def test_run_works_when_tmpdir_cannot_hold_a_socket(tmp_path):
     assert json.loads((tmp_path / "out" / "summary.json").read_text())["ticks"] == 10
 
 
+@pytest.mark.slow  # the whole case (the bar holds over the full run): ~20 s
 def test_case1_acceptance_over_the_bus(tmp_path):
     """Issue 3's bar, through the same node code and frames as `canbrake run`: every coupler
     deflection within ±1 cm throughout, every car within 0.5 km/h of v* after convergence."""

@@ -271,10 +271,10 @@ def test_not_a_can_interface_gives_clear_message() -> None:
 
 # --------------------------------------------------------------------------- canbrake run on vcan0
 #
-# One `canbrake run --bus socketcan --channel vcan0` (the CLI in its own process, as a user runs
-# it) with candump recording beside it and frames injected with cansend while it runs, and one
-# run of the same scenario and seed on the in-memory bus (through the CLI's main() in this
-# process, so the node processes fork from the server this process already started). The guest
+# One `canbrake run --bus socketcan --channel vcan0` (the CLI's main() in this process: its node
+# processes are real OS processes on vcan0 as a user's are) with candump recording beside it and
+# frames injected with cansend while it runs, and one run of the same scenario and seed on the
+# in-memory bus (through the API, whose forkserver the later runs reuse). The guest
 # CPU is emulated (~45 s to import numpy/scipy/pydantic/cantools, a few ticks per second), so
 # the runs are short: CANBRAKE_VCAN_RUN_DURATION seconds of simulated time (default 0.1 s, 100
 # lockstep ticks, ~2,000 frames).
@@ -323,25 +323,30 @@ def _id_data(msgs: list[can.Message]) -> list[tuple[int, bool, bytes]]:
 
 @pytest.fixture(scope="module")
 def socketcan_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
-    """``canbrake run --bus socketcan --channel vcan0`` with ``candump -L vcan0`` recording beside
-    it; once the plant's first SYNC is on the wire, a foreign extended frame and a rogue brake
-    command (wrong CRC) are injected with ``cansend`` in turn until the run ends."""
+    """``canbrake run --bus socketcan --channel vcan0`` (the CLI's main(), in this process: a
+    second Python process would pay the guest's ~45 s of imports again, and so would its
+    forkserver) with ``candump -L vcan0`` recording beside it; once the plant's first SYNC is on
+    the wire, a thread injects a foreign extended frame and a rogue brake command (wrong CRC) with
+    ``cansend`` in turn until the run ends."""
+    import threading
+
+    from canbrake.cli import main
+
     root = tmp_path_factory.mktemp("socketcan_run")
     out, dump = root / "run", root / "candump.log"
     candump = _start_candump(dump, rcvbuf=16 << 20)
-    env = {**os.environ, "CANBRAKE_START_TIMEOUT_S": START_TIMEOUT_S}
+    os.environ.setdefault("CANBRAKE_START_TIMEOUT_S", START_TIMEOUT_S)
     sent: list[str] = []
+    done = threading.Event()
     # canbrake monitor, can.viewer, cantools monitor on vcan0: opt-in, their start (~45 s of imports in
     # the VM) comes before the run and does not fit CI's VM budget; CANBRAKE_VCAN_MONITOR=1 turns it on
     viewers = _start_viewers(root) if os.environ.get("CANBRAKE_VCAN_MONITOR") == "1" else None
-    try:
-        t0 = time.monotonic()
+
+    def inject() -> None:
         with can.Bus(interface="socketcan", channel=CHANNEL,
                      can_filters=[{"can_id": 0x010, "can_mask": 0x7FF, "extended": False}]) as watch:
-            proc = subprocess.Popen([sys.executable, "-m", "canbrake", *_run_args("socketcan", out)],
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
             started = False
-            while proc.poll() is None and time.monotonic() - t0 < 1800:
+            while not done.is_set():
                 if not started:
                     started = watch.recv(timeout=0.5) is not None
                     continue
@@ -349,15 +354,25 @@ def socketcan_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]
                 spec = _rogue_brake_cmd(n) if n % 2 else f"{INJECT_ID:08X}#C0FFEE{n:02X}"
                 subprocess.run([_tool("cansend"), CHANNEL, spec], check=True, timeout=30)
                 sent.append(spec)
-                time.sleep(0.3)
-        stdout, stderr = proc.communicate(timeout=120)
+                done.wait(0.3)
+
+    injector = threading.Thread(target=inject, daemon=True)
+    try:
+        t0 = time.monotonic()
+        injector.start()
+        try:
+            rc = main(_run_args("socketcan", out))
+        finally:
+            done.set()
+            injector.join(60)
         wall = time.monotonic() - t0
         time.sleep(1.0)  # let candump write the last frames
     finally:
         _stop(candump)
         shown = _stop_viewers(viewers) if viewers is not None else None
-    done = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
-    return {"proc": done, "out": out, "candump": dump, "wall": wall, "sent": sent, "viewers": shown}
+    assert not injector.is_alive()
+    proc = subprocess.CompletedProcess(["canbrake", *_run_args("socketcan", out)], rc, "", "")
+    return {"proc": proc, "out": out, "candump": dump, "wall": wall, "sent": sent, "viewers": shown}
 
 
 #: the viewers' text once they are up (can.viewer's column header, cantools monitor's status line)
@@ -424,12 +439,19 @@ def _stop_viewers(v: dict[str, object]) -> dict[str, object]:
 
 @pytest.fixture(scope="module")
 def memory_run(tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
-    from canbrake.cli import main
+    """The same scenario and seed on the in-memory bus, through the API (the CLI's run path is the
+    socketcan run's): run_scenario leaves multiprocessing's forkserver running, so the runs after
+    it (every scenario, the C ECU) fork their nodes from it instead of paying the guest's imports
+    again (tests/conftest.py stops it at the end of the session)."""
+    from canbrake.run import run_scenario
+    from canbrake.scenario import load_scenario
 
     out = tmp_path_factory.mktemp("memory_run") / "run"
     os.environ.setdefault("CANBRAKE_START_TIMEOUT_S", START_TIMEOUT_S)
-    rc = main(_run_args("memory", out))
-    return {"proc": subprocess.CompletedProcess(["canbrake", *_run_args("memory", out)], rc, "", ""),
+    scn = load_scenario(SCENARIO, overrides={"seed": int(SEED), "duration_s": float(DURATION)})
+    s = run_scenario(scn, out, backend="memory", plots=False)
+    rc = 0 if s["status"] == "ok" and s.get("verdict") != "diverged" else 1
+    return {"proc": subprocess.CompletedProcess(["canbrake", *_run_args("memory", out)], rc, "", s.get("message", "")),
             "out": out}
 
 
@@ -586,19 +608,22 @@ VCAN_SCENARIOS = ["chen2023_case2_poor_rail.yaml", "emu8_example.yaml", "cai2014
 
 @pytest.mark.parametrize("scenario", VCAN_SCENARIOS)
 def test_every_scenario_runs_on_vcan0(scenario: str, tmp_path: Path, memory_run: dict[str, object]) -> None:
-    """The other scenarios, briefly (0.02 s or two control periods), through the CLI's main() on vcan0: exit 0, and the
-    same signals.csv as the in-process engine for the same seed. (``memory_run`` first: its
-    forkserver is reused, so these runs do not pay the guest's import time again.)"""
-    from canbrake.cli import main
-
+    """The other scenarios, briefly (0.02 s or two control periods), through the API on vcan0: the
+    run ends ok (what makes `canbrake run` exit 0), and the same signals.csv and frames as the
+    in-process engine for the same seed. (``memory_run`` first: its forkserver is reused, so these
+    runs do not pay the guest's import time again.)"""
+    from canbrake.run import run_scenario
     from canbrake.scenario import load_scenario
 
-    path = str(SCENARIO.parent / scenario)
+    path = SCENARIO.parent / scenario
     period = load_scenario(path).control_period_s  # at least two control periods
-    common = ["--seed", SEED, "--duration", f"{max(0.02, 2 * period):g}", "--no-plots"]
-    assert main(["run", path, "--bus", "socketcan", "--channel", CHANNEL, "--out", str(tmp_path / "sc"),
-                 *common]) == 0
-    assert main(["run", path, "--bus", "inprocess", "--out", str(tmp_path / "ip"), *common]) == 0
+    overrides = {"seed": int(SEED), "duration_s": max(0.02, 2 * period)}
+    summaries = {}
+    for name, backend, kw in (("sc", "socketcan", {"channel": CHANNEL}), ("ip", "inprocess", {})):
+        summaries[name] = s = run_scenario(load_scenario(path, overrides=overrides), tmp_path / name,
+                                           backend=backend, plots=False, **kw)
+        assert s["status"] == "ok" and s.get("verdict") != "diverged", (backend, s.get("message"), s.get("verdict"))
+    assert summaries["sc"]["ticks"] == summaries["ip"]["ticks"] >= 2
     assert (tmp_path / "sc" / "signals.csv").read_bytes() == (tmp_path / "ip" / "signals.csv").read_bytes()
     assert _log_rows(tmp_path / "sc" / "frames.log") == _log_rows(tmp_path / "ip" / "frames.log")
 
