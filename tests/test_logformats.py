@@ -77,7 +77,7 @@ def test_mf4_without_asammdf_is_one_message(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(builtins, "__import__", fake)
     code = main(["run", str(CASE1), "--duration", "0.01", "--bus", "inprocess", "--log-format", "mf4",
                  "--out", str(tmp_path / "r")])
-    assert code == 2 and "bus.log_format: mf4 needs asammdf" in capsys.readouterr().err
+    assert code == 2 and "--log-format: mf4 needs asammdf" in capsys.readouterr().err  # the flag given
     assert not (tmp_path / "r").exists()
 
 
