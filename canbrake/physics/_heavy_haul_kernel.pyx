@@ -17,36 +17,12 @@ All arrays are C-contiguous float64: per vehicle (n,), per coupler (n-1,).
 """
 from libc.math cimport INFINITY, fabs, isfinite
 
+from canbrake.physics._npmath cimport _max, _min, _sign  # numpy's NaN rules, shared
+
 import numpy as np
 
 
-cdef inline double _sign(double a) noexcept nogil:
-    """numpy.sign."""
-    if a > 0.0:
-        return 1.0
-    if a < 0.0:
-        return -1.0
-    if a == 0.0:
-        return 0.0
-    return a
-
-
-cdef inline double _max(double a, double b) noexcept nogil:
-    """numpy.maximum (NaN propagates)."""
-    if a >= b or a != a:
-        return a
-    return b
-
-
-cdef inline double _min(double a, double b) noexcept nogil:
-    """numpy.minimum (NaN propagates)."""
-    if a <= b or a != a:
-        return a
-    return b
-
-
 cdef double KMH = 1.0 / 3.6  # m/s per km/h, as canbrake.physics.heavy_haul.KMH
-
 
 
 cdef class GearKernel:

@@ -18,34 +18,9 @@ Every array is ``(P, n)``, or ``(n,)`` (one row shared by every point), C-contig
 from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBUF_WRITABLE, PyBuffer_Release, PyObject_GetBuffer
 from libc.math cimport fabs, isfinite, sin
 
+from canbrake.physics._npmath cimport _max, _min, _sign  # numpy's NaN rules, shared
+
 import numpy as np
-
-
-cdef inline double _sign(double a) noexcept nogil:
-    """numpy.sign: -1, 0 (+0 for ±0) or 1; NaN stays NaN."""
-    if a > 0.0:
-        return 1.0
-    if a < 0.0:
-        return -1.0
-    if a == 0.0:
-        return 0.0
-    return a
-
-
-cdef inline double _max(double a, double b) noexcept nogil:
-    """numpy.maximum (NaN in ``a`` wins, as numpy's first-argument NaN check; a NaN ``b`` loses to
-    a comparison, then the NaN check on b below)."""
-    if a >= b or a != a:
-        return a
-    return b
-
-
-cdef inline double _min(double a, double b) noexcept nogil:
-    """numpy.minimum."""
-    if a <= b or a != a:
-        return a
-    return b
-
 
 
 cdef struct Rows:
