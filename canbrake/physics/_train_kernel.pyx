@@ -146,49 +146,31 @@ cdef class CoupledKernel:
         v_out = np.empty(shape)
         a_out = np.empty(shape)
         rail_out = rail0 if ideal else np.empty(shape)
-        cdef Py_buffer bx, bv, bc, br, be, bm, bf, bxo, bvo, bao, bro
-        cdef Rows rx = _rows(&bx, x0, n, P, False)
-        cdef Rows rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro
+        # the 11 arrays' buffers, released in one place whatever happens (held: how many were taken)
+        cdef Py_buffer bufs[11]
+        cdef int held = 0
+        cdef Rows rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro
         cdef unsigned char[::1] bad = self.bad
         cdef double[::1] dl_max = self.dl_max
         cdef Py_ssize_t n_bad, p
         try:
-            rv = _rows(&bv, v0, n, P, False)
-            try:
-                rc = _rows(&bc, cmd, n, P, False)
-                try:
-                    rr = _rows(&br, rail0, n, P, False)
-                    try:
-                        re = _rows(&be, effort, n, P, True)
-                        try:
-                            rm = _rows(&bm, mu, n, P, False)
-                            try:
-                                rf = _rows(&bf, eff, n, P, False)
-                                try:
-                                    rxo = _rows(&bxo, x_out, n, P, True)
-                                    rvo = _rows(&bvo, v_out, n, P, True)
-                                    rao = _rows(&bao, a_out, n, P, True)
-                                    rro = _rows(&bro, rail_out, n, P, not ideal)
-                                    t = self._run(rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro, P, t0, h, n_sub,
-                                                  ideal, plain_rail, lag, grade_fn, x_out)
-                                    PyBuffer_Release(&bxo)
-                                    PyBuffer_Release(&bvo)
-                                    PyBuffer_Release(&bao)
-                                    PyBuffer_Release(&bro)
-                                finally:
-                                    PyBuffer_Release(&bf)
-                            finally:
-                                PyBuffer_Release(&bm)
-                        finally:
-                            PyBuffer_Release(&be)
-                    finally:
-                        PyBuffer_Release(&br)
-                finally:
-                    PyBuffer_Release(&bc)
-            finally:
-                PyBuffer_Release(&bv)
+            rx = _rows(&bufs[0], x0, n, P, False); held = 1
+            rv = _rows(&bufs[1], v0, n, P, False); held = 2
+            rc = _rows(&bufs[2], cmd, n, P, False); held = 3
+            rr = _rows(&bufs[3], rail0, n, P, False); held = 4
+            re = _rows(&bufs[4], effort, n, P, True); held = 5
+            rm = _rows(&bufs[5], mu, n, P, False); held = 6
+            rf = _rows(&bufs[6], eff, n, P, False); held = 7
+            rxo = _rows(&bufs[7], x_out, n, P, True); held = 8
+            rvo = _rows(&bufs[8], v_out, n, P, True); held = 9
+            rao = _rows(&bufs[9], a_out, n, P, True); held = 10
+            rro = _rows(&bufs[10], rail_out, n, P, not ideal); held = 11
+            t = self._run(rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro, P, t0, h, n_sub,
+                          ideal, plain_rail, lag, grade_fn, x_out)
         finally:
-            PyBuffer_Release(&bx)
+            while held > 0:
+                held -= 1
+                PyBuffer_Release(&bufs[held])
         n_bad = 0
         for p in range(P):
             n_bad += bad[p]
