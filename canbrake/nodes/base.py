@@ -129,6 +129,18 @@ class Node(ABC):
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
         """React to one received frame; return frames to send."""
 
+    def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
+        """React to frames received together (in bus order); return frames to send. The drivers
+        deliver every frame a node accepted since its last call in one batch, so a node's Python
+        side runs once per batch (a lockstep phase) rather than once per frame; a node overrides
+        this where it can do a batch's work at once. Stops at the frame that finished the node."""
+        out: list[can.Message] = []
+        for m in msgs:
+            out += self.handle(m, now)
+            if self.finished:
+                break
+        return out
+
     def next_deadline(self) -> float | None:
         """Wall time (s) at which :meth:`on_timer` must run, or None (realtime mode only)."""
         return None

@@ -13,13 +13,13 @@ import multiprocessing as mp
 import os
 import time
 import uuid
-from collections import deque
 from typing import Callable, Sequence
 
 import can
 
 from canbrake.bus.memory import BusOverrunError
 from canbrake.nodes.base import Node
+from canbrake.nodes.group import Router, _matches
 
 
 class NodeFailure(RuntimeError):
@@ -43,17 +43,6 @@ def _call(node: Node, fn: Callable[..., list[can.Message]], *args: object) -> li
         raise
     except Exception as e:  # noqa: BLE001 - any bug of a node (or a user's controller) ends the run, named
         raise NodeCrash(node.name, e) from e
-
-
-def _matches(filters: list[dict] | None, msg: can.Message) -> bool:
-    if not filters:
-        return True
-    aid = msg.arbitration_id
-    for f in filters:
-        if (aid & f["can_mask"]) == (f["can_id"] & f["can_mask"]) and (
-                "extended" not in f or f["extended"] == msg.is_extended_id):
-            return True
-    return False
 
 
 def _send_all(bus: can.BusABC, msgs: Sequence[can.Message], retries: int = 200) -> None:
@@ -95,9 +84,13 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
     wake-up's latency (a busy-wait/yield hybrid; 0 = always sleep)."""
     _send_all(bus, node.start(clock()))
     next_check = time.monotonic() + idle_check_s
-    # canbrake's memory bus filters in shared memory: take its frames without BusABC.recv's
-    # per-frame debug-log call (a measurable share of a frame's cost, see docs/performance.md)
-    recv = getattr(bus, "recv_filtered", None) or bus.recv
+    # canbrake's memory bus filters in shared memory and hands over every pending frame at once
+    # (MemoryBus.recv_batch); any other python-can bus gives one frame per recv
+    recv_batch = getattr(bus, "recv_batch", None)
+    if recv_batch is None:
+        def recv_batch(timeout: float | None, _recv: Callable[..., can.Message | None] = bus.recv) -> list[can.Message]:
+            m = _recv(timeout=timeout)
+            return [] if m is None else [m]
     while not node.finished:
         deadline = node.next_deadline()
         now = clock()
@@ -108,20 +101,20 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         else:
             timeout = max(0.0, min(idle_check_s, deadline - now - spin_s))
         try:
-            msg = recv(timeout=timeout)
+            msgs = recv_batch(timeout=timeout)
         except BusOverrunError as e:
             # a flood overran this node's receive ring: count what was lost and receive on
             node.on_rx_overrun(e.frames_lost)
             continue
         now = clock()
-        if msg is not None:
-            _send_all(bus, node.handle(msg, now))
+        if msgs:
+            _send_all(bus, node.handle_batch(msgs, now))
         elif timeout == 0.0 and spin_s > 0.0:
             os.sched_yield()
         deadline = node.next_deadline()
         if deadline is not None and now >= deadline:
             _send_all(bus, node.on_timer(now))
-        if parent_pid is not None and (msg is None or time.monotonic() >= next_check):
+        if parent_pid is not None and (not msgs or time.monotonic() >= next_check):
             next_check = time.monotonic() + idle_check_s
             if not _parent_alive(parent_pid):
                 raise NodeFailure(f"{node.name}: parent process went away")
@@ -150,50 +143,23 @@ def _end_with_time_master(nodes: Sequence[Node]) -> None:
 
 
 def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
-    filters = [n.filters() or None for n in nodes]
-    # Routing: nodes whose filters are all exact standard ids are looked up by id; the others
-    # (the recorder: no filter) are matched frame by frame. Order of delivery = order of `nodes`.
-    # Each identifier's route (node index, node, filters to match or None) is computed once.
-    exact: list[set[int] | None] = []
-    for f in filters:
-        exact.append({x["can_id"] for x in f} if f and all(x["can_mask"] == 0x7FF for x in f) else None)
-    routes: dict[int, list[tuple[int, Node, list[dict] | None]]] = {}
-    routes_ext: dict[int, list[tuple[int, Node, list[dict] | None]]] = {}
-
-    def route(aid: int, extended: bool) -> list[tuple[int, Node, list[dict] | None]]:
-        if extended:  # exact-id nodes take standard frames only
-            r = routes_ext[aid] = [(i, nodes[i], filters[i]) for i, ex in enumerate(exact) if ex is None]
-        else:
-            r = routes[aid] = [(i, nodes[i], filters[i] if ex is None else None)
-                               for i, ex in enumerate(exact) if ex is None or aid in ex]
-        return r
-
-    queue: deque[tuple[int, can.Message]] = deque()
+    """Frames move in generations (:class:`~canbrake.nodes.group.Router`): a lockstep phase is
+    one generation, each node handles its share of it in one call."""
+    router = Router(nodes)
+    gen: list[tuple[int, can.Message]] = []
     for idx, node in enumerate(nodes):
-        queue.extend((idx, m) for m in _call(node, node.start, 0.0))
+        gen.extend((idx, m) for m in _call(node, node.start, 0.0))
     moved = 0
-    popleft, extend = queue.popleft, queue.extend
-    node = nodes[0]
-    try:  # what _call does, around the loop instead of per delivery (a call less per frame and node)
-        while queue:
-            sender, msg = popleft()
-            moved += 1
+    try:  # what _call does, around the loop instead of per call
+        while gen:
+            moved += len(gen)
             if max_frames is not None and moved > max_frames:
                 raise NodeFailure(f"in-process run exceeded {max_frames} frames")
-            aid = msg.arbitration_id
-            targets = (routes_ext if msg.is_extended_id else routes).get(aid) or route(aid, msg.is_extended_id)
-            for idx, node, flt in targets:
-                if idx == sender or node.finished:
-                    continue
-                if flt is not None and not _matches(flt, msg):
-                    continue
-                out = node.handle(msg, 0.0)
-                if out:
-                    extend([(idx, m) for m in out])
+            gen = router.step(router.inboxes(gen), 0.0)
     except NodeFailure:
         raise
     except Exception as e:  # noqa: BLE001 - as in _call: the node whose handle raised, named
-        raise NodeCrash(node.name, e) from e
+        raise NodeCrash((router.current or nodes[0]).name, e) from e
     _end_with_time_master(nodes)
     unfinished = [n.name for n in nodes if not n.finished]
     if unfinished:
@@ -215,13 +181,17 @@ def _run_virtual(nodes: Sequence[Node], max_frames: int | None) -> int:
         while progress:
             progress = False
             for node, bus, flt in zip(nodes, buses, filters):
+                batch: list[can.Message] = []
                 while (msg := bus.recv(timeout=0)) is not None:
-                    progress = True
                     moved += 1
                     if max_frames is not None and moved > max_frames:
                         raise NodeFailure(f"in-process run exceeded {max_frames} frames")
-                    if not node.finished and _matches(flt, msg):
-                        _send_all(bus, _call(node, node.handle, msg, 0.0))
+                    if _matches(flt, msg):
+                        batch.append(msg)
+                if batch:
+                    progress = True
+                    if not node.finished:
+                        _send_all(bus, _call(node, node.handle_batch, batch, 0.0))
     finally:
         for bus in buses:
             bus.shutdown()

@@ -10,7 +10,6 @@ same frames as it would in its own process, so a lockstep run's frames and signa
 """
 from __future__ import annotations
 
-from collections import deque
 from typing import Any, Sequence
 
 import can
@@ -26,6 +25,51 @@ def _matches(filters: list[dict[str, Any]] | None, msg: can.Message) -> bool:
                and ("extended" not in f or f["extended"] == msg.is_extended_id) for f in filters)
 
 
+class Router:
+    """Delivery among ``nodes`` in one process, in generations: every node gets, in one
+    :meth:`Node.handle_batch` call, the frames of the current generation it accepts (in order,
+    its own left out); what the nodes send makes the next generation (node order, each node's
+    frames in the order sent). A lockstep phase is one generation, so each node's Python side
+    runs once per phase, not once per frame. Each identifier's route is computed once."""
+
+    def __init__(self, nodes: Sequence[Node]) -> None:
+        self.nodes = list(nodes)
+        self.filters = [n.filters() or None for n in self.nodes]
+        self._routes: dict[tuple[int, bool], tuple[int, ...]] = {}
+        self.current: Node | None = None  # the node being called (names a crash)
+
+    def route(self, aid: int, extended: bool) -> tuple[int, ...]:
+        """Indices of the nodes that accept identifier ``aid``."""
+        r = self._routes.get((aid, extended))
+        if r is None:
+            probe = can.Message(arbitration_id=aid, is_extended_id=extended)
+            r = self._routes[(aid, extended)] = tuple(i for i, f in enumerate(self.filters) if _matches(f, probe))
+        return r
+
+    def inboxes(self, gen: list[tuple[int, can.Message]]) -> list[list[can.Message]]:
+        """Each node's share of a generation of (sender index or -1, frame)."""
+        inbox: list[list[can.Message]] = [[] for _ in self.nodes]
+        routes, route = self._routes, self.route
+        for sender, msg in gen:
+            targets = routes.get((msg.arbitration_id, msg.is_extended_id)) or route(msg.arbitration_id, msg.is_extended_id)
+            for idx in targets:
+                if idx != sender:
+                    inbox[idx].append(msg)
+        return inbox
+
+    def step(self, inbox: list[list[can.Message]], now: float) -> list[tuple[int, can.Message]]:
+        """Hand each node its batch; returns the next generation."""
+        gen: list[tuple[int, can.Message]] = []
+        for idx, batch in enumerate(inbox):
+            if batch:
+                node = self.current = self.nodes[idx]
+                if not node.finished:
+                    out = node.handle_batch(batch, now)
+                    if out:
+                        gen.extend([(idx, m) for m in out])
+        return gen
+
+
 class NodeGroup(Node):
     """``members`` run as one node (same process, one bus)."""
 
@@ -33,7 +77,8 @@ class NodeGroup(Node):
         self.members = list(members)
         self.name = "+".join(m.name for m in self.members) if len(self.members) <= 3 else \
             f"{self.members[0].name}..{self.members[-1].name}"
-        self._filters = [m.filters() for m in self.members]
+        self._router = Router(self.members)
+        self._filters = self._router.filters
 
     @property  # type: ignore[override]
     def finished(self) -> bool:
@@ -48,27 +93,24 @@ class NodeGroup(Node):
                 seen.setdefault((x["can_id"], x["can_mask"], bool(x.get("extended"))), x)
         return list(seen.values())
 
-    def _loop(self, first: list[tuple[int, can.Message]]) -> list[can.Message]:
-        """Deliver each sent frame to the other members (recursively); return all frames sent."""
+    def _loop(self, gen: list[tuple[int, can.Message]], now: float) -> list[can.Message]:
+        """Deliver the members' frames to the other members, generation by generation; return
+        every frame sent, in order."""
         out: list[can.Message] = []
-        queue = deque(first)
-        while queue:
-            sender, msg = queue.popleft()
-            out.append(msg)
-            for i, m in enumerate(self.members):
-                if i != sender and not m.finished and _matches(self._filters[i], msg):
-                    queue.extend((i, x) for x in m.handle(msg, 0.0))
+        while gen:
+            out.extend([m for _i, m in gen])
+            gen = self._router.step(self._router.inboxes(gen), now)
         return out
 
     def start(self, now: float) -> list[can.Message]:
-        return self._loop([(i, x) for i, m in enumerate(self.members) for x in m.start(now)])
+        return self._loop([(i, x) for i, m in enumerate(self.members) for x in m.start(now)], now)
 
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
-        sent: list[tuple[int, can.Message]] = []
-        for i, m in enumerate(self.members):
-            if not m.finished and _matches(self._filters[i], msg):
-                sent.extend((i, x) for x in m.handle(msg, now))
-        return self._loop(sent) if sent else []
+        return self.handle_batch([msg], now)
+
+    def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
+        sent = self._router.step(self._router.inboxes([(-1, m) for m in msgs]), now)
+        return self._loop(sent, now) if sent else []
 
     def next_deadline(self) -> float | None:
         ds = [d for d in (m.next_deadline() for m in self.members) if d is not None]
@@ -80,8 +122,7 @@ class NodeGroup(Node):
             d = m.next_deadline()
             if d is not None and now >= d:
                 sent.extend((i, x) for x in m.on_timer(now))
-        return self._loop(sent) if sent else []
-
+        return self._loop(sent, now) if sent else []
     def close(self, status: str = "ok") -> None:
         first: BaseException | None = None
         for m in self.members:
