@@ -22,7 +22,8 @@ class Observation:
 
     Peer arrays have shape ``(n_cars,)`` and are indexed by car (0-based); the entry of
     the car itself holds its own measurement with age 0. A value never received is NaN
-    with age ``inf``.
+    with age ``inf``. The peer arrays an ECU hands over are read-only views of its peer table,
+    valid for the call: copy what a controller keeps (``np.array(obs.peer_speed_mps)``).
     """
 
     tick: int

@@ -141,6 +141,14 @@ class EcuNode(Node):
             self._peers.add_page(fid, e - 1, codec.by_id[fid]._c, sigs, self._multi_page[e],
                                  self.guard.counter_ext.get(fid))
         self.peer_signals: dict[str, np.ndarray] = self._peers.values
+        # what the controller sees: read-only views of the table (no copy per period; this ECU
+        # writes its own sensor values into its own entry, which no peer page touches)
+        self._peer_views: dict[str, np.ndarray] = {}
+        for nm, arr in self.peer_signals.items():
+            view = arr.view()
+            view.flags.writeable = False
+            self._peer_views[nm] = view
+        self._own_signals = [nm for nm in self.peer_signals if nm in spec.sensors]
         self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
         self._done = 0
         # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
@@ -254,6 +262,35 @@ class EcuNode(Node):
             elif self.guard.control(aid, msg.data, self.k):
                 return self._peer_done(bit, now)
         return []
+
+    def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
+        """:meth:`handle` for each frame, with the peers' state pages (most of what an ECU hears)
+        checked and decoded by the compiled peer table without a Python call per frame."""
+        if self.rx_path is not None or self.secoc is not None:
+            return super().handle_batch(msgs, now)
+        out: list[can.Message] = []
+        peer_ids, take, slot = self._peer_ids, self._peers.take, self._slot
+        taken = 0
+        for msg in msgs:
+            aid = msg.arbitration_id
+            st = peer_ids.get(aid)
+            if st is None:
+                out += self.handle(msg, now)
+                if self.finished:
+                    break
+                continue
+            r = take(aid, msg.data, self.k)
+            if r < 0:
+                self.guard.reject("crc" if r == REJECT_CRC else "counter")
+                self._count_peer_rejection()
+                continue
+            taken += 1
+            if r == 2:
+                bit = 1 << slot[st[0]]
+                if not self.barrier or self._ext_bits & bit:
+                    out += self._peer_done(bit, now)  # the sender's last page of this tick
+        self.stats.peer_frames += taken
+        return out
 
     def _peer_done(self, bit: int, now: float) -> list[can.Message]:
         self._done |= bit
@@ -434,16 +471,18 @@ class EcuNode(Node):
         self._release_linked(self._times(now, 1)[1])
         own_speed = self.sensors.get("speed_mps", math.nan)
         own_pos = self.sensors.get("position_m", math.nan)
-        peers = {nm: arr.copy() for nm, arr in self.peer_signals.items()}
-        for nm, arr in peers.items():
-            if nm in self.sensors:
-                arr[self.i] = self.sensors[nm]
+        table = self.peer_signals
+        for nm in self._own_signals:
+            table[nm][self.i] = self.sensors[nm]
         n_listened = len(self._listened)
-        speed = peers["speed_mps"]
-        if self.peer_hold_periods is not None:
+        if self.peer_hold_periods is not None:  # lost peers are NaN for the controller: a copy
+            peers = {nm: arr.copy() for nm, arr in table.items()}
             origin = self._peers.origin.tolist()
             origin[self.i] = self.k
             self._peer_fallback(origin, peers)
+        else:
+            peers = self._peer_views
+        speed = peers["speed_mps"]
         # per ECU the age of its newest value (compiled: one pass over the train's ECUs), the
         # ECUs with a value of this tick (own included), the oldest finite age (-inf: none)
         age, fresh, max_age = self._peers.ages(self.k, self.dt, self.i, speed)

@@ -35,15 +35,23 @@ class Router:
     def __init__(self, nodes: Sequence[Node]) -> None:
         self.nodes = list(nodes)
         self.filters = [n.filters() or None for n in self.nodes]
+        # nodes whose filters are all exact identifiers: a set lookup instead of matching
+        self._exact: list[set[tuple[int, bool]] | None] = []
+        for f in self.filters:
+            full = f and all(x["can_mask"] == (0x1FFFFFFF if x.get("extended") else 0x7FF) and "extended" in x
+                             for x in f)
+            self._exact.append({(x["can_id"], bool(x["extended"])) for x in f} if full else None)  # type: ignore[union-attr]
         self._routes: dict[tuple[int, bool], tuple[int, ...]] = {}
         self.current: Node | None = None  # the node being called (names a crash)
 
     def route(self, aid: int, extended: bool) -> tuple[int, ...]:
         """Indices of the nodes that accept identifier ``aid``."""
-        r = self._routes.get((aid, extended))
+        key = (aid, extended)
+        r = self._routes.get(key)
         if r is None:
             probe = can.Message(arbitration_id=aid, is_extended_id=extended)
-            r = self._routes[(aid, extended)] = tuple(i for i, f in enumerate(self.filters) if _matches(f, probe))
+            r = self._routes[key] = tuple(i for i, (f, ex) in enumerate(zip(self.filters, self._exact))
+                                          if (key in ex if ex is not None else _matches(f, probe)))
         return r
 
     def inboxes(self, gen: list[tuple[int, can.Message]]) -> list[list[can.Message]]:

@@ -226,18 +226,17 @@ class RecorderNode(Node):
         self._closing_seen = 0
         self.guard = FrameGuard(secoc)
         self.final_tick = None if n_ticks is None else n_ticks - 1
-        self.other_ids: dict[str, int] = {}  # frames on identifiers outside the database, by id
+        # frames received by (identifier, extended, error frame); the phase each such key is logged in
+        self._counts: dict[tuple[int, bool, bool], int] = {}
+        self._phase_of: dict[tuple[int, bool, bool], int] = {}
         self._tick_frames: list[can.Message] = []
         self._bus_free_s = 0.0
-        self.frames = 0
-        self.frames_by_kind: dict[str, int] = {}
         # per-period series in compact arrays (8 bytes per period each); latencies in a histogram
         # of fixed size whatever the run length
         self._series = LoadSeries(None if log_path is None else Path(log_path).parent / "bus_load.csv", dt_s)
         self._latency = LogHistogram()
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
-        self.frames_by_id: dict[int, int] = {}
         # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
         # modelled wire times for the stamps and, with bus errors, the error frames
         self.wire_model = bus_timing if bus_timing is not None and mode == "lockstep" else None
@@ -283,42 +282,90 @@ class RecorderNode(Node):
 
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
-        self.frames += 1
-        aid = msg.arbitration_id
-        kind = self._kinds.get(aid, "other") if not msg.is_error_frame else "error"
-        name = _KIND_NAME.get(kind, kind)
-        self.frames_by_kind[name] = self.frames_by_kind.get(name, 0) + 1
-        self.frames_by_id[aid] = self.frames_by_id.get(aid, 0) + 1
-        if kind == "other":  # identifiers outside the database: who flooded or inserted
-            key = f"{aid:#05x}" if not msg.is_extended_id else f"{aid:#010x}"
-            self.other_ids[key] = self.other_ids.get(key, 0) + 1
+        return self.handle_batch([msg], now)
+
+    def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
+        """Count each frame by (identifier, extended, error frame) and keep it for its period's
+        log lines (lockstep: written, in bus order, when the next SYNC or END comes)."""
+        counts = self._counts
         if self.mode == "realtime":
-            self._realtime(msg, now)
+            for msg in msgs:
+                key = (msg.arbitration_id, msg.is_extended_id, msg.is_error_frame)
+                counts[key] = counts.get(key, 0) + 1
+                self._realtime(msg, now)
             return []
-        if aid in self._closing_ids:
-            self._closing_seen += 1
-        verdict = None
-        if aid == dbc.SYNC_ID and not msg.is_extended_id:
-            verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=True, final_tick=self.final_tick,
-                                   tick_complete=self._k < 0 or self._closing_seen >= self._closing_total)
-        if verdict is not None:
-            self._flush_tick()
-            tick = int.from_bytes(msg.data[:4], "little")
-            if tick == dbc.SYNC_END_TICK:
-                t_end = (self._k + 1) * self.dt + self._wire_s(msg)
-                if self.net is not None:  # the last frames first, then END on the plant's segment
-                    t_end = max(t_end, self._drain_segments())
-                    self._write_segments([(self.topo.plant_segment, self._stamp(msg, t_end))])
-                    self.finished = True
-                    return []
-                self._write([self._stamp(msg, t_end)])
-                self.finished = True
-                return []
-            self._k = tick
-            self._closing_seen = 0
-        phase = 0 if aid == dbc.HEARTBEAT_BASE and not msg.is_extended_id else _PHASE.get(kind, 1)
-        self._tick_frames.append((phase, aid, bytes(msg.data), msg))  # type: ignore[arg-type]
+        tick_frames, closing, phase_of = self._tick_frames, self._closing_ids, self._phase_of
+        for msg in msgs:
+            aid, ext = msg.arbitration_id, msg.is_extended_id
+            key = (aid, ext, msg.is_error_frame)
+            counts[key] = counts.get(key, 0) + 1
+            if aid in closing:
+                self._closing_seen += 1
+            elif aid == dbc.SYNC_ID and not ext:
+                if self._on_sync(msg):
+                    return []  # the END: the log is complete
+                tick_frames = self._tick_frames  # a new period's list if it flushed
+            phase = phase_of.get(key)
+            if phase is None:
+                kind = "error" if key[2] else self._kinds.get(aid, "other")
+                phase = phase_of[key] = 0 if aid == dbc.HEARTBEAT_BASE and not ext else _PHASE.get(kind, 1)
+            tick_frames.append((phase, aid, bytes(msg.data), msg))
         return []
+
+    def _on_sync(self, msg: can.Message) -> bool:
+        """A SYNC frame (lockstep): a trusted one ends the period (its frames are written) and
+        starts the next; True if it was the END (the recorder has finished)."""
+        verdict = sync_verdict(self.guard, msg.arbitration_id, msg.data, self._k, lockstep=True,
+                               final_tick=self.final_tick,
+                               tick_complete=self._k < 0 or self._closing_seen >= self._closing_total)
+        if verdict is None:
+            return False
+        self._flush_tick()
+        tick = int.from_bytes(msg.data[:4], "little")
+        if tick == dbc.SYNC_END_TICK:
+            t_end = (self._k + 1) * self.dt + self._wire_s(msg)
+            if self.net is not None:  # the last frames first, then END on the plant's segment
+                t_end = max(t_end, self._drain_segments())
+                self._write_segments([(self.topo.plant_segment, self._stamp(msg, t_end))])
+            else:
+                self._write([self._stamp(msg, t_end)])
+            self.finished = True
+            return True
+        self._k = tick
+        self._closing_seen = 0
+        return False
+
+    # what was received, derived from the counts by (identifier, extended, error frame), each
+    # in the order of first appearance (as counted frame by frame before)
+    @property
+    def frames(self) -> int:
+        return sum(self._counts.values())
+
+    @property
+    def frames_by_kind(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for (aid, _ext, err), n in self._counts.items():
+            kind = "error" if err else self._kinds.get(aid, "other")
+            name = _KIND_NAME.get(kind, kind)
+            out[name] = out.get(name, 0) + n
+        return out
+
+    @property
+    def frames_by_id(self) -> dict[int, int]:
+        out: dict[int, int] = {}
+        for (aid, _ext, _err), n in self._counts.items():
+            out[aid] = out.get(aid, 0) + n
+        return out
+
+    @property
+    def other_ids(self) -> dict[str, int]:
+        """Frames on identifiers outside the database, by identifier: who flooded or inserted."""
+        out: dict[str, int] = {}
+        for (aid, ext, err), n in self._counts.items():
+            if not err and aid not in self._kinds:
+                k = f"{aid:#05x}" if not ext else f"{aid:#010x}"
+                out[k] = out.get(k, 0) + n
+        return out
 
     def _wire_s(self, msg: can.Message) -> float:
         """The frame's time on the wire (s), actual stuffing; 0 for frames the accounting leaves out."""
