@@ -335,8 +335,7 @@ class RecorderNode(Node):
         self._closing_seen = 0
         return False
 
-    # what was received, derived from the counts by (identifier, extended, error frame), each
-    # in the order of first appearance (as counted frame by frame before)
+    # what was received, derived from the counts by (identifier, extended, error frame)
     @property
     def frames(self) -> int:
         return sum(self._counts.values())
@@ -348,7 +347,7 @@ class RecorderNode(Node):
             kind = "error" if err else self._kinds.get(aid, "other")
             name = _KIND_NAME.get(kind, kind)
             out[name] = out.get(name, 0) + n
-        return out
+        return dict(sorted(out.items()))  # by name: the same file whatever order frames arrived in
 
     @property
     def frames_by_id(self) -> dict[int, int]:
