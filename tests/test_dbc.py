@@ -9,7 +9,7 @@ from crccheck.crc import Crc8SaeJ1850
 
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
-from canbrake.bus.e2e import E2EReceiver, E2EStatus, check_crc, crc8_sae_j1850, e2e_crc
+from canbrake.bus.e2e import check_crc, crc8_sae_j1850, e2e_crc
 
 from conftest import ROOT
 
@@ -111,14 +111,21 @@ def test_crc8_matches_crccheck():
 def test_e2e_detects_corruption_and_sequence():
     fc = FrameCodec(dbc.build_database(6))
     c = fc["STATE_C2"]
-    rx = E2EReceiver(c.frame_id)
     f0 = c.encode({"Speed": 20.0, "Position": 5.0}, counter=0)
     assert check_crc(c.frame_id, f0)
-    assert rx.check(f0) is E2EStatus.INITIAL
-    assert rx.check(f0) is E2EStatus.REPEATED
-    assert rx.check(c.encode({"Speed": 20.0}, counter=1)) is E2EStatus.OK
-    assert rx.check(c.encode({"Speed": 20.0}, counter=3)) is E2EStatus.OK_SOME_LOST
-    assert rx.check(c.encode({"Speed": 20.0}, counter=10)) is E2EStatus.WRONG_SEQUENCE
+    # the counter's continuity as the brake units' receiver sees it (compiled CommandTable):
+    # repeated, +1 and a jump of up to 3 are in sequence, a larger jump is not
+    import numpy as np
+
+    from canbrake.bus._codec import CMD_OUT_OF_SEQUENCE, CommandTable
+
+    arr = np.zeros(1)
+    rx = CommandTable(np.zeros(1, np.int64), np.ones(1, np.int64), np.zeros(1, bool), np.full(1, -1, np.int64), 14)
+    rx.add_page(c.frame_id, 0, c._c, [("Speed", arr, 0)], None)
+    seq = [(f0, 0, False), (f0, 1, False), (c.encode({"Speed": 20.0}, counter=1), 1, False),
+           (c.encode({"Speed": 20.0}, counter=4), 4, False), (c.encode({"Speed": 20.0}, counter=10), 10, True)]
+    for data, k, oos in seq:
+        assert bool(rx.check(c.frame_id, data, k)[0] & CMD_OUT_OF_SEQUENCE) == oos
     for bit in range(64):  # every single-bit error is caught by the CRC
         bad = bytearray(f0)
         bad[bit // 8] ^= 1 << (bit % 8)

@@ -544,3 +544,202 @@ cdef inline uint64_t _le_word(const uint8_t* s, Py_ssize_t n):
     for i in range(n if n < 8 else 8):
         w |= (<uint64_t>s[i]) << (8 * i)
     return w
+
+
+# ---------------------------------------------------------------- the brake units' command table
+cdef struct CmdPage:
+    int slot            # the sending ECU's slot (0-based)
+    int first           # its fields in CommandTable._cf
+    int count
+    int last_counter    # the E2E receiver's last good counter (-1: none yet)
+    int64_t origin      # tick of the newest accepted frame of this page (-1: none)
+    int ext_start
+    int ext_bits
+
+#: CommandTable.take/check results (low two bits) and flags
+CMD_OLD = 0            # accepted, sent in an earlier tick
+CMD_FRESH = 1          # accepted, of this tick
+CMD_BAD_CRC = 2        # rejected: E2E CRC
+CMD_BAD_COUNTER = 3    # rejected: alive counter / origin window
+CMD_OUT_OF_SEQUENCE = 4  # flag: the E2E receiver saw a counter jump (> 3) or an invalid counter
+CMD_SLOT_COMPLETE = 8    # flag: this frame completed its ECU's pages of this tick
+DEF _OLD = 0
+DEF _FRESH = 1
+DEF _BAD_CRC = 2
+DEF _BAD_COUNTER = 3
+DEF _OOS = 4
+DEF _COMPLETE = 8
+DEF E2E_MAX_DELTA = 3
+
+
+cdef class CommandTable:
+    """The brake units' receive side of the command frames (the plant node): per page the E2E
+    receiver's counter check (profile 1 as ``canbrake.bus.e2e.E2EReceiver``), the origin window
+    (``FrameGuard.origin`` with the CRC already checked) and the decode straight into the plant's
+    per-vehicle command arrays; per ECU slot the pages of this tick seen. One call per frame
+    (``take``), or ``check`` then ``apply`` when a SecOC verification sits between them."""
+
+    cdef CmdPage* _pg
+    cdef int _npg
+    cdef PageField* _cf
+    cdef int _ncf
+    cdef dict _index
+    cdef list _keep                # codecs and arrays whose memory the table points into
+    cdef int64_t max_lag
+    cdef object _fresh_pages_arr, _pages_arr, _fresh_arr
+    cdef int64_t* _fresh_pages     # pages of this tick seen, per slot
+    cdef int64_t* _pages           # pages per slot and tick
+    cdef uint8_t* _fresh           # the slot's pages of this tick are complete
+    cdef object _newest_arr
+    cdef int64_t* _newest          # tick of the newest accepted command, per slot
+
+    def __cinit__(self):
+        self._pg = NULL
+        self._cf = NULL
+
+    def __dealloc__(self):
+        PyMem_Free(self._pg)
+        PyMem_Free(self._cf)
+
+    def __init__(self, fresh_pages, pages_per_slot, fresh, newest, int64_t max_lag):
+        """``fresh_pages`` (int64, per slot), ``pages_per_slot`` (int64), ``fresh`` (bool) and
+        ``newest`` (int64) are the plant's arrays, updated in place."""
+        cdef int64_t[::1] fp = fresh_pages
+        cdef int64_t[::1] pp = pages_per_slot
+        cdef uint8_t[::1] fr = fresh.view("uint8")
+        cdef int64_t[::1] nw = newest
+        self._fresh_pages_arr, self._pages_arr, self._fresh_arr = fresh_pages, pages_per_slot, fresh
+        self._newest_arr = newest
+        self._newest = &nw[0]
+        self._fresh_pages = &fp[0]
+        self._pages = &pp[0]
+        self._fresh = &fr[0]
+        self.max_lag = max_lag
+        self._index = {}
+        self._keep = []
+        self._npg = self._ncf = 0
+
+    def add_page(self, unsigned int frame_id, int slot, FieldCodec codec, targets, ext):
+        """A command page of ECU slot ``slot``: ``targets`` = [(signal name, float64 array,
+        element index)]; ``ext``: its counter extension (start bit, bits) or None."""
+        ext_start, ext_bits = ext if ext is not None else (0, 0)
+        if ext_start + ext_bits > 64:
+            raise ValueError(f"counter extension {ext} beyond a classical CAN frame")
+        self._pg = <CmdPage*>PyMem_Realloc(self._pg, (self._npg + 1) * sizeof(CmdPage))
+        self._cf = <PageField*>PyMem_Realloc(self._cf, (self._ncf + len(targets)) * sizeof(PageField))
+        if self._pg is NULL or self._cf is NULL:
+            raise MemoryError()
+        cdef CmdPage* pg = &self._pg[self._npg]
+        pg.slot, pg.first, pg.count = slot, self._ncf, len(targets)
+        pg.last_counter, pg.origin = -1, -1
+        pg.ext_start, pg.ext_bits = ext_start, ext_bits
+        cdef double[::1] arr
+        for dbc_name, array, idx in targets:
+            arr = array
+            self._cf[self._ncf].field = &codec.f[codec.names.index(dbc_name)]
+            self._cf[self._ncf].target = &arr[idx]
+            self._ncf += 1
+            self._keep.append(array)
+        self._keep.append(codec)
+        self._index[frame_id] = self._npg
+        self._npg += 1
+
+    cdef int _check(self, CmdPage* pg, unsigned int frame_id, const uint8_t* s, Py_ssize_t n, int64_t k,
+                    int64_t* origin) noexcept:
+        cdef uint8_t c
+        cdef Py_ssize_t i
+        cdef int flags = 0, counter, delta
+        # the E2E receiver: CRC, then the counter's continuity (state advances on a good CRC)
+        if n < 2:
+            return _BAD_CRC
+        c = CRC_TABLE[CRC_TABLE[0xFF ^ (frame_id & 0xFF)] ^ ((frame_id >> 8) & 0xFF)]
+        for i in range(1, n):
+            c = CRC_TABLE[c ^ s[i]]
+        if s[0] != (c ^ 0xFF):
+            return _BAD_CRC
+        counter = s[1] & 0x0F
+        if counter >= COUNTER_MODULO:
+            flags = _OOS
+        else:
+            if pg.last_counter >= 0:
+                delta = (counter - pg.last_counter) % COUNTER_MODULO
+                if delta < 0:
+                    delta += COUNTER_MODULO
+                if delta > E2E_MAX_DELTA:
+                    flags = _OOS
+            pg.last_counter = counter
+        # the origin window (the CRC is checked)
+        if _origin(s, n, frame_id, k, pg.origin, False, True, pg.ext_start, pg.ext_bits, self.max_lag,
+                   origin) < 0:
+            return flags | _BAD_COUNTER
+        return flags
+
+    cdef int _apply(self, CmdPage* pg, const uint8_t* s, Py_ssize_t n, int64_t origin, int64_t k) noexcept:
+        cdef uint64_t w = _le_word(s, n)
+        cdef Field* fd
+        cdef int64_t raw
+        cdef uint64_t half
+        cdef int i
+        for i in range(pg.first, pg.first + pg.count):
+            fd = self._cf[i].field
+            raw = <int64_t>((w >> fd.start) & fd.mask)
+            if fd.is_signed:
+                half = <uint64_t>1 << (fd.nbits - 1)
+                raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
+            if not fd.scaled:
+                self._cf[i].target[0] = <double>raw
+            elif fd.offset == 0.0 and fd.scale > 0.0:
+                self._cf[i].target[0] = <double>raw * fd.scale
+            else:
+                self._cf[i].target[0] = <double>raw * fd.scale + fd.offset
+        pg.origin = origin
+        if origin > self._newest[pg.slot]:
+            self._newest[pg.slot] = origin
+        if origin != k:
+            return _OLD
+        self._fresh_pages[pg.slot] += 1
+        if self._fresh_pages[pg.slot] >= self._pages[pg.slot] and not self._fresh[pg.slot]:
+            self._fresh[pg.slot] = 1
+            return _FRESH | _COMPLETE
+        return _FRESH
+
+    def check(self, unsigned int frame_id, object data, int64_t k):
+        """(result, origin): the E2E and origin checks of a command frame received at tick ``k``
+        (result CMD_BAD_CRC / CMD_BAD_COUNTER, possibly | CMD_OUT_OF_SEQUENCE; else 0 or
+        CMD_OUT_OF_SEQUENCE and the tick it was sent in). Nothing applied."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        if not _payload(data, &s, &n):
+            data = bytes(data)
+            _payload(data, &s, &n)
+        cdef int64_t o = -1
+        cdef int r = self._check(&self._pg[<int>self._index[frame_id]], frame_id, s, n, k, &o)
+        return r, o
+
+    def apply(self, unsigned int frame_id, object data, int64_t origin, int64_t k):
+        """Apply a checked command frame sent at tick ``origin``: CMD_OLD or CMD_FRESH (|
+        CMD_SLOT_COMPLETE)."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        if not _payload(data, &s, &n):
+            data = bytes(data)
+            _payload(data, &s, &n)
+        return self._apply(&self._pg[<int>self._index[frame_id]], s, n, origin, k)
+
+    def take(self, unsigned int frame_id, object data, int64_t k):
+        """``check`` and, if accepted, ``apply`` in one call: the result with its flags."""
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        if not _payload(data, &s, &n):
+            data = bytes(data)
+            _payload(data, &s, &n)
+        cdef CmdPage* pg = &self._pg[<int>self._index[frame_id]]
+        cdef int64_t o = -1
+        cdef int r = self._check(pg, frame_id, s, n, k, &o)
+        if r & 3:
+            return r
+        return r | self._apply(pg, s, n, o, k)
+
+    def page_origin(self, unsigned int frame_id):
+        """Tick of the newest accepted frame of this page (-1: none)."""
+        return self._pg[<int>self._index[frame_id]].origin

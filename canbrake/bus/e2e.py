@@ -5,11 +5,11 @@ computed over the 16-bit data ID (low byte, then high byte) followed by payload 
 the low nibble of byte 1 holds an alive counter 0..14 (15 is never sent).
 
 The receiver checks the CRC (detects corruption and masquerading frames with a wrong data ID)
-and classifies the counter jump (repetition, OK, lost frames, wrong sequence).
+and classifies the counter jump (repetition, OK, lost frames, wrong sequence): for the brake
+units' command frames in compiled code, ``canbrake.bus._codec.CommandTable``; the ECUs' peer
+pages in ``PeerTable``.
 """
 from __future__ import annotations
-
-from enum import Enum
 
 # The CRC itself is compiled (canbrake/bus/_crc.pyx): it runs for every protected frame.
 from canbrake.bus._crc import TABLE as _TABLE  # noqa: E402  (byte table, for batch forms)
@@ -41,17 +41,6 @@ def protect(data_id: int, payload: bytearray) -> bytearray:
     return payload
 
 
-class E2EStatus(str, Enum):
-    """Outcome of checking one received frame (profile 1 state names, simplified)."""
-
-    OK = "ok"
-    REPEATED = "repeated"          # same counter as the last accepted frame
-    OK_SOME_LOST = "ok_some_lost"  # counter jumped by 2..max_delta
-    WRONG_SEQUENCE = "wrong_sequence"  # counter jumped by more than max_delta (or went back)
-    WRONG_CRC = "wrong_crc"
-    INITIAL = "initial"            # first frame seen
-
-
 def check_crc(data_id: int, payload: bytes | bytearray) -> bool:
     """True if byte 0 of ``payload`` is the right CRC."""
     return len(payload) >= 2 and payload[0] == e2e_crc(data_id, payload)
@@ -60,31 +49,3 @@ def check_crc(data_id: int, payload: bytes | bytearray) -> bool:
 def counter_of(payload: bytes | bytearray) -> int:
     """Alive counter (low nibble of byte 1)."""
     return payload[1] & 0x0F
-
-
-class E2EReceiver:
-    """Receiver-side state of one protected message (one data ID)."""
-
-    def __init__(self, data_id: int, max_delta: int = 3) -> None:
-        self.data_id = data_id
-        self.max_delta = max_delta
-        self.last_counter: int | None = None
-
-    def check(self, payload: bytes | bytearray) -> E2EStatus:
-        """Check a frame; the counter state advances only for frames with a good CRC."""
-        if not check_crc(self.data_id, payload):
-            return E2EStatus.WRONG_CRC
-        c = counter_of(payload)
-        if c >= COUNTER_MODULO:
-            return E2EStatus.WRONG_SEQUENCE
-        last, self.last_counter = self.last_counter, c
-        if last is None:
-            return E2EStatus.INITIAL
-        delta = (c - last) % COUNTER_MODULO
-        if delta == 0:
-            return E2EStatus.REPEATED
-        if delta == 1:
-            return E2EStatus.OK
-        if delta <= self.max_delta:
-            return E2EStatus.OK_SOME_LOST
-        return E2EStatus.WRONG_SEQUENCE

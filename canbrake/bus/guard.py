@@ -67,14 +67,24 @@ class FrameGuard:
         if origin is None:
             self.reject("crc" if code == REJECT_CRC else "counter")
             return None
-        modulus = COUNTER_MODULO if ext is None else counter_modulus(ext[1])
-        if authenticated and self.secoc is not None:
-            if not self.secoc.verify(data_id, payload, origin, has_crc=True):
-                stale = any(self.secoc.verify(data_id, payload, origin - modulus * m, has_crc=True)
-                            for m in range(1, STALE_ALIASES + 1))
-                self.reject("freshness" if stale else "authentication")
-                return None
+        if authenticated and not self.authentic(data_id, payload, origin):
+            return None
         return origin
+
+    def authentic(self, data_id: int, payload: bytes | bytearray, origin: int) -> bool:
+        """SecOC (True without it): the frame's MAC verifies with freshness tick ``origin``; a
+        failure is counted: "freshness" if it verifies for an older tick with the same counter
+        (a replay), else "authentication"."""
+        if self.secoc is None:
+            return True
+        if self.secoc.verify(data_id, payload, origin, has_crc=True):
+            return True
+        ext = self.counter_ext.get(data_id)
+        modulus = COUNTER_MODULO if ext is None else counter_modulus(ext[1])
+        stale = any(self.secoc.verify(data_id, payload, origin - modulus * m, has_crc=True)
+                    for m in range(1, STALE_ALIASES + 1))
+        self.reject("freshness" if stale else "authentication")
+        return False
 
     def control(self, data_id: int, payload: bytes | bytearray, freshness_tick: int) -> bool:
         """Authenticate a simulation-control frame (SYNC, barrier); True without SecOC."""

@@ -18,7 +18,8 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
-from canbrake.bus.e2e import E2EReceiver, E2EStatus
+from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OUT_OF_SEQUENCE, CMD_SLOT_COMPLETE,
+                                  CommandTable)
 from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
 
@@ -134,14 +135,20 @@ class PlantNode(Node):
         self._fresh = np.zeros(self.n_ecus, dtype=bool)
         self._done = 0  # bit i set: CMD_DONE of ECU slot i seen this tick
         self._all_done = (1 << self.n_ecus) - 1
-        self._e2e = {fid: E2EReceiver(fid) for fid in self._cmd_pages}
         self._last_counter = np.full(self.n_ecus, -1, dtype=np.int64)  # tick of each ECU's newest command
-        self._page_origin = {fid: -1 for fid in self._cmd_pages}
         self.failsafe = failsafe
         # brake-unit receive checks (E2E window of 7 periods, SecOC) and rejection counters
         self.secoc = secoc
         self.guard = FrameGuard(secoc, max_lag=7)
         self.guard.counter_ext = layout.counter_ext()
+        # the command pages' E2E receivers, origin windows and decoding into self.commands, compiled
+        # (canbrake.bus._codec.CommandTable: one call per frame, the arrays updated in place)
+        self._cmd_table = CommandTable(self._fresh_pages, self._pages_per_ecu, self._fresh, self._last_counter,
+                                       self.guard.max_lag)
+        for fid, (slot, _p, cdc, sigs) in self._cmd_pages.items():
+            v = int(self._veh[slot])
+            self._cmd_table.add_page(fid, slot, cdc._c, [(dn, self.commands[sig], v) for sig, dn in sigs],
+                                     self.guard.counter_ext.get(fid))
         self._last_sync_k = -1
         # command identifiers of ECUs this train does not have (11-bit plan): unknown senders
         self._foreign_cmd_ids = ([dbc.BRAKE_CMD_BASE + i for i in range(self.n_ecus + 1, dbc.MAX_CARS + 1)]
@@ -303,10 +310,10 @@ class PlantNode(Node):
         page = self._cmd_pages.get(aid)
         if page is not None:
             slot = page[0]
-            was_fresh = bool(self._fresh[slot])
             ext = bool(self._ext_mask >> slot & 1)
-            if self._on_command(aid, page, msg):
-                if not was_fresh and self._fresh[slot]:
+            r = self._on_command(aid, msg)
+            if r & 3 == CMD_FRESH:
+                if r & CMD_SLOT_COMPLETE:
                     self._resp[slot].add(max(now - self._tick_wall, 0.0))
                 if self.mode == "realtime" and self._sync_wall is not None and self._fresh.all():
                     self._cmd_latency.append(now - self._sync_wall)
@@ -332,36 +339,31 @@ class PlantNode(Node):
                 return self._slot_done(slot, now)
         return []
 
-    def _on_command(self, aid: int, page: tuple[int, int, Any, list[tuple[str, str]]], msg: can.Message) -> bool:
-        """Take a command frame; True if it is this tick's."""
-        slot, _p, codec, sigs = page
-        status = self._e2e[aid].check(msg.data)
-        if status is E2EStatus.WRONG_CRC:
+    def _on_command(self, aid: int, msg: can.Message) -> int:
+        """Take a command frame: CMD_FRESH if it is this tick's (| CMD_SLOT_COMPLETE when it
+        completes its ECU's pages), CMD_OLD if accepted from an earlier tick, CMD_BAD_CRC or
+        CMD_BAD_COUNTER if rejected (counted here); :class:`canbrake.bus._codec.CommandTable`."""
+        table = self._cmd_table
+        if self.secoc is None:
+            r = table.take(aid, msg.data, self.k)
+        else:
+            r, origin = table.check(aid, msg.data, self.k)
+        if r & CMD_OUT_OF_SEQUENCE:
+            self.stats.commands_out_of_sequence += 1
+        res = r & 3
+        if res == CMD_BAD_CRC:
             self.stats.commands_corrupted += 1
             self.guard.reject("crc")
-            return False
-        if status is E2EStatus.WRONG_SEQUENCE:
-            self.stats.commands_out_of_sequence += 1
-        # The sender's counter is its tick mod 15; accept only the frame of the current tick or a
-        # newer-looking one, never an older (delayed/reordered) one; with SecOC only an authentic
-        # frame of exactly that tick (canbrake.bus.guard).
-        origin = self.guard.origin(aid, msg.data, self.k, self._page_origin[aid], authenticated=True,
-                                   crc_checked=True)  # by the E2E receiver above
-        if origin is None:
-            return False
-        self._page_origin[aid] = origin
-        self._last_counter[slot] = max(self._last_counter[slot], origin)
-        d = codec.decode(msg.data)
-        v = self._veh[slot]
-        for sig, dbc_name in sigs:
-            self.commands[sig][v] = d[dbc_name]
+            return res
+        if res == CMD_BAD_COUNTER:
+            self.guard.reject("counter")
+            return res
+        if self.secoc is not None:  # only an authentic frame of exactly its tick (canbrake.bus.guard)
+            if not self.guard.authentic(aid, msg.data, origin):
+                return CMD_BAD_COUNTER  # counted by the guard
+            r = table.apply(aid, msg.data, origin, self.k)
         self.stats.commands_received += 1
-        if origin == self.k:
-            self._fresh_pages[slot] += 1
-            if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
-                self._fresh[slot] = True
-            return True
-        return False
+        return r
 
     # ---------------------------------------------------------------- time
     def next_deadline(self) -> float | None:

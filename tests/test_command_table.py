@@ -1,0 +1,111 @@
+"""The brake units' compiled command table (canbrake.bus._codec.CommandTable) against an
+interpreted oracle of the rules it implements: E2E profile 1's CRC and counter continuity
+(canbrake.bus.e2e), the origin window of FrameGuard.origin (canbrake.bus.guard), the decode of
+the page into the per-vehicle command arrays (FieldCodec.decode)."""
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canbrake.bus import dbc
+from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OLD, CMD_OUT_OF_SEQUENCE,
+                                 CMD_SLOT_COMPLETE, CommandTable)
+from canbrake.bus.codec import FrameCodec
+from canbrake.bus.e2e import e2e_crc
+
+CODEC = FrameCodec(dbc.build_database(3))
+MSG = CODEC["BRAKE_CMD_C2"]
+MAX_LAG = 7
+
+
+class Oracle:
+    """One page's receiver, interpreted: what the plant did before the table was compiled."""
+
+    def __init__(self) -> None:
+        self.last_counter: int | None = None
+        self.origin = -1
+        self.newest = -1
+        self.fresh_pages = 0
+
+    def take(self, data: bytes, k: int) -> tuple[int, float | None]:
+        fid = MSG.frame_id
+        if len(data) < 2 or data[0] != e2e_crc(fid, data):
+            return CMD_BAD_CRC, None
+        c = data[1] & 0x0F
+        oos = 0
+        if c >= 15:
+            oos = CMD_OUT_OF_SEQUENCE
+        else:
+            if self.last_counter is not None and (c - self.last_counter) % 15 > 3:
+                oos = CMD_OUT_OF_SEQUENCE
+            self.last_counter = c
+        lag = (k - c) % 15
+        origin = k - lag
+        if c >= 15 or lag > MAX_LAG or origin <= self.origin:
+            return oos | CMD_BAD_COUNTER, None
+        self.origin = origin
+        self.newest = max(self.newest, origin)
+        value = MSG.decode(data)["BrakeForce"]
+        if origin != k:
+            return oos | CMD_OLD, value
+        self.fresh_pages += 1
+        return oos | CMD_FRESH | (CMD_SLOT_COMPLETE if self.fresh_pages == 1 else 0), value
+
+
+events = st.lists(st.tuples(st.integers(0, 3),            # ticks the receiver advances first
+                            st.integers(0, 15),           # counter in the frame (15: invalid)
+                            st.sampled_from(["ok", "crc", "short"]),
+                            st.floats(-4e5, 4e5, allow_nan=False)), max_size=60)
+
+
+@given(events)
+@settings(max_examples=300, deadline=None)
+def test_take_equals_the_rules(evs: list[tuple[int, int, str, float]]) -> None:
+    force = np.full(3, np.nan)
+    fresh_pages, pages, fresh, newest = (np.zeros(3, np.int64), np.ones(3, np.int64), np.zeros(3, bool),
+                                         np.full(3, -1, np.int64))
+    table = CommandTable(fresh_pages, pages, fresh, newest, MAX_LAG)
+    table.add_page(MSG.frame_id, 1, MSG._c, [("BrakeForce", force, 1)], None)
+    ref = Oracle()
+    k = 0
+    for dk, counter, how, f in evs:
+        if dk:
+            k += dk
+            fresh_pages[:] = 0
+            fresh[:] = False
+            ref.fresh_pages = 0
+        data = bytearray(MSG.encode({"BrakeForce": f, "Status": 0}, counter=min(counter, 14)))
+        data[1] = (data[1] & 0xF0) | counter
+        data[0] = e2e_crc(MSG.frame_id, data)
+        if how == "crc":
+            data[3] ^= 0x10
+        elif how == "short":
+            data = data[:1]
+        expect, value = ref.take(bytes(data), k)
+        before = force[1]
+        got = table.take(MSG.frame_id, bytes(data), k)
+        assert got == expect
+        if value is not None:
+            assert force[1] == value
+        else:
+            assert force[1] == before or (np.isnan(before) and np.isnan(force[1]))
+        assert newest[1] == ref.newest and table.page_origin(MSG.frame_id) == ref.origin
+        assert fresh_pages[1] == ref.fresh_pages and bool(fresh[1]) == (ref.fresh_pages >= 1)
+        assert newest[0] == newest[2] == -1  # other slots untouched
+
+
+def test_check_then_apply_equals_take() -> None:
+    a, b = (np.full(3, np.nan) for _ in range(2))
+    tabs = []
+    for arr in (a, b):
+        t = CommandTable(np.zeros(3, np.int64), np.ones(3, np.int64), np.zeros(3, bool), np.full(3, -1, np.int64), 7)
+        t.add_page(MSG.frame_id, 1, MSG._c, [("BrakeForce", arr, 1)], None)
+        tabs.append(t)
+    for k in range(20):
+        data = MSG.encode({"BrakeForce": 1000.0 * k}, counter=k % 15)
+        r = tabs[0].take(MSG.frame_id, data, k)
+        c, origin = tabs[1].check(MSG.frame_id, data, k)
+        assert not c & 3 and origin == k
+        assert tabs[1].apply(MSG.frame_id, data, origin, k) | c == r
+    assert a[1] == b[1] == 19000.0
