@@ -5,6 +5,7 @@ the page into the per-vehicle command arrays (FieldCodec.decode)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -109,3 +110,43 @@ def test_check_then_apply_equals_take() -> None:
         assert not c & 3 and origin == k
         assert tabs[1].apply(MSG.frame_id, data, origin, k) | c == r
     assert a[1] == b[1] == 19000.0
+
+
+# ---------------------------------------------------------------- the plant's sensor pages
+from canbrake.bus._codec import SensorPages  # noqa: E402
+
+
+@given(st.data())
+@settings(max_examples=200, deadline=None)
+def test_sensor_pages_equal_encode_of_the_finite_values(data: st.DataObject) -> None:
+    """pack() == FieldCodec.encode({signal: value for the finite ones}) for every page, whatever
+    the values (NaN, inf, out of range, the 0.0 of a missing coupler)."""
+    names = sorted(CODEC.by_name)
+    chosen = data.draw(st.lists(st.sampled_from(names), min_size=1, max_size=5, unique=True))
+    n_src, length = 3, 4
+    values = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1e6, 1e6))
+    sources = [np.asarray(data.draw(st.lists(values, min_size=length, max_size=length)), dtype=float)
+               for _ in range(n_src)]
+    pages, expect = [], []
+    for name in chosen:
+        mc = CODEC[name]
+        sigs = [s.name for s in CODEC.db.get_message_by_name(name).signals if data.draw(st.booleans())]
+        fields, vals = [], {}
+        for sig in sigs:
+            src = data.draw(st.integers(-1, n_src - 1))
+            e = data.draw(st.integers(0, length - 1))
+            fields.append((sig, src, e))
+            x = 0.0 if src < 0 else float(sources[src][e])
+            if np.isfinite(x):
+                vals[sig] = x
+        pages.append((mc._c, fields))
+        try:
+            expect.append(mc._c.encode(vals))
+        except OverflowError as err:  # a finite value beyond the raw range's floats (e.g. 9e303 / 0.01)
+            expect.append(err)
+    errors = [e for e in expect if isinstance(e, Exception)]
+    if errors:  # the first failing page raises, as encode does
+        with pytest.raises(type(errors[0]), match=str(errors[0])):
+            SensorPages(pages).pack(sources)
+    else:
+        assert SensorPages(pages).pack(sources) == expect

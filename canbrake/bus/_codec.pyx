@@ -19,9 +19,9 @@ from cpython.dict cimport PyDict_GetItem, PyDict_SetItem
 from cpython.float cimport PyFloat_AS_DOUBLE, PyFloat_FromDouble
 from cpython.long cimport PyLong_AsDouble, PyLong_AsLongLongAndOverflow, PyLong_FromLongLong
 from cpython.object cimport PyObject
-from libc.math cimport INFINITY, isinf, isnan, rint
+from libc.math cimport INFINITY, NAN, isfinite, isinf, isnan, rint
 from libc.stdint cimport int64_t, uint8_t, uint64_t
-from cpython.mem cimport PyMem_Free, PyMem_Realloc
+from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
 
 from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
 
@@ -135,13 +135,10 @@ cdef class FieldCodec:
     cdef int64_t _raw(self, int i, object v) except? -1:
         """The saturated raw value of field i for the physical value ``v``."""
         cdef Field* fd = &self.f[i]
-        cdef double x
         cdef int ovf = 0
         cdef long long r
         if PyFloat_Check(v):
-            x = PyFloat_AS_DOUBLE(v)
-            if fd.scaled:
-                x = x / fd.scale if fd.offset == 0.0 else (x - fd.offset) / fd.scale
+            return self._raw_double(i, PyFloat_AS_DOUBLE(v))
         elif PyLong_Check(v):
             if not fd.scaled:
                 r = PyLong_AsLongLongAndOverflow(v, &ovf)
@@ -150,8 +147,8 @@ cdef class FieldCodec:
                 if ovf < 0:
                     return fd.lo
                 return fd.lo if r < fd.lo else fd.hi if r > fd.hi else r
-            x = PyLong_AsDouble(v)  # OverflowError for an int beyond floats, as Python's int - float
-            x = x / fd.scale if fd.offset == 0.0 else (x - fd.offset) / fd.scale
+            # OverflowError for an int beyond floats, as Python's int - float
+            return self._raw_double(i, PyLong_AsDouble(v))
         else:  # any other number type: Python's operators
             if not fd.scaled:
                 ro = round(v)
@@ -161,6 +158,13 @@ cdef class FieldCodec:
                 ro = round((v - fd.offset) / fd.scale)
             lo, hi = self.lo_obj[i], self.hi_obj[i]
             return lo if ro < lo else hi if ro > hi else ro
+
+    cdef int64_t _raw_double(self, int i, double x) except? -1:
+        """The saturated raw value of field i for the physical value ``x`` (a float)."""
+        cdef Field* fd = &self.f[i]
+        cdef long long r
+        if fd.scaled:
+            x = x / fd.scale if fd.offset == 0.0 else (x - fd.offset) / fd.scale
         if isnan(x):
             raise ValueError("cannot convert float NaN to integer")
         if isinf(x):
@@ -184,8 +188,6 @@ cdef class FieldCodec:
         cdef int64_t r
         cdef PyObject* p
         cdef bint exact = PyDict_CheckExact(values)
-        cdef uint8_t b[8]
-        cdef uint8_t crc
         for i in range(self.n):
             fd = &self.f[i]
             if fd.role == ROLE_CRC:
@@ -203,6 +205,13 @@ cdef class FieldCodec:
                 v = values.get(self.names[i], self.defaults[i])
             r = self._raw(i, v)
             w |= (<uint64_t>r & fd.mask) << fd.start
+        return self._payload_of(w)
+
+    cdef bytes _payload_of(self, uint64_t w):
+        """The payload bytes of word ``w`` (little-endian), with the E2E CRC if protected."""
+        cdef uint8_t b[8]
+        cdef uint8_t crc
+        cdef int i
         if self.protected:
             for i in range(self.length):
                 b[i] = <uint8_t>(w >> (8 * i))
@@ -743,3 +752,90 @@ cdef class CommandTable:
     def page_origin(self, unsigned int frame_id):
         """Tick of the newest accepted frame of this page (-1: none)."""
         return self._pg[<int>self._index[frame_id]].origin
+
+
+# ---------------------------------------------------------------- the plant's sensor pages
+DEF SRC_NONE = -2   # the field has no source: it encodes its default (as a missing signal)
+DEF SRC_ZERO = -1   # the value 0.0 (a coupler that does not exist: the train's ends)
+
+
+cdef class SensorPages:
+    """The plant's sensor pages of a period in one call: each page's signals read from the
+    period's measurement arrays (``pack(sources)``: a list of float64 arrays, one per source
+    name), a non-finite value encoded as a missing signal, as ``FieldCodec.encode`` of the
+    finite values would."""
+
+    cdef list _codecs
+    cdef object _src_arr, _elem_arr
+    cdef int* _src        # per page and codec field: source index, SRC_ZERO or SRC_NONE
+    cdef int64_t* _elem   # ... and element index in the source
+    cdef int _npg
+
+    def __init__(self, pages):
+        """``pages``: per page (FieldCodec, [(signal name, source index or -1 for 0.0, element)])."""
+        import numpy as np
+
+        self._codecs = []
+        src = np.full((max(len(pages), 1), MAX_FIELDS), SRC_NONE, dtype=np.intc)
+        elem = np.zeros((max(len(pages), 1), MAX_FIELDS), dtype=np.int64)
+        cdef FieldCodec codec
+        for p, (codec, fields) in enumerate(pages):
+            for name, s_, e in fields:
+                i = codec.names.index(name)
+                src[p, i] = SRC_ZERO if s_ < 0 else s_
+                elem[p, i] = e
+            self._codecs.append(codec)
+        self._npg = len(pages)
+        self._src_arr, self._elem_arr = src, elem
+        cdef int[:, ::1] sv = src
+        cdef int64_t[:, ::1] ev = elem
+        self._src = &sv[0, 0]
+        self._elem = &ev[0, 0]
+
+    def pack(self, list sources):
+        """The pages' payloads (list of bytes, in the order given) from ``sources``."""
+        cdef Py_ssize_t ns = len(sources)
+        cdef double** ptr = <double**>PyMem_Malloc((ns if ns > 0 else 1) * sizeof(double*))
+        cdef Py_ssize_t* length = <Py_ssize_t*>PyMem_Malloc((ns if ns > 0 else 1) * sizeof(Py_ssize_t))
+        if ptr is NULL or length is NULL:
+            PyMem_Free(ptr)
+            PyMem_Free(length)
+            raise MemoryError()
+        cdef double[::1] view
+        cdef list out = []
+        cdef FieldCodec codec
+        cdef int p, i, s_
+        cdef int64_t e
+        cdef uint64_t w
+        cdef double x
+        cdef Field* fd
+        try:
+            for i in range(ns):
+                view = sources[i]
+                ptr[i] = &view[0] if view.shape[0] > 0 else NULL
+                length[i] = view.shape[0]
+            for p in range(self._npg):
+                codec = self._codecs[p]
+                w = 0
+                for i in range(codec.n):
+                    fd = &codec.f[i]
+                    if fd.role == ROLE_CRC:
+                        continue
+                    s_ = self._src[p * MAX_FIELDS + i]
+                    if s_ == SRC_NONE:
+                        x = NAN
+                    elif s_ == SRC_ZERO:
+                        x = 0.0
+                    else:
+                        e = self._elem[p * MAX_FIELDS + i]
+                        if e < 0 or e >= length[s_]:
+                            raise IndexError(f"element {e} of source {s_} (length {length[s_]})")
+                        x = ptr[s_][e]
+                    if not isfinite(x):  # not sent: the default, as a missing signal
+                        x = codec.f[i].offset
+                    w |= (<uint64_t>codec._raw_double(i, x) & fd.mask) << fd.start
+                out.append(codec._payload_of(w))
+        finally:
+            PyMem_Free(ptr)
+            PyMem_Free(length)
+        return out

@@ -19,7 +19,7 @@ import numpy as np
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OUT_OF_SEQUENCE, CMD_SLOT_COMPLETE,
-                                  CommandTable)
+                                  CommandTable, SensorPages)
 from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
 
@@ -161,6 +161,24 @@ class PlantNode(Node):
                              for m in layout.messages if m.kind == "sensor"]
         self._sensor_arrays = sorted({"deflection_m" if sig in ("deflection_front_m", "deflection_rear_m") else sig
                                       for *_x, sigs in self._sensor_msgs for sig, _d in sigs})
+        # every sensor page of a period in one compiled call (arrays in, payloads out): per signal
+        # the measurement array and element it reads (a coupler's deflection: the one in front of
+        # or behind the vehicle; 0.0 at the train's ends)
+        src_of = {name: i for i, name in enumerate(self._sensor_arrays)}
+        pages = []
+        for _fid, cdc, ecu, sigs in self._sensor_msgs:
+            v = self.ecus[ecu - 1].vehicle - 1
+            fields = []
+            for sig, dbc_name in sigs:
+                if sig == "deflection_front_m":
+                    fields.append((dbc_name, src_of["deflection_m"], v - 1) if v > 0 else (dbc_name, -1, 0))
+                elif sig == "deflection_rear_m":
+                    fields.append((dbc_name, src_of["deflection_m"], v) if v < self.n - 1 else (dbc_name, -1, 0))
+                else:
+                    fields.append((dbc_name, src_of[sig], v))
+            pages.append((cdc._c, fields))
+        self._sensor_pages = SensorPages(pages)
+        self._sensor_ids = [fid for fid, *_x in self._sensor_msgs]
         self._hb = codec["HEARTBEAT_PLANT"]
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
@@ -200,16 +218,6 @@ class PlantNode(Node):
         ids += [i for i in self._hb_of_ext if i not in ids]
         return [exact_filter(i) for i in ids]
 
-    @staticmethod
-    def _vehicle_value(meas: dict[str, list[float]], name: str, v: int, n: int) -> float:
-        """Measurement ``name`` of vehicle index ``v`` (0-based) for its ECU's sensor frame
-        (``meas``: the model's measurements as lists of floats)."""
-        if name == "deflection_front_m":
-            return meas["deflection_m"][v - 1] if v > 0 else 0.0
-        if name == "deflection_rear_m":
-            return meas["deflection_m"][v] if v < n - 1 else 0.0
-        return meas[name][v]
-
     def _tick_frames(self) -> list[can.Message]:
         k = self.k
         t = k * self.dt
@@ -222,17 +230,9 @@ class PlantNode(Node):
             out.append(frame(dbc.REFERENCE_POS_ID, self._ref_pos.encode({"RefPosition": self.reference.position(t)})))
         if k % self.heartbeat_every == 0:
             out.append(frame(dbc.HEARTBEAT_BASE, self._hb.encode({"NodeState": 5})))
-        n = self.n
-        # the arrays the frames read, as Python floats (one tolist each, not a numpy scalar per value)
-        lists = {name: np.asarray(meas[name], dtype=float).tolist() for name in self._sensor_arrays}
-        for fid, codec, ecu, sigs in self._sensor_msgs:
-            v = self.ecus[ecu - 1].vehicle - 1
-            vals = {}
-            for sig, dbc_name in sigs:
-                x = self._vehicle_value(lists, sig, v, n)
-                if math.isfinite(x):
-                    vals[dbc_name] = x
-            out.append(frame(fid, codec.encode(vals)))
+        payloads = self._sensor_pages.pack([np.ascontiguousarray(meas[name], dtype=float)
+                                            for name in self._sensor_arrays])
+        out += [frame(fid, p) for fid, p in zip(self._sensor_ids, payloads)]
         for sp in self.hosted:
             rogue = sp.release(t)
             out += rogue
