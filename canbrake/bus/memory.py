@@ -656,6 +656,48 @@ class MemoryBus(BusABC):
         already filtered): the node driver's hot path."""
         return self._recv_internal(timeout)[0]
 
+    def recv_batch(self, timeout: Optional[float] = None) -> list[Message]:
+        """Every accepted frame pending, oldest first; if none is, wait up to ``timeout`` s for the
+        first (``None``: forever, 0: poll) and return it with any that came with it. ``[]`` after
+        the timeout.
+
+        The frames, their order and attributes are those that calling :meth:`recv_filtered`
+        until it has nothing pending would return, and errors come at the same place in that
+        sequence: when frames were lost (:class:`BusOverrunError`), the frames read before the
+        loss are returned first and the next call raises; the frames after the loss come with
+        the call after that. Counters (:meth:`stats`) are the same too.
+        """
+        with self._rxlock:
+            self._check_open()
+            self._raise_pending_overrun()
+            buf = self._rxbuf
+            got = list(buf)
+            buf.clear()
+            try:
+                self._fetch()
+            except BusOverrunError as e:
+                if not got:
+                    raise  # the frames after the loss stay queued for the next call
+                self._overrun_pending = e
+                self._n_recv += len(got)
+                return got
+            if not got and not buf:  # nothing pending: wait for the first frame as recv does
+                m = self._recv_locked(timeout)[0]  # (counted there)
+                if m is None:
+                    return []
+                got.append(m)
+                self._n_recv -= 1
+            got.extend(buf)
+            buf.clear()
+            self._n_recv += len(got)
+            return got
+
+    def _raise_pending_overrun(self) -> None:
+        e = self._overrun_pending
+        if e is not None:
+            self._overrun_pending = None
+            raise e
+
     def _recv_internal(self, timeout: Optional[float]) -> tuple[Optional[Message], bool]:
         """Next accepted frame, or ``None`` after ``timeout`` s (``None``: wait forever, 0: poll)."""
         with self._rxlock:
@@ -663,6 +705,7 @@ class MemoryBus(BusABC):
 
     def _recv_locked(self, timeout: Optional[float]) -> tuple[Optional[Message], bool]:
         self._check_open()
+        self._raise_pending_overrun()
         buf = self._rxbuf
         if not buf:
             self._fetch()
