@@ -8,8 +8,8 @@ One boundary, crossed once per ``send``/``send_many`` burst and once per fetch o
   ``BusABC._matches_filters``, checked against it in ``tests/test_memory_ring.py``);
 - :class:`Ring` over the channel's mapping: :meth:`Ring.encode` (validate and pack a burst of
   messages into slot images, before the writer lock), :meth:`Ring.write` (copy them into the ring
-  with the per-slot seqlock, publish ``write_seq``; lock held), :meth:`Ring.first_accepted` (the
-  wake-up test of a sleeping reader's filters), :meth:`Ring.protected_hit` (does a
+  with the per-slot seqlock, publish ``write_seq``; lock held), :meth:`Ring.wake` (which sleeping
+  readers' filters accept the burst: their wake-up bookkeeping), :meth:`Ring.protected_hit` (does a
   ``backpressure="accepted"`` reader accept an unread frame a write would overwrite), and
   :meth:`Ring.fetch` (every new frame this bus accepts as ``can.Message``, with the seqlock
   re-check and the overrun count).
@@ -56,6 +56,10 @@ DEF DATA_OFFSET = 24
 DEF MAX_DATA = 64
 DEF SLOT_SEQ_OFFSET = 88
 DEF WRITE_SEQ_BYTE = 64        # header word H_WRITE_SEQ (8)
+DEF SLEEPERS_BYTE = 160        # header word H_SLEEPERS (20)
+DEF E_SLEEPING_BYTE = 72       # reader-entry words E_SLEEPING (9), E_WAKE_SEQ (10), E_WAKEUPS (11)
+DEF E_WAKE_SEQ_BYTE = 80
+DEF E_WAKEUPS_BYTE = 88
 DEF M_EXT = 1
 DEF M_RTR = 2
 DEF M_ERR = 4
@@ -65,7 +69,9 @@ DEF M_ESI = 32
 cdef uint64_t SLOT_INVALID = 0xFFFFFFFFFFFFFFFFULL
 #: the slot format compiled in, checked against memory_shm's layout by memory.py at import
 LAYOUT = {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_DATA,
-          "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": WRITE_SEQ_BYTE // 8}
+          "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": WRITE_SEQ_BYTE // 8,
+          "H_SLEEPERS": SLEEPERS_BYTE // 8, "E_SLEEPING": E_SLEEPING_BYTE // 8,
+          "E_WAKE_SEQ": E_WAKE_SEQ_BYTE // 8, "E_WAKEUPS": E_WAKEUPS_BYTE // 8}
 
 # python-can's Message has __slots__ and an __init__ that, given a bytearray and a dlc, only
 # stores its arguments. Setting the slots directly on a new object gives the same object for
@@ -154,6 +160,18 @@ cdef class Filters:
     def accepts(self, arbitration_id: int, extended: bool) -> bool:
         """python-can's ``_matches_filters`` rule for one frame."""
         return self._accepts(<uint32_t>arbitration_id, bool(extended))
+
+
+cdef Py_ssize_t _first_accepted(bytes frames, Filters filters):
+    """Index of the first slot image in ``frames`` that ``filters`` accept, else -1."""
+    cdef Py_ssize_t k = PyBytes_GET_SIZE(frames) // SLOT_BYTES, i
+    cdef const char *p = PyBytes_AS_STRING(frames)
+    cdef uint32_t aid
+    for i in range(k):
+        memcpy(&aid, p + i * SLOT_BYTES + 8, 4)
+        if filters._accepts(aid, (<uint8_t>p[i * SLOT_BYTES + 16]) & M_EXT):
+            return i
+    return -1
 
 
 cdef class Ring:
@@ -269,17 +287,36 @@ cdef class Ring:
         cb_store(self.mem + WRITE_SEQ_BYTE, <uint64_t>(w + k))  # publish: aligned 8-byte store
         return w + k
 
-    @staticmethod
-    def first_accepted(bytes frames, Filters filters) -> int:
-        """Index of the first slot image in ``frames`` that ``filters`` accept, else -1."""
-        cdef Py_ssize_t k = PyBytes_GET_SIZE(frames) // SLOT_BYTES, i
-        cdef const char *p = PyBytes_AS_STRING(frames)
-        cdef uint32_t aid
-        for i in range(k):
-            memcpy(&aid, p + i * SLOT_BYTES + 8, 4)
-            if filters._accepts(aid, (<uint8_t>p[i * SLOT_BYTES + 16]) & M_EXT):
-                return i
-        return -1
+    def wake(self, peers, bytes frames, int64_t w) -> list:
+        """After :meth:`write` of ``frames`` at seq ``w`` (lock held): clear the *sleeping* flag
+        of every sleeping reader in ``peers`` (``(entry word, token, filters or None)``) whose
+        filters accept one of the frames, after storing where the first such frame is
+        (``wake_seq``) and counting the wake-up; returns their tokens, to be woken through their
+        FIFOs once the lock is released. Awake readers find the frames themselves."""
+        self._check()
+        cdef list out = []
+        cdef char *e
+        cdef int64_t hit
+        cdef Py_ssize_t i
+        if cb_load(self.mem + SLEEPERS_BYTE) == 0:
+            return out
+        for b, tok, filt in peers:
+            e = self.mem + <int64_t>b * 8
+            if not cb_load(e + E_SLEEPING_BYTE):
+                continue
+            if filt is None:
+                hit = w
+            else:
+                i = _first_accepted(frames, <Filters>filt)
+                if i < 0:
+                    continue
+                hit = w + i
+            cb_store(e + E_WAKE_SEQ_BYTE, <uint64_t>hit)
+            cb_store(e + E_SLEEPING_BYTE, 0)  # after wake_seq: the reader reads them in that order
+            cb_store(self.mem + SLEEPERS_BYTE, cb_load(self.mem + SLEEPERS_BYTE) - 1)
+            cb_store(e + E_WAKEUPS_BYTE, cb_load(e + E_WAKEUPS_BYTE) + 1)
+            out.append(tok)
+        return out
 
     def protected_hit(self, int64_t start, int64_t end, uint32_t token, bint own, Filters filters) -> bool:
         """True if seqs ``start .. end-1`` hold a frame the reader with ``token`` (receiving its

@@ -119,7 +119,8 @@ from canbrake.bus.memory_shm import (
 __all__ = ["MemoryBus", "MemoryBusStats", "remove_channel", "list_channels", "channel_pids"]
 
 if _RING_LAYOUT != {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_DATA,
-                    "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": H_WRITE_SEQ}:
+                    "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": H_WRITE_SEQ, "H_SLEEPERS": H_SLEEPERS,
+                    "E_SLEEPING": E_SLEEPING, "E_WAKE_SEQ": E_WAKE_SEQ, "E_WAKEUPS": E_WAKEUPS}:
     raise ImportError(f"canbrake.bus._ring was built for another slot layout ({_RING_LAYOUT}): "
                       "rebuild canbrake (pip install .)")
 _WAIT_SLICE_S = 0.1  # a writer blocked by a backpressure reader re-checks that reader's pid this often
@@ -444,21 +445,7 @@ class MemoryBus(BusABC):
                             # them, so a bus that mostly sends is not overrun by itself
                             self._seq = w + n
                             q[eb + E_READ_SEQ] = w + n
-                        for pb, ptok, pfilt in self._peers if q[H_SLEEPERS] else ():
-                            if not q[pb + E_SLEEPING]:
-                                continue  # awake readers find the frames themselves
-                            if pfilt is None:
-                                hit = w
-                            else:
-                                hit = Ring.first_accepted(frames, pfilt)
-                                if hit < 0:
-                                    continue
-                                hit += w
-                            q[pb + E_WAKE_SEQ] = hit
-                            q[pb + E_SLEEPING] = 0
-                            q[H_SLEEPERS] = q[H_SLEEPERS] - 1
-                            q[pb + E_WAKEUPS] = q[pb + E_WAKEUPS] + 1
-                            wake.append(ptok)
+                        wake = ring.wake(self._peers, frames, w)  # sleeping readers that accept one
                 finally:
                     self._unlock()
                 if not blocker:
@@ -654,7 +641,12 @@ class MemoryBus(BusABC):
     def recv_filtered(self, timeout: Optional[float] = None) -> Optional[Message]:
         """:meth:`recv` without python-can's per-frame debug logging (this bus's frames are
         already filtered): the node driver's hot path."""
-        return self._recv_internal(timeout)[0]
+        with self._rxlock:
+            buf = self._rxbuf
+            if buf and self._open and not self._forked and self._overrun_pending is None:
+                self._n_recv += 1  # fast path: a frame fetched before is waiting
+                return buf.popleft()
+            return self._recv_locked(timeout)[0]
 
     def recv_batch(self, timeout: Optional[float] = None) -> list[Message]:
         """Every accepted frame pending, oldest first; if none is, wait up to ``timeout`` s for the
