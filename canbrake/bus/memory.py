@@ -58,6 +58,16 @@ time may receive (python-can's ``Notifier`` thread is fine).
 
 Memory ordering relies on x86-64's total store order for the lock-free reads of ``write_seq``
 and the frame slots (readers re-check ``write_seq`` after copying, a seqlock-style check).
+
+Compiled part (:mod:`canbrake.bus._ring`, one implementation): the slot write of a burst and its
+wake-up bookkeeping (which sleeping readers' filters accept it), the fetch loop (token and filter
+checks, seqlock checks, the ``can.Message`` objects) and the filters themselves. The lock, the
+FIFO wake-ups, backpressure policy, errors and counters are here. A FIFO byte costs no more than a
+futex wake between two processes (measured, ~5 us of CPU per side per round trip either way: the
+cost is the context switch), so the wake-up stays a FIFO, which any process can open by name.
+
+:meth:`MemoryBus.recv_batch` hands a reader every accepted frame pending in one list (what
+repeated :meth:`MemoryBus.recv_filtered` calls would return, overrun errors at the same place).
 """
 from __future__ import annotations
 
