@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canbrake.bus import memory_shm as shm
-from canbrake.bus._ring import Filters
+from canbrake.bus._ring import Filters, fast_messages
 from canbrake.bus.memory import BusOverrunError
 
 
@@ -88,8 +88,9 @@ def pair():
 
 
 @settings(max_examples=200, deadline=None)
-@given(msgs=st.lists(_frames(), min_size=1, max_size=6), ts=st.floats(0, 2e9))
-def test_received_messages_are_what_the_constructor_makes(pair, msgs, ts):
+@given(msgs=st.lists(_frames(), min_size=1, max_size=6), ts=st.floats(0, 2e9), fast=st.booleans())
+def test_received_messages_are_what_the_constructor_makes(pair, msgs, ts, fast):
+    assert fast_messages(fast) == fast  # slots set directly, or python-can's constructor
     tx, rx = pair
     for m in msgs:
         m.timestamp = ts
@@ -106,6 +107,7 @@ def test_received_messages_are_what_the_constructor_makes(pair, msgs, ts):
             assert getattr(m, f) == getattr(want, f), f
             assert type(getattr(m, f)) is type(getattr(want, f)), f
         assert m.equals(want, timestamp_delta=None)
+    fast_messages(True)
 
 
 def test_send_rejects_malformed_frames_with_the_same_messages(pair):

@@ -80,6 +80,15 @@ _SLOTS = ("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "i
           "channel", "is_fd", "is_rx", "bitrate_switch", "error_state_indicator", "data", "dlc")
 cdef bint _FAST_MSG = set(getattr(Message, "__slots__", ())) - {"__weakref__"} == set(_SLOTS)
 cdef object _new = object.__new__
+
+
+def fast_messages(on=None) -> bool:
+    """Whether messages are built by setting their slots (else by ``can.Message(...)``); ``on``
+    switches it (tests compare both ways; switching on needs python-can's known slots)."""
+    global _FAST_MSG
+    if on is not None:
+        _FAST_MSG = bool(on) and set(getattr(Message, "__slots__", ())) - {"__weakref__"} == set(_SLOTS)
+    return _FAST_MSG
 cdef object S_TS = "timestamp", S_ID = "arbitration_id", S_EXT = "is_extended_id"
 cdef object S_RTR = "is_remote_frame", S_ERR = "is_error_frame", S_CH = "channel"
 cdef object S_FD = "is_fd", S_RX = "is_rx", S_BRS = "bitrate_switch", S_ESI = "error_state_indicator"
