@@ -50,8 +50,8 @@ SLOT_SEQ_OFFSET = 88
 SLOT_INVALID = (1 << 64) - 1
 DEFAULT_RING_SIZE = 16384
 
-#: frame slot head: timestamp (s), arbitration id, sender token, flags, dlc, data length, pad
-SLOT_HEAD = struct.Struct("<dIIBBBB")
+#: a frame slot's head (``<dIIBBBB``): timestamp (s), arbitration id, sender token, flags, dlc,
+#: data length, pad; written and read by the compiled ring (:mod:`canbrake.bus._ring`)
 
 # header words (index into the 'Q' view)
 H_MAGIC, H_VERSION, H_RING, H_SLOT, H_READERS, H_ENTRY = 0, 1, 2, 3, 4, 5
@@ -83,7 +83,7 @@ M_EXT, M_RTR, M_ERR, M_FD, M_BRS, M_ESI = 1, 2, 4, 8, 16, 32
 _CHANNEL_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}\Z")
 
 #: A compiled filter: (can_id & can_mask, can_mask, mode); mode 0 any frame, 1 standard ids
-#: only, 2 extended ids only, 3 never (python-can's rule for an "extended" that is not a bool).
+#: only, 2 extended ids only, 3 never (python-can's rule for an "extended" equal to neither bool).
 Filter = tuple[int, int, int]
 
 
@@ -194,22 +194,12 @@ def compile_filters(filters: Optional[can.typechecking.CanFilters]) -> Optional[
         cid = int(f["can_id"]) & mask
         if "extended" in f:
             ext = f["extended"]  # type: ignore[typeddict-item]
-            mode = 2 if ext is True else 1 if ext is False else 3
+            # python-can compares ``extended != msg.is_extended_id``: 1 counts as True, 0 as False
+            mode = 2 if ext == True else 1 if ext == False else 3  # noqa: E712
         else:
             mode = 0
         out.append((cid, mask, mode))
     return tuple(out)
-
-
-def accepts(filters: tuple[Filter, ...], arbitration_id: int, extended: bool) -> bool:
-    """python-can's ``_matches_filters`` rule on compiled filters."""
-    for cid, mask, mode in filters:
-        if mode:
-            if mode == 3 or (mode == 2) != extended:
-                continue
-        if arbitration_id & mask == cid:
-            return True
-    return False
 
 
 def pushable(filters: Optional[tuple[Filter, ...]]) -> bool:

@@ -1,0 +1,290 @@
+"""The memory bus's compiled ring (canbrake/bus/_ring.pyx) and MemoryBus.recv_batch.
+
+The compiled filters are checked against python-can's own rule (``BusABC._matches_filters``), the
+messages the ring builds against ``can.Message``'s constructor, and recv_batch against repeated
+recv_filtered on a twin reader of the same channel (frames, order, overrun errors, counters).
+"""
+from __future__ import annotations
+
+import os
+import threading
+import time
+import uuid
+
+import can
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from canbrake.bus import memory_shm as shm
+from canbrake.bus._ring import Filters, fast_messages
+from canbrake.bus.memory import BusOverrunError
+
+
+class _Probe(can.BusABC):
+    """A bus that only holds filters, to ask python-can's own ``_matches_filters``."""
+
+    def __init__(self, channel, can_filters=None, **kwargs):
+        super().__init__(channel, can_filters=can_filters, **kwargs)
+
+    def send(self, msg, timeout=None):  # pragma: no cover - never called
+        raise NotImplementedError
+
+    def _recv_internal(self, timeout):  # pragma: no cover - never called
+        return None, False
+
+
+def _chan() -> str:
+    return f"ringtest-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+
+
+_filter = st.fixed_dictionaries(
+    {"can_id": st.integers(0, 0x1FFFFFFF) | st.integers(-5, 2**70), "can_mask": st.integers(0, 0x1FFFFFFF)
+     | st.sampled_from([0, 0x7FF, 0x1FFFFFFF, -1, 2**64 + 0x7FF, 2**40])},
+    optional={"extended": st.sampled_from([True, False, None, 1])},
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(filters=st.lists(_filter, min_size=1, max_size=20), aid=st.integers(0, 0x1FFFFFFF),
+       ext=st.booleans(), extra=st.sampled_from([0, 0x7FF, 0x100]))
+def test_compiled_filters_follow_python_can(filters, aid, ext, extra):
+    probe = _Probe(channel="probe", can_filters=filters)
+    compiled = Filters(shm.compile_filters(filters))
+    for frame_id in {aid, aid & extra, filters[0]["can_id"] & 0x1FFFFFFF}:
+        msg = can.Message(arbitration_id=frame_id, is_extended_id=ext)
+        assert compiled.accepts(frame_id, ext) == probe._matches_filters(msg), (filters, frame_id, ext)
+    probe.shutdown()
+
+
+_FIELDS = ("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame",
+           "channel", "dlc", "data", "is_fd", "is_rx", "bitrate_switch", "error_state_indicator")
+
+
+def _frames():
+    def build(ext, fd, rtr, err, brs, esi, data, aid):
+        if rtr:
+            fd, data = False, b""
+        if not fd:
+            data = data[:8]
+            brs = esi = False
+        dlc = len(data) if not rtr else 3
+        return can.Message(arbitration_id=aid if ext else aid & 0x7FF, is_extended_id=ext, is_fd=fd,
+                           is_remote_frame=rtr, is_error_frame=err, bitrate_switch=brs,
+                           error_state_indicator=esi, data=data, dlc=dlc)
+
+    return st.builds(build, st.booleans(), st.booleans(), st.booleans(), st.booleans(), st.booleans(),
+                     st.booleans(), st.binary(max_size=64), st.integers(0, 0x1FFFFFFF))
+
+
+@pytest.fixture(scope="module")
+def pair():
+    ch = _chan()
+    tx = can.Bus(interface="canbrake", channel=ch, preserve_timestamps=True)
+    rx = can.Bus(interface="canbrake", channel=ch)
+    yield tx, rx
+    rx.shutdown()
+    tx.shutdown()
+
+
+@settings(max_examples=200, deadline=None)
+@given(msgs=st.lists(_frames(), min_size=1, max_size=6), ts=st.floats(0, 2e9), fast=st.booleans())
+def test_received_messages_are_what_the_constructor_makes(pair, msgs, ts, fast):
+    assert fast_messages(fast) == fast  # slots set directly, or python-can's constructor
+    tx, rx = pair
+    for m in msgs:
+        m.timestamp = ts
+    tx.send_many(msgs)
+    got = rx.recv_batch(0)
+    assert len(got) == len(msgs)
+    for sent, m in zip(msgs, got):
+        want = can.Message(sent.timestamp, sent.arbitration_id, sent.is_extended_id, sent.is_remote_frame,
+                           sent.is_error_frame, rx.channel_name, sent.dlc,
+                           bytearray(sent.data), sent.is_fd, True, sent.bitrate_switch,
+                           sent.error_state_indicator)
+        assert type(m) is can.Message
+        for f in _FIELDS:
+            assert getattr(m, f) == getattr(want, f), f
+            assert type(getattr(m, f)) is type(getattr(want, f)), f
+        assert m.equals(want, timestamp_delta=None)
+    fast_messages(True)
+
+
+def test_send_rejects_malformed_frames_with_the_same_messages(pair):
+    tx, _ = pair
+    with pytest.raises(can.CanOperationError, match="classic CAN frame 0x12 has 9 data bytes"):
+        tx.send(can.Message(arbitration_id=0x12, data=bytes(9), is_extended_id=False))
+    with pytest.raises(can.CanOperationError, match="out of range"):
+        tx.send(can.Message(arbitration_id=0x2FFFFFFF, data=b"", is_extended_id=True))
+    with pytest.raises(can.CanOperationError, match="dlc 300 out of range"):
+        tx.send(can.Message(arbitration_id=0x1, data=b"", dlc=300))
+
+
+def _event(m):
+    return tuple(getattr(m, f) for f in _FIELDS)
+
+
+def _drain_one_by_one(bus):
+    out = []
+    while True:
+        try:
+            m = bus.recv_filtered(0)
+        except BusOverrunError as e:
+            out.append(("overrun", e.frames_lost))
+            continue
+        if m is None:
+            return out
+        out.append(_event(m))
+
+
+def _drain_batches(bus):
+    out = []
+    while True:
+        try:
+            got = bus.recv_batch(0)
+        except BusOverrunError as e:
+            out.append(("overrun", e.frames_lost))
+            continue
+        if not got:
+            return out
+        out.extend(_event(m) for m in got)
+
+
+def test_recv_batch_equals_repeated_recv_filtered_with_filters_and_own_frames():
+    ch = _chan()
+    filt = [{"can_id": 0x100, "can_mask": 0x700, "extended": False}, {"can_id": 0x5, "can_mask": 0xFF}]
+    a = can.Bus(interface="canbrake", channel=ch, can_filters=filt, receive_own_messages=True)
+    b = can.Bus(interface="canbrake", channel=ch, can_filters=filt)
+    tx = can.Bus(interface="canbrake", channel=ch)
+    try:
+        msgs = [can.Message(arbitration_id=i, data=bytes([i & 0xFF]), is_extended_id=bool(i & 1)) for i in
+                (0x100, 0x1FF, 0x205, 0x105, 0x7FF, 0x305, 0x5, 0x1234505)]
+        tx.send_many(msgs)
+        a.send(can.Message(arbitration_id=0x101, data=b"own", is_extended_id=False))
+        tx.send_many(msgs[::-1])
+        batches = _drain_batches(a)
+        single = _drain_one_by_one(b)
+        # a receives its own frame (is_rx False) as well, b does not see a's frame as its own
+        assert [e for e in batches if e[7] != b"own"] == [e for e in single if e[7] != b"own"]
+        own = [e for e in batches if e[7] == b"own"]
+        assert own and own[0][9] is False
+        probe = _Probe(channel="probe", can_filters=filt)
+        assert len(single) == 2 * sum(probe._matches_filters(m) for m in msgs) + 1 > 3
+        probe.shutdown()
+        assert a.stats().frames_received == len(batches) and b.stats().frames_received == len(single)
+    finally:
+        for bus in (a, b, tx):
+            bus.shutdown()
+
+
+def test_recv_batch_overrun_comes_where_recv_filtered_raises_it():
+    """An overrun reader that fell more than a ring behind: the frames before the loss, then the
+    error, then the frames after it, for both ways of reading."""
+    ch = _chan()
+    a = can.Bus(interface="canbrake", channel=ch, ring_size=16)
+    b = can.Bus(interface="canbrake", channel=ch, ring_size=16)
+    tx = can.Bus(interface="canbrake", channel=ch, ring_size=16)
+    try:
+        def burst(start, k):
+            for i in range(start, start + k):
+                tx.send(can.Message(arbitration_id=0x10, data=i.to_bytes(2, "little"), is_extended_id=False))
+
+        burst(0, 4)
+        first_a, first_b = a.recv_filtered(0), b.recv_filtered(0)  # 3 more now queued in each bus
+        assert _event(first_a) == _event(first_b)
+        burst(4, 40)  # a ring is 16: frames 4..28 are overwritten unread
+        ev_a = []
+        got = a.recv_batch(0)
+        ev_a.extend(_event(m) for m in got)
+        assert [int.from_bytes(e[7], "little") for e in ev_a] == [1, 2, 3]
+        with pytest.raises(BusOverrunError) as err:
+            a.recv_batch(0)
+        ev_a.append(("overrun", err.value.frames_lost))
+        ev_a += _drain_batches(a)
+        assert ev_a == _drain_one_by_one(b)
+        assert ("overrun", 25) in ev_a
+        sa, sb = a.stats(), b.stats()
+        assert (sa.frames_received, sa.frames_lost, sa.overruns) == (sb.frames_received, sb.frames_lost, sb.overruns)
+        # the error is raised once: recv after it goes on with the frames after the loss
+        burst(100, 2)
+        assert [int.from_bytes(m.data, "little") for m in a.recv_batch(0)] == [100, 101]
+    finally:
+        for bus in (a, b, tx):
+            bus.shutdown()
+
+
+def test_recv_batch_waits_for_the_first_frame_and_times_out():
+    ch = _chan()
+    rx = can.Bus(interface="canbrake", channel=ch, can_filters=[{"can_id": 0x20, "can_mask": 0x7FF}])
+    tx = can.Bus(interface="canbrake", channel=ch)
+    try:
+        t0 = time.monotonic()
+        assert rx.recv_batch(0.05) == []
+        assert time.monotonic() - t0 >= 0.05
+        assert rx.recv_batch(0) == []
+
+        def later():
+            time.sleep(0.1)
+            tx.send(can.Message(arbitration_id=0x21, is_extended_id=False))  # filtered out: no wake-up
+            tx.send_many([can.Message(arbitration_id=0x20, data=bytes([i]), is_extended_id=False)
+                          for i in range(3)])
+
+        th = threading.Thread(target=later)
+        th.start()
+        got = rx.recv_batch(5.0)
+        th.join()
+        got += rx.recv_batch(0)
+        assert [bytes(m.data) for m in got] == [b"\0", b"\1", b"\2"]
+        assert rx.stats().frames_received == 3
+    finally:
+        rx.shutdown()
+        tx.shutdown()
+
+
+def _child_writer(channel: str, n: int, ready, done) -> None:
+    """Bursts of 4 accepted frames (id 0x30, numbered) between 40 frames the reader filters out."""
+    with can.Bus(interface="canbrake", channel=channel, ring_size=16) as b:
+        ready.wait(60)
+        for k in range(0, n, 4):
+            b.send_many([can.Message(arbitration_id=0x31, data=b"x", is_extended_id=False)] * 40)
+            b.send_many([can.Message(arbitration_id=0x30, data=i.to_bytes(2, "little"), is_extended_id=False)
+                         for i in range(k, min(n, k + 4))], timeout=60)
+        done.set()
+
+
+def test_recv_batch_across_processes_protected_reader_gets_every_accepted_frame():
+    """A lockstep node's bus (backpressure="accepted") reading with recv_batch from another
+    process's bursts on a 16-frame ring: every accepted frame in order, the flood on an id it
+    filters out passes without an overrun, each recv_batch wakes on the first accepted frame."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("spawn")
+    ch = _chan()
+    n = 200
+    rx = can.Bus(interface="canbrake", channel=ch, ring_size=16, backpressure="accepted",
+                 can_filters=[{"can_id": 0x30, "can_mask": 0x7FF, "extended": False}])
+    ready, done = ctx.Event(), ctx.Event()
+    p = ctx.Process(target=_child_writer, args=(ch, n, ready, done))
+    p.start()
+    try:
+        ready.set()
+        got, batches = [], 0
+        while len(got) < n:
+            batch = rx.recv_batch(60.0)
+            assert batch, "no frame within 60 s"
+            batches += 1
+            got += [int.from_bytes(m.data, "little") for m in batch]
+            if batches % 3 == 0:
+                time.sleep(0.002)  # a slow reader: the writer must wait, not overwrite
+        assert got == list(range(n))
+        assert done.wait(60)
+        st_ = rx.stats()
+        assert st_.frames_received == n and st_.frames_lost == 0 and st_.overruns == 0
+        assert st_.frames_passed > 0  # the flood went by
+    finally:
+        p.join(60)
+        if p.is_alive():
+            p.kill()
+            p.join()
+        rx.shutdown()
+    assert p.exitcode == 0
