@@ -78,6 +78,11 @@ class SignalSpec:
     unit: str | None = None
     comment: str | None = None
     choices: tuple[tuple[int, str], ...] | None = None  # value table (VAL_ in the DBC)
+    #: a user's DBC (canbrake.bus.userdbc): Motorola fields ("big_endian", start = the MSB as in
+    #: the DBC) and one page of a multiplexed message (this field's page, or its multiplexer)
+    byte_order: str = "little_endian"
+    multiplexer_ids: tuple[int, ...] | None = None
+    is_multiplexer: bool = False
 
 
 # ------------------------------------------------------------------------------------ placement
@@ -360,6 +365,9 @@ class BusLayout:
                                     f"Simulation control (lockstep barrier): ECU {e.name} has sent all "
                                     f"command-phase frames of tick k.", None, ext, "cmd_done", e.index))
         self.messages = sorted(msgs, key=lambda m: (m.frame_id, m.name))
+        #: identifiers of the plant's frames the nodes address directly (a user's DBC moves them)
+        self.sync_id, self.reference_id, self.reference_pos_id = SYNC_ID, REFERENCE_ID, REFERENCE_POS_ID
+        self.plant_heartbeat_id = HEARTBEAT_BASE
         self.by_id = {m.frame_id: m for m in self.messages}
         self.by_name = {m.name: m for m in self.messages}
         if len(self.by_id) != len(self.messages) or len(self.by_name) != len(self.messages):
@@ -385,11 +393,14 @@ class BusLayout:
         """The cantools database of this layout."""
         messages = []
         for m in self.messages:
-            signals = [Signal(name=s.name, start=s.start, length=s.length, byte_order="little_endian",
+            mux = next((s.name for _, s in m.signals if s.is_multiplexer), None)
+            signals = [Signal(name=s.name, start=s.start, length=s.length, byte_order=s.byte_order,
                               is_signed=s.signed, conversion=BaseConversion.factory(
                                   scale=s.scale, offset=s.offset, choices=dict(s.choices) if s.choices else None),
                               minimum=s.minimum, maximum=s.maximum, unit=s.unit, comment=s.comment,
-                              receivers=list(m.receivers))
+                              receivers=list(m.receivers), is_multiplexer=s.is_multiplexer,
+                              multiplexer_ids=list(s.multiplexer_ids) if s.multiplexer_ids else None,
+                              multiplexer_signal=mux if s.multiplexer_ids else None)
                        for _, s in m.signals]
             messages.append(Message(frame_id=m.frame_id, name=m.name, length=m.length, signals=signals,
                                     comment=m.comment, senders=[m.sender], cycle_time=m.cycle_ms,

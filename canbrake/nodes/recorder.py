@@ -298,7 +298,7 @@ class RecorderNode(Node):
         if aid in self._closing_ids:
             self._closing_seen += 1
         verdict = None
-        if aid == dbc.SYNC_ID and not msg.is_extended_id:
+        if aid == self.layout.sync_id and msg.is_extended_id == (aid > 0x7FF):
             verdict = sync_verdict(self.guard, aid, msg.data, self._k, lockstep=True, final_tick=self.final_tick,
                                    tick_complete=self._k < 0 or self._closing_seen >= self._closing_total)
         if verdict is not None:
@@ -316,7 +316,7 @@ class RecorderNode(Node):
                 return []
             self._k = tick
             self._closing_seen = 0
-        phase = 0 if aid == dbc.HEARTBEAT_BASE and not msg.is_extended_id else _PHASE.get(kind, 1)
+        phase = 0 if aid == self.layout.plant_heartbeat_id and msg.is_extended_id == (aid > 0x7FF) else _PHASE.get(kind, 1)
         self._tick_frames.append((phase, aid, bytes(msg.data), msg))  # type: ignore[arg-type]
         return []
 
@@ -460,7 +460,8 @@ class RecorderNode(Node):
         stamped = []
         for _n, (_ts, m) in sorted(zip(arrival, out), key=lambda x: x[0]):  # arrival order within an identifier
             aid = m.arbitration_id
-            phase = 0 if aid == dbc.HEARTBEAT_BASE and not m.is_extended_id else _PHASE.get(self._kinds.get(aid, "other"), 1)
+            phase = (0 if aid == self.layout.plant_heartbeat_id and m.is_extended_id == (aid > 0x7FF)
+                     else _PHASE.get(self._kinds.get(aid, "other"), 1))
             times = done.get((m.arbitration_id, m.is_extended_id))
             t = min(max(times.pop(0), t_k), horizon) if times else phase_start.get(phase, t_k)
             stamped.append((t, phase, m.arbitration_id, bytes(m.data), self.epoch + t, m))
@@ -537,7 +538,7 @@ class RecorderNode(Node):
         aid = msg.arbitration_id
         if not is_sim_control(aid, self.layout):
             self._write([m])
-        if aid == dbc.SYNC_ID:
+        if aid == self.layout.sync_id:
             if self._rt_tick_start is not None:
                 self._series.add(self._rt_bits / self.bitrate / self.dt, "", 0)
                 self._flush_file()
