@@ -20,8 +20,10 @@ architecture asks. SENSOR/COUPLER frames stand in for each car's local sensor wi
 *_DONE frames exist only to make lockstep runs deterministic and are exempt from impairment
 (see docs/architecture.md).
 
-All signals are little-endian (Intel) so a frame is one little-endian integer; that is what
-lets :mod:`canbrake.bus.codec` encode without cantools on the hot path.
+All generated signals are little-endian (Intel) so a frame is one little-endian integer; that
+is what lets :mod:`canbrake.bus.codec` encode without cantools on the hot path. A user's own DBC
+(:mod:`canbrake.bus.userdbc`) may move mapped roles onto Motorola signals, 29-bit identifiers and
+multiplexer pages; the identifiers above are then read from the layout (``BusLayout.sync_id``, ...).
 
 Scaling (why): speed 1e-4 m/s (0.00036 km/h, >1000x below the 0.5 km/h tracking tolerance),
 position 1e-4 m (0.1 mm, 100x below the +-1 cm coupler bound), force 10 N (a metro car brakes
