@@ -245,6 +245,27 @@ def _build_layout(scn: Scenario) -> dbc.BusLayout:
 
         plain = layout.database
         layout.database = lambda: secure_database(plain())  # type: ignore[method-assign]
+    if scn.bus.dbc is not None:  # the user's own DBC: the mapped roles move onto its messages
+        layout = _user_layout(scn, layout, specs)
+    return layout
+
+
+def user_dbc_path(scn: Scenario) -> Path | None:
+    """The user's DBC of ``scn`` (``bus.dbc.file``, relative to the scenario's folder), or None."""
+    if scn.bus.dbc is None:
+        return None
+    p = Path(scn.bus.dbc.file)
+    return p if p.is_absolute() or scn.data_dir() is None else scn.data_dir() / p  # type: ignore[operator]
+
+
+def _user_layout(scn: Scenario, base: dbc.BusLayout, specs: list[dbc.EcuSpec]) -> dbc.BusLayout:
+    from canbrake.bus.userdbc import load_user_dbc, mapped_layout
+
+    path = user_dbc_path(scn)
+    mapping = scn.bus.dbc.resolved([(e.name, e.index, e.vehicle) for e in specs])  # type: ignore[union-attr]
+    layout = mapped_layout(base, load_user_dbc(path), path, mapping,  # type: ignore[arg-type]
+                           period_ms=scn.control_period_s * 1000.0, heartbeat_ms=scn.ecu.heartbeat_period_s * 1000.0)
+    layout.n_vehicles = scn.n_cars  # type: ignore[attr-defined]
     return layout
 
 

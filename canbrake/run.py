@@ -170,10 +170,21 @@ def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | N
         from canbrake.build import bus_layout
 
         dbc_text = bus_layout(scn).database().as_dbc_string()
+    user = None
+    if scn.bus.dbc is not None:  # the user's own DBC, copied as it is beside canbrake.dbc (the run's
+        from canbrake.build import user_dbc_path  # layout: its frames under canbrake's role names)
+
+        src = user_dbc_path(scn)
+        try:
+            user = (src.name if src.name != "canbrake.dbc" else "user.dbc", src.read_bytes())  # type: ignore[union-attr]
+        except OSError as e:
+            raise ScenarioError(f"bus.dbc.file: {src}: cannot read: {e.strerror or e}") from None
     try:
         _clear_run_dir(out)
         out.mkdir(parents=True, exist_ok=True)
         (out / "canbrake.dbc").write_text(dbc_text)
+        if user is not None:
+            (out / user[0]).write_bytes(user[1])
         (out / "scenario.yaml").write_text(scn.to_yaml())
         (out / "plots").mkdir(exist_ok=True)
     except OSError as e:

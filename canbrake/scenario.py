@@ -379,6 +379,84 @@ class DisturbanceEvent(_Model):
 Event = Annotated[Union[RailEvent, DisturbanceEvent], Field(discriminator="type")]
 
 
+class DbcPageMap(_Model):
+    """One message of the user's DBC carrying (part of) a role: ``signals`` maps canbrake's signal
+    names (speed_mps, brake_force_n, ... ; tick, ref_speed_mps, node_state for the plant's
+    roles) onto the DBC's signal names; ``crc`` / ``counter`` / ``status``: the E2E CRC, the
+    alive counter and the ECU status signals (STATE and command frames need crc and counter);
+    ``multiplexer``: the page of a multiplexed message. In ``each_ecu``, ``{i}`` in any name is
+    the ECU's index (1-based), ``{vehicle}`` its vehicle and ``{name}`` its name."""
+
+    message: str = Field(min_length=1)
+    multiplexer: int | None = Field(None, ge=0)
+    signals: dict[str, str] = Field(default_factory=dict)
+    crc: str | None = None
+    counter: str | None = None
+    status: str | None = None
+
+    def filled(self, subst: Mapping[str, str]) -> dict[str, Any]:
+        def f(x: str | None) -> str | None:
+            if x is None:
+                return None
+            for k, v in subst.items():
+                x = x.replace("{" + k + "}", v)
+            return x
+        return {"message": f(self.message), "multiplexer": self.multiplexer,
+                "signals": {k: f(v) for k, v in self.signals.items()},
+                "crc": f(self.crc), "counter": f(self.counter), "status": f(self.status)}
+
+
+class DbcEcuMap(_Model):
+    """One ECU's roles in the user's DBC: its sensor inputs (from the plant), state broadcast,
+    commands (one message, or a list of messages when the role needs several) and heartbeat."""
+
+    sensors: DbcPageMap | list[DbcPageMap] | None = None
+    state: DbcPageMap | list[DbcPageMap] | None = None
+    commands: DbcPageMap | list[DbcPageMap] | None = None
+    heartbeat: DbcPageMap | None = None
+
+    def filled(self, subst: Mapping[str, str]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for role in ("sensors", "state", "commands"):
+            v = getattr(self, role)
+            if v is not None:
+                out[role] = [p.filled(subst) for p in (v if isinstance(v, list) else [v])]
+        if self.heartbeat is not None:
+            out["heartbeat"] = self.heartbeat.filled(subst)
+        return out
+
+
+class DbcMapConfig(_Model):
+    """The user's own DBC (``bus.dbc``): canbrake's roles mapped onto its messages and signals
+    (docs/your-own-train.md, "Your own DBC"). Roles left out keep canbrake's generated messages;
+    canbrake checks the whole mapping before a run (canbrake.bus.userdbc)."""
+
+    file: str = Field(min_length=1, description="the DBC, relative to the scenario's folder")
+    sync: DbcPageMap | None = Field(None, description="SYNC: signals {tick: ...}")
+    reference: DbcPageMap | None = Field(None, description="REFERENCE: signals {ref_speed_mps, ref_decel_mps2}")
+    reference_position: DbcPageMap | None = Field(None, description="REFERENCE_POS: signals {ref_position_m}")
+    plant_heartbeat: DbcPageMap | None = Field(None, description="the plant's heartbeat: signals {node_state}")
+    each_ecu: DbcEcuMap | None = Field(None, description="template for every ECU not in ecus ({i}, {vehicle}, {name})")
+    ecus: dict[str, DbcEcuMap] = Field(default_factory=dict, description="per ECU name")
+
+    def resolved(self, ecus: list[tuple[str, int, int]]) -> dict[str, Any]:
+        """The mapping for :func:`canbrake.bus.userdbc.mapped_layout`; ``ecus``: (name, index, vehicle)."""
+        out: dict[str, Any] = {k: getattr(self, k).filled({}) for k in
+                               ("sync", "reference", "reference_position", "plant_heartbeat")
+                               if getattr(self, k) is not None}
+        per: dict[str, Any] = {}
+        for name, index, vehicle in ecus:
+            m = self.ecus.get(name, self.each_ecu)
+            if m is not None:
+                per[name] = m.filled({"i": str(index), "vehicle": str(vehicle), "name": name})
+        for name in self.ecus:
+            if name not in per:
+                per[name] = self.ecus[name].filled({})
+        out["ecus"] = per
+        return out
+
+
+
 class BusConfig(_Model):
     backend: Literal["memory", "socketcan", "virtual"] = "memory"
     channel: str | None = Field(None, description="default: a fresh in-memory channel, or vcan0 for socketcan")
@@ -409,6 +487,8 @@ class BusConfig(_Model):
                                                       "lockstep (canbrake.bus.segments); empty: one bus")
     gateways: list[GatewayConfig] = Field(default_factory=list,
                                           description="gateways joining two segments each, with a forwarding delay")
+    dbc: DbcMapConfig | None = Field(None, description="run on the user's own DBC: canbrake's roles mapped onto its "
+                                                       "messages and signals (docs/your-own-train.md)")
 
 
 class PlantConfig(_Model):

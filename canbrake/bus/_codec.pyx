@@ -5,8 +5,9 @@ Written by hand because it runs for every frame of every node (cantools' ``Messa
 costs ~2.3 us per frame non-strict); cantools stays the model (canbrake.bus.codec builds the
 table from a cantools message) and tests/test_codec.py checks this against cantools bit for bit.
 
-Every canbrake signal is a little-endian bit field of a classical CAN frame (at most 8 bytes),
-so a frame is one 64-bit little-endian word and a field is a shift and a mask. The arithmetic
+A frame is a classical CAN frame (at most 8 bytes), read as one 64-bit little-endian word for
+Intel (little-endian) fields and as one 64-bit big-endian word (byte 0 most significant) for
+Motorola (big-endian) fields of a user's DBC; either way a field is a shift and a mask. The arithmetic
 is Python's, operation for operation: raw = round((v - offset) / scale) (``v / scale`` when the
 offset is 0, ``round(v)`` unscaled; round half to even as Python's ``round``: ``rint`` under the
 default rounding mode), saturated to the raw range; decoded as raw * scale (+ offset unless it
@@ -46,6 +47,7 @@ cdef enum:
     ROLE_CRC = 1
     ROLE_COUNTER = 2
     ROLE_COUNTER_EXT = 3
+    ROLE_CONST = 4     # a multiplexer: always its page's value
 
 cdef struct Field:
     int start
@@ -58,6 +60,8 @@ cdef struct Field:
     int64_t hi
     int role
     bint scaled
+    bint big           # Motorola: ``start`` is the shift in the big-endian word
+    int64_t const_raw  # ROLE_CONST: the raw value written
 
 
 cdef inline int64_t _floordiv15(int64_t t):
@@ -71,9 +75,12 @@ cdef inline int64_t _floordiv15(int64_t t):
 cdef class FieldCodec:
     """encode/decode of one message from its field table.
 
-    ``fields``: per signal (name, start bit, bits, signed, scale, offset, role) with role one of
-    "value", "crc", "counter", "counter_ext"; ``length``: payload bytes (<= 8); ``protected``:
-    the CRC field holds the E2E CRC over ``data_id`` and bytes 1.. (canbrake.bus.e2e)."""
+    ``fields``: per signal (name, start bit, bits, signed, scale, offset, role[, big_endian[,
+    const]]) with role one of "value", "crc", "counter", "counter_ext", "const" (a multiplexer
+    signal, always written as the raw value ``const``); ``start`` as in cantools/DBC (for
+    big-endian fields the most significant bit, in the DBC's sawtooth numbering); ``length``:
+    payload bytes (<= 8); ``protected``: the CRC field (8 bits, byte 0) holds the E2E CRC over
+    ``data_id`` and bytes 1.. (canbrake.bus.e2e)."""
 
     cdef Field f[MAX_FIELDS]
     cdef int n
@@ -83,6 +90,7 @@ cdef class FieldCodec:
     cdef tuple names
     cdef tuple defaults       # per field the default value object (its offset, a float)
     cdef tuple lo_obj, hi_obj  # per field the raw range as Python ints (generic path)
+    cdef bint any_big
     cdef uint64_t _shared_word
     cdef bint _shared_valid
     cdef object _shared
@@ -92,19 +100,32 @@ cdef class FieldCodec:
             raise ValueError(f"payload of {length} bytes: only classical CAN frames (<= 8 bytes) are supported")
         if len(fields) > MAX_FIELDS:
             raise ValueError(f"{len(fields)} signals: at most {MAX_FIELDS} per message are supported")
-        roles = {"value": ROLE_VALUE, "crc": ROLE_CRC, "counter": ROLE_COUNTER, "counter_ext": ROLE_COUNTER_EXT}
+        roles = {"value": ROLE_VALUE, "crc": ROLE_CRC, "counter": ROLE_COUNTER, "counter_ext": ROLE_COUNTER_EXT,
+                 "const": ROLE_CONST}
         self.n = len(fields)
         self.length = length
         self.protected = protected
+        self.any_big = False
         names, defaults, lo_obj, hi_obj = [], [], [], []
         cdef int i = 0
+        cdef int lsb
         cdef Field* fd
-        for name, start, nbits, is_signed, scale, offset, role in fields:
-            if nbits > 63 or nbits < 1 or start + nbits > 8 * length:
+        for spec in fields:
+            name, start, nbits, is_signed, scale, offset, role = spec[:7]
+            big = bool(spec[7]) if len(spec) > 7 else False
+            const = int(spec[8]) if len(spec) > 8 and spec[8] is not None else 0
+            if big:  # the field's least significant bit, counted from byte 0's MSB (bit 0) onwards
+                lsb = 8 * (start // 8) + 7 - start % 8 + nbits - 1 if 0 <= start < 64 else 64
+                bad = nbits > 63 or nbits < 1 or lsb > 8 * length - 1
+            else:
+                bad = nbits > 63 or nbits < 1 or start + nbits > 8 * length
+            if bad:
                 raise ValueError(f"signal {name}: {nbits} bits at bit {start} do not fit a {length}-byte "
                                  "frame as a field of at most 63 bits")
             fd = &self.f[i]
-            fd.start = start
+            fd.big = big
+            fd.start = 63 - lsb if big else start
+            self.any_big = self.any_big or big
             fd.nbits = nbits
             fd.mask = (<uint64_t>1 << nbits) - 1
             fd.is_signed = is_signed
@@ -117,6 +138,7 @@ cdef class FieldCodec:
                 fd.lo = 0
                 fd.hi = <int64_t>fd.mask
             fd.role = roles[role]
+            fd.const_raw = const
             fd.scaled = scale != 1.0 or offset != 0.0
             names.append(name)
             defaults.append(float(offset))
@@ -127,6 +149,9 @@ cdef class FieldCodec:
         self.defaults = tuple(defaults)
         self.lo_obj = tuple(lo_obj)
         self.hi_obj = tuple(hi_obj)
+        if protected and not any(f[6] == "crc" and f[2] == 8 and f[1] == (7 if len(f) > 7 and f[7] else 0)
+                                 for f in fields):
+            raise ValueError("the E2E CRC must be the 8 bits of byte 0")
         # the data-ID part of the E2E CRC (low byte, then high byte), a constant of the message
         self.crc0 = CRC_TABLE[CRC_TABLE[0xFF ^ (data_id & 0xFF)] ^ ((data_id >> 8) & 0xFF)]
         self._shared_valid = False
@@ -183,6 +208,8 @@ cdef class FieldCodec:
         (tick mod 15) fills Counter and the E2E CRC is computed; ``tick`` fills CounterExt
         (floor(tick / 15)). Without them those fields are taken from ``values``."""
         cdef uint64_t w = 0
+        cdef uint64_t wb = 0      # the big-endian (Motorola) fields' word
+        cdef uint64_t x
         cdef int i
         cdef Field* fd
         cdef int64_t r
@@ -193,34 +220,38 @@ cdef class FieldCodec:
             if fd.role == ROLE_CRC:
                 continue
             if fd.role == ROLE_COUNTER and counter is not None:
-                w |= (<uint64_t><int64_t>counter & fd.mask) << fd.start
-                continue
-            if fd.role == ROLE_COUNTER_EXT and tick is not None:
-                w |= (<uint64_t>_floordiv15(<int64_t>tick) & fd.mask) << fd.start
-                continue
-            if exact:
-                p = PyDict_GetItem(values, self.names[i])
-                v = self.defaults[i] if p is NULL else <object>p
+                x = (<uint64_t><int64_t>counter & fd.mask) << fd.start
+            elif fd.role == ROLE_COUNTER_EXT and tick is not None:
+                x = (<uint64_t>_floordiv15(<int64_t>tick) & fd.mask) << fd.start
+            elif fd.role == ROLE_CONST:
+                x = (<uint64_t>fd.const_raw & fd.mask) << fd.start
             else:
-                v = values.get(self.names[i], self.defaults[i])
-            r = self._raw(i, v)
-            w |= (<uint64_t>r & fd.mask) << fd.start
-        return self._payload_of(w)
+                if exact:
+                    p = PyDict_GetItem(values, self.names[i])
+                    v = self.defaults[i] if p is NULL else <object>p
+                else:
+                    v = values.get(self.names[i], self.defaults[i])
+                r = self._raw(i, v)
+                x = (<uint64_t>r & fd.mask) << fd.start
+            if fd.big:
+                wb |= x
+            else:
+                w |= x
+        return self._payload_of(w, wb)
 
-    cdef bytes _payload_of(self, uint64_t w):
-        """The payload bytes of word ``w`` (little-endian), with the E2E CRC if protected."""
+    cdef bytes _payload_of(self, uint64_t w, uint64_t wb):
+        """The payload bytes of the little-endian fields' word ``w`` and the big-endian fields'
+        word ``wb``, with the E2E CRC if protected."""
         cdef uint8_t b[8]
         cdef uint8_t crc
         cdef int i
-        if self.protected:
-            for i in range(self.length):
-                b[i] = <uint8_t>(w >> (8 * i))
+        for i in range(self.length):
+            b[i] = <uint8_t>(w >> (8 * i)) | <uint8_t>(wb >> (56 - 8 * i))
+        if self.protected:  # the CRC is byte 0 (checked in __init__), in either byte order
             crc = self.crc0
             for i in range(1, self.length):
                 crc = CRC_TABLE[crc ^ b[i]]
-            w |= <uint64_t>(crc ^ 0xFF)
-        for i in range(self.length):
-            b[i] = <uint8_t>(w >> (8 * i))
+            b[0] |= <uint8_t>(crc ^ 0xFF)
         return PyBytes_FromStringAndSize(<char*>b, self.length)
 
     cdef uint64_t _word(self, object data) except? 0xFFFFFFFFFFFFFFFF:
@@ -251,9 +282,10 @@ cdef class FieldCodec:
         cdef Field* fd
         cdef int64_t raw
         cdef uint64_t half
+        cdef uint64_t wb = _swap64(w) if self.any_big else 0
         for i in range(self.n):
             fd = &self.f[i]
-            raw = <int64_t>((w >> fd.start) & fd.mask)
+            raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
             if fd.is_signed:
                 half = <uint64_t>1 << (fd.nbits - 1)
                 raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
@@ -473,7 +505,7 @@ cdef class PeerTable:
         cdef int j = pg.j
         for i in range(pg.first, pg.first + pg.count):
             fd = self._pf[i].field
-            raw = <int64_t>((w >> fd.start) & fd.mask)
+            raw = <int64_t>(((_swap64(w) if fd.big else w) >> fd.start) & fd.mask)
             if fd.is_signed:
                 half = <uint64_t>1 << (fd.nbits - 1)
                 raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
@@ -545,6 +577,15 @@ cdef class PeerTable:
 cdef int64_t* _i64(object arr):
     cdef int64_t[::1] mv = arr
     return &mv[0]
+
+
+cdef inline uint64_t _swap64(uint64_t w):
+    """The big-endian word of the frame whose little-endian word is ``w`` (byte 0 most significant)."""
+    cdef uint64_t r = 0
+    cdef int i
+    for i in range(8):
+        r = (r << 8) | ((w >> (8 * i)) & 0xFF)
+    return r
 
 
 cdef inline uint64_t _le_word(const uint8_t* s, Py_ssize_t n):
@@ -689,9 +730,10 @@ cdef class CommandTable:
         cdef int64_t raw
         cdef uint64_t half
         cdef int i
+        cdef uint64_t wb = _swap64(w)
         for i in range(pg.first, pg.first + pg.count):
             fd = self._cf[i].field
-            raw = <int64_t>((w >> fd.start) & fd.mask)
+            raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
             if fd.is_signed:
                 half = <uint64_t>1 << (fd.nbits - 1)
                 raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
@@ -806,7 +848,7 @@ cdef class SensorPages:
         cdef FieldCodec codec
         cdef int p, i, s_
         cdef int64_t e
-        cdef uint64_t w
+        cdef uint64_t w, wb, wb_or_w
         cdef double x
         cdef Field* fd
         try:
@@ -817,9 +859,17 @@ cdef class SensorPages:
             for p in range(self._npg):
                 codec = self._codecs[p]
                 w = 0
+                wb = 0
                 for i in range(codec.n):
                     fd = &codec.f[i]
                     if fd.role == ROLE_CRC:
+                        continue
+                    if fd.role == ROLE_CONST:
+                        wb_or_w = (<uint64_t>fd.const_raw & fd.mask) << fd.start
+                        if fd.big:
+                            wb |= wb_or_w
+                        else:
+                            w |= wb_or_w
                         continue
                     s_ = self._src[p * MAX_FIELDS + i]
                     if s_ == SRC_NONE:
@@ -833,8 +883,12 @@ cdef class SensorPages:
                         x = ptr[s_][e]
                     if not isfinite(x):  # not sent: the default, as a missing signal
                         x = codec.f[i].offset
-                    w |= (<uint64_t>codec._raw_double(i, x) & fd.mask) << fd.start
-                out.append(codec._payload_of(w))
+                    wb_or_w = (<uint64_t>codec._raw_double(i, x) & fd.mask) << fd.start
+                    if fd.big:
+                        wb |= wb_or_w
+                    else:
+                        w |= wb_or_w
+                out.append(codec._payload_of(w, wb))
         finally:
             PyMem_Free(ptr)
             PyMem_Free(length)

@@ -3,10 +3,13 @@
 cantools is the model (:mod:`canbrake.bus.dbc`); this is a codec over that model for the hot
 path. Why not ``cantools.Message.encode`` itself: it costs ~2.3 us per frame non-strict (~6 us
 strict) and a 6-car tick moves ~30 frames through encode and decode in several processes.
-Every canbrake signal is a little-endian bit field of a classical CAN frame, so a frame is one
-64-bit word and a signal is a shift and a mask: each message becomes a field table (start,
-bits, signed, scale, offset, raw range, role: value, CRC, alive counter or its extension) that
-the compiled :class:`canbrake.bus._codec.FieldCodec` encodes and decodes, E2E CRC included.
+Every signal is a bit field of a classical CAN frame, so a frame is one 64-bit word (Intel
+fields) or its byte-swapped twin (Motorola fields of a user's DBC) and a signal is a shift and a
+mask: each message becomes a field table (start, bits, signed, scale, offset, raw range, byte
+order, role: value, CRC, alive counter or its extension, or a multiplexer's constant page value)
+that the compiled :class:`canbrake.bus._codec.FieldCodec` encodes and decodes, E2E CRC included.
+A multiplexed message is one page: its signals are those of one multiplexer value (a message of
+canbrake's run layout never holds two pages of one multiplexed message; canbrake.bus.userdbc).
 ``canbrake bench`` compares it with cantools (figure "codec"); tests/test_codec.py checks it
 bit for bit against cantools with hypothesis over every message and signal value.
 
@@ -34,16 +37,26 @@ class MessageCodec:
         self.signal_names: tuple[str, ...] = tuple(s.name for s in message.signals)
         self.protected: bool = "CRC" in self.signal_names and "Counter" in self.signal_names
         fields = []
+        big: list[bool] = []
+        roles: list[str] = []
+        consts: list[int | None] = []
+        pages = {i for s in message.signals for i in (s.multiplexer_ids or ())}
+        if len(pages) > 1:
+            raise ValueError(f"{message.name}: signals of several multiplexer values "
+                             f"{sorted(pages)}: a codec encodes one page")
         for s in message.signals:
-            if s.byte_order != "little_endian":
-                raise ValueError(f"{message.name}.{s.name}: only little-endian signals are supported")
             lo, hi = (-(1 << (s.length - 1)), (1 << (s.length - 1)) - 1) if s.is_signed else (0, (1 << s.length) - 1)
             fields.append((s.name, s.start, (1 << s.length) - 1, s.length, s.is_signed,
                            float(s.scale), float(s.offset), lo, hi))
-        #: per signal (name, start bit, mask, bits, signed, scale, offset, raw lo, raw hi)
+            big.append(s.byte_order == "big_endian")
+            roles.append("const" if s.is_multiplexer and pages else _ROLES.get(s.name, "value"))
+            consts.append(next(iter(pages)) if s.is_multiplexer and pages else None)
+        #: per signal (name, start bit, mask, bits, signed, scale, offset, raw lo, raw hi); start
+        #: as in the DBC (Motorola: the most significant bit)
         self._fields = tuple(fields)
         try:
-            self._c = FieldCodec([(f[0], f[1], f[3], f[4], f[5], f[6], _ROLES.get(f[0], "value")) for f in fields],
+            self._c = FieldCodec([(f[0], f[1], f[3], f[4], f[5], f[6], r, b, c)
+                                  for f, r, b, c in zip(fields, roles, big, consts)],
                                  self.length, self.protected, self.frame_id)
         except ValueError as exc:
             raise ValueError(f"{message.name}: {exc}") from None

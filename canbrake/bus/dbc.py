@@ -20,8 +20,10 @@ architecture asks. SENSOR/COUPLER frames stand in for each car's local sensor wi
 *_DONE frames exist only to make lockstep runs deterministic and are exempt from impairment
 (see docs/architecture.md).
 
-All signals are little-endian (Intel) so a frame is one little-endian integer; that is what
-lets :mod:`canbrake.bus.codec` encode without cantools on the hot path.
+All generated signals are little-endian (Intel) so a frame is one little-endian integer; that
+is what lets :mod:`canbrake.bus.codec` encode without cantools on the hot path. A user's own DBC
+(:mod:`canbrake.bus.userdbc`) may move mapped roles onto Motorola signals, 29-bit identifiers and
+multiplexer pages; the identifiers above are then read from the layout (``BusLayout.sync_id``, ...).
 
 Scaling (why): speed 1e-4 m/s (0.00036 km/h, >1000x below the 0.5 km/h tracking tolerance),
 position 1e-4 m (0.1 mm, 100x below the +-1 cm coupler bound), force 10 N (a metro car brakes
@@ -78,6 +80,11 @@ class SignalSpec:
     unit: str | None = None
     comment: str | None = None
     choices: tuple[tuple[int, str], ...] | None = None  # value table (VAL_ in the DBC)
+    #: a user's DBC (canbrake.bus.userdbc): Motorola fields ("big_endian", start = the MSB as in
+    #: the DBC) and one page of a multiplexed message (this field's page, or its multiplexer)
+    byte_order: str = "little_endian"
+    multiplexer_ids: tuple[int, ...] | None = None
+    is_multiplexer: bool = False
 
 
 # ------------------------------------------------------------------------------------ placement
@@ -360,6 +367,9 @@ class BusLayout:
                                     f"Simulation control (lockstep barrier): ECU {e.name} has sent all "
                                     f"command-phase frames of tick k.", None, ext, "cmd_done", e.index))
         self.messages = sorted(msgs, key=lambda m: (m.frame_id, m.name))
+        #: identifiers of the plant's frames the nodes address directly (a user's DBC moves them)
+        self.sync_id, self.reference_id, self.reference_pos_id = SYNC_ID, REFERENCE_ID, REFERENCE_POS_ID
+        self.plant_heartbeat_id = HEARTBEAT_BASE
         self.by_id = {m.frame_id: m for m in self.messages}
         self.by_name = {m.name: m for m in self.messages}
         if len(self.by_id) != len(self.messages) or len(self.by_name) != len(self.messages):
@@ -385,11 +395,14 @@ class BusLayout:
         """The cantools database of this layout."""
         messages = []
         for m in self.messages:
-            signals = [Signal(name=s.name, start=s.start, length=s.length, byte_order="little_endian",
+            mux = next((s.name for _, s in m.signals if s.is_multiplexer), None)
+            signals = [Signal(name=s.name, start=s.start, length=s.length, byte_order=s.byte_order,
                               is_signed=s.signed, conversion=BaseConversion.factory(
                                   scale=s.scale, offset=s.offset, choices=dict(s.choices) if s.choices else None),
                               minimum=s.minimum, maximum=s.maximum, unit=s.unit, comment=s.comment,
-                              receivers=list(m.receivers))
+                              receivers=list(m.receivers), is_multiplexer=s.is_multiplexer,
+                              multiplexer_ids=list(s.multiplexer_ids) if s.multiplexer_ids else None,
+                              multiplexer_signal=mux if s.multiplexer_ids else None)
                        for _, s in m.signals]
             messages.append(Message(frame_id=m.frame_id, name=m.name, length=m.length, signals=signals,
                                     comment=m.comment, senders=[m.sender], cycle_time=m.cycle_ms,

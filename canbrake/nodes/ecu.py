@@ -174,7 +174,7 @@ class EcuNode(Node):
         self._hb = codec.by_id[self._hb_id]
         self._sdone = codec.by_id.get(self._sdone_id)  # None: nobody listens, no state phase to close
         self._cdone = codec.by_id[self._cdone_id]
-        self._sync_id = dbc.SYNC_ID
+        self._sync_id = layout.sync_id
         self._deadline: float | None = None
         self._trace: CsvTrace | None = None
         # realtime: this ECU's own timer (canbrake.bus.clock.EcuClock): phase 1 of tick k starts
@@ -185,9 +185,9 @@ class EcuNode(Node):
         self.rt_errors = rt_errors if mode == "realtime" else None
 
     def filters(self) -> list[dict]:
-        ids = [dbc.SYNC_ID, dbc.REFERENCE_ID, *self._sensor_pages, *self._state_pages, *self._auth_of]
+        ids = [self.layout.sync_id, self.layout.reference_id, *self._sensor_pages, *self._state_pages, *self._auth_of]
         if self.layout.ref_position:
-            ids.append(dbc.REFERENCE_POS_ID)
+            ids.append(self.layout.reference_pos_id)
         if self.barrier:
             ids += list(self._state_done_ids)
         return [exact_filter(i, self.layout.plan.extended and i > 0x7FF) for i in ids]
@@ -211,7 +211,7 @@ class EcuNode(Node):
             if self._on_state(j, msg) == 2 and (not self.barrier or self._ext_bits & bit):
                 return self._peer_done(bit, now)  # the sender's last page of this tick
             return []
-        if aid == self._sync_id and not msg.is_extended_id:
+        if aid == self._sync_id and msg.is_extended_id == (aid > 0x7FF):
             verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
                                    tick_complete=self.phase == 2 or self.k < 0, final_tick=self.final_tick)
             if verdict is None:
@@ -245,11 +245,11 @@ class EcuNode(Node):
                 self._p1_at = now + self.clock.offset_s(self.k)  # realtime: when this ECU's timer fires
                 return []
             return self._phase1(now)
-        if aid == dbc.REFERENCE_ID:
+        if aid == self.layout.reference_id:
             d = self.codec.by_id[aid].decode_shared(msg.data)
             self.v_ref, self.a_ref = d["RefSpeed"], d["RefDecel"]
             return []
-        if aid == dbc.REFERENCE_POS_ID:
+        if aid == self.layout.reference_pos_id:
             self.x_ref = self.codec.by_id[aid].decode(msg.data)["RefPosition"]
             return []
         src = self._state_done_ids.get(aid)

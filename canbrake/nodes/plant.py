@@ -224,12 +224,13 @@ class PlantNode(Node):
         meas = self.model.measurements()
         v_ref, a_ref = self.reference(t)
         self._last_sync_k = k
-        out = [frame(dbc.SYNC_ID, sign_control(self.secoc, dbc.SYNC_ID, self._sync.encode({"Tick": k}), k)),
-               frame(dbc.REFERENCE_ID, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
+        lay = self.layout
+        out = [frame(lay.sync_id, sign_control(self.secoc, lay.sync_id, self._sync.encode({"Tick": k}), k)),
+               frame(lay.reference_id, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
         if self._ref_pos is not None:
-            out.append(frame(dbc.REFERENCE_POS_ID, self._ref_pos.encode({"RefPosition": self.reference.position(t)})))
+            out.append(frame(lay.reference_pos_id, self._ref_pos.encode({"RefPosition": self.reference.position(t)})))
         if k % self.heartbeat_every == 0:
-            out.append(frame(dbc.HEARTBEAT_BASE, self._hb.encode({"NodeState": 5})))
+            out.append(frame(lay.plant_heartbeat_id, self._hb.encode({"NodeState": 5})))
         payloads = self._sensor_pages.pack([np.ascontiguousarray(meas[name], dtype=float)
                                             for name in self._sensor_arrays])
         out += [frame(fid, p) for fid, p in zip(self._sensor_ids, payloads)]
@@ -248,7 +249,7 @@ class PlantNode(Node):
 
     def _end_frames(self) -> list[can.Message]:
         end = self._sync.encode({"Tick": dbc.SYNC_END_TICK})
-        return [frame(dbc.SYNC_ID, sign_control(self.secoc, dbc.SYNC_ID, end, self._last_sync_k))]
+        return [frame(self.layout.sync_id, sign_control(self.secoc, self.layout.sync_id, end, self._last_sync_k))]
 
     def start(self, now: float) -> list[can.Message]:
         self._open_trace()

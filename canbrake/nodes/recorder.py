@@ -295,20 +295,22 @@ class RecorderNode(Node):
                 self._realtime(msg, now)
             return []
         tick_frames, closing, phase_of = self._tick_frames, self._closing_ids, self._phase_of
+        sync_id = self.layout.sync_id
         for msg in msgs:
             aid, ext = msg.arbitration_id, msg.is_extended_id
             key = (aid, ext, msg.is_error_frame)
             counts[key] = counts.get(key, 0) + 1
             if aid in closing:
                 self._closing_seen += 1
-            elif aid == dbc.SYNC_ID and not ext:
+            elif aid == sync_id and ext == (aid > 0x7FF):
                 if self._on_sync(msg):
                     return []  # the END: the log is complete
                 tick_frames = self._tick_frames  # a new period's list if it flushed
             phase = phase_of.get(key)
             if phase is None:
                 kind = "error" if key[2] else self._kinds.get(aid, "other")
-                phase = phase_of[key] = 0 if aid == dbc.HEARTBEAT_BASE and not ext else _PHASE.get(kind, 1)
+                phase = phase_of[key] = (0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF)
+                                         else _PHASE.get(kind, 1))
             tick_frames.append((phase, aid, bytes(msg.data), msg))
         return []
 
@@ -506,7 +508,8 @@ class RecorderNode(Node):
         stamped = []
         for _n, (_ts, m) in sorted(zip(arrival, out), key=lambda x: x[0]):  # arrival order within an identifier
             aid = m.arbitration_id
-            phase = 0 if aid == dbc.HEARTBEAT_BASE and not m.is_extended_id else _PHASE.get(self._kinds.get(aid, "other"), 1)
+            phase = (0 if aid == self.layout.plant_heartbeat_id and m.is_extended_id == (aid > 0x7FF)
+                     else _PHASE.get(self._kinds.get(aid, "other"), 1))
             times = done.get((m.arbitration_id, m.is_extended_id))
             t = min(max(times.pop(0), t_k), horizon) if times else phase_start.get(phase, t_k)
             stamped.append((t, phase, m.arbitration_id, bytes(m.data), self.epoch + t, m))
@@ -583,7 +586,7 @@ class RecorderNode(Node):
         aid = msg.arbitration_id
         if not is_sim_control(aid, self.layout):
             self._write([m])
-        if aid == dbc.SYNC_ID:
+        if aid == self.layout.sync_id:
             if self._rt_tick_start is not None:
                 self._series.add(self._rt_bits / self.bitrate / self.dt, "", 0)
                 self._flush_file()
