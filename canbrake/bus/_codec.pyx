@@ -398,6 +398,28 @@ cdef struct PageField:
     double* target   # element j of the array the signal goes to (kept alive by PeerTable.values)
 
 
+cdef void _decode_into(PageField* pf, int count, uint64_t w) noexcept:
+    """Decode ``count`` signals of a frame (its little-endian word ``w``) into their targets, as
+    ``FieldCodec.decode`` gives them (the float the array holds)."""
+    cdef Field* fd
+    cdef int64_t raw
+    cdef uint64_t half
+    cdef uint64_t wb = _swap64(w)
+    cdef int i
+    for i in range(count):
+        fd = pf[i].field
+        raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
+        if fd.is_signed:
+            half = <uint64_t>1 << (fd.nbits - 1)
+            raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
+        if not fd.scaled:
+            pf[i].target[0] = <double>raw
+        elif fd.offset == 0.0 and fd.scale > 0.0:
+            pf[i].target[0] = <double>raw * fd.scale
+        else:
+            pf[i].target[0] = <double>raw * fd.scale + fd.offset
+
+
 cdef struct Page:
     int j            # sender's ECU index (0-based)
     bint same_tick_ok
@@ -498,24 +520,8 @@ cdef class PeerTable:
 
     cdef int _apply(self, int p, uint64_t w, int64_t origin, int64_t k):
         cdef Page* pg = &self._pg[p]
-        cdef Field* fd
-        cdef int64_t raw
-        cdef uint64_t half
-        cdef int i
         cdef int j = pg.j
-        for i in range(pg.first, pg.first + pg.count):
-            fd = self._pf[i].field
-            raw = <int64_t>(((_swap64(w) if fd.big else w) >> fd.start) & fd.mask)
-            if fd.is_signed:
-                half = <uint64_t>1 << (fd.nbits - 1)
-                raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
-            # decode's values, as the float the array holds
-            if not fd.scaled:
-                self._pf[i].target[0] = <double>raw
-            elif fd.offset == 0.0 and fd.scale > 0.0:
-                self._pf[i].target[0] = <double>raw * fd.scale
-            else:
-                self._pf[i].target[0] = <double>raw * fd.scale + fd.offset
+        _decode_into(self._pf + pg.first, pg.count, w)
         if origin > self._origin[j]:
             self._origin[j] = origin
             self._fresh[j] = 0
@@ -725,24 +731,7 @@ cdef class CommandTable:
         return flags
 
     cdef int _apply(self, CmdPage* pg, const uint8_t* s, Py_ssize_t n, int64_t origin, int64_t k) noexcept:
-        cdef uint64_t w = _le_word(s, n)
-        cdef Field* fd
-        cdef int64_t raw
-        cdef uint64_t half
-        cdef int i
-        cdef uint64_t wb = _swap64(w)
-        for i in range(pg.first, pg.first + pg.count):
-            fd = self._cf[i].field
-            raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
-            if fd.is_signed:
-                half = <uint64_t>1 << (fd.nbits - 1)
-                raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
-            if not fd.scaled:
-                self._cf[i].target[0] = <double>raw
-            elif fd.offset == 0.0 and fd.scale > 0.0:
-                self._cf[i].target[0] = <double>raw * fd.scale
-            else:
-                self._cf[i].target[0] = <double>raw * fd.scale + fd.offset
+        _decode_into(self._cf + pg.first, pg.count, _le_word(s, n))
         pg.origin = origin
         if origin > self._newest[pg.slot]:
             self._newest[pg.slot] = origin
