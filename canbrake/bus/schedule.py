@@ -120,15 +120,13 @@ class LockstepBusTiming:
         #: when a list, every frame the model carries is appended as (t_end_s, arbitration_id,
         #: is_extended) in bus order (the recorder's stamps: canbrake.nodes.recorder)
         self.delivery_log: list[tuple[float, int, bool]] | None = None
+        self._columns: tuple[list, ...] | None = None  # the streams column-wise (_submit_streams)
 
     def _submit_tick(self, k: int) -> None:
         t = k * self.dt
         sub = self._queue
         drift = {node: c.offset_s(k) for node, c in self.clocks.items()}
-        for s in self.streams:
-            if k % s.every_ticks == 0:
-                sub(s.sender, s.arbitration_id, s.is_extended, s.dlc, None, t + s.offset_s + drift.get(s.sender, 0.0),
-                    tag=(k, s.sender, s.arbitration_id))
+        self._submit_streams(k, t, drift)
         t_end = t + self.dt
         for i, b in enumerate(self.babblers):
             j = self._babble_next[i]
@@ -140,6 +138,15 @@ class LockstepBusTiming:
                     sub(b.sender, b.arbitration_id, b.is_extended, b.dlc, None, te, tag=(k, b.sender, -1))
                 j += 1
             self._babble_next[i] = j
+
+    def _submit_streams(self, k: int, t: float, drift: dict[str, float]) -> None:
+        """Queue the nominal streams' frames of tick ``k`` (starting at ``t``, s; ``drift``: clock
+        offsets by node), tagged ``(k, sender, arbitration_id)``: in the compiled core."""
+        if self._columns is None:
+            st = self.streams
+            self._columns = ([s.sender for s in st], [s.arbitration_id for s in st], [s.is_extended for s in st],
+                             [s.dlc for s in st], [s.offset_s for s in st], [s.every_ticks for s in st])
+        self.model.submit_streams(k, t, *self._columns, drift)
 
     def _queue(self, node: str, msg_id: int, is_extended: bool, dlc: int, data: Any, t_s: float, *, tag: Any) -> None:
         self.model.submit(node, msg_id, is_extended, dlc, data, t_s, tag=tag)
@@ -160,17 +167,8 @@ class LockstepBusTiming:
     def _step(self) -> None:
         k = self._next_tick
         self._submit_tick(k)
-        log = self.delivery_log
-        for d in self.model.advance((k + 1) * self.dt):
-            if log is not None:
-                log.append((d.t_end_s, d.arbitration_id, d.is_extended))
-            tag = d.tag
-            if tag[2] >= 0:
-                self._done[tag] = d.t_end_s
-        if self.faults is not None or self.model._buffer_cfgs:  # frames of bus-off nodes / full buffers
-            for d in self.model.pop_dropped():
-                if d.tag[2] >= 0:
-                    self._done[d.tag] = math.inf
+        # end times into _done by tag (inf: dropped), the bus order into delivery_log: compiled
+        self.model.advance_into((k + 1) * self.dt, self._done, self.delivery_log)
         self._next_tick = k + 1
         if k % 256 == 0:  # forget deliveries nobody will ask for (other nodes' frames of past ticks)
             old = self._query_tick - 2
@@ -209,6 +207,12 @@ class SegmentedBusTiming(LockstepBusTiming):
         self.net = SegmentedNetwork(topo, record_history=record_history, tx_buffers=tx_buffers)
         self.routes = message_routes(self.layout, topo, self.plant_io)
         self._babble_seg = topo.plant_segment
+
+    def _submit_streams(self, k: int, t: float, drift: dict[str, float]) -> None:
+        for s in self.streams:  # routed through the gateways, frame by frame
+            if k % s.every_ticks == 0:
+                self._queue(s.sender, s.arbitration_id, s.is_extended, s.dlc, None,
+                            t + s.offset_s + drift.get(s.sender, 0.0), tag=(k, s.sender, s.arbitration_id))
 
     def _queue(self, node: str, msg_id: int, is_extended: bool, dlc: int, data: Any, t_s: float, *, tag: Any) -> None:
         r = self.routes.get(msg_id)

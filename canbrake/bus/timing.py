@@ -32,7 +32,6 @@ at that instant, and :meth:`BusTimingModel.advance` says when it actually went o
 """
 from __future__ import annotations
 
-import heapq
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -41,7 +40,7 @@ from typing import Any, Literal, Sequence
 import numpy as np
 
 from canbrake.bus import _wire
-from canbrake.bus.faults import ERROR_FRAME_BITS, ErrorEvent
+from canbrake.bus._timing import Delivery, EventCore, Pending, Ticket
 
 __all__ = [
     "Stuffing",
@@ -269,49 +268,7 @@ def frame_time_s(bits: int, bitrate_bps: float) -> float:
 # discrete-event bus model
 
 
-@dataclass(frozen=True, slots=True)
-class Ticket:
-    """Receipt for one submitted frame; ``seq`` is unique and increasing per model."""
-
-    seq: int
-    node: str
-    arbitration_id: int
-    is_extended: bool
-    bits: int
-    t_queue_s: float
-
-
-@dataclass(frozen=True, slots=True)
-class Delivery:
-    """One frame that went over the bus. Times in simulated seconds.
-
-    ``t_start_s`` is the start of its SOF (it won arbitration), ``t_end_s`` the end of its
-    transmission (``bits`` bit times later, IFS included if the model counts it).
-    """
-
-    ticket: Ticket
-    node: str
-    arbitration_id: int
-    is_extended: bool
-    is_remote: bool
-    dlc: int
-    data: bytes | None
-    bits: int
-    t_queue_s: float
-    t_start_s: float
-    t_end_s: float
-    tag: Any = None
-    dropped: bool = False  # never sent: its node went bus-off (t_start_s = t_end_s = drop time)
-
-    @property
-    def latency_s(self) -> float:
-        """End of transmission minus time queued (s)."""
-        return self.t_end_s - self.t_queue_s
-
-    @property
-    def queueing_delay_s(self) -> float:
-        """Time spent waiting for the bus (s): start minus time queued."""
-        return self.t_start_s - self.t_queue_s
+# Ticket and Delivery: the compiled core's classes (canbrake.bus._timing)
 
 
 @dataclass(frozen=True)
@@ -370,7 +327,8 @@ def _arbitration_key(arbitration_id: int, is_extended: bool, is_remote: bool) ->
     """Order in which frames win arbitration (smaller wins), bit by bit as on the wire.
 
     Base ID first; then standard RTR vs extended SRR (recessive); then IDE (standard wins);
-    then the 18-bit ID extension; then RTR (data frame beats remote frame).
+    then the 18-bit ID extension; then RTR (data frame beats remote frame). The compiled core
+    packs the same order into one integer (:func:`canbrake.bus._timing.arb_key`).
     """
     rtr = 1 if is_remote else 0
     if is_extended:
@@ -378,25 +336,7 @@ def _arbitration_key(arbitration_id: int, is_extended: bool, is_remote: bool) ->
     return (arbitration_id, rtr, 0, 0, 0)
 
 
-class _Pending:
-    """A submitted frame: ``bus_key`` orders arbitration between nodes, ``node_key`` the
-    node's own queue (priority or FIFO)."""
-
-    __slots__ = ("ticket", "is_remote", "dlc", "data", "tag", "bus_key", "node_key")
-
-    def __init__(self, ticket: Ticket, is_remote: bool, dlc: int, data: bytes | None,
-                 tag: Any, fifo: bool) -> None:
-        self.ticket = ticket
-        self.is_remote = is_remote
-        self.dlc = dlc
-        self.data = data
-        self.tag = tag
-        self.bus_key = (_arbitration_key(ticket.arbitration_id, ticket.is_extended, is_remote),
-                        ticket.t_queue_s, ticket.seq)
-        self.node_key = (ticket.t_queue_s, ticket.seq) if fifo else self.bus_key
-
-
-class BusTimingModel:
+class BusTimingModel(EventCore):
     """Deterministic discrete-event model of one classic CAN bus, in simulated seconds.
 
     Each node has a transmit queue; ``queue_policy="priority"`` sends a node's lowest
@@ -430,41 +370,12 @@ class BusTimingModel:
                  queue_policy: QueuePolicy = "priority", include_ifs: bool = True,
                  record_history: bool = True, faults: Any = None,
                  tx_buffers: Sequence[Any] | None = None) -> None:
-        self.bitrate_bps = _check_bitrate(bitrate_bps)
+        rate = _check_bitrate(bitrate_bps)
         _check_stuffing(stuffing)
         if queue_policy not in ("priority", "fifo"):
             raise ValueError(f"queue_policy must be 'priority' or 'fifo', got {queue_policy!r}")
-        self.stuffing: Stuffing = stuffing
-        self.queue_policy: QueuePolicy = queue_policy
-        self.include_ifs = bool(include_ifs)
-        self.record_history = bool(record_history)
-        self._future: list[tuple[float, int, _Pending]] = []  # not yet queued, by t_queue
-        self._ready: dict[str, list[tuple[Any, _Pending]]] = {}  # per node, by node_key
-        self._n_ready = 0
-        # the heads of the node queues by bus_key (a heap; an entry whose frame is no longer its
-        # queue's head is stale and skipped): arbitration in O(log nodes) instead of a scan of
-        # every node per frame (106 nodes on the ECP train). Entries (bus_key, n, pending, queue).
-        self._heads: list[tuple[Any, int, _Pending, list]] = []
-        self._bits_memo: dict[tuple, int] = {}  # frame lengths without payload (submit)
-        self._head_n = 0
-        self._seq = 0
-        self._now = -math.inf
-        self._bus_free_at = -math.inf
-        self._committed: list[Delivery] = []  # started, not yet handed out by advance()
-        # history
-        self._busy_start: list[float] = []
-        self._busy_end: list[float] = []
-        self._offered_t: list[float] = []
-        self._offered_dur: list[float] = []
-        self._lat: dict[tuple[int, bool], list[float]] = {}
-        self._lat_node: dict[tuple[int, bool, str], list[float]] = {}
-        self.faults = faults
-        if faults is not None:
-            faults.bitrate_bps = self.bitrate_bps
-        self._dropped: list[Delivery] = []
-        self._buffer_cfgs = list(tx_buffers or [])
-        self._buffers: dict[str, Any] = {}  # node -> TxBuffer, for nodes with a configured buffer
-        self._buffer_of: dict[str, Any] = {}  # node -> TxBuffer or None (cache)
+        # queues, arbitration, transmission and the history lists: the compiled core
+        super().__init__(rate, stuffing, queue_policy, bool(include_ifs), bool(record_history), faults, tx_buffers)
 
     # -- properties ---------------------------------------------------------------------------
     @property
@@ -487,21 +398,9 @@ class BusTimingModel:
         return frame_bits(arbitration_id, is_extended, dlc, data, self.stuffing,
                           is_remote=is_remote, include_ifs=self.include_ifs) / self.bitrate_bps
 
-    def _pending(self) -> list[_Pending]:
-        return ([e[-1] for e in self._future] + [e[-1] for q in self._ready.values() for e in q]
+    def _pending(self) -> list[Pending]:
+        return (list(self._future) + [p for q in self._ready.values() for p in q]
                 + [p for b in self._buffers.values() for p in b.pending()])
-
-    def _buffer(self, node: str) -> Any:
-        b = self._buffer_of.get(node, False)
-        if b is False:
-            from canbrake.bus.txbuffer import make_tx_buffer
-
-            cfg = next((c for c in self._buffer_cfgs if c.applies_to(node)), None)
-            b = None if cfg is None else make_tx_buffer(cfg)
-            self._buffer_of[node] = b
-            if b is not None:
-                self._buffers[node] = b
-        return b
 
     def buffer_counters(self) -> dict[str, dict[str, int]]:
         """Per node with a configured buffer: frames dropped on overflow, mailbox aborts."""
@@ -515,45 +414,7 @@ class BusTimingModel:
                    if (node is None or p.ticket.node == node)
                    and (msg_id is None or p.ticket.arbitration_id == msg_id))
 
-    # -- input --------------------------------------------------------------------------------
-    def submit(self, node: str, msg_id: int, is_extended: bool, dlc: int,
-               data: bytes | Sequence[int] | None = None, t_queue_s: float = 0.0, *,
-               is_remote: bool = False, tag: Any = None) -> Ticket:
-        """Queue one frame at ``node`` at simulated time ``t_queue_s`` (s).
-
-        ``data`` may be None unless ``stuffing="actual"``. ``tag`` is any object handed back in
-        the :class:`Delivery` (e.g. the ``can.Message`` or ``TxFrame``).
-        """
-        if not isinstance(node, str) or not node:
-            raise ValueError(f"node must be a non-empty string, got {node!r}")
-        t_q = _check_time("t_queue_s", t_queue_s)
-        if t_q < self._now - TIME_EPS_S:
-            raise ValueError(f"t_queue_s={t_q!r} is before the model's current time "
-                             f"now_s={self._now!r}: the bus has already been simulated past it")
-        payload = None if data is None else bytes(data)
-        if payload is None and self.stuffing != "actual" and type(msg_id) is int and type(dlc) is int:
-            # the nominal schedule submits the same few frames every period: their length is
-            # checked and computed once (plain ints only: anything else takes frame_bits' checks)
-            key = (msg_id, bool(is_extended), dlc, bool(is_remote))
-            bits = self._bits_memo.get(key)
-            if bits is None:
-                bits = self._bits_memo[key] = frame_bits(msg_id, is_extended, dlc, None, self.stuffing,
-                                                         is_remote=is_remote, include_ifs=self.include_ifs)
-        else:
-            bits = frame_bits(msg_id, is_extended, dlc, payload, self.stuffing,
-                              is_remote=is_remote, include_ifs=self.include_ifs)
-        ticket = Ticket(self._seq, node, int(msg_id), bool(is_extended), bits, t_q)
-        if self.faults is not None:
-            self.faults.register(node)
-        self._seq += 1
-        pending = _Pending(ticket, bool(is_remote), int(dlc), payload, tag,
-                           self.queue_policy == "fifo")
-        heapq.heappush(self._future, (t_q, ticket.seq, pending))
-        if self.record_history:
-            self._offered_t.append(t_q)
-            self._offered_dur.append(bits / self.bitrate_bps)
-        return ticket
-
+    # -- input (submit: EventCore) ----------------------------------------------------------
     def submit_message(self, node: str, msg: Any, t_queue_s: float, *, tag: Any = None) -> Ticket:
         """Queue a ``can.Message`` (duck-typed: arbitration_id, is_extended_id, dlc, data,
         is_remote_frame). CAN FD frames are refused."""
@@ -564,174 +425,7 @@ class BusTimingModel:
         return self.submit(node, msg.arbitration_id, bool(msg.is_extended_id), int(msg.dlc),
                            data, t_queue_s, is_remote=remote, tag=msg if tag is None else tag)
 
-    # -- simulation ---------------------------------------------------------------------------
-    def next_event_s(self) -> float:
-        """Earliest instant (s) at which anything can happen on this bus: a queued frame that may
-        start, a frame that ends, a submission that becomes due; ``math.inf`` if none. Nothing is
-        delivered before it (used to co-simulate several buses, :mod:`canbrake.bus.segments`)."""
-        t = math.inf
-        if self._n_ready:
-            t = max(self._bus_free_at, self._now)
-        if self._future:
-            t = min(t, self._future[0][0])
-        if self._committed:
-            t = min(t, min(d.t_end_s for d in self._committed))
-        return t
-
-    def advance(self, until_s: float) -> list[Delivery]:
-        """Simulate the bus up to ``until_s`` (s); return frames whose transmission ended by then.
-
-        Deliveries come in bus order (increasing ``t_end_s``). A frame that has started but not
-        finished by ``until_s`` is returned by a later call.
-        """
-        until = _check_time("until_s", until_s)
-        if until < self._now - TIME_EPS_S:
-            raise ValueError(f"until_s={until!r} is before now_s={self._now!r}; time only moves on")
-        until = max(until, self._now)
-        future, ready = self._future, self._ready
-        heappush, heappop = heapq.heappush, heapq.heappop
-        while True:
-            t = self._bus_free_at
-            if not self._n_ready:
-                if not future:
-                    break
-                t = max(t, future[0][0])
-            if t >= until - 2 * TIME_EPS_S:
-                break
-            fc = self.faults
-            if fc is not None:
-                fc.idle(self._bus_free_at, t)
-            # everything queued by t (within rounding) joins its node's queue ...
-            limit = t + TIME_EPS_S
-            while future and future[0][0] <= limit:
-                p = heappop(future)[2]
-                if fc is not None and fc.is_bus_off(p.ticket.node):
-                    self._drop(p, t)
-                    continue
-                if self._buffer_cfgs:
-                    b = self._buffer(p.ticket.node)
-                    if b is not None:
-                        lost = b.push(p)
-                        if lost is not None:
-                            self._drop(lost, t)
-                        else:
-                            self._n_ready += 1
-                        continue
-                q = ready.get(p.ticket.node)
-                if q is None:
-                    q = ready[p.ticket.node] = []
-                self._enqueue(q, p)
-                self._n_ready += 1
-            # ... and the heads of the node queues arbitrate
-            best_q: Any = None  # a node heap or a TxBuffer
-            best_key: Any = None
-            heads = self._heads
-            while heads:
-                _key, _n, hp, hq = heads[0]
-                if hq and hq[0][1] is hp:
-                    best_q, best_key = hq, _key
-                    break
-                heappop(heads)  # stale: sent, or its node's queue has a new head or was dropped
-            best_b = None
-            for b in self._buffers.values():
-                h = b.head()
-                if h is not None and (best_key is None or h.bus_key < best_key):
-                    best_b, best_key = b, h.bus_key
-            if best_b is not None:
-                p = best_b.pop_head()
-                best_q = best_b
-            elif best_q is None:  # everything that was due belonged to bus-off nodes
-                continue
-            else:
-                p = heappop(best_q)[1]
-                if best_q:  # the node's next frame is its new head
-                    h = best_q[0][1]
-                    self._head_n += 1
-                    heappush(self._heads, (h.bus_key, self._head_n, h, best_q))
-            self._n_ready -= 1
-            if fc is None:
-                self._transmit(p, t)
-            else:
-                self._attempt(p, t, best_q)
-        if self.faults is not None:
-            self.faults.idle(self._bus_free_at, until)
-        self._now = until
-        done = [d for d in self._committed if d.t_end_s <= until]
-        if done:
-            self._committed = [d for d in self._committed if d.t_end_s > until]
-            if self.record_history:
-                for d in done:
-                    self._lat.setdefault((d.arbitration_id, d.is_extended), []).append(d.latency_s)
-                    self._lat_node.setdefault((d.arbitration_id, d.is_extended, d.node),
-                                              []).append(d.latency_s)
-        return done
-
-    def _enqueue(self, q: list, p: _Pending) -> None:
-        """Put ``p`` in its node's queue ``q``; if it is the queue's new head, in the heads' heap."""
-        heapq.heappush(q, (p.node_key, p))
-        if q[0][1] is p:
-            self._head_n += 1
-            heapq.heappush(self._heads, (p.bus_key, self._head_n, p, q))
-
-    def _drop(self, p: _Pending, t: float) -> None:
-        tk = p.ticket
-        self._dropped.append(Delivery(tk, tk.node, tk.arbitration_id, tk.is_extended, p.is_remote, p.dlc,
-                                      p.data, tk.bits, tk.t_queue_s, t, t, p.tag, True))
-
-    def pop_dropped(self) -> list[Delivery]:
-        """Frames dropped because their node was bus-off (since the last call), in drop order."""
-        out, self._dropped = self._dropped, []
-        return out
-
-    def _attempt(self, p: _Pending, t_start: float, queue: Any) -> None:
-        """One transmission attempt under the fault model: success, or an error frame and a
-        retransmission (or, if the sender went bus-off, the loss of its whole queue)."""
-        fc = self.faults
-        tk = p.ticket
-        ifs = IFS_BITS if self.include_ifs else 0
-        hit = fc.draw(tk.node, tk.bits - ifs, t_start)
-        if hit is None:
-            self._transmit(p, t_start)
-            fc.frame_end(self._bus_free_at)
-            fc.tx_ok(tk.node, self._bus_free_at)
-            return
-        bit, cause = hit
-        t_end = t_start + (bit + 1 + ERROR_FRAME_BITS + ifs) / self.bitrate_bps
-        self._bus_free_at = t_end
-        if self.record_history:
-            self._busy_start.append(t_start)
-            self._busy_end.append(t_end)
-        fc.frame_end(t_end)
-        c = fc.tx_error(tk.node, t_end)
-        fc.events.append(ErrorEvent(t_start, t_end, tk.node, tk.arbitration_id, tk.is_extended, bit, cause,
-                                    c.tec, c.state))
-        if c.state == "bus_off":
-            self._drop(p, t_end)
-            if isinstance(queue, list):
-                while queue:
-                    self._drop(heapq.heappop(queue)[1], t_end)
-                    self._n_ready -= 1
-            else:  # a TxBuffer
-                for x in queue.drain():
-                    self._drop(x, t_end)
-                    self._n_ready -= 1
-        elif isinstance(queue, list):
-            self._enqueue(queue, p)  # automatic retransmission
-            self._n_ready += 1
-        else:
-            queue.requeue(p)
-            self._n_ready += 1
-
-    def _transmit(self, p: _Pending, t_start: float) -> None:
-        tk = p.ticket
-        t_end = t_start + tk.bits / self.bitrate_bps
-        self._bus_free_at = t_end
-        self._committed.append(Delivery(tk, tk.node, tk.arbitration_id, tk.is_extended,
-                                        p.is_remote, p.dlc, p.data, tk.bits, tk.t_queue_s,
-                                        t_start, t_end, p.tag))
-        if self.record_history:
-            self._busy_start.append(t_start)
-            self._busy_end.append(t_end)
+    # -- simulation: EventCore.advance, next_event_s, pop_dropped (compiled) -----------------
 
     # -- statistics ---------------------------------------------------------------------------
     def _need_history(self) -> None:
