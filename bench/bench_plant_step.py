@@ -2,7 +2,8 @@
 
 Builds the plant of a scenario exactly as a run does (:func:`canbrake.build.build_plant_model`)
 and steps it with held commands: Chen case 1 (6 cars, 1 ms, ideal actuator, every car braking at
-its share of 0.97 m/s²), its realistic profile (10 ms, lagged actuator, end stops, blending) and
+its share of 0.97 m/s²), its realistic profile (10 ms, lagged actuator, end stops, blending), Chen
+case 2 with brake equipment (blending, 4 wheelsets per car, with and without the dump valves) and
 Li 2024's 1 + 105 ECP train (every wagon at full service, the locomotive coasting) at 10 ms and at
 the scenario's own period, Cai 2014's case 4 trains (2000 N·m on every driven axle, 1 ms). Prints microseconds per step (best of ``--repeat``); no assertions. ``--clock cpu`` times the
 process's CPU time instead of the wall clock (steadier on a shared machine).
@@ -27,6 +28,17 @@ def chen(profile: str | None) -> tuple[object, float, dict[str, np.ndarray]]:
     scn = load_scenario(ROOT / "chen2023_case1_fine_rail.yaml", profile=profile)
     plant = build_plant_model(scn)
     return plant, scn.control_period_s, {"brake_force_n": plant.mass_kg * 0.97}
+
+
+def chen_wheels(wsp: bool) -> tuple[object, float, dict[str, np.ndarray]]:
+    """Chen case 2 on poor rail with brake equipment: blending, four wheelsets per car with Cai's
+    creep force, and (``wsp``) the dump valves half open on every car."""
+    scn = load_scenario(ROOT / "chen2023_case2_low_adhesion.yaml", profile="wsp" if wsp else None)
+    plant = build_plant_model(scn)
+    cmd = {"brake_force_n": plant.mass_kg * 0.97}
+    if wsp:
+        cmd["wsp_release"] = np.full(plant.mass_kg.size, 0.5)
+    return plant, scn.control_period_s, cmd
 
 
 def ecp(dt_s: float | None) -> tuple[object, float, dict[str, np.ndarray]]:
@@ -66,6 +78,8 @@ def main() -> None:
     clock = time.process_time if a.clock == "cpu" else time.perf_counter
     rows = [("chen case 1, paper (1 ms)", lambda: chen(None), a.steps),
             ("chen case 1, realistic (10 ms)", lambda: chen("realistic"), a.steps),
+            ("chen case 2 wheelsets+blending (10 ms)", lambda: chen_wheels(False), a.steps // 4),
+            ("chen case 2 wheelsets+blending+WSP", lambda: chen_wheels(True), a.steps // 4),
             ("li2024 1+105 ECP, 10 ms", lambda: ecp(0.01), max(a.steps // 10, 20)),
             ("li2024 1+105 ECP, 50 ms (scenario)", lambda: ecp(None), max(a.steps // 50, 10)),
             ("cai2014 case 4 (1 ms)", lambda: cai("cai2014_case4.yaml"), a.steps),

@@ -4,7 +4,9 @@ run (so the ratios compare across noisy shared machines), its target, and whethe
 Figures (``FIGURES``; ``--only`` picks groups):
 
 - ``codec``: the compiled codec (:mod:`canbrake.bus.codec`) against cantools ``Message.encode``
-  / ``decode`` on the frames of a 6-car tick, microseconds per frame.
+  / ``decode`` on the frames of a 6-car tick, microseconds per frame; and what one Python
+  controller call costs (``Controller.step(Observation)`` with the Observation built as an ECU
+  builds it), a trivial user controller and chen2023 (:func:`controller_figures`).
 - the floor (:mod:`canbrake.floor`, measured whenever lockstep, realtime or scale runs): a plant
   and N ECU processes exchanging one word each per period over canbrake's memory bus, no model,
   no codec; every lockstep, scale and realtime figure is also given as a ratio to it
@@ -19,6 +21,9 @@ Figures (``FIGURES``; ``--only`` picks groups):
   process; the RSS sum beside it) for
   6, 12, 24, 48 cars and the 1 + 105 ECP train (106 ECUs, hosted ``ecu.per_process`` per
   process), in process and with processes; the 106-ECU train's real-time factor at 10 ms.
+- ``whole`` (opt-in: ``--only whole`` or ``--heavy``): Cai 2014 case 4 run whole (200 s at 1 ms)
+  with one process per ECU on the memory bus, wall seconds, against the in-process engine on a
+  tenth of the run measured in the same bench run (scaled to the whole run).
 - ``sweep``: the default 121-point delay x loss sweep of Chen case 1 (10 s per point, one seed)
   with the batch engine (:mod:`canbrake.batch`) on 2 local Dask workers, against the per-point
   engine measured on every 20th point in the same bench run (scaled to 121 points on 2 workers),
@@ -47,6 +52,9 @@ ROOT = Path(__file__).resolve().parents[1]
 CASE1 = "chen2023_case1_fine_rail.yaml"
 ECP = "li2024_ecp_over_can.yaml"
 GROUPS = ("codec", "lockstep", "realtime", "scale", "sweep")
+#: groups that take minutes: run only when named (``--only whole``) or with ``--heavy``
+OPT_IN_GROUPS = ("whole",)
+CAI4 = "cai2014_case4.yaml"
 
 
 def scenario_path(name: str) -> Path:
@@ -334,6 +342,89 @@ def codec_figures(n: int = 2000) -> list[dict[str, Any]]:
         _row("codec decode", ours_d, "us/frame", "cantools decode(decode_choices=False)", ct_d, ct_d / ours_d,
              ">= 3x", ct_d / ours_d >= 3, note=note),
     ]
+
+
+def controller_figures(n: int = 2000) -> list[dict[str, Any]]:
+    """Microseconds per controller call, ``Controller.step(Observation)`` with the Observation
+    constructed as :meth:`canbrake.nodes.ecu.EcuNode._phase2` builds it (``Observation.of`` over
+    read-only peer arrays, a copy of the sensor dict), for a trivial user controller and for
+    chen2023 (Chen case 1, car 3 of 6, mid-braking state); best of 5."""
+    import numpy as np
+
+    from canbrake.build import build_controller
+    from canbrake.control.base import ControlOutput, Controller, Observation
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario(scenario_path(CASE1))
+    n_cars, i = scn.n_ecus, 2
+    speed = np.linspace(19.0, 19.5, n_cars)
+    peers = {"speed_mps": speed, "position_m": -10.0 * np.arange(n_cars)}
+    for a in peers.values():
+        a.flags.writeable = False
+    age = np.zeros(n_cars)
+    sensors = {"speed_mps": 19.2, "position_m": -20.0, "deflection_front_m": 0.001, "deflection_rear_m": -0.001}
+
+    class Trivial(Controller):
+        """A user's controller of the least work: the reference deceleration times the mass."""
+
+        def step(self, obs: Observation) -> ControlOutput:
+            return ControlOutput(brake_force_n=self.mass_kg * obs.ref_decel_mps2)
+
+    trivial = Trivial(car_index=i, n_cars=n_cars, mass_kg=4.0e4, dt_s=scn.control_period_s)
+    chen = build_controller(scn, i + 1)
+    k = [0]
+
+    def obs() -> Observation:
+        k[0] += 1
+        return Observation.of(tick=k[0], time_s=k[0] * 1e-3, speed_mps=sensors["speed_mps"],
+                              position_m=sensors["position_m"], ref_speed_mps=19.3, ref_decel_mps2=0.97,
+                              peer_speed_mps=peers["speed_mps"], peer_position_m=peers["position_m"], peer_age_s=age,
+                              deflection_front_m=sensors.get("deflection_front_m"),
+                              deflection_rear_m=sensors.get("deflection_rear_m"), ref_position_m=float("nan"),
+                              sensors=dict(sensors), peer_signals=peers)
+
+    for _ in range(50):  # warm-up (and chen2023's observers leave their start-up state)
+        chen.step(obs())
+    only_obs = _best(n, obs) * 1e6
+    t_triv = _best(n, lambda: trivial.step(obs())) * 1e6
+    t_chen = _best(n, lambda: chen.step(obs())) * 1e6
+    note = (f"per call, Observation built as the ECU node does (alone: {only_obs:.2f} us), best of 5; "
+            f"a train of N ECUs at 1 ms spends N x this per millisecond of simulated time on controllers")
+    return [
+        _row("controller call, trivial user controller", t_triv, "us/call", "Observation construction alone",
+             only_obs, t_triv / only_obs if only_obs else None, "(documented)", None, note=note),
+        _row("controller call, chen2023", t_chen, "us/call", "trivial user controller", t_triv,
+             t_chen / t_triv if t_triv else None, "(documented)", None,
+             note=note + f"; {type(chen).__name__}, Chen case 1, car 3 of {n_cars}"),
+    ]
+
+
+def whole_figures(log: Callable[[str], None], duration_s: float = 200.0,
+                  base_share: float = 0.1) -> list[dict[str, Any]]:
+    """Cai 2014 case 4 whole (``duration_s`` simulated, 1 ms) with one process per ECU on the
+    memory bus: wall seconds of the run (start to finish, every process included); baseline the
+    in-process engine over ``base_share`` of the run in the same bench run, scaled to the whole."""
+    figure = "Cai case 4 whole run, one process per ECU"
+    target = "<= 60 s wall (200 s at 1 ms)"
+    res = run_case_subprocess({"scenario": CAI4, "backend": "memory", "overrides": {"duration_s": duration_s}},
+                              timeout_s=max(900.0, 20 * duration_s))
+    log(f"  whole cai4 memory: {res.get('status')} {res.get('total_wall_s') or res.get('message')}")
+    if res.get("status") != "ok":
+        return [_failed(figure, res, target)]
+    base_s = duration_s * base_share
+    b = run_case_subprocess({"scenario": CAI4, "backend": "inprocess", "overrides": {"duration_s": base_s}},
+                            timeout_s=max(900.0, 20 * base_s))
+    log(f"  whole cai4 in-process ({base_s:g} s): {b.get('status')} {b.get('total_wall_s') or b.get('message')}")
+    base = b["total_wall_s"] / base_share if b.get("status") == "ok" and b.get("total_wall_s") else None
+    wall = res["total_wall_s"]
+    whole = duration_s == 200.0
+    return [_row(figure, wall, "s", f"in-process engine ({base_share:.0%} of the run, scaled)", base,
+                 base / wall if base else None, target, (wall <= 60.0) if whole else None,
+                 ticks=res.get("ticks"), ticks_per_s=res.get("ticks_per_s"), ecu_pss_mb=res.get("ecu_pss_mb"),
+                 note=f"scenarios/{CAI4}, {duration_s:g} s simulated at 1 ms, memory bus, one process per ECU, "
+                      f"wall time of the whole run (start-up and log included); ratio = baseline / value "
+                      f"(> 1: faster than the in-process engine)" + ("" if whole else "; not the whole run: "
+                                                                       "target not judged"))]
 
 
 #: ECUs of the floor the lockstep and realtime figures are compared with (Chen case 1's six)
@@ -760,7 +851,7 @@ def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat
         except Exception as e:  # noqa: BLE001 - a broken figure is a row, the other figures still run
             rows.append(_row(group, None, "", status="failed", note=f"{type(e).__name__}: {e}"))
 
-    guarded("codec", codec_figures)
+    guarded("codec", lambda: codec_figures() + controller_figures())
     floors: dict[int, dict[str, Any]] = {}
     if {"lockstep", "realtime", "scale"} & set(only):
         # the floor of the same run: six ECUs for Chen case 1, and each train size that the scale
@@ -784,6 +875,9 @@ def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat
     guarded("realtime", lambda: realtime_figures(realtime_s, log))
     guarded("scale", lambda: scale_figures(scale_ticks, log, scale_cars, heavy))
     guarded("sweep", lambda: sweep_figures(SWEEP_DURATION_S if sweep_s is None else sweep_s, log=log))
+    if heavy and "whole" not in only:
+        only = (*only, "whole")  # --heavy includes the opt-in groups
+    guarded("whole", lambda: whole_figures(log))
     apply_floor(rows, floors)
     end = machine()
     return {"machine": start, "load_avg_at_end": end["load_avg_1_5_15"], "bench_wall_s": time.perf_counter() - t0,

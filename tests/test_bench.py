@@ -93,3 +93,26 @@ def test_a_lockstep_case_carries_the_physics_and_control_time_of_a_period():
     per = res["compute_per_period_s"]
     assert per == pytest.approx(res["model_step_mean_s"] + 6 * res["control_step_mean_s"], rel=1e-9)
     assert 0 < per < 1.0 / res["ticks_per_s"]
+
+
+def test_controller_call_rows_have_sane_fields():
+    from canbrake.benchmark import controller_figures
+
+    rows = controller_figures(n=20)
+    names = [r["figure"] for r in rows]
+    assert names == ["controller call, trivial user controller", "controller call, chen2023"]
+    for r in rows:
+        assert r["unit"] == "us/call" and r["status"] == "ok"
+        assert 0 < r["value"] < 1e5 and 0 < r["baseline"] < 1e5 and r["ratio"] > 0
+    assert rows[1]["baseline"] == rows[0]["value"]  # chen2023 beside the trivial controller of the same run
+
+
+def test_whole_run_row_on_a_tiny_run_and_opt_in_group(monkeypatch):
+    from canbrake.benchmark import GROUPS, OPT_IN_GROUPS, whole_figures
+
+    assert "whole" in OPT_IN_GROUPS and "whole" not in GROUPS  # the default bench stays short
+    (r,) = whole_figures(lambda s: None, duration_s=0.05)
+    assert r["figure"] == "Cai case 4 whole run, one process per ECU", r
+    assert r["status"] == "ok" and r["unit"] == "s" and r["value"] > 0
+    assert r["baseline"] and r["baseline"] > 0 and r["ratio"] > 0
+    assert r["ticks"] == 50 and r["met"] is None  # not the whole run: the 60 s target is not judged

@@ -17,7 +17,7 @@ controller, a PI, ...). Each control period it runs the wrapped controller, then
   ``wsp_release`` (0 closed .. 1 vented): vent at once when any axle's |λ| exceeds
   ``slip_release``, hold while it is between the thresholds, close again at ``reapply_per_s`` once
   every axle is below ``slip_reapply``. The valve acts on the brake cylinders downstream of the
-  brake control (:func:`canbrake.physics.brakes.valve_step`). Below ``min_speed`` WSP is off.
+  brake control (:mod:`canbrake.physics.brakes`, the dump valve). Below ``min_speed`` WSP is off.
 
 Simplifications (docs/braking-models.md): one valve per car (real WSP has one per bogie or axle);
 the speed over ground is measured, not estimated from the axles; no wheel-deceleration criterion.

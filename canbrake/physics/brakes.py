@@ -28,7 +28,10 @@ Wheelsets (:class:`Wheelsets`)
     Euler (Newton on the arrow-shaped Jacobian, as :meth:`WheelSet.step_coupled`), because the
     creep force is stiff near standstill (time constants below a millisecond).
 
-Dump valve (:func:`valve_step`)
+The three are computed by one compiled sub-step, :mod:`canbrake.physics._brakes_kernel`, called by
+:meth:`canbrake.physics.train.TrainPlant.step`; the classes here hold their parameters and state.
+
+Dump valve
     Wheel-slide protection vents the brake cylinders of a car through its dump valves: the brake
     torque is multiplied by ``1 − r`` with r the valve opening, which follows the ECU's
     ``wsp_release`` command (0..1) with a first-order lag (default 0.05 s); the dump valve acts
@@ -69,14 +72,6 @@ class BrakeBlending:
         if self.ed_max_decel_mps2 < 0 or self.friction_lag_s < 0:
             raise ValueError("blending: ED capacity and friction lag must be >= 0")
 
-    def ed_available_n(self, mass_kg: np.ndarray, v_mps: np.ndarray) -> np.ndarray:
-        """Largest ED brake force per car (N) at speeds ``v_mps``."""
-        s = np.abs(v_mps)
-        fade = np.clip((s - self.fade_end_mps) / (self.fade_start_mps - self.fade_end_mps), 0.0, 1.0)
-        with np.errstate(divide="ignore"):
-            per_kg = np.minimum(self.ed_max_decel_mps2, self.ed_power_w_per_kg / np.maximum(s, 1e-9))
-        return mass_kg * per_kg * fade
-
 
 class BlendingState:
     """Blending of every car: friction-brake state (N) and the last split."""
@@ -86,27 +81,6 @@ class BlendingState:
         self.mass_kg = mass_kg
         self.friction_n = np.zeros_like(mass_kg)
         self.ed_n = np.zeros_like(mass_kg)
-
-    def advance(self, effort_n: np.ndarray, v_mps: np.ndarray, h_s: float) -> np.ndarray:
-        """Split the brake effort over ``h_s``; returns the total force (N, + brakes, − traction)."""
-        demand = np.maximum(effort_n, 0.0)
-        self.ed_n = np.minimum(demand, self.params.ed_available_n(self.mass_kg, v_mps))
-        share = demand - self.ed_n
-        lag = self.params.friction_lag_s
-        if lag > 0.0:
-            self.friction_n = self.friction_n + (share - self.friction_n) * (1.0 - math.exp(-h_s / lag))
-        else:
-            self.friction_n = share
-        return self.ed_n + self.friction_n + np.minimum(effort_n, 0.0)
-
-
-def valve_step(opening: np.ndarray, command: np.ndarray, h_s: float, lag_s: float) -> np.ndarray:
-    """Dump-valve opening after ``h_s`` (first-order lag ``lag_s`` towards ``command`` clipped to 0..1;
-    NaN = not commanded = closed)."""
-    target = np.clip(np.where(np.isnan(command), 0.0, command), 0.0, 1.0)
-    if lag_s <= 0.0:
-        return target
-    return opening + (target - opening) * (1.0 - math.exp(-h_s / lag_s))
 
 
 class Wheelsets:
@@ -135,69 +109,38 @@ class Wheelsets:
         self._peak_curve = c.peak_curve
         self.force_n = np.zeros_like(self.omega)
         self.slip = np.zeros_like(self.omega)
+        self._kern = None  # the compiled step, built at the first step
 
-    def creep(self, w: np.ndarray, v: np.ndarray, mu_peak: np.ndarray) -> tuple[np.ndarray, ...]:
-        """(λ, F, ∂F/∂ω, ∂F/∂v) per axle, shape (n, p): the creep force F (N, + forward) at wheel
-        speeds ``w`` (n, p) and car speeds ``v`` (n,), for peak μ ``mu_peak`` (n,) at standstill."""
-        c, R, floor = self.curve, self.R, self.v_floor
-        vv = v[:, None]
-        wr = w * R
-        awr, av = np.abs(wr), np.abs(vv)
-        den = np.maximum(np.maximum(awr, av), floor)
-        lam = (wr - vv) / den
-        use_wr = (awr >= av) & (awr >= floor)
-        use_v = ~use_wr & (av >= floor)
-        safe_wr2 = np.where(use_wr, wr * wr, 1.0)
-        dlam_dw = np.where(use_wr, R * av / safe_wr2, R / den)
-        dlam_dv = np.where(use_v, -wr / (den * den), -1.0 / den)
-        scale = (c.c1 + c.c2 / (c.c3 + av)) / self._mu0 * (mu_peak[:, None] / self._peak_curve)
-        a = np.abs(lam)
-        ex = np.exp(-c.b2 * a)
-        sn = scale * self.N
-        f = np.sign(lam) * sn * (c.b1 * (1.0 - ex) - a / c.b3)
-        dmu = sn * (c.b1 * c.b2 * ex - 1.0 / c.b3)
-        return lam, f, dmu * dlam_dw, dmu * dlam_dv
+    def kernel_params(self) -> dict:
+        """The wheelsets' constants as :class:`~canbrake.physics._brakes_kernel.EquipmentKernel` takes them."""
+        c = self.curve
+        return dict(axles=self.p, R=self.R, J=self.J, N=self.N, b1=c.b1, b2=c.b2, b3=c.b3, c1=c.c1, c2=c.c2,
+                    c3=c.c3, mu0=self._mu0, peak_curve=self._peak_curve, v_floor=self.v_floor, iters=self.iters)
 
     def step(self, h_s: float, v0: np.ndarray, mass_kg: np.ndarray, other_n: np.ndarray, brake_torque_nm: np.ndarray,
              drive_torque_nm: np.ndarray, mu_peak: np.ndarray) -> np.ndarray:
-        """One backward-Euler step of wheels and car bodies; returns the new car speeds (n,).
+        """One backward-Euler step of wheels and car bodies (compiled:
+        :meth:`~canbrake.physics._brakes_kernel.EquipmentKernel.wheels_step`); returns the new car
+        speeds (n,).
 
         Solves J(ω − ω0) = h(T_d − T_b sgn ω − F R) per axle and m(v − v0) = h(Σ F + other) per car
-        (``other_n``: the car's forces besides the creep forces, held over the step). A wheel whose ω
-        would pass through zero under the brake locks (ω = 0) and stays locked while the brake torque
-        holds it against the rail (Coulomb friction). Creep forces are left in :attr:`force_n`.
+        (``other_n``: the car's forces besides the creep forces, held over the step; torques (n, p)
+        N·m, ``mu_peak`` (n,)). A wheel whose ω would pass through zero under the brake locks (ω = 0)
+        and stays locked while the brake torque holds it against the rail (Coulomb friction). Creep
+        forces are left in :attr:`force_n`, slips in :attr:`slip`.
         """
-        R, J = self.R, self.J
-        w0 = self.omega
-        _, f0, _, _ = self.creep(w0, v0, mu_peak)
-        spin = drive_torque_nm - f0 * R  # torque on the wheel besides the brake
-        at_zero = w0 == 0.0
-        locked = at_zero & (np.abs(spin) <= brake_torque_nm)
-        s = np.where(at_zero, np.sign(spin), np.sign(w0))
-        tb = brake_torque_nm * s
-        w, v = np.where(locked, 0.0, w0), v0.copy()
-        for attempt in range(2):
-            free = ~locked
-            for _ in range(self.iters):
-                lam, f, fw, fv = self.creep(w, v, mu_peak)
-                r_w = J * (w - w0) - h_s * (drive_torque_nm - tb - f * R)
-                a = J + h_s * R * fw
-                a = np.where(a > 0.1 * J, a, J)  # past the adhesion peak the slope is negative: damped step
-                a = np.where(free, a, 1.0)
-                r_w = np.where(free, r_w, 0.0)
-                b = np.where(free, h_s * R * fv, 0.0)
-                cc = np.where(free, -h_s * fw, 0.0)
-                r_v = mass_kg * (v - v0) - h_s * (f.sum(axis=1) + other_n)
-                d = mass_kg - h_s * fv.sum(axis=1)
-                dv = (-r_v + (cc * r_w / a).sum(axis=1)) / (d - (cc * b / a).sum(axis=1))
-                w = w + (-r_w - b * dv[:, None]) / a
-                v = v + dv
-            over = free & (w * s < 0.0)  # the brake stopped the wheel within the step: it locks
-            if not over.any():
-                break
-            locked = locked | over
-            w = np.where(locked, 0.0, w)
-        self.omega = w
-        lam, f, _, _ = self.creep(w, v, mu_peak)
-        self.force_n, self.slip = f, lam
-        return v
+        if self._kern is None:
+            from canbrake.physics._brakes_kernel import EquipmentKernel
+            self._kern = EquipmentKernel(blending=False, ed_max=0.0, ed_power=0.0, fade_start=1.0, fade_end=0.0,
+                                         friction_lag_s=0.0, valve_lag_s=0.0, max_vent_s=math.inf,
+                                         adhesion_limited=False, gravity=0.0, **self.kernel_params())
+        f64 = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
+        self.omega = np.array(self.omega, dtype=float)
+        self.force_n = np.zeros_like(self.omega)
+        self.slip = np.zeros_like(self.omega)
+        return self._kern.wheels_step(h_s, f64(v0), f64(np.broadcast_to(mass_kg, np.shape(v0))),
+                                      f64(np.broadcast_to(other_n, np.shape(v0))),
+                                      f64(np.broadcast_to(brake_torque_nm, self.omega.shape)),
+                                      f64(np.broadcast_to(drive_torque_nm, self.omega.shape)),
+                                      f64(np.broadcast_to(mu_peak, np.shape(v0))), self.omega.reshape(-1),
+                                      self.force_n.reshape(-1), self.slip.reshape(-1))

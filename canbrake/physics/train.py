@@ -59,7 +59,8 @@ import numpy as np
 
 from canbrake.physics._train_kernel import CoupledKernel
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
-from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets, valve_step
+from canbrake.physics._brakes_kernel import EquipmentKernel
+from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets
 from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
 from canbrake.physics.resistance import DavisResistance, davis_1926
 
@@ -208,6 +209,7 @@ class TrainPlant:
         #: a stack of plants (stack_plants): arrays have a leading points axis
         self.stacked = False
         self._kern: CoupledKernel | None = None  # built at the first step
+        self._ekern: EquipmentKernel | None = None  # the brake equipment's, likewise
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -419,27 +421,34 @@ class TrainPlant:
         forces, sub-steps and Coulomb treatment of brake and resistance, plus the brake equipment."""
         n_sub = self._substeps(dt_s)
         h = dt_s / n_sub
-        wsp = None if wsp_release is None else np.asarray(wsp_release, dtype=float)
+        wsp = None if wsp_release is None else np.ascontiguousarray(wsp_release, dtype=float).reshape(-1)
         act, wheels, g = self._act, self.wheels, self.gravity_mps2
         x, v = self.position_m, self.speed_mps
         v_before = v
         c1, c2 = self.resistance.c1_n_per_mps, self.resistance.c2_n_per_mps2
+        kern = self._equip_kernel()
+        blend = self._blend
+        lag = 0.0 if blend is None else blend.params.friction_lag_s
+        blend_k = (1.0 - math.exp(-h / lag)) if lag > 0.0 else 0.0
+        valve_k = (1.0 - math.exp(-h / self.wsp_valve_lag_s)) if self.wsp_valve_lag_s > 0.0 else 0.0
+        if blend is not None and blend.friction_n.shape != v.shape:
+            blend.friction_n = np.array(np.broadcast_to(blend.friction_n, v.shape), dtype=float)
+            blend.ed_n = np.array(np.broadcast_to(blend.ed_n, v.shape), dtype=float)
+        if wsp is not None and self.wsp_valve.size != wsp.size:
+            self.wsp_valve = np.array(np.broadcast_to(self.wsp_valve, wsp.shape), dtype=float)
+            self._vent_s = np.array(np.broadcast_to(self._vent_s, wsp.shape), dtype=float)
+        none = np.zeros(0)
+        fr = none if blend is None else blend.friction_n.reshape(-1)
+        ed = none if blend is None else blend.ed_n.reshape(-1)
+        om, fo, sl = (none, none, none) if wheels is None else (
+            wheels.omega.reshape(-1), wheels.force_n.reshape(-1), wheels.slip.reshape(-1))
+        flat = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
+        mass = flat(self.mass_kg)
         dl = np.zeros(0)
         for _ in range(n_sub):
             t = self.time_s
             self._update_rail(t)
             effort = act.advance(cmd, h)
-            total = effort if self._blend is None else self._blend.advance(effort, v, h)
-            brake = np.maximum(total, 0.0) * self._eff
-            traction = np.minimum(total, 0.0)
-            if wsp is not None:
-                # the dump valves' watchdog: a command to vent for longer than wsp_max_vent_s is ignored
-                # until it is withdrawn (the brake comes back even if the ECU keeps venting)
-                want = np.clip(np.where(np.isnan(wsp), 0.0, wsp), 0.0, 1.0)
-                self._vent_s = np.where(want > 0.5, self._vent_s + h, 0.0)
-                want = np.where(self._vent_s > self.wsp_max_vent_s, 0.0, want)
-                self.wsp_valve = valve_step(self.wsp_valve, want, h, self.wsp_valve_lag_s)
-                brake = brake * (1.0 - self.wsp_valve)
             dl = x[..., :-1] - x[..., 1:] - self.coupler_spacing_m
             phi = self.coupler_force_from_deflection(dl, v[..., :-1] - v[..., 1:])
             f = self._incidence.dot(phi) if phi.ndim == 1 else phi @ self._incidence.T
@@ -451,26 +460,11 @@ class TrainPlant:
                 f = f + self.external_force_n(t)
             speed = np.abs(v)
             r = self._c_static + speed * (c1 + c2 * speed)
-            if wheels is not None:
-                # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
-                other = f - np.sign(v) * r
-                per_axle = (wheels.R / wheels.p)
-                v_new = wheels.step(h, v, self.mass_kg, other, np.repeat((brake * per_axle)[:, None], wheels.p, 1),
-                                    np.repeat((-traction * per_axle)[:, None], wheels.p, 1), self._mu)
-                v_new = np.where((v != 0.0) & (v_new * v < 0.0), 0.0, v_new)
-                rail = -wheels.force_n.sum(axis=1)
-            else:
-                rail = brake + traction
-                if self.actuator.adhesion_limited:
-                    cap = self._mu * self.mass_kg * g
-                    rail = np.minimum(np.maximum(rail, -cap), cap)
-                f = f - np.minimum(rail, 0.0)
-                rr = np.maximum(rail, 0.0) + r
-                moving = v != 0.0
-                sgn = np.where(moving, np.sign(v), np.sign(f))
-                breakaway = moving | (np.abs(f) > rr)
-                v_new = v + np.where(breakaway, (h / self.mass_kg) * (f - sgn * rr), 0.0)
-                v_new = np.where(moving & (v_new * v < 0.0), 0.0, v_new)
+            # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake), compiled
+            v_new, rail = kern.substep(h, blend_k, valve_k, flat(effort), flat(v), flat(f), flat(r), mass,
+                                       flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve, self._vent_s,
+                                       om, fo, sl)
+            v_new, rail = v_new.reshape(v.shape), rail.reshape(v.shape)
             x = x + h * v_new
             v_before, v = v, v_new
             self.time_s = t + h
@@ -484,6 +478,19 @@ class TrainPlant:
         self.accel_mps2 = acc
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+
+    def _equip_kernel(self) -> EquipmentKernel:
+        """The compiled brake-equipment sub-step with this plant's constants (built once)."""
+        if self._ekern is None:
+            b = self.blending
+            kw = {} if self.wheels is None else self.wheels.kernel_params()
+            self._ekern = EquipmentKernel(
+                blending=b is not None, ed_max=0.0 if b is None else b.ed_max_decel_mps2,
+                ed_power=0.0 if b is None else b.ed_power_w_per_kg, fade_start=1.0 if b is None else b.fade_start_mps,
+                fade_end=0.0 if b is None else b.fade_end_mps, friction_lag_s=0.0 if b is None else b.friction_lag_s,
+                valve_lag_s=self.wsp_valve_lag_s, max_vent_s=self.wsp_max_vent_s,
+                adhesion_limited=self.actuator.adhesion_limited, gravity=self.gravity_mps2, **kw)
+        return self._ekern
 
     def equipment_measurements(self) -> dict[str, np.ndarray]:
         """Per-car quantities of the brake equipment (empty without it): ``ed_brake_n`` and
@@ -536,6 +543,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     st = copy.copy(p0)
     st.stacked = True
     st._kern = None
+    st._ekern = None
     for name in _STACKED:
         setattr(st, name, np.stack([np.broadcast_to(np.asarray(getattr(p, name), dtype=float),
                                                     np.shape(getattr(p0, name))) for p in plants]))

@@ -1,0 +1,359 @@
+# cython: language_level=3, cdivision=True, boundscheck=False, wraparound=False
+# distutils: extra_compile_args = -ffp-contract=off
+"""The coupled train's brake equipment (:mod:`canbrake.physics.brakes`), compiled: ED/friction
+blending, the dump valves with their watchdog, and the backward-Euler step of wheelsets and car
+bodies with Cai's creep force per axle, or without wheelsets the Coulomb brake/resistance update.
+
+One call per sub-step of :meth:`canbrake.physics.train.TrainPlant.step` with brake equipment
+(:meth:`EquipmentKernel.substep`): arrays in (per car), the new speeds and rail forces out, the
+equipment's state arrays updated in place. The coupler, grade and disturbance forces and the
+sub-step policy stay in the caller. Written by hand because the numpy form cost about 150 array
+operations per sub-step on a handful of cars and axles (one 1-ms sub-step of Chen's 6-car metro
+with four wheelsets per car took ~600 us).
+
+Every value is computed with the floating-point operations of the numpy code it replaced, in the
+same order (``-ffp-contract=off``; numpy's NaN rules for sign/minimum/maximum from ``_npmath``;
+the sums over a car's axles as numpy's ``add.reduce`` adds a row: from 0.0, pairwise by blocks of
+eight from eight values on, see :func:`_npsum`); the slip curve's exponentials are numpy's
+(``numpy.exp`` over all axles per evaluation: its SIMD exp is not libm's in the last bit), and the
+lags' ``1 − exp(−h/τ)`` come from the caller's ``math.exp``.
+
+Arrays are C-contiguous float64. Per-car arrays have N = P·n values (a stack of P plants, or one
+plant) or n (one row shared by every point, as numpy broadcasts it); wheelsets only for P = 1,
+their per-axle arrays (n, p).
+"""
+from cpython.mem cimport PyMem_Free, PyMem_Malloc
+from libc.math cimport exp, fabs
+
+from canbrake.physics._npmath cimport _max, _min, _sign  # numpy's NaN rules, shared
+
+import numpy as np
+
+_np_exp = np.exp
+
+
+cdef double _npsum(const double* a, Py_ssize_t n) noexcept nogil:
+    """``numpy.add.reduce`` of n contiguous doubles (a row of a C-contiguous array): 0.0 plus
+    numpy's pairwise sum (sequential below 8 values, eight accumulators up to 128, halves above)."""
+    return 0.0 + _pairwise(a, n)
+
+
+cdef double _pairwise(const double* a, Py_ssize_t n) noexcept nogil:
+    cdef double res, r0, r1, r2, r3, r4, r5, r6, r7
+    cdef Py_ssize_t i, n2
+    if n < 8:
+        res = -0.0
+        for i in range(n):
+            res = res + a[i]
+        return res
+    if n <= 128:
+        r0, r1, r2, r3, r4, r5, r6, r7 = a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]
+        i = 8
+        while i < n - (n % 8):
+            r0 = r0 + a[i]
+            r1 = r1 + a[i + 1]
+            r2 = r2 + a[i + 2]
+            r3 = r3 + a[i + 3]
+            r4 = r4 + a[i + 4]
+            r5 = r5 + a[i + 5]
+            r6 = r6 + a[i + 6]
+            r7 = r7 + a[i + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res = res + a[i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pairwise(a, n2) + _pairwise(a + n2, n - n2)
+
+
+cdef inline double _clip01(double x) noexcept nogil:
+    """numpy.clip(x, 0, 1) (NaN stays NaN)."""
+    return _min(_max(x, 0.0), 1.0)
+
+
+cdef class EquipmentKernel:
+    """Constants of a coupled train's brake equipment, and its sub-step.
+
+    Blending (``blending`` True): ``ed_max`` (m/s²), ``ed_power`` (W/kg), ``fade_start``,
+    ``fade_end`` (m/s), ``friction_lag_s`` (s). Dump valves: ``valve_lag_s``, ``max_vent_s`` (s).
+    Wheelsets (``axles`` p > 0): radius ``R`` (m), inertia ``J`` (kg·m²), normal loads ``N`` (n, p)
+    (N), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
+    ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), ``iters`` Newton iterations.
+    ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
+    """
+
+    cdef bint blending, adhesion_limited
+    cdef double ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent, g
+    cdef Py_ssize_t p, iters
+    cdef double R, J, b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
+    cdef const double[:, ::1] N
+
+    def __init__(self, *, bint blending, double ed_max, double ed_power, double fade_start, double fade_end,
+                 double friction_lag_s, double valve_lag_s, double max_vent_s, bint adhesion_limited,
+                 double gravity, int axles=0, double R=1.0, double J=1.0, N=None, double b1=0.0,
+                 double b2=0.0, double b3=1.0, double c1=0.0, double c2=0.0, double c3=1.0, double mu0=1.0,
+                 double peak_curve=1.0, double v_floor=0.1, int iters=5):
+        self.blending = blending
+        self.ed_max, self.ed_power, self.fade_start, self.fade_end = ed_max, ed_power, fade_start, fade_end
+        self.friction_lag, self.valve_lag, self.max_vent = friction_lag_s, valve_lag_s, max_vent_s
+        self.adhesion_limited, self.g = adhesion_limited, gravity
+        self.p, self.iters = axles, iters
+        self.R, self.J = R, J
+        self.b1, self.b2, self.b3, self.c1, self.c2, self.c3 = b1, b2, b3, c1, c2, c3
+        self.mu0, self.peak_curve, self.v_floor = mu0, peak_curve, v_floor
+        if axles > 0:
+            self.N = np.ascontiguousarray(N, dtype=float)
+
+    def substep(self, double h, double blend_k, double valve_k, const double[::1] effort,
+                const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] mass,
+                const double[::1] mu, const double[::1] eff, wsp, double[::1] friction, double[::1] ed,
+                double[::1] valve, double[::1] vent, double[::1] omega, double[::1] force, double[::1] slip):
+        """One sub-step of ``h`` (s). Per car (N values): ``effort`` the actuator's (N, + brakes),
+        ``v`` (m/s), ``f`` the coupler + grade + disturbance forces (N), ``r`` the running
+        resistance magnitude (N), ``mass`` (kg), ``mu`` peak adhesion, ``eff`` brake effectiveness;
+        ``wsp`` the dump valves' command (0..1, NaN none) or None. State, updated in place:
+        ``friction``, ``ed`` (blending, N), ``valve`` (opening) and ``vent`` (s venting) shaped as
+        ``wsp``; per axle (n·p): ``omega`` (rad/s), ``force`` (creep force, N), ``slip``.
+        ``blend_k``, ``valve_k``: 1 − exp(−h/lag) of the friction brake and the valve.
+
+        Returns (v_new, rail): the new speeds (m/s) and the rail force per car (N, + brakes)."""
+        cdef Py_ssize_t nv = v.shape[0], i
+        cdef Py_ssize_t ne = effort.shape[0], nm = mass.shape[0], nmu = mu.shape[0], nef = eff.shape[0]
+        cdef Py_ssize_t nf = f.shape[0], nr = r.shape[0]
+        cdef Py_ssize_t nn = max(nv, ne)
+        cdef double s, fade, per_kg, demand, e, share, total, tr, cap, rail_i, ff, rr, sg, vn, want
+        cdef const double[::1] cmd
+        cdef Py_ssize_t nw = 0
+        if nf > nn:
+            nn = nf
+        brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
+        cdef double[::1] brake = brake_a, trac = trac_a, rail = rail_a, vnew = vnew_a
+        for i in range(nn):
+            e = effort[i % ne]
+            if self.blending:
+                s = fabs(v[i % nv])
+                fade = _clip01((s - self.fade_end) / (self.fade_start - self.fade_end))
+                per_kg = _min(self.ed_max, self.ed_power / _max(s, 1e-9))
+                demand = _max(e, 0.0)
+                ed[i] = _min(demand, mass[i % nm] * per_kg * fade)
+                share = demand - ed[i]
+                if self.friction_lag > 0.0:
+                    friction[i] = friction[i] + (share - friction[i]) * blend_k
+                else:
+                    friction[i] = share
+                total = ed[i] + friction[i] + _min(e, 0.0)
+            else:
+                total = e
+            brake[i] = _max(total, 0.0) * eff[i % nef]
+            trac[i] = _min(total, 0.0)
+        if wsp is not None:
+            cmd = wsp
+            nw = cmd.shape[0]
+            for i in range(nw):
+                want = cmd[i]
+                want = _clip01(0.0 if want != want else want)
+                vent[i] = vent[i] + h if want > 0.5 else 0.0
+                if vent[i] > self.max_vent:
+                    want = 0.0
+                want = _clip01(want)  # the valve's own clip (valve_step)
+                if self.valve_lag <= 0.0:
+                    valve[i] = want
+                else:
+                    valve[i] = valve[i] + (want - valve[i]) * valve_k
+            for i in range(nn):
+                brake[i] = brake[i] * (1.0 - valve[i % nw])
+        cdef Py_ssize_t p = self.p, k
+        cdef double per_axle
+        if p > 0:  # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
+            per_axle = self.R / p
+            oth_a, tb_a, td_a = np.empty(nv), np.empty(nv * p), np.empty(nv * p)
+            self._prep(v, f, r, brake, trac, per_axle, oth_a, tb_a, td_a)
+            self._wheels(h, v, oth_a, mass, mu, tb_a, td_a, omega, force, slip, vnew)
+            for i in range(nv):
+                vn = vnew[i]
+                vnew[i] = 0.0 if v[i] != 0.0 and vn * v[i] < 0.0 else vn  # the exact stop
+                rail[i] = -_npsum(&force[i * p], p)
+            return vnew_a, rail_a
+        for i in range(nn):
+            rail_i = brake[i] + trac[i]
+            if self.adhesion_limited:
+                cap = mu[i % nmu] * mass[i % nm] * self.g
+                rail_i = _min(_max(rail_i, -cap), cap)
+            rail[i] = rail_i
+            ff = f[i % nf] - _min(rail_i, 0.0)
+            rr = _max(rail_i, 0.0) + r[i % nr]
+            s = v[i % nv]
+            if s != 0.0:
+                sg = _sign(s)
+                vn = s + (h / mass[i % nm]) * (ff - sg * rr)
+                vnew[i] = 0.0 if vn * s < 0.0 else vn
+            elif fabs(ff) > rr:
+                vnew[i] = s + (h / mass[i % nm]) * (ff - _sign(ff) * rr)
+            else:
+                vnew[i] = s + 0.0
+        return vnew_a, rail_a
+
+    cdef void _prep(self, const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] brake,
+                    const double[::1] trac, double per_axle, double[::1] oth, double[::1] tb,
+                    double[::1] td) noexcept:
+        """The wheels' inputs: the body's forces besides the creep forces (f − sgn(v) r) per car and
+        the brake and drive torques per axle (brake·R/p, −traction·R/p, the same on each axle)."""
+        cdef Py_ssize_t i, k, p = self.p
+        cdef double b, d
+        for i in range(v.shape[0]):
+            oth[i] = f[i] - _sign(v[i]) * r[i]
+            b = brake[i] * per_axle
+            d = -trac[i] * per_axle
+            for k in range(p):
+                tb[i * p + k] = b
+                td[i * p + k] = d
+
+    cdef int _creep(self, Py_ssize_t n, const double* w, const double* v, const double[::1] mu, double* lam,
+                    double* f, double* fw, double* fv, double[::1] arg, object arg_a, object ex_a) except -1:
+        """Creep of every axle (n cars × p) at wheel speeds ``w`` and car speeds ``v``: slip λ, force F
+        (N, + forward), ∂F/∂ω and ∂F/∂v (the former Wheelsets.creep formulas, elementwise). The
+        exponentials of the slip curve are numpy's (one ``numpy.exp`` over every axle, as before):
+        numpy's SIMD exp differs from libm's in the last bit for some arguments."""
+        cdef Py_ssize_t i, k, j, p = self.p, nmu = mu.shape[0]
+        cdef double R = self.R, wr, awr, av, den, lm, dw, dv, scale, a, ex, sn, dmu
+        cdef const double[::1] exv
+        for i in range(n):
+            av = fabs(v[i])
+            for k in range(p):
+                j = i * p + k
+                wr = w[j] * R
+                awr = fabs(wr)
+                den = _max(_max(awr, av), self.v_floor)
+                lm = (wr - v[i]) / den
+                if awr >= av and awr >= self.v_floor:
+                    dw = R * av / (wr * wr)
+                    dv = -1.0 / den
+                elif av >= self.v_floor:
+                    dw = R / den
+                    dv = -wr / (den * den)
+                else:
+                    dw = R / den
+                    dv = -1.0 / den
+                lam[j] = lm
+                fw[j] = dw  # dλ/dω and dλ/dv until the exponentials are known
+                fv[j] = dv
+                arg[j] = -self.b2 * fabs(lm)
+        _np_exp(arg_a, out=ex_a)
+        exv = ex_a
+        for i in range(n):
+            av = fabs(v[i])
+            scale = (self.c1 + self.c2 / (self.c3 + av)) / self.mu0 * (mu[i % nmu] / self.peak_curve)
+            for k in range(p):
+                j = i * p + k
+                lm = lam[j]
+                a = fabs(lm)
+                ex = exv[j]
+                sn = scale * self.N[i, k]
+                f[j] = _sign(lm) * sn * (self.b1 * (1.0 - ex) - a / self.b3)
+                dmu = sn * (self.b1 * self.b2 * ex - 1.0 / self.b3)
+                fw[j] = dmu * fw[j]
+                fv[j] = dmu * fv[j]
+        return 0
+
+    def wheels_step(self, double h, const double[::1] v0, const double[::1] mass, const double[::1] other,
+                    const double[::1] tb, const double[::1] td, const double[::1] mu, double[::1] omega,
+                    double[::1] force, double[::1] slip):
+        """One backward-Euler step of wheels and car bodies (:meth:`Wheelsets.step`): per car (n)
+        ``v0`` (m/s), ``mass`` (kg), ``other`` (N), ``mu``; per axle (n·p) brake and drive torques
+        ``tb``, ``td`` (N·m); ``omega``, ``force``, ``slip`` updated in place. Returns the new speeds."""
+        vout = np.empty(v0.shape[0])
+        self._wheels(h, v0, other, mass, mu, tb, td, omega, force, slip, vout)
+        return vout
+
+    cdef void _wheels(self, double h, const double[::1] v0, const double[::1] oth, const double[::1] mass,
+                      const double[::1] mu, const double[::1] Tb, const double[::1] Td, double[::1] omega,
+                      double[::1] force, double[::1] slip, double[::1] vout) except *:
+        """Backward Euler of wheels and bodies (Wheelsets.step, module docstring of brakes.py): J(ω − ω0)
+        = h(T_d − T_b sgn ω − F R) per axle, m(v − v0) = h(Σ F + other) per car, Newton on the
+        arrow-shaped Jacobian; a wheel whose ω would pass through zero under the brake locks."""
+        cdef Py_ssize_t n = v0.shape[0], p = self.p, i, k, it, attempt, nmu = mu.shape[0]
+        cdef double R = self.R, J = self.J, hR = h * R, mh = -h
+        cdef double other, spin, ak, d, dv, vv, vi
+        cdef bint any_over
+        cdef double* buf = <double*>PyMem_Malloc(12 * n * p * sizeof(double))
+        cdef unsigned char* flags = <unsigned char*>PyMem_Malloc(2 * n * p)
+        if buf == NULL or flags == NULL:
+            PyMem_Free(buf)
+            PyMem_Free(flags)
+            raise MemoryError()
+        cdef Py_ssize_t q = n * p
+        cdef double *w0 = buf, *w = buf + q, *sg = buf + 2 * q, *lam = buf + 3 * q, *f = buf + 4 * q
+        cdef double *fw = buf + 5 * q, *fv = buf + 6 * q, *rw = buf + 7 * q, *a = buf + 8 * q
+        cdef double *b = buf + 9 * q, *cc = buf + 10 * q, *tmp = buf + 11 * q
+        cdef unsigned char *locked = flags, *over = flags + q
+        cdef double[::1] v = np.array(v0, dtype=float)
+        arg_a, ex_a = np.empty(q), np.empty(q)
+        cdef double[::1] arg = arg_a
+        try:
+            for i in range(q):
+                w0[i] = omega[i]
+            self._creep(n, w0, &v0[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
+            for i in range(n):
+                for k in range(p):
+                    spin = Td[i * p + k] - f[i * p + k] * R
+                    if w0[i * p + k] == 0.0:
+                        locked[i * p + k] = fabs(spin) <= Tb[i * p + k]
+                        sg[i * p + k] = _sign(spin)
+                    else:
+                        locked[i * p + k] = 0
+                        sg[i * p + k] = _sign(w0[i * p + k])
+                    w[i * p + k] = 0.0 if locked[i * p + k] else w0[i * p + k]
+            for attempt in range(2):
+                for it in range(self.iters):
+                    self._creep(n, w, &v[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
+                    for i in range(n):
+                        vi = v[i]
+                        for k in range(p):
+                            if locked[i * p + k]:
+                                a[i * p + k] = 1.0
+                                rw[i * p + k] = 0.0
+                                b[i * p + k] = 0.0
+                                cc[i * p + k] = 0.0
+                            else:
+                                ak = J + hR * fw[i * p + k]
+                                a[i * p + k] = ak if ak > 0.1 * J else J
+                                rw[i * p + k] = J * (w[i * p + k] - w0[i * p + k]) - h * (
+                                    Td[i * p + k] - Tb[i * p + k] * sg[i * p + k] - f[i * p + k] * R)
+                                b[i * p + k] = hR * fv[i * p + k]
+                                cc[i * p + k] = mh * fw[i * p + k]
+                        other = oth[i]
+                        vv = mass[i] * (vi - v0[i]) - h * (_npsum(f + i * p, p) + other)
+                        d = mass[i] - h * _npsum(fv + i * p, p)
+                        for k in range(p):
+                            tmp[i * p + k] = cc[i * p + k] * rw[i * p + k] / a[i * p + k]
+                        dv = -vv + _npsum(tmp + i * p, p)
+                        for k in range(p):
+                            tmp[i * p + k] = cc[i * p + k] * b[i * p + k] / a[i * p + k]
+                        dv = dv / (d - _npsum(tmp + i * p, p))
+                        for k in range(p):
+                            w[i * p + k] = w[i * p + k] + (-rw[i * p + k] - b[i * p + k] * dv) / a[i * p + k]
+                        v[i] = vi + dv
+                any_over = False
+                for i in range(q):  # the brake stopped the wheel within the step: it locks
+                    over[i] = not locked[i] and w[i] * sg[i] < 0.0
+                    any_over = any_over or over[i]
+                if not any_over:
+                    break
+                for i in range(q):
+                    if over[i]:
+                        locked[i] = 1
+                    if locked[i]:
+                        w[i] = 0.0
+            self._creep(n, w, &v[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
+            for i in range(n):
+                for k in range(p):
+                    omega[i * p + k] = w[i * p + k]
+                    force[i * p + k] = f[i * p + k]
+                    slip[i * p + k] = lam[i * p + k]
+                vout[i] = v[i]
+        finally:
+            PyMem_Free(buf)
+            PyMem_Free(flags)
