@@ -403,7 +403,8 @@ def whole_figures(log: Callable[[str], None], duration_s: float = 200.0,
                   base_share: float = 0.1) -> list[dict[str, Any]]:
     """Cai 2014 case 4 whole (``duration_s`` simulated, 1 ms) with one process per ECU on the
     memory bus: wall seconds of the run (start to finish, every process included); baseline the
-    in-process engine over ``base_share`` of the run in the same bench run, scaled to the whole."""
+    in-process engine over ``base_share`` of the run in the same bench run, its run loop scaled to
+    the whole (its start-up and output counted once)."""
     figure = "Cai case 4 whole run, one process per ECU"
     target = "<= 60 s wall (200 s at 1 ms)"
     res = run_case_subprocess({"scenario": CAI4, "backend": "memory", "overrides": {"duration_s": duration_s}},
@@ -415,10 +416,15 @@ def whole_figures(log: Callable[[str], None], duration_s: float = 200.0,
     b = run_case_subprocess({"scenario": CAI4, "backend": "inprocess", "overrides": {"duration_s": base_s}},
                             timeout_s=max(900.0, 20 * base_s))
     log(f"  whole cai4 in-process ({base_s:g} s): {b.get('status')} {b.get('total_wall_s') or b.get('message')}")
-    base = b["total_wall_s"] / base_share if b.get("status") == "ok" and b.get("total_wall_s") else None
+    base = None
+    if b.get("status") == "ok" and b.get("total_wall_s"):
+        # start-up and writing the outputs happen once per run; only the run loop scales with the
+        # simulated time
+        loop = b.get("loop_wall_s") or b["total_wall_s"]
+        base = (b["total_wall_s"] - loop) + loop / base_share
     wall = res["total_wall_s"]
     whole = duration_s == 200.0
-    return [_row(figure, wall, "s", f"in-process engine ({base_share:.0%} of the run, scaled)", base,
+    return [_row(figure, wall, "s", f"in-process engine ({base_share:.0%} of the run, its run loop scaled)", base,
                  base / wall if base else None, target, (wall <= 60.0) if whole else None,
                  ticks=res.get("ticks"), ticks_per_s=res.get("ticks_per_s"), ecu_pss_mb=res.get("ecu_pss_mb"),
                  note=f"scenarios/{CAI4}, {duration_s:g} s simulated at 1 ms, memory bus, one process per ECU, "
