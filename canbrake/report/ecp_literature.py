@@ -67,7 +67,7 @@ class Case:
 
 CASES = (
     Case("service-60", "full service", 60, "1 + 105", "level", 80.0, sets=_BUS,
-         note="docs/ecp-over-can.md's case (ideal CAN timing)"),
+         note="docs/ecp-over-can.md's case, ideal CAN timing"),
     Case("emergency-60", "emergency", 60, "1 + 105", "level", 80.0, sets=_BUS + _EMERGENCY),
     Case("service-80", "full service", 80, "1 + 105", "level", 100.0, sets=_BUS + _speed(80)),
     Case("service-100", "full service", 100, "1 + 105", "level", 120.0, sets=_BUS + _speed(100)),
@@ -80,7 +80,7 @@ CASES = (
          sets=_BUS + (("train.start_position_m", 19500.0),)),
     Case("service-60-pipe", "full service", 60, "1 + 105", "level", 80.0, sets=_BUS,
          pneumatic_sets=(("train.air_brake.pipe", {}),), ecp_of="service-60",
-         note="pneumatic with the brake-pipe pressure model (its defaults)"),
+         note="pneumatic with the brake-pipe pressure model, its defaults"),
     Case("service-60-long-pipe", "full service", 60, "1 + 210", "level", 80.0, profile="long_train", sets=_BUS_LONG,
          pneumatic_sets=(("train.air_brake.pipe", {}),), ecp_of="service-60-long",
          note="1 + 210, pneumatic with the brake-pipe pressure model"),
@@ -175,17 +175,19 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
 
     # the integration step: every headline number at h and h / 2
     worst, worst_at, unstable = 0.0, "", []
-    for k in runs:
+    per = {m: (0.0, "") for m in HEADS}  # the largest change of each headline number, and where
+    for k in (runs if fine else ()):
         tab = M.step_convergence([(h, {m: (float(r[m]) if np.isfinite(r[m]) else None) for m in HEADS})
                                   for h, r in ((h0[k], res[k]), (h0[k] / STEP_DIVISOR, res[fine[k][0].key]))])
         ch = list(tab[1]["change"].values())
+        for m, c in tab[1]["change"].items():
+            if c is not None and c > per[m][0]:
+                per[m] = (c, k)
         if None in ch:
             unstable.append(k)
             continue
         if max(ch) > worst:
             worst, worst_at = max(ch), k
-    if not fine:
-        unstable = []
 
     L: list[str] = []
     w = L.append
@@ -252,7 +254,9 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
                                       if unstable else ""))
         w(f"Every run above was repeated with the plant's integration step halved "
           f"({', '.join(f'{1000 * x:g}' for x in h)} ms → {', '.join(f'{1000 * x / STEP_DIVISOR:g}' for x in h)} "
-          f"ms). Stopping distance, peak tension and peak compression: {verdict}.")
+          f"ms). Stopping distance, peak tension and peak compression: {verdict}. Largest change of each: "
+          + ", ".join(f"{nm} {100 * per[m][0]:.2f} % ({per[m][1]})" for m, nm in
+                      zip(HEADS, ("stopping distance", "peak tension", "peak compression"))) + ".")
         w("")
         w("| run | stop h / h/2 (m) | peak tension h / h/2 (kN) | peak compression h / h/2 (kN) |")
         w("|---|---|---|---|")
@@ -293,8 +297,10 @@ def _explain(rows: dict[str, dict[str, float]], sd: Path) -> list[str]:
     key -> ECP and pneumatic stopping distances, reduction %, predicted Δ, peak forces)."""
     from canbrake.scenario import load_scenario
 
-    ab = load_scenario(sd / E.SCENARIO).train.air_brake
+    train = load_scenario(sd / E.SCENARIO).train
+    ab = train.air_brake
     em = ab.emergency
+    cap = min(1000.0 * g.curve_kn[-1] for g in train.draft_gears.values())  # N
     r = rows.get
     out: list[str] = []
     w = out.append
@@ -350,14 +356,23 @@ def _explain(rows: dict[str, dict[str, float]], sd: Path) -> list[str]:
           "service" + (f" and {red('emergency-60-long')} in an emergency" if fin("emergency-60-long") else "")
           + f" (1 + 105: {red('service-60')}). Length moves the model towards the published range most. The "
           f"in-train forces grow with it: peak compression {lt['cp'] / 1e3:.0f} kN pneumatic against "
-          f"{lt['ce'] / 1e3:.0f} kN with ECP, peak tension {lt['tp'] / 1e3:.0f} kN against {lt['te'] / 1e3:.0f} kN.")
+          f"{lt['ce'] / 1e3:.0f} kN with ECP, peak tension {lt['tp'] / 1e3:.0f} kN against {lt['te'] / 1e3:.0f} kN."
+          + (f" Pneumatic peaks above the draft gears' capacity ({cap / 1e3:.0f} kN, the end of the smaller loading "
+             "curve) mean the gears went solid: the model has no coupler failure or wheel climb, so those numbers "
+             "say that this brake application would overload the train's draft gears, not what force a coupler "
+             "would carry."
+             if max(v["cp"] for v in rows.values()) > cap else ""))
         w("")
     if fin("service-60-down10", "service-60"):
         less = r("service-60-down10")["red"] < r("service-60")["red"]
         w(f"**Grade.** On the 10 ‰ descent gravity offsets part of the brake and the stop is longer "
           f"({r('service-60-down10')['ecp']:.0f} m with ECP against {r('service-60')['ecp']:.0f} m on level track); "
           f"the reduction is {red('service-60-down10')}"
-          + (": the same delay is a smaller share of a longer stop." if less else "."))
+          + (": the same delay is a smaller share of a longer stop." if less else
+             f" (level: {red('service-60')}): the distance lost during the propagation grows too "
+             f"({r('service-60-down10')['pn'] - r('service-60-down10')['ecp']:.0f} m against "
+             f"{r('service-60')['pn'] - r('service-60')['ecp']:.0f} m), because the train keeps accelerating "
+             "downhill until the rear brakes."))
         w("")
     if fin("service-60-pipe", "service-60"):
         w("**The brake-pipe pressure model.** With `train.air_brake.pipe` (its defaults: the pipe's pressure drops "
