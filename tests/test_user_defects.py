@@ -154,8 +154,8 @@ from pathlib import Path
 import canbrake
 assert Path(canbrake.__file__).resolve().is_relative_to(Path(sys.argv[1]).resolve()), canbrake.__file__
 from canbrake.scenario import load_scenario
-from canbrake.report import REPORTS, cai2014, chen2023, delay, ecp, li2024, safety
-assert sorted(REPORTS) == ["cai2014", "chen2023", "delay", "ecp", "li2024", "safety"], REPORTS  # all looked up below
+from canbrake.report import REPORTS, cai2014, chen2023, delay, ecp, ecp_literature, li2024, safety
+assert sorted(REPORTS) == ["cai2014", "chen2023", "delay", "ecp", "ecp_literature", "li2024", "safety"], REPORTS  # all looked up below
 for spec in chen2023.run_specs():
     chen2023.resolve_spec(spec)
 for spec in cai2014.run_specs():
@@ -166,6 +166,9 @@ for spec in li2024.run_specs():
 li2024.train_of(sd).load_route(sd)
 for spec in ecp.SPECS:
     ecp._load(spec, 10.0, ecp.scenario_dir())
+for case in ecp_literature.CASES:
+    for spec in case.specs():
+        ecp._load(spec, 10.0, ecp.scenario_dir())
 load_scenario(delay.scenario_path())
 load_scenario(safety.BASE)
 print("found")

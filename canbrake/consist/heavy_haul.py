@@ -171,6 +171,26 @@ class BrakePipe(StrictModel):
                             ratio=self.ratio, tau_s=self.tau_s, tau_per_km_s=self.tau_per_km_s)
 
 
+class EmergencyBrake(StrictModel):
+    """The emergency application (:class:`canbrake.physics.heavy_haul.EmergencyBrake`), used when
+    ``air_brake.application`` is ``emergency``: the signal's wave speed ``apply_wave_mps`` (the pipe
+    vented at every control valve it reaches), the emergency cylinder fill lag ``cylinder_tau_s``, the
+    emergency cylinder pressure as ``pressure_factor`` × the vehicle's full-service
+    ``cylinder_pressure_kpa`` (the block force scales with it), eq. (10)'s coefficient ``brake_factor``
+    in place of ``service_factor``, and with ``pipe`` the local venting lag ``vent_tau_s`` (pipe to 0)."""
+
+    apply_wave_mps: float = Field(gt=0)
+    cylinder_tau_s: float = Field(gt=0)
+    pressure_factor: float = Field(1.0, ge=1.0, le=2.0)
+    brake_factor: float = Field(1.0, gt=0, le=1)
+    vent_tau_s: float = Field(0.5, gt=0)
+
+    def physics(self) -> hh.EmergencyBrake:
+        return hh.EmergencyBrake(apply_wave_mps=self.apply_wave_mps, cylinder_tau_s=self.cylinder_tau_s,
+                                 pressure_factor=self.pressure_factor, brake_factor=self.brake_factor,
+                                 vent_tau_s=self.vent_tau_s)
+
+
 class AirBrake(StrictModel):
     """Automatic air brake (eqs. 10-15, section 1.2) or ECP.
 
@@ -178,6 +198,10 @@ class AirBrake(StrictModel):
     brake pipe at ``apply_wave_mps``/``release_wave_mps``; after the signal arrives each cylinder fills
     with a first-order lag ``cylinder_tau_s``. ``ecp``: each vehicle's cylinder follows its own
     ``ecp_demand`` with the same lag, no wave. ``service_factor`` is β_c of eq. (10).
+    ``application``: what a full application of the run is, ``service`` (the fields above) or
+    ``emergency`` (the ``emergency`` block's wave speed, cylinder lag, pressure and coefficient; the
+    CAN layout carries a 1-bit driver's valve and an ECP demand of 0..1, so the kind of application
+    is a property of the run, not a command).
     """
 
     mode: Literal["pneumatic", "ecp"] = "pneumatic"
@@ -187,6 +211,16 @@ class AirBrake(StrictModel):
     release_wave_mps: float = Field(gt=0)
     cylinder_tau_s: float = Field(gt=0)
     service_factor: float = Field(gt=0, le=1)
+    application: Literal["service", "emergency"] = "service"
+    emergency: EmergencyBrake | None = Field(None, description="the emergency application's brake (needed when "
+                                                                 "application is emergency)")
+
+    @model_validator(mode="after")
+    def _emergency(self) -> "AirBrake":
+        if self.application == "emergency" and self.emergency is None:
+            raise ValueError("@emergency: application 'emergency' needs an emergency block "
+                             "(apply_wave_mps, cylinder_tau_s, pressure_factor, brake_factor)")
+        return self
 
 
 class Disturbance(StrictModel):
@@ -272,7 +306,8 @@ class HeavyHaulTrain(StrictModel):
                            n_blocks=np.array([v.brake.blocks() for v in vs], dtype=float),
                            friction_coef=np.array([v.brake.friction_coefficient for v in vs]),
                            cylinder_pressure_pa=np.array([1000.0 * v.brake.cylinder_pressure_kpa for v in vs]),
-                           pipe=None if ab.pipe is None else ab.pipe.physics())
+                           pipe=None if ab.pipe is None else ab.pipe.physics(),
+                           emergency=ab.emergency.physics() if ab.application == "emergency" else None)
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> hh.HeavyHaulModel:
         """The plant model; from the scenario ``scn`` it takes ``initial.speed_kmh`` (one value, or one per

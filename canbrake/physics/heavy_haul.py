@@ -375,6 +375,28 @@ class BrakePipe:
     tau_per_km_s: float = 4.0
 
 
+@dataclass(frozen=True)
+class EmergencyBrake:
+    """An emergency application of the automatic air brake or ECP (SI: m/s, s; factors dimensionless).
+
+    Replaces the full-service application of :class:`AirBrake` for a whole run (a stop test's
+    application): the brake pipe is vented at the driver's valve and at every control valve it
+    reaches (quick action), so the signal travels at ``apply_wave_mps`` (faster than the service
+    wave); the emergency valve fills each cylinder with the lag ``cylinder_tau_s`` to
+    ``pressure_factor`` × the vehicle's full-service cylinder pressure (the auxiliary and emergency
+    reservoirs equalise into the cylinder); the block force K (eqs. 13-15, linear in the cylinder
+    pressure) scales with it and eq. (10)'s coefficient is ``brake_factor`` instead of the service
+    β_c. With a :class:`BrakePipe` the pipe is vented to 0 Pa with the lag ``vent_tau_s`` at every
+    vehicle (no per-km term: every valve vents locally). ECP: the same cylinder pressure, lag and
+    coefficient on every wagon at once (no wave)."""
+
+    apply_wave_mps: float
+    cylinder_tau_s: float
+    pressure_factor: float = 1.0
+    brake_factor: float = 1.0
+    vent_tau_s: float = 0.5
+
+
 class AirBrake:
     """Brake-pipe signal propagation and cylinder fill (pneumatic), or per-vehicle demands (ECP).
 
@@ -385,13 +407,25 @@ class AirBrake:
     cylinder pressure p_z. In ``ecp`` mode each cylinder follows ``ecp_target`` with the same lag.
     Per-vehicle arrays (n,): ``block_force_kn`` (K per block at full pressure, eqs. 13-15),
     ``n_blocks``, ``friction_coef`` (eqs. 11-12), ``cylinder_pressure_pa``; ``beta_c`` is eq. (10)'s β_c.
+    ``emergency``: every application of the run is an emergency one (:class:`EmergencyBrake`: its
+    wave speed, cylinder lag, pressure and coefficient replace the service ones); None: service.
     """
 
     def __init__(self, consist: Consist, *, apply_wave_mps: float, release_wave_mps: float, cylinder_tau_s: float,
                  beta_c: float, block_force_kn: np.ndarray, n_blocks: np.ndarray, friction_coef: np.ndarray,
-                 cylinder_pressure_pa: np.ndarray, mode: str = "pneumatic", pipe: BrakePipe | None = None):
+                 cylinder_pressure_pa: np.ndarray, mode: str = "pneumatic", pipe: BrakePipe | None = None,
+                 emergency: EmergencyBrake | None = None):
         if mode not in ("pneumatic", "ecp"):
             raise ValueError(f"air brake mode must be 'pneumatic' or 'ecp', got {mode!r}")
+        self.emergency = emergency
+        if emergency is not None:  # the emergency application's brake in place of the service one
+            apply_wave_mps, cylinder_tau_s, beta_c = emergency.apply_wave_mps, emergency.cylinder_tau_s, \
+                emergency.brake_factor
+            block_force_kn = np.asarray(block_force_kn, dtype=float) * emergency.pressure_factor
+            cylinder_pressure_pa = np.asarray(cylinder_pressure_pa, dtype=float) * emergency.pressure_factor
+            if pipe is not None:
+                pipe = BrakePipe(p0_pa=pipe.p0_pa, reduction_pa=pipe.p0_pa, ratio=pipe.ratio,
+                                 tau_s=emergency.vent_tau_s, tau_per_km_s=0.0)
         self.consist = consist
         self.mode = mode
         self.dist = consist.distance_from_loco_m
