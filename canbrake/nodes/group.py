@@ -59,7 +59,9 @@ class Router:
         inbox: list[list[can.Message]] = [[] for _ in self.nodes]
         routes, route = self._routes, self.route
         for sender, msg in gen:
-            targets = routes.get((msg.arbitration_id, msg.is_extended_id)) or route(msg.arbitration_id, msg.is_extended_id)
+            targets = routes.get((msg.arbitration_id, msg.is_extended_id))
+            if targets is None:  # (an empty route is cached too: frames no other member takes)
+                targets = route(msg.arbitration_id, msg.is_extended_id)
             for idx in targets:
                 if idx != sender:
                     inbox[idx].append(msg)
