@@ -334,23 +334,28 @@ cdef inline bint _payload(object data, const uint8_t** s, Py_ssize_t* n) except 
     return True
 
 
+cdef inline bint _crc_ok(const uint8_t* s, Py_ssize_t n, unsigned int data_id) noexcept:
+    """Byte 0 of the payload (``n`` >= 2 bytes) is the E2E CRC over ``data_id`` and bytes 1.."""
+    cdef uint8_t c
+    cdef Py_ssize_t i
+    if n < 2:
+        return False
+    c = CRC_TABLE[CRC_TABLE[0xFF ^ (data_id & 0xFF)] ^ ((data_id >> 8) & 0xFF)]
+    for i in range(1, n):
+        c = CRC_TABLE[c ^ s[i]]
+    return s[0] == (c ^ 0xFF)
+
+
 cdef int _origin(const uint8_t* s, Py_ssize_t n, unsigned int data_id, int64_t k, int64_t last_origin,
                  bint same_tick_ok, bint crc_checked, int ext_start, int ext_bits, int64_t max_lag,
                  int64_t* out):
     """The tick a protected frame was sent in (E2E CRC, alive counter, its extension) into
     ``out``, and 0; or a REJECT_* code (< 0)."""
-    cdef uint8_t c
     cdef Py_ssize_t i
     cdef uint64_t w = 0
     cdef int64_t counter, modulus, lag, origin
-    if not crc_checked:
-        if n < 2:
-            return _CRC
-        c = CRC_TABLE[CRC_TABLE[0xFF ^ (data_id & 0xFF)] ^ ((data_id >> 8) & 0xFF)]
-        for i in range(1, n):
-            c = CRC_TABLE[c ^ s[i]]
-        if s[0] != (c ^ 0xFF):
-            return _CRC
+    if not crc_checked and not _crc_ok(s, n, data_id):
+        return _CRC
     if s[1] & 0x0F >= COUNTER_MODULO:
         return _COUNTER
     counter = s[1] & 0x0F
@@ -702,16 +707,9 @@ cdef class CommandTable:
 
     cdef int _check(self, CmdPage* pg, unsigned int frame_id, const uint8_t* s, Py_ssize_t n, int64_t k,
                     int64_t* origin) noexcept:
-        cdef uint8_t c
-        cdef Py_ssize_t i
         cdef int flags = 0, counter, delta
         # the E2E receiver: CRC, then the counter's continuity (state advances on a good CRC)
-        if n < 2:
-            return _BAD_CRC
-        c = CRC_TABLE[CRC_TABLE[0xFF ^ (frame_id & 0xFF)] ^ ((frame_id >> 8) & 0xFF)]
-        for i in range(1, n):
-            c = CRC_TABLE[c ^ s[i]]
-        if s[0] != (c ^ 0xFF):
+        if not _crc_ok(s, n, frame_id):
             return _BAD_CRC
         counter = s[1] & 0x0F
         if counter >= COUNTER_MODULO:
