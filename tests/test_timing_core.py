@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from canbrake.bus._timing import arb_key
-from canbrake.bus.timing import BusTimingModel, _arbitration_key, frame_bits
+from canbrake.bus.timing import TIME_EPS_S, BusTimingModel, _arbitration_key, frame_bits
 
 NODES = ("plant", "ecu1", "ecu2", "ecu3")
 
@@ -32,7 +32,9 @@ def _oracle(frames: list[tuple], bitrate: float, fifo: bool) -> list[tuple[int, 
     free = -math.inf
     while pend:
         t = max(free, min(p["tq"] for p in pend))
-        due = [p for p in pend if p["tq"] <= t]
+        # queued by t within rounding (the model's rule: a frame queued at the instant the bus
+        # goes free, computed as a sum of frame times, competes in that arbitration)
+        due = [p for p in pend if p["tq"] <= t + TIME_EPS_S]
         heads = []
         for node in NODES:
             mine = [p for p in due if p["node"] == node]
