@@ -17,7 +17,6 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +26,7 @@ import numpy as np
 from canbrake.analysis import metrics as M
 
 from canbrake.report.cache import reusable_run
+from canbrake.report.pool import map_tasks
 import yaml
 
 from canbrake.control.cai2014 import CASE_NAMES, CASES, CaiGains
@@ -302,13 +302,7 @@ def run_all(specs: Sequence[RunSpec], runs_dir: str | Path, force: bool = False,
     runs_dir.mkdir(parents=True, exist_ok=True)
     ticks = {s.key: resolve_spec(s).n_ticks for s in specs}
     tasks = [(s, str(runs_dir), force, str(scenario_dir())) for s in sorted(specs, key=lambda s: -ticks[s.key])]
-    if jobs > 1:
-        import multiprocessing as mp
-
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
-            done = list(ex.map(_execute_star, tasks))
-    else:
-        done = [_execute_star(t) for t in tasks]
+    done = map_tasks(_execute_star, tasks, jobs)
     for key, reused, secs in done:
         log(f"  {key}: {'reused' if reused else f'ran in {secs:.1f} s'}")
     return {s.key: load_trace(s, runs_dir) for s in specs}

@@ -16,7 +16,6 @@ import json
 import math
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -24,6 +23,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from canbrake.report.cache import reusable_run
+from canbrake.report.pool import map_tasks
 import yaml
 
 from canbrake.analysis import metrics as M
@@ -303,18 +303,13 @@ def run_all(specs: Sequence[RunSpec], runs_dir: str | Path, *, force: bool = Fal
     sd = str(scenario_dir())
     tasks = [(s, str(runs_dir), force, sd) for s in order]
     done: dict[str, bool] = {}
-    if jobs <= 1:
-        outs = map(_execute_star, tasks)
-        for key, reused, wall in outs:
-            done[key] = reused
-            log(f"  {key}: {'reused' if reused else f'ran in {wall:.1f} s'}")
-    else:
-        import multiprocessing as mp
 
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-            for key, reused, wall in pool.map(_execute_star, tasks):
-                done[key] = reused
-                log(f"  {key}: {'reused' if reused else f'ran in {wall:.1f} s'}")
+    def one(out: tuple[str, bool, float]) -> None:
+        key, reused, wall = out
+        done[key] = reused
+        log(f"  {key}: {'reused' if reused else f'ran in {wall:.1f} s'}")
+
+    map_tasks(_execute_star, tasks, jobs, each=one)
     return {s.key: load_result(s, runs_dir, done[s.key]) for s in specs}
 
 

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import json
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
+
+from canbrake.report.pool import map_tasks
 
 SCENARIO = "li2024_ecp_over_can.yaml"
 REPORT_VERSION = 3
@@ -220,12 +221,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
     h0 = float(_load(specs[0], duration_s, sd).train.integration_step_s)
     checks = step_specs(h0, specs) if step_check else []
     tasks = [(sp, duration_s, str(runs_dir), force, str(sd)) for sp in (*specs, *checks)]
-    if jobs > 1:
-        import multiprocessing as mp
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
-            outs = list(ex.map(_star, tasks))
-    else:
-        outs = [_star(t) for t in tasks]
+    outs = map_tasks(_star, tasks, jobs)
     for key, reused, wall in outs:
         log(f"  {key}: {'reused' if reused else f'ran in {wall:.0f} s'}")
     res = {sp.key: json.loads((runs_dir / sp.key / "report.json").read_text()) for sp in (*specs, *checks)}

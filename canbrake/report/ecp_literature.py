@@ -24,6 +24,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from canbrake.report import ecp as E
+from canbrake.report.pool import map_tasks
 
 DEFAULT_OUT = "docs"  # `canbrake report ecp_literature` writes its section of docs/mixed-trains.md
 DOC = "mixed-trains.md"
@@ -160,13 +161,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
     h0 = {k: float(E._load(sp, d, sd).train.integration_step_s) for k, (sp, d) in runs.items()}
     fine = {k: (step_spec(sp, h0[k]), d) for k, (sp, d) in runs.items()} if step_check else {}
     tasks = [(sp, d, str(runs_dir), force, str(sd)) for sp, d in (*runs.values(), *fine.values())]
-    if jobs > 1:
-        import multiprocessing as mp
-        from concurrent.futures import ProcessPoolExecutor
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
-            outs = list(ex.map(E._star, tasks))
-    else:
-        outs = [E._star(t) for t in tasks]
+    outs = map_tasks(E._star, tasks, jobs)
     for key, reused, wall in outs:
         log(f"  {key}: {'reused' if reused else f'ran in {wall:.0f} s'}")
     res = {sp.key: json.loads((runs_dir / sp.key / "report.json").read_text())

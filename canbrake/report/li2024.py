@@ -23,7 +23,6 @@ from __future__ import annotations
 import json
 import re
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -33,6 +32,7 @@ import numpy as np
 from canbrake.analysis import metrics as M
 
 from canbrake.report.cache import reusable_run
+from canbrake.report.pool import map_tasks
 
 from canbrake.control import li2024 as ctl_li
 from canbrake.physics import heavy_haul as hh
@@ -338,12 +338,7 @@ def run_all(specs: Sequence[RunSpec], runs_dir: Path, duration_s: float, force: 
     order = sorted(specs, key=lambda sp: sp.step_s or 1.0)  # the finest plant steps (the longest runs) first
     tasks = [(sp.scenario, sp.profile, sp.overrides(duration_s), sp.key, str(runs_dir), force, str(scen_dir))
              for sp in order]
-    if jobs > 1 and len(tasks) > 1:
-        import multiprocessing as mp
-        with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as ex:
-            outs = list(ex.map(_execute_star, tasks))
-    else:
-        outs = [_execute_star(t) for t in tasks]
+    outs = map_tasks(_execute_star, tasks, jobs)
     for key, reused, wall in outs:
         log(f"  {key}: {'reused' if reused else f'ran in {wall:.0f} s'}")
     return {sp.key: _load_npz(runs_dir / sp.key / "report.npz") for sp in specs}
