@@ -216,7 +216,10 @@ def _cmd_monitor(a: argparse.Namespace) -> int:
     except FileNotFoundError:
         raise InputError(f"--dbc {a.dbc}: no such DBC file") from None
     bitrate = a.bitrate or (scn.bus.bitrate_bps if scn is not None else 500_000)
-    state = MonitorState(db, bitrate_bps=bitrate, spacing_m=spacing_from_scenario(scn) if scn is not None else None)
+    from canbrake.analysis.verdict import deflection_bound_m
+
+    state = MonitorState(db, bitrate_bps=bitrate, spacing_m=spacing_from_scenario(scn) if scn is not None else None,
+                         bound_m=deflection_bound_m(scn) if scn is not None else None)
     try:
         bus = open_monitor_bus(a.channel, a.interface)
     except (can.CanError, OSError, ValueError, ImportError) as e:

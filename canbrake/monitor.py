@@ -55,7 +55,7 @@ class MonitorState:
     db: Any
     bitrate_bps: float = 500_000.0
     spacing_m: list[float] | None = None      # nominal x_i − x_{i+1} per coupler; None: first gap seen
-    bound_m: float = 0.01
+    bound_m: float | None = None              # deflection bound (m): the scenario's verdict bound; None: none
     window_s: float = 1.0
     cars: dict[int, CarView] = field(default_factory=dict)
     ref_speed_mps: float = float("nan")
@@ -184,7 +184,9 @@ def render(snap: dict[str, Any], title: str = "") -> Any:
     for i, c in snap["cars"].items():
         err = (c["speed_mps"] - snap["ref_speed_mps"]) * KMH
         d = defl[i - 1] if i - 1 < len(defl) else float("nan")
-        dtxt = Text(num(d * 100, "+.3f"), style="bold red" if abs(d) > bound else "green") if d == d else Text("–")
+        over = bound is not None and abs(d) > bound
+        dtxt = Text(num(d * 100, "+.3f"), style="bold red" if over else ("green" if bound is not None else "")) \
+            if d == d else Text("–")
         etxt = Text(str(c["e2e_errors"]), style="bold red" if c["e2e_errors"] else "")
         cars.add_row(str(i), num(c["speed_mps"] * KMH, ".2f"),
                      Text(num(err, "+.3f"), style="yellow" if abs(err) > 0.5 else ""),
@@ -197,7 +199,8 @@ def render(snap: dict[str, Any], title: str = "") -> Any:
     load = snap["bus_load"]
     foot = Text(f"bus load {load * 100:.1f} % (last second)   periods {snap['periods']}   "
                 f"commands missing at the next SYNC {snap['missed_commands']}   frames {snap['frames']}   "
-                f"Δl bound ±{bound * 100:g} cm",
+                + (f"Δl bound ±{bound * 100:g} cm" if bound is not None
+                   else "Δl bound: none (--scenario with safety.max_abs_deflection_m)"),
                 style="bold red" if load > 1 else "")
     parts = ([Text(title, style="bold")] if title else []) + [cars, nodes, foot]
     return Group(*parts)

@@ -186,3 +186,29 @@ def test_monitor_says_when_no_run_is_on_its_channel_yet(tmp_path, capsys):
         other.shutdown()
     err = capsys.readouterr().err
     assert "no run on channel" not in err and f"listening on {name}" in err
+
+
+def test_deflection_bound_is_the_scenarios(finished):
+    """The view judges Δl against the scenario's verdict bound (analysis.verdict.deflection_bound_m),
+    not a fixed 1 cm; without a scenario it marks no deflection as over a bound."""
+    from canbrake.analysis.verdict import deflection_bound_m
+
+    scn = canbrake.load_scenario(finished.run_dir / "scenario.yaml")
+    bound = deflection_bound_m(scn)
+    assert bound is not None          # Chen's theta bounds (1 cm)
+
+    def shown(b):
+        st = MonitorState(finished.database, bitrate_bps=scn.bus.bitrate_bps, spacing_m=spacing_from_scenario(scn),
+                          bound_m=b)
+        for m in finished.frames():
+            st.feed(m)
+        console = Console(file=io.StringIO(), width=200, color_system="truecolor", force_terminal=True)
+        console.print(render(st.snapshot()))
+        return console.file.getvalue()
+
+    tiny = shown(1e-9)                # every deflection over the bound: drawn red
+    assert "\x1b[1;31m" in tiny.split("nodes")[0] and "±1e-07 cm" in tiny
+    ok = shown(bound)                 # the run stays inside its bound: none red, the bound printed
+    assert "\x1b[1;31m" not in ok.split("nodes")[0] and f"±{bound * 100:g} cm" in ok
+    assert "±5 cm" in shown(0.05)
+    assert "Δl bound: none" in shown(None)
