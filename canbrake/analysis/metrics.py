@@ -417,3 +417,27 @@ def first_converged_step(table: list[dict]) -> float | None:
         if row["converged"]:
             return table[i - 1]["step_s"]
     return None
+
+
+# ----------------------------------------------------------------------------- wheel slide
+#: a car's wheels slide while any of its axles' slip |λ| exceeds this: far past the slip curve's peak
+#: (|λ| ≈ 0.16 for Cai's curve), where the wheel runs away towards locking (the ``braking`` summary's
+#: "sliding" uses the same 0.5)
+SLIDE_SLIP = 0.5
+
+
+def slide_episodes(t_s: np.ndarray, slip: np.ndarray, threshold: float = SLIDE_SLIP) -> dict:
+    """Wheel-slide episodes of one car. ``slip`` (T, n_axles) or (T,): the axles' slip λ (< 0 braking);
+    the car slides in a sample when any axle has |λ| > ``threshold``; an episode is a maximal run of
+    such samples. Each sample stands for the time to the next (the last for the median step).
+    Returns ``episodes`` (count), ``duration_s`` (total) and ``longest_s``."""
+    t = np.asarray(t_s, dtype=float)
+    lam = np.abs(np.asarray(slip, dtype=float).reshape(t.size, -1))
+    on = np.nanmax(lam, axis=1) > threshold if t.size else np.zeros(0, bool)
+    if not on.any():
+        return {"episodes": 0, "duration_s": 0.0, "longest_s": 0.0}
+    dt = np.diff(t, append=t[-1] + (float(np.median(np.diff(t))) if t.size > 1 else 0.0))
+    edges = np.diff(np.concatenate(([0], on.astype(np.int8), [0])))
+    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    dur = np.array([dt[a:b].sum() for a, b in zip(starts, ends)])
+    return {"episodes": int(starts.size), "duration_s": float(dur.sum()), "longest_s": float(dur.max())}
