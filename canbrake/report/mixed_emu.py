@@ -252,9 +252,11 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
           "the peak tension of one coupler is the peak compression of its mirror image. In the section the cars "
           "that slide brake less than those that do not: the couplers carry "
           f"{max(lo['max_tension_n'], lo['max_compression_n']) / 1e3:.0f} kN without WSP and "
-          f"{max(ws['max_tension_n'], ws['max_compression_n']) / 1e3:.0f} kN with it. The jerk limit of the "
-          f"service brake (1 m/s³) holds on dry rail ({d['max_jerk_mps3']:.2f} m/s³ smoothed); slides and the dump "
-          f"valves (which bypass it) give {lo['max_jerk_mps3']:.0f} and {ws['max_jerk_mps3']:.0f} m/s³.")
+          f"{max(ws['max_tension_n'], ws['max_compression_n']) / 1e3:.0f} kN with it. The service brake's jerk limit is "
+          f"{base.actuator.jerk_limit_mps3:g} m/s³; the cars' smoothed jerk (which also has the couplers and the "
+          f"running resistance in it) is {d['max_jerk_mps3']:.2f} m/s³ on dry rail, while slides and the dump valves "
+          f"(which bypass the limit) give {lo['max_jerk_mps3']:.0f} m/s³ without and {ws['max_jerk_mps3']:.0f} m/s³ "
+          "with WSP.")
         w("")
     w("### Integration step")
     w("")
@@ -303,6 +305,10 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
         w("Not checked in this generation (step_check=False).")
     w("")
     w("### Runs")
+    w("")
+    w("In process (`--bus inprocess`); in lockstep mode the memory bus with one process per ECU (`canbrake run "
+      f"scenarios/{SCENARIO}`, its default) gives the same `signals.csv` (compared for the three cases when this "
+      "report was written).")
     w("")
     w("```sh")
     for c in (*cases, *extra):
