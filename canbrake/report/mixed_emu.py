@@ -10,6 +10,7 @@ window without and with wheel-slide protection, reduces each run's ``signals.csv
 from __future__ import annotations
 
 import json
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +24,7 @@ DEFAULT_OUT = "docs"
 DOC = "mixed-trains.md"
 SCENARIO = "emu8_low_adhesion.yaml"
 BEGIN, END = "<!-- begin: mixed-emu (canbrake/report/mixed_emu.py) -->", "<!-- end: mixed-emu -->"
-REPORT_VERSION = 2
+REPORT_VERSION = 3
 #: the integration step check: every run again with the control period (= plant step) divided by this
 STEP_DIVISOR = 2
 #: standstill: the lead car's speed at or below this (m/s)
@@ -113,6 +114,8 @@ def reduce_run(run_dir: Path) -> dict[str, Any]:
         "stopping_time_s": float(t[still[0]] - t[0]) if still.size else float("nan"),
         "v0_mps": float(v1[0]),
         "max_tension_n": float(max(fc.max(), 0.0)), "max_compression_n": float(max(-fc.min(), 0.0)),
+        "max_compression_at": int(np.unravel_index(np.argmin(fc), fc.shape)[1]) + 1,
+        "max_compression_t_s": float(t[np.unravel_index(np.argmin(fc), fc.shape)[0]]),
         "max_decel_mps2": float(-am.min()), "max_jerk_mps3": float(np.abs(jerk).max()),
         "max_decel_car": int(np.unravel_index(np.argmin(am), am.shape)[1]) + 1,
         "max_decel_t_s": float(tc[np.unravel_index(np.argmin(am), am.shape)[0]]),
@@ -237,19 +240,19 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
     keys = [c.key for c in cases]
     if {"dry", "low", "low-wsp"} <= set(keys):
         d, lo, ws = res["dry"], res["low"], res["low-wsp"]
-        w(f"Through the low-adhesion section the stop is {lo['stopping_distance_m'] - d['stopping_distance_m']:+.1f} m "
-          f"longer than on dry rail without WSP and {ws['stopping_distance_m'] - d['stopping_distance_m']:+.1f} m with "
-          f"WSP (WSP: {ws['stopping_distance_m'] - lo['stopping_distance_m']:+.1f} m against none). Without WSP "
+        w(f"Through the low-adhesion section the stop changes by {lo['stopping_distance_m'] - d['stopping_distance_m']:+.1f} m "
+          f"against dry rail without WSP and by {ws['stopping_distance_m'] - d['stopping_distance_m']:+.1f} m with "
+          f"WSP (WSP against none: {ws['stopping_distance_m'] - lo['stopping_distance_m']:+.1f} m). Without WSP "
           f"{len(lo['cars_sliding'])} of 8 cars slide ({lo['slide_episodes']} episodes, {lo['slide_s']:.1f} s summed, "
           f"the longest {lo['slide_longest_s']:.1f} s; worst slip {lo['worst_slip']:.2f}"
           + (", i.e. locked wheels" if lo["worst_slip"] <= -0.99 else "") + f"); with WSP {ws['slide_episodes']} "
           f"episodes, {ws['slide_s']:.1f} s (worst slip {ws['worst_slip']:.2f}, dump valves open "
-          f"{ws['wsp_venting_s']:.1f} s summed over cars). The stop is short of the slide's cost because the "
-          "controllers track the reference's position: after the section the cars brake up to their rating "
-          f"({base.actuator.max_brake_decel_mps2:g} m/s²) to win back the distance lost. "
+          f"{ws['wsp_venting_s']:.1f} s summed over cars). The cost in distance is small because the controllers "
+          "track the reference's speed and position: while the cars are faster than it, in and after the section, "
+          f"the ECUs command up to the brake rating ({base.actuator.max_brake_decel_mps2:g} m/s²). "
           f"On dry rail the cars brake alike and the couplers carry almost nothing ({d['max_tension_n'] / 1e3:.1f} kN); "
-          "there, and wherever every car has the same rail, the formation Tc-M-M-T-T-M-M-Tc is symmetric, so "
-          "the peak tension of one coupler is the peak compression of its mirror image. In the section the cars "
+          "there the formation Tc-M-M-T-T-M-M-Tc and its braking are symmetric, so the peak tension of one coupler "
+          "is the peak compression of its mirror image. In the section the cars "
           "that slide brake less than those that do not: the couplers carry "
           f"{max(lo['max_tension_n'], lo['max_compression_n']) / 1e3:.0f} kN without WSP and "
           f"{max(ws['max_tension_n'], ws['max_compression_n']) / 1e3:.0f} kN with it. The service brake's jerk limit is "
@@ -257,6 +260,17 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
           f"running resistance in it) is {d['max_jerk_mps3']:.2f} m/s³ on dry rail, while slides and the dump valves "
           f"(which bypass the limit) give {lo['max_jerk_mps3']:.0f} m/s³ without and {ws['max_jerk_mps3']:.0f} m/s³ "
           "with WSP.")
+        if ev:
+            def left_s(car: int) -> float:  # when ``car`` (1-based) leaves the section
+                return max((e.stop_s for e in ev if np.asarray(e.adhesion_mu, float).reshape(-1)[
+                    min(car - 1, np.size(e.adhesion_mu) - 1)] < float(np.min(base.actuator.adhesion_mu))), default=math.nan)
+            after = [(c.label, res[c.key]["max_decel_t_s"] - left_s(res[c.key]["max_decel_car"])) for c in cases
+                     if c.key != "dry"]
+            w("")
+            w(" ".join(f"In the run \"{lab}\" the largest deceleration comes {dt:.1f} s after its car left the section."
+                       for lab, dt in after if np.isfinite(dt))
+              + " The section's ends are steps in μ: a wheel still slipping meets the dry rail's creep force at once, "
+              "a short, strong deceleration of its car (a real contamination has no sharp edge).")
         w("")
     w("### Integration step")
     w("")
@@ -288,6 +302,16 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
               + " Largest change of each: " + ", ".join(f"{HEAD_NAMES[m]} {100 * per[m][0]:.2f} %"
                                                         + (f" ({per[m][1]})" if per[m][1] else "") for m in HEADS)
               + " (a slide time of 0 at both steps counts as unchanged).")
+            if not ok:
+                w("")
+                w("Where: peak compression at h / h/2 " + "; ".join(
+                    f"{c.label}: coupler {res[c.key]['max_compression_at']} at {res[c.key]['max_compression_t_s']:.1f} s / "
+                    f"coupler {res[other[c.key].key]['max_compression_at']} at "
+                    f"{res[other[c.key].key]['max_compression_t_s']:.1f} s" for c in cases)
+                  + ". Peaks that come from switching (the dump valves open and close on slip thresholds, wheels "
+                  "lock and release) move by a step when the step changes and are not a smooth function of it; the "
+                  "stopping distance and the slide time integrate over the stop. The peaks in the results table are "
+                  "uncertain by about the difference between the two columns here.")
             w("")
             w("| case | stop h / h/2 (m) | slide h / h/2 (s) | slide episodes h / h/2 | peak tension h / h/2 (kN) | "
               "peak compression h / h/2 (kN) | max decel h / h/2 (m/s²) | max jerk h / h/2 (m/s³) |")
