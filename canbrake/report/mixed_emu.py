@@ -327,7 +327,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
             w("")
     else:
         w("Not checked in this generation (step_check=False).")
-    w("")
+        w("")
     w("### Runs")
     w("")
     w("In process (`--bus inprocess`); in lockstep mode the memory bus with one process per ECU (`canbrake run "
