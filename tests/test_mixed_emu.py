@@ -85,6 +85,17 @@ def test_dry_rail_stops_at_the_reference_distance_without_a_slide(runs):
 
 
 @pytest.mark.slow
+def test_wsp_on_dry_rail_never_vents_and_changes_nothing(runs):
+    """No axle passes the release threshold on dry rail, so the dump valves stay shut and the stop is
+    that of the run without WSP."""
+    d, res = runs
+    X.execute(X.Case("dry-wsp", "dry rail, WSP", "dry_wsp"), str(d), False, None)
+    r = json.loads((d / "dry-wsp" / "report.json").read_text())
+    assert r["wsp_venting_s"] == 0.0 and r["slide_episodes"] == 0
+    assert r["stopping_distance_m"] == pytest.approx(res["dry"]["stopping_distance_m"], abs=1e-6)
+
+
+@pytest.mark.slow
 def test_low_adhesion_without_wsp_locks_wheels_and_wsp_prevents_it(runs):
     """μ = 0.06 cannot carry the 0.83 m/s² service brake (μ g = 0.59 m/s² at standstill, less at speed):
     without WSP the brake torque locks wheels (λ → −1) of every car in the section; WSP vents the
