@@ -58,11 +58,11 @@ CAI4 = "cai2014_case4.yaml"
 
 
 def scenario_path(name: str) -> Path:
-    """A scenario of the repository (``scenarios/``) or of the installed package."""
-    for base in (ROOT / "scenarios", Path(__file__).resolve().parent / "scenarios"):
-        if (base / name).exists():
-            return base / name
-    raise FileNotFoundError(name)
+    """A built-in scenario by file name (``canbrake.builtin``: the repository's ``scenarios/`` in a
+    checkout, the installed package's copy otherwise)."""
+    from canbrake.builtin import find_builtin
+
+    return find_builtin(name)
 
 
 # ----------------------------------------------------------------------------- one case
