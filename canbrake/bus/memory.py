@@ -43,7 +43,7 @@ Slow readers (choice: per bus, default overrun)
     A writer blocked this way keeps copying its own bus's accepted frames into its local queue
     while it waits, so two such nodes can never wait for each other.
   * ``backpressure=True`` (for recorders that must see every frame): a writer that would
-    overwrite a frame this reader has not read waits (blocking, woken by the reader) for up to
+    overwrite a frame this reader has not read waits (blocking, woken by the reader; in a rare race, after one 0.1 s wait slice) for up to
     ``send`` ``timeout`` or else ``send_timeout`` seconds, then raises
     :class:`can.CanTimeoutError` naming the slow reader's pid. Every wait slice (0.1 s) checks
     whether that reader's process is still alive; a dead one is reaped and the writer goes on.
@@ -627,8 +627,14 @@ class MemoryBus(BusABC):
 
     def _publish_read_seq(self) -> None:
         q, b = self._q, self._eb
-        if self._protect and not q[H_TX_WAITERS]:
-            q[b + E_READ_SEQ] = self._seq  # no sender waits: a plain store, read under the lock
+        if not q[H_TX_WAITERS]:
+            # No sender waits (or the reader is an overrun reader, whose read_seq is informative
+            # only): a plain aligned store, which senders read under the lock. A sender that
+            # starts to wait between our load of H_TX_WAITERS and this store misses its wake-up
+            # byte and looks again after its wait slice (_WAIT_SLICE_S): a bounded delay in a
+            # rare race, against a lock round trip on every fetch (a recorder fetches several
+            # times per lockstep period; two flock calls each were most of its syscalls).
+            q[b + E_READ_SEQ] = self._seq
             return
         if not self._backpressure and not self._protect:
             q[b + E_READ_SEQ] = self._seq  # informative only
