@@ -197,6 +197,8 @@ def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
             listens[i] = tuple(j for j in range(1, len(placed) + 1) if j != i)
         elif p.listens == "none":
             listens[i] = ()
+        elif p.listens == "neighbours":  # the ECUs on the vehicles coupled to this one
+            listens[i] = tuple(j for j, q in enumerate(placed, start=1) if j != i and abs(q.vehicle - p.vehicle) == 1)
         else:
             listens[i] = tuple(sorted(index[x] for x in p.listens if index[x] != i))
     specs = []
@@ -279,6 +281,13 @@ def build_controller(scn: Scenario, ecu_index: int) -> Controller:
         from canbrake.control.brake_functions import brake_functions_of
 
         ctrl = brake_functions_of(ctrl, brakes, scn.actuator)
+    ecp = getattr(scn.train, "ecp_unit_params", None)
+    if ecp is not None and "brake_force_n" in ctrl.command_names and "ecp_demand" not in ctrl.command_names:
+        unit = ecp(p.vehicle)  # None: not an ECP wagon (a locomotive, or a pneumatic train)
+        if unit is not None:
+            from canbrake.control.ecp import EcpUnit
+
+            ctrl = EcpUnit(ctrl, **unit)
     return ctrl
 
 

@@ -301,13 +301,13 @@ class EcuPlacement(_Model):
     """Where an ECU sits and what it runs. ``vehicle`` (1-based) places one ECU; ``vehicles: "2-106"``
     places one per vehicle of the range, named ``name`` with ``{v}`` replaced by the vehicle number
     (default ``ecu{v}``). ``listens``: whose STATE frames it receives (``all`` other ECUs, ``none``,
-    or a list of ECU names); ``controller`` defaults to the scenario's top-level one."""
+    ``neighbours``: the ECUs on the vehicles coupled to its own, or a list of ECU names); ``controller`` defaults to the scenario's top-level one."""
 
     name: str | None = Field(None, pattern=r"^[A-Za-z][A-Za-z0-9_{}]*$")
     vehicle: int | None = Field(None, ge=1)
     vehicles: str | None = Field(None, pattern=r"^\s*\d+\s*-\s*\d+\s*$")
     controller: ControllerConfig | None = None
-    listens: Literal["all", "none"] | list[str] = "all"
+    listens: Literal["all", "none", "neighbours"] | list[str] = "all"
     external: bool = Field(False, description="canbrake does not start this ECU: a foreign program or a real ECU "
                                               "sends its frames (docs/lockstep-protocol.md); its controller only "
                                               "defines its frames")

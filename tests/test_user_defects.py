@@ -154,9 +154,10 @@ from pathlib import Path
 import canbrake
 assert Path(canbrake.__file__).resolve().is_relative_to(Path(sys.argv[1]).resolve()), canbrake.__file__
 from canbrake.scenario import load_scenario
-from canbrake.report import REPORTS, cai2014, chen2023, delay, ecp, ecp_literature, li2024, mixed_emu, safety
-assert sorted(REPORTS) == ["cai2014", "chen2023", "delay", "ecp", "ecp_literature", "li2024", "mixed_emu",
-                           "safety"], REPORTS  # all looked up below
+from canbrake.report import (REPORTS, cai2014, chen2023, delay, ecp, ecp_literature, hh_consensus, li2024, mixed_emu,
+                             safety)
+assert sorted(REPORTS) == ["cai2014", "chen2023", "delay", "ecp", "ecp_literature", "hh_consensus", "li2024",
+                           "mixed_emu", "safety"], REPORTS  # all looked up below
 for spec in chen2023.run_specs():
     chen2023.resolve_spec(spec)
 for spec in cai2014.run_specs():
@@ -173,6 +174,8 @@ for case in ecp_literature.CASES:
 load_scenario(delay.scenario_path())
 for case in mixed_emu.CASES:
     mixed_emu._load(case, None)
+for case in hh_consensus.CASES:
+    hh_consensus._load(case, None)
 load_scenario(safety.BASE)
 print("found")
 """

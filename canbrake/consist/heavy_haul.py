@@ -309,6 +309,16 @@ class HeavyHaulTrain(StrictModel):
                            pipe=None if ab.pipe is None else ab.pipe.physics(),
                            emergency=ab.emergency.physics() if ab.application == "emergency" else None)
 
+    def ecp_unit_params(self, vehicle: int) -> dict[str, float] | None:
+        """The air brake data an ECP wagon's brake unit needs to turn a force demand into its
+        cylinder demand (:class:`canbrake.control.ecp.EcpUnit`) for vehicle ``vehicle`` (1-based);
+        None for a locomotive (it takes ``brake_force_n`` itself) or a train braking pneumatically."""
+        _, vt = self._expanded()[vehicle - 1]
+        if self.air_brake.mode != "ecp" or vt.traction is not None:
+            return None
+        return {"k_full_kn": float(vt.brake.block_force_kn()), "n_blocks": float(vt.brake.blocks()),
+                "friction_coef": float(vt.brake.friction_coefficient), "beta_c": float(self.air_brake.service_factor)}
+
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> hh.HeavyHaulModel:
         """The plant model; from the scenario ``scn`` it takes ``initial.speed_kmh`` (one value, or one per
         vehicle all equal: the train starts in static equilibrium)."""

@@ -73,3 +73,45 @@ class BrakeTest(Controller):
         return ControlOutput(self.eb if (on and moving) else 0.0, {"ecp_demand": d},
                              commands={"airbrake_apply": 1.0 if on else 0.0, "ecp_demand": d},
                              broadcast={"ecp_demand": d})
+
+
+class EcpUnit(Controller):
+    """A wagon's ECP brake unit driven by a force-commanding controller (``inner``, e.g. Chen's
+    consensus controller): each period it converts the inner controller's brake force (N) into the
+    unit's cylinder demand ``ecp_demand`` (fraction of full service) by inverting the wagon's air
+    brake force law at the measured speed (:func:`canbrake.physics.heavy_haul.ecp_fill_for_force`,
+    the wagon's block force, blocks, friction coefficient and β_c). A wagon has no traction, so a
+    negative (traction) demand releases the brake; demands beyond full service are capped at it.
+    The cylinder's own lag (``train.air_brake.cylinder_tau_s``) is the plant's, not modelled here.
+
+    Wrapped around a wagon ECU's controller by :func:`canbrake.build.build_controller` when the train
+    brakes by ECP and the controller commands ``brake_force_n`` (which a wagon cannot take)."""
+
+    def __init__(self, inner: Controller, *, k_full_kn: float, n_blocks: float, friction_coef: float,
+                 beta_c: float) -> None:
+        super().__init__(inner.car_index, inner.n_cars, inner.mass_kg, inner.dt_s)
+        if not (k_full_kn > 0 and n_blocks > 0 and friction_coef > 0 and beta_c > 0):
+            raise ValueError("an ECP unit needs a positive block force, block count, friction coefficient and beta_c")
+        self.inner = inner
+        self.brake = (float(k_full_kn), float(n_blocks), float(friction_coef), float(beta_c))
+        self.sensor_names = tuple(inner.sensor_names) + (() if "speed_mps" in inner.sensor_names else ("speed_mps",))
+        self.command_names = tuple(c for c in inner.command_names if c != "brake_force_n") + ("ecp_demand",)
+        self.broadcast_names = tuple(inner.broadcast_names)
+        self.needs_ref_position = inner.needs_ref_position
+        self.diagnostic_names = tuple(inner.diagnostic_names) + ("force_demand_n", "ecp_demand")
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def step(self, obs: Observation) -> ControlOutput:
+        from canbrake.physics.heavy_haul import ecp_fill_for_force
+
+        out = self.inner.step(obs)
+        f = float(out.brake_force_n)
+        d = ecp_fill_for_force(f, float(obs.speed_mps), *self.brake) if math.isfinite(f) else math.nan
+        diag = dict(out.diagnostics)
+        diag["force_demand_n"] = f
+        diag["ecp_demand"] = d
+        cmds = {k: v for k, v in out.commands.items() if k != "brake_force_n"}
+        cmds["ecp_demand"] = d
+        return ControlOutput(0.0, diag, commands=cmds, broadcast=out.broadcast)

@@ -32,6 +32,7 @@ stiffness, between two 100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.6
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Mapping
 
@@ -351,6 +352,26 @@ def friction_coefficient(k_kn, v_kmh, coef):
     k = np.asarray(k_kn, dtype=float)
     v = np.abs(np.asarray(v_kmh, dtype=float))
     return coef * (k + 200.0) / (4.0 * k + 200.0) * (2.0 * v + 150.0) / (3.0 * v + 150.0)
+
+
+def ecp_fill_for_force(force_n: float, v_mps: float, k_full_kn: float, n_blocks: float, friction_coef: float,
+                       beta_c: float) -> float:
+    """The cylinder fill (fraction of full service, 0..1) at which eq. (10) with eqs. (11)-(12) gives
+    the retarding force ``force_n`` (N) at speed ``v_mps``: the inverse of the air brake's force law
+    (:class:`canbrake.physics._heavy_haul_kernel.AirKernel`), for a vehicle whose full-pressure block
+    force is ``k_full_kn`` (kN), with ``n_blocks`` blocks, friction ``coef`` and eq. (10)'s β_c.
+
+    With K = k_full·fill the force is F = 1000·β_c·n·coef·s(v)·K(K + 200)/(4K + 200), s(v) =
+    (2v + 150)/(3v + 150) (v in km/h), increasing in K; solving K(K + 200)/(4K + 200) = c for K ≥ 0
+    gives K = (−(200 − 4c) + sqrt((200 − 4c)² + 800c))/2. Forces ≤ 0 give 0; beyond full service 1.
+    """
+    if not force_n > 0.0:
+        return 0.0
+    vk = abs(v_mps / KMH)
+    c = force_n / (1000.0 * beta_c * n_blocks * friction_coef * (2.0 * vk + 150.0) / (3.0 * vk + 150.0))
+    b = 200.0 - 4.0 * c
+    k = 0.5 * (-b + math.sqrt(b * b + 800.0 * c))
+    return min(1.0, k / k_full_kn)
 
 
 @dataclass(frozen=True)

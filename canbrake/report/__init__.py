@@ -8,4 +8,4 @@ from __future__ import annotations
 REPORTS = {"chen2023": "canbrake.report.chen2023", "li2024": "canbrake.report.li2024",
            "cai2014": "canbrake.report.cai2014", "safety": "canbrake.report.safety", "ecp": "canbrake.report.ecp",
            "delay": "canbrake.report.delay", "ecp_literature": "canbrake.report.ecp_literature",
-           "mixed_emu": "canbrake.report.mixed_emu"}
+           "mixed_emu": "canbrake.report.mixed_emu", "hh_consensus": "canbrake.report.hh_consensus"}
