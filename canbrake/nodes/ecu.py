@@ -168,6 +168,9 @@ class EcuNode(Node):
         own = [m for m in layout.messages if m.ecu == self.index]  # (not all pairs of the layout: 106 ECUs)
         self._auth_id = {sm.frame_id: am.frame_id for sm in own for am in own
                          if sm.kind == "state" and am.kind == "state_auth" and sm.page == am.page}
+        #: lockstep: peers' STATE frames that came after the sender's STATE_DONE of this tick, held
+        #: until this ECU has decided (see _held_late)
+        self._late_rx: list[can.Message] = []
         self._hb_id = layout.plan.heartbeat(self.index)
         self._sdone_id = layout.plan.state_done(self.index)
         self._cdone_id = layout.plan.cmd_done(self.index)
@@ -208,6 +211,8 @@ class EcuNode(Node):
                 self._receive_linked(msg, j, now)
                 return []
             bit = 1 << self._slot[j + 1]
+            if self._held_late(bit, msg):
+                return []
             if self._on_state(j, msg) == 2 and (not self.barrier or self._ext_bits & bit):
                 return self._peer_done(bit, now)  # the sender's last page of this tick
             return []
@@ -279,6 +284,8 @@ class EcuNode(Node):
                 if self.finished:
                     break
                 continue
+            if self._held_late(1 << slot[st[0]], msg):
+                continue
             r = take(aid, msg.data, self.k)
             if r < 0:
                 self.guard.reject("crc" if r == REJECT_CRC else "counter")
@@ -291,6 +298,25 @@ class EcuNode(Node):
                     out += self._peer_done(bit, now)  # the sender's last page of this tick
         self.stats.peer_frames += taken
         return out
+
+    def _held_late(self, bit: int, msg: can.Message) -> bool:
+        """Lockstep: hold a peer's STATE frame that comes after that peer's STATE_DONE of this tick
+        until this ECU has decided (True: held). Such a frame is one the sender's send path released
+        after the decision point (phase 2: the CAN timing model or an impairment made it late); by the
+        lockstep rule it is for the next tick. The sender sends it after its STATE_DONE, so it reaches
+        an ECU already past its own barrier only then, but one still waiting for another peer's
+        STATE_DONE before it decides: without the hold, which tick used it would depend on the
+        processes' speed (the in-process engine always delivers it after every decision)."""
+        if self.barrier and self.phase != 2 and self._done & bit and self.mode == "lockstep":
+            self._late_rx.append(msg)
+            return True
+        return False
+
+    def _take_held(self, now: float) -> None:
+        """The held late STATE frames (see :meth:`_held_late`), once this ECU has decided."""
+        held, self._late_rx = self._late_rx, []
+        for m in held:
+            self.handle(m, now)
 
     def _peer_done(self, bit: int, now: float) -> list[can.Message]:
         self._done |= bit
@@ -517,6 +543,8 @@ class EcuNode(Node):
             self._trace.append([self.k, result.brake_force_n,
                                 *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
                                 max_age if max_age > -np.inf else np.inf, fresh])
+        if self._late_rx:
+            self._take_held(now)
         return out
 
     def _peer_fallback(self, origin: list[int], peers: dict[str, np.ndarray]) -> None:
