@@ -49,9 +49,6 @@ def test_the_wagons_ecus_drive_their_cylinders_and_listen_to_their_neighbours() 
     # the locomotive-only profile keeps the plain ECP wagon (it commands ecp_demand itself)
     lo = load_scenario(SCN, profile="loco_only")
     assert not isinstance(build_controller(lo, 2), EcpUnit)
-    # a pneumatic train has no ECP units to drive
-    pn = load_scenario(SCN, overrides={"train.air_brake.mode": "pneumatic"})
-    assert not isinstance(build_controller(pn, 2), EcpUnit)
 
 
 def test_consensus_over_ecp_brakes_the_train_along_its_curve(tmp_path: Path) -> None:
@@ -108,3 +105,17 @@ def test_late_state_frames_reach_neighbours_in_the_same_period_on_every_driver(t
     for key in ("memory", "hosted"):
         assert out[key][0] == out["inprocess"][0], key
         assert blank(out[key][1]) == blank(out["inprocess"][1]), key
+
+
+def test_a_force_controller_on_a_pneumatic_wagon_is_refused() -> None:
+    """A wagon takes no brake force of its own (no traction, no electric brake): with a pneumatic
+    air brake a force-commanding wagon ECU would brake nothing; one line naming the ECU, exit 2
+    (the CLI's scenario errors)."""
+    from canbrake.scenario import ScenarioError
+
+    with pytest.raises(ScenarioError, match=r"ecus: ECU wagon2 on wagon 2 runs chen2023, which commands a brake "
+                                            r"force .*air_brake.mode: pneumatic") as e:
+        load_scenario(SCN, overrides={"train.air_brake.mode": "pneumatic"})
+    assert "\n" not in str(e.value)
+    # the wagons' ECP ECUs of the locomotive-only case are fine on a pneumatic train (li2024_ecp_over_can's profile)
+    load_scenario(SCN, profile="loco_only", overrides={"train.air_brake.mode": "pneumatic"})

@@ -309,6 +309,30 @@ class HeavyHaulTrain(StrictModel):
                            pipe=None if ab.pipe is None else ab.pipe.physics(),
                            emergency=ab.emergency.physics() if ab.application == "emergency" else None)
 
+    def check_ecus(self, placed: list[Any]) -> None:
+        """ValueError (one line) for an ECU on a wagon whose controller commands only a brake force
+        the wagon cannot take: a wagon has no traction or electric brake, and without ECP
+        (``air_brake.mode: pneumatic``) no cylinder of its own to drive (with ECP its ECU turns the
+        force into its cylinder demand, :class:`canbrake.control.ecp.EcpUnit`)."""
+        if self.air_brake.mode == "ecp":
+            return
+        from canbrake.control.base import controller_class
+
+        ex = self._expanded()
+        for p in placed:
+            if not 1 <= p.vehicle <= len(ex) or ex[p.vehicle - 1][1].traction is not None:
+                continue
+            try:
+                cmds = tuple(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
+            except Exception:  # noqa: BLE001 - an unknown controller is reported by its own check
+                continue
+            if "brake_force_n" in cmds and not {"ecp_demand", "airbrake_apply"} & set(cmds):
+                raise ValueError(f"ecus: ECU {p.name} on wagon {p.vehicle} runs {p.controller.name}, which commands a "
+                                 "brake force (brake_force_n): a wagon has no traction or electric brake, and with "
+                                 "train.air_brake.mode: pneumatic no cylinder of its own to drive (use mode: ecp, "
+                                 "where its ECU turns the force into its cylinder demand, or a wagon controller "
+                                 "such as ecp_wagon)")
+
     def ecp_unit_params(self, vehicle: int) -> dict[str, float] | None:
         """The air brake data an ECP wagon's brake unit needs to turn a force demand into its
         cylinder demand (:class:`canbrake.control.ecp.EcpUnit`) for vehicle ``vehicle`` (1-based);
