@@ -18,7 +18,9 @@ about the same for 8 points as for 64):
 * **controllers**: where every point runs the same controller on an ECU slot and the controller
   offers a batch form (:meth:`~canbrake.control.chen.ChenConsensusController.step_batch`, the
   same operations in the same order on arrays of shape (points,)), one object steps every point;
-  otherwise each point's own controller steps (``chen2023_compensated``, ``pi``).
+  ECU slots whose controllers differ only in car and mass (``group_key``: Chen's) step together,
+  one call per tick for every slot and point (:class:`~canbrake.control.chen.ChenBatch`, arrays
+  of points x slots); otherwise each point's own controller steps.
 * **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no wheelsets, no
   end stop that refines the sub-step) step as one stack with a leading points axis; otherwise
   each its own.
@@ -273,6 +275,17 @@ class BatchEngine:
             same = all(_ctrl_key(p.scn, s) == key for p in self.points[1:])
             ok = same and callable(getattr(c0, "batchable", None)) and c0.batchable()
             self.batch_ctrl.append(c0 if ok else None)
+        # slots whose batch controllers step as one (ChenConsensusController.group_key: the same
+        # class and parameters but the car): one call per tick for all of them and every point
+        by_key: dict[tuple, list[int]] = {}
+        for s, bc in enumerate(self.batch_ctrl):
+            gk = getattr(type(bc), "group_key", None)
+            key = gk(bc) if bc is not None and gk is not None else None
+            if key is not None:
+                by_key.setdefault((type(bc), key), []).append(s)
+        self.slot_groups = [(np.asarray(slots), type(self.batch_ctrl[slots[0]]).batch_group(
+            [self.batch_ctrl[s] for s in slots], P)) for slots in by_key.values()]
+        self.grouped = {s for slots in by_key.values() for s in slots}
         # the plant: one stacked plant for every point where they qualify, else each its own
         from canbrake.build import CoupledPlant
         from canbrake.physics.train import stack_plants
@@ -513,8 +526,35 @@ class BatchEngine:
         live = self.alive
         self.peer_missing[live] += (self.n_listened + 1 - fresh)[live]
         nan = math.nan
+        P = self.P
+        for slots, grp in self.slot_groups:
+            S = len(slots)
+            N = P * S
+            obs = Observation(tick=k, time_s=t, speed_mps=sensors["speed_mps"][:, slots].reshape(N),
+                              position_m=sensors["position_m"][:, slots].reshape(N),
+                              ref_speed_mps=np.repeat(v_ref, S), ref_decel_mps2=np.repeat(a_ref, S),
+                              peer_speed_mps=peers["speed_mps"][:, slots].reshape(N, m),
+                              peer_position_m=peers["position_m"][:, slots].reshape(N, m),
+                              peer_age_s=age[:, slots].reshape(N, m), deflection_front_m=None,
+                              deflection_rear_m=None, ref_position_m=nan, sensors={}, peer_signals={})
+            res = grp.step(obs)
+            force = np.broadcast_to(res.brake_force_n, (N,)).reshape(P, S)
+            for sig in cmds:
+                cmds[sig][:, slots] = force if sig == "brake_force_n" else nan
+            diag = [np.broadcast_to(res.diagnostics.get(name, nan), (N,)).reshape(P, S)
+                    for name in grp.diagnostic_names]
+            for si, s in enumerate(slots.tolist()):
+                rows = self.ecu_rows[s][k]
+                rows[:, 1] = force[:, si]
+                for c, d in enumerate(diag):
+                    rows[:, 2 + c] = d[:, si]
         for s, e in enumerate(self.ecus):
             rows = self.ecu_rows[s][k]
+            rows[:, 0] = k
+            rows[:, -2] = max_age[:, s]
+            rows[:, -1] = fresh[:, s]
+            if s in self.grouped:
+                continue
             bc = self.batch_ctrl[s]
             if bc is not None:
                 sens = {nm: sensors[nm][:, s] for nm in e.sensors}
@@ -561,9 +601,6 @@ class BatchEngine:
                     rows[i, 1] = res.brake_force_n
                     d = res.diagnostics
                     rows[i, 2:2 + len(ctrl.diagnostic_names)] = [d.get(nm, np.nan) for nm in ctrl.diagnostic_names]
-            rows[:, 0] = k
-            rows[:, -2] = max_age[:, s]
-            rows[:, -1] = fresh[:, s]
         self.n_ecu_rows[live] += 1
 
     # ------------------------------------------------------------------ plant
@@ -654,8 +691,9 @@ class BatchEngine:
         plant.stats.commands_received = int(self.received[i])
         plant.stats.commands_missed = int(self.missed[i].sum())
         plant.stats.commands_missed_per_car = [int(x) for x in self.missed[i]]
-        for _ in range(int(self.rejected[i])):
-            plant.guard.reject("counter")
+        if self.rejected[i]:  # as many guard.reject("counter") calls
+            plant.guard.rejected["counter"] += int(self.rejected[i])
+            plant.guard.last_reason = "counter"
         rd = p.run_dir
         if rd is None:
             return
@@ -684,13 +722,11 @@ def _write_csv(path: Path, header: list[str], rows: np.ndarray, last_int: bool =
     ``last_int`` also the last) as an integer, floats with 9 significant digits."""
     import csv
 
+    from canbrake.nodes._trace import csv_block
+
     with open(path, "w", newline="") as f:
         csv.writer(f).writerow(header)
-        cells = ["%d"] + ["%.9g"] * (len(header) - 1)
-        if last_int:
-            cells[-1] = "%d"
-        fmt = ",".join(cells) + "\r\n"
-        f.write("".join([fmt % tuple(r) for r in rows.tolist()]))
+        f.write(csv_block(np.ascontiguousarray(rows, dtype=float), last_int))
 
 
 def run_batch(scns: Sequence[Scenario], run_dirs: Sequence[str | Path | None]) -> list[dict[str, Any]]:

@@ -216,6 +216,7 @@ def test_paper_points_run_vectorised_and_equal_per_point_runs_over_half_a_second
     scns = _points("paper", 0.5, specs)
     eng = BatchEngine(scns, [None] * len(scns))
     assert eng.stack is not None and all(c is not None for c in eng.batch_ctrl)
+    assert eng.grouped == set(range(eng.n_ecus)) and len(eng.slot_groups) == 1  # one call per tick
     sb, sp = _run_both(tmp_path, scns)
     for i, spec in enumerate(specs):
         assert _compare(tmp_path / f"batch{i}", tmp_path / f"point{i}", sb[i], sp[i]) == [], spec

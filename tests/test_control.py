@@ -268,6 +268,58 @@ def test_step_batch_equals_step_point_by_point(car, kw):
                     (k, p, name)
 
 
+@pytest.mark.parametrize("kw", [
+    {},
+    {"nominal_spacing_m": None, "barrier": "log", "velocity_graph": "neighbours"},
+    {"observer_cancellation": "kd", "brake_rating_mps2": 1.2, "traction_rating_mps2": 0.8,
+     "observer_actuator_lag_s": 0.3, "feedforward": "velocity"},
+])
+def test_slots_stepped_as_one_group_equal_their_own_controllers(kw):
+    """ChenBatch over every car of the train (different masses) and P points, flattened point-major,
+    gives each element the floats of its own car's controller, bit for bit: the first and last cars'
+    missing neighbour and the peers outside the velocity graph contribute exact zeros."""
+    from canbrake.control.chen import ChenBatch
+
+    n, P, dt = 6, 4, 1e-3
+    kw = {"nominal_spacing_m": -10.0, **kw}
+    masses = [18000.0, 21000.0, 19500.0, 20000.0, 19700.0, 22000.0]
+    rng = np.random.default_rng(7)
+    mk = lambda i: ChenConsensusController(car_index=i, n_cars=n, mass_kg=masses[i], dt_s=dt, **kw)  # noqa: E731
+    group = [mk(i) for i in range(n)]
+    assert len({ChenConsensusController.group_key(c) for c in group}) == 1
+    grp = ChenConsensusController.batch_group(group, P)
+    assert isinstance(grp, ChenBatch)
+    singles = [[mk(i) for i in range(n)] for _ in range(P)]
+    x0 = -np.arange(n) * 10.0 + 60.0
+    for k in range(200):
+        v = 25.0 - 0.001 * k + rng.normal(0, 0.05, (P, n))
+        x = x0 + 25.0 * k * dt + rng.normal(0, 0.008 * (1 + k % 3), (P, n))
+        px = np.repeat(x[:, None, :], n, axis=1)                 # (P, receiver, sender)
+        px[rng.random((P, n, n)) < (0.6 if k < 20 else 0.1)] = np.nan
+        pv = np.where(np.isnan(px), np.nan, np.repeat(v[:, None, :], n, axis=1))
+        for i in range(n):
+            px[:, i, i], pv[:, i, i] = x[:, i], v[:, i]
+        age = np.where(np.isnan(px), np.inf, 0.0)
+        vr, ar = V_REF - 0.01 * k, A_REF
+        N = P * n
+        out = grp.step(Observation(tick=k, time_s=k * dt, speed_mps=v.reshape(N), position_m=x.reshape(N),
+                                   ref_speed_mps=np.full(N, vr), ref_decel_mps2=np.full(N, ar),
+                                   peer_speed_mps=pv.reshape(N, n), peer_position_m=px.reshape(N, n),
+                                   peer_age_s=age.reshape(N, n)))
+        for p in range(P):
+            for i in range(n):
+                ref = singles[p][i].step(Observation(
+                    tick=k, time_s=k * dt, speed_mps=float(v[p, i]), position_m=float(x[p, i]), ref_speed_mps=vr,
+                    ref_decel_mps2=ar, peer_speed_mps=pv[p, i], peer_position_m=px[p, i], peer_age_s=age[p, i]))
+                e = p * n + i
+                assert np.float64(out.brake_force_n[e]).tobytes() == np.float64(ref.brake_force_n).tobytes(), (k, p, i)
+                for name in ChenConsensusController.diagnostic_names:
+                    got = np.broadcast_to(out.diagnostics[name], (N,))[e]
+                    want = ref.diagnostics[name]
+                    assert np.float64(got).tobytes() == np.float64(want).tobytes() or (
+                        math.isnan(got) and math.isnan(want)), (k, p, i, name)
+
+
 def test_step_batch_is_offered_only_where_it_is_exact():
     assert not chen(stale_policy="extrapolate").batchable()
     assert not chen(deflection_source="local").batchable()

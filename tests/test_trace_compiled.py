@@ -51,3 +51,24 @@ def test_add_many_equals_add_one_by_one(xs, ratio):
     b.add_many(xs)
     assert (a.counts, a.n, a.total, a.max) == (b.counts, b.n, b.total, b.max)
     assert math.isclose(a.quantile(0.99), b.quantile(0.99)) or a.n == 0
+
+
+finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1e-300, 1e-300),
+                          st.just(-0.0), st.integers(-2**52, 2**52).map(float))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.integers(0, 6), st.integers(2, 8), st.booleans(), st.data())
+def test_block_equals_percent_formatting(n, m, last_int, data):
+    """csv_block (the batch engine's traces) against the "%d" / "%.9g" formatting it replaced."""
+    from canbrake.nodes._trace import csv_block
+
+    rows = np.array([[float(data.draw(st.integers(0, 10**9)))]
+                     + [data.draw(finite_or_not) for _ in range(m - 2)]
+                     + [float(data.draw(st.integers(0, 99))) if last_int else data.draw(finite_or_not)]
+                     for _ in range(n)], dtype=float).reshape(n, m)
+    cells = ["%d"] + ["%.9g"] * (m - 1)
+    if last_int:
+        cells[-1] = "%d"
+    fmt = ",".join(cells) + "\r\n"
+    assert csv_block(rows, last_int) == "".join(fmt % tuple(r) for r in rows.tolist())

@@ -404,71 +404,128 @@ class ChenConsensusController(Controller):
         Every scalar field of ``obs`` has shape (P,), every peer array (P, n_cars); the result's
         fields have shape (P,). The first call makes the state per point (this object then serves
         only batches). The operations are those of :meth:`step` in the same order, so each point's
-        force equals the one its own controller computes, bit for bit (tests/test_batch_sweep.py)."""
+        force equals the one its own controller computes, bit for bit (tests/test_batch_sweep.py).
+        Gains may be arrays of shape (P,) (:class:`~canbrake.control.chen_compensated.ChenCompensatedController`
+        schedules them per point)."""
+        if not hasattr(self, "_batch"):
+            self._batch = ChenBatch([self], obs.speed_mps.shape[0], own_observer=True)
+        return self._batch.step(obs)
+
+    @classmethod
+    def group_key(cls, ctrl: "ChenConsensusController") -> tuple | None:
+        """What controllers of several ECU slots must share to step as one :class:`ChenGroup`
+        (everything but the car index and the mass-derived values), or None if ``ctrl`` has
+        no batch form."""
+        if type(ctrl) is not ChenConsensusController or not ctrl.batchable():
+            return None
+        o = ctrl._obs
+        return (ctrl.n_cars, ctrl.dt_s, ctrl.alpha1, ctrl.alpha2, ctrl.k, ctrl.k_d, ctrl.delta, ctrl.theta_lower_m,
+                ctrl.theta_upper_m, ctrl.feedforward, ctrl.brake_gain, ctrl.mass_scaled, ctrl.consensus,
+                ctrl.potential_field, ctrl.barrier, ctrl.barrier_unit_m, ctrl.barrier_clip, ctrl.observer,
+                ctrl.observer_cancellation, ctrl._lag_alpha, ctrl.velocity_graph, o.gamma1_mps, o.gamma2_mps2,
+                o.boundary_pos_m, o.boundary_vel_mps, o._alpha, o.limit_mps2, o.error_limit_mps)
+
+    @classmethod
+    def batch_group(cls, ctrls: Sequence["ChenConsensusController"], n_points: int) -> "ChenBatch":
+        """One batch object stepping ``ctrls`` (ECU slots with equal :meth:`group_key`) for
+        ``n_points`` points at once (:class:`ChenBatch`)."""
+        return ChenBatch(ctrls, n_points)
+
+
+class ChenBatch:
+    """The batch form of :class:`ChenConsensusController`: P sweep points of S ECU slots, flattened
+    to N = P·S elements (point-major: element p·S + s), every array of shape (N,), peer arrays
+    (N, n_cars). ``ctrls``: one controller per slot, all with the same
+    :meth:`ChenConsensusController.group_key` (they differ in car index and mass only); the gains
+    are read from the first at every step (scalars, or arrays (N,)).
+
+    Per element, :meth:`step` does the operations of :meth:`ChenConsensusController.step` in the
+    same order: a neighbour the car does not have contributes an exact ``+ 0.0`` / ``- 0.0`` and a
+    peer outside its velocity graph ``+ 0.0`` (a sum that starts at +0.0 never becomes -0.0, so
+    adding +0.0 leaves it bit for bit), so every element gets its own controller's floats
+    (tests/test_control.py, tests/test_batch_sweep.py). One slot and its own observer
+    (``own_observer``) is :meth:`ChenConsensusController.step_batch`; several slots (the batch
+    engine's :meth:`~canbrake.batch.BatchEngine._compute`) step on a copy of the first slot's
+    observer with each element's mass."""
+
+    def __init__(self, ctrls: Sequence[ChenConsensusController], n_points: int, own_observer: bool = False) -> None:
+        import copy
+
+        c0 = ctrls[0]
+        self.c0, self.n, P = c0, c0.n_cars, n_points
+        self.N = N = P * len(ctrls)
+        tile = lambda f: np.tile(np.asarray([f(c) for c in ctrls]), P)  # noqa: E731 - per element
+        idx = tile(lambda c: c.car_index)
+        self.hf, self.hr = idx > 0, idx < self.n - 1
+        self.fi, self.ri = np.where(self.hf, idx - 1, 0), np.where(self.hr, idx + 1, 0)
+        self.ar = np.arange(N)
+        self.mass = tile(lambda c: c.mass_kg).astype(float)
+        self.scale = tile(lambda c: c._scale).astype(float)
+        self.bmax = tile(lambda c: c.brake_force_max_n).astype(float)
+        self.tmax = -tile(lambda c: c.traction_force_max_n).astype(float)
+        self.adj = np.tile(np.stack([c._adj_a for c in ctrls]), (P, 1))  # (N, n)
+        self.latched = tile(lambda c: c._latched).astype(bool)
+        self.b_front = tile(lambda c: np.nan if c._spacing_front is None else c._spacing_front).astype(float)
+        self.b_rear = tile(lambda c: np.nan if c._spacing_rear is None else c._spacing_rear).astype(float)
+        if own_observer:
+            self.obs = c0._obs
+        else:
+            self.obs = copy.copy(c0._obs)
+            self.obs.mass_kg = self.mass  # type: ignore[assignment]
+        self.obs.reset_many(N)
+        self.force_model_n = np.zeros(N)
+        self.diagnostic_names = c0.diagnostic_names
+
+    def step(self, obs: Observation) -> ControlOutput:
+        """One period of every element (shapes in the class docstring)."""
+        c = self.c0
         v, x = obs.speed_mps, obs.position_m
-        P = v.shape[0]
-        if not hasattr(self, "_b_latched"):
-            self._obs.reset_many(P)
-            self._force_model_n = np.zeros(P)
-            self._b_latched = np.full(P, self._latched)
-            self._b_front = np.full(P, np.nan if self._spacing_front is None else self._spacing_front)
-            self._b_rear = np.full(P, np.nan if self._spacing_rear is None else self._spacing_rear)
-        m, kb = self.mass_kg, self.brake_gain
-        i, n = self.car_index, self.n_cars
+        N = self.N
+        kb = c.brake_gain
         px = obs.peer_position_m
+        pxf, pxr = px[self.ar, self.fi], px[self.ar, self.ri]
+        hf, hr = self.hf, self.hr
         # deflections: the spacing is latched once both neighbours' positions have arrived
-        ok_f = np.ones(P, dtype=bool) if i == 0 else ~np.isnan(px[:, i - 1])
-        ok_r = np.ones(P, dtype=bool) if i == n - 1 else ~np.isnan(px[:, i + 1])
-        new = ~self._b_latched & ok_f & ok_r
+        new = ~self.latched & (~hf | ~np.isnan(pxf)) & (~hr | ~np.isnan(pxr))
         if new.any():
-            if i > 0:
-                self._b_front = np.where(new, px[:, i - 1] - x, self._b_front)
-            if i < n - 1:
-                self._b_rear = np.where(new, x - px[:, i + 1], self._b_rear)
-            self._b_latched = self._b_latched | new
-        front = (px[:, i - 1] - x) - self._b_front if i > 0 else None  # NaN = unknown
-        rear = (x - px[:, i + 1]) - self._b_rear if i < n - 1 else None
-        f_ok = None if front is None else ~np.isnan(front)
-        r_ok = None if rear is None else ~np.isnan(rear)
+            self.b_front = np.where(new & hf, pxf - x, self.b_front)
+            self.b_rear = np.where(new & hr, x - pxr, self.b_rear)
+            self.latched = self.latched | new
+        front = np.where(hf, (pxf - x) - self.b_front, np.nan)  # NaN = unknown or no such neighbour
+        rear = np.where(hr, (x - pxr) - self.b_rear, np.nan)
+        f_ok, r_ok = ~np.isnan(front), ~np.isnan(rear)
 
         u1: Any = 0.0
-        if self.consensus:
-            pos: Any = 0.0
-            if rear is not None:
-                pos = pos + np.where(r_ok, rear, 0.0)
-            if front is not None:
-                pos = pos - np.where(f_ok, front, 0.0)
+        if c.consensus:
+            pos = (0.0 + np.where(r_ok, rear, 0.0)) - np.where(f_ok, front, 0.0)
             pv = obs.peer_speed_mps
-            total, cnt = np.zeros(P), np.zeros(P)
-            for j in self._adj_idx:
+            total, cnt = np.zeros(N), np.zeros(N)
+            for j in range(self.n):  # peer by peer in index order, as step sums
                 pj = pv[:, j]
-                ok = pj == pj
+                ok = (pj == pj) & self.adj[:, j]
                 total = total + np.where(ok, pj, 0.0)
                 cnt = cnt + ok
             sd = np.where(cnt > 0, cnt * v - total, 0.0)
-            u1 = self._scale * (self.alpha1 * sd + self.alpha2 * pos)
+            u1 = self.scale * (c.alpha1 * sd + c.alpha2 * pos)
 
         u2: Any = 0.0
-        if self.potential_field:
-            unit, zl, zu, kind, clip = self.barrier_unit_m, self._z_lower, self._z_upper, self.barrier, self.barrier_clip
-            g: Any = 0.0
-            if rear is not None:
-                g = g + np.where(r_ok, barrier_gradient_many(rear / unit, zl, zu, kind, clip), 0.0)
-            if front is not None:
-                g = g - np.where(f_ok, barrier_gradient_many(front / unit, zl, zu, kind, clip), 0.0)
-            u2 = self._scale * self.delta * g
+        if c.potential_field:
+            unit, zl, zu, kind, clip = c.barrier_unit_m, c._z_lower, c._z_upper, c.barrier, c.barrier_clip
+            g = 0.0 + np.where(r_ok, barrier_gradient_many(rear / unit, zl, zu, kind, clip), 0.0)
+            g = g - np.where(f_ok, barrier_gradient_many(front / unit, zl, zu, kind, clip), 0.0)
+            u2 = self.scale * c.delta * g
 
-        ff = obs.ref_decel_mps2 if self.feedforward == "decel" else obs.ref_speed_mps
-        u3 = m * (self.k * (v - obs.ref_speed_mps) + ff)
+        ff = obs.ref_decel_mps2 if c.feedforward == "decel" else obs.ref_speed_mps
+        m = self.mass
+        u3 = m * (c.k * (v - obs.ref_speed_mps) + ff)
 
-        phi_hat = self._obs.update_many(x, v)
+        phi_hat = self.obs.update_many(x, v)
         force_obs: Any = 0.0
-        if self.observer:
-            force_obs = m * phi_hat if self.observer_cancellation == "mass" else kb * self.k_d * phi_hat
+        if c.observer:
+            force_obs = m * phi_hat if c.observer_cancellation == "mass" else kb * c.k_d * phi_hat
 
         force = kb * (u1 + u2 + u3) + force_obs
-        bmax, tmax = self.brake_force_max_n, -self.traction_force_max_n
-        force = np.where(force > bmax, bmax, np.where(force < tmax, tmax, force))
-        self._force_model_n = self._force_model_n + self._lag_alpha * (force - self._force_model_n)
-        self._obs.predict_many(self._force_model_n)
-        return self._output(force, phi_hat, kb, u1, u2, u3, force_obs, front, rear, np.full(P, np.nan))
+        force = np.where(force > self.bmax, self.bmax, np.where(force < self.tmax, self.tmax, force))
+        self.force_model_n = self.force_model_n + c._lag_alpha * (force - self.force_model_n)
+        self.obs.predict_many(self.force_model_n)
+        return c._output(force, phi_hat, kb, u1, u2, u3, force_obs, front, rear, None)
