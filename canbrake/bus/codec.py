@@ -23,6 +23,7 @@ from typing import Any, Callable, Mapping
 from cantools.database.can import Database, Message
 
 from canbrake.bus._codec import FieldCodec
+from canbrake.bus._codec import quantise as _quantise
 
 _ROLES = {"CRC": "crc", "Counter": "counter", "CounterExt": "counter_ext"}
 
@@ -98,19 +99,7 @@ class Quantiser:
         self.scaled = scale != 1.0 or offset != 0.0
 
     def __call__(self, values: Any) -> Any:
-        import numpy as np
-
-        v = np.asarray(values, dtype=float)
-        x = np.where(np.isfinite(v), v, self.offset)
-        with np.errstate(over="ignore"):
-            if self.scaled:
-                raw = np.rint(x / self.scale if self.offset == 0.0 else (x - self.offset) / self.scale)
-            else:
-                raw = np.rint(x)
-        if np.isinf(raw).any():  # the codec cannot encode it either (round(inf)): fail as a node would
-            raise OverflowError("cannot convert float infinity to integer")
-        raw = np.clip(raw, self.lo, self.hi)
-        return raw * self.scale + self.offset if self.scaled else raw
+        return _quantise(values, self.scale, self.offset, self.lo, self.hi, self.scaled)
 
 
 class FrameCodec:
