@@ -735,7 +735,7 @@ class Scenario(_Model):
             raise ValueError(f"ecus: more than one ECU on vehicle(s) {', '.join(map(str, dup))}")
         check = getattr(self.train, "check_ecus", None)  # what the train family's vehicles can take
         if check is not None:
-            check(placed)
+            check(placed, dt_s=self.control_period_s)
         if self.ecu.crash is not None and self.ecu.crash.car not in veh:
             raise ValueError(f"ecu.crash.car: no ECU on vehicle {self.ecu.crash.car}")
         if self.safety.failsafe_commands:

@@ -154,6 +154,34 @@ class AdhesionTrainConfig(StrictModel):
         """Driven axles per vehicle, front first."""
         return [len(t.axles) for t in self.expanded()]
 
+    def check_ecus(self, placed: list[Any], dt_s: float = 1e-3) -> None:
+        """ValueError (one line) for an ECU whose controller drives or reads more axles than its
+        vehicle has (``axle<j>_torque_nm`` / ``axle<j>_speed_radps`` beyond the vehicle's driven
+        axles, e.g. a traction controller on a trailer): the plant would ignore its torques."""
+        import re
+
+        from canbrake.control.base import make_controller
+
+        counts, names = self.axle_counts(), [name for name, _ in expand_vehicles(self.vehicle_types, self.vehicles)]
+        masses = self.vehicle_masses_kg()
+        for i, p in enumerate(placed):
+            if not 1 <= p.vehicle <= len(counts):
+                continue  # reported by the placement check
+            try:  # its signal names may depend on its parameters (cai2014's axles)
+                ctrl = make_controller(p.controller.name, p.controller.params, car_index=i, n_cars=len(placed),
+                                       mass_kg=float(masses[p.vehicle - 1]), dt_s=dt_s)
+            except Exception:  # noqa: BLE001 - an unknown or mis-parameterised controller is reported on its own
+                continue
+            sigs = tuple(getattr(ctrl, "command_names", ())) + tuple(getattr(ctrl, "sensor_names", ()))
+            need = max((int(m.group(1)) for s in sigs if (m := re.fullmatch(r"axle(\d+)_\w+", s))), default=0)
+            have = counts[p.vehicle - 1]
+            if need > have:
+                what = "no driven axles" if have == 0 else f"{have} driven axle{'s' * (have > 1)}"
+                raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} ({names[p.vehicle - 1]}) runs "
+                                 f"{p.controller.name} for {need} driven axle{'s' * (need > 1)}, but vehicle "
+                                 f"{p.vehicle} has {what} (train.vehicle_types.{names[p.vehicle - 1]}.axles): "
+                                 f"place it on a vehicle with axles or give that vehicle type its axles")
+
     def make_plant(self, *, speed_mps: float = 0.0, position_m: float = 0.0, substeps: int = 1) -> Any:
         """The :class:`~canbrake.physics.wheel_adhesion.AdhesionTrain` of this consist (SI)."""
         from canbrake.physics.wheel_adhesion import AdhesionTrain, DrivenAxles

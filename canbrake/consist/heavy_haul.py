@@ -265,9 +265,20 @@ class HeavyHaulTrain(StrictModel):
             if vt.draft_gear not in self.draft_gears:
                 raise ValueError(f"vehicle_types.{name}.draft_gear: unknown draft gear {vt.draft_gear!r} "
                                  f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
-        n = len(self._expanded())
+        for name, vt in self.vehicle_types.items():
+            if vt.adhesion is not None and vt.traction is None:
+                raise ValueError(f"@vehicle_types.{name}.adhesion: a vehicle without traction (a wagon) has no "
+                                 "driven axles whose adhesion limits anything: give it a traction envelope "
+                                 "(traction) or leave adhesion out")
+        ex = self._expanded()
+        n = len(ex)
         if n < 2:
             raise ValueError("vehicles: a heavy-haul train needs at least two vehicles")
+        if ex[0][1].traction is None:
+            raise ValueError(f"@vehicles.0.type: the leading vehicle ({ex[0][0]}) is not a locomotive (no traction): "
+                             "the air brake's pipe is charged and its driver's valve (with ECP: the head-end unit) "
+                             f"worked from a locomotive at the head of the train ({self.air_brake.mode}); put a "
+                             "vehicle type with traction first")
         bad = [v for v in self.disturbance.vehicles if not 1 <= v <= n]
         if bad:
             raise ValueError(f"disturbance.vehicles: {bad} outside 1..{n}")
@@ -309,24 +320,37 @@ class HeavyHaulTrain(StrictModel):
                            pipe=None if ab.pipe is None else ab.pipe.physics(),
                            emergency=ab.emergency.physics() if ab.application == "emergency" else None)
 
-    def check_ecus(self, placed: list[Any]) -> None:
-        """ValueError (one line) for an ECU on a wagon whose controller commands only a brake force
-        the wagon cannot take: a wagon has no traction or electric brake, and without ECP
-        (``air_brake.mode: pneumatic``) no cylinder of its own to drive (with ECP its ECU turns the
-        force into its cylinder demand, :class:`canbrake.control.ecp.EcpUnit`)."""
-        if self.air_brake.mode == "ecp":
-            return
+    def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
+        """ValueError (one line) for an ECU whose commands its vehicle cannot take: the driver's
+        brake valve (``airbrake_apply``) anywhere but on the leading vehicle; a brake force on a
+        wagon (no traction or electric brake) from a controller that commands more than the force,
+        or, without ECP (``air_brake.mode: pneumatic``), from any controller (with ECP a wagon's
+        ECU turns a force-only controller's demand into its cylinder demand,
+        :class:`canbrake.control.ecp.EcpUnit`)."""
         from canbrake.control.base import controller_class
 
         ex = self._expanded()
         for p in placed:
-            if not 1 <= p.vehicle <= len(ex) or ex[p.vehicle - 1][1].traction is not None:
+            if not 1 <= p.vehicle <= len(ex):
                 continue
             try:
                 cmds = tuple(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
             except Exception:  # noqa: BLE001 - an unknown controller is reported by its own check
                 continue
-            if "brake_force_n" in cmds and not {"ecp_demand", "airbrake_apply"} & set(cmds):
+            if "airbrake_apply" in cmds and p.vehicle != 1:
+                raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which works "
+                                 "the driver's brake valve (airbrake_apply): the valve is on the leading vehicle "
+                                 "(vehicle 1), where the brake pipe is fed; place that ECU on vehicle 1")
+            if ex[p.vehicle - 1][1].traction is not None or "brake_force_n" not in cmds or "ecp_demand" in cmds:
+                continue
+            if self.air_brake.mode == "ecp" and len(cmds) == 1:
+                continue  # wrapped by its ECP brake unit (build_controller)
+            if self.air_brake.mode == "ecp":
+                raise ValueError(f"ecus: ECU {p.name} on wagon {p.vehicle} runs {p.controller.name}, which commands a "
+                                 f"brake force with {', '.join(c for c in cmds if c != 'brake_force_n')}: a wagon has "
+                                 "no traction or electric brake, and its ECP brake unit takes a controller that "
+                                 "commands the force alone (e.g. chen2023) or its cylinder demand (ecp_wagon)")
+            if "brake_force_n" in cmds:
                 raise ValueError(f"ecus: ECU {p.name} on wagon {p.vehicle} runs {p.controller.name}, which commands a "
                                  "brake force (brake_force_n): a wagon has no traction or electric brake, and with "
                                  "train.air_brake.mode: pneumatic no cylinder of its own to drive (use mode: ecp, "
