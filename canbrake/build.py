@@ -164,10 +164,20 @@ def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
     blending = wheels = None
     if b.blending is not None:
         e = b.blending
-        blending = BrakeBlending(ed_max_decel_mps2=e.ed_max_decel_mps2,
-                                 ed_power_w_per_kg=math.inf if e.ed_power_kw_per_t is None else e.ed_power_kw_per_t,
+        ed_max: Any = e.ed_max_decel_mps2
+        ed_power: Any = math.inf if e.ed_power_kw_per_t is None else e.ed_power_kw_per_t
+        envelope = None
+        if e.per_car is not None:  # each car's own ED brake (vehicle_types.<type>.ed_brake)
+            nan = (math.nan,) * 5
+            cars = [(ed_max, ed_power, nan) if c is None else (0.0, math.inf, nan) if c.model == "none"
+                    else (c.max_decel_mps2, math.inf if c.power_kw_per_t is None else c.power_kw_per_t, nan)
+                    if c.model == "per_mass" else (0.0, math.inf, c.row_si()) for c in e.per_car]
+            ed_max, ed_power = tuple(float(c[0]) for c in cars), tuple(float(c[1]) for c in cars)
+            if any(c is not None and c.model == "envelope" for c in e.per_car):
+                envelope = tuple(c[2] for c in cars)
+        blending = BrakeBlending(ed_max_decel_mps2=ed_max, ed_power_w_per_kg=ed_power,
                                  fade_start_mps=e.fade_start_kmh / 3.6, fade_end_mps=e.fade_end_kmh / 3.6,
-                                 friction_lag_s=e.friction_lag_s)
+                                 friction_lag_s=e.friction_lag_s, envelope=envelope)
     if b.wheels is not None:
         w = b.wheels
         curve = RailCondition(b1=w.b1, b2=w.b2, b3=w.b3, c1=w.c1, c2=w.c2, c3=w.c3, peak_mu0=1.0)

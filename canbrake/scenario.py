@@ -23,7 +23,7 @@ from canbrake.bus.txbuffer import TxBufferConfig
 from canbrake.bus.segments import GatewayConfig, SegmentConfig
 from canbrake.consist import TRAIN_MODELS
 from canbrake.consist.base import VehicleEntry, expand_vehicles
-from canbrake.consist.brakes import BrakeSystemConfig
+from canbrake.consist.brakes import BrakeSystemConfig, EdBrake
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
 
 KMH = 1.0 / 3.6  # m/s per km/h
@@ -160,6 +160,10 @@ class CoupledVehicleType(_Model):
     mass_kg: float = Field(..., gt=0)
     length_m: float = Field(20.0, gt=0, description="over couplers; the default spacing of the initial positions")
     davis: DavisTypeConfig | None = Field(None, description="running resistance c0 + c1 v + c2 v^2 (N, v in m/s)")
+    ed_brake: EdBrake | None = Field(None, description="its electro-dynamic brake under train.brakes.blending: "
+                                                       "{model: per_mass, ...}, {model: envelope, ...} (Li 2024 "
+                                                       "eq. 2) or {model: none} (a trailer); default: the "
+                                                       "blending's ed_max_decel_mps2")
 
 
 class TrainConfig(_Model):
@@ -200,6 +204,12 @@ class TrainConfig(_Model):
                 ds = [t.davis or zero for _, t in expanded]
                 self.davis = DavisConfig(c0_n=[d.c0_n for d in ds], c1_n_s_per_m=[d.c1_n_s_per_m for d in ds],
                                          c2_n_s2_per_m2=[d.c2_n_s2_per_m2 for d in ds])
+            if any(t.ed_brake is not None for _, t in expanded):
+                if self.brakes is None or self.brakes.blending is None:
+                    name = next(nm for nm, t in expanded if t.ed_brake is not None)
+                    raise ValueError(f"@vehicle_types.{name}.ed_brake: an ED brake is blended with the friction "
+                                     "brake by train.brakes.blending, which this train does not have")
+                self.brakes.blending.per_car = [t.ed_brake for _, t in expanded]
             if self.coupler.spacing_m is None and len(expanded) > 1:
                 self.coupler.spacing_m = [0.5 * (a.length_m + b.length_m) for (_, a), (_, b) in zip(expanded, expanded[1:])]
             self.vehicles = []
@@ -615,6 +625,9 @@ class Scenario(_Model):
             ("train.curve_resistance_n", self.train.curve_resistance_n, n),
             ("actuator.adhesion_mu", self.actuator.adhesion_mu, n),
         ]
+        b = self.train.brakes
+        if b is not None and b.blending is not None and b.blending.per_car is not None and len(b.blending.per_car) != n:
+            raise ValueError(f"@train.brakes.blending.per_car: {len(b.blending.per_car)} values, the train has {n} cars")
         if self.train.davis is not None:
             d = self.train.davis
             checks += [("train.davis.c0_n", d.c0_n, n), ("train.davis.c1_n_s_per_m", d.c1_n_s_per_m, n),

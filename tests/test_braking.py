@@ -201,6 +201,58 @@ def test_blending_fades_the_ed_brake_and_the_friction_brake_takes_over():
     assert np.all(ed[mid] + fr[mid] < m)  # the friction brake lags the fade: the total dips
 
 
+def test_each_car_has_its_own_ed_brake_a_trailer_none_a_locomotive_lis_envelope():
+    """Per-car ED brakes: a per-mass car as the train-wide blending, a trailer without ED brake
+    (friction takes the whole demand, after its lag), a car with Li 2024's eq. (2) envelope (ED
+    force = min(demand, F_B(v)), its own ramp below v1, F_max, power/v above: checked against the
+    heavy-haul physics' own TractionEnvelope at the car's speed), from 80 km/h to a stop."""
+    m, dt = 20_000.0, 0.01
+    env = hh.TractionEnvelope(traction_start_kn=1, traction_start_until_kmh=1, traction_intercept_kn=1,
+                              traction_slope_kn_per_kmh=0, traction_linear_until_kmh=2, brake_slope_kn_per_kmh=2.0,
+                              brake_linear_until_kmh=20.0, brake_max_kn=40.0, brake_constant_until_kmh=50.0,
+                              power_kn_kmh=2000.0)
+    row = (2.0 * 1000 * 3.6, 20 / 3.6, 40_000.0, 50 / 3.6, 2000.0 * 1000 / 3.6)
+    nan = (math.nan,) * 5
+    bl = BrakeBlending(ed_max_decel_mps2=(0.8, 0.0, 0.0), ed_power_w_per_kg=(math.inf, math.inf, math.inf),
+                       fade_start_mps=10 / 3.6, fade_end_mps=3 / 3.6, friction_lag_s=0.2, envelope=(nan, nan, row))
+    ref = BrakeBlending(ed_max_decel_mps2=0.8, fade_start_mps=10 / 3.6, fade_end_mps=3 / 3.6, friction_lag_s=0.2)
+    v0 = 80 / 3.6
+    # three cars joined by couplers of negligible stiffness (1e-9 N/m): each brakes as if alone
+    cars = TrainPlant([m] * 3, [0.0, -100.0, -200.0], [v0] * 3, resistance=DavisResistance.zero(3),
+                      coupler_stiffness_n_per_m=[1e-9, 1e-9], coupler_nonlinearity_per_m2=[0.0, 0.0],
+                      max_substep_s=dt, blending=bl)
+    alone = TrainPlant([m], [0.0], [v0], resistance=DavisResistance.zero(1), max_substep_s=dt, blending=ref)
+    demand = np.array([1.0 * m, 1.0 * m, 1.0 * m])
+    for k in range(int(12.0 / dt)):
+        v_before = cars.speed_mps.copy()
+        cars.step(dt, demand)
+        alone.step(dt, demand[:1])
+        e, er = cars.equipment_measurements(), alone.equipment_measurements()
+        # car 1 has the train-wide per-mass ED brake: as the scalar blending of a car alone
+        assert e["ed_brake_n"][0] == pytest.approx(er["ed_brake_n"][0], rel=1e-9, abs=1e-6)
+        assert e["friction_brake_n"][0] == pytest.approx(er["friction_brake_n"][0], rel=1e-9, abs=1e-6)
+        assert e["ed_brake_n"][1] == 0.0                                  # the trailer: no ED brake
+        want = min(1.0 * m, 1000.0 * float(env.electric_brake_kn(abs(v_before[2]) * 3.6)))
+        assert e["ed_brake_n"][2] == pytest.approx(want, rel=1e-9, abs=1e-6), k  # the envelope at the car's speed
+    assert e["friction_brake_n"][1] == pytest.approx(m, rel=1e-6)        # the trailer's friction took it all
+
+
+def test_vehicle_type_ed_brakes_need_the_blending_and_fill_it_per_car():
+    from canbrake.scenario import ScenarioError
+
+    over = {"train.vehicle_types.trailer.ed_brake": {"model": "none"}}
+    scn = load_scenario("emu8_low_adhesion", overrides=over)
+    pc = scn.train.brakes.blending.per_car
+    assert [c is not None and c.model == "none" for c in pc] == [True, False, False, True, True, False, False, True]
+    with pytest.raises(ScenarioError, match=r"train.vehicle_types.trailer.ed_brake: an ED brake is blended with the "
+                                            r"friction brake by train.brakes.blending, which this train does not have"):
+        load_scenario("emu8_low_adhesion", overrides={**over, "train.brakes.blending": None})
+    with pytest.raises(ScenarioError, match=r"brake_constant_until_kmh: must be at least brake_linear_until_kmh"):
+        load_scenario("emu8_low_adhesion", overrides={"train.vehicle_types.motor.ed_brake": {
+            "model": "envelope", "brake_slope_kn_per_kmh": 1, "brake_linear_until_kmh": 30, "brake_max_kn": 30,
+            "brake_constant_until_kmh": 20, "power_kn_kmh": 900}})
+
+
 # ------------------------------------------------------------------ the whole train, through the bus
 @pytest.mark.slow
 def test_realistic_profile_stops_within_the_comfort_jerk(tmp_path):

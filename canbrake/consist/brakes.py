@@ -14,21 +14,70 @@ wheel-slide protection): :mod:`canbrake.control.brake_functions`. Units in the f
 """
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any, Literal, Union
 
 from pydantic import Field, model_validator
 
 from canbrake.consist.base import StrictModel
 
 
+class EdPerMass(StrictModel):
+    """An ED brake whose force is a capacity per unit mass, power-limited and fading at low speed
+    (the blending's ``fade_start_kmh``/``fade_end_kmh``): F ≤ m·min(a, P/(m|v|))·fade(v)."""
+
+    model: Literal["per_mass"] = "per_mass"
+    max_decel_mps2: float = Field(..., ge=0, description="ED brake force per unit mass at full capacity")
+    power_kw_per_t: float | None = Field(None, gt=0, description="ED power per tonne (F <= P/v; null: no limit)")
+
+
+class EdEnvelope(StrictModel):
+    """An ED brake with Li 2024's electric-brake envelope (eq. 2; kN with v in km/h, e.g. a
+    locomotive's): F_B = ``brake_slope_kn_per_kmh``·v up to ``brake_linear_until_kmh``,
+    ``brake_max_kn`` up to ``brake_constant_until_kmh``, ``power_kn_kmh``/v above. It has its own
+    low-speed ramp, so the blending's fade does not apply to it."""
+
+    model: Literal["envelope"]
+    brake_slope_kn_per_kmh: float = Field(..., ge=0)
+    brake_linear_until_kmh: float = Field(..., ge=0)
+    brake_max_kn: float = Field(..., ge=0)
+    brake_constant_until_kmh: float = Field(..., gt=0)
+    power_kn_kmh: float = Field(..., gt=0)
+
+    @model_validator(mode="after")
+    def _order(self) -> "EdEnvelope":
+        if self.brake_constant_until_kmh < self.brake_linear_until_kmh:
+            raise ValueError(f"@brake_constant_until_kmh: must be at least brake_linear_until_kmh "
+                             f"({self.brake_linear_until_kmh:g}), got {self.brake_constant_until_kmh:g}")
+        return self
+
+    def row_si(self) -> tuple[float, float, float, float, float]:
+        """(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W) as the brake kernel takes it."""
+        return (self.brake_slope_kn_per_kmh * 1000.0 * 3.6, self.brake_linear_until_kmh / 3.6, self.brake_max_kn * 1000.0,
+                self.brake_constant_until_kmh / 3.6, self.power_kn_kmh * 1000.0 / 3.6)
+
+
+class EdNone(StrictModel):
+    """No ED brake (a trailer car): the friction brake gives the whole demand."""
+
+    model: Literal["none"]
+
+
+#: an ED brake of one vehicle type (``vehicle_types.<type>.ed_brake``), by ``model``
+EdBrake = Annotated[Union[EdPerMass, EdEnvelope, EdNone], Field(discriminator="model")]
+
+
 class BlendingConfig(StrictModel):
     """Electro-dynamic / friction blending with the ED brake fading at low speed."""
 
-    ed_max_decel_mps2: float = Field(1.0, ge=0, description="ED brake force per unit mass at full capacity")
+    ed_max_decel_mps2: float = Field(1.0, ge=0, description="ED brake force per unit mass at full capacity "
+                                                            "(every car whose vehicle type sets no ed_brake)")
     ed_power_kw_per_t: float | None = Field(None, gt=0, description="ED power per tonne (F <= P/v; null: no limit)")
     fade_start_kmh: float = Field(10.0, gt=0, description="the ED force starts to fade below this speed")
     fade_end_kmh: float = Field(3.0, ge=0, description="the ED force is zero below this speed")
     friction_lag_s: float = Field(0.2, ge=0, description="first-order lag of the friction brake behind its share")
+    per_car: list[EdBrake | None] | None = Field(
+        None, description="the ED brake of each car, front first (filled from the vehicle types' ed_brake; "
+                          "null entries: ed_max_decel_mps2 / ed_power_kw_per_t above)")
 
     @model_validator(mode="after")
     def _order(self) -> "BlendingConfig":

@@ -77,27 +77,37 @@ cdef inline double _clip01(double x) noexcept nogil:
 cdef class EquipmentKernel:
     """Constants of a coupled train's brake equipment, and its sub-step.
 
-    Blending (``blending`` True): ``ed_max`` (m/s²), ``ed_power`` (W/kg), ``fade_start``,
-    ``fade_end`` (m/s), ``friction_lag_s`` (s). Dump valves: ``valve_lag_s``, ``max_vent_s`` (s).
+    Blending (``blending`` True): per car ``ed_max`` (m/s²) and ``ed_power`` (W/kg) (one value, or
+    one per car; 0 for a car without ED brake), ``fade_start``, ``fade_end`` (m/s),
+    ``friction_lag_s`` (s); ``envelope``: None, or per car (n, 5) the ED brake's force envelope
+    (Li 2024 eq. 2) ``(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W)``, NaN rows for the cars that
+    use ``ed_max``/``ed_power`` with the fade: F = slope·|v| up to v1, F_max up to v2, power/|v| above.
+    Dump valves: ``valve_lag_s``, ``max_vent_s`` (s).
     Wheelsets (``axles`` p > 0): radius ``R`` (m), inertia ``J`` (kg·m²), normal loads ``N`` (n, p)
     (N), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
     ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), ``iters`` Newton iterations.
     ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
     """
 
-    cdef bint blending, adhesion_limited
-    cdef double ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent, g
+    cdef bint blending, adhesion_limited, has_env
+    cdef double fade_start, fade_end, friction_lag, valve_lag, max_vent, g
+    cdef const double[::1] ed_max, ed_power
+    cdef const double[:, ::1] env
     cdef Py_ssize_t p, iters
     cdef double R, J, b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
     cdef const double[:, ::1] N
 
-    def __init__(self, *, bint blending, double ed_max, double ed_power, double fade_start, double fade_end,
+    def __init__(self, *, bint blending, ed_max, ed_power, double fade_start, double fade_end,
                  double friction_lag_s, double valve_lag_s, double max_vent_s, bint adhesion_limited,
-                 double gravity, int axles=0, double R=1.0, double J=1.0, N=None, double b1=0.0,
+                 double gravity, envelope=None, int axles=0, double R=1.0, double J=1.0, N=None, double b1=0.0,
                  double b2=0.0, double b3=1.0, double c1=0.0, double c2=0.0, double c3=1.0, double mu0=1.0,
                  double peak_curve=1.0, double v_floor=0.1, int iters=5):
         self.blending = blending
-        self.ed_max, self.ed_power, self.fade_start, self.fade_end = ed_max, ed_power, fade_start, fade_end
+        self.ed_max = np.ascontiguousarray(np.atleast_1d(np.asarray(ed_max, dtype=float)))
+        self.ed_power = np.ascontiguousarray(np.atleast_1d(np.asarray(ed_power, dtype=float)))
+        self.has_env = envelope is not None
+        self.env = np.ascontiguousarray(np.zeros((1, 5)) if envelope is None else np.asarray(envelope, dtype=float))
+        self.fade_start, self.fade_end = fade_start, fade_end
         self.friction_lag, self.valve_lag, self.max_vent = friction_lag_s, valve_lag_s, max_vent_s
         self.adhesion_limited, self.g = adhesion_limited, gravity
         self.p, self.iters = axles, iters
@@ -124,9 +134,10 @@ cdef class EquipmentKernel:
         cdef Py_ssize_t ne = effort.shape[0], nm = mass.shape[0], nmu = mu.shape[0], nef = eff.shape[0]
         cdef Py_ssize_t nf = f.shape[0], nr = r.shape[0]
         cdef Py_ssize_t nn = max(nv, ne)
-        cdef double s, fade, per_kg, demand, e, share, total, tr, cap, rail_i, ff, rr, sg, vn, want
+        cdef double s, fade, per_kg, demand, e, share, total, tr, cap, rail_i, ff, rr, sg, vn, want, ed_cap
         cdef const double[::1] cmd
-        cdef Py_ssize_t nw = 0
+        cdef Py_ssize_t nw = 0, nea = self.ed_max.shape[0], nep = self.ed_power.shape[0], nen = self.env.shape[0]
+        cdef Py_ssize_t ie
         if nf > nn:
             nn = nf
         brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
@@ -135,10 +146,20 @@ cdef class EquipmentKernel:
             e = effort[i % ne]
             if self.blending:
                 s = fabs(v[i % nv])
-                fade = _clip01((s - self.fade_end) / (self.fade_start - self.fade_end))
-                per_kg = _min(self.ed_max, self.ed_power / _max(s, 1e-9))
+                ie = i % nen
+                if self.has_env and self.env[ie, 0] == self.env[ie, 0]:  # the car's envelope (Li eq. 2)
+                    if s <= self.env[ie, 1]:
+                        ed_cap = self.env[ie, 0] * s
+                    elif s <= self.env[ie, 3]:
+                        ed_cap = self.env[ie, 2]
+                    else:
+                        ed_cap = self.env[ie, 4] / _max(s, 1e-9)
+                else:
+                    fade = _clip01((s - self.fade_end) / (self.fade_start - self.fade_end))
+                    per_kg = _min(self.ed_max[i % nea], self.ed_power[i % nep] / _max(s, 1e-9))
+                    ed_cap = mass[i % nm] * per_kg * fade
                 demand = _max(e, 0.0)
-                ed[i] = _min(demand, mass[i % nm] * per_kg * fade)
+                ed[i] = _min(demand, ed_cap)
                 share = demand - ed[i]
                 if self.friction_lag > 0.0:
                     friction[i] = friction[i] + (share - friction[i]) * blend_k

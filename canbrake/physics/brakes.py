@@ -52,24 +52,29 @@ CAI_DRY = RailCondition(b1=1.786, b2=40.0, b3=10.0, c1=0.040, c2=3.78, c3=33.3, 
 
 @dataclass(frozen=True)
 class BrakeBlending:
-    """ED / friction blending parameters (per unit mass, the same for every car).
+    """ED / friction blending parameters (per unit mass; one value for every car, or one per car).
 
-    ``ed_max_decel_mps2``: ED brake force / m at full capacity (m/s²); ``ed_power_w_per_kg``: ED
-    power limit per unit mass (W/kg; inf = none); ``fade_start_mps`` / ``fade_end_mps``: the ED
-    force fades linearly to zero between these speeds (m/s); ``friction_lag_s``: first-order lag of
-    the friction brake behind its share of the demand (s; 0 = immediate).
+    ``ed_max_decel_mps2``: ED brake force / m at full capacity (m/s²; 0: the car has no ED brake,
+    e.g. a trailer); ``ed_power_w_per_kg``: ED power limit per unit mass (W/kg; inf = none);
+    ``fade_start_mps`` / ``fade_end_mps``: the ED force fades linearly to zero between these speeds
+    (m/s); ``friction_lag_s``: first-order lag of the friction brake behind its share of the demand
+    (s; 0 = immediate). ``envelope``: None, or per car the ED brake's own force envelope
+    ``(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W)`` (Li 2024 eq. 2: F = slope·|v| up to v1, F_max
+    up to v2, power/|v| above; it replaces that car's ``ed_max``/``ed_power`` and fade), NaN for the
+    cars without one.
     """
 
-    ed_max_decel_mps2: float = 1.0
-    ed_power_w_per_kg: float = math.inf
+    ed_max_decel_mps2: float | tuple[float, ...] = 1.0
+    ed_power_w_per_kg: float | tuple[float, ...] = math.inf
     fade_start_mps: float = 10.0 / 3.6
     fade_end_mps: float = 3.0 / 3.6
     friction_lag_s: float = 0.2
+    envelope: tuple[tuple[float, float, float, float, float], ...] | None = None
 
     def __post_init__(self) -> None:
         if not self.fade_start_mps > self.fade_end_mps >= 0.0:
             raise ValueError("blending: need fade_start > fade_end >= 0")
-        if self.ed_max_decel_mps2 < 0 or self.friction_lag_s < 0:
+        if np.any(np.asarray(self.ed_max_decel_mps2) < 0) or self.friction_lag_s < 0:
             raise ValueError("blending: ED capacity and friction lag must be >= 0")
 
 

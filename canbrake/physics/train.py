@@ -486,7 +486,8 @@ class TrainPlant:
             kw = {} if self.wheels is None else self.wheels.kernel_params()
             self._ekern = EquipmentKernel(
                 blending=b is not None, ed_max=0.0 if b is None else b.ed_max_decel_mps2,
-                ed_power=0.0 if b is None else b.ed_power_w_per_kg, fade_start=1.0 if b is None else b.fade_start_mps,
+                ed_power=0.0 if b is None else b.ed_power_w_per_kg, envelope=None if b is None else b.envelope,
+                fade_start=1.0 if b is None else b.fade_start_mps,
                 fade_end=0.0 if b is None else b.fade_end_mps, friction_lag_s=0.0 if b is None else b.friction_lag_s,
                 valve_lag_s=self.wsp_valve_lag_s, max_vent_s=self.wsp_max_vent_s,
                 adhesion_limited=self.actuator.adhesion_limited, gravity=self.gravity_mps2, **kw)
