@@ -128,3 +128,23 @@ def test_the_report_writes_its_section_between_its_markers_and_keeps_the_rest(ru
         assert f"| {res[c.key]['stopping_distance_m']:.1f} |" in row
     X.generate(tmp_path, d, step_check=False, log=lambda m: None)  # again: replaced, not appended
     assert doc.read_text().count(X.BEGIN) == 1
+
+
+def test_a_motor_car_of_all_three_papers_builds_and_runs_with_one_process_per_ecu(tmp_path):
+    """Profile li_envelope: a motor car with Chen's nonlinear coupler, Li 2024's electric-brake
+    envelope (eq. 2) and Cai 2014's slip curve on each of its axles, beside trailer cars without ED
+    brake; one process per ECU on the memory bus. At ~100 km/h the envelope's power limit (2,880 kN
+    km/h) caps a motor car's ED brake at 28.8 kN; a trailer's is zero."""
+    import canbrake
+
+    scn = load_scenario("emu8_low_adhesion", profile="li_envelope")
+    t = scn.train
+    assert t.coupler.stiffness_n_per_m == 2.0e6 and t.brakes.wheels.axles == 4 and t.brakes.wheels.b1 == 1.786
+    models = [c.model if c is not None else "default" for c in t.brakes.blending.per_car]
+    assert models == ["none", "envelope", "envelope", "none", "none", "envelope", "envelope", "none"]
+    r = canbrake.run("emu8_low_adhesion", profile="li_envelope", duration_s=1.0, out=tmp_path / "r", plots=False)
+    assert r.summary["status"] == "ok"
+    s = r.signals
+    ed = s[[f"ed_brake_n_c{i}" for i in range(1, 9)]].to_numpy()
+    assert (ed[:, [0, 3, 4, 7]] == 0).all()
+    assert ed[:, [1, 2, 5, 6]].max() == pytest.approx(2880e3 / 3.6 / float(s["speed_mps_c2"].iloc[-1]), rel=0.02)

@@ -24,7 +24,7 @@ DEFAULT_OUT = "docs"
 DOC = "mixed-trains.md"
 SCENARIO = "emu8_low_adhesion.yaml"
 BEGIN, END = "<!-- begin: mixed-emu (canbrake/report/mixed_emu.py) -->", "<!-- end: mixed-emu -->"
-REPORT_VERSION = 3
+REPORT_VERSION = 4
 #: the integration step check: every run again with the control period (= plant step) divided by this
 STEP_DIVISOR = 2
 #: standstill: the lead car's speed at or below this (m/s)
@@ -43,7 +43,8 @@ class Case:
 
 CASES = (Case("dry", "dry rail, no WSP", "dry"),
          Case("low", "low adhesion, no WSP", None),
-         Case("low-wsp", "low adhesion, WSP", "wsp"))
+         Case("low-wsp", "low adhesion, WSP", "wsp"),
+         Case("li-env", "low adhesion, WSP, motor cars' ED brake as Li's envelope", "li_envelope"))
 
 HEADS = ("stopping_distance_m", "max_tension_n", "max_compression_n", "max_decel_mps2", "max_jerk_mps3",
          "slide_s")
@@ -206,8 +207,12 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
          "time, so the scenario gives each car's time in the section from the reference's motion "
          f"(cars in it from {min(e.start_s for e in ev):.1f} s to {max(e.stop_s for e in ev):.1f} s)."
          if ev else "")
-      + " Blending acts on every car: the coupled family has one ED brake for all cars, so the trailers brake "
-      "electrically too (a simplification of this schema, docs/braking-models.md).")
+      + " Blending is local to each car: a motor car's ED brake (1.0 m/s² of its own mass, fading from 10 to "
+      "3 km/h) takes its demand first and its friction brake tops up with a 0.2 s lag; the trailers have no ED "
+      "brake (`ed_brake: {model: none}`) and brake by friction alone. The last case gives the motor cars Li "
+      "2024's electric-brake envelope (eq. 2) instead, sized for a 46 t motor car with 800 kW at the wheel "
+      "(our assumption: 46 kN from 10 km/h up to 62.6 km/h, 28.8 kN at 100 km/h, a linear ramp below "
+      "10 km/h): a vehicle with Chen's coupler, Li's ED-brake envelope and Cai's slip curve.")
     w("")
     w(f"**Stopping distance**: the lead car's travel from the brake demand (t = 0) to standstill "
       f"(speed ≤ {STILL_MPS} m/s); the reference's v₀²/(2a) is "
@@ -250,8 +255,10 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
           f"{ws['wsp_venting_s']:.1f} s summed over cars). The cost in distance is small because the controllers "
           "track the reference's speed and position: while the cars are faster than it, in and after the section, "
           f"the ECUs command up to the brake rating ({base.actuator.max_brake_decel_mps2:g} m/s²). "
-          f"On dry rail the cars brake alike and the couplers carry almost nothing ({d['max_tension_n'] / 1e3:.1f} kN); "
-          "there the formation Tc-M-M-T-T-M-M-Tc and its braking are symmetric, so the peak tension of one coupler "
+          f"On dry rail the couplers carry little ({d['max_tension_n'] / 1e3:.1f} kN, at {d['max_compression_t_s']:.1f} s: "
+          "as the brake applies, the trailers' friction brakes follow the demand with their lag while the motor "
+          "cars' ED brakes act at once); the formation Tc-M-M-T-T-M-M-Tc and its braking are symmetric, so the "
+          "peak tension of one coupler "
           "is the peak compression of its mirror image. In the section the cars "
           "that slide brake less than those that do not: the couplers carry "
           f"{max(lo['max_tension_n'], lo['max_compression_n']) / 1e3:.0f} kN without WSP and "
@@ -260,6 +267,16 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-m
           f"running resistance in it) is {d['max_jerk_mps3']:.2f} m/s³ on dry rail, while slides and the dump valves "
           f"(which bypass the limit) give {lo['max_jerk_mps3']:.0f} m/s³ without and {ws['max_jerk_mps3']:.0f} m/s³ "
           "with WSP.")
+        if "li-env" in keys:
+            le = res["li-env"]
+            w("")
+            w(f"With Li's envelope on the motor cars (last row) the stop is {le['stopping_distance_m']:.1f} m "
+              f"({le['stopping_distance_m'] - ws['stopping_distance_m']:+.1f} m against the per-mass ED brake, "
+              f"both with WSP): above 62.6 km/h the envelope's power limit leaves part of the demand to the "
+              f"friction brake, which follows it with its lag; slides {le['slide_episodes']} episodes, "
+              f"{le['slide_s']:.1f} s; couplers {le['max_tension_n'] / 1e3:.1f} kN tension, "
+              f"{le['max_compression_n'] / 1e3:.1f} kN compression (per-mass: {ws['max_tension_n'] / 1e3:.1f} / "
+              f"{ws['max_compression_n'] / 1e3:.1f} kN).")
         if ev:
             def left_s(car: int) -> float:  # when ``car`` (1-based) leaves the section
                 return max((e.stop_s for e in ev if np.asarray(e.adhesion_mu, float).reshape(-1)[
