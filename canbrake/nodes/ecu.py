@@ -84,6 +84,7 @@ class EcuNode(Node):
         self.flush_every = flush_every
         self.stats = EcuStats()
         self._control_time = LogHistogram(1.01)  # the controller step's wall time per period, 1 % bins
+        self._control_pending: list[float] = []  # its samples not yet added (added 1,024 at a time, compiled)
         self.crash_at_tick = crash_at_tick
         self.lockstep_deadline = lockstep_deadline
         self.bus_timing = bus_timing  # canbrake.bus.schedule.LockstepBusTiming or None
@@ -186,6 +187,9 @@ class EcuNode(Node):
         self._p1_at: float | None = None
         # realtime bus errors injected at this sender (canbrake.bus.rt_errors.RealtimeErrors) or None
         self.rt_errors = rt_errors if mode == "realtime" else None
+        #: no timing model, no injected errors, no impairment: _emit appends the frame as it is
+        #: (PassThrough.submit returns it alone, its release nothing)
+        self._plain_send = bus_timing is None and self.rt_errors is None and type(self.send_path) is PassThrough
 
     def filters(self) -> list[dict]:
         ids = [self.layout.sync_id, self.layout.reference_id, *self._sensor_pages, *self._state_pages, *self._auth_of]
@@ -430,6 +434,9 @@ class EcuNode(Node):
 
     # ---------------------------------------------------------------- send
     def _emit(self, msg: can.Message, t_s: float, out: list[can.Message]) -> None:
+        if self._plain_send:  # nothing between this ECU and the bus: the frame goes now
+            out.append(msg)
+            return
         if self.bus_timing is not None:
             lat = self.bus_timing.latency_s(self.k, self.name, msg.arbitration_id, t_s)
             kind = self.layout.by_id[msg.arbitration_id].kind
@@ -464,7 +471,8 @@ class EcuNode(Node):
         if self.crash_at_tick is not None and self.k >= self.crash_at_tick:
             raise RuntimeError(f"injected crash of {self.name} at tick {self.k} (ecu.crash in the scenario)")
         t, horizon = self._times(now, 1)
-        self._release_linked(horizon)
+        if self.rx_path is not None:
+            self._release_linked(horizon)
         out: list[can.Message] = []
         if self.k % self.heartbeat_every == 0:
             self._emit(frame(self._hb_id, self._hb.encode({"NodeState": 5})), t, out)
@@ -477,7 +485,8 @@ class EcuNode(Node):
                 if self.secoc is not None:  # its authenticator, right after it (canbrake.bus.secoc)
                     auth_id = self._auth_id[fid]
                     self._emit(frame(auth_id, state_authenticator(self.secoc, auth_id, fid, payload, self.k)), t, out)
-        out += self.send_path.release(horizon)
+        if not self._plain_send:
+            out += self.send_path.release(horizon)
         if self.barrier and self._state_msgs:
             sdone = sign_control(self.secoc, self._sdone_id, self._sdone.encode({"Tick": self.k & 0xFFFF}), self.k)
             out.append(frame(self._sdone_id, sdone))
@@ -494,7 +503,8 @@ class EcuNode(Node):
         self.phase = 2
         self._deadline = None
         t, horizon = self._times(now, 2)
-        self._release_linked(self._times(now, 1)[1])
+        if self.rx_path is not None:
+            self._release_linked(self._times(now, 1)[1])
         own_speed = self.sensors.get("speed_mps", math.nan)
         own_pos = self.sensors.get("position_m", math.nan)
         table = self.peer_signals
@@ -513,36 +523,48 @@ class EcuNode(Node):
         # ECUs with a value of this tick (own included), the oldest finite age (-inf: none)
         age, fresh, max_age = self._peers.ages(self.k, self.dt, self.i, speed)
         self.stats.peer_missing += n_listened + 1 - fresh
+        sensors = self.sensors
         obs = Observation.of(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
                           ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
                           peer_position_m=peers["position_m"], peer_age_s=age,
-                          deflection_front_m=self.sensors.get("deflection_front_m") if self.car > 1 else None,
-                          deflection_rear_m=(self.sensors.get("deflection_rear_m")
-                                             if "deflection_rear_m" in self.sensors and not self._last_vehicle() else None),
-                          ref_position_m=self.x_ref, sensors=dict(self.sensors), peer_signals=peers)
+                          deflection_front_m=sensors.get("deflection_front_m") if self.car > 1 else None,
+                          deflection_rear_m=(sensors.get("deflection_rear_m")
+                                             if "deflection_rear_m" in sensors and not self._last_vehicle() else None),
+                          ref_position_m=self.x_ref, sensors=dict(sensors), peer_signals=peers)
         t0 = time.perf_counter()
         result = self.controller.step(obs)
-        self._control_time.add(time.perf_counter() - t0)
+        pending = self._control_pending
+        pending.append(time.perf_counter() - t0)
+        if len(pending) >= 1024:
+            self._control_time.add_many(pending)
+            pending.clear()
         self._broadcast = result.broadcast
         out: list[can.Message] = []
-        values = {"brake_force_n": result.brake_force_n, **result.commands}
-        status = int(result.diagnostics.get("status", 0)) if "status" in result.diagnostics else 0
+        values = {"brake_force_n": result.brake_force_n, **result.commands} if result.commands else None
+        diag = result.diagnostics
+        status = int(diag.get("status", 0)) if "status" in diag else 0
         if self._in_fallback and status == 0:
             status = 1  # degraded: running without a lost peer
+        isfinite, nan = math.isfinite, math.nan
         for fid, codec, sigs in self._cmd_msgs:
-            cmd = codec.encode({"Status": status, **{dn: float(values.get(sig, math.nan)) for sig, dn in sigs
-                                                     if math.isfinite(values.get(sig, math.nan))}},
-                               counter=self.k % COUNTER_MODULO, tick=self.k)
+            fields: dict[str, Any] = {"Status": status}
+            for sig, dn in sigs:  # a value that is not finite is left out of the frame
+                x = (result.brake_force_n if sig == "brake_force_n" else nan) if values is None else values.get(sig, nan)
+                if isfinite(x):
+                    fields[dn] = float(x)
+            cmd = codec.encode(fields, counter=self.k % COUNTER_MODULO, tick=self.k)
             self._emit(frame(fid, sign_protected(self.secoc, fid, cmd, self.k)), t, out)
-        out += self.send_path.release(horizon)
+        if not self._plain_send:
+            out += self.send_path.release(horizon)
         if self.barrier:
             cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": self.k & 0xFFFF}), self.k)
             out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
         if self._trace is not None:
-            self._trace.append([self.k, result.brake_force_n,
-                                *(result.diagnostics.get(n, np.nan) for n in self.controller.diagnostic_names),
-                                max_age if max_age > -np.inf else np.inf, fresh])
+            row = [self.k, result.brake_force_n]
+            row += [diag.get(n, nan) for n in self.controller.diagnostic_names]
+            row += [max_age if max_age > -math.inf else math.inf, fresh]
+            self._trace.append(row)
         if self._late_rx:
             self._take_held(now)
         return out
@@ -591,6 +613,9 @@ class EcuNode(Node):
         self.stats.status = "ok" if self.finished else status
         self.stats.guard = self.guard.stats()
         self.stats.scheduling = self.scheduling
+        if self._control_pending:
+            self._control_time.add_many(self._control_pending)
+            self._control_pending.clear()
         self.stats.control_step_s = self._control_time.figures()
         if self.rt_errors is not None:
             self.stats.can_errors = self.rt_errors.summary()
