@@ -81,7 +81,7 @@ def unsupported(scn: Scenario, base_impairments: int = 0) -> str | None:
     sweep appends its axes' after them); those are not reproduced."""
     from canbrake.build import bus_layout, external_ecus
 
-    train = getattr(scn.train, "model", "coupled")
+    train = scn.train.kernel_name
     if train != "coupled":
         return f"not for {train} trains"
     if scn.mode != "lockstep":

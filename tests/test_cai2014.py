@@ -35,7 +35,7 @@ def _scenario(case: int = 1, profile: str | None = None, **overrides):
 def _conditions():
     from canbrake.physics.wheel_adhesion import RailCondition
 
-    conds = _scenario(1).train.wheel_rail.conditions
+    conds = _scenario(1).consist.wheel_rail.conditions
     return RailCondition(**conds["dry"].model_dump()), RailCondition(**conds["wet"].model_dump())
 
 
@@ -83,7 +83,7 @@ def test_printed_curve_is_unphysical_and_physical_variant_peaks_where_chosen():
 
 
 def test_rail_switches_to_dry_only_inside_window():
-    rail = _scenario(1).train.wheel_rail.schedule()
+    rail = _scenario(1).consist.wheel_rail.schedule()
     assert rail.at(49.999) == WET and rail.at(50.0) == DRY
     assert rail.at(100.0) == DRY and rail.at(100.001) == WET
 

@@ -179,7 +179,7 @@ class AdhesionTrainConfig(StrictModel):
                 what = "no driven axles" if have == 0 else f"{have} driven axle{'s' * (have > 1)}"
                 raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} ({names[p.vehicle - 1]}) runs "
                                  f"{p.controller.name} for {need} driven axle{'s' * (need > 1)}, but vehicle "
-                                 f"{p.vehicle} has {what} (train.vehicle_types.{names[p.vehicle - 1]}.axles): "
+                                 f"{p.vehicle} has {what} (train.vehicle_types.{names[p.vehicle - 1]}.wheels): "
                                  f"place it on a vehicle with axles or give that vehicle type its axles")
 
     def make_plant(self, *, speed_mps: float = 0.0, position_m: float = 0.0, substeps: int = 1) -> Any:
