@@ -104,7 +104,7 @@ def test_steady_slip_under_constant_torque_gives_analytic_mu(variant):
 
 # ------------------------------------------------------------------------------ the plant model and the consist
 def _train(variant: str = "paper"):
-    return _scenario(1, "physical" if variant == "physical" else None).train
+    return _scenario(1, "physical" if variant == "physical" else None).consist
 
 
 def test_consist_describes_the_papers_train():
@@ -130,7 +130,7 @@ def test_scenario_errors_name_the_field(tmp_path):
     with pytest.raises(ScenarioError, match=r"bad.yaml: train.wheel_rail: windows.0.condition: unknown rail condition 'icy'"):
         load_scenario(p)
     data = yaml.safe_load(open(CASE_FILE.format(1)).read())
-    del data["train"]["vehicle_types"]["locomotive"]["wheel"]
+    del data["train"]["vehicle_types"]["locomotive"]["wheels"]["wheel"]
     p.write_text(yaml.safe_dump(data))
     with pytest.raises(ScenarioError, match=r"locomotive.*axles.0: no wheel"):
         load_scenario(p)

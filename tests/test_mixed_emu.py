@@ -138,7 +138,7 @@ def test_a_motor_car_of_all_three_papers_builds_and_runs_with_one_process_per_ec
     import canbrake
 
     scn = load_scenario("emu8_low_adhesion", profile="li_envelope")
-    t = scn.train
+    t = scn.consist
     assert t.coupler.stiffness_n_per_m == 2.0e6 and t.brakes.wheels.axles == 4 and t.brakes.wheels.b1 == 1.786
     models = [c.model if c is not None else "default" for c in t.brakes.blending.per_car]
     assert models == ["none", "envelope", "envelope", "none", "none", "envelope", "envelope", "none"]
