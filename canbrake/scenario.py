@@ -527,7 +527,7 @@ class Scenario(_Model):
         if len(set(veh)) != len(veh):
             dup = sorted({x for x in veh if veh.count(x) > 1})
             raise ValueError(f"ecus: more than one ECU on vehicle(s) {', '.join(map(str, dup))}")
-        check = getattr(self.consist, "check_ecus", None)  # what the train family's vehicles can take
+        check = getattr(self.consist, "check_ecus", None)  # what the kernel's vehicles can take
         if check is not None:
             check(placed, dt_s=self.control_period_s)
         if self.ecu.crash is not None and self.ecu.crash.car not in veh:

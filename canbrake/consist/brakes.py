@@ -1,13 +1,15 @@
-"""Brake equipment of the coupled (Chen) train as data: ``train.brakes`` (every part opt-in).
-
-Example (``scenarios/chen2023_case2_low_adhesion.yaml``)::
+"""Brake equipment of the coupled (Chen) kernel as data (every part opt-in). In the scenario these are
+parts of the brake component (``ideal``/``electro_pneumatic``: ``blending``, ``easing``, ``wsp``,
+``ed_brake``) and the wheels component (``wheelsets``), e.g. ``scenarios/chen2023_case2_low_adhesion.yaml``::
 
     train:
-      brakes:
-        blending: {ed_max_decel_mps2: 1.0, fade_start_kmh: 10, fade_end_kmh: 3, friction_lag_s: 0.2}
-        easing: {time_constant_s: 1.0}
-        wheels: {axles: 4, radius_m: 0.42, inertia_kgm2: 120}
-        wsp: {enabled: true, slip_release: 0.2, slip_reapply: 0.1}
+      every_vehicle:
+        brake:
+          model: electro_pneumatic
+          blending: {ed_max_decel_mps2: 1.0, fade_start_kmh: 10, fade_end_kmh: 3, friction_lag_s: 0.2}
+          easing: {time_constant_s: 1.0}
+          wsp: {enabled: true, slip_release: 0.2, slip_reapply: 0.1}
+        wheels: {model: wheelsets, axles: 4, radius_m: 0.42, inertia_kgm2: 120}
 
 Physics: :mod:`canbrake.physics.brakes` (blending, wheelsets, dump valve); ECU functions (easing,
 wheel-slide protection): :mod:`canbrake.control.brake_functions`. Units in the field names.
@@ -136,7 +138,8 @@ class WspConfig(StrictModel):
 
 
 class BrakeSystemConfig(StrictModel):
-    """``train.brakes`` of the coupled family; every part is off unless given."""
+    """The coupled kernel's brake equipment (assembled from the brake and wheels components); every
+    part is off unless given."""
 
     blending: BlendingConfig | None = None
     easing: EasingConfig | None = None
