@@ -154,7 +154,7 @@ def _train_plant(scn: Scenario):
 
 
 def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
-    """(blending, wheelsets, dump-valve lag) of a coupled train's ``train.brakes`` (None where absent)."""
+    """(blending, wheelsets, dump-valve lag) of a coupled train's brake equipment (``scn.consist.brakes``; None where absent)."""
     b = scn.consist.brakes
     if b is None:
         return None, None, 0.05
@@ -334,7 +334,7 @@ def hosted_babblers(scn: Scenario) -> list[SendPath]:
 class CoupledPlant:
     """A :class:`~canbrake.physics.train.TrainPlant` behind the plant contract: one command,
     ``brake_force_n`` (NaN = no command = no force), and ``wsp_release`` (the dump valves of
-    wheel-slide protection, with ``train.brakes.wheels``)."""
+    wheel-slide protection, with the wheels component)."""
 
     command_names = ("brake_force_n", "wsp_release")
 

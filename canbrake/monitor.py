@@ -248,7 +248,7 @@ def load_database(dbc_path: str | None, scenario: Any = None) -> Any:
 
 
 def spacing_from_scenario(scn: Any) -> list[float]:
-    """Nominal x_i − x_{i+1} per coupler (m): ``train.coupler.spacing_m``, else the initial gaps."""
+    """Nominal x_i − x_{i+1} per coupler (m): the vehicle types' lengths, else the initial gaps."""
     import numpy as np
 
     sp = scn.consist.coupler.spacing_m

@@ -95,14 +95,14 @@ class EasingConfig(StrictModel):
     zero at standstill; the cap anticipates the brake's lag (``lag_s``, default the actuator's)."""
 
     time_constant_s: float = Field(1.0, gt=0, description="deceleration cap = v / time_constant (1/s)")
-    lag_s: float | None = Field(None, ge=0, description="brake lag the ECU anticipates (default: actuator.lag_s "
+    lag_s: float | None = Field(None, ge=0, description="brake lag the ECU anticipates (default: brake.lag_s "
                                                           "for a realistic actuator, 0 for an ideal one, plus "
                                                           "blending.friction_lag_s)")
 
 
 class WheelsConfig(StrictModel):
     """Wheelsets of every car, with wheel–rail adhesion per axle (Cai 2014's slip curve, eqs. 10–15,
-    its peak scaled to the car's μ: ``actuator.adhesion_mu`` and rail events' ``adhesion_mu``)."""
+    its peak scaled to the car's μ: ``train.wheel_rail.adhesion_mu`` and rail events' ``adhesion_mu``)."""
 
     axles: int = Field(4, ge=1, le=8)
     radius_m: float = Field(0.42, gt=0, description="rolling radius (840 mm wheels)")
@@ -149,7 +149,7 @@ class BrakeSystemConfig(StrictModel):
     @model_validator(mode="after")
     def _wsp_needs_wheels(self) -> "BrakeSystemConfig":
         if self.wsp is not None and self.wsp.enabled and self.wheels is None:
-            raise ValueError("@wsp: wheel-slide protection needs wheels (train.brakes.wheels)")
+            raise ValueError("@wsp: wheel-slide protection needs wheels (the wheels component)")
         return self
 
 

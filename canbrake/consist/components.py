@@ -606,6 +606,23 @@ class TrainSpec(_Model):
         data["actuator"] = ActuatorConfig(**a)
         return TrainConfig.model_validate(data)
 
+    def _kernel_types(self, make: Callable[[VehicleTypeSpec, float], dict[str, Any]]
+                      ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        """The kernel's vehicle types (``make(type, mass)``) and its vehicle list, in the order of
+        ``vehicles``; an entry that gives its own mass makes a type of its own per mass
+        (``NAME@<mass>kg``)."""
+        types: dict[str, Any] = {}
+        vehicles: list[dict[str, Any]] = []
+        for v in self.vehicles:
+            vt = self.vehicle_types[v.type]
+            listed = isinstance(v.mass_kg, list)
+            for m in (v.mass_kg if listed else [v.mass_kg]):  # type: ignore[union-attr]
+                tname = v.type if m is None or m == vt.mass_kg else f"{v.type}@{m:g}kg"
+                if tname not in types:
+                    types[tname] = make(vt, float(vt.mass_kg if m is None else m))  # type: ignore[arg-type]
+                vehicles.append({"type": tname, "count": 1 if listed else v.n()})
+        return types, vehicles
+
     def _lower_heavy_haul(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
         from canbrake.consist.heavy_haul import HeavyHaulTrain
 
@@ -620,31 +637,23 @@ class TrainSpec(_Model):
         if self.wheel_rail.model_dump() != WheelRailSpec().model_dump():
             raise ValueError("@wheel_rail: a draft-gear train's adhesion is each locomotive's wheels component "
                              "(wheels: {model: adhesion_limit, mu, curve})")
-        types: dict[str, Any] = {}
-        vehicles: list[dict[str, Any]] = []
-        for i, v in enumerate(self.vehicles):
-            vt = self.vehicle_types[v.type]
-            for name, vt2 in ((v.type, vt),):
-                if vt2.length_m is None:
-                    raise ValueError(f"@vehicle_types.{name}.length_m: a draft-gear train needs each vehicle's length")
-                if vt2.wheels is not None and vt2.traction is None:
-                    raise ValueError(f"@vehicle_types.{name}.wheels: adhesion on vehicle type {name}, which has no "
-                                     "driven axles (no traction: a wagon); give it a traction envelope or leave "
-                                     "wheels out")
-                if vt2.coupler.gear not in self.draft_gears:
-                    raise ValueError(f"@vehicle_types.{name}.coupler.gear: unknown draft gear {vt2.coupler.gear!r} "
-                                     f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
-            masses = v.mass_kg if isinstance(v.mass_kg, list) else [v.mass_kg]
-            for k, m in enumerate(masses):
-                tname = v.type if m is None or m == vt.mass_kg else f"{v.type}@{m:g}kg"
-                if tname not in types:
-                    types[tname] = {"mass_kg": vt.mass_kg if m is None else m, "length_m": vt.length_m,
-                                    "resistance": _params(vt.resistance), "draft_gear": vt.coupler.gear,
-                                    "brake": _params(vt.brake),
-                                    "traction": _params(vt.traction) if vt.traction is not None else None,
-                                    "adhesion": _params(vt.wheels) if vt.wheels is not None else None}
-                count = 1 if isinstance(v.mass_kg, list) else v.n()
-                vehicles.append({"type": tname, "count": count})
+        for name, vt in self.vehicle_types.items():
+            if not any(v.type == name for v in self.vehicles):
+                continue
+            if vt.length_m is None:
+                raise ValueError(f"@vehicle_types.{name}.length_m: a draft-gear train needs each vehicle's length")
+            if vt.wheels is not None and vt.traction is None:
+                raise ValueError(f"@vehicle_types.{name}.wheels: adhesion on vehicle type {name}, which has no "
+                                 "driven axles (no traction: a wagon); give it a traction envelope or leave "
+                                 "wheels out")
+            if vt.coupler.gear not in self.draft_gears:
+                raise ValueError(f"@vehicle_types.{name}.coupler.gear: unknown draft gear {vt.coupler.gear!r} "
+                                 f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
+        types, vehicles = self._kernel_types(lambda vt, m: {
+            "mass_kg": m, "length_m": vt.length_m, "resistance": _params(vt.resistance),
+            "draft_gear": vt.coupler.gear, "brake": _params(vt.brake),
+            "traction": _params(vt.traction) if vt.traction is not None else None,
+            "adhesion": _params(vt.wheels) if vt.wheels is not None else None})
         data = {"model": "heavy_haul", "vehicle_types": types,
                 "draft_gears": {k: g.model_dump() for k, g in self.draft_gears.items()}, "vehicles": vehicles,
                 "route": self.track.route.model_dump(), "air_brake": self.air_brake.model_dump(),
@@ -662,25 +671,17 @@ class TrainSpec(_Model):
         if wr.adhesion_mu != WheelRailSpec().adhesion_mu or wr.adhesion_limited:
             raise ValueError("@wheel_rail.adhesion_mu: a rigidly coupled train's adhesion follows from its slip curve "
                              "(wheel_rail.conditions)")
-        types: dict[str, Any] = {}
-        vehicles: list[dict[str, Any]] = []
-        for v in self.vehicles:
-            vt = self.vehicle_types[v.type]
-            masses = v.mass_kg if isinstance(v.mass_kg, list) else [v.mass_kg]
-            for m in masses:
-                tname = v.type if m is None or m == vt.mass_kg else f"{v.type}@{m:g}kg"
-                if tname not in types:
-                    r = vt.resistance
-                    w = vt.wheels
-                    t: dict[str, Any] = {"mass_kg": vt.mass_kg if m is None else m}
-                    if r is not None:
-                        c0, c1, c2 = r.davis_n()
-                        t["davis"] = {"c0_n": c0, "c1_n_s_per_m": c1, "c2_n_s2_per_m2": c2}
-                    if w is not None:
-                        t["wheel"] = None if w.wheel is None else w.wheel.model_dump()
-                        t["axles"] = [a.model_dump() for a in w.axles]
-                    types[tname] = t
-                vehicles.append({"type": tname, "count": 1 if isinstance(v.mass_kg, list) else v.n()})
+        def kernel_type(vt: VehicleTypeSpec, m: float) -> dict[str, Any]:
+            t: dict[str, Any] = {"mass_kg": m}
+            if vt.resistance is not None:
+                c0, c1, c2 = vt.resistance.davis_n()
+                t["davis"] = {"c0_n": c0, "c1_n_s_per_m": c1, "c2_n_s2_per_m2": c2}
+            if vt.wheels is not None:
+                t["wheel"] = None if vt.wheels.wheel is None else vt.wheels.wheel.model_dump()
+                t["axles"] = [a.model_dump() for a in vt.wheels.axles]
+            return t
+
+        types, vehicles = self._kernel_types(kernel_type)
         spec = {"curve": wr.curve, "v_floor_mps": wr.v_floor_mps, "conditions": wr.conditions, "base": wr.base,
                 "windows": wr.windows}
         data = {"model": "adhesion", "vehicle_types": types, "vehicles": vehicles, "wheel_rail": spec}
