@@ -41,8 +41,8 @@ receivers after they computed; commands submitted at t_k + c·T and released by 
 period are applied to the step of that tick. Values are exchanged as arrays of shape
 (points, ECUs), quantised in one call per signal and tick for every point.
 
-Where it falls back (:func:`unsupported`): anything it does not reproduce exactly — another train
-family than ``coupled``, controllers other than the three above, realtime mode, the bus timing
+Where it falls back (:func:`unsupported`): anything it does not reproduce exactly — another physics
+kernel than ``coupled`` (Chen couplers), controllers other than the three above, realtime mode, the bus timing
 model, impairments other than delay/loss/jitter (or per-link, or the scenario's own), SecOC,
 fail-safe, peer hold, ECU crashes, external ECUs, a reference position, coupler sensors, multi-page
 frames. ``canbrake sweep`` then runs those points one by one and says why.
@@ -81,7 +81,7 @@ def unsupported(scn: Scenario, base_impairments: int = 0) -> str | None:
     sweep appends its axes' after them); those are not reproduced."""
     from canbrake.build import bus_layout, external_ecus
 
-    train = getattr(scn.train, "model", "coupled")
+    train = scn.train.kernel_name
     if train != "coupled":
         return f"not for {train} trains"
     if scn.mode != "lockstep":

@@ -189,8 +189,9 @@ def _scaled_chen(n: int, overrides: dict[str, Any]) -> Any:
     p = scenario_path(CASE1)
     data = yaml.safe_load(p.read_text())
     data["base_dir"] = str(p.parent)
-    m, v = data["train"]["mass_kg"], data["initial"]["speed_kmh"]
-    data["train"]["mass_kg"] = [m[i % len(m)] for i in range(n)]
+    entry = data["train"]["vehicles"][0]  # case 1: one vehicle type, one mass per car
+    m, v = entry["mass_kg"], data["initial"]["speed_kmh"]
+    entry["mass_kg"] = [m[i % len(m)] for i in range(n)]
     data["initial"]["speed_kmh"] = [v[i % len(v)] for i in range(n)]
     data["initial"]["position_m"] = [10.0 * (i + 1) for i in range(n)]
     return resolve(data, f"{p} ({n} cars)", None, overrides)

@@ -15,7 +15,7 @@ from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.control.base import Controller, make_controller
 from canbrake.nodes.base import Node, PassThrough, SendPath
-from canbrake.scenario import Scenario, TrainConfig, per_car
+from canbrake.scenario import Scenario, per_car
 
 
 class Reference:
@@ -91,7 +91,7 @@ def reference_fn(scn: Scenario) -> Reference:
 
 def build_plant_model(scn: Scenario) -> Any:
     """The physics plant of ``scn``: an object following :class:`canbrake.physics.contract.PlantModel`."""
-    return scn.train.build_plant(scn, scn.data_dir())
+    return scn.train.assemble(scn, scn.data_dir())
 
 
 def build_coupled_plant(scn: Scenario) -> "CoupledPlant":
@@ -107,7 +107,7 @@ def _train_plant(scn: Scenario):
     from canbrake.physics.train import TrainPlant
 
     n = scn.n_cars
-    t = scn.train
+    t = scn.consist
     resistance = None
     if t.davis is not None:
         resistance = DavisResistance(per_car(t.davis.c0_n, n, "c0"), per_car(t.davis.c1_n_s_per_m, n, "c1"),
@@ -154,8 +154,8 @@ def _train_plant(scn: Scenario):
 
 
 def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
-    """(blending, wheelsets, dump-valve lag) of a coupled train's ``train.brakes`` (None where absent)."""
-    b = scn.train.brakes  # type: ignore[union-attr]
+    """(blending, wheelsets, dump-valve lag) of a coupled train's brake equipment (``scn.consist.brakes``; None where absent)."""
+    b = scn.consist.brakes
     if b is None:
         return None, None, 0.05
     from canbrake.physics.brakes import BrakeBlending, Wheelsets
@@ -215,7 +215,7 @@ def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
     for i, p in enumerate(placed, start=1):
         ctrl = build_controller(scn, i)  # its signal names may depend on its parameters (e.g. cai2014's axles)
         sensors = tuple(getattr(ctrl, "sensor_names", ("speed_mps", "position_m")))
-        if scn.plant.coupler_sensors and isinstance(scn.train, TrainConfig):
+        if scn.plant.coupler_sensors and scn.train.kernel_name == "coupled":
             sensors += tuple(x for x in ("deflection_front_m", "deflection_rear_m") if x not in sensors)
         listeners = tuple(j for j in range(1, len(placed) + 1) if i in listens[j])
         specs.append(dbc.EcuSpec(p.name, i, p.vehicle, sensors=sensors,
@@ -286,12 +286,12 @@ def build_controller(scn: Scenario, ecu_index: int) -> Controller:
     p = scn.placement()[ecu_index - 1]
     ctrl = make_controller(p.controller.name, p.controller.params, car_index=ecu_index - 1, n_cars=scn.n_ecus,
                            mass_kg=float(scn.vehicle_masses_kg()[p.vehicle - 1]), dt_s=scn.control_period_s)
-    brakes = getattr(scn.train, "brakes", None)
+    brakes = getattr(scn.consist, "brakes", None)
     if brakes is not None and (brakes.easing is not None or (brakes.wsp is not None and brakes.wsp.enabled)):
         from canbrake.control.brake_functions import brake_functions_of
 
         ctrl = brake_functions_of(ctrl, brakes, scn.actuator)
-    ecp = getattr(scn.train, "ecp_unit_params", None)
+    ecp = getattr(scn.consist, "ecp_unit_params", None)
     if ecp is not None and "brake_force_n" in ctrl.command_names and "ecp_demand" not in ctrl.command_names:
         unit = ecp(p.vehicle)  # None: not an ECP wagon (a locomotive, or a pneumatic train)
         if unit is not None:
@@ -334,7 +334,7 @@ def hosted_babblers(scn: Scenario) -> list[SendPath]:
 class CoupledPlant:
     """A :class:`~canbrake.physics.train.TrainPlant` behind the plant contract: one command,
     ``brake_force_n`` (NaN = no command = no force), and ``wsp_release`` (the dump valves of
-    wheel-slide protection, with ``train.brakes.wheels``)."""
+    wheel-slide protection, with the wheels component)."""
 
     command_names = ("brake_force_n", "wsp_release")
 

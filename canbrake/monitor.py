@@ -248,10 +248,10 @@ def load_database(dbc_path: str | None, scenario: Any = None) -> Any:
 
 
 def spacing_from_scenario(scn: Any) -> list[float]:
-    """Nominal x_i − x_{i+1} per coupler (m): ``train.coupler.spacing_m``, else the initial gaps."""
+    """Nominal x_i − x_{i+1} per coupler (m): the vehicle types' lengths, else the initial gaps."""
     import numpy as np
 
-    sp = scn.train.coupler.spacing_m
+    sp = scn.consist.coupler.spacing_m
     n = scn.n_cars
     if sp is not None:
         return [float(v) for v in np.broadcast_to(np.asarray(sp, dtype=float), (max(n - 1, 0),))]

@@ -21,217 +21,16 @@ from canbrake.bus.impair import ImpairmentSpec
 from canbrake.bus.clock import ClockConfig
 from canbrake.bus.txbuffer import TxBufferConfig
 from canbrake.bus.segments import GatewayConfig, SegmentConfig
-from canbrake.consist import TRAIN_MODELS
-from canbrake.consist.base import VehicleEntry, expand_vehicles
-from canbrake.consist.brakes import BrakeSystemConfig, EdBrake
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, ValidationError, field_validator, model_validator
+from canbrake.consist.coupled import (_INF_OK, ActuatorConfig, PerCar, TrainConfig, _Model,  # noqa: F401
+                                      _non_finite, _raw_non_finite)
+from canbrake.consist.components import MOVED_TOP, TrainSpec
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 KMH = 1.0 / 3.6  # m/s per km/h
-#: most vehicles (and ECUs) a scenario may have: the 29-bit identifier plan holds 4095 ECUs; the
-#: limit is what a run can carry in memory and time, not the bus
-MAX_VEHICLES = 1024
+from canbrake.consist.coupled import MAX_VEHICLES  # noqa: E402,F401 - most vehicles (and ECUs) a scenario may have
 
 
 from canbrake.errors import ScenarioError  # noqa: E402 - defined below the layers (bus/ raises it too)
-
-
-#: fields where inf is meaningful ("unlimited"); NaN is refused everywhere
-_INF_OK = frozenset({"adhesion_mu"})
-
-
-def _non_finite(value: Any, path: str) -> str | None:
-    """Dotted sub-path of the first NaN/inf float in ``value`` (lists and mappings searched),
-    followed by ``=<value>``."""
-    if isinstance(value, float) and not np.isfinite(value):
-        return f"{path}={value}"
-    if isinstance(value, (list, tuple)):
-        for i, v in enumerate(value):
-            if (hit := _non_finite(v, f"{path}.{i}")) is not None:
-                return hit
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if (hit := _non_finite(v, f"{path}.{k}")) is not None:
-                return hit
-    return None
-
-
-def _raw_non_finite(x: Any) -> str | None:
-    """``x`` as written if it is a NaN or infinite number, or a string that reads as one
-    (pydantic turns "nan" into a float), else None."""
-    if isinstance(x, str):
-        try:
-            x = float(x)
-        except ValueError:
-            return None
-    if isinstance(x, float) and not math.isfinite(x):
-        return str(x)
-    return None
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _no_bool_numbers(cls, data: Any) -> Any:
-        """`duration_s: true` is not 1 s: a YAML bool where a number belongs is an error (numbers
-        stay lax otherwise: PyYAML reads 2.0e6 as a string, which pydantic converts)."""
-        if isinstance(data, dict):
-            for name, f in cls.model_fields.items():
-                v = data.get(name)
-                ann = str(f.annotation)
-                if ("float" in ann or "int" in ann) and "bool" not in ann and "Any" not in ann:
-                    vals = v if isinstance(v, list) else [v]
-                    if any(isinstance(x, bool) for x in vals):
-                        raise ValueError(f"@{name}: expected a number, got {str(v).lower()}")
-                    # NaN/inf before the field's bounds: `le=1` would call a NaN "greater than 1"
-                    for i, x in enumerate(vals):
-                        bad = _raw_non_finite(x)
-                        if bad is not None and not (name in _INF_OK and bad == "inf"):
-                            where = f"{name}.{i}" if isinstance(v, list) else name
-                            raise ValueError(f"@{where}: must be a finite number, got {bad}")
-        return data
-
-    @model_validator(mode="after")
-    def _finite(self) -> "_Model":
-        """No NaN or inf in any field (a NaN mass or gain would fail inside a node, after the run
-        directory was replaced), except inf where it means unlimited (``adhesion_mu``)."""
-        for name in type(self).model_fields:
-            if name == "profiles":
-                continue
-            v = getattr(self, name)
-            if isinstance(v, BaseModel):
-                continue  # validated on its own
-            hit = _non_finite(v, name)
-            if hit is not None:
-                if name in _INF_OK and not any(isinstance(x, float) and np.isnan(x)
-                                               for x in (v if isinstance(v, list) else [v])):
-                    continue
-                where, bad = hit.rsplit("=", 1)
-                raise ValueError(f"@{where}: must be a finite number, got {bad}")
-        return self
-
-
-PerCar = Union[float, list[float]]
-
-
-
-
-class CouplerConfig(_Model):
-    """Nonlinear coupler Φ = κ (1 + ε Δl²) Δl between neighbouring cars."""
-
-    stiffness_n_per_m: PerCar = Field(80000.0, description="κ per coupler (n-1 values or one)")
-    epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
-    spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
-    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear's travel ends and its "
-                                     "buffer acts (none by default; docs/braking-models.md)")
-    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0, description="the buffer's loading stiffness beyond the end stop")
-    end_stop_absorption: float = Field(0.6, ge=0, lt=1, description="share of an impact's energy the buffer absorbs "
-                                       "(unloading stiffness (1 - a) x loading)")
-
-    @field_validator("stiffness_n_per_m")
-    @classmethod
-    def _positive_stiffness(cls, v: PerCar) -> PerCar:
-        for x in (v if isinstance(v, list) else [v]):
-            if not x > 0:
-                raise ValueError(f"coupler stiffness must be > 0 N/m, got {x}")
-        return v
-
-
-class DavisTypeConfig(_Model):
-    """Running resistance of one vehicle: c0 + c1 |v| + c2 v² (N, v in m/s)."""
-
-    c0_n: float = Field(0.0, ge=0)
-    c1_n_s_per_m: float = Field(0.0, ge=0)
-    c2_n_s2_per_m2: float = Field(0.0, ge=0)
-
-
-class DavisConfig(_Model):
-    """Running resistance per car: c0 + c1 |v| + c2 v² (N, v in m/s)."""
-
-    c0_n: PerCar = 0.0
-    c1_n_s_per_m: PerCar = 0.0
-    c2_n_s2_per_m2: PerCar = 0.0
-
-
-class CoupledVehicleType(_Model):
-    """A vehicle type of the coupled (Chen) model."""
-
-    mass_kg: float = Field(..., gt=0)
-    length_m: float = Field(20.0, gt=0, description="over couplers; the default spacing of the initial positions")
-    davis: DavisTypeConfig | None = Field(None, description="running resistance c0 + c1 v + c2 v^2 (N, v in m/s)")
-    ed_brake: EdBrake | None = Field(None, description="its electro-dynamic brake under train.brakes.blending: "
-                                                       "{model: per_mass, ...}, {model: envelope, ...} (Li 2024 "
-                                                       "eq. 2) or {model: none} (a trailer); default: the "
-                                                       "blending's ed_max_decel_mps2")
-
-
-class TrainConfig(_Model):
-    """Model "coupled" (the default): Chen 2023's longitudinal train, cars joined by nonlinear
-    couplers (physics/train.py). Vehicles are given either as ``mass_kg`` (one value per car) or
-    as ``vehicle_types`` repeated in ``vehicles``."""
-
-    model: Literal["coupled"] = "coupled"
-    vehicle_types: dict[str, CoupledVehicleType] = Field(default_factory=dict)
-    vehicles: list[VehicleEntry] = Field(default_factory=list)
-    mass_kg: list[float] = Field(default_factory=list, max_length=MAX_VEHICLES)
-    davis: DavisConfig | None = Field(None, description="default: Davis (1926) multiple-unit coefficients per mass")
-    coupler: CouplerConfig = CouplerConfig()
-    grade_permille: float = Field(0.0, ge=-100, le=100, description="track grade, positive uphill (‰)")
-    curve_resistance_n: PerCar = Field(0.0, description="extra resistance per car, e.g. 0.004·m·D_c (N)")
-    brakes: BrakeSystemConfig | None = Field(None, description="brake equipment: blending, easing, wheels with "
-                                                               "adhesion, wheel-slide protection (canbrake.consist.brakes)")
-
-    @field_validator("mass_kg")
-    @classmethod
-    def _positive_mass(cls, v: list[float]) -> list[float]:
-        for i, m in enumerate(v):
-            if not m > 0:
-                raise ValueError(f"car {i + 1}: mass must be > 0 kg, got {m}")
-        return v
-
-    @model_validator(mode="after")
-    def _vehicles(self) -> "TrainConfig":
-        if self.vehicles:
-            if self.mass_kg:
-                raise ValueError("give either mass_kg (one per car) or vehicles (with vehicle_types), not both")
-            expanded = expand_vehicles(self.vehicle_types, self.vehicles)
-            if len(expanded) > MAX_VEHICLES:
-                raise ValueError(f"{len(expanded)} vehicles; at most {MAX_VEHICLES}")
-            self.mass_kg = [t.mass_kg for _, t in expanded]
-            if self.davis is None and any(t.davis is not None for _, t in expanded):
-                zero = DavisTypeConfig()
-                ds = [t.davis or zero for _, t in expanded]
-                self.davis = DavisConfig(c0_n=[d.c0_n for d in ds], c1_n_s_per_m=[d.c1_n_s_per_m for d in ds],
-                                         c2_n_s2_per_m2=[d.c2_n_s2_per_m2 for d in ds])
-            if any(t.ed_brake is not None for _, t in expanded):
-                if self.brakes is None or self.brakes.blending is None:
-                    name = next(nm for nm, t in expanded if t.ed_brake is not None)
-                    raise ValueError(f"@vehicle_types.{name}.ed_brake: an ED brake is blended with the friction "
-                                     "brake by train.brakes.blending, which this train does not have")
-                self.brakes.blending.per_car = [t.ed_brake for _, t in expanded]
-            if self.coupler.spacing_m is None and len(expanded) > 1:
-                self.coupler.spacing_m = [0.5 * (a.length_m + b.length_m) for (_, a), (_, b) in zip(expanded, expanded[1:])]
-            self.vehicles = []
-            self.vehicle_types = {}
-        if not self.mass_kg:
-            raise ValueError("no vehicles: give mass_kg (one per car) or vehicles with vehicle_types")
-        return self
-
-    @property
-    def n_cars(self) -> int:
-        return len(self.mass_kg)
-
-    def vehicle_count(self) -> int:
-        return len(self.mass_kg)
-
-    def vehicle_masses_kg(self) -> np.ndarray:
-        return np.asarray(self.mass_kg, dtype=float)
-
-    def build_plant(self, scn: "Scenario", base_dir: Path | None = None) -> Any:
-        from canbrake.build import build_coupled_plant
-
-        return build_coupled_plant(scn)
 
 
 class InitialConfig(_Model):
@@ -335,18 +134,6 @@ class EcuPlacement(_Model):
         if b < a:
             raise ValueError(f"vehicles {self.vehicles!r}: empty range")
         return list(range(a, b + 1))
-
-
-class ActuatorConfig(_Model):
-    """Brake actuator: ``ideal`` applies the command at once; ``realistic`` adds lag, jerk limit, saturation."""
-
-    model: Literal["ideal", "realistic"] = "ideal"
-    lag_s: float = Field(0.3, gt=0, description="first-order brake lag time constant (realistic)")
-    jerk_limit_mps3: float | None = Field(1.0, gt=0, description="max |dF/dt|/m (realistic; null = none)")
-    max_brake_decel_mps2: float | None = Field(None, gt=0, description="brake rating as force/mass (null = none)")
-    max_traction_accel_mps2: float | None = Field(None, ge=0, description="traction rating as force/mass (null = none)")
-    adhesion_limited: bool = Field(False, description="cap the rail force at μ·m·g")
-    adhesion_mu: PerCar = Field(0.3, description="base wheel-rail adhesion μ per car")
 
 
 class RailEvent(_Model):
@@ -569,17 +356,6 @@ class EcuConfig(_Model):
                                       "frames are on time again")
 
 
-def _train_tag(v: Any) -> str:
-    if isinstance(v, dict):
-        return str(v.get("model", "coupled"))
-    return str(getattr(v, "model", "coupled"))
-
-
-TrainUnion = Annotated[Union[tuple(Annotated[m, Tag(m.model_fields["model"].default)]  # type: ignore[misc]
-                                   for m in (TrainConfig, *TRAIN_MODELS))],
-                       Discriminator(_train_tag)]
-
-
 class Scenario(_Model):
     name: str
     description: str = ""
@@ -596,12 +372,11 @@ class Scenario(_Model):
                                                              "(0.5: half speed for slow hardware)")
     profile: str | None = None
     profiles: dict[str, dict[str, Any]] = Field(default_factory=dict)
-    train: TrainUnion
+    train: TrainSpec = Field(description="the train: vehicle types composed of components (canbrake.consist.components)")
     initial: InitialConfig
     reference: ReferenceConfig
     controller: ControllerConfig = ControllerConfig()
     ecus: list[EcuPlacement] = Field(default_factory=list, description="ECU placement (default: one per vehicle)")
-    actuator: ActuatorConfig = ActuatorConfig()
     events: list[Event] = Field(default_factory=list)
     bus: BusConfig = BusConfig()
     plant: PlantConfig = PlantConfig()
@@ -610,35 +385,42 @@ class Scenario(_Model):
     security: SecurityConfig | None = Field(None, description="authentication of commands and simulation control "
                                                              "(null: off)")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _moved(cls, data: Any) -> Any:
+        """Keys that moved into ``train:`` (the component schema) say where they went."""
+        if isinstance(data, dict):
+            for k, why in MOVED_TOP.items():
+                if k in data:
+                    raise ValueError(f"@{k}: {why}")
+        return data
+
+    @property
+    def consist(self) -> Any:
+        """The train as its physics kernel takes it (internal; assembled from ``train``'s components)."""
+        return self.train.kernel
+
+    @property
+    def actuator(self) -> ActuatorConfig:
+        """Every car's brake/traction equipment of a coupled (Chen-coupler) train, as the kernel
+        takes it (the brake component and train.wheel_rail); the default for other trains."""
+        return getattr(self.consist, "actuator", None) or ActuatorConfig()
+
     @model_validator(mode="after")
     def _per_car_lengths(self) -> "Scenario":
         n = self.n_cars
         checks: list[tuple[str, Any, int]] = [("initial.speed_kmh", self.initial.speed_kmh, n)]
         self._check_placement()
-        if not isinstance(self.train, TrainConfig):
+        if not isinstance(self.consist, TrainConfig):
             if self.initial.position_m is not None:
                 checks.append(("initial.position_m", self.initial.position_m, n))
             for name, value, k in checks:
                 per_car(value, k, name)
             return self._check_times()
         checks += [
-            ("train.curve_resistance_n", self.train.curve_resistance_n, n),
-            ("actuator.adhesion_mu", self.actuator.adhesion_mu, n),
+            ("train.track.curve_resistance_n", self.train.track.curve_resistance_n, n),
+            ("train.wheel_rail.adhesion_mu", self.train.wheel_rail.adhesion_mu, n),
         ]
-        b = self.train.brakes
-        if b is not None and b.blending is not None and b.blending.per_car is not None and len(b.blending.per_car) != n:
-            raise ValueError(f"@train.brakes.blending.per_car: {len(b.blending.per_car)} values, the train has {n} cars")
-        if self.train.davis is not None:
-            d = self.train.davis
-            checks += [("train.davis.c0_n", d.c0_n, n), ("train.davis.c1_n_s_per_m", d.c1_n_s_per_m, n),
-                       ("train.davis.c2_n_s2_per_m2", d.c2_n_s2_per_m2, n)]
-        if n > 1:
-            c = self.train.coupler
-            checks += [("train.coupler.stiffness_n_per_m", c.stiffness_n_per_m, n - 1),
-                       ("train.coupler.epsilon_per_m2", c.epsilon_per_m2, n - 1),
-                       ]
-            if c.spacing_m is not None:
-                checks.append(("train.coupler.spacing_m", c.spacing_m, n - 1))
         if self.initial.position_m is not None:
             checks.append(("initial.position_m", self.initial.position_m, n))
         self._check_easing()
@@ -651,7 +433,7 @@ class Scenario(_Model):
         if wrong and len(lengths) == 1 and len(wrong) >= 2:
             # every per-car list agrees on another train length: the mass list is the odd one out
             m = lengths.pop()
-            raise ValueError(f"@train.mass_kg: has {n} cars, but {', '.join(nm for nm, _ in wrong)} "
+            raise ValueError(f"@train.vehicles: has {n} cars, but {', '.join(nm for nm, _ in wrong)} "
                              f"{'have' if len(wrong) > 1 else 'has'} {m} values: fix the mass list or those")
         for name, value, k in checks:
             per_car(value, k, name)
@@ -660,32 +442,31 @@ class Scenario(_Model):
 
     def _check_easing(self) -> None:
         """Easing anticipates the brake's lag: its time constant must be longer (canbrake.control.brake_functions)."""
-        b = self.train.brakes  # type: ignore[union-attr]
+        b = self.consist.brakes
         if b is None or b.easing is None:
             return
         from canbrake.consist.brakes import easing_lag_s
 
         lag = easing_lag_s(b, self.actuator)
         if not b.easing.time_constant_s > lag:
-            raise ValueError(f"@train.brakes.easing.time_constant_s: must exceed the brake lag it anticipates "
-                             f"({lag:g} s: actuator.lag_s + blending.friction_lag_s, or easing.lag_s), "
+            raise ValueError(f"@train.every_vehicle.brake.easing.time_constant_s: must exceed the brake lag it "
+                             f"anticipates ({lag:g} s: brake.lag_s + brake.blending.friction_lag_s, or easing.lag_s), "
                              f"got {b.easing.time_constant_s:g}")
 
     def _check_spacing(self) -> None:
         """Initial positions and a given coupler spacing must agree: a coupler that would start
         deflected by more than its own spacing means the positions list the cars in the other order."""
-        sp, pos = self.train.coupler.spacing_m, self.initial.position_m  # type: ignore[union-attr]
+        sp, pos = self.consist.coupler.spacing_m, self.initial.position_m
         if sp is None or pos is None or self.n_cars < 2:
             return
-        s = per_car(sp, self.n_cars - 1, "train.coupler.spacing_m")
+        s = per_car(sp, self.n_cars - 1, "spacing")
         dl = np.asarray(pos[:-1], dtype=float) - np.asarray(pos[1:], dtype=float) - s
         bad = np.flatnonzero(np.abs(dl) > np.abs(s))
         if bad.size:
             j = int(bad[0])
             raise ValueError(f"initial.position_m: coupler {j + 1} (cars {j + 1}-{j + 2}) would start deflected by "
-                             f"{dl[j]:g} m, more than its spacing {s[j]:g} m (train.coupler.spacing_m, or the "
-                             f"vehicle types' length_m with car 1 leading); list the positions with car 1 in "
-                             f"front or set train.coupler.spacing_m")
+                             f"{dl[j]:g} m, more than its spacing {s[j]:g} m (the vehicle types' length_m, with car 1 "
+                             f"leading); list the positions with car 1 in front or fix the lengths")
 
     def min_control_period_s(self) -> tuple[float, str]:
         """The shortest control period (s) a CAN bus can carry, and the field of the bit rate it
@@ -746,7 +527,7 @@ class Scenario(_Model):
         if len(set(veh)) != len(veh):
             dup = sorted({x for x in veh if veh.count(x) > 1})
             raise ValueError(f"ecus: more than one ECU on vehicle(s) {', '.join(map(str, dup))}")
-        check = getattr(self.train, "check_ecus", None)  # what the train family's vehicles can take
+        check = getattr(self.consist, "check_ecus", None)  # what the kernel's vehicles can take
         if check is not None:
             check(placed, dt_s=self.control_period_s)
         if self.ecu.crash is not None and self.ecu.crash.car not in veh:
@@ -782,14 +563,14 @@ class Scenario(_Model):
     @property
     def n_cars(self) -> int:
         """Number of vehicles of the consist."""
-        return int(self.train.vehicle_count())
+        return int(self.consist.vehicle_count())
 
     @property
     def n_ecus(self) -> int:
         return len(self.placement())
 
     def vehicle_masses_kg(self) -> np.ndarray:
-        return np.asarray(self.train.vehicle_masses_kg(), dtype=float)
+        return np.asarray(self.consist.vehicle_masses_kg(), dtype=float)
 
     @property
     def n_ticks(self) -> int:
@@ -802,7 +583,7 @@ class Scenario(_Model):
     def initial_position_m(self) -> np.ndarray:
         if self.initial.position_m is not None:
             return np.asarray(self.initial.position_m, dtype=float)
-        sp = self.train.coupler.spacing_m  # type: ignore[union-attr]
+        sp = self.consist.coupler.spacing_m
         spacing = per_car(10.0 if sp is None else sp, max(self.n_cars - 1, 0), "spacing")
         # car 1 leads: x_1 > x_2 > ... with x_i - x_{i+1} = spacing_i
         x = np.zeros(self.n_cars)
@@ -897,7 +678,7 @@ def format_validation_error(source: str, err: ValidationError) -> str:
     """One readable message per problem: ``file: field.path: what is wrong``."""
     lines = []
     for e in err.errors():
-        tags = {"rail", "disturbance", "coupled", *(m.model_fields["model"].default for m in TRAIN_MODELS)}
+        tags = {"rail", "disturbance"}
         loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p in tags))
         msg = e["msg"]
         if e["type"] == "extra_forbidden":

@@ -46,7 +46,7 @@ Classification of a run (columns of results.csv, and the safety map):
 * ``safety``: the worst of ``ok`` < ``degraded`` < ``violation`` < ``unstable``.
 
 Engine (``engine``): by default the points the batch engine supports (:mod:`canbrake.batch`: the
-coupled family with chen2023 / chen2023_compensated / pi and delay/loss/jitter axes, lockstep,
+coupled kernel (Chen couplers) with chen2023 / chen2023_compensated / pi and delay/loss/jitter axes, lockstep,
 ideal timing) run many at once in one process, equal to their per-point runs (signals, metrics,
 verdict; no frames.log or bus statistics); the others run one by one, and a line says why.
 ``engine="batch"`` insists on the batch engine (an error names what it cannot run);

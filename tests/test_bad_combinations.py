@@ -29,8 +29,8 @@ def test_a_brake_pipe_without_a_locomotive_to_feed_it():
 
 
 def test_adhesion_on_a_wagon_without_driven_axles():
-    refused("li2024_pid", {"train.vehicle_types.c80.adhesion": {"mu": 0.3}},
-            r"train.vehicle_types.c80.adhesion: a vehicle without traction")
+    refused("li2024_pid", {"train.vehicle_types.c80.wheels": {"model": "adhesion_limit", "mu": 0.3}},
+            r"train.vehicle_types.c80.wheels: adhesion on vehicle type c80, which has no driven axles")
 
 
 def test_the_drivers_valve_away_from_the_head_of_the_train():
@@ -49,7 +49,7 @@ def test_a_locomotive_controller_on_an_ecp_wagon():
 def test_a_traction_controller_on_a_vehicle_without_axles():
     refused("cai2014_case1", {"ecus.0.vehicle": 2},
             r"ECU traction on vehicle 2 \(carriage\) runs cai2014 for 4 driven axles, but vehicle 2 has no driven "
-            r"axles \(train.vehicle_types.carriage.axles\)")
+            r"axles \(train.vehicle_types.carriage.wheels\)")
     refused("cai2014_case1", {"ecus.0.controller.params.axles": 6},
             r"runs cai2014 for 6 driven axles, but vehicle 1 has 4 driven axles")
 

@@ -240,15 +240,15 @@ def test_each_car_has_its_own_ed_brake_a_trailer_none_a_locomotive_lis_envelope(
 def test_vehicle_type_ed_brakes_need_the_blending_and_fill_it_per_car():
     from canbrake.scenario import ScenarioError
 
-    over = {"train.vehicle_types.trailer.ed_brake": {"model": "none"}}
+    over = {"train.vehicle_types.trailer.brake.ed_brake": {"model": "none"}}
     scn = load_scenario("emu8_low_adhesion", overrides=over)
-    pc = scn.train.brakes.blending.per_car
+    pc = scn.consist.brakes.blending.per_car
     assert [c is not None and c.model == "none" for c in pc] == [True, False, False, True, True, False, False, True]
-    with pytest.raises(ScenarioError, match=r"train.vehicle_types.trailer.ed_brake: an ED brake is blended with the "
-                                            r"friction brake by train.brakes.blending, which this train does not have"):
-        load_scenario("emu8_low_adhesion", overrides={**over, "train.brakes.blending": None})
+    with pytest.raises(ScenarioError, match=r"train.vehicle_types.trailer.brake.ed_brake: an ED brake is blended with the "
+                                            r"friction brake by brake.blending, which this train's brake does not have"):
+        load_scenario("emu8_low_adhesion", overrides={**over, "train.every_vehicle.brake.blending": None})
     with pytest.raises(ScenarioError, match=r"brake_constant_until_kmh: must be at least brake_linear_until_kmh"):
-        load_scenario("emu8_low_adhesion", overrides={"train.vehicle_types.motor.ed_brake": {
+        load_scenario("emu8_low_adhesion", overrides={"train.vehicle_types.motor.brake.ed_brake": {
             "model": "envelope", "brake_slope_kn_per_kmh": 1, "brake_linear_until_kmh": 30, "brake_max_kn": 30,
             "brake_constant_until_kmh": 20, "power_kn_kmh": 900}})
 
@@ -264,7 +264,7 @@ def test_realistic_profile_stops_within_the_comfort_jerk(tmp_path):
 
     scn = load_scenario(ROOT / "scenarios" / "chen2023_case1_fine_rail.yaml", profile="realistic",
                         overrides={"initial.speed_kmh": 30.0, "reference.speed_kmh": 30.0, "duration_s": 12.0})
-    assert scn.train.brakes is not None and scn.train.brakes.easing is not None
+    assert scn.consist.brakes is not None and scn.consist.brakes.easing is not None
     s = run_scenario(scn, tmp_path / "run", backend="inprocess", plots=False)
     assert s["status"] == "ok"
     d = pd.read_csv(tmp_path / "run" / "signals.csv")
@@ -327,8 +327,8 @@ def test_without_the_pipe_model_the_fill_is_the_signal_arrival_plus_one_first_or
 # ------------------------------------------------------------------ locomotive adhesion
 def test_locomotive_traction_and_dynamic_brake_are_limited_by_adhesion():
     scn = load_scenario(ROOT / "scenarios" / "li2024_driver.yaml",
-                        overrides={"train.vehicle_types.hxd1.adhesion": {"mu": 0.1}})
-    model = scn.train.build_plant(scn, scn.data_dir())
+                        overrides={"train.vehicle_types.hxd1.wheels": {"model": "adhesion_limit", "mu": 0.1}})
+    model = scn.train.assemble(scn, scn.data_dir())
     nan = np.full(model.n_vehicles, np.nan)
     m_loco = float(model.mass_kg[0])
     for demand in (-5e6, 5e6):  # traction, electric brake: far beyond the envelope and the rail
@@ -416,7 +416,7 @@ def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
     slips = {}
     for prof in (None, "wsp"):
         scn = load_scenario(path, profile=prof, overrides={"duration_s": 3.5, "events.0.start_s": 0.5})
-        assert (scn.train.brakes.wsp.enabled) == (prof == "wsp")
+        assert (scn.consist.brakes.wsp.enabled) == (prof == "wsp")
         s = run_scenario(scn, tmp_path / str(prof), backend="inprocess", plots=False)
         assert s["status"] == "ok"
         d = pd.read_csv(tmp_path / str(prof) / "signals.csv")
@@ -425,4 +425,4 @@ def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
     assert slips[None] < -0.5  # past the adhesion peak (|λ| = 0.12 for b3 = 2) and on its way to locking
     assert slips["wsp"] > -0.25
     # the switch is an ordinary field
-    assert load_scenario(path, overrides={"train.brakes.wsp.enabled": True}).train.brakes.wsp.enabled
+    assert load_scenario(path, overrides={"train.every_vehicle.brake.wsp.enabled": True}).consist.brakes.wsp.enabled

@@ -35,7 +35,7 @@ def _scenario(case: int = 1, profile: str | None = None, **overrides):
 def _conditions():
     from canbrake.physics.wheel_adhesion import RailCondition
 
-    conds = _scenario(1).train.wheel_rail.conditions
+    conds = _scenario(1).consist.wheel_rail.conditions
     return RailCondition(**conds["dry"].model_dump()), RailCondition(**conds["wet"].model_dump())
 
 
@@ -83,7 +83,7 @@ def test_printed_curve_is_unphysical_and_physical_variant_peaks_where_chosen():
 
 
 def test_rail_switches_to_dry_only_inside_window():
-    rail = _scenario(1).train.wheel_rail.schedule()
+    rail = _scenario(1).consist.wheel_rail.schedule()
     assert rail.at(49.999) == WET and rail.at(50.0) == DRY
     assert rail.at(100.0) == DRY and rail.at(100.001) == WET
 
@@ -104,7 +104,7 @@ def test_steady_slip_under_constant_torque_gives_analytic_mu(variant):
 
 # ------------------------------------------------------------------------------ the plant model and the consist
 def _train(variant: str = "paper"):
-    return _scenario(1, "physical" if variant == "physical" else None).train
+    return _scenario(1, "physical" if variant == "physical" else None).consist
 
 
 def test_consist_describes_the_papers_train():
@@ -130,7 +130,7 @@ def test_scenario_errors_name_the_field(tmp_path):
     with pytest.raises(ScenarioError, match=r"bad.yaml: train.wheel_rail: windows.0.condition: unknown rail condition 'icy'"):
         load_scenario(p)
     data = yaml.safe_load(open(CASE_FILE.format(1)).read())
-    del data["train"]["vehicle_types"]["locomotive"]["wheel"]
+    del data["train"]["vehicle_types"]["locomotive"]["wheels"]["wheel"]
     p.write_text(yaml.safe_dump(data))
     with pytest.raises(ScenarioError, match=r"locomotive.*axles.0: no wheel"):
         load_scenario(p)

@@ -74,7 +74,7 @@ def test_realistic_brake_cannot_hold_one_centimetre_from_table2_speeds(runs):
     assert r.ok
     # not ±1 cm: Table 2's speed spread takes up the whole draft gear travel and reaches the end stop's buffer
     from canbrake.scenario import load_scenario
-    stop = load_scenario(R.scenario_dir() / R.CASE_FILES[1], profile="realistic").train.coupler.end_stop_m
+    stop = load_scenario(R.scenario_dir() / R.CASE_FILES[1], profile="realistic").consist.coupler.end_stop_m
     assert stop > 5 * BOUND and r.metrics["max_abs_deflection_m"] > stop
     assert r.metrics["convergence_time_s"] is None  # not converged after 3 s
     assert r.metrics["peak_brake_applied_decel_mps2"] <= 1.4 + 1e-9  # the brake rating holds
@@ -89,7 +89,7 @@ def test_realistic_from_consistent_speeds_keeps_the_bound(runs):
     assert r.metrics["max_abs_deflection_m"] <= BOUND
 
 
-NO_STOP = {"train.coupler.end_stop_m": None}
+NO_STOP = {"train.every_vehicle.coupler.end_stop_m": None}
 
 
 def test_paper_gains_fail_with_a_realistic_brake(runs):
@@ -103,8 +103,8 @@ def test_paper_gains_fail_with_a_realistic_brake(runs):
     # with the realistic profile's draft gear end stops the deflection is held by the buffer (beyond the
     # gear's travel, short of the coupler's force peak), but the loop still does not converge
     s = runs(1, "realistic", "short-paper-gains", duration_s=5.0, **gains)
-    stop = s.scenario.train.coupler.end_stop_m
-    peak = 1.0 / math.sqrt(-3.0 * s.scenario.train.coupler.epsilon_per_m2)  # the coupler's force peak (m)
+    stop = s.scenario.consist.coupler.end_stop_m
+    peak = 1.0 / math.sqrt(-3.0 * s.scenario.consist.coupler.epsilon_per_m2)  # the coupler's force peak (m)
     assert s.ok and stop < s.metrics["max_abs_deflection_m"] < peak
     assert s.metrics["convergence_time_s"] is None
 

@@ -11,7 +11,10 @@ from chen_runs import CASES, chen_scenario
 
 def _table2(case: int) -> dict:
     scn = chen_scenario(case, duration_s=1.0, profile="paper")
-    return {"train": scn.train.model_dump(), "initial": scn.initial.model_dump(),
+    t = scn.train.model_dump()
+    table2 = {k: t[k] for k in ("vehicles", "track")}  # the rail conditions (train.wheel_rail) are the cases'
+    table2["coupler"] = t["vehicle_types"]["metro_car"]["coupler"]
+    return {"train": table2, "initial": scn.initial.model_dump(),
             "reference": scn.reference.model_dump(), "controller": scn.controller.model_dump(),
             "control_period_s": scn.control_period_s}
 
@@ -24,14 +27,16 @@ def test_the_three_cases_carry_the_same_table2():
 
 def test_positions_in_the_other_order_than_the_spacing_are_an_error():
     # Table 2 lists the cars with car 6 in front (x_i - x_{i+1} = -10 m); vehicle types with a
-    # length put car 1 in front (+10 m): unless coupler.spacing_m says so, that is a 20 m deflection
+    # length put car 1 in front (+10 m): that is a 20 m deflection
     scn = chen_scenario(1, duration_s=1.0)
     data = {"name": "t", "duration_s": 0.1, "initial": scn.initial.model_dump(), "reference": {
         "speed_kmh": 90, "decel_kmh_per_s": 3.5}, "controller": {"name": "pi"},
         "train": {"vehicle_types": {f"car{i + 1}": {"mass_kg": m, "length_m": 10.0}
-                                    for i, m in enumerate(scn.train.mass_kg)},
+                                    for i, m in enumerate(scn.consist.mass_kg)},
                   "vehicles": [{"type": f"car{i + 1}"} for i in range(scn.n_cars)]}}
     with pytest.raises(ScenarioError, match=r"t.yaml: initial.position_m: coupler 1 .* deflected by -20 m"):
         resolve(data, "t.yaml")
-    data["train"]["coupler"] = {"spacing_m": -10.0}
-    assert resolve(data, "t.yaml").train.coupler.spacing_m == -10.0  # as given, not from the lengths
+    # without lengths (Table 2's form) the initial positions space the cars
+    data["train"]["vehicle_types"] = {"car": {}}
+    data["train"]["vehicles"] = [{"type": "car", "mass_kg": list(scn.consist.mass_kg)}]
+    assert resolve(data, "t.yaml").consist.coupler.spacing_m is None

@@ -35,7 +35,7 @@ BASE = CASE1.read_text()
 
 @pytest.mark.parametrize("edit, needles", [
     (lambda t: t.replace("seed: 1", "seed: 1\nbogus_key: 3"), ["bogus_key", "unknown key"]),
-    (lambda t: t.replace("mass_kg: [18000,", "mass_kg: [-18000,"), ["train.mass_kg", "mass must be > 0"]),
+    (lambda t: t.replace("mass_kg: [18000,", "mass_kg: [-18000,"), ["train.vehicles.0.mass_kg", "mass must be > 0"]),
     (lambda t: t.replace("speed_kmh: [88, 93, 87, 89, 92, 95.5]", "speed_kmh: [88, 93]"), ["initial.speed_kmh", "6 values"]),
     (lambda t: t.replace("k: 36", "k: 36\n    kk: 1"), ["controller.params.kk", "unknown parameter"]),
     (lambda t: t.replace("name: chen2023\n", "name: nosuch\n"), ["controller.name", "nosuch"]),

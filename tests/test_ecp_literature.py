@@ -99,12 +99,12 @@ def test_an_emergency_vents_the_brake_pipe_to_zero_with_its_own_lag():
 
 def test_the_scenario_parameter_is_validated_and_its_default_changes_nothing():
     base = load_scenario(ECP)
-    assert base.train.air_brake.application == "service"
-    ab = base.train.build_air_brake(base.train.consist())
+    assert base.consist.air_brake.application == "service"
+    ab = base.consist.build_air_brake(base.consist.consist())
     assert ab.emergency is None and ab.tau == 2.0 and ab.apply_wave == 200.0 and ab.beta_c == 0.8
     assert np.all(ab.cylinder_pressure_pa[1:] == 430e3)
     em = load_scenario(ECP, overrides={"train.air_brake.application": "emergency"})
-    ab = em.train.build_air_brake(em.train.consist())
+    ab = em.consist.build_air_brake(em.consist.consist())
     assert ab.emergency is not None and ab.tau == 1.0 and ab.apply_wave == 250.0 and ab.beta_c == 1.0
     assert ab.cylinder_pressure_pa[1:] == pytest.approx(1.2 * 430e3)
     with pytest.raises(ScenarioError, match="emergency"):
@@ -160,4 +160,4 @@ def test_the_report_replaces_its_section_and_keeps_the_rest(tmp_path):
                        f"{L.brake_delays(tmp_path / 'runs' / p.key, 5.0)['mean_half_s']:.2f}"
     assert cells[10] == f"{re_['max_tension_n'] / 1e3:.0f} / {rp['max_tension_n'] / 1e3:.0f}"
     scn = load_scenario(tmp_path / "runs" / e.key / "scenario.yaml")
-    assert scn.train.air_brake.application == "emergency" and scn.train.air_brake.emergency.pressure_factor == 1.1
+    assert scn.consist.air_brake.application == "emergency" and scn.consist.air_brake.emergency.pressure_factor == 1.1

@@ -19,7 +19,8 @@ EMU = {
     "control_period_s": 0.01,
     "train": {
         "vehicle_types": {"mc": {"mass_kg": 42000.0, "length_m": 24.0,
-                                 "davis": {"c0_n": 900.0, "c1_n_s_per_m": 30.0, "c2_n_s2_per_m2": 6.0}},
+                                 "resistance": {"model": "davis", "c0_n": 900.0, "c1_n_s_per_m": 30.0,
+                                                "c2_n_s2_per_m2": 6.0}},
                           "tc": {"mass_kg": 36000.0, "length_m": 22.0}},
         "vehicles": [{"type": "mc"}, {"type": "tc", "count": 6}, {"type": "mc"}],
     },
@@ -39,14 +40,14 @@ def test_vehicle_types_expand_to_the_consist():
     assert scn.n_cars == 8
     np.testing.assert_array_equal(scn.vehicle_masses_kg(), [42000.0] + [36000.0] * 6 + [42000.0])
     # spacing = half of each neighbour's length; Davis only on the motor cars
-    assert scn.train.coupler.spacing_m == [23.0] + [22.0] * 5 + [23.0]
-    assert scn.train.davis.c0_n == [900.0] + [0.0] * 6 + [900.0]
+    assert scn.consist.coupler.spacing_m == [23.0] + [22.0] * 5 + [23.0]
+    assert scn.consist.davis.c0_n == [900.0] + [0.0] * 6 + [900.0]
 
 
 @pytest.mark.parametrize("bad, needle", [
     ({"vehicles": [{"type": "nope"}]}, "unknown vehicle type 'nope'"),
     ({"vehicles": [{"type": "mc", "count": 0}]}, "count"),
-    ({"mass_kg": [1.0]}, "not both"),
+    ({"mass_kg": [1.0]}, "train.mass_kg: moved to train.vehicles"),
 ])
 def test_bad_consists_name_the_field(bad, needle):
     train = {**EMU["train"], **bad}

@@ -26,7 +26,7 @@ def _force_n(fill: float, v_mps: float, k_full_kn: float, n_blocks: float, frict
 @pytest.mark.parametrize("v_kmh", [0.0, 3.0, 30.0, 60.0, 120.0])
 def test_ecp_fill_inverts_the_brake_force_law(fill: float, v_kmh: float) -> None:
     scn = load_scenario(SCN)
-    unit = scn.train.ecp_unit_params(2)  # a C80 wagon
+    unit = scn.consist.ecp_unit_params(2)  # a C80 wagon
     f = _force_n(fill, v_kmh * KMH, **unit)
     assert ecp_fill_for_force(f, v_kmh * KMH, **unit) == pytest.approx(fill, abs=1e-9)
     # beyond full service: capped; traction or nothing: released

@@ -37,9 +37,14 @@ def train_data() -> dict:
 
 
 def train(**over) -> HeavyHaulTrain:
+    """The scenario's train assembled onto the heavy-haul kernel (``route``: train.track.route)."""
+    from canbrake.consist.components import TrainSpec
+
     d = train_data()
+    if "route" in over:
+        d["track"] = {"route": over.pop("route")}
     d.update(over)
-    return HeavyHaulTrain.model_validate(d)
+    return TrainSpec.model_validate(d).kernel
 
 
 def short_train(n_wagons: int, **over) -> HeavyHaulTrain:
@@ -122,10 +127,12 @@ def test_route_table_errors_name_the_file(tmp_path):
 
 
 def test_unknown_draft_gear_is_named():
+    from canbrake.consist.components import TrainSpec
+
     d = train_data()
-    d["vehicle_types"]["c80"]["draft_gear"] = "MT-3"
-    with pytest.raises(ValueError, match="vehicle_types.c80.draft_gear: unknown draft gear 'MT-3'"):
-        HeavyHaulTrain.model_validate(d)
+    d["vehicle_types"]["c80"]["coupler"]["gear"] = "MT-3"
+    with pytest.raises(ValueError, match="vehicle_types.c80.coupler.gear: unknown draft gear 'MT-3'"):
+        TrainSpec.model_validate(d)
 
 
 def _model_on(route: hh.Route, t: HeavyHaulTrain, v0: float, x0: float, **kw) -> hh.HeavyHaulModel:

@@ -32,7 +32,7 @@ def test_scenarios_load_with_one_locomotive_ecu(name):
     placed = scn.placement()
     assert [(p.name, p.vehicle) for p in placed] == [("loco", 1)]
     assert scn.n_cars == 106 and scn.control_period_s == 0.01
-    assert _scn(name, "disturbance").train.disturbance.enabled
+    assert _scn(name, "disturbance").consist.disturbance.enabled
 
 
 def test_the_li2024_scenarios_share_one_train():

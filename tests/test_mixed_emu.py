@@ -46,9 +46,9 @@ def test_the_scenario_is_the_emu_it_says_and_its_section_moves_along_the_train()
     assert scn.n_cars == scn.n_ecus == 8
     m = scn.vehicle_masses_kg()
     assert list(m[[1, 2, 5, 6]]) == [46000.0] * 4 and list(m[[0, 3, 4, 7]]) == [40000.0] * 4
-    b = scn.train.brakes
+    b = scn.consist.brakes
     assert b.wheels is not None and b.blending is not None and not b.wsp.enabled
-    assert load_scenario(SCN, profile="wsp").train.brakes.wsp.enabled
+    assert load_scenario(SCN, profile="wsp").consist.brakes.wsp.enabled
     assert load_scenario(SCN, profile="dry").events == []
     ev = scn.events
     assert all(a.stop_s <= b.start_s + 1e-9 for a, b in zip(ev, ev[1:]))
@@ -106,7 +106,7 @@ def test_low_adhesion_without_wsp_locks_wheels_and_wsp_prevents_it(runs):
     scn = load_scenario(SCN, profile="wsp")
     assert lo["worst_slip"] < -0.99 and lo["slide_episodes"] >= 8 and lo["cars_sliding"] == list(range(1, 9))
     assert ws["slide_s"] < lo["slide_s"]
-    assert ws["worst_slip"] > -(scn.train.brakes.wsp.slip_release + 0.1)
+    assert ws["worst_slip"] > -(scn.consist.brakes.wsp.slip_release + 0.1)
     assert ws["wsp_venting_s"] > 0 and lo["wsp_venting_s"] == 0
     assert lo["stopping_distance_m"] > dry["stopping_distance_m"] and ws["stopping_distance_m"] > dry["stopping_distance_m"]
     # sliding cars brake less than their neighbours: the couplers carry far more than on dry rail
@@ -138,7 +138,7 @@ def test_a_motor_car_of_all_three_papers_builds_and_runs_with_one_process_per_ec
     import canbrake
 
     scn = load_scenario("emu8_low_adhesion", profile="li_envelope")
-    t = scn.train
+    t = scn.consist
     assert t.coupler.stiffness_n_per_m == 2.0e6 and t.brakes.wheels.axles == 4 and t.brakes.wheels.b1 == 1.786
     models = [c.model if c is not None else "default" for c in t.brakes.blending.per_car]
     assert models == ["none", "envelope", "envelope", "none", "none", "envelope", "envelope", "none"]

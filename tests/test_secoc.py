@@ -208,7 +208,7 @@ def test_a_diverged_run_still_ends_though_its_early_end_frame_is_not_trusted(tmp
     from canbrake.report.chen2023 import _PAPER_GAINS
 
     scn = load_scenario(CASE1, profile="realistic", overrides={"duration_s": 5.0, **_PAPER_GAINS,
-                                                                "train.coupler.end_stop_m": None})
+                                                                "train.every_vehicle.coupler.end_stop_m": None})
     s = run_scenario(scn, tmp_path, backend=backend, plots=False)
     # status: how it executed (ok); verdict: the physics (issue 11, canbrake/analysis/verdict.py)
     assert s["status"] == "ok" and s["verdict"] == "diverged" and s["ticks"] < 500

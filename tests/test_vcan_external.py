@@ -34,7 +34,8 @@ def _scenario(tmp_path: Path) -> Path:
     data = yaml.safe_load((ROOT / "examples" / "foreign_ecu.yaml").read_text())
     data.update(name="foreign_ecu_c_vcan", control_period_s=PERIOD_S, duration_s=0.5,
                 controller={"name": "pi", "params": {"kp": KP}})
-    data["train"]["mass_kg"] = data["train"]["mass_kg"][:3]
+    entry = data["train"]["vehicles"][0]
+    entry["mass_kg"] = entry["mass_kg"][:3]
     data["initial"] = {"speed_kmh": [88, 93, 87], "position_m": [10, 20, 30]}
     # ecu1 and ecu2 listen to ecu3 (their PI law ignores it, but they wait for its state frames)
     data["ecus"] = [{"name": "ecu1", "vehicle": 1, "listens": ["ecu3"]}, {"name": "ecu2", "vehicle": 2, "listens": ["ecu3"]},

@@ -69,7 +69,7 @@ def decel_at_standstill_mps2(t_s: np.ndarray, speed_mps: np.ndarray, accel_mps2:
 
 def braking_summary(t_s: np.ndarray, speed_mps: np.ndarray, accel_mps2: np.ndarray,
                     columns: dict[str, np.ndarray]) -> dict[str, object]:
-    """The ``braking`` section of a run's summary (trains with ``train.brakes``): stop jerk (m/s³,
+    """The ``braking`` section of a run's summary (coupled trains with brake equipment: blending, easing, wheels, WSP): stop jerk (m/s³,
     against :data:`STOP_JERK_LIMIT_MPS3`), deceleration left at standstill (m/s²), and per car, when
     the trace has wheels (``axle<j>_slip_c<i>``), the worst slip (λ < 0 braking), the time any axle
     slid past |λ| = 0.5 (s) and the time its dump valves were open more than half (s)."""

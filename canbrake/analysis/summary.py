@@ -369,7 +369,7 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
                 summary["ticks"] = max(int(summary["ticks"]), int(cols["tick"][-1]) if "tick" in cols else 0)
         if tr is not None and len(tr.t_s) > 1:
             summary["metrics"] = compute_metrics(tr)
-            if getattr(scn.train, "brakes", None) is not None:  # brake equipment: the stop and the wheels
+            if getattr(scn.consist, "brakes", None) is not None:  # brake equipment: the stop and the wheels
                 from canbrake.analysis.braking import braking_summary
 
                 summary["braking"] = braking_summary(tr.t_s, tr.speed_mps, tr.accel_mps2, cols)

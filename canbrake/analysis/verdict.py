@@ -72,7 +72,7 @@ def coupler_limits_m(scn: Any) -> np.ndarray:
         return np.zeros(0)
     from canbrake.arrays import per_car
 
-    c = getattr(scn.train, "coupler", None)
+    c = getattr(scn.consist, "coupler", None)
     if c is None or not hasattr(c, "epsilon_per_m2"):  # another train model: its plant judges its couplers
         return np.full(n - 1, np.inf)
     x0 = scn.initial_position_m()

@@ -1,19 +1,7 @@
-"""Consists as data: the scenario's ``train`` section, one schema per physics model family.
+"""Consists as data: the scenario's ``train`` section (:mod:`canbrake.consist.components`).
 
-Every family is a pydantic model with a ``model`` discriminator that knows its vehicles and
-builds its plant (an object following :class:`canbrake.physics.contract.PlantModel`). Vehicle
-types are defined once and repeated (``vehicles: [{type: c80, count: 105}]``); tables (route,
-reference curves) come from data files next to the scenario.
+A vehicle type is a composition of components (resistance, coupler, brake, traction, wheels), each
+kind a registry of named models with a pydantic parameter schema. The assembler lowers a train onto
+the physics kernel its components call for; the kernel configurations (:mod:`~canbrake.consist.coupled`,
+:mod:`~canbrake.consist.heavy_haul`, :mod:`~canbrake.consist.adhesion`) are internal.
 """
-from __future__ import annotations
-
-#: the train model families besides "coupled" (defined in canbrake/scenario.py): each a pydantic
-#: class with ``model: Literal[...]``, ``vehicle_count()``, ``vehicle_masses_kg()`` and
-#: ``build_plant(scn, base_dir)``; one line per family.
-from canbrake.consist.adhesion import AdhesionTrainConfig  # noqa: E402
-from canbrake.consist.heavy_haul import HeavyHaulTrain  # noqa: E402
-
-TRAIN_MODELS: tuple[type, ...] = (
-    HeavyHaulTrain,
-    AdhesionTrainConfig,  # "adhesion": Cai 2014's high-speed train (driven axles, wheel-rail adhesion)
-)

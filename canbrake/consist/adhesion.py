@@ -1,23 +1,8 @@
-"""Train family ``adhesion``: Cai et al. 2014's high-speed train with driven axles and wheel–rail
-adhesion (:class:`canbrake.physics.wheel_adhesion.AdhesionTrain`).
-
-Edge units as in the field names (SI). Example (the paper's train, ``scenarios/cai2014_case1.yaml``)::
-
-    train:
-      model: adhesion
-      vehicle_types:
-        locomotive:
-          mass_kg: 48000
-          davis: {c0_n: 203.5, c1_n_s_per_m: 145.8, c2_n_s2_per_m2: 3.35}
-          wheel: {radius_m: 0.495, inertia_kgm2: 80}
-          axles: [{load_n: 117600, imbalance: 0.015}, {load_n: 117600, imbalance: -0.015}, ...]
-        carriage: {mass_kg: 48000, davis: {...}}
-      vehicles: [{type: locomotive}, {type: carriage}]
-      wheel_rail:
-        curve: paper
-        conditions: {dry: {b1: 1.786, ...}, wet: {b1: 2.046, ...}}
-        base: wet
-        windows: [{condition: dry, start_s: 50, stop_s: 100}]
+"""The adhesion kernel's configuration: Cai et al. 2014's rigidly coupled train with driven axles and
+wheel–rail adhesion (:class:`canbrake.physics.wheel_adhesion.AdhesionTrain`). Internal: the user
+writes ``train:`` as components (:mod:`canbrake.consist.components`: ``coupler: {model: rigid}``,
+``wheels: {model: driven_axles, wheel, axles}``, ``train.wheel_rail``), assembled into an
+:class:`AdhesionTrainConfig`; the wheel, axle and rail-condition schemas below serve both.
 """
 from __future__ import annotations
 
@@ -179,7 +164,7 @@ class AdhesionTrainConfig(StrictModel):
                 what = "no driven axles" if have == 0 else f"{have} driven axle{'s' * (have > 1)}"
                 raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} ({names[p.vehicle - 1]}) runs "
                                  f"{p.controller.name} for {need} driven axle{'s' * (need > 1)}, but vehicle "
-                                 f"{p.vehicle} has {what} (train.vehicle_types.{names[p.vehicle - 1]}.axles): "
+                                 f"{p.vehicle} has {what} (train.vehicle_types.{names[p.vehicle - 1]}.wheels): "
                                  f"place it on a vehicle with axles or give that vehicle type its axles")
 
     def make_plant(self, *, speed_mps: float = 0.0, position_m: float = 0.0, substeps: int = 1) -> Any:

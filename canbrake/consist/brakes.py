@@ -1,13 +1,15 @@
-"""Brake equipment of the coupled (Chen) train as data: ``train.brakes`` (every part opt-in).
-
-Example (``scenarios/chen2023_case2_low_adhesion.yaml``)::
+"""Brake equipment of the coupled (Chen) kernel as data (every part opt-in). In the scenario these are
+parts of the brake component (``ideal``/``electro_pneumatic``: ``blending``, ``easing``, ``wsp``,
+``ed_brake``) and the wheels component (``wheelsets``), e.g. ``scenarios/chen2023_case2_low_adhesion.yaml``::
 
     train:
-      brakes:
-        blending: {ed_max_decel_mps2: 1.0, fade_start_kmh: 10, fade_end_kmh: 3, friction_lag_s: 0.2}
-        easing: {time_constant_s: 1.0}
-        wheels: {axles: 4, radius_m: 0.42, inertia_kgm2: 120}
-        wsp: {enabled: true, slip_release: 0.2, slip_reapply: 0.1}
+      every_vehicle:
+        brake:
+          model: electro_pneumatic
+          blending: {ed_max_decel_mps2: 1.0, fade_start_kmh: 10, fade_end_kmh: 3, friction_lag_s: 0.2}
+          easing: {time_constant_s: 1.0}
+          wsp: {enabled: true, slip_release: 0.2, slip_reapply: 0.1}
+        wheels: {model: wheelsets, axles: 4, radius_m: 0.42, inertia_kgm2: 120}
 
 Physics: :mod:`canbrake.physics.brakes` (blending, wheelsets, dump valve); ECU functions (easing,
 wheel-slide protection): :mod:`canbrake.control.brake_functions`. Units in the field names.
@@ -93,14 +95,14 @@ class EasingConfig(StrictModel):
     zero at standstill; the cap anticipates the brake's lag (``lag_s``, default the actuator's)."""
 
     time_constant_s: float = Field(1.0, gt=0, description="deceleration cap = v / time_constant (1/s)")
-    lag_s: float | None = Field(None, ge=0, description="brake lag the ECU anticipates (default: actuator.lag_s "
+    lag_s: float | None = Field(None, ge=0, description="brake lag the ECU anticipates (default: brake.lag_s "
                                                           "for a realistic actuator, 0 for an ideal one, plus "
                                                           "blending.friction_lag_s)")
 
 
 class WheelsConfig(StrictModel):
     """Wheelsets of every car, with wheel–rail adhesion per axle (Cai 2014's slip curve, eqs. 10–15,
-    its peak scaled to the car's μ: ``actuator.adhesion_mu`` and rail events' ``adhesion_mu``)."""
+    its peak scaled to the car's μ: ``train.wheel_rail.adhesion_mu`` and rail events' ``adhesion_mu``)."""
 
     axles: int = Field(4, ge=1, le=8)
     radius_m: float = Field(0.42, gt=0, description="rolling radius (840 mm wheels)")
@@ -136,7 +138,8 @@ class WspConfig(StrictModel):
 
 
 class BrakeSystemConfig(StrictModel):
-    """``train.brakes`` of the coupled family; every part is off unless given."""
+    """The coupled kernel's brake equipment (assembled from the brake and wheels components); every
+    part is off unless given."""
 
     blending: BlendingConfig | None = None
     easing: EasingConfig | None = None
@@ -146,7 +149,7 @@ class BrakeSystemConfig(StrictModel):
     @model_validator(mode="after")
     def _wsp_needs_wheels(self) -> "BrakeSystemConfig":
         if self.wsp is not None and self.wsp.enabled and self.wheels is None:
-            raise ValueError("@wsp: wheel-slide protection needs wheels (train.brakes.wheels)")
+            raise ValueError("@wsp: wheel-slide protection needs wheels (the wheels component)")
         return self
 
 

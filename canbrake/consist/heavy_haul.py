@@ -1,4 +1,8 @@
-"""The heavy-haul consist of Li, Zeng & Yu 2024 as data (``train: {model: heavy_haul, ...}``).
+"""The heavy-haul kernel's configuration (Li, Zeng & Yu 2024). Internal: the user writes ``train:``
+as components (:mod:`canbrake.consist.components`); a train with draft-gear couplers and air brakes
+is assembled into a :class:`HeavyHaulTrain`, and the component models ``per_weight``, ``air``,
+``envelope``, ``adhesion_limit`` and ``train.draft_gears``/``air_brake``/``track.route`` reuse the
+schemas below.
 
 One locomotive and many wagons, each a point mass (eq. 16) joined by couplers with hysteretic draft
 gears, running resistance per unit weight (eq. 3), a route from a CSV table (grade ‰ and curve radius

@@ -41,7 +41,7 @@ class BrakeFunctions(Controller):
         super().__init__(inner.car_index, inner.n_cars, inner.mass_kg, inner.dt_s)
         self.inner = inner
         if easing_tau_s is not None and not easing_tau_s > lag_s:
-            raise ValueError(f"train.brakes.easing.time_constant_s ({easing_tau_s:g} s) must exceed the brake lag "
+            raise ValueError(f"brake.easing.time_constant_s ({easing_tau_s:g} s) must exceed the brake lag "
                              f"it anticipates ({lag_s:g} s)")
         self.easing_tau_s = easing_tau_s
         self.ease_gain = None if easing_tau_s is None else (1.0 - lag_s / easing_tau_s) / easing_tau_s
@@ -124,7 +124,7 @@ class BrakeFunctions(Controller):
 
 
 def brake_functions_of(ctrl: Controller, brakes: Any, actuator: Any) -> BrakeFunctions:
-    """Wrap ``ctrl`` with the ECU functions configured in ``train.brakes`` (a
+    """Wrap ``ctrl`` with the ECU functions configured in the brake component (a
     :class:`canbrake.consist.brakes.BrakeSystemConfig`); ``actuator`` is the scenario's actuator
     section (its lag is what easing anticipates unless ``easing.lag_s`` is given)."""
     from canbrake.consist.brakes import easing_lag_s

@@ -158,7 +158,7 @@ class CaiSetup:
 
     @classmethod
     def of(cls, scn: Scenario) -> "CaiSetup":
-        tr = scn.train
+        tr = scn.consist
         types = tr.expanded()
         loco = next(t for t in types if t.axles)
         wheel = loco.axles[0].wheel or loco.wheel

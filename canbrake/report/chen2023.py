@@ -263,7 +263,7 @@ def execute(spec: RunSpec, runs_dir: str | Path, force: bool = False,
                                {"status": "failed", "message": f"plant: {type(e).__name__}: {e}"}, plots=False)
     cols = read_signals(run_dir / "signals.csv")
     tr = trace_from_columns(cols, scn.n_cars)
-    tr.mass_kg = np.asarray(scn.train.mass_kg, dtype=float)
+    tr.mass_kg = np.asarray(scn.consist.mass_kg, dtype=float)
     summary["metrics"] = compute_metrics(tr)  # the generic metrics plus the mass-aware ones
     summary["report_trace_version"] = TRACE_VERSION
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=1))
@@ -459,7 +459,7 @@ def diverged_at(r: RunResult) -> float | None:
 
 def coupler_limits_m(scn: Scenario) -> tuple[float, float]:
     """|Δl| at which the softening coupler's force peaks, and at which it reverses (m)."""
-    eps = float(np.min(np.atleast_1d(np.asarray(scn.train.coupler.epsilon_per_m2, dtype=float))))
+    eps = float(np.min(np.atleast_1d(np.asarray(scn.consist.coupler.epsilon_per_m2, dtype=float))))
     if eps >= 0:
         return math.inf, math.inf
     return 1.0 / math.sqrt(-3.0 * eps), 1.0 / math.sqrt(-eps)
@@ -636,7 +636,7 @@ def claims(res: dict[str, RunResult]) -> list[Claim]:
         r = get(3, profile, prefix)
         d = disturbance_events(r.scenario)[0]
         rms = observer_error_rms(r, OBS_CAR, d.start_s)
-        amp = float(np.max(np.abs(np.asarray(d.amplitude_n, dtype=float)))) / r.scenario.train.mass_kg[OBS_CAR - 1]
+        amp = float(np.max(np.abs(np.asarray(d.amplitude_n, dtype=float)))) / r.scenario.consist.mass_kg[OBS_CAR - 1]
         return f"RMS error {fmt(rms, 2, 'm/s²')} on a {fmt(amp, 2, 'm/s²')} disturbance", \
             (rms is not None and rms <= 0.1 * amp)
     add(Claim(f"Case 3: the observer tracks the disturbance on car {OBS_CAR}, Fig. 17", "precise estimate",
@@ -1316,10 +1316,10 @@ def _deviations(res: dict[str, RunResult]) -> list[str]:
     f2, f2_90, fp = follow_worst(r2, ev), follow_worst(r2_90, ev), follow_worst(p2, ev)
     rec90 = recovery_s(r2_90, ev)
     mu = np.asarray(ev.adhesion_mu, dtype=float)
-    m = np.asarray(r2.scenario.train.mass_kg, dtype=float)
+    m = np.asarray(r2.scenario.consist.mass_kg, dtype=float)
     cap = float(np.sum(mu * m) / np.sum(m) * 9.81)
     a_ref = r2.scenario.reference.decel_mps2
-    kappa = float(np.min(np.atleast_1d(np.asarray(r2.scenario.train.coupler.stiffness_n_per_m, dtype=float))))
+    kappa = float(np.min(np.atleast_1d(np.asarray(r2.scenario.consist.coupler.stiffness_n_per_m, dtype=float))))
     tc1 = q1.metrics["convergence_time_s"]
     inside = tc1 is None or tc1 > ev.start_s
     B.append((f"**In the realistic profile the skid of case 2 ({ev.start_s:g}–{ev.stop_s:g} s) falls inside the initial "
@@ -1343,7 +1343,7 @@ def _deviations(res: dict[str, RunResult]) -> list[str]:
     q3, q3o = disturbance_error(res["case3-realistic-proposed"]), disturbance_error(res["case3-realistic-no-observer"])
     q3_90, q3_90o = disturbance_error(res["case3-realistic-from-90"]), disturbance_error(res["case3-realistic-from-90-no-observer"])
     dist = disturbance_events(res["case3-realistic-proposed"].scenario)[0]
-    m3 = np.asarray(res["case3-realistic-proposed"].scenario.train.mass_kg, dtype=float)
+    m3 = np.asarray(res["case3-realistic-proposed"].scenario.consist.mass_kg, dtype=float)
     need_jerk = float(2 * math.pi * dist.frequency_hz * np.max(np.asarray(dist.amplitude_n, dtype=float) / m3))
     rp, rq, r90 = (p3o["rms_kmh"] / p3["rms_kmh"], q3o["rms_kmh"] / q3["rms_kmh"], q3_90o["rms_kmh"] / q3_90["rms_kmh"])
 

@@ -385,7 +385,7 @@ def generate(out_dir: str | Path = DEFAULT_OUT, runs_dir: str | Path = "runs/rep
     paper = load_scenario(scen, profile="paper")
     T = paper.control_period_s
     v0 = paper.reference.speed_kmh / 3.6 if hasattr(paper.reference, "speed_kmh") else math.nan
-    n = paper.train.vehicle_count() if hasattr(paper.train, "vehicle_count") else len(paper.train.mass_kg)
+    n = paper.n_cars
     a1 = float(paper.controller.params.get("alpha1", math.nan))
     lam = n * a1
     tau = math.pi / 2 / lam if lam > 0 else math.nan
@@ -414,7 +414,7 @@ def generate(out_dir: str | Path = DEFAULT_OUT, runs_dir: str | Path = "runs/rep
     w("## What was swept, and how a run is judged")
     w("")
     real = load_scenario(scen, profile="realistic")
-    stop = real.train.coupler.end_stop_m
+    stop = real.consist.coupler.end_stop_m
     w(f"* Scenario `scenarios/{SCENARIO}` (Chen case 1), profiles `paper` ({1000 * T:g} ms, ideal actuator, the "
       f"paper's gains) and `realistic` ({1000 * real.control_period_s:g} ms, metro brake, retuned gains"
       + (f", draft gear travel {100 * stop:g} cm then a buffer" if stop else "") + "; see the scenario file).")

@@ -158,7 +158,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
     for c in cases:
         for sp in c.specs():
             runs.setdefault(sp.key, (sp, c.duration_s))
-    h0 = {k: float(E._load(sp, d, sd).train.integration_step_s) for k, (sp, d) in runs.items()}
+    h0 = {k: float(E._load(sp, d, sd).consist.integration_step_s) for k, (sp, d) in runs.items()}
     fine = {k: (step_spec(sp, h0[k]), d) for k, (sp, d) in runs.items()} if step_check else {}
     tasks = [(sp, d, str(runs_dir), force, str(sd)) for sp, d in (*runs.values(), *fine.values())]
     outs = map_tasks(E._star, tasks, jobs)
@@ -292,7 +292,7 @@ def _explain(rows: dict[str, dict[str, float]], sd: Path) -> list[str]:
     key -> ECP and pneumatic stopping distances, reduction %, predicted Δ, peak forces)."""
     from canbrake.scenario import load_scenario
 
-    train = load_scenario(sd / E.SCENARIO).train
+    train = load_scenario(sd / E.SCENARIO).consist
     ab = train.air_brake
     em = ab.emergency
     cap = min(1000.0 * g.curve_kn[-1] for g in train.draft_gears.values())  # N

@@ -196,7 +196,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-h
     sd = Path(scen_dir) if scen_dir else None
     runs_dir.mkdir(parents=True, exist_ok=True)
     base = _load(Case("as-written", "", None), sd)
-    h0, p0 = float(base.train.integration_step_s), float(base.control_period_s)
+    h0, p0 = float(base.consist.integration_step_s), float(base.control_period_s)
     fine = {c.key: half_step(c, h0) for c in cases} if step_check else {}
     # The control period is not halved here: twice the frames would need twice the bit rate, beyond
     # classic CAN's 1 Mbit/s, and at this rate the bus would be at ~90 % load (see the section's text).
@@ -219,8 +219,8 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-h
     w("")
     w(f"`scenarios/{SCENARIO}`: Li 2024's heavy-haul train (an HXD1 locomotive and 105 C80 wagons, their "
       "draft gears with slack, the air brake of `li2024_ecp_over_can` in ECP mode: each cylinder follows its "
-      f"ECU's demand with a {base.train.air_brake.cylinder_tau_s:g} s lag, full service β_c = "
-      f"{base.train.air_brake.service_factor:g}) braking from {3.6 * v0:.0f} km/h on level track, one ECU per "
+      f"ECU's demand with a {base.consist.air_brake.cylinder_tau_s:g} s lag, full service β_c = "
+      f"{base.consist.air_brake.service_factor:g}) braking from {3.6 * v0:.0f} km/h on level track, one ECU per "
       f"vehicle on a CAN bus of {base.bus.bitrate_bps / 1e3:g} kbit/s with the timing model, a "
       f"{1e3 * p0:g} ms control period. Two ways of braking it:")
     w("")

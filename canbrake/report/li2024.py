@@ -606,13 +606,13 @@ def _step_section(res: dict) -> str:
 
 def train_of(scen_dir: Path):
     """The heavy-haul train of the Li scenarios (validated :class:`canbrake.consist.heavy_haul.HeavyHaulTrain`)."""
-    return _load(DRIVER_SCENARIO, None, {}, scen_dir).train
+    return _load(DRIVER_SCENARIO, None, {}, scen_dir).consist
 
 
 def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s: float, elapsed_s: float,
                    cmds: dict[str, str], scen_dir: Path) -> Path:
     tr = train_of(scen_dir)
-    unc = _load(SCENARIO_OF["smc"], None, {}, scen_dir).train.uncertainty
+    unc = _load(SCENARIO_OF["smc"], None, {}, scen_dir).consist.uncertainty
     dscn = _load(DRIVER_SCENARIO, None, {}, scen_dir)
     drv = dscn.ecus[0].controller.params
     v0_kmh = float(np.atleast_1d(dscn.initial.speed_kmh)[0])

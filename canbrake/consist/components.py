@@ -1,0 +1,709 @@
+"""A train as components: the scenario's ``train:`` section and the assembler behind it.
+
+A vehicle type is a composition of components, one per kind::
+
+    train:
+      vehicle_types:
+        c80:
+          mass_kg: 100000
+          length_m: 12.0
+          resistance: {model: per_weight, a_n_per_kn: 0.92, b_n_per_kn_per_kmh: 0.0048, c_n_per_kn_per_kmh2: 0.000125}
+          coupler: {model: draft_gear, gear: MT-2}
+          brake: {model: air, kind: shoe, cylinder_diameter_mm: 254, ...}
+      vehicles: [{type: hxd1}, {type: c80, count: 105}]
+      every_vehicle: {}        # components deep-merged over every vehicle type (a profile's override for all)
+      track: {route: {file: data/li2024_route.csv}}
+      air_brake: {mode: ecp, ...}
+
+Component kinds (:data:`KINDS`) and their built-in models:
+
+==============  =============================================================================
+``resistance``  ``davis`` (c0 + c1 v + c2 v², N), ``per_weight`` (Li eq. 3, N per kN of weight)
+``coupler``     ``chen`` (κ (1 + ε Δl²) Δl with optional end stop), ``draft_gear`` (Li's hysteretic
+                draft gear with slack: ``gear`` names one of ``train.draft_gears``), ``rigid``
+``brake``       ``ideal``, ``electro_pneumatic`` (lag, jerk limit; both with ED/friction
+                ``blending``, ``easing``, ``wsp``), ``air`` (automatic air brake rigging, Li Table 1)
+``traction``    ``envelope`` (Li's traction and dynamic-brake envelope; makes a locomotive)
+``wheels``      ``wheelsets`` (axles with Cai's slip curve, for WSP), ``driven_axles`` (Cai's
+                driven axles), ``adhesion_limit`` (Li: μ·m·g caps traction and dynamic brake)
+==============  =============================================================================
+
+Each kind is a registry of named models with a pydantic parameter schema; a user's package adds
+models through the entry point group ``canbrake.components.<kind>`` (the entry point's name is the
+model name, its object the pydantic class), or in code with :func:`register_component`.
+
+Vehicles: ``vehicles: [{type: NAME, count: N}]``; an entry may give ``mass_kg`` (one value, or a
+list: one vehicle per value), so Chen's six different cars are one type and one entry.
+
+The assembler (:meth:`TrainSpec.assemble`) builds the plant through the one plant contract
+(:mod:`canbrake.physics.contract`). In this stage it chooses among the three physics kernels by the
+components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes ->
+``TrainPlant``; draft gears with air brakes -> ``HeavyHaulModel``; rigid coupling with driven axles
+-> ``AdhesionTrain``. A combination no kernel implements yet is refused in one line that names the
+vehicle type, its components and what each kernel takes.
+"""
+from __future__ import annotations
+
+import copy
+from typing import Any, Callable, Literal, TypeVar
+
+import numpy as np
+from pydantic import BaseModel, Field, PrivateAttr, ValidationError, model_validator
+
+from canbrake.consist import heavy_haul as hhs
+from canbrake.consist.adhesion import AdhesionSpec, Axle, Wheel
+from canbrake.consist.brakes import BlendingConfig, EasingConfig, EdBrake, WheelsConfig, WspConfig
+from canbrake.consist.coupled import MAX_VEHICLES, PerCar, _Model
+
+#: the component kinds of a vehicle type, in the order they are listed
+KINDS = ("resistance", "coupler", "brake", "traction", "wheels")
+#: entry point group of a user's components of kind K: f"{ENTRY_POINT_GROUP}.{K}"
+ENTRY_POINT_GROUP = "canbrake.components"
+
+_REGISTRY: dict[str, dict[str, type[BaseModel]]] = {k: {} for k in KINDS}
+M = TypeVar("M", bound=type[BaseModel])
+
+
+class ComponentError(ValueError):
+    """An unknown component kind or model, or a component class that cannot be used."""
+
+
+def register_component(kind: str, name: str) -> Callable[[M], M]:
+    """Class decorator: register the pydantic model class as component model ``name`` of ``kind``."""
+    if kind not in _REGISTRY:
+        raise ComponentError(f"unknown component kind {kind!r} (kinds: {', '.join(KINDS)})")
+
+    def deco(cls: M) -> M:
+        _REGISTRY[kind][name] = cls
+        return cls
+    return deco
+
+
+def _entry_points(kind: str) -> list[Any]:
+    from importlib.metadata import entry_points
+
+    return list(entry_points(group=f"{ENTRY_POINT_GROUP}.{kind}"))
+
+
+def available_components(kind: str) -> list[str]:
+    """Model names of ``kind``: built-in and from installed entry points."""
+    return sorted(set(_REGISTRY[kind]) | {ep.name for ep in _entry_points(kind)})
+
+
+def component_class(kind: str, name: str) -> type[BaseModel]:
+    """The pydantic class of component model ``name`` of ``kind`` (built-in or entry point);
+    :class:`ComponentError` (one line, listing the known models) otherwise."""
+    if kind not in _REGISTRY:
+        raise ComponentError(f"unknown component kind {kind!r} (kinds: {', '.join(KINDS)})")
+    if name not in _REGISTRY[kind]:
+        for ep in _entry_points(kind):
+            if ep.name == name:
+                try:
+                    cls = ep.load()
+                except Exception as e:  # noqa: BLE001 - a broken plugin is the user's to fix, in one line
+                    raise ComponentError(f"{kind} model {name!r} (entry point {ep.value}) cannot be loaded: "
+                                         f"{type(e).__name__}: {e}") from None
+                if not (isinstance(cls, type) and issubclass(cls, BaseModel)):
+                    raise ComponentError(f"{kind} model {name!r} (entry point {ep.value}) is not a pydantic model class")
+                _REGISTRY[kind].setdefault(name, cls)
+                break
+    try:
+        return _REGISTRY[kind][name]
+    except KeyError:
+        raise ComponentError(f"unknown {kind} model {name!r} (models: {', '.join(available_components(kind))})") from None
+
+
+def parse_component(kind: str, data: Any) -> BaseModel | None:
+    """``data`` (a mapping with ``model``) as the component's pydantic object; ValueError whose
+    message starts with ``@sub.path: `` for a bad parameter (the scenario loader's convention)."""
+    if data is None or isinstance(data, BaseModel):
+        return data
+    if not isinstance(data, dict):
+        raise ValueError(f"expected a mapping with `model` ({', '.join(available_components(kind))}), got {data!r}")
+    if "model" not in data:
+        raise ValueError(f"@model: missing: which {kind} model ({', '.join(available_components(kind))})")
+    cls = component_class(kind, str(data["model"]))
+    try:
+        return cls.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        if msg.startswith("@") and ": " in msg:
+            sub, msg = msg[1:].split(": ", 1)
+            loc = f"{loc}.{sub}" if loc else sub
+        raise ValueError(f"@{loc}: {msg}" if loc else msg) from None
+
+
+def _params(c: BaseModel | None) -> dict[str, Any]:
+    """A component's parameters (its fields without ``model``)."""
+    return {} if c is None else {k: v for k, v in c.model_dump().items() if k != "model"}
+
+
+def _name(c: BaseModel | None) -> str:
+    return "none" if c is None else str(getattr(c, "model", type(c).__name__))
+
+
+# --- built-in component models ----------------------------------------------------------------
+@register_component("resistance", "davis")
+class DavisResistance(_Model):
+    """Running resistance c0 + c1 v + c2 v² (N, v in m/s)."""
+
+    model: Literal["davis"] = "davis"
+    c0_n: float = Field(0.0, ge=0)
+    c1_n_s_per_m: float = Field(0.0, ge=0)
+    c2_n_s2_per_m2: float = Field(0.0, ge=0)
+
+    def davis_n(self) -> tuple[float, float, float]:
+        """(c0 N, c1 N s/m, c2 N s²/m²): what the coupled and adhesion kernels take."""
+        return float(self.c0_n), float(self.c1_n_s_per_m), float(self.c2_n_s2_per_m2)
+
+
+@register_component("resistance", "per_weight")
+class PerWeightResistance(hhs.Resistance):
+    """Li 2024 eq. 3: w = a + b v + c v² in N per kN of weight (v in km/h)."""
+
+    model: Literal["per_weight"] = "per_weight"
+
+
+@register_component("coupler", "chen")
+class ChenCoupler(_Model):
+    """Chen 2023's nonlinear coupler Φ = κ (1 + ε Δl²) Δl at the vehicle's rear, with an optional
+    end stop (buffer) beyond ``end_stop_m``."""
+
+    model: Literal["chen"] = "chen"
+    stiffness_n_per_m: float = Field(80000.0, gt=0, description="κ")
+    epsilon_per_m2: float = Field(-0.5, description="ε (1/m²; negative = softening)")
+    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the buffer acts (none by default)")
+    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0)
+    end_stop_absorption: float = Field(0.6, ge=0, lt=1)
+
+
+@register_component("coupler", "draft_gear")
+class DraftGearCoupler(_Model):
+    """Li 2024's hysteretic draft gear with slack at the vehicle's rear: ``gear`` names one of
+    ``train.draft_gears``."""
+
+    model: Literal["draft_gear"] = "draft_gear"
+    gear: str = Field(min_length=1)
+
+
+@register_component("coupler", "rigid")
+class RigidCoupler(_Model):
+    """Rigid coupling (Cai 2014, eq. 3): the train moves as one body."""
+
+    model: Literal["rigid"] = "rigid"
+
+
+class _EpFunctions(_Model):
+    """The brake control functions both ideal and electro-pneumatic equipment may carry."""
+
+    max_brake_decel_mps2: float | None = Field(None, gt=0, description="brake rating as force/mass (null = none)")
+    max_traction_accel_mps2: float | None = Field(None, ge=0, description="traction rating as force/mass (null = none)")
+    blending: BlendingConfig | None = Field(None, description="ED/friction blending")
+    easing: EasingConfig | None = Field(None, description="jerk-limited easing before standstill (an ECU function)")
+    wsp: WspConfig | None = Field(None, description="wheel-slide protection (needs wheels)")
+    ed_brake: EdBrake | None = Field(None, description="this vehicle's electro-dynamic brake under the blending: "
+                                     "{model: per_mass, ...}, {model: envelope, ...} (Li 2024 eq. 2) or {model: none} "
+                                     "(a trailer); default: blending.ed_max_decel_mps2")
+
+
+@register_component("brake", "ideal")
+class IdealBrake(_EpFunctions):
+    """Brake/traction equipment that applies the commanded force at once (Chen 2023)."""
+
+    model: Literal["ideal"] = "ideal"
+
+
+@register_component("brake", "electro_pneumatic")
+class ElectroPneumaticBrake(_EpFunctions):
+    """Electro-pneumatic brake/traction equipment: first-order lag, jerk limit, ratings."""
+
+    model: Literal["electro_pneumatic"] = "electro_pneumatic"
+    lag_s: float = Field(0.3, gt=0, description="first-order brake lag time constant")
+    jerk_limit_mps3: float | None = Field(1.0, gt=0, description="max |dF/dt|/m (null = none)")
+
+
+@register_component("brake", "air")
+class AirBrakeRigging(hhs.BrakeEquipment):
+    """A vehicle's automatic air brake rigging (Li 2024 Table 1); the train's pipe and its
+    application rules are ``train.air_brake``."""
+
+    model: Literal["air"] = "air"
+
+
+@register_component("traction", "envelope")
+class TractionEnvelope(hhs.Envelope):
+    """Li 2024's traction and dynamic-brake envelope; a vehicle with traction is a locomotive."""
+
+    model: Literal["envelope"] = "envelope"
+
+
+@register_component("wheels", "wheelsets")
+class Wheelsets(WheelsConfig):
+    """Wheelsets with wheel–rail adhesion per axle (Cai's slip curve scaled to train.wheel_rail.adhesion_mu)."""
+
+    model: Literal["wheelsets"] = "wheelsets"
+
+
+@register_component("wheels", "driven_axles")
+class DrivenAxles(_Model):
+    """Cai 2014's driven axles: their loads, imbalances and wheels (``wheel`` the default)."""
+
+    model: Literal["driven_axles"] = "driven_axles"
+    wheel: Wheel | None = None
+    axles: list[Axle] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _wheels_known(self) -> "DrivenAxles":
+        for k, a in enumerate(self.axles):
+            if a.wheel is None and self.wheel is None:
+                raise ValueError(f"@axles.{k}: no wheel (give the axle's or the component's `wheel`)")
+        return self
+
+
+@register_component("wheels", "adhesion_limit")
+class AdhesionLimit(hhs.Adhesion):
+    """Li 2024: μ·m·g caps a locomotive's traction and dynamic brake (constant or Curtius–Kniffler)."""
+
+    model: Literal["adhesion_limit"] = "adhesion_limit"
+
+
+# --- the train ----------------------------------------------------------------------------------
+#: keys of the former train families, and where they went
+_MOVED_TRAIN = {
+    "model": "there are no train families any more: a train is vehicle_types composed of components (resistance, "
+             "coupler, brake, traction, wheels) and vehicles; the physics follows from the components",
+    "mass_kg": "moved to train.vehicles (e.g. vehicles: [{type: car, mass_kg: [18000, 21000]}]) or "
+               "train.vehicle_types.NAME.mass_kg",
+    "coupler": "moved to the coupler component: train.every_vehicle.coupler or train.vehicle_types.NAME.coupler "
+               "({model: chen, stiffness_n_per_m, epsilon_per_m2, end_stop_m, ...})",
+    "davis": "moved to the resistance component: train.vehicle_types.NAME.resistance or train.every_vehicle.resistance "
+             "({model: davis, c0_n, c1_n_s_per_m, c2_n_s2_per_m2})",
+    "grade_permille": "moved to train.track.grade_permille",
+    "curve_resistance_n": "moved to train.track.curve_resistance_n",
+    "route": "moved to train.track.route",
+    "brakes": "moved to the components: blending, easing and wsp to the brake component (train.every_vehicle.brake: "
+              "{model: ideal|electro_pneumatic, blending, easing, wsp}), wheels to the wheels component "
+              "(train.every_vehicle.wheels: {model: wheelsets, axles, radius_m, ...})",
+}
+_MOVED_TYPE = {
+    "davis": "moved to resistance: {model: davis, c0_n, c1_n_s_per_m, c2_n_s2_per_m2}",
+    "draft_gear": "moved to coupler: {model: draft_gear, gear: NAME}",
+    "wheel": "moved to wheels: {model: driven_axles, wheel, axles}",
+    "axles": "moved to wheels: {model: driven_axles, wheel, axles}",
+    "adhesion": "moved to wheels: {model: adhesion_limit, mu, curve}",
+}
+#: top-level scenario keys that moved into train:
+MOVED_TOP = {
+    "actuator": "moved to train: each vehicle type's brake component (train.every_vehicle.brake or "
+                "train.vehicle_types.NAME.brake: {model: ideal|electro_pneumatic, lag_s, jerk_limit_mps3, "
+                "max_brake_decel_mps2, max_traction_accel_mps2}) and train.wheel_rail (adhesion_mu, adhesion_limited)",
+}
+
+
+def _deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+class VehicleTypeSpec(_Model):
+    """One kind of vehicle: mass (kg), length over couplers (m) and its components (each a mapping
+    with ``model``; see the module docstring). A component left out takes the kernel's default
+    (Chen's coupler, an ideal brake, the default running resistance of the coupled kernel)."""
+
+    mass_kg: float | None = Field(None, gt=0, description="default for the vehicles of this type")
+    length_m: float | None = Field(None, gt=0, description="over couplers; spaces the vehicles at rest")
+    resistance: Any = None
+    coupler: Any = None
+    brake: Any = None
+    traction: Any = None
+    wheels: Any = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved_and_parsed(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        for k, why in _MOVED_TYPE.items():
+            if k in data:
+                raise ValueError(f"@{k}: {why}")
+        data = dict(data)
+        for kind in KINDS:
+            if data.get(kind) is not None:
+                try:
+                    data[kind] = parse_component(kind, data[kind])
+                except ValueError as e:
+                    msg = str(e)
+                    raise ValueError(f"@{kind}.{msg[1:]}" if msg.startswith("@") else f"@{kind}: {msg}") from None
+        return data
+
+    def components(self) -> dict[str, str]:
+        return {k: _name(getattr(self, k)) for k in KINDS}
+
+
+class VehicleEntrySpec(_Model):
+    """``count`` vehicles of type ``type``; ``mass_kg``: their mass (one value), or one vehicle per
+    value of a list (then ``count`` is the list's length)."""
+
+    type: str
+    count: int | None = Field(None, ge=1, le=10_000)
+    mass_kg: float | list[float] | None = None
+
+    @model_validator(mode="after")
+    def _count(self) -> "VehicleEntrySpec":
+        if isinstance(self.mass_kg, list):
+            if not self.mass_kg:
+                raise ValueError("@mass_kg: an empty list")
+            if self.count is not None and self.count != len(self.mass_kg):
+                raise ValueError(f"@count: {self.count}, but mass_kg lists {len(self.mass_kg)} vehicles")
+            for i, m in enumerate(self.mass_kg):
+                if not m > 0:
+                    raise ValueError(f"@mass_kg.{i}: mass must be > 0 kg, got {m}")
+        elif self.mass_kg is not None and not self.mass_kg > 0:
+            raise ValueError(f"@mass_kg: mass must be > 0 kg, got {self.mass_kg}")
+        return self
+
+    def n(self) -> int:
+        return len(self.mass_kg) if isinstance(self.mass_kg, list) else (self.count or 1)
+
+
+class TrackSpec(_Model):
+    """The track: a constant grade and curve resistance, or a route file (grade and curvature by position)."""
+
+    grade_permille: float = Field(0.0, ge=-100, le=100, description="positive uphill (‰)")
+    curve_resistance_n: PerCar = Field(0.0, description="extra resistance per vehicle, e.g. 0.004·m·D_c (N)")
+    route: hhs.Route | None = Field(None, description="route file: position_m, grade_permille, curve_radius_m")
+
+
+class WheelRailSpec(_Model):
+    """Wheel–rail conditions: the adhesion μ per vehicle and whether it caps the rail force
+    (μ·m·g), and Cai's slip-curve rail conditions (``conditions``, ``base``, ``windows``, ``curve``)."""
+
+    adhesion_mu: PerCar = Field(0.3, description="base wheel-rail adhesion μ per vehicle")
+    adhesion_limited: bool = Field(False, description="cap the rail force at μ·m·g")
+    curve: Literal["paper", "physical"] = "paper"
+    v_floor_mps: float = Field(0.1, gt=0)
+    conditions: dict[str, Any] | None = Field(None, description="slip-curve coefficients by rail condition")
+    base: str | None = None
+    windows: list[Any] = Field(default_factory=list)
+
+
+def _support(kinds: dict[str, set[str | None]]) -> str:
+    return ", ".join(f"{k} {'|'.join(sorted(x or 'none' for x in v))}" for k, v in kinds.items())
+
+
+#: what each physics kernel implements, by component kind (None: the component left out)
+KERNELS: dict[str, dict[str, set[str | None]]] = {
+    "coupled": {"coupler": {"chen", None}, "brake": {"ideal", "electro_pneumatic", None},
+                "resistance": {"davis", None}, "traction": {None}, "wheels": {"wheelsets", None}},
+    "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
+                   "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
+    "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", None}, "traction": {None},
+                 "wheels": {"driven_axles", None}},
+}
+_KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhesion": "AdhesionTrain"}
+#: train-level fields only the heavy-haul kernel uses
+_HH_ONLY = ("draft_gears", "air_brake", "uncertainty", "disturbance", "start_position_m", "integration_step_s")
+
+
+def _hh_defaults() -> dict[str, Any]:
+    return {"draft_gears": {}, "air_brake": None, "uncertainty": 0.0, "disturbance": hhs.Disturbance(),
+            "start_position_m": 0.0, "integration_step_s": 0.01}
+
+
+_HH_DEFAULTS = _hh_defaults()
+
+
+def _fits(vt: VehicleTypeSpec, kernel: str) -> bool:
+    for kind, ok in KERNELS[kernel].items():
+        c = getattr(vt, kind)
+        name = None if c is None else getattr(c, "model", None)
+        if kind == "resistance" and c is not None and name not in ok and kernel != "heavy_haul" \
+                and callable(getattr(c, "davis_n", None)):
+            continue  # a user's resistance model that gives Davis coefficients
+        if name not in ok:
+            return False
+    return True
+
+
+class TrainSpec(_Model):
+    """``train:``: vehicle types composed of components, the vehicles, and the train-level parts."""
+
+    vehicle_types: dict[str, VehicleTypeSpec] = Field(min_length=1)
+    vehicles: list[VehicleEntrySpec] = Field(min_length=1)
+    every_vehicle: dict[str, Any] = Field(default_factory=dict, description="components (and mass_kg/length_m) "
+                                          "deep-merged over every vehicle type: an override for all vehicles")
+    track: TrackSpec = Field(default_factory=TrackSpec)
+    wheel_rail: WheelRailSpec = Field(default_factory=WheelRailSpec)
+    draft_gears: dict[str, hhs.DraftGear] = Field(default_factory=dict, description="draft gears by name "
+                                                  "(coupler: {model: draft_gear, gear: NAME})")
+    air_brake: hhs.AirBrake | None = Field(None, description="the automatic air brake: brake pipe, mode "
+                                           "(pneumatic or ecp), application; fed from the leading locomotive")
+    uncertainty: float = Field(0.0, ge=-0.5, le=0.5, description="δ: non-control forces are (1 + δ) x nominal")
+    disturbance: hhs.Disturbance = Field(default_factory=hhs.Disturbance)
+    start_position_m: float = Field(0.0, description="draft-gear trains: the first vehicle's centre on the route")
+    integration_step_s: float = Field(0.01, gt=0, description="draft-gear trains: the integration step")
+
+    _kernel: Any = PrivateAttr(None)
+    _kernel_name: str = PrivateAttr("")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _moved_and_merged(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        for k, why in _MOVED_TRAIN.items():
+            if k in data:
+                raise ValueError(f"@{k}: {why}")
+        every = data.get("every_vehicle")
+        types = data.get("vehicle_types")
+        if isinstance(every, dict) and every and isinstance(types, dict):
+            data = dict(data)
+            data["vehicle_types"] = {k: _deep_merge(v, every) if isinstance(v, dict) else v for k, v in types.items()}
+        return data
+
+    @model_validator(mode="after")
+    def _assemble(self) -> "TrainSpec":
+        ex = self.expanded()
+        if len(ex) > MAX_VEHICLES:
+            raise ValueError(f"@vehicles: {len(ex)} vehicles; at most {MAX_VEHICLES}")
+        kernel = self._choose_kernel(ex)
+        if kernel != "heavy_haul":
+            given = [k for k in _HH_ONLY if getattr(self, k) != _HH_DEFAULTS[k]] + \
+                    (["track.route"] if self.track.route is not None else [])
+            if given:
+                raise ValueError(f"@{given[0]}: used by draft-gear trains (coupler: {{model: draft_gear}}) only; "
+                                 f"this train's couplers are {_name(ex[0][1].coupler) if ex[0][1].coupler else 'chen'}")
+        self._kernel_name = kernel
+        self._kernel = getattr(self, f"_lower_{kernel}")(ex)
+        return self
+
+    # --- the vehicles --------------------------------------------------------------------------
+    def expanded(self) -> list[tuple[str, VehicleTypeSpec, float]]:
+        """(type name, type, mass kg) per vehicle, front first; ValueError naming an unknown type
+        or a vehicle without a mass."""
+        out: list[tuple[str, VehicleTypeSpec, float]] = []
+        for i, v in enumerate(self.vehicles):
+            vt = self.vehicle_types.get(v.type)
+            if vt is None:
+                raise ValueError(f"@vehicles.{i}.type: unknown vehicle type {v.type!r} "
+                                 f"(vehicle_types: {', '.join(sorted(self.vehicle_types))})")
+            if v.mass_kg is None and vt.mass_kg is None:
+                raise ValueError(f"@vehicles.{i}.mass_kg: no mass: give it here or in vehicle_types.{v.type}.mass_kg")
+            masses = v.mass_kg if isinstance(v.mass_kg, list) else [v.mass_kg if v.mass_kg is not None
+                                                                     else vt.mass_kg] * v.n()
+            out += [(v.type, vt, float(m)) for m in masses]  # type: ignore[arg-type]
+        return out
+
+    def _choose_kernel(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> str:
+        first = ex[0][1]
+        cname = _name(first.coupler) if first.coupler is not None else None
+        guess = next((k for k, sup in KERNELS.items() if cname in sup["coupler"]), "coupled")
+        for name, vt, _ in ex:
+            if not _fits(vt, guess):
+                alt = [k for k in KERNELS if all(_fits(t, k) for _, t, _ in ex)]
+                if alt:
+                    return alt[0]
+                comps = ", ".join(f"{k}={v}" for k, v in vt.components().items())
+                sup = "; ".join(f"{k} ({_KERNEL_PLANT[k]}) takes {_support(s)}" for k, s in KERNELS.items())
+                raise ValueError(f"@vehicle_types.{name}: no physics kernel implements this train yet: vehicle type "
+                                 f"{name} has {comps} (with {_name(ex[0][1].coupler) if cname else 'chen'} couplers "
+                                 f"at the head); {sup}")
+        return guess
+
+    @property
+    def kernel(self) -> Any:
+        """The assembled kernel configuration (internal): its ``build_plant(scn, base_dir)`` builds the plant."""
+        return self._kernel
+
+    @property
+    def kernel_name(self) -> str:
+        """``coupled``, ``heavy_haul`` or ``adhesion``: the physics kernel the components chose."""
+        return self._kernel_name
+
+    def assemble(self, scn: Any, base_dir: Any = None) -> Any:
+        """The plant of scenario ``scn`` (an object following :class:`canbrake.physics.contract.PlantModel`)."""
+        return self._kernel.build_plant(scn, base_dir)
+
+    # --- lowering onto today's kernels ----------------------------------------------------------
+    def _uniform(self, ex: list[tuple[str, VehicleTypeSpec, float]], kind: str, what: str,
+                 per_vehicle: frozenset[str] = frozenset()) -> BaseModel | None:
+        """The component ``kind`` every vehicle shares (the coupled kernel takes one for the train;
+        the fields ``per_vehicle`` may differ)."""
+        first_name, first = ex[0][0], getattr(ex[0][1], kind)
+        dump = lambda c: None if c is None else c.model_dump(exclude=set(per_vehicle))  # noqa: E731
+        for name, vt, _ in ex[1:]:
+            c = getattr(vt, kind)
+            if dump(c) != dump(first):
+                raise ValueError(f"@vehicle_types.{name}.{kind}: the coupled kernel (TrainPlant) takes one {what} for "
+                                 f"the whole train; vehicle types {first_name} and {name} differ (set it in "
+                                 f"train.every_vehicle.{kind})")
+        return first
+
+    def _lower_coupled(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
+        from canbrake.consist.brakes import BrakeSystemConfig
+        from canbrake.consist.coupled import ActuatorConfig, TrainConfig
+
+        n = len(ex)
+        for name, vt, _ in ex:
+            b = vt.brake
+            if b is not None and getattr(b, "wsp", None) is not None and b.wsp.enabled and vt.wheels is None:
+                raise ValueError(f"@vehicle_types.{name}.brake.wsp: wheel-slide protection needs axles, and vehicle "
+                                 f"type {name} has no wheels (give it wheels: {{model: wheelsets, axles, radius_m, "
+                                 f"inertia_kgm2}})")
+        brake = self._uniform(ex, "brake", "brake equipment (but its ed_brake)", frozenset({"ed_brake"}))
+        wheels = self._uniform(ex, "wheels", "wheelset model")
+        data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
+        if any(vt.resistance is not None for _, vt, _ in ex):
+            ds = [vt.resistance.davis_n() if vt.resistance is not None else (0.0, 0.0, 0.0) for _, vt, _ in ex]
+            data["davis"] = {"c0_n": [d[0] for d in ds], "c1_n_s_per_m": [d[1] for d in ds],
+                             "c2_n_s2_per_m2": [d[2] for d in ds]}
+        cps = [vt.coupler if vt.coupler is not None else ChenCoupler() for _, vt, _ in ex]
+        act = cps[:-1] or cps
+        coupler: dict[str, Any] = {}
+        for f in ("stiffness_n_per_m", "epsilon_per_m2"):
+            vals = [float(getattr(c, f)) for c in act]
+            coupler[f] = vals[0] if len(set(vals)) == 1 else vals
+        for f in ("end_stop_m", "end_stop_stiffness_n_per_m", "end_stop_absorption"):
+            vals = [getattr(c, f) for c in act]
+            if len(set(vals)) > 1:
+                j = vals.index(next(v for v in vals if v != vals[0]))
+                raise ValueError(f"@vehicle_types.{ex[j][0]}.coupler.{f}: the coupled kernel takes one {f} for every "
+                                 f"coupler; vehicle types {ex[0][0]} and {ex[j][0]} differ")
+            coupler[f] = vals[0]
+        lengths = [vt.length_m for _, vt, _ in ex]
+        if n > 1 and all(x is not None for x in lengths):
+            coupler["spacing_m"] = [0.5 * (a + b) for a, b in zip(lengths, lengths[1:])]  # type: ignore[operator]
+        data["coupler"] = coupler
+        data["grade_permille"] = self.track.grade_permille
+        data["curve_resistance_n"] = self.track.curve_resistance_n
+        parts = {k: getattr(brake, k, None) for k in ("blending", "easing", "wsp")}
+        eds = [getattr(vt.brake, "ed_brake", None) for _, vt, _ in ex]
+        if any(e is not None for e in eds):
+            if parts["blending"] is None:
+                name = next(nm for (nm, _, _), e in zip(ex, eds) if e is not None)
+                raise ValueError(f"@vehicle_types.{name}.brake.ed_brake: an ED brake is blended with the friction "
+                                 "brake by brake.blending, which this train's brake does not have")
+            parts["blending"] = BlendingConfig.model_validate(
+                {**parts["blending"].model_dump(exclude={"per_car"}),
+                 "per_car": [None if e is None else e.model_dump() for e in eds]})
+        if wheels is not None:
+            parts["wheels"] = WheelsConfig.model_validate(_params(wheels))
+        if any(v is not None for v in parts.values()):
+            data["brakes"] = BrakeSystemConfig(**parts)
+        a: dict[str, Any] = {"adhesion_limited": self.wheel_rail.adhesion_limited,
+                             "adhesion_mu": self.wheel_rail.adhesion_mu}
+        if brake is not None:
+            a["max_brake_decel_mps2"] = brake.max_brake_decel_mps2
+            a["max_traction_accel_mps2"] = brake.max_traction_accel_mps2
+            if brake.model == "electro_pneumatic":
+                a.update(model="realistic", lag_s=brake.lag_s, jerk_limit_mps3=brake.jerk_limit_mps3)
+        data["actuator"] = ActuatorConfig(**a)
+        return TrainConfig.model_validate(data)
+
+    def _kernel_types(self, make: Callable[[VehicleTypeSpec, float], dict[str, Any]]
+                      ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+        """The kernel's vehicle types (``make(type, mass)``) and its vehicle list, in the order of
+        ``vehicles``; an entry that gives its own mass makes a type of its own per mass
+        (``NAME@<mass>kg``)."""
+        types: dict[str, Any] = {}
+        vehicles: list[dict[str, Any]] = []
+        for v in self.vehicles:
+            vt = self.vehicle_types[v.type]
+            listed = isinstance(v.mass_kg, list)
+            for m in (v.mass_kg if listed else [v.mass_kg]):  # type: ignore[union-attr]
+                tname = v.type if m is None or m == vt.mass_kg else f"{v.type}@{m:g}kg"
+                if tname not in types:
+                    types[tname] = make(vt, float(vt.mass_kg if m is None else m))  # type: ignore[arg-type]
+                vehicles.append({"type": tname, "count": 1 if listed else v.n()})
+        return types, vehicles
+
+    def _lower_heavy_haul(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
+        from canbrake.consist.heavy_haul import HeavyHaulTrain
+
+        if self.air_brake is None:
+            raise ValueError("@air_brake: vehicles with air brakes need the train's brake pipe and its rules "
+                             "(train.air_brake: mode, apply_wave_mps, release_wave_mps, cylinder_tau_s, service_factor)")
+        if self.track.route is None:
+            raise ValueError("@track.route: a draft-gear train runs on a route file (train.track.route: {file: ...})")
+        if self.track.grade_permille != 0 or self.track.curve_resistance_n != 0:
+            raise ValueError("@track.grade_permille: a draft-gear train takes its grade and curves from "
+                             "train.track.route")
+        if self.wheel_rail.model_dump() != WheelRailSpec().model_dump():
+            raise ValueError("@wheel_rail: a draft-gear train's adhesion is each locomotive's wheels component "
+                             "(wheels: {model: adhesion_limit, mu, curve})")
+        for name, vt in self.vehicle_types.items():
+            if not any(v.type == name for v in self.vehicles):
+                continue
+            if vt.length_m is None:
+                raise ValueError(f"@vehicle_types.{name}.length_m: a draft-gear train needs each vehicle's length")
+            if vt.wheels is not None and vt.traction is None:
+                raise ValueError(f"@vehicle_types.{name}.wheels: adhesion on vehicle type {name}, which has no "
+                                 "driven axles (no traction: a wagon); give it a traction envelope or leave "
+                                 "wheels out")
+            if vt.coupler.gear not in self.draft_gears:
+                raise ValueError(f"@vehicle_types.{name}.coupler.gear: unknown draft gear {vt.coupler.gear!r} "
+                                 f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
+        types, vehicles = self._kernel_types(lambda vt, m: {
+            "mass_kg": m, "length_m": vt.length_m, "resistance": _params(vt.resistance),
+            "draft_gear": vt.coupler.gear, "brake": _params(vt.brake),
+            "traction": _params(vt.traction) if vt.traction is not None else None,
+            "adhesion": _params(vt.wheels) if vt.wheels is not None else None})
+        data = {"model": "heavy_haul", "vehicle_types": types,
+                "draft_gears": {k: g.model_dump() for k, g in self.draft_gears.items()}, "vehicles": vehicles,
+                "route": self.track.route.model_dump(), "air_brake": self.air_brake.model_dump(),
+                "uncertainty": self.uncertainty, "disturbance": self.disturbance.model_dump(),
+                "start_position_m": self.start_position_m, "integration_step_s": self.integration_step_s}
+        return _validated(HeavyHaulTrain, data)
+
+    def _lower_adhesion(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
+        from canbrake.consist.adhesion import AdhesionTrainConfig
+
+        wr = self.wheel_rail
+        if wr.conditions is None or wr.base is None:
+            raise ValueError("@wheel_rail.conditions: a rigidly coupled train with driven axles needs the rail "
+                             "conditions of its slip curve (wheel_rail: conditions, base, windows)")
+        if wr.adhesion_mu != WheelRailSpec().adhesion_mu or wr.adhesion_limited:
+            raise ValueError("@wheel_rail.adhesion_mu: a rigidly coupled train's adhesion follows from its slip curve "
+                             "(wheel_rail.conditions)")
+        def kernel_type(vt: VehicleTypeSpec, m: float) -> dict[str, Any]:
+            t: dict[str, Any] = {"mass_kg": m}
+            if vt.resistance is not None:
+                c0, c1, c2 = vt.resistance.davis_n()
+                t["davis"] = {"c0_n": c0, "c1_n_s_per_m": c1, "c2_n_s2_per_m2": c2}
+            if vt.wheels is not None:
+                t["wheel"] = None if vt.wheels.wheel is None else vt.wheels.wheel.model_dump()
+                t["axles"] = [a.model_dump() for a in vt.wheels.axles]
+            return t
+
+        types, vehicles = self._kernel_types(kernel_type)
+        spec = {"curve": wr.curve, "v_floor_mps": wr.v_floor_mps, "conditions": wr.conditions, "base": wr.base,
+                "windows": wr.windows}
+        data = {"model": "adhesion", "vehicle_types": types, "vehicles": vehicles, "wheel_rail": spec}
+        return _validated(AdhesionTrainConfig, data)
+
+
+def _validated(cls: type[BaseModel], data: dict[str, Any]) -> Any:
+    """``cls.model_validate(data)`` with a problem as ``@path: message`` (the loader's convention)."""
+    try:
+        return cls.model_validate(data)
+    except ValidationError as e:
+        err = e.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"])
+        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
+        if msg.startswith("Value error, "):
+            msg = msg[len("Value error, "):]
+        if msg.startswith("@") and ": " in msg:
+            sub, msg = msg[1:].split(": ", 1)
+            loc = f"{loc}.{sub}" if loc else sub
+        raise ValueError(f"@{loc}: {msg}" if loc else msg) from None
+
+
+def vehicle_masses_kg(spec: TrainSpec) -> np.ndarray:
+    """Masses (kg) per vehicle, front first."""
+    return np.array([m for _, _, m in spec.expanded()], dtype=float)

@@ -1,0 +1,191 @@
+"""The coupled (Chen) kernel's configuration: what :func:`canbrake.build.build_coupled_plant` needs.
+
+Internal: the user writes ``train:`` as components (:mod:`canbrake.consist.components`); the
+assembler lowers a train whose couplers are Chen's and whose brakes are ideal or
+electro-pneumatic into a :class:`TrainConfig` (per-car lists, SI) and an :class:`ActuatorConfig`.
+Also home of the strict base model every scenario section derives from (``_Model``).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from canbrake.consist.brakes import BrakeSystemConfig
+
+#: most vehicles (and ECUs) a scenario may have: the 29-bit identifier plan holds 4095 ECUs; the
+#: limit is what a run can carry in memory and time, not the bus
+MAX_VEHICLES = 1024
+
+
+#: fields where inf is meaningful ("unlimited"); NaN is refused everywhere
+_INF_OK = frozenset({"adhesion_mu"})
+
+
+def _non_finite(value: Any, path: str) -> str | None:
+    """Dotted sub-path of the first NaN/inf float in ``value`` (lists and mappings searched),
+    followed by ``=<value>``."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return f"{path}={value}"
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            if (hit := _non_finite(v, f"{path}.{i}")) is not None:
+                return hit
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if (hit := _non_finite(v, f"{path}.{k}")) is not None:
+                return hit
+    return None
+
+
+def _raw_non_finite(x: Any) -> str | None:
+    """``x`` as written if it is a NaN or infinite number, or a string that reads as one
+    (pydantic turns "nan" into a float), else None."""
+    if isinstance(x, str):
+        try:
+            x = float(x)
+        except ValueError:
+            return None
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    return None
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_default=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_bool_numbers(cls, data: Any) -> Any:
+        """`duration_s: true` is not 1 s: a YAML bool where a number belongs is an error (numbers
+        stay lax otherwise: PyYAML reads 2.0e6 as a string, which pydantic converts)."""
+        if isinstance(data, dict):
+            for name, f in cls.model_fields.items():
+                v = data.get(name)
+                ann = str(f.annotation)
+                if ("float" in ann or "int" in ann) and "bool" not in ann and "Any" not in ann:
+                    vals = v if isinstance(v, list) else [v]
+                    if any(isinstance(x, bool) for x in vals):
+                        raise ValueError(f"@{name}: expected a number, got {str(v).lower()}")
+                    # NaN/inf before the field's bounds: `le=1` would call a NaN "greater than 1"
+                    for i, x in enumerate(vals):
+                        bad = _raw_non_finite(x)
+                        if bad is not None and not (name in _INF_OK and bad == "inf"):
+                            where = f"{name}.{i}" if isinstance(v, list) else name
+                            raise ValueError(f"@{where}: must be a finite number, got {bad}")
+        return data
+
+    @model_validator(mode="after")
+    def _finite(self) -> "_Model":
+        """No NaN or inf in any field (a NaN mass or gain would fail inside a node, after the run
+        directory was replaced), except inf where it means unlimited (``adhesion_mu``)."""
+        for name in type(self).model_fields:
+            if name == "profiles":
+                continue
+            v = getattr(self, name)
+            if isinstance(v, BaseModel):
+                continue  # validated on its own
+            hit = _non_finite(v, name)
+            if hit is not None:
+                if name in _INF_OK and not any(isinstance(x, float) and np.isnan(x)
+                                               for x in (v if isinstance(v, list) else [v])):
+                    continue
+                where, bad = hit.rsplit("=", 1)
+                raise ValueError(f"@{where}: must be a finite number, got {bad}")
+        return self
+
+
+PerCar = Union[float, list[float]]
+
+
+
+
+class ActuatorConfig(_Model):
+    """Brake actuator: ``ideal`` applies the command at once; ``realistic`` adds lag, jerk limit, saturation."""
+
+    model: Literal["ideal", "realistic"] = "ideal"
+    lag_s: float = Field(0.3, gt=0, description="first-order brake lag time constant (realistic)")
+    jerk_limit_mps3: float | None = Field(1.0, gt=0, description="max |dF/dt|/m (realistic; null = none)")
+    max_brake_decel_mps2: float | None = Field(None, gt=0, description="brake rating as force/mass (null = none)")
+    max_traction_accel_mps2: float | None = Field(None, ge=0, description="traction rating as force/mass (null = none)")
+    adhesion_limited: bool = Field(False, description="cap the rail force at μ·m·g")
+    adhesion_mu: PerCar = Field(0.3, description="base wheel-rail adhesion μ per car")
+
+
+class CouplerConfig(_Model):
+    """Nonlinear coupler Φ = κ (1 + ε Δl²) Δl between neighbouring cars."""
+
+    stiffness_n_per_m: PerCar = Field(80000.0, description="κ per coupler (n-1 values or one)")
+    epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
+    spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
+    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear's travel ends and its "
+                                     "buffer acts (none by default; docs/braking-models.md)")
+    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0, description="the buffer's loading stiffness beyond the end stop")
+    end_stop_absorption: float = Field(0.6, ge=0, lt=1, description="share of an impact's energy the buffer absorbs "
+                                       "(unloading stiffness (1 - a) x loading)")
+
+    @field_validator("stiffness_n_per_m")
+    @classmethod
+    def _positive_stiffness(cls, v: PerCar) -> PerCar:
+        for x in (v if isinstance(v, list) else [v]):
+            if not x > 0:
+                raise ValueError(f"coupler stiffness must be > 0 N/m, got {x}")
+        return v
+
+
+class DavisConfig(_Model):
+    """Running resistance per car: c0 + c1 |v| + c2 v² (N, v in m/s)."""
+
+    c0_n: PerCar = 0.0
+    c1_n_s_per_m: PerCar = 0.0
+    c2_n_s2_per_m2: PerCar = 0.0
+
+
+class TrainConfig(_Model):
+    """The coupled kernel's train (physics/train.py, Chen 2023): cars joined by nonlinear couplers,
+    per-car lists front first (internal: assembled from the components)."""
+
+    model: Literal["coupled"] = "coupled"
+    mass_kg: list[float] = Field(default_factory=list, max_length=MAX_VEHICLES)
+    davis: DavisConfig | None = Field(None, description="default: Davis (1926) multiple-unit coefficients per mass")
+    coupler: CouplerConfig = CouplerConfig()
+    grade_permille: float = Field(0.0, ge=-100, le=100, description="track grade, positive uphill (‰)")
+    curve_resistance_n: PerCar = Field(0.0, description="extra resistance per car, e.g. 0.004·m·D_c (N)")
+    brakes: BrakeSystemConfig | None = Field(None, description="brake equipment: blending, easing, wheels with "
+                                                               "adhesion, wheel-slide protection (canbrake.consist.brakes)")
+    actuator: ActuatorConfig = Field(default_factory=ActuatorConfig, description="every car's brake/traction equipment")
+
+    @field_validator("mass_kg")
+    @classmethod
+    def _positive_mass(cls, v: list[float]) -> list[float]:
+        for i, m in enumerate(v):
+            if not m > 0:
+                raise ValueError(f"car {i + 1}: mass must be > 0 kg, got {m}")
+        return v
+
+    @model_validator(mode="after")
+    def _vehicles(self) -> "TrainConfig":
+        if not self.mass_kg:
+            raise ValueError("no vehicles")
+        return self
+
+    @property
+    def n_cars(self) -> int:
+        return len(self.mass_kg)
+
+    def vehicle_count(self) -> int:
+        return len(self.mass_kg)
+
+    def vehicle_masses_kg(self) -> np.ndarray:
+        return np.asarray(self.mass_kg, dtype=float)
+
+    def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
+        from canbrake.build import build_coupled_plant
+
+        return build_coupled_plant(scn)
+
+
+
