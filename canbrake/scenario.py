@@ -21,8 +21,8 @@ from canbrake.bus.impair import ImpairmentSpec
 from canbrake.bus.clock import ClockConfig
 from canbrake.bus.txbuffer import TxBufferConfig
 from canbrake.bus.segments import GatewayConfig, SegmentConfig
-from canbrake.consist.coupled import (_INF_OK, ActuatorConfig, PerCar, TrainConfig, _Model,  # noqa: F401
-                                      _non_finite, _raw_non_finite)
+from canbrake.consist.base import _INF_OK, _non_finite, _raw_non_finite  # noqa: F401
+from canbrake.consist.coupled import ActuatorConfig, PerCar, TrainConfig, _Model  # noqa: F401
 from canbrake.consist.components import MOVED_TOP, TrainSpec
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 

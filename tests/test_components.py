@@ -253,3 +253,18 @@ def test_old_keys_exit_2_on_the_command_line(tmp_path: Path) -> None:
     assert r.returncode == 2, (r.stdout, r.stderr)
     assert "Traceback" not in r.stderr
     assert "train.model: there are no train families any more" in r.stderr + r.stdout
+
+
+@pytest.mark.parametrize("key, value, says", [
+    ("train.air_brake.cylinder_tau_s", "nan", "must be a finite number, got nan"),
+    ("train.air_brake.cylinder_tau_s", True, "expected a number, got true"),
+    ("train.draft_gears.MT-2.slack_mm", "inf", "must be a finite number, got inf"),
+])
+def test_nan_and_bools_in_every_part_of_the_train_are_named_as_such(key, value, says):
+    """Every part of the schema (the components' sub-models too: the air brake, the draft gears)
+    refuses NaN, infinity and a YAML bool as a number with that reason, not with its bound
+    ("Input should be greater than 0" for a NaN)."""
+    from canbrake.scenario import ScenarioError
+
+    with pytest.raises(ScenarioError, match=f"--set {key}: {says}"):
+        load_scenario("li2024_pid", overrides={key: value})

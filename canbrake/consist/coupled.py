@@ -14,6 +14,7 @@ from typing import Any, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from canbrake.consist.base import _INF_OK, StrictModel  # noqa: F401 - re-exported for the scenario loader
 from canbrake.consist.brakes import BrakeSystemConfig
 
 #: most vehicles (and ECUs) a scenario may have: the 29-bit identifier plan holds 4095 ECUs; the
@@ -21,81 +22,8 @@ from canbrake.consist.brakes import BrakeSystemConfig
 MAX_VEHICLES = 1024
 
 
-#: fields where inf is meaningful ("unlimited"); NaN is refused everywhere
-_INF_OK = frozenset({"adhesion_mu"})
-
-
-def _non_finite(value: Any, path: str) -> str | None:
-    """Dotted sub-path of the first NaN/inf float in ``value`` (lists and mappings searched),
-    followed by ``=<value>``."""
-    if isinstance(value, float) and not np.isfinite(value):
-        return f"{path}={value}"
-    if isinstance(value, (list, tuple)):
-        for i, v in enumerate(value):
-            if (hit := _non_finite(v, f"{path}.{i}")) is not None:
-                return hit
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if (hit := _non_finite(v, f"{path}.{k}")) is not None:
-                return hit
-    return None
-
-
-def _raw_non_finite(x: Any) -> str | None:
-    """``x`` as written if it is a NaN or infinite number, or a string that reads as one
-    (pydantic turns "nan" into a float), else None."""
-    if isinstance(x, str):
-        try:
-            x = float(x)
-        except ValueError:
-            return None
-    if isinstance(x, float) and not math.isfinite(x):
-        return str(x)
-    return None
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_default=True)
-
-    @model_validator(mode="before")
-    @classmethod
-    def _no_bool_numbers(cls, data: Any) -> Any:
-        """`duration_s: true` is not 1 s: a YAML bool where a number belongs is an error (numbers
-        stay lax otherwise: PyYAML reads 2.0e6 as a string, which pydantic converts)."""
-        if isinstance(data, dict):
-            for name, f in cls.model_fields.items():
-                v = data.get(name)
-                ann = str(f.annotation)
-                if ("float" in ann or "int" in ann) and "bool" not in ann and "Any" not in ann:
-                    vals = v if isinstance(v, list) else [v]
-                    if any(isinstance(x, bool) for x in vals):
-                        raise ValueError(f"@{name}: expected a number, got {str(v).lower()}")
-                    # NaN/inf before the field's bounds: `le=1` would call a NaN "greater than 1"
-                    for i, x in enumerate(vals):
-                        bad = _raw_non_finite(x)
-                        if bad is not None and not (name in _INF_OK and bad == "inf"):
-                            where = f"{name}.{i}" if isinstance(v, list) else name
-                            raise ValueError(f"@{where}: must be a finite number, got {bad}")
-        return data
-
-    @model_validator(mode="after")
-    def _finite(self) -> "_Model":
-        """No NaN or inf in any field (a NaN mass or gain would fail inside a node, after the run
-        directory was replaced), except inf where it means unlimited (``adhesion_mu``)."""
-        for name in type(self).model_fields:
-            if name == "profiles":
-                continue
-            v = getattr(self, name)
-            if isinstance(v, BaseModel):
-                continue  # validated on its own
-            hit = _non_finite(v, name)
-            if hit is not None:
-                if name in _INF_OK and not any(isinstance(x, float) and np.isnan(x)
-                                               for x in (v if isinstance(v, list) else [v])):
-                    continue
-                where, bad = hit.rsplit("=", 1)
-                raise ValueError(f"@{where}: must be a finite number, got {bad}")
-        return self
+#: the strict base model every scenario section derives from (one definition: canbrake.consist.base)
+_Model = StrictModel
 
 
 PerCar = Union[float, list[float]]
