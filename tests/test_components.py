@@ -176,7 +176,7 @@ def test_a_combination_no_kernel_implements_is_one_line() -> None:
     assert "\n" not in msg
     assert "train.vehicle_types.c80: no physics kernel implements this train yet: vehicle type c80 has " \
            "resistance=per_weight, coupler=chen, brake=air" in msg
-    assert "coupled (TrainPlant) takes coupler chen|none, brake electro_pneumatic|ideal|none" in msg
+    assert "coupled (TrainPlant) takes coupler chen|linear|none, brake electro_pneumatic|ideal|none" in msg
     assert "heavy_haul (HeavyHaulModel) takes coupler draft_gear, brake air" in msg
     assert "adhesion (AdhesionTrain) takes coupler rigid" in msg
 
@@ -268,3 +268,19 @@ def test_nan_and_bools_in_every_part_of_the_train_are_named_as_such(key, value, 
 
     with pytest.raises(ScenarioError, match=f"--set {key}: {says}"):
         load_scenario("li2024_pid", overrides={key: value})
+
+
+def test_a_linear_coupler_is_chens_with_epsilon_zero(tmp_path):
+    """coupler: {model: linear} gives the signals of Chen's coupler with ε = 0, text for text; it
+    takes no ε (a mistyped nonlinear coupler is refused, not silently linearised)."""
+    import canbrake
+
+    chen = canbrake.run("emu8_example", duration_s=0.5, bus="inprocess", out=tmp_path / "chen", plots=False)
+    lin = canbrake.run("emu8_example", duration_s=0.5, bus="inprocess", out=tmp_path / "lin", plots=False,
+                       train__every_vehicle__coupler={"model": "linear", "stiffness_n_per_m": 2.0e6, "end_stop_m": 0.08,
+                                                      "end_stop_stiffness_n_per_m": 5.0e6, "end_stop_absorption": 0.5})
+    assert (tmp_path / "lin" / "signals.csv").read_bytes() == (tmp_path / "chen" / "signals.csv").read_bytes()
+    assert chen.summary["status"] == lin.summary["status"] == "ok"
+    with pytest.raises(ScenarioError, match="epsilon_per_m2: unknown key"):
+        load_scenario("emu8_example", overrides={"train.every_vehicle.coupler": {
+            "model": "linear", "stiffness_n_per_m": 2.0e6, "epsilon_per_m2": -0.5}})

@@ -19,7 +19,7 @@ Component kinds (:data:`KINDS`) and their built-in models:
 
 ==============  =============================================================================
 ``resistance``  ``davis`` (c0 + c1 v + c2 v², N), ``per_weight`` (Li eq. 3, N per kN of weight)
-``coupler``     ``chen`` (κ (1 + ε Δl²) Δl with optional end stop), ``draft_gear`` (Li's hysteretic
+``coupler``     ``chen`` (κ (1 + ε Δl²) Δl with optional end stop), ``linear`` (κ Δl), ``draft_gear`` (Li's hysteretic
                 draft gear with slack: ``gear`` names one of ``train.draft_gears``), ``rigid``
 ``brake``       ``ideal``, ``electro_pneumatic`` (lag, jerk limit; both with ED/friction
                 ``blending``, ``easing``, ``wsp``), ``air`` (automatic air brake rigging, Li Table 1)
@@ -179,6 +179,23 @@ class ChenCoupler(_Model):
     end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the buffer acts (none by default)")
     end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0)
     end_stop_absorption: float = Field(0.6, ge=0, lt=1)
+
+
+@register_component("coupler", "linear")
+class LinearCoupler(_Model):
+    """A linear coupler Φ = κ Δl at the vehicle's rear (Chen's coupler with ε = 0), with an
+    optional end stop (buffer) beyond ``end_stop_m``."""
+
+    model: Literal["linear"] = "linear"
+    stiffness_n_per_m: float = Field(..., gt=0, description="κ")
+    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the buffer acts (none by default)")
+    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0)
+    end_stop_absorption: float = Field(0.6, ge=0, lt=1)
+
+    @property
+    def epsilon_per_m2(self) -> float:
+        """ε = 0: the coupled kernel's nonlinear term vanishes."""
+        return 0.0
 
 
 @register_component("coupler", "draft_gear")
@@ -399,7 +416,7 @@ def _support(kinds: dict[str, set[str | None]]) -> str:
 
 #: what each physics kernel implements, by component kind (None: the component left out)
 KERNELS: dict[str, dict[str, set[str | None]]] = {
-    "coupled": {"coupler": {"chen", None}, "brake": {"ideal", "electro_pneumatic", None},
+    "coupled": {"coupler": {"chen", "linear", None}, "brake": {"ideal", "electro_pneumatic", None},
                 "resistance": {"davis", None}, "traction": {None}, "wheels": {"wheelsets", None}},
     "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
                    "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
