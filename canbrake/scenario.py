@@ -10,6 +10,7 @@ Nothing else in canbrake reads YAML.
 from __future__ import annotations
 
 import copy
+import re
 import math
 from pathlib import Path
 from typing import Annotated, Any, Literal, Mapping, Union
@@ -678,7 +679,7 @@ def format_validation_error(source: str, err: ValidationError) -> str:
     """One readable message per problem: ``file: field.path: what is wrong``."""
     lines = []
     for e in err.errors():
-        tags = {"rail", "disturbance"}
+        tags = {"rail", "disturbance", "per_mass", "envelope"}  # discriminated unions' tags (events, ed_brake)
         loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p in tags))
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
@@ -806,18 +807,24 @@ def blame_overrides(message: str, source: str, overrides: dict[str, Any],
                     labels: Mapping[str, str] | None = None) -> str:
     """A problem in a field set with ``--set KEY=VALUE`` names ``--set KEY``, not the file (or
     the flag or keyword that set it, from ``labels``: ``--duration: must be > 0``)."""
-    out = []
+    out: list[str] = []
     for line in message.splitlines():
         rest = line[len(source) + 2:] if line.startswith(f"{source}: ") else line
         field = rest.split(": ", 1)[0]
+        # train.every_vehicle is merged over every vehicle type: its problems show in each type
+        per_type = re.fullmatch(r"train\.vehicle_types\.[^.]+\.(.+)", field)
+        every = f"train.every_vehicle.{per_type.group(1)}" if per_type else None
         key = next((k for k in sorted(overrides, key=len, reverse=True)
-                    if field == k or field.startswith(k + ".") or k.startswith(field + ".")), None)
+                    if field == k or field.startswith(k + ".") or k.startswith(field + ".")
+                    or (every is not None and (every == k or every.startswith(k + ".")))), None)
         if key is None:
-            out.append(line)
-        elif key != field:
-            out.append(f"{_label(key, labels)}: {rest}")
+            text = line
+        elif key != field and not (every is not None and every == key):
+            text = f"{_label(key, labels)}: {rest}"
         else:
-            out.append(f"{_label(key, labels)}: {rest.split(': ', 1)[1] if ': ' in rest else rest}")
+            text = f"{_label(key, labels)}: {rest.split(': ', 1)[1] if ': ' in rest else rest}"
+        if text not in out:  # the same override's problem once, not once per vehicle type
+            out.append(text)
     return "\n".join(out)
 
 

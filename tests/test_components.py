@@ -39,16 +39,16 @@ def test_unknown_model_lists_the_known_ones(kind: str) -> None:
         load_scenario("chen2023_case1_fine_rail", overrides={f"train.every_vehicle.{kind}": {"model": "no_such"}})
     msg = str(e.value)
     assert "\n" not in msg
-    assert f"train.vehicle_types.metro_car.{kind}: unknown {kind} model 'no_such' (models: " in msg
+    assert msg.startswith(f"--set train.every_vehicle.{kind}: unknown {kind} model 'no_such' (models: ")
     for name in C.available_components(kind):
         assert name in msg
 
 
 def test_a_component_parameter_is_checked_by_its_schema() -> None:
-    with pytest.raises(ScenarioError, match=r"train.vehicle_types.metro_car.coupler.stiffness_n_per_m: "
+    with pytest.raises(ScenarioError, match=r"--set train.every_vehicle.coupler.stiffness_n_per_m: "
                                             r"Input should be greater than 0"):
         load_scenario("chen2023_case1_fine_rail", overrides={"train.every_vehicle.coupler.stiffness_n_per_m": -1})
-    with pytest.raises(ScenarioError, match=r"train.vehicle_types.metro_car.brake.lag: unknown key"):
+    with pytest.raises(ScenarioError, match=r"--set train.every_vehicle.brake.lag: unknown key"):
         load_scenario("chen2023_case1_fine_rail", overrides={"train.every_vehicle.brake.lag": 0.3})
 
 
@@ -284,3 +284,17 @@ def test_a_linear_coupler_is_chens_with_epsilon_zero(tmp_path):
     with pytest.raises(ScenarioError, match="epsilon_per_m2: unknown key"):
         load_scenario("emu8_example", overrides={"train.every_vehicle.coupler": {
             "model": "linear", "stiffness_n_per_m": 2.0e6, "epsilon_per_m2": -0.5}})
+
+
+def test_a_bad_every_vehicle_override_is_one_line_naming_it():
+    """train.every_vehicle is merged over every vehicle type; a bad value set there is reported once,
+    against the --set that gave it (not once per vehicle type against the file), and an ed_brake's
+    path has no discriminator tag in it."""
+    for key, value, says in (("train.every_vehicle.brake.lag_s", -1, "Input should be greater than 0"),
+                             ("train.every_vehicle.brake.blending.friction_lag_s", "nan",
+                              "must be a finite number, got nan")):
+        with pytest.raises(ScenarioError) as e:
+            load_scenario("emu8_low_adhesion", overrides={key: value})
+        assert str(e.value) == f"--set {key}: {says}"
+    with pytest.raises(ScenarioError, match=r"train.vehicle_types.motor.brake.ed_brake.max_decel_mps2: Field required"):
+        load_scenario("emu8_low_adhesion", overrides={"train.vehicle_types.motor.brake.ed_brake": {"model": "per_mass"}})

@@ -127,7 +127,8 @@ def parse_component(kind: str, data: Any) -> BaseModel | None:
         return cls.model_validate(data)
     except ValidationError as e:
         err = e.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"])
+        # (ed_brake's discriminator tags are left out of the path: ed_brake.max_decel_mps2)
+        loc = ".".join(str(p) for p in err["loc"] if p not in ("per_mass", "envelope"))
         msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
