@@ -253,6 +253,17 @@ def _cmd_scenarios(a: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def _cmd_components(a: argparse.Namespace) -> int:
+    from canbrake.consist.components import ComponentError, describe_components
+
+    try:
+        lines = describe_components(a.kind)
+    except ComponentError as e:
+        raise InputError(f"canbrake components: {e}") from None
+    print("\n".join(lines))
+    return EXIT_OK
+
+
 def _cmd_init(a: argparse.Namespace) -> int:
     from canbrake.builtin import init_scenario
 
@@ -351,6 +362,13 @@ def build_parser() -> argparse.ArgumentParser:
     sc = sub.add_parser("scenarios", help="list the built-in scenarios",
                         description="List the scenarios shipped with canbrake, one per line (name, description).")
     sc.set_defaults(func=_cmd_scenarios)
+
+    co = sub.add_parser("components", help="list the train components a vehicle type is made of",
+                        description="List every component model a vehicle type can use (train.vehicle_types.NAME."
+                                    "KIND: {model: NAME, ...}), built-in and from installed packages (entry point "
+                                    "group canbrake.components.KIND), with its parameters and defaults (* required).")
+    co.add_argument("kind", nargs="?", help="resistance, coupler, brake, traction or wheels (default: all)")
+    co.set_defaults(func=_cmd_components)
 
     ini = sub.add_parser("init", help="copy a built-in scenario to start from",
                          description="Copy a built-in scenario (and the data files it names) into DIR.")

@@ -298,3 +298,15 @@ def test_a_bad_every_vehicle_override_is_one_line_naming_it():
         assert str(e.value) == f"--set {key}: {says}"
     with pytest.raises(ScenarioError, match=r"train.vehicle_types.motor.brake.ed_brake.max_decel_mps2: Field required"):
         load_scenario("emu8_low_adhesion", overrides={"train.vehicle_types.motor.brake.ed_brake": {"model": "per_mass"}})
+
+
+def test_canbrake_components_lists_every_model_with_its_parameters():
+    r = subprocess.run([sys.executable, "-m", "canbrake", "components"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    for kind in C.KINDS:
+        assert f"{kind}:\n" in r.stdout
+        for name in C.available_components(kind):
+            assert f"\n  {name}: " in r.stdout or f"\n  {name}\n" in r.stdout
+    assert "stiffness_n_per_m*, end_stop_m=None" in r.stdout  # linear: κ required, the end stop optional
+    bad = subprocess.run([sys.executable, "-m", "canbrake", "components", "brakes"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr and "unknown component kind 'brakes'" in bad.stderr

@@ -113,6 +113,30 @@ def component_class(kind: str, name: str) -> type[BaseModel]:
         raise ComponentError(f"unknown {kind} model {name!r} (models: {', '.join(available_components(kind))})") from None
 
 
+def describe_components(kind: str | None = None) -> list[str]:
+    """Lines describing every component model (of ``kind``, or of every kind): its name, the first
+    line of its docstring and its parameters with their defaults (``*`` required), built-in and
+    from installed entry points; ComponentError for an unknown kind or a broken plugin."""
+    kinds = KINDS if kind is None else (kind,)
+    lines: list[str] = []
+    for k in kinds:
+        if k not in _REGISTRY:
+            raise ComponentError(f"unknown component kind {k!r} (kinds: {', '.join(KINDS)})")
+        lines.append(f"{k}:")
+        for name in available_components(k):
+            cls = component_class(k, name)
+            doc = " ".join((cls.__doc__ or "").strip().split("\n\n")[0].split()).replace("``", "")
+            lines.append(f"  {name}: {doc}" if doc else f"  {name}")
+            params = []
+            for fname, f in cls.model_fields.items():
+                if fname == "model":
+                    continue
+                params.append(f"{fname}*" if f.is_required() else f"{fname}={f.get_default(call_default_factory=True)!r}")
+            if params:
+                lines.append("      " + ", ".join(params))
+    return lines
+
+
 def parse_component(kind: str, data: Any) -> BaseModel | None:
     """``data`` (a mapping with ``model``) as the component's pydantic object; ValueError whose
     message starts with ``@sub.path: `` for a bad parameter (the scenario loader's convention)."""
