@@ -116,13 +116,13 @@ def _train_plant(scn: Scenario):
     inf = math.inf
     if a.model == "ideal":
         actuator = BrakeActuator(kind="ideal", adhesion_limited=a.adhesion_limited,
-                                 brake_rating_mps2=a.max_brake_decel_mps2 or inf,
-                                 traction_rating_mps2=inf if a.max_traction_accel_mps2 is None else a.max_traction_accel_mps2)
+                                 brake_rating_mps2=a.per_car("max_brake_decel_mps2"),
+                                 traction_rating_mps2=a.per_car("max_traction_accel_mps2"))
     else:
         actuator = BrakeActuator(kind="realistic", time_constant_s=a.lag_s,
-                                 jerk_limit_mps3=a.jerk_limit_mps3 or inf,
-                                 brake_rating_mps2=a.max_brake_decel_mps2 or inf,
-                                 traction_rating_mps2=inf if a.max_traction_accel_mps2 is None else a.max_traction_accel_mps2,
+                                 jerk_limit_mps3=a.per_car("jerk_limit_mps3"),
+                                 brake_rating_mps2=a.per_car("max_brake_decel_mps2"),
+                                 traction_rating_mps2=a.per_car("max_traction_accel_mps2"),
                                  adhesion_limited=a.adhesion_limited)
     rail_events = []
     disturbances = []

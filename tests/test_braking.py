@@ -426,3 +426,49 @@ def test_low_adhesion_scenario_car3_locks_without_wsp_and_not_with_it(tmp_path):
     assert slips["wsp"] > -0.25
     # the switch is an ordinary field
     assert load_scenario(path, overrides={"train.every_vehicle.brake.wsp.enabled": True}).consist.brakes.wsp.enabled
+
+
+def test_each_car_has_its_own_brake_rating_and_jerk_limit():
+    """Per-car ratings and jerk limits (vehicle types with different brake equipment): under a
+    command far above every rating, each car's effort ramps at its own jerk limit x its mass and
+    settles at its own rating x its mass; one value for every car is the former scalar actuator,
+    float for float."""
+    from canbrake.physics.actuator import BrakeActuator
+
+    m = np.array([46000.0, 40000.0, 40000.0])
+    act = BrakeActuator(kind="realistic", time_constant_s=0.3, jerk_limit_mps3=(1.0, 0.5, 0.5),
+                        brake_rating_mps2=(1.3, 1.1, 1.1), traction_rating_mps2=(1.0, 0.0, 0.0))
+    plant = TrainPlant(m, [0.0, -22.0, -44.0], [25.0] * 3, resistance=DavisResistance.zero(3),
+                       coupler_stiffness_n_per_m=[2e6, 2e6], coupler_nonlinearity_per_m2=[0.0, 0.0],
+                       max_substep_s=0.01, actuator=act)
+    dt, cmd = 0.01, np.full(3, 1e7)
+    plant.step(dt, cmd)
+    assert plant.applied_force_n == pytest.approx(np.array([1.0, 0.5, 0.5]) * m * dt, rel=1e-9)  # jerk-limited start
+    for _ in range(600):
+        plant.step(dt, cmd)
+    assert plant.applied_force_n == pytest.approx(np.array([1.3, 1.1, 1.1]) * m, rel=1e-6)      # each at its rating
+    plant.step(dt, -cmd)  # traction: the trailers have none
+    assert plant._act.demand_n(-cmd)[1:] == pytest.approx([0.0, 0.0]) and plant._act.demand_n(-cmd)[0] == -m[0]
+    same = [TrainPlant(m, [0.0, -22.0, -44.0], [25.0] * 3, resistance=DavisResistance.zero(3),
+                       coupler_stiffness_n_per_m=[2e6, 2e6], coupler_nonlinearity_per_m2=[0.0, 0.0], max_substep_s=0.01,
+                       actuator=BrakeActuator(kind="realistic", jerk_limit_mps3=j, brake_rating_mps2=b))
+            for j, b in ((1.0, 1.3), ((1.0, 1.0, 1.0), (1.3, 1.3, 1.3)))]
+    for _ in range(50):
+        for p in same:
+            p.step(dt, np.array([3e4, 6e4, 9e4]))
+    assert same[0].speed_mps.tobytes() == same[1].speed_mps.tobytes()
+
+
+def test_vehicle_types_with_different_brake_ratings_lower_to_per_car_ratings():
+    import yaml
+
+    from canbrake.scenario import resolve
+
+    doc = yaml.safe_load((ROOT / "scenarios" / "emu8_example.yaml").read_text())
+    ep = doc["train"]["every_vehicle"].pop("brake")
+    doc["train"]["vehicle_types"]["motor"]["brake"] = ep
+    doc["train"]["vehicle_types"]["trailer"]["brake"] = {**ep, "max_brake_decel_mps2": 1.1, "jerk_limit_mps3": 0.8}
+    a = resolve(doc).actuator
+    assert a.max_brake_decel_mps2 == [1.1, 1.3, 1.3, 1.1, 1.1, 1.3, 1.3, 1.1]
+    assert a.jerk_limit_mps3 == [0.8, 1.0, 1.0, 0.8, 0.8, 1.0, 1.0, 0.8]
+    assert load_scenario("emu8_example").actuator.max_brake_decel_mps2 == 1.3  # one value when the types agree

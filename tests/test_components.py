@@ -215,7 +215,8 @@ def test_the_coupled_kernel_takes_one_brake_for_the_train() -> None:
         "initial": {"speed_kmh": 50}, "reference": {"speed_kmh": 50, "decel_kmh_per_s": 1.0},
     }
     with pytest.raises(ScenarioError, match=r"train.vehicle_types.b.brake: the coupled kernel \(TrainPlant\) takes "
-                                            r"one brake equipment \(but its ed_brake\) for the whole train; vehicle "
+                                            r"one brake equipment \(but its ed_brake, ratings and jerk limit\) for the "
+                                            r"whole train; vehicle "
                                             r"types a and b differ"):
         resolve(data, "t.yaml")
 

@@ -598,7 +598,9 @@ class TrainSpec(_Model):
                 raise ValueError(f"@vehicle_types.{name}.brake.wsp: wheel-slide protection needs axles, and vehicle "
                                  f"type {name} has no wheels (give it wheels: {{model: wheelsets, axles, radius_m, "
                                  f"inertia_kgm2}})")
-        brake = self._uniform(ex, "brake", "brake equipment (but its ed_brake)", frozenset({"ed_brake"}))
+        rated = ("max_brake_decel_mps2", "max_traction_accel_mps2", "jerk_limit_mps3")  # may differ per vehicle
+        brake = self._uniform(ex, "brake", "brake equipment (but its ed_brake, ratings and jerk limit)",
+                              frozenset({"ed_brake", *rated}))
         wheels = self._uniform(ex, "wheels", "wheelset model")
         data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
         if any(vt.resistance is not None for _, vt, _ in ex):
@@ -641,10 +643,13 @@ class TrainSpec(_Model):
         a: dict[str, Any] = {"adhesion_limited": self.wheel_rail.adhesion_limited,
                              "adhesion_mu": self.wheel_rail.adhesion_mu}
         if brake is not None:
-            a["max_brake_decel_mps2"] = brake.max_brake_decel_mps2
-            a["max_traction_accel_mps2"] = brake.max_traction_accel_mps2
+            def per_vehicle(f: str) -> Any:  # one value, or one per vehicle where the types differ
+                vals = [getattr(vt.brake, f) for _, vt, _ in ex]
+                return vals[0] if all(v == vals[0] for v in vals) else vals
+            a["max_brake_decel_mps2"] = per_vehicle("max_brake_decel_mps2")
+            a["max_traction_accel_mps2"] = per_vehicle("max_traction_accel_mps2")
             if brake.model == "electro_pneumatic":
-                a.update(model="realistic", lag_s=brake.lag_s, jerk_limit_mps3=brake.jerk_limit_mps3)
+                a.update(model="realistic", lag_s=brake.lag_s, jerk_limit_mps3=per_vehicle("jerk_limit_mps3"))
         data["actuator"] = ActuatorConfig(**a)
         return TrainConfig.model_validate(data)
 

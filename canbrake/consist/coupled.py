@@ -36,9 +36,29 @@ class ActuatorConfig(_Model):
 
     model: Literal["ideal", "realistic"] = "ideal"
     lag_s: float = Field(0.3, gt=0, description="first-order brake lag time constant (realistic)")
-    jerk_limit_mps3: float | None = Field(1.0, gt=0, description="max |dF/dt|/m (realistic; null = none)")
-    max_brake_decel_mps2: float | None = Field(None, gt=0, description="brake rating as force/mass (null = none)")
-    max_traction_accel_mps2: float | None = Field(None, ge=0, description="traction rating as force/mass (null = none)")
+    jerk_limit_mps3: float | list[float | None] | None = Field(
+        1.0, description="max |dF/dt|/m (realistic; null = none; a list: per car)")
+    max_brake_decel_mps2: float | list[float | None] | None = Field(
+        None, description="brake rating as force/mass (null = none; a list: per car)")
+    max_traction_accel_mps2: float | list[float | None] | None = Field(
+        None, description="traction rating as force/mass (null = none; a list: per car)")
+
+    @model_validator(mode="after")
+    def _signs(self) -> "ActuatorConfig":
+        for name, strict in (("jerk_limit_mps3", True), ("max_brake_decel_mps2", True), ("max_traction_accel_mps2", False)):
+            v = getattr(self, name)
+            for i, x in enumerate(v if isinstance(v, list) else [v]):
+                if x is not None and not (x > 0 if strict else x >= 0):
+                    where = f"{name}.{i}" if isinstance(v, list) else name
+                    raise ValueError(f"@{where}: must be {'>' if strict else '>='} 0, got {x:g}")
+        return self
+
+    def per_car(self, name: str, none: float = math.inf) -> float | tuple[float, ...]:
+        """Field ``name`` as the physics takes it: a float, or a tuple per car; null -> ``none``."""
+        v = getattr(self, name)
+        if isinstance(v, list):
+            return tuple(none if x is None else float(x) for x in v)
+        return none if v is None else v
     adhesion_limited: bool = Field(False, description="cap the rail force at μ·m·g")
     adhesion_mu: PerCar = Field(0.3, description="base wheel-rail adhesion μ per car")
 

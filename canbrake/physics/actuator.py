@@ -31,7 +31,8 @@ ActuatorKind = Literal["ideal", "realistic"]
 
 @dataclass(frozen=True)
 class BrakeActuator:
-    """Actuator parameters, the same for every car (ratings are per unit mass).
+    """Actuator parameters (ratings and the jerk limit per unit mass: one value for every car, or
+    a tuple with one per car; the kind and the lag are the train's).
 
     Attributes
     ----------
@@ -45,10 +46,15 @@ class BrakeActuator:
 
     kind: ActuatorKind = "ideal"
     time_constant_s: float = 0.3
-    jerk_limit_mps3: float = 1.0
-    brake_rating_mps2: float = math.inf
-    traction_rating_mps2: float = math.inf
+    jerk_limit_mps3: float | tuple[float, ...] = 1.0
+    brake_rating_mps2: float | tuple[float, ...] = math.inf
+    traction_rating_mps2: float | tuple[float, ...] = math.inf
     adhesion_limited: bool = False
+
+    @property
+    def jerk_limited(self) -> bool:
+        """Whether any car's effort rate is limited (a finite jerk limit)."""
+        return bool(np.any(np.isfinite(np.asarray(self.jerk_limit_mps3, dtype=float))))
 
     def __post_init__(self) -> None:
         if self.kind not in ("ideal", "realistic"):
@@ -93,10 +99,12 @@ class ActuatorState:
         self.params = params
         self.mass_kg = mass_kg
         self.effort_n = np.zeros_like(mass_kg)
-        self._brake_max = params.brake_rating_mps2 * mass_kg
-        self._trac_max = params.traction_rating_mps2 * mass_kg
-        self._rate_max = params.jerk_limit_mps3 * mass_kg
-        self._unrated = math.isinf(params.brake_rating_mps2) and math.isinf(params.traction_rating_mps2)
+        f = lambda x: x if isinstance(x, float) else np.asarray(x, dtype=float)  # noqa: E731 - per car
+        self._brake_max = f(params.brake_rating_mps2) * mass_kg
+        self._trac_max = f(params.traction_rating_mps2) * mass_kg
+        self._rate_max = f(params.jerk_limit_mps3) * mass_kg
+        self._unrated = bool(np.all(np.isinf(params.brake_rating_mps2)) and np.all(np.isinf(params.traction_rating_mps2)))
+        self._jerk_limited = params.jerk_limited
         self._lag = 0.0
         self._lag_h = -1.0
 
@@ -115,7 +123,7 @@ class ActuatorState:
             return self.effort_n
         # exact first-order lag over h, then the jerk (force-rate) limit
         step = (demand - self.effort_n) * self.lag_factor(h_s)
-        if math.isfinite(p.jerk_limit_mps3):
+        if self._jerk_limited:
             lim = self._rate_max * h_s
             step = np.minimum(np.maximum(step, -lim), lim)
         self.effort_n = self.effort_n + step

@@ -388,7 +388,7 @@ class TrainPlant:
                 end_stop_m=self.end_stop_m,
                 end_stop_stiffness=self.end_stop_stiffness_n_per_m, end_stop_absorption=self.end_stop_absorption,
                 end_stop_transition=END_STOP_TRANSITION_MPS, unrated=act._unrated,
-                jerk_limited=math.isfinite(self.actuator.jerk_limit_mps3),
+                jerk_limited=self.actuator.jerk_limited,
                 adhesion_limited=self.actuator.adhesion_limited)
         return self._kern
 
