@@ -122,6 +122,15 @@ class EcuPlacement(_Model):
                                               "sends its frames (docs/lockstep-protocol.md); its controller only "
                                               "defines its frames")
 
+    @field_validator("listens", mode="before")
+    @classmethod
+    def _listens_word(cls, v: Any) -> Any:
+        """A word that is none of the three (``neighbors``): one message, not one per member of
+        the union (a list of names is checked by the placement)."""
+        if isinstance(v, str) and v not in ("all", "none", "neighbours"):
+            raise ValueError(f"expected all, none, neighbours or a list of ECU names, got {v!r}")
+        return v
+
     @model_validator(mode="after")
     def _one_of(self) -> "EcuPlacement":
         if (self.vehicle is None) == (self.vehicles is None):

@@ -59,3 +59,8 @@ def test_the_cli_says_it_in_one_line_and_exits_2(tmp_path):
                         "--bus", "inprocess", "--out", str(tmp_path / "r")], capture_output=True, text=True)
     assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_a_misspelt_listens_is_one_line():
+    refused("chen2023_case1_fine_rail", {"ecus": [{"vehicles": "1-6", "listens": "neighbors"}]},
+            r"ecus.0.listens: expected all, none, neighbours or a list of ECU names, got 'neighbors'")
