@@ -589,7 +589,7 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
     if "memory_yield" in med:
         from canbrake.run import memory_yield
 
-        auto = "yields" if memory_yield() else "does not yield (load average >= CPUs)"
+        auto = "yields" if memory_yield() else "does not yield (machine busy: load average >= CPUs and other work runnable)"
         rows.append(_row("lockstep processes, CANBRAKE_MEMORY_YIELD=1", med["memory_yield"], "periods/s",
                          "processes (default: auto)", med.get("memory"),
                          med["memory_yield"] / med["memory"] if "memory" in med else None, "(knob)", None,

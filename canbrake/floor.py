@@ -32,19 +32,17 @@ _Q = struct.Struct("<Q")
 _II = struct.Struct("<II")
 
 
-def _open(channel: str, ids: list[int]) -> Any:
+def _open(channel: str, ids: list[int], yield_before_sleep: bool) -> Any:
     """A lockstep node's memory bus on ``channel`` accepting the standard ``ids`` (as
     :func:`canbrake.run._open_bus` opens it: backpressure on accepted frames, the yield knob)."""
     import can
 
-    from canbrake.run import memory_yield
-
     return can.Bus(interface="canbrake", channel=channel, receive_own_messages=False,
                    can_filters=[{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in ids],
-                   backpressure="accepted", yield_before_sleep=memory_yield())
+                   backpressure="accepted", yield_before_sleep=yield_before_sleep)
 
 
-def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any) -> None:
+def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any, yield_: bool = True) -> None:
     """ECU ``i`` (0-based) of the floor: answers every tick with its word; ``out[i]``: its bus's
     sleeps (blocking waits) over the run."""
     import can
@@ -52,7 +50,7 @@ def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any) -> None:
     from canbrake.run import _set_title
 
     _set_title(f"canbrake ecu{i + 1} floor")  # as a node's, so that `canbrake bench` sees its role
-    bus = _open(channel, [TICK_ID] + [WORD_ID + j for j in range(n) if j != i])
+    bus = _open(channel, [TICK_ID] + [WORD_ID + j for j in range(n) if j != i], yield_)
     try:
         words = [0] * n
         my_id = WORD_ID + i
@@ -76,7 +74,7 @@ def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any) -> None:
         bus.shutdown()
 
 
-def _plant_main(n: int, channel: str, duration_s: float, barrier: Any, out: Any) -> None:
+def _plant_main(n: int, channel: str, duration_s: float, barrier: Any, out: Any, yield_: bool = True) -> None:
     """The floor's plant: ticks for ``duration_s`` of wall time; ``out[n:]``: periods, seconds,
     mean, p99 and max round trip (s: tick sent -> the last ECU's word in), the plant's sleeps,
     round trips longer than 1 ms and than 10 ms."""
@@ -85,7 +83,7 @@ def _plant_main(n: int, channel: str, duration_s: float, barrier: Any, out: Any)
     from canbrake.run import _set_title
 
     _set_title("canbrake plant floor")
-    bus = _open(channel, [WORD_ID + j for j in range(n)])
+    bus = _open(channel, [WORD_ID + j for j in range(n)], yield_)
     try:
         barrier.wait(timeout=60)
         send, recv, clock = bus.send, bus.recv_filtered, time.perf_counter
@@ -127,17 +125,19 @@ def run_floor(n: int = 6, duration_s: float = 2.0, timeout_s: float = 120.0) -> 
     (blocking waits of all the floor's buses per period) and ``start_method``. Every process
     started here is reaped before it returns."""
     from canbrake.bus.memory import remove_channel
-    from canbrake.run import _mp_context
+    from canbrake.run import _mp_context, memory_yield
     from canbrake.startup import children_skip_main
+
+    yield_ = memory_yield()  # decided once, here (as a run's orchestrator does), for every process
 
     with children_skip_main():
         ctx = _mp_context()
     channel = f"floor-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     barrier = ctx.Barrier(n + 1)
     out = ctx.Array("d", n + 8, lock=False)
-    procs = [ctx.Process(target=_ecu_main, args=(i, n, channel, barrier, out), name=f"canbrake-floor-ecu{i + 1}")
-             for i in range(n)]
-    procs.append(ctx.Process(target=_plant_main, args=(n, channel, duration_s, barrier, out),
+    procs = [ctx.Process(target=_ecu_main, args=(i, n, channel, barrier, out, yield_),
+                         name=f"canbrake-floor-ecu{i + 1}") for i in range(n)]
+    procs.append(ctx.Process(target=_plant_main, args=(n, channel, duration_s, barrier, out, yield_),
                              name="canbrake-floor-plant"))
     res: dict[str, Any] = {"status": "ok", "message": "", "ecus": n, "start_method": ctx.get_start_method()}
     try:

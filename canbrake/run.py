@@ -230,18 +230,45 @@ def check_dbc_matches(scn: Scenario, dbc_path: str | Path) -> None:
 
 
 # ----------------------------------------------------------------------------- child processes
+def _runnable_others(samples: int = 5, gap_s: float = 0.01) -> int | None:
+    """Tasks runnable right now besides this process: the running count of ``/proc/loadavg`` (which
+    includes the reader) minus one, the smallest of ``samples`` reads ``gap_s`` apart; None where
+    the file cannot be read."""
+    least: int | None = None
+    for k in range(samples):
+        try:
+            with open("/proc/loadavg") as f:
+                running = int(f.read().split()[3].split("/")[0])
+        except (OSError, ValueError, IndexError):
+            return None
+        least = running - 1 if least is None else min(least, running - 1)
+        if k + 1 < samples:
+            time.sleep(gap_s)
+    return least
+
+
 def memory_yield() -> bool:
     """Does a node yield the CPU before it blocks on canbrake's memory bus? ``CANBRAKE_MEMORY_YIELD``
-    1 = yes, 0 = no; unset (auto): yes unless the machine is already busy with other work (1-minute
-    load average at or above the number of CPUs), where a yield gives the CPU away for a whole time
-    slice (measured with `canbrake bench`, docs/performance.md)."""
+    1 = yes, 0 = no; unset (auto): yes unless the machine is busy with other work, where a yield
+    gives the CPU away for a whole time slice (Chen case 1 for 2 s beside two CPU-bound processes on
+    2 cores: 12.2 s with the yield, 6.3 s without; idle: 3.3 s with, 3.7 s without). Busy: as many
+    other tasks runnable right now as CPUs, or the 1-minute load average at or above the number of
+    CPUs while anything else is runnable now (the load average lags by a minute both ways: after a
+    run, or between a bench's cases, it is high on an idle machine; when other work has just
+    started it is still low). A run's orchestrator decides once and hands the answer to its node
+    processes (:func:`run_in_processes`), whose siblings are starting when they would ask."""
     v = os.environ.get("CANBRAKE_MEMORY_YIELD", "auto")
     if v in ("0", "1"):
         return v == "1"
+    cpus = os.cpu_count() or 1
+    others = _runnable_others()
     try:
-        return os.getloadavg()[0] < (os.cpu_count() or 1)
+        load = os.getloadavg()[0]
     except OSError:
-        return True
+        load = 0.0
+    if others is None:  # no /proc/loadavg: the load average alone
+        return load < cpus
+    return not (others >= cpus or (load >= cpus and others >= 1))
 
 
 def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", lockstep: bool = False) -> can.BusABC:
@@ -535,6 +562,7 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
         ctx = _mp_context()
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
     env.update(PACKAGE_ENV, CANBRAKE_IMPORT=",".join(controller_modules(scn)))
+    env["CANBRAKE_MEMORY_YIELD"] = "1" if memory_yield() else "0"  # decided once, before the nodes start
     if start_timeout_s is None:
         start_timeout_s = _start_timeout_s()
     placed = scn.placement()
