@@ -67,8 +67,8 @@ def map_tasks(fn: Callable[[T], R], tasks: Iterable[T], jobs: int,
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    ex = ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=mp.get_context("spawn"),
-                             initializer=_worker_init)
+    ctx = _RecordingContext(mp.get_context("spawn"))
+    ex = ProcessPoolExecutor(max_workers=min(jobs, len(tasks)), mp_context=ctx, initializer=_worker_init)
     try:
         futures = [ex.submit(_call, fn, t) for t in tasks]
         for f in futures:
@@ -77,9 +77,9 @@ def map_tasks(fn: Callable[[T], R], tasks: Iterable[T], jobs: int,
                 each(out[-1])
         return out
     except BaseException:
-        # the executor keeps its workers in a private mapping; it is the only handle on their pids
-        workers = list((getattr(ex, "_processes", None) or {}).values())
+        # every worker the executor started (its own mapping misses one it is starting right now)
         ex.shutdown(wait=False, cancel_futures=True)
+        workers = list(ctx.started)
         for p in workers:
             if p.exitcode is None:
                 try:
@@ -94,3 +94,26 @@ def map_tasks(fn: Callable[[T], R], tasks: Iterable[T], jobs: int,
         raise
     finally:
         ex.shutdown(wait=True)
+        for p in ctx.started:  # reaped, whatever the executor did after the interrupt
+            if p.exitcode is None:
+                p.join(5.0)
+                if p.exitcode is None:
+                    p.kill()
+                    p.join(5.0)
+
+
+class _RecordingContext:
+    """A multiprocessing context that records every process it starts (the executor's workers),
+    delegating everything else to ``ctx``."""
+
+    def __init__(self, ctx: Any) -> None:
+        self._ctx = ctx
+        self.started: list[Any] = []
+
+    def Process(self, *args: Any, **kwargs: Any) -> Any:  # noqa: N802 - multiprocessing's name
+        p = self._ctx.Process(*args, **kwargs)
+        self.started.append(p)
+        return p
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._ctx, name)
