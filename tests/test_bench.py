@@ -35,10 +35,13 @@ def test_memory_yield_follows_the_knob_and_in_auto_the_load(monkeypatch):
     assert run.memory_yield() is True
     monkeypatch.delenv("CANBRAKE_MEMORY_YIELD")
     cpus = os.cpu_count() or 1
+    monkeypatch.setattr(run, "_runnable_others", lambda *a, **k: 1)  # something else runnable now
     monkeypatch.setattr(run.os, "getloadavg", lambda: (cpus - 0.5, 0.0, 0.0))
-    assert run.memory_yield() is True
+    assert run.memory_yield() is (cpus > 1)
     monkeypatch.setattr(run.os, "getloadavg", lambda: (float(cpus), 0.0, 0.0))
     assert run.memory_yield() is False
+    monkeypatch.setattr(run, "_runnable_others", lambda *a, **k: 0)  # the load average lags: nothing runs now
+    assert run.memory_yield() is True  # (the full rule: tests/test_memory_yield.py)
 
 
 def _scale_result() -> dict:
