@@ -25,8 +25,12 @@ def site(tmp_path_factory) -> Path:
     info = site / "canbrake_mytrain_example-0.1.0.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: canbrake-mytrain-example\nVersion: 0.1.0\n")
-    ep = [ln for ln in (EXAMPLE / "pyproject.toml").read_text().splitlines() if ln.startswith("my_speed_pi")]
-    (info / "entry_points.txt").write_text("[canbrake.controllers]\n" + "\n".join(ep).replace('"', "") + "\n")
+    lines = (EXAMPLE / "pyproject.toml").read_text().splitlines()
+    ctl = [ln for ln in lines if ln.startswith("my_speed_pi")]
+    comp = [ln for ln in lines if ln.startswith("davis_kmh")]
+    (info / "entry_points.txt").write_text("[canbrake.controllers]\n" + "\n".join(ctl).replace('"', "") + "\n\n"
+                                           "[canbrake.components.resistance]\n"
+                                           + "\n".join(comp).replace('"', "") + "\n")
     return site
 
 
@@ -69,3 +73,21 @@ def test_own_controller_is_swept(site: Path, tmp_path: Path):
     assert r.returncode == 0, r.stderr
     rows = list(out.glob("**/summary.json"))
     assert len(rows) == 2
+
+
+def test_a_component_of_the_users_own_package_runs_as_its_si_equivalent(site, tmp_path):
+    """resistance: {model: davis_kmh} from the example package (entry point group
+    canbrake.components.resistance) is listed by `canbrake components`, and a run with it gives the
+    signals of the built-in davis model with the same coefficients in SI, text for text."""
+    r = _canbrake(site, "components", "resistance")
+    assert r.returncode == 0 and "davis_kmh: Running resistance R = A + B" in r.stdout, r.stderr
+    kmh = "{model: davis_kmh, a_n: 1100, b_n_per_kmh: 10, c_n_per_kmh2: 0.39}"
+    si = "{model: davis, c0_n: 1100, c1_n_s_per_m: %r, c2_n_s2_per_m2: %r}" % (10 * 3.6, 0.39 * 3.6 * 3.6)
+    for name, res in (("kmh", kmh), ("si", si)):
+        r = _canbrake(site, "run", str(EXAMPLE / "emu8.yaml"), "--duration", "1", "--bus", "inprocess", "--no-plots",
+                      "--set", f"train.vehicle_types.mc.resistance={res}", "--out", str(tmp_path / name))
+        assert r.returncode == 0, r.stderr
+    assert (tmp_path / "kmh" / "signals.csv").read_bytes() == (tmp_path / "si" / "signals.csv").read_bytes()
+    r = _canbrake(site, "run", str(EXAMPLE / "emu8.yaml"), "--duration", "1", "--no-plots", "--set",
+                  "train.vehicle_types.mc.resistance={model: davis_kmh, a_n: -5}", "--out", str(tmp_path / "bad"))
+    assert r.returncode == 2 and "a_n: Input should be greater than or equal to 0" in r.stderr, r.stderr
