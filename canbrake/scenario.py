@@ -688,7 +688,7 @@ def format_validation_error(source: str, err: ValidationError) -> str:
     """One readable message per problem: ``file: field.path: what is wrong``."""
     lines = []
     for e in err.errors():
-        tags = {"rail", "disturbance", "per_mass", "envelope"}  # discriminated unions' tags (events, ed_brake)
+        tags = {"rail", "disturbance"}
         loc = ".".join(str(p) for p in e["loc"] if not (isinstance(p, str) and p in tags))
         msg = e["msg"]
         if e["type"] == "extra_forbidden":
