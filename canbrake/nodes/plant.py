@@ -342,14 +342,13 @@ class PlantNode(Node):
 
     def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
         """:meth:`handle` for each frame, the command pages (most of what the plant hears) taken
-        without a Python call per frame where nothing but the lockstep rule applies (no SecOC,
-        no external ECU, every ECU's commands close its slot): the same checks, counts and
-        order as :meth:`handle` and :meth:`_on_command`."""
+        by :meth:`_on_command` without :meth:`handle`'s other branches where nothing but the
+        lockstep rule applies (no SecOC, no external ECU, every ECU's commands close its slot)."""
         if (self.secoc is not None or self.mode != "lockstep" or self.barrier or self._ext_mask or self._unheard
                 or self._start_deadline is not None):
             return super().handle_batch(msgs, now)
         out: list[can.Message] = []
-        pages, take, stats, guard = self._cmd_pages, self._cmd_table.take, self.stats, self.guard
+        pages, on_command = self._cmd_pages, self._on_command
         fresh_pages, per_ecu = self._fresh_pages, self._pages_per_ecu
         for msg in msgs:
             aid = msg.arbitration_id
@@ -359,19 +358,8 @@ class PlantNode(Node):
                 if self.finished:
                     break
                 continue
-            r = take(aid, msg.data, self.k)
-            if r & CMD_OUT_OF_SEQUENCE:
-                stats.commands_out_of_sequence += 1
-            res = r & 3
-            if res == CMD_BAD_CRC:
-                stats.commands_corrupted += 1
-                guard.reject("crc")
-                continue
-            if res == CMD_BAD_COUNTER:
-                guard.reject("counter")
-                continue
-            stats.commands_received += 1
-            if res == CMD_FRESH:
+            r = on_command(aid, msg)
+            if r & 3 == CMD_FRESH:
                 slot = page[0]
                 if r & CMD_SLOT_COMPLETE:
                     self._resp[slot].add(max(now - self._tick_wall, 0.0))
