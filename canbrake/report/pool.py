@@ -79,27 +79,27 @@ def map_tasks(fn: Callable[[T], R], tasks: Iterable[T], jobs: int,
     except BaseException:
         # every worker the executor started (its own mapping misses one it is starting right now)
         ex.shutdown(wait=False, cancel_futures=True)
-        workers = list(ctx.started)
-        for p in workers:
+        for p in ctx.started:
             if p.exitcode is None:
                 try:
                     os.kill(p.pid, signal.SIGTERM)
                 except ProcessLookupError:
                     pass
-        for p in workers:
-            p.join(60.0)
-            if p.exitcode is None:
-                p.kill()
-                p.join(5.0)
+        _reap(ctx.started, 60.0)
         raise
     finally:
         ex.shutdown(wait=True)
-        for p in ctx.started:  # reaped, whatever the executor did after the interrupt
+        _reap(ctx.started, 5.0)  # whatever the executor did after the interrupt
+
+
+def _reap(procs: list[Any], wait_s: float) -> None:
+    """Join each process still running, for at most ``wait_s``; kill (and join) one that is not done."""
+    for p in procs:
+        if p.exitcode is None:
+            p.join(wait_s)
             if p.exitcode is None:
+                p.kill()
                 p.join(5.0)
-                if p.exitcode is None:
-                    p.kill()
-                    p.join(5.0)
 
 
 class _RecordingContext:
