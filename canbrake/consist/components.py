@@ -147,19 +147,7 @@ def parse_component(kind: str, data: Any) -> BaseModel | None:
     if "model" not in data:
         raise ValueError(f"@model: missing: which {kind} model ({', '.join(available_components(kind))})")
     cls = component_class(kind, str(data["model"]))
-    try:
-        return cls.model_validate(data)
-    except ValidationError as e:
-        err = e.errors()[0]
-        # (ed_brake's discriminator tags are left out of the path: ed_brake.max_decel_mps2)
-        loc = ".".join(str(p) for p in err["loc"] if p not in ("per_mass", "envelope"))
-        msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
-        if msg.startswith("Value error, "):
-            msg = msg[len("Value error, "):]
-        if msg.startswith("@") and ": " in msg:
-            sub, msg = msg[1:].split(": ", 1)
-            loc = f"{loc}.{sub}" if loc else sub
-        raise ValueError(f"@{loc}: {msg}" if loc else msg) from None
+    return _validated(cls, data)
 
 
 def _params(c: BaseModel | None) -> dict[str, Any]:
@@ -736,12 +724,13 @@ class TrainSpec(_Model):
 
 
 def _validated(cls: type[BaseModel], data: dict[str, Any]) -> Any:
-    """``cls.model_validate(data)`` with a problem as ``@path: message`` (the loader's convention)."""
+    """``cls.model_validate(data)`` with its first problem as ``@path: message`` (the loader's
+    convention; ed_brake's discriminator tags are left out of the path: ed_brake.max_decel_mps2)."""
     try:
         return cls.model_validate(data)
     except ValidationError as e:
         err = e.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"])
+        loc = ".".join(str(p) for p in err["loc"] if p not in ("per_mass", "envelope"))
         msg = "unknown key" if err["type"] == "extra_forbidden" else err["msg"]
         if msg.startswith("Value error, "):
             msg = msg[len("Value error, "):]
