@@ -567,9 +567,10 @@ class TrainSpec(_Model):
         the fields ``per_vehicle`` may differ)."""
         first_name, first = ex[0][0], getattr(ex[0][1], kind)
         dump = lambda c: None if c is None else c.model_dump(exclude=set(per_vehicle))  # noqa: E731
-        for name, vt, _ in ex[1:]:
+        want = dump(first)
+        for name, vt in {n: t for n, t, _ in ex}.items():  # each type once, in train order
             c = getattr(vt, kind)
-            if dump(c) != dump(first):
+            if dump(c) != want:
                 raise ValueError(f"@vehicle_types.{name}.{kind}: the coupled kernel (TrainPlant) takes one {what} for "
                                  f"the whole train; vehicle types {first_name} and {name} differ (set it in "
                                  f"train.every_vehicle.{kind})")
