@@ -471,8 +471,7 @@ class EcuNode(Node):
         if self.crash_at_tick is not None and self.k >= self.crash_at_tick:
             raise RuntimeError(f"injected crash of {self.name} at tick {self.k} (ecu.crash in the scenario)")
         t, horizon = self._times(now, 1)
-        if self.rx_path is not None:
-            self._release_linked(horizon)
+        self._release_linked(horizon)
         out: list[can.Message] = []
         if self.k % self.heartbeat_every == 0:
             self._emit(frame(self._hb_id, self._hb.encode({"NodeState": 5})), t, out)
@@ -485,8 +484,7 @@ class EcuNode(Node):
                 if self.secoc is not None:  # its authenticator, right after it (canbrake.bus.secoc)
                     auth_id = self._auth_id[fid]
                     self._emit(frame(auth_id, state_authenticator(self.secoc, auth_id, fid, payload, self.k)), t, out)
-        if not self._plain_send:
-            out += self.send_path.release(horizon)
+        out += self.send_path.release(horizon)
         if self.barrier and self._state_msgs:
             sdone = sign_control(self.secoc, self._sdone_id, self._sdone.encode({"Tick": self.k & 0xFFFF}), self.k)
             out.append(frame(self._sdone_id, sdone))
@@ -503,8 +501,7 @@ class EcuNode(Node):
         self.phase = 2
         self._deadline = None
         t, horizon = self._times(now, 2)
-        if self.rx_path is not None:
-            self._release_linked(self._times(now, 1)[1])
+        self._release_linked(self._times(now, 1)[1])
         own_speed = self.sensors.get("speed_mps", math.nan)
         own_pos = self.sensors.get("position_m", math.nan)
         table = self.peer_signals
@@ -540,7 +537,7 @@ class EcuNode(Node):
             pending.clear()
         self._broadcast = result.broadcast
         out: list[can.Message] = []
-        values = {"brake_force_n": result.brake_force_n, **result.commands} if result.commands else None
+        values = {"brake_force_n": result.brake_force_n, **result.commands}
         diag = result.diagnostics
         status = int(diag.get("status", 0)) if "status" in diag else 0
         if self._in_fallback and status == 0:
@@ -549,13 +546,12 @@ class EcuNode(Node):
         for fid, codec, sigs in self._cmd_msgs:
             fields: dict[str, Any] = {"Status": status}
             for sig, dn in sigs:  # a value that is not finite is left out of the frame
-                x = (result.brake_force_n if sig == "brake_force_n" else nan) if values is None else values.get(sig, nan)
+                x = values.get(sig, nan)
                 if isfinite(x):
                     fields[dn] = float(x)
             cmd = codec.encode(fields, counter=self.k % COUNTER_MODULO, tick=self.k)
             self._emit(frame(fid, sign_protected(self.secoc, fid, cmd, self.k)), t, out)
-        if not self._plain_send:
-            out += self.send_path.release(horizon)
+        out += self.send_path.release(horizon)
         if self.barrier:
             cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": self.k & 0xFFFF}), self.k)
             out.append(frame(self._cdone_id, cdone))
