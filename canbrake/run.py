@@ -305,7 +305,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
     ``failure``: a shared byte string (multiprocessing Array) for this process's last error line
     when its log cannot be written either (a full disk)."""
     from canbrake.build import build_node
-    from canbrake.nodes.driver import drive
+    from canbrake.nodes.driver import drive, freeze_heap
 
     if env is not None:
         for key in [k for k in os.environ if k.startswith("CANBRAKE_") and k not in env]:
@@ -346,10 +346,11 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                               progress=progress)
         bus = _open_bus(choice, node.filters(), role, lockstep=scn.mode == "lockstep")
         spin_s = 0.0
+        frozen = freeze_heap()  # what is set up: the run's full collections skip it (canbrake.nodes.driver)
         if scn.mode == "realtime":  # SCHED_FIFO / affinity where permitted (canbrake.nodes.rt)
             from canbrake.nodes.rt import setup_realtime
 
-            sched = setup_realtime(role)
+            sched = setup_realtime(role) + (f", gc: {frozen:,} objects frozen" if frozen else "")
             if role == "plant" and hasattr(node, "stats"):
                 node.stats.extra["scheduling"] = sched
             for m in getattr(node, "members", [node]):  # every node's own stats say what it obtained

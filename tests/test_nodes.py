@@ -117,23 +117,35 @@ def test_realtime_run_reports_scheduling_latency_and_miss_share_in_summary(tmp_p
     assert all(re.search(r"gc: [\d,]+ objects frozen$", v) for v in rt["scheduling"].values())
 
 
-def test_realtime_setup_freezes_the_garbage_collector_unless_told_not_to(monkeypatch):
+def test_node_setup_freezes_the_garbage_collector_unless_told_not_to(monkeypatch):
     """A full collection walks every object of a node (tens of ms, a missed 10 ms deadline);
-    setup_realtime collects once and freezes them, so later full collections skip them."""
+    every node process (and an in-process run, for its duration) collects once after setting
+    up and freezes what it holds, so later full collections skip it."""
+    import gc
+
+    from canbrake.nodes.driver import freeze_heap, frozen_heap
+
+    try:
+        n = freeze_heap()
+        assert n > 1000 and n == gc.get_freeze_count()
+        gc.unfreeze()
+        with frozen_heap():
+            assert gc.get_freeze_count() > 1000
+        assert gc.get_freeze_count() == 0
+        monkeypatch.setenv("CANBRAKE_GC", "off")
+        assert freeze_heap() == 0 and gc.get_freeze_count() == 0
+    finally:
+        gc.unfreeze()
+
+
+def test_realtime_setup_reports_scheduling_without_touching_the_collector(monkeypatch):
     import gc
 
     from canbrake.nodes.rt import setup_realtime
 
     monkeypatch.setenv("CANBRAKE_RT_AFFINITY", "none")
-    try:
-        got = setup_realtime("not-a-role")
-        assert got.startswith("SCHED_OTHER (not a realtime role)") and gc.get_freeze_count() > 1000
-        assert got.endswith(f"gc: {gc.get_freeze_count():,} objects frozen")
-        gc.unfreeze()
-        monkeypatch.setenv("CANBRAKE_RT_GC", "off")
-        assert "gc" not in setup_realtime("not-a-role") and gc.get_freeze_count() == 0
-    finally:
-        gc.unfreeze()
+    got = setup_realtime("not-a-role")
+    assert got.startswith("SCHED_OTHER (not a realtime role)") and gc.get_freeze_count() == 0
 
 
 def test_a_late_realtime_wakeup_moves_the_grid_on_instead_of_bursting(tmp_path):
@@ -336,3 +348,28 @@ def test_summary_reports_the_time_of_the_model_and_controller_steps(tmp_path, mo
     c2 = s2["compute"]["control_step_s"]
     assert c2["mean_s"] >= 2e-3 and c2["p99_s"] >= 2e-3 * 0.999
     assert s2["compute"]["model_step_s"]["mean_s"] < 2e-3  # the plant's figure is its own
+
+
+def test_frame_is_the_message_python_can_would_make():
+    """nodes.base.frame (compiled, canbrake.bus._ring.data_frame) builds the can.Message that
+    can.Message(arbitration_id=..., data=..., is_extended_id=id > 0x7FF) builds, slot for slot,
+    with the slot path and with python-can's constructor."""
+    import can
+
+    from canbrake.bus import _ring
+    from canbrake.nodes.base import frame
+
+    slots = [s for s in can.Message.__slots__ if s != "__weakref__"]
+    before = _ring.fast_messages()
+    try:
+        for fast in (True, False):
+            _ring.fast_messages(fast)
+            for aid, data in ((0x123, b"\x01\x02"), (0x7FF, b""), (0x800, bytearray(8)), (0x18FF0001, b"\xff" * 8),
+                              (0x1, bytes(range(64))), (0x2, bytes(70))):
+                got = frame(aid, data)
+                want = can.Message(arbitration_id=aid, data=data, is_extended_id=aid > 0x7FF)
+                assert type(got) is can.Message
+                assert [getattr(got, s) for s in slots] == [getattr(want, s) for s in slots], (aid, fast)
+                assert type(got.data) is bytearray and (got.data is data) == (want.data is data)
+    finally:
+        _ring.fast_messages(before)

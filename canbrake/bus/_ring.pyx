@@ -95,6 +95,16 @@ cdef object S_FD = "is_fd", S_RX = "is_rx", S_BRS = "bitrate_switch", S_ESI = "e
 cdef object S_DATA = "data", S_DLC = "dlc"
 
 
+def data_frame(uint32_t arbitration_id, data) -> Message:
+    """A classic data frame as ``can.Message(arbitration_id=..., data=..., is_extended_id=arbitration_id
+    > 0x7FF)`` makes it (timestamp 0, received, no channel), built by :func:`_message`: the nodes
+    make one per frame they send (:func:`canbrake.nodes.base.frame`)."""
+    cdef bytearray d = data if type(data) is bytearray else bytearray(data)
+    if len(d) > MAX_DATA:  # not a CAN frame, but what the constructor would make of it
+        return Message(arbitration_id=arbitration_id, data=d, is_extended_id=arbitration_id > 0x7FF)
+    return _message(0.0, arbitration_id, M_EXT if arbitration_id > 0x7FF else 0, <uint8_t>len(d), d, None, True)
+
+
 cdef object _message(double ts, uint32_t aid, uint8_t flags, uint8_t dlc, bytearray data,
                      object channel, bint is_rx):
     """``can.Message(ts, aid, ext, rtr, err, channel, dlc, data, fd, is_rx, brs, esi)``."""

@@ -33,6 +33,7 @@ from typing import Any, Iterator, Protocol
 import can
 import numpy as np
 
+from canbrake.bus._ring import data_frame
 from canbrake.nodes._trace import csv_row, hist_add
 
 
@@ -257,9 +258,9 @@ def write_text_atomic(path: Path, text: str) -> None:
         raise
 
 
-def frame(arbitration_id: int, data: bytes) -> can.Message:
-    """A classic data frame; identifiers above 0x7FF are 29-bit (extended)."""
-    return can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=arbitration_id > 0x7FF)
+#: frame(arbitration_id, data) -> can.Message: a classic data frame; identifiers above 0x7FF are
+#: 29-bit (extended). Compiled (canbrake.bus._ring.data_frame): a node sends one per frame.
+frame = data_frame
 
 
 def exact_filter(arbitration_id: int, extended: bool | None = None) -> dict[str, Any]:

@@ -9,6 +9,8 @@
 """
 from __future__ import annotations
 
+import contextlib
+import gc
 import multiprocessing as mp
 import os
 import time
@@ -20,6 +22,31 @@ import can
 from canbrake.bus.memory import BusOverrunError
 from canbrake.nodes.base import Node
 from canbrake.nodes.group import Router, _matches
+
+
+def freeze_heap() -> int:
+    """Collect once and freeze what this process's garbage collector holds (``gc.freeze``), so
+    that the run's full collections skip the objects set up before it: a full (generation 2)
+    collection walks every object (~100,000 after numpy, python-can, cantools and the scenario
+    are loaded; 37 ms measured on this machine, a missed 10 ms deadline in realtime and ~4 % of a
+    106-ECU lockstep run's time). Objects made during the run are collected as usual.
+    ``CANBRAKE_GC=off`` leaves the collector alone. Returns the number of objects frozen."""
+    if os.environ.get("CANBRAKE_GC", "freeze") == "off":
+        return 0
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
+
+
+@contextlib.contextmanager
+def frozen_heap():
+    """:func:`freeze_heap` for the duration of an in-process run, unfrozen after it (the calling
+    process goes on: its later garbage is collected again)."""
+    freeze_heap()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 class NodeFailure(RuntimeError):
@@ -125,10 +152,11 @@ def run_inprocess(nodes: Sequence[Node], *, medium: str = "direct", max_frames: 
 
     Nodes start in the given order (put the plant, the time master, last).
     """
-    if medium == "direct":
-        return _run_direct(nodes, max_frames)
-    if medium == "virtual":
-        return _run_virtual(nodes, max_frames)
+    with frozen_heap():
+        if medium == "direct":
+            return _run_direct(nodes, max_frames)
+        if medium == "virtual":
+            return _run_virtual(nodes, max_frames)
     raise ValueError(f"unknown in-process medium {medium!r}")
 
 

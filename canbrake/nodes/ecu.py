@@ -344,14 +344,14 @@ class EcuNode(Node):
         are taken in a later phase (see :meth:`_release_linked`). Peer frames arrive in phase 0/1."""
         from canbrake.bus.impair import TxFrame
 
-        t, horizon = self._times(now, 1)
-        self.rx_path.submit(TxFrame.from_message(msg, self.layout.by_index[j + 1].name, t))
-        self._release_linked(horizon)
+        self.rx_path.submit(TxFrame.from_message(msg, self.layout.by_index[j + 1].name, self._times(now, 1)[0]))
+        self._release_linked(now)
 
-    def _release_linked(self, horizon: float) -> None:
+    def _release_linked(self, now: float) -> None:
+        """Take the peer frames this ECU's receive links release by the phase-1 horizon."""
         if self.rx_path is None:
             return
-        for f in self.rx_path.release(horizon):
+        for f in self.rx_path.release(self._times(now, 1)[1]):
             m = f.to_message()
             self._on_state((self._state_pages.get(m.arbitration_id) or self._auth_of[m.arbitration_id])[0] - 1, m)
 
@@ -471,7 +471,7 @@ class EcuNode(Node):
         if self.crash_at_tick is not None and self.k >= self.crash_at_tick:
             raise RuntimeError(f"injected crash of {self.name} at tick {self.k} (ecu.crash in the scenario)")
         t, horizon = self._times(now, 1)
-        self._release_linked(horizon)
+        self._release_linked(now)
         out: list[can.Message] = []
         if self.k % self.heartbeat_every == 0:
             self._emit(frame(self._hb_id, self._hb.encode({"NodeState": 5})), t, out)
@@ -501,7 +501,7 @@ class EcuNode(Node):
         self.phase = 2
         self._deadline = None
         t, horizon = self._times(now, 2)
-        self._release_linked(self._times(now, 1)[1])
+        self._release_linked(now)
         own_speed = self.sensors.get("speed_mps", math.nan)
         own_pos = self.sensors.get("position_m", math.nan)
         table = self.peer_signals

@@ -14,17 +14,14 @@ What Linux offers, applied where permitted and reported either way:
   pins the plant to the last CPU and leaves the others free; ``split`` also keeps every other
   node off that CPU; ``none`` pins nothing.
 
-- Python's garbage collector: a full (generation 2) collection walks every object the process
-  holds (~100,000 after numpy, python-can, cantools and the scenario are loaded: 37 ms measured
-  on this machine), long enough to miss a 10 ms deadline. After setting up, the node collects
-  once and freezes what it holds (``gc.freeze``: those objects are never scanned again); objects
-  made during the run are collected as usual. ``CANBRAKE_RT_GC=off`` leaves the collector alone.
+- Python's garbage collector: every node process, in any mode, freezes what it holds after
+  setting up (:func:`canbrake.nodes.driver.freeze_heap`, ``CANBRAKE_GC``): a full collection
+  would otherwise walk it, long enough to miss a 10 ms deadline.
 
 ``CANBRAKE_RT_SCHED=off`` turns all of it off (the fallback path, for comparison).
 """
 from __future__ import annotations
 
-import gc
 import os
 
 PRIORITY = {"plant": 60, "ecu": 50, "recorder": 40}
@@ -32,16 +29,10 @@ PRIORITY = {"plant": 60, "ecu": 50, "recorder": 40}
 
 def setup_realtime(role: str) -> str:
     """Apply realtime scheduling and affinity to this process (a node of ``role``: plant, ecu,
-    recorder, ...) and freeze what its garbage collector holds; returns what was obtained, e.g.
-    ``"SCHED_FIFO 60, CPUs [1], gc: 96,239 objects frozen"``."""
+    recorder, ...); returns what was obtained, e.g. ``"SCHED_FIFO 60, CPUs [1]"``."""
     if os.environ.get("CANBRAKE_RT_SCHED", "fifo") == "off":
         return "SCHED_OTHER (CANBRAKE_RT_SCHED=off)"
-    got = _schedule(role)
-    if os.environ.get("CANBRAKE_RT_GC", "freeze") != "off":
-        gc.collect()
-        gc.freeze()
-        got += f", gc: {gc.get_freeze_count():,} objects frozen"
-    return got
+    return _schedule(role)
 
 
 def _schedule(role: str) -> str:
