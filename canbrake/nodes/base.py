@@ -142,6 +142,11 @@ class Node(ABC):
                 break
         return out
 
+    def after_send(self) -> None:
+        """Called by a node process's driver once the frames this node returned are on the bus:
+        work that need not hold them back (the plant writes its trace row here while the ECUs
+        compute). Nothing by default."""
+
     def next_deadline(self) -> float | None:
         """Wall time (s) at which :meth:`on_timer` must run, or None (realtime mode only)."""
         return None

@@ -136,11 +136,13 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         now = clock()
         if msgs:
             _send_all(bus, node.handle_batch(msgs, now))
+            node.after_send()
         elif timeout == 0.0 and spin_s > 0.0:
             os.sched_yield()
         deadline = node.next_deadline()
         if deadline is not None and now >= deadline:
             _send_all(bus, node.on_timer(now))
+            node.after_send()
         if parent_pid is not None and (not msgs or time.monotonic() >= next_check):
             next_check = time.monotonic() + idle_check_s
             if not _parent_alive(parent_pid):

@@ -122,6 +122,10 @@ class NodeGroup(Node):
         sent = self._router.step(self._router.inboxes([(-1, m) for m in msgs]), now)
         return self._loop(sent, now) if sent else []
 
+    def after_send(self) -> None:
+        for m in self.members:
+            m.after_send()
+
     def next_deadline(self) -> float | None:
         ds = [d for d in (m.next_deadline() for m in self.members) if d is not None]
         return min(ds) if ds else None

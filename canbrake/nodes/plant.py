@@ -183,6 +183,8 @@ class PlantNode(Node):
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
         self._trace: CsvTrace | None = None
+        #: the trace row taken at the last tick and not yet written (see _record / after_send)
+        self._pending_row: tuple[Any, ...] | None = None
         self._extra_meas: list[str] | None = None
         # realtime: wall time the current period's SYNC was sent, and per period the time from it
         # to the last command of the period (s; command latency, `canbrake bench`)
@@ -541,32 +543,50 @@ class PlantNode(Node):
                                self.flush_every)
 
     def _record(self, final: bool = False) -> None:
-        m = self.model.measurements()
-        t = self.k * self.dt
+        """Take this tick's trace row: the state, the reference and the commands applied, copied
+        now; its text is made and written by :meth:`after_send` (once the tick's frames are on
+        the bus: in a node process, while the ECUs compute) or before anything else happens here."""
+        self.after_send()
+        m = self.model.measurements()  # (arrays made per state: the next step leaves them alone)
+        cmd = np.full(self.n, np.nan) if final else self.cmd_n.copy()
+        fs = self._in_failsafe.copy() if self.failsafe is not None else None
+        cmds = {name: None if final else self.commands[name].copy()
+                for name in self.command_names if name != "brake_force_n"}
+        self._pending_row = (self.k, m, cmd, fs, cmds)
+        if final:
+            self.after_send()
+            if self._trace is not None:
+                self._trace.flush()
+
+    def after_send(self) -> None:
+        """Write the trace row taken by :meth:`_record`, if one is pending (the drivers call this
+        once a node's frames are sent)."""
+        pending = self._pending_row
+        if pending is None:
+            return
+        self._pending_row = None
+        k, m, cmd, fs, cmds = pending
+        t = k * self.dt
         v_ref, a_ref = self.reference(t)
-        row: list[float] = [self.k, t, v_ref, a_ref]
+        row: list[float] = [k, t, v_ref, a_ref]
         if self._ref_pos is not None:
             row.append(self.reference.position(t))
-        cmd = np.full(self.n, np.nan) if final else self.cmd_n
         # per vehicle (position, speed, accel, command, applied), then per coupler (deflection,
         # force): interleaved by numpy, Python floats by tolist (not a numpy scalar per value)
         row += np.column_stack([m["position_m"], m["speed_mps"], m["accel_mps2"], cmd,
                                 m["applied_brake_n"]]).ravel().tolist()
         row += np.column_stack([m["deflection_m"], m["coupler_force_n"]]).ravel().tolist()
-        if self.failsafe is not None:
-            row += [int(x) for x in self._in_failsafe]
-        for name in self.command_names:
-            if name != "brake_force_n":
-                arr = self.commands[name]
-                row += [np.nan if final else float(arr[e.vehicle - 1]) for e in self.ecus if name in e.commands]
+        if fs is not None:
+            row += [int(x) for x in fs]
+        for name, arr in cmds.items():
+            row += [np.nan if arr is None else float(arr[e.vehicle - 1]) for e in self.ecus if name in e.commands]
         for name in self._extra_measurements():
             row += np.asarray(m[name], dtype=float).tolist()
         if self._trace is not None:
             self._trace.append(row)
-            if final:
-                self._trace.flush()
 
     def close(self, status: str = "ok") -> None:
+        self.after_send()
         if self._trace is not None:
             self._trace.close()
         if self.stats.status == "running":
