@@ -358,11 +358,14 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
             spin_s = min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * scn.control_period_s)
         barrier.wait(timeout=_start_timeout_s())
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
-        if prof_dir:  # developer aid: a cProfile of every node process
+        if prof_dir:  # developer aid: a cProfile of every node process (CPU time: waits left out)
             import cProfile
 
-            cProfile.runctx("drive(node, bus, parent_pid=parent_pid)", globals(), locals(),
-                            str(Path(prof_dir) / f"{name}.prof"))
+            prof = cProfile.Profile(time.process_time)
+            try:
+                prof.runcall(drive, node, bus, parent_pid=parent_pid)
+            finally:
+                prof.dump_stats(str(Path(prof_dir) / f"{name}.prof"))
         else:
             drive(node, bus, parent_pid=parent_pid, spin_s=spin_s)
         status = "ok"

@@ -181,6 +181,8 @@ class EcuNode(Node):
         self._sync_id = layout.sync_id
         self._deadline: float | None = None
         self._trace: CsvTrace | None = None
+        #: the trace row of the period last computed, not yet written (see after_send)
+        self._pending_row: tuple[Any, ...] | None = None
         # realtime: this ECU's own timer (canbrake.bus.clock.EcuClock): phase 1 of tick k starts
         # offset_s(k) after its sensor frames (drift + jitter), not at once; None: on the plant's grid
         self.clock = clock if mode == "realtime" else None
@@ -498,6 +500,7 @@ class EcuNode(Node):
         return out
 
     def _phase2(self, now: float) -> list[can.Message]:
+        self.after_send()  # the last period's row, before the controller makes this one's diagnostics
         self.phase = 2
         self._deadline = None
         t, horizon = self._times(now, 2)
@@ -556,14 +559,25 @@ class EcuNode(Node):
             cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": self.k & 0xFFFF}), self.k)
             out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
-        if self._trace is not None:
-            row = [self.k, result.brake_force_n]
-            row += [diag.get(n, nan) for n in self.controller.diagnostic_names]
-            row += [max_age if max_age > -math.inf else math.inf, fresh]
-            self._trace.append(row)
+        if self._trace is not None:  # written once the frames are sent (after_send)
+            self._pending_row = (self.k, result.brake_force_n, diag, max_age, fresh)
         if self._late_rx:
             self._take_held(now)
         return out
+
+    def after_send(self) -> None:
+        """Write the trace row of the period last computed, if pending: in a node process after
+        its command frames are on the bus, so the row's text is not made before they leave."""
+        pending = self._pending_row
+        if pending is None:
+            return
+        self._pending_row = None
+        k, force, diag, max_age, fresh = pending
+        nan = math.nan
+        row = [k, force]
+        row += [diag.get(n, nan) for n in self.controller.diagnostic_names]
+        row += [max_age if max_age > -math.inf else math.inf, fresh]
+        self._trace.append(row)  # type: ignore[union-attr]
 
     def _peer_fallback(self, origin: list[int], peers: dict[str, np.ndarray]) -> None:
         """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
@@ -605,6 +619,7 @@ class EcuNode(Node):
     # ---------------------------------------------------------------- trace
     def close(self, status: str = "ok") -> None:
         if self._trace is not None:
+            self.after_send()
             self._trace.close()
         self.stats.status = "ok" if self.finished else status
         self.stats.guard = self.guard.stats()
