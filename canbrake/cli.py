@@ -19,6 +19,25 @@ EXIT_OK, EXIT_FAIL, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 from canbrake.errors import InputError  # noqa: E402  (re-exported for callers)
 
 
+
+def process_cpu_text(pr: dict) -> str:
+    """One line of ``summary.json``'s ``compute.processes``: CPU time per period by node process
+    (ECU processes together), the sum and the rate it bounds on this machine's CPUs."""
+    us = (lambda x: f"{x * 1e6:.0f} us")
+    nodes = pr["nodes"]
+    ecu = [v["cpu_per_period_s"] for v in nodes.values() if v.get("role") == "ecu"]
+    parts = [f"{n} {us(v['cpu_per_period_s'])}" for n, v in nodes.items() if v.get("role") != "ecu"]
+    if ecu:
+        parts.append(f"{len(ecu)} ECU process{'es' if len(ecu) > 1 else ''} {us(sum(ecu) / len(ecu))} each"
+                     + (f" (max {us(max(ecu))})" if len(ecu) > 1 else ""))
+    text = f"{', '.join(parts)}: {us(pr['cpu_per_period_s'])} in all"
+    if pr.get("cpu_bound_periods_per_s"):
+        text += f", at most {pr['cpu_bound_periods_per_s']:,.0f} periods/s on {pr['cpus']} CPUs"
+    if pr.get("wakeups_per_period") is not None:
+        text += f"; {pr['wakeups_per_period']:.1f} bus wake-ups per period"
+    return text
+
+
 def _parse_set(items: Sequence[str]) -> dict[str, Any]:
     from canbrake.scenario import DuplicateKeyError, load_yaml
 
@@ -142,6 +161,9 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
         lines.append(f"compute per period: plant model {us(ms.get('mean_s'))}, controllers {cs['ecus']} x "
                      f"{us(cs['mean_s'])} (worst p99 {us(cs['p99_s'])}, {cs['worst_p99_ecu']}); "
                      f"run loop {us(comp.get('loop_per_period_s'))} per period")
+        pr = comp.get("processes")
+        if pr:
+            lines.append("CPU per period: " + process_cpu_text(pr))
     dm = s.get("deadline_misses") or {}
     if s.get("mode") == "realtime" and dm:
         ticks = s.get("ticks") or 0

@@ -357,6 +357,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                 m.scheduling = sched
             spin_s = min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * scn.control_period_s)
         barrier.wait(timeout=_start_timeout_s())
+        cpu0 = time.process_time()  # this process's CPU time from the start of the run
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")
         if prof_dir:  # developer aid: a cProfile of every node process (CPU time: waits left out)
             import cProfile
@@ -369,6 +370,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         else:
             drive(node, bus, parent_pid=parent_pid, spin_s=spin_s)
         status = "ok"
+        _write_process_stats(Path(run_dir), name, role, time.process_time() - cpu0, bus)
     except SystemExit:
         status = "terminated"
         raise
@@ -385,6 +387,25 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
                 pass
         if bus is not None:
             bus.shutdown()
+
+
+def _write_process_stats(run_dir: Path, name: str, role: str, cpu_s: float, bus: Any) -> None:
+    """``processes/<name>.json``: this node process's CPU time over the run (s, user + system,
+    from the start barrier to its end) and, on the memory bus, how often it slept and was woken
+    (:meth:`canbrake.bus.memory.MemoryBus.stats`); the summary's ``compute.processes``."""
+    from canbrake.nodes.base import write_text_atomic
+
+    rec: dict[str, Any] = {"name": name, "role": role, "cpu_s": round(cpu_s, 6)}
+    st = getattr(bus, "stats", None)
+    if callable(st):
+        b = st()
+        rec.update(sleeps=getattr(b, "sleeps", None), wakeups=getattr(b, "wakeups", None))
+    d = run_dir / "processes"
+    try:
+        d.mkdir(exist_ok=True)
+        write_text_atomic(d / f"{name}.json", json.dumps(rec))
+    except OSError:
+        pass  # a figure of the run's cost, not of its result: the summary leaves it out
 
 
 def _leave_failure(log: Path, text: str, failure: Any) -> None:

@@ -513,3 +513,42 @@ def test_can_logger_and_can_player_command_lines(shm_dir: Path, tmp_path: Path) 
         got = [rx.recv(1) for _ in sent]
     assert [fields(m) for m in got] == [fields(m) for m in sent]
     assert os.listdir(shm_dir) == []
+
+
+def _wait_for_sleeper(b: MemoryBus, n: int = 1) -> None:
+    end = time.monotonic() + TIMEOUT
+    while b._q[shm.H_SLEEPERS] < n:
+        assert time.monotonic() < end, "the reader never went to sleep"
+        time.sleep(0.01)
+
+
+def test_a_reader_waiting_for_n_frames_is_woken_once_and_loses_none_at_a_timeout(shm_dir: Path) -> None:
+    """recv_batch(min_frames=n): the writers count the frames the sleeping reader accepts and
+    wake it when the n-th comes (one wake-up for n frames sent one by one, filtered-out frames not
+    counted); a timeout with fewer returns those that came, none skipped."""
+    with bus("mf", yield_before_sleep=False, can_filters=[{"can_id": 0x100, "can_mask": 0x700}]) as r, \
+            bus("mf") as w:
+        got: list[list[can.Message]] = []
+        t = threading.Thread(target=lambda: got.append(r.recv_batch(TIMEOUT, min_frames=3)))
+        t.start()
+        _wait_for_sleeper(w)
+        for k in range(3):
+            w.send(frame(0x101 + k, bytes([k])))
+            w.send(frame(0x200, b"x"))  # not accepted: not counted
+            time.sleep(0.05)
+            assert_sleepers_consistent(w)
+        t.join(TIMEOUT)
+        assert [m.arbitration_id for m in got[0]] == [0x101, 0x102, 0x103]
+        assert r.stats().wakeups == 1 and r.stats().sleeps == 1, r.stats()
+        # a timeout with 2 of 3: both returned, in order, nothing skipped
+        got.clear()
+        t = threading.Thread(target=lambda: got.append(r.recv_batch(0.5, min_frames=3)))
+        t.start()
+        _wait_for_sleeper(w)
+        w.send(frame(0x110, b"a"))
+        w.send(frame(0x111, b"b"))
+        t.join(TIMEOUT)
+        assert r.stats().wakeups == 1, r.stats()  # not woken: it timed out
+        rest = got[0] + r.recv_batch(0)
+        assert [m.arbitration_id for m in rest] == [0x110, 0x111]
+        assert_sleepers_consistent(w)

@@ -122,6 +122,13 @@ def test_processes_on_memory_bus_equal_in_process_run(tmp_path):
     run_scenario(scn, tmp_path / "inp", backend="inprocess", plots=False)
     assert (tmp_path / "mem" / "signals.csv").read_bytes() == (tmp_path / "inp" / "signals.csv").read_bytes()
     assert (tmp_path / "mem" / "frames.log").read_bytes() == (tmp_path / "inp" / "frames.log").read_bytes()
+    # each node process's CPU time and wake-ups (summary compute.processes); the plant sleeps
+    # until every ECU's command is in (MemoryBus.recv_batch(min_frames=...)), not once per command
+    pr = s["compute"]["processes"]
+    assert set(pr["nodes"]) == {"plant", "recorder", *(f"ecu{i}" for i in range(1, 7))}
+    assert all(v["cpu_per_period_s"] > 0 for v in pr["nodes"].values())
+    assert pr["cpu_per_period_s"] == pytest.approx(sum(v["cpu_per_period_s"] for v in pr["nodes"].values()))
+    assert pr["nodes"]["plant"]["wakeups_per_period"] <= 1.05, pr["nodes"]["plant"]
 
 
 def test_frames_log_is_decoded_by_cantools_cli(tmp_path, case1_short):

@@ -441,8 +441,11 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
     # the loop's wall time: the plant's (start-up excluded); in process the engine's loop (outcome)
     comp = compute_figures(plant, ecus, int(summary["ticks"] or 0),
                            plant.get("wall_time_s") or summary.get("wall_time_s") or 0.0)
+    procs = process_figures(run_dir, int(summary["ticks"] or 0))
     if comp is not None:
         summary["compute"] = comp
+        if procs is not None:
+            comp["processes"] = procs
     if plant.get("response_s"):
         summary["ecu_response_s"] = plant["response_s"]
     from canbrake.external import external_finding, external_summary
@@ -491,6 +494,32 @@ def compute_figures(plant: dict[str, Any], ecus: list[dict[str, Any]], ticks: in
     return {"model_step_s": {k: model.get(k) for k in ("n", "mean_s", "p99_s", "max_s")},
             "control_step_s": control, "per_period_s": per_period,
             "loop_per_period_s": loop_wall_s / ticks if loop_wall_s and ticks else None}
+
+
+def process_figures(run_dir: Path, ticks: int) -> dict[str, Any] | None:
+    """``summary.json``'s ``compute.processes`` (one process per node: ``processes/*.json``, see
+    :func:`canbrake.run._write_process_stats`): each node process's CPU time per period (s, user +
+    system) and, on the memory bus, wake-ups per period; ``cpu_per_period_s`` their sum, and
+    ``cpu_bound_periods_per_s`` = CPUs / that sum, the rate no run on this machine can exceed
+    however the processes are scheduled (every period needs that much CPU). None in process."""
+    files = sorted((run_dir / "processes").glob("*.json")) if ticks else []
+    nodes: dict[str, dict[str, Any]] = {}
+    for f in files:
+        try:
+            rec = json.loads(f.read_text())
+        except (OSError, ValueError):
+            continue
+        nodes[rec["name"]] = {"role": rec.get("role"), "cpu_per_period_s": rec["cpu_s"] / ticks,
+                              "wakeups_per_period": (rec["wakeups"] / ticks if rec.get("wakeups") is not None
+                                                     else None)}
+    if not nodes:
+        return None
+    total = sum(v["cpu_per_period_s"] for v in nodes.values())
+    cpus = os.cpu_count() or 1
+    wk = [v["wakeups_per_period"] for v in nodes.values() if v["wakeups_per_period"] is not None]
+    return {"nodes": nodes, "cpu_per_period_s": total, "cpus": cpus,
+            "cpu_bound_periods_per_s": cpus / total if total > 0 else None,
+            "wakeups_per_period": sum(wk) if wk else None}
 
 
 def clock_figures(scn: Scenario, plant: dict[str, Any], ticks: int) -> dict[str, Any]:

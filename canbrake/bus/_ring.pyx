@@ -60,6 +60,8 @@ DEF SLEEPERS_BYTE = 160        # header word H_SLEEPERS (20)
 DEF E_SLEEPING_BYTE = 72       # reader-entry words E_SLEEPING (9), E_WAKE_SEQ (10), E_WAKEUPS (11)
 DEF E_WAKE_SEQ_BYTE = 80
 DEF E_WAKEUPS_BYTE = 88
+DEF E_WANT_BYTE = 104          # E_WANT (13): accepted frames a sleeping reader waits for
+DEF E_PENDING_BYTE = 112       # E_PENDING (14): accepted frames published since it slept
 DEF M_EXT = 1
 DEF M_RTR = 2
 DEF M_ERR = 4
@@ -71,7 +73,8 @@ cdef uint64_t SLOT_INVALID = 0xFFFFFFFFFFFFFFFFULL
 LAYOUT = {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_DATA,
           "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": WRITE_SEQ_BYTE // 8,
           "H_SLEEPERS": SLEEPERS_BYTE // 8, "E_SLEEPING": E_SLEEPING_BYTE // 8,
-          "E_WAKE_SEQ": E_WAKE_SEQ_BYTE // 8, "E_WAKEUPS": E_WAKEUPS_BYTE // 8}
+          "E_WAKE_SEQ": E_WAKE_SEQ_BYTE // 8, "E_WAKEUPS": E_WAKEUPS_BYTE // 8,
+          "E_WANT": E_WANT_BYTE // 8, "E_PENDING": E_PENDING_BYTE // 8}
 
 # python-can's Message has __slots__ and an __init__ that, given a bytearray and a dlc, only
 # stores its arguments. Setting the slots directly on a new object gives the same object for
@@ -193,6 +196,18 @@ cdef Py_ssize_t _first_accepted(bytes frames, Filters filters):
     return -1
 
 
+cdef Py_ssize_t _count_accepted(bytes frames, Filters filters, Py_ssize_t start):
+    """Slot images in ``frames`` from index ``start`` on that ``filters`` accept."""
+    cdef Py_ssize_t k = PyBytes_GET_SIZE(frames) // SLOT_BYTES, i, n = 0
+    cdef const char *p = PyBytes_AS_STRING(frames)
+    cdef uint32_t aid
+    for i in range(start, k):
+        memcpy(&aid, p + i * SLOT_BYTES + 8, 4)
+        if filters._accepts(aid, (<uint8_t>p[i * SLOT_BYTES + 16]) & M_EXT):
+            n += 1
+    return n
+
+
 cdef class Ring:
     """The ring of one channel mapping: ``buf`` (the ``mmap``, held until :meth:`release`), the
     ring's byte offset and size (slots, a power of two), this bus's sender ``token`` and the
@@ -309,13 +324,15 @@ cdef class Ring:
     def wake(self, peers, bytes frames, int64_t w) -> list:
         """After :meth:`write` of ``frames`` at seq ``w`` (lock held): clear the *sleeping* flag
         of every sleeping reader in ``peers`` (``(entry word, token, filters or None)``) whose
-        filters accept one of the frames, after storing where the first such frame is
-        (``wake_seq``) and counting the wake-up; returns their tokens, to be woken through their
-        FIFOs once the lock is released. Awake readers find the frames themselves."""
+        filters accept one of the frames and that now has as many accepted frames since it slept
+        as it waits for (``E_WANT``, at least 1; counted in ``E_PENDING``), after storing where the
+        first of them is (``wake_seq``) and counting the wake-up; returns their tokens, to be woken
+        through their FIFOs once the lock is released. Awake readers find the frames themselves."""
         self._check()
         cdef list out = []
         cdef char *e
-        cdef int64_t hit
+        cdef int64_t first
+        cdef uint64_t pending, n
         cdef Py_ssize_t i
         if cb_load(self.mem + SLEEPERS_BYTE) == 0:
             return out
@@ -324,13 +341,20 @@ cdef class Ring:
             if not cb_load(e + E_SLEEPING_BYTE):
                 continue
             if filt is None:
-                hit = w
+                i = 0
+                n = PyBytes_GET_SIZE(frames) // SLOT_BYTES
             else:
                 i = _first_accepted(frames, <Filters>filt)
                 if i < 0:
                     continue
-                hit = w + i
-            cb_store(e + E_WAKE_SEQ_BYTE, <uint64_t>hit)
+                n = _count_accepted(frames, <Filters>filt, i)
+            pending = cb_load(e + E_PENDING_BYTE)
+            if pending == 0:  # the first accepted frame since it slept: where it reads from
+                cb_store(e + E_WAKE_SEQ_BYTE, <uint64_t>(w + i))
+            pending += n
+            cb_store(e + E_PENDING_BYTE, pending)
+            if pending < cb_load(e + E_WANT_BYTE):
+                continue  # not yet as many as it waits for
             cb_store(e + E_SLEEPING_BYTE, 0)  # after wake_seq: the reader reads them in that order
             cb_store(self.mem + SLEEPERS_BYTE, cb_load(self.mem + SLEEPERS_BYTE) - 1)
             cb_store(e + E_WAKEUPS_BYTE, cb_load(e + E_WAKEUPS_BYTE) + 1)

@@ -20,6 +20,9 @@ Design
     that reader's FIFO. Check-and-sleep and publish-and-wake are both done under the one lock and
     the FIFO keeps the byte until it is read, so a wake-up cannot be lost; a frame that a
     reader's filters reject never wakes it; a burst wakes a sleeping reader once.
+  * A reader may ask to sleep until n frames it accepts have come (``recv_batch(min_frames=n)``,
+    ``E_WANT``): the writers count them (``E_PENDING``) and wake it at the n-th, so a lockstep
+    node that needs every ECU's frame before it can go on is woken once, not at each frame.
   * Frames that went by while a reader slept were checked against its filters by the writers,
     so on waking it starts at ``wake_seq`` (or at ``write_seq`` after a timeout) and never
     scans, or overruns on, traffic it does not want.
@@ -105,8 +108,10 @@ from canbrake.bus.memory_shm import (
     E_START,
     E_TOKEN,
     E_TX_WAITING,
+    E_PENDING,
     E_WAKE_SEQ,
     E_WAKEUPS,
+    E_WANT,
     F_ACCEPT_ALL,
     F_BACKPRESSURE,
     F_OWN,
@@ -130,7 +135,8 @@ __all__ = ["MemoryBus", "MemoryBusStats", "remove_channel", "list_channels", "ch
 
 if _RING_LAYOUT != {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_DATA,
                     "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": H_WRITE_SEQ, "H_SLEEPERS": H_SLEEPERS,
-                    "E_SLEEPING": E_SLEEPING, "E_WAKE_SEQ": E_WAKE_SEQ, "E_WAKEUPS": E_WAKEUPS}:
+                    "E_SLEEPING": E_SLEEPING, "E_WAKE_SEQ": E_WAKE_SEQ, "E_WAKEUPS": E_WAKEUPS,
+                    "E_WANT": E_WANT, "E_PENDING": E_PENDING}:
     raise ImportError(f"canbrake.bus._ring was built for another slot layout ({_RING_LAYOUT}): "
                       "rebuild canbrake (pip install .)")
 _WAIT_SLICE_S = 0.1  # a writer blocked by a backpressure reader re-checks that reader's pid this often
@@ -664,10 +670,16 @@ class MemoryBus(BusABC):
                 return buf.popleft()
             return self._recv_locked(timeout)[0]
 
-    def recv_batch(self, timeout: Optional[float] = None) -> list[Message]:
+    def recv_batch(self, timeout: Optional[float] = None, min_frames: int = 1) -> list[Message]:
         """Every accepted frame pending, oldest first; if none is, wait up to ``timeout`` s for the
         first (``None``: forever, 0: poll) and return it with any that came with it. ``[]`` after
         the timeout.
+
+        ``min_frames``: wait until at least that many accepted frames are pending (those already
+        pending count), or the timeout, then return them all. While it sleeps the writers count
+        the frames it accepts and wake it once, at the last one: a lockstep node that needs n
+        frames before it can go on (the plant: every ECU's command) is woken once a period, not n
+        times. At the timeout it returns what has come, however few. Capped at half the ring.
 
         The frames, their order and attributes are those that calling :meth:`recv_filtered`
         until it has nothing pending would return, and errors come at the same place in that
@@ -689,14 +701,25 @@ class MemoryBus(BusABC):
                 self._overrun_pending = e
                 self._n_recv += len(got)
                 return got
-            if not got and not buf:  # nothing pending: wait for the first frame as recv does
-                m = self._recv_locked(timeout)[0]  # (counted there)
-                if m is None:
-                    return []
-                got.append(m)
-                self._n_recv -= 1
             got.extend(buf)
             buf.clear()
+            want = max(1, min(min_frames, self._ring_n // 2))
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while len(got) < want:  # wait for the rest, as recv does for one
+                left = None if deadline is None else max(0.0, deadline - time.monotonic())
+                try:
+                    m = self._recv_locked(left, want - len(got))[0]  # (counted there)
+                except BusOverrunError as e:
+                    if not got:
+                        raise
+                    self._overrun_pending = e
+                    break
+                if m is None:  # the timeout
+                    break
+                self._n_recv -= 1
+                got.append(m)
+                got.extend(buf)
+                buf.clear()
             self._n_recv += len(got)
             return got
 
@@ -711,7 +734,7 @@ class MemoryBus(BusABC):
         with self._rxlock:
             return self._recv_locked(timeout)
 
-    def _recv_locked(self, timeout: Optional[float]) -> tuple[Optional[Message], bool]:
+    def _recv_locked(self, timeout: Optional[float], want: int = 1) -> tuple[Optional[Message], bool]:
         self._check_open()
         self._raise_pending_overrun()
         buf = self._rxbuf
@@ -740,6 +763,8 @@ class MemoryBus(BusABC):
                 try:
                     idle = q[H_WRITE_SEQ] == self._seq
                     if idle:
+                        q[self._eb + E_WANT] = want
+                        q[self._eb + E_PENDING] = 0
                         q[sleep_w] = 1
                         q[H_SLEEPERS] = q[H_SLEEPERS] + 1
                 finally:
@@ -793,10 +818,10 @@ class MemoryBus(BusABC):
                 self._n_spurious += 1
         self._lock()
         try:
-            if q[b + E_SLEEPING]:  # never woken: nothing published meanwhile concerns us
+            if q[b + E_SLEEPING]:  # never woken: nothing, or fewer frames than it waits for, came
                 q[b + E_SLEEPING] = 0
                 q[H_SLEEPERS] = q[H_SLEEPERS] - 1
-                self._seq = max(self._seq, q[H_WRITE_SEQ])
+                self._seq = max(self._seq, q[b + E_WAKE_SEQ] if q[b + E_PENDING] else q[H_WRITE_SEQ])
             else:  # woken just now: its byte may still be on its way
                 self._seq = max(self._seq, q[b + E_WAKE_SEQ])
                 self._fifo_dirty = True

@@ -69,6 +69,8 @@ E_SLEEPING = 9
 E_WAKE_SEQ = 10
 E_WAKEUPS = 11
 E_TX_WAITING = 12
+E_WANT = 13  # accepted frames a sleeping reader waits for before it is woken (0 or 1: the first)
+E_PENDING = 14  # accepted frames published since it went to sleep (counted by the writers)
 E_FILTERS = 16  # MAX_PUSHED_FILTERS x (can_id & mask, mask, mode)
 
 # reader-entry flags

@@ -101,33 +101,3 @@ def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo
                 i = bins - 1
         counts[i] += 1
     return n, total, vmax
-
-
-def collect_frames(list msgs, Py_ssize_t start, dict counts, dict phase_of, list tick_frames,
-                   closing_ids, object sync_id):
-    """The lockstep recorder's per-frame work on ``msgs[start:]`` (:meth:`Recorder.handle_batch`):
-    count each frame by ``(identifier, extended, error frame)`` in ``counts`` and append
-    ``(phase, identifier, bytes(data), msg)`` to ``tick_frames`` (its phase from ``phase_of``).
-    Stops before a frame it leaves to the caller: a standard- or extended-id SYNC as the caller's
-    rule says (``sync_id`` with ``is_extended_id == (sync_id > 0x7FF)``: counted, not appended) or a
-    key missing from ``phase_of`` (neither counted nor appended). Returns ``(index of that frame or
-    len(msgs), frames on ``closing_ids`` seen)``."""
-    cdef Py_ssize_t i, n = len(msgs), closing = 0
-    cdef object msg, key, ext, phase, c, aid
-    cdef bint sync_ext = sync_id > 0x7FF
-    for i in range(start, n):
-        msg = msgs[i]
-        aid = msg.arbitration_id
-        ext = msg.is_extended_id
-        key = (aid, ext, msg.is_error_frame)
-        phase = phase_of.get(key)
-        if phase is None:
-            return i, closing
-        c = counts.get(key)
-        counts[key] = 1 if c is None else c + 1
-        if aid in closing_ids:
-            closing += 1
-        elif aid == sync_id and (<bint>ext) == sync_ext:
-            return i, closing
-        tick_frames.append((phase, aid, bytes(msg.data), msg))
-    return n, closing

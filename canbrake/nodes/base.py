@@ -142,6 +142,12 @@ class Node(ABC):
                 break
         return out
 
+    def frames_wanted(self) -> int:
+        """How many frames this node needs, at least, before it can go on: a driver on the memory
+        bus sleeps until that many have come (``MemoryBus.recv_batch(min_frames=...)``) instead
+        of waking at each. Must never exceed what will surely come; 1 by default."""
+        return 1
+
     def after_send(self) -> None:
         """Called by a node process's driver once the frames this node returned are on the bus:
         work that need not hold them back (the plant writes its trace row here while the ECUs

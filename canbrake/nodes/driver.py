@@ -115,7 +115,8 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
     # (MemoryBus.recv_batch); any other python-can bus gives one frame per recv
     recv_batch = getattr(bus, "recv_batch", None)
     if recv_batch is None:
-        def recv_batch(timeout: float | None, _recv: Callable[..., can.Message | None] = bus.recv) -> list[can.Message]:
+        def recv_batch(timeout: float | None, min_frames: int = 1,
+                       _recv: Callable[..., can.Message | None] = bus.recv) -> list[can.Message]:
             m = _recv(timeout=timeout)
             return [] if m is None else [m]
     while not node.finished:
@@ -128,7 +129,7 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         else:
             timeout = max(0.0, min(idle_check_s, deadline - now - spin_s))
         try:
-            msgs = recv_batch(timeout=timeout)
+            msgs = recv_batch(timeout=timeout, min_frames=node.frames_wanted())
         except BusOverrunError as e:
             # a flood overran this node's receive ring: count what was lost and receive on
             node.on_rx_overrun(e.frames_lost)

@@ -305,6 +305,15 @@ class EcuNode(Node):
         self.stats.peer_frames += taken
         return out
 
+    def frames_wanted(self) -> int:
+        """Lockstep, waiting for peers whose state frames are sure to come (no barrier frames, no
+        receive links, no SecOC, no external peer): one frame at least from each listened ECU not
+        complete yet; else 1."""
+        if (self.phase != 1 or self.mode != "lockstep" or self.barrier or self.rx_path is not None
+                or self.secoc is not None or self._ext_bits):
+            return 1
+        return max(1, bin(self._all_done & ~self._done).count("1"))
+
     def _held_late(self, bit: int, msg: can.Message) -> bool:
         """Lockstep: hold a peer's STATE frame that comes after that peer's STATE_DONE of this tick
         until this ECU has decided (True: held). Such a frame is one the sender's send path released

@@ -132,6 +132,7 @@ class PlantNode(Node):
         self._cmd_done_ids = {layout.plan.cmd_done(e.index): e.index - 1 for e in self.ecus}
         self._veh = np.asarray([e.vehicle - 1 for e in self.ecus], dtype=np.int64)
         self._fresh_pages = np.zeros(self.n_ecus, dtype=np.int64)
+        self._n_pages = int(self._pages_per_ecu.sum())  # command pages of one tick, every ECU
         self._fresh = np.zeros(self.n_ecus, dtype=bool)
         self._done = 0  # bit i set: CMD_DONE of ECU slot i seen this tick
         self._all_done = (1 << self.n_ecus) - 1
@@ -342,12 +343,24 @@ class PlantNode(Node):
                 return self._slot_done(slot, now)
         return []
 
+    def _commands_close_slots(self) -> bool:
+        """Lockstep where nothing but the commands themselves closes an ECU's slot (no SecOC, no
+        barrier frames, no external ECU, started): every page of every ECU comes each tick."""
+        return (self.secoc is None and self.mode == "lockstep" and not self.barrier and not self._ext_mask
+                and not self._unheard and self._start_deadline is None)
+
+    def frames_wanted(self) -> int:
+        """The command pages still missing this tick, when they are sure to come (see
+        :meth:`_commands_close_slots`); else 1."""
+        if self.finished or self.k < 0 or not self._commands_close_slots():
+            return 1
+        return max(1, self._n_pages - int(self._fresh_pages.sum()))
+
     def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
         """:meth:`handle` for each frame, the command pages (most of what the plant hears) taken
         by :meth:`_on_command` without :meth:`handle`'s other branches where nothing but the
         lockstep rule applies (no SecOC, no external ECU, every ECU's commands close its slot)."""
-        if (self.secoc is not None or self.mode != "lockstep" or self.barrier or self._ext_mask or self._unheard
-                or self._start_deadline is not None):
+        if not self._commands_close_slots():
             return super().handle_batch(msgs, now)
         out: list[can.Message] = []
         pages, on_command = self._cmd_pages, self._on_command

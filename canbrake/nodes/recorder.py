@@ -62,7 +62,6 @@ from canbrake.bus._wire import ideal_period
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes._trace import collect_frames
 from canbrake.nodes.base import LogHistogram, Node, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
@@ -295,28 +294,25 @@ class RecorderNode(Node):
                 counts[key] = counts.get(key, 0) + 1
                 self._realtime(msg, now)
             return []
-        # the per-frame counting and keeping in one compiled call (canbrake.nodes._trace.collect_frames),
-        # which stops at the frames handled here: a SYNC, or one whose period phase is not known yet
-        i, n = 0, len(msgs)
-        sync_id, phase_of = self.layout.sync_id, self._phase_of
-        while True:
-            i, closing = collect_frames(msgs, i, counts, phase_of, self._tick_frames, self._closing_ids, sync_id)
-            self._closing_seen += closing
-            if i == n:
-                return []
-            msg = msgs[i]
+        tick_frames, closing, phase_of = self._tick_frames, self._closing_ids, self._phase_of
+        sync_id = self.layout.sync_id
+        for msg in msgs:
             aid, ext = msg.arbitration_id, msg.is_extended_id
             key = (aid, ext, msg.is_error_frame)
-            if key not in phase_of:
+            counts[key] = counts.get(key, 0) + 1
+            if aid in closing:
+                self._closing_seen += 1
+            elif aid == sync_id and ext == (aid > 0x7FF):
+                if self._on_sync(msg):
+                    return []  # the END: the log is complete
+                tick_frames = self._tick_frames  # a new period's list if it flushed
+            phase = phase_of.get(key)
+            if phase is None:
                 kind = "error" if key[2] else self._kinds.get(aid, "other")
-                phase_of[key] = (0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF)
-                                 else _PHASE.get(kind, 1))
-                continue  # (counted and kept by the next call)
-            # a SYNC (counted): a trusted one writes the period's frames and starts the next
-            if self._on_sync(msg):
-                return []  # the END: the log is complete
-            self._tick_frames.append((phase_of[key], aid, bytes(msg.data), msg))
-            i += 1
+                phase = phase_of[key] = (0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF)
+                                         else _PHASE.get(kind, 1))
+            tick_frames.append((phase, aid, bytes(msg.data), msg))
+        return []
 
     def _on_sync(self, msg: can.Message) -> bool:
         """A SYNC frame (lockstep): a trusted one ends the period (its frames are written) and
