@@ -35,7 +35,8 @@ class ActuatorConfig(_Model):
     """Brake actuator: ``ideal`` applies the command at once; ``realistic`` adds lag, jerk limit, saturation."""
 
     model: Literal["ideal", "realistic"] = "ideal"
-    lag_s: float = Field(0.3, gt=0, description="first-order brake lag time constant (realistic)")
+    lag_s: float | list[float] = Field(0.3, description="first-order brake lag time constant (realistic; a list: "
+                                       "per car, 0 = that car's brake applies the command at once)")
     jerk_limit_mps3: float | list[float | None] | None = Field(
         1.0, description="max |dF/dt|/m (realistic; null = none; a list: per car)")
     max_brake_decel_mps2: float | list[float | None] | None = Field(
@@ -45,6 +46,11 @@ class ActuatorConfig(_Model):
 
     @model_validator(mode="after")
     def _signs(self) -> "ActuatorConfig":
+        lag = self.lag_s
+        for i, x in enumerate(lag if isinstance(lag, list) else [lag]):
+            if not (x >= 0 if isinstance(lag, list) else x > 0):
+                where = f"lag_s.{i}" if isinstance(lag, list) else "lag_s"
+                raise ValueError(f"@{where}: must be {'>=' if isinstance(lag, list) else '>'} 0, got {x:g}")
         for name, strict in (("jerk_limit_mps3", True), ("max_brake_decel_mps2", True), ("max_traction_accel_mps2", False)):
             v = getattr(self, name)
             for i, x in enumerate(v if isinstance(v, list) else [v]):
@@ -105,6 +111,10 @@ class TrainConfig(_Model):
     brakes: BrakeSystemConfig | None = Field(None, description="brake equipment: blending, easing, wheels with "
                                                                "adhesion, wheel-slide protection (canbrake.consist.brakes)")
     actuator: ActuatorConfig = Field(default_factory=ActuatorConfig, description="every car's brake/traction equipment")
+    resistance_table: list[Any] | None = Field(None, description="per car: a resistance table (speed_mps, force_n; "
+                                               "components.TableResistance) added to its Davis terms, or None")
+    traction_envelope: list[Any] | None = Field(None, description="per car: a traction envelope (heavy_haul.Envelope, "
+                                                "Li 2024 eq. 1) limiting its traction, or None")
 
     @field_validator("mass_kg")
     @classmethod
