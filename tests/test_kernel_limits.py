@@ -286,3 +286,75 @@ def test_tables_and_envelopes_with_blending_are_refused_in_one_line() -> None:
     with pytest.raises(ScenarioError, match=r"^t.yaml: train.vehicle_types.a.traction: the coupled kernel does not yet take a "
                                             r"traction envelope"):
         resolve(_scenario(types, [{"type": "a"}]), "t.yaml")
+
+
+def test_easing_with_different_lags_needs_its_own_lag_and_plots_take_the_largest_rating() -> None:
+    """Easing anticipates one lag: with vehicles' lags differing it is refused in one line unless
+    ``easing.lag_s`` says which; a run's plot labels take the largest rating and jerk limit."""
+    from canbrake.analysis.plots import plot_meta
+
+    types = {"a": {"mass_kg": 2e4, "brake": {"model": "ideal", "max_brake_decel_mps2": 1.2}},
+             "b": {"mass_kg": 2e4, "brake": {"model": "electro_pneumatic", "lag_s": 0.4, "max_brake_decel_mps2": 1.4,
+                                             "jerk_limit_mps3": 0.8}}}
+    data = _scenario(types, [{"type": "a"}, {"type": "b"}])
+    meta = plot_meta(resolve(copy.deepcopy(data), "t.yaml"))
+    assert (meta.emergency_decel_mps2, meta.jerk_limit_mps3) == (1.4, 0.8)
+    data["train"]["every_vehicle"] = {"brake": {"easing": {"time_constant_s": 1.0}}}
+    with pytest.raises(ScenarioError, match=r"^t.yaml: train.every_vehicle.brake.easing.lag_s: easing anticipates one "
+                                            r"brake lag, and this train's vehicles have different ones \(0, 0.4 s"):
+        resolve(copy.deepcopy(data), "t.yaml")
+    data["train"]["every_vehicle"]["brake"]["easing"]["lag_s"] = 0.4
+    assert resolve(data, "t.yaml").actuator.lag_s == [0.0, 0.4]
+
+
+# --- 4. end stops per coupler --------------------------------------------------------------------
+def test_each_coupler_has_its_own_end_stop() -> None:
+    """Four cars, two pairs closing at 0.5 and 0.8 m/s: after its first impact (0.22 s, before the
+    second one on the tension side of the slack) coupler 1's stop (2 cm, a = 0.6) returns
+    sqrt(1 − a) of the closing speed, coupler 3's (4 cm, lossless, half as stiff) all of it (the
+    buffer's law, module docstring of physics/train.py, to 3 %); coupler 2 has none and is pulled
+    past either stop without force (1 s); each pair matches a two-car train with its own stop
+    as one value (1e-6 m/s)."""
+    m, free = 30000.0, 1e-3
+    kw = dict(coupler_nonlinearity_per_m2=0.0, resistance=DavisResistance.zero(2), max_substep_s=1e-4)
+    four = TrainPlant([m] * 4, [0.0, -20.0, -40.0, -60.0], [10.0, 10.5, 10.0, 10.8],
+                      coupler_stiffness_n_per_m=free, coupler_nonlinearity_per_m2=0.0,
+                      resistance=DavisResistance.zero(4), max_substep_s=1e-4, end_stop_m=[0.02, None, 0.04],
+                      end_stop_stiffness_n_per_m=[2e7, 2e7, 1e7], end_stop_absorption=[0.6, 0.6, 0.0])
+    a = TrainPlant([m] * 2, [0.0, -20.0], [10.0, 10.5], coupler_stiffness_n_per_m=free, end_stop_m=0.02,
+                   end_stop_stiffness_n_per_m=2e7, end_stop_absorption=0.6, **kw)
+    b = TrainPlant([m] * 2, [-40.0, -60.0], [10.0, 10.8], coupler_stiffness_n_per_m=free, end_stop_m=0.04,
+                   end_stop_stiffness_n_per_m=1e7, end_stop_absorption=0.0, **kw)
+    for k in range(100):
+        for p in (four, a, b):
+            p.step(0.01, np.zeros(p.n_cars))
+        v = four.speed_mps
+        if k == 21:  # t = 0.22 s
+            assert abs(four.deflection_m[0]) < 0.02 and abs(four.deflection_m[2]) < 0.04  # in their travel again
+            assert v[0] - v[1] == pytest.approx(math.sqrt(0.4) * 0.5, rel=0.03)
+            assert v[2] - v[3] == pytest.approx(0.8, rel=0.03)
+        np.testing.assert_allclose(v[:2], a.speed_mps, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(v[2:], b.speed_mps, rtol=0, atol=1e-6)
+    assert abs(four.deflection_m[1]) > 0.1 and abs(four.coupler_force_n[1]) < 1e-2  # past both stops, no buffer
+    assert stack_plants([four, four]) is None  # a stack takes one end stop for every coupler
+
+
+def test_vehicle_types_with_different_end_stops_lower_to_one_per_coupler() -> None:
+    """Each vehicle's coupler is at its rear: types with and without an end stop give a list per
+    coupler (null: none); bad values name the field."""
+    chen = {"model": "chen", "stiffness_n_per_m": 2.0e6, "epsilon_per_m2": 0.0}
+    types = {"a": {"mass_kg": 3e4, "length_m": 20.0, "coupler": {**chen, "end_stop_m": 0.08}},
+             "b": {"mass_kg": 3e4, "length_m": 20.0, "coupler": {**chen, "end_stop_m": 0.05,
+                                                                 "end_stop_absorption": 0.3}},
+             "c": {"mass_kg": 3e4, "length_m": 20.0, "coupler": chen}}
+    scn = resolve(_scenario(types, [{"type": "a"}, {"type": "c"}, {"type": "b"}, {"type": "a"}]), "t.yaml")
+    c = scn.consist.coupler
+    assert c.end_stop_m == [0.08, None, 0.05] and c.end_stop_absorption == [0.6, 0.6, 0.3]
+    assert c.end_stop_stiffness_n_per_m == 2e7
+    p = build_plant_model(scn).plant
+    assert p.end_stops_per_coupler and list(p.end_stop_m) == [0.08, math.inf, 0.05]
+    p.step(0.01, np.zeros(4))  # runs
+    types["b"]["coupler"]["end_stop_absorption"] = 1.0
+    with pytest.raises(ScenarioError, match=r"train.vehicle_types.b.coupler.end_stop_absorption: Input should be less "
+                                            r"than 1"):
+        resolve(_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml")

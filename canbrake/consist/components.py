@@ -478,10 +478,10 @@ KERNELS: dict[str, dict[str, set[str | None]]] = {
 _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhesion": "AdhesionTrain"}
 #: what a kernel still takes once for the whole train (everything else may differ per vehicle)
 KERNEL_LIMITS: dict[str, str] = {
-    "coupled": "per vehicle: mass, resistance (davis or table), coupler stiffness and ε, brake model (ideal or "
-               "electro_pneumatic), lag, jerk limit, ratings, ED brake, traction envelope; once for the train: the "
-               "couplers' end stop, the brake's blending, easing and wsp, the wheelset model; resistance tables "
-               "and traction envelopes not with blending or wheelsets",
+    "coupled": "per vehicle: mass, resistance (davis or table), coupler (stiffness, ε, end stop), brake model "
+               "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, traction envelope; once for the "
+               "train: the brake's blending, easing and wsp, the wheelset model; resistance tables and traction "
+               "envelopes not with blending or wheelsets",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, davis resistance, driven axles; once for the train: the wheel-rail conditions",
 }
@@ -668,13 +668,9 @@ class TrainSpec(_Model):
         for f in ("stiffness_n_per_m", "epsilon_per_m2"):
             vals = [float(getattr(c, f)) for c in act]
             coupler[f] = vals[0] if len(set(vals)) == 1 else vals
-        for f in ("end_stop_m", "end_stop_stiffness_n_per_m", "end_stop_absorption"):
+        for f in ("end_stop_m", "end_stop_stiffness_n_per_m", "end_stop_absorption"):  # one value, or per coupler
             vals = [getattr(c, f) for c in act]
-            if len(set(vals)) > 1:
-                j = vals.index(next(v for v in vals if v != vals[0]))
-                raise ValueError(f"@vehicle_types.{ex[j][0]}.coupler.{f}: the coupled kernel takes one {f} for every "
-                                 f"coupler; vehicle types {ex[0][0]} and {ex[j][0]} differ")
-            coupler[f] = vals[0]
+            coupler[f] = vals[0] if len(set(vals)) == 1 else vals
         lengths = [vt.length_m for _, vt, _ in ex]
         if n > 1 and all(x is not None for x in lengths):
             coupler["spacing_m"] = [0.5 * (a + b) for a, b in zip(lengths, lengths[1:])]  # type: ignore[operator]

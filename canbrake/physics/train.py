@@ -113,10 +113,11 @@ class TrainPlant:
     actuator: :class:`BrakeActuator` (default ideal).
     rail: :class:`RailConditions` (base μ and events); default μ = 0.3 everywhere, no events.
     disturbances: external forces, :class:`DisturbanceForce` list.
-    end_stop_m: |Δl| at which the draft gear's travel ends and the buffer acts (m); ``None`` = no end stop.
-    end_stop_stiffness_n_per_m: the buffer's loading stiffness beyond the end stop, k_b (N/m).
+    end_stop_m: |Δl| at which the draft gear's travel ends and the buffer acts (m); ``None`` = no end stop;
+        a sequence: per coupler (``None`` or ``inf``: none on that coupler).
+    end_stop_stiffness_n_per_m: the buffer's loading stiffness beyond the end stop, k_b (N/m; a sequence: per coupler).
     end_stop_absorption: share a of an impact's energy the buffer absorbs (0 ≤ a < 1; unloading
-        stiffness (1 − a)·k_b). 0 = a lossless solid stop.
+        stiffness (1 − a)·k_b; a sequence: per coupler). 0 = a lossless solid stop.
     max_substep_s: longest integration sub-step (s).
     gravity_mps2: g (m/s²).
     """
@@ -136,9 +137,9 @@ class TrainPlant:
         actuator: BrakeActuator | None = None,
         rail: RailConditions | None = None,
         disturbances: Sequence[DisturbanceForce] = (),
-        end_stop_m: float | None = None,
-        end_stop_stiffness_n_per_m: float = 2.0e7,
-        end_stop_absorption: float = 0.6,
+        end_stop_m: float | Sequence[float | None] | None = None,
+        end_stop_stiffness_n_per_m: float | Sequence[float] = 2.0e7,
+        end_stop_absorption: float | Sequence[float] = 0.6,
         max_substep_s: float = 1e-3,
         gravity_mps2: float = GRAVITY_MPS2,
         blending: BrakeBlending | None = None,
@@ -189,12 +190,23 @@ class TrainPlant:
             for ev in self.rail.events
         ]
         self._base_mu = _per_car(self.rail.base_adhesion_mu, n, "base_adhesion_mu")
+        #: per coupler (arrays of shape (n-1,)) where the couplers' end stops differ, else one value
+        self.end_stops_per_coupler = any(np.ndim(a) > 0 for a in (end_stop_m, end_stop_stiffness_n_per_m,
+                                                                    end_stop_absorption))
+        if self.end_stops_per_coupler:
+            stop = [math.inf if x is None else x for x in np.broadcast_to(np.asarray(end_stop_m, dtype=object), (nc,))]
+            end_stop_m = None if all(x == math.inf for x in stop) else _per_car(np.asarray(stop, dtype=float), nc,
+                                                                                  "end_stop_m")
+            end_stop_stiffness_n_per_m = _per_car(end_stop_stiffness_n_per_m, nc, "end_stop_stiffness_n_per_m")
+            end_stop_absorption = _per_car(end_stop_absorption, nc, "end_stop_absorption")
         self.end_stop_m = end_stop_m
-        self.end_stop_stiffness_n_per_m = float(end_stop_stiffness_n_per_m)
-        if not 0.0 <= end_stop_absorption < 1.0:
+        self.end_stop_stiffness_n_per_m = (end_stop_stiffness_n_per_m if self.end_stops_per_coupler
+                                           else float(end_stop_stiffness_n_per_m))  # type: ignore[arg-type]
+        if not np.all((0.0 <= np.asarray(end_stop_absorption)) & (np.asarray(end_stop_absorption) < 1.0)):
             raise ValueError(f"end_stop_absorption must be in [0, 1), got {end_stop_absorption}")
-        self.end_stop_absorption = float(end_stop_absorption)
-        if end_stop_m is not None and not end_stop_m > 0:
+        self.end_stop_absorption = (end_stop_absorption if self.end_stops_per_coupler
+                                    else float(end_stop_absorption))  # type: ignore[arg-type]
+        if end_stop_m is not None and not np.all(np.asarray(end_stop_m) > 0):
             raise ValueError(f"end_stop_m must be > 0, got {end_stop_m}")
         if not max_substep_s > 0:
             raise ValueError("max_substep_s must be > 0")
@@ -327,7 +339,8 @@ class TrainPlant:
         else:  # 1 loading (moving into the stop), 1 - a unloading, linear across ±v_t
             loading = np.clip(0.5 + sgn * rate_mps / (2.0 * END_STOP_TRANSITION_MPS), 0.0, 1.0)
             share = 1.0 - self.end_stop_absorption * (1.0 - loading)
-        return np.where(over > 0.0, sgn * over * self.end_stop_stiffness_n_per_m * share, 0.0)
+        with np.errstate(invalid="ignore"):  # a coupler without a stop (inf): 0 · inf where np.where drops it
+            return np.where(over > 0.0, sgn * over * self.end_stop_stiffness_n_per_m * share, 0.0)
 
     def _substeps(self, dt_s: float) -> int:
         """Sub-steps for a control period of ``dt_s``: ``max_substep_s``, and at most 0.05/ω_b while a
@@ -344,6 +357,10 @@ class TrainPlant:
     def _end_stop_substep_s(self) -> float:
         """The sub-step near an end stop (s): 0.05/ω_b, ω_b = sqrt(k_b/μ) for the lightest pair of cars."""
         m = self.mass_kg
+        if self.end_stops_per_coupler:  # the couplers that have a stop, each with its own pair and buffer
+            has = np.isfinite(np.asarray(self.end_stop_m, dtype=float))
+            pair = (m[:-1] * m[1:] / (m[:-1] + m[1:]))[has]
+            return float(np.min(0.05 / np.sqrt(np.asarray(self.end_stop_stiffness_n_per_m)[has] / pair)))
         mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
         return 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
 
@@ -580,15 +597,16 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     uses, so each row equals its own plant's state bit for bit (tests/test_batch_sweep.py). A
     point whose state becomes non-finite is flagged in ``diverged_rows`` and parked at rest.
 
-    None where the plants do not qualify: wheelsets, resistance tables, traction envelopes, an end
-    stop that can refine the sub-step (it would depend on each point's state), a grade function,
+    None where the plants do not qualify: wheelsets, resistance tables, traction envelopes, end
+    stops that differ per coupler, an end stop that can refine the sub-step (it would depend on each point's state), a grade function,
     or plants that differ in anything but their per-car arrays (actuator, blending, end stop, rail conditions, disturbances, sub-step,
     gravity)."""
     import copy
 
     p0 = plants[0]
     for p in plants:
-        if (p.wheels is not None or p._grade_fn is not None or not _substeps_fixed(p)
+        if (p.wheels is not None or p._grade_fn is not None or p.end_stops_per_coupler or p0.end_stops_per_coupler
+                or not _substeps_fixed(p)
                 or p._tab is not None or p._env is not None
                 or repr(p.blending) != repr(p0.blending) or p.end_stop_m != p0.end_stop_m
                 or p.end_stop_stiffness_n_per_m != p0.end_stop_stiffness_n_per_m
