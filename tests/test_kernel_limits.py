@@ -276,16 +276,40 @@ def test_bad_tables_and_envelopes_exit_2_in_one_line(tmp_path: Path, key: str, v
     assert "\n" not in err and "bad.yaml" in err and says in err, err
 
 
-def test_tables_and_envelopes_with_blending_are_refused_in_one_line() -> None:
-    types = {"a": {"mass_kg": 2e4, "resistance": _MIN, "brake": {"model": "electro_pneumatic", "blending": {}}}}
-    with pytest.raises(ScenarioError, match=r"^t.yaml: train.vehicle_types.a.resistance: the coupled kernel does not yet take a "
-                                            r"resistance table together with brake blending"):
-        resolve(_scenario(types, [{"type": "a"}]), "t.yaml")
-    types = {"a": {"mass_kg": 2e4, "traction": {"model": "envelope", **HXD1},
-                   "brake": {"model": "ideal", "wsp": {"enabled": True}}, "wheels": {"model": "wheelsets"}}}
-    with pytest.raises(ScenarioError, match=r"^t.yaml: train.vehicle_types.a.traction: the coupled kernel does not yet take a "
-                                            r"traction envelope"):
-        resolve(_scenario(types, [{"type": "a"}]), "t.yaml")
+def test_tables_and_envelopes_under_blending_and_on_wheelsets() -> None:
+    """The step with brake equipment takes the tables and envelopes too: with ED/friction blending a
+    vehicle coasting on a Davis-sampled table runs as on Davis (1e-7), and one on its envelope
+    accelerates at F_T(v)/m; on wheelsets (creep, backward Euler) full traction at ~90 km/h puts
+    the envelope on the rail less what spins up the wheels, F_T − ΣJ·a/R² (1 %: the slip settles)."""
+    from canbrake.physics.brakes import BrakeBlending, Wheelsets
+
+    m = 40000.0
+    c0, c1, c2 = DAVIS
+    t = _davis_table(DAVIS)
+    blend = BrakeBlending()
+    davis = TrainPlant([m], [0.0], [30.0], resistance=DavisResistance(np.array([c0]), np.array([c1]), np.array([c2])),
+                       blending=blend)
+    table = TrainPlant([m], [0.0], [30.0], resistance=DavisResistance.zero(1),
+                       resistance_table=[(t["speed_mps"], t["force_n"])], blending=blend)
+    for _ in range(300):
+        for p in (davis, table):
+            p.step(0.1, [0.0])
+    assert davis.speed_mps[0] < 29.0
+    assert table.speed_mps[0] == pytest.approx(davis.speed_mps[0], rel=1e-7, abs=0)
+    env = TractionEnvelope(**HXD1)
+    p = TrainPlant([138000.0], [0.0], [20.0], resistance=DavisResistance.zero(1), traction_envelope=[env],
+                   blending=blend)
+    p.step(1e-3, [-5e6])
+    f_env = 1000.0 * float(env.traction_kn(20.0 / KMH))
+    assert p.applied_force_n[0] == pytest.approx(-f_env, rel=1e-12)
+    assert p.accel_mps2[0] == pytest.approx(f_env / 138000.0, rel=1e-6)
+    w = Wheelsets(np.array([138000.0]), 4, 0.625, 200.0, np.array([25.0]))
+    p = TrainPlant([138000.0], [0.0], [25.0], resistance=DavisResistance.zero(1), traction_envelope=[env], wheels=w)
+    for _ in range(50):
+        p.step(0.01, [-5e6])
+    f_env = 1000.0 * float(env.traction_kn(p.speed_mps[0] / KMH))  # 25000/v kN ≈ 268 kN, below μ·m·g = 406 kN
+    spin = 4 * 200.0 * p.accel_mps2[0] / 0.625**2  # the part of the drive torque that spins up the wheels (≈ 4 kN)
+    assert -p.applied_force_n[0] == pytest.approx(f_env - spin, rel=1e-2)  # without the envelope: μ·m·g, 406 kN
 
 
 def test_easing_with_different_lags_needs_its_own_lag_and_plots_take_the_largest_rating() -> None:

@@ -480,8 +480,7 @@ _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhes
 KERNEL_LIMITS: dict[str, str] = {
     "coupled": "per vehicle: mass, resistance (davis or table), coupler (stiffness, ε, end stop), brake model "
                "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, traction envelope; once for the "
-               "train: the brake's blending, easing and wsp, the wheelset model; resistance tables and traction "
-               "envelopes not with blending or wheelsets",
+               "train: the brake's blending, easing and wsp, the wheelset model",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, davis resistance, driven axles; once for the train: the wheel-rail conditions",
 }
@@ -640,15 +639,6 @@ class TrainSpec(_Model):
         ideal = IdealBrake() if any(vt.brake is not None for _, vt, _ in ex) else None
         brake = self._uniform(ex, "brake", "brake blending, easing and wsp (its model, lag, ed_brake, ratings and "
                               "jerk limit may differ)", frozenset({"model", "lag_s", "ed_brake", *rated}), ideal)
-        for name, vt, _ in ex:
-            c = vt.resistance if vt.resistance is not None and getattr(vt.resistance, "model", None) == "table" \
-                else vt.traction
-            if c is not None and (getattr(brake, "blending", None) is not None or getattr(brake, "wsp", None)
-                                  is not None or vt.wheels is not None):
-                kind = "resistance" if c is vt.resistance else "traction"
-                raise ValueError(f"@vehicle_types.{name}.{kind}: the coupled kernel does not yet take a "
-                                 f"{'resistance table' if kind == 'resistance' else 'traction envelope'} together "
-                                 "with brake blending, wsp or wheelsets (brake.blending, brake.wsp, wheels)")
         wheels = self._uniform(ex, "wheels", "wheelset model")
         data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
         if any(vt.resistance is not None for _, vt, _ in ex):

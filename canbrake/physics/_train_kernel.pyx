@@ -387,3 +387,33 @@ cdef class CoupledKernel:
             bad[p] = not finite
             dl_max[p] = dmax
         return t
+
+
+def traction_capped(const double[:, ::1] envelope, const double[::1] v, const double[::1] force):
+    """``force`` (N per car, + brakes, − traction) with each car's traction limited by its envelope
+    row (``envelope``, shape (n, 6) as :class:`CoupledKernel` takes it; NaN first value: none) at
+    its speed ``v`` (m/s): the step with brake equipment (blending, wheelsets), which caps the
+    actuator's effort before the equipment, as the kernel caps the rail force."""
+    cdef Py_ssize_t i, n = force.shape[0]
+    out_a = np.empty(n)
+    cdef double[::1] out = out_a
+    for i in range(n):
+        out[i] = force[i]
+        if force[i] < 0.0 and envelope[i, 0] == envelope[i, 0]:
+            out[i] = _max(force[i], -_envelope_n(&envelope[i, 0], v[i]))
+    return out_a
+
+
+def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v, const double[::1] table_f,
+                          const double[::1] speed, const double[::1] r):
+    """``r`` (N per car) plus each car's resistance table (offsets ``start``, n + 1; speeds
+    ``table_v`` m/s, forces ``table_f`` N, as :class:`CoupledKernel` takes them) at ``speed``
+    (|v|, m/s): the step with brake equipment."""
+    cdef Py_ssize_t i, n = r.shape[0]
+    out_a = np.empty(n)
+    cdef double[::1] out = out_a
+    for i in range(n):
+        out[i] = r[i]
+        if start[i + 1] > start[i]:
+            out[i] = r[i] + _interp(&table_v[start[i]], &table_f[start[i]], start[i + 1] - start[i], speed[i])
+    return out_a

@@ -57,7 +57,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from canbrake.physics._train_kernel import CoupledKernel
+from canbrake.physics._train_kernel import CoupledKernel, traction_capped, with_table_resistance
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
 from canbrake.physics._brakes_kernel import EquipmentKernel
 from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets
@@ -227,8 +227,6 @@ class TrainPlant:
         self._wheels0 = None if wheels is None else wheels.omega.copy()
         self.resistance_table = self._tables(resistance_table)
         self.traction_envelope = self._envelopes(traction_envelope)
-        if (self._tab is not None or self._env is not None) and (blending is not None or wheels is not None):
-            raise ValueError("resistance tables and traction envelopes are not implemented with blending or wheelsets")
         #: a stack of plants (stack_plants): arrays have a leading points axis
         self.stacked = False
         self._kern: CoupledKernel | None = None  # built at the first step
@@ -522,6 +520,8 @@ class TrainPlant:
             t = self.time_s
             self._update_rail(t)
             effort = act.advance(cmd, h)
+            if self._env is not None:  # each car's traction within its envelope at its speed
+                effort = traction_capped(self._env, flat(v), flat(effort))
             dl = x[..., :-1] - x[..., 1:] - self.coupler_spacing_m
             phi = self.coupler_force_from_deflection(dl, v[..., :-1] - v[..., 1:])
             f = self._incidence.dot(phi) if phi.ndim == 1 else phi @ self._incidence.T
@@ -533,6 +533,8 @@ class TrainPlant:
                 f = f + self.external_force_n(t)
             speed = np.abs(v)
             r = self._c_static + speed * (c1 + c2 * speed)
+            if self._tab is not None:
+                r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], flat(speed), flat(r))
             # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake), compiled
             v_new, rail = kern.substep(h, blend_k, valve_k, flat(effort), flat(v), flat(f), flat(r), mass,
                                        flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve, self._vent_s,
