@@ -472,7 +472,7 @@ KERNELS: dict[str, dict[str, set[str | None]]] = {
                 "resistance": {"davis", "table", None}, "traction": {"envelope", None}, "wheels": {"wheelsets", None}},
     "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
                    "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
-    "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", None}, "traction": {None},
+    "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", "table", None}, "traction": {None},
                  "wheels": {"driven_axles", None}},
 }
 _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhesion": "AdhesionTrain"}
@@ -482,7 +482,8 @@ KERNEL_LIMITS: dict[str, str] = {
                "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, traction envelope; once for the "
                "train: the brake's blending, easing and wsp, the wheelset model",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
-    "adhesion": "per vehicle: mass, davis resistance, driven axles; once for the train: the wheel-rail conditions",
+    "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
+                "conditions",
 }
 #: train-level fields only the heavy-haul kernel uses
 _HH_ONLY = ("draft_gears", "air_brake", "uncertainty", "disturbance", "start_position_m", "integration_step_s")
@@ -763,7 +764,9 @@ class TrainSpec(_Model):
                              "(wheel_rail.conditions)")
         def kernel_type(vt: VehicleTypeSpec, m: float) -> dict[str, Any]:
             t: dict[str, Any] = {"mass_kg": m}
-            if vt.resistance is not None:
+            if isinstance(vt.resistance, TableResistance):
+                t["resistance_table"] = [list(vt.resistance.speed_mps), list(vt.resistance.force_n)]
+            elif vt.resistance is not None:
                 c0, c1, c2 = vt.resistance.davis_n()
                 t["davis"] = {"c0_n": c0, "c1_n_s_per_m": c1, "c2_n_s2_per_m2": c2}
             if vt.wheels is not None:
