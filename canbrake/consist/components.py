@@ -207,10 +207,6 @@ class TableResistance(_Model):
                 raise ValueError(f"@force_n.{i}: a resistance must be >= 0 N, got {x:g}")
         return self
 
-    def force_at_n(self, speed_mps: float) -> float:
-        """The resistance (N) at |``speed_mps``| (m/s): the table interpolated, flat beyond its ends."""
-        return float(np.interp(abs(speed_mps), self.speed_mps, self.force_n))
-
 
 @register_component("resistance", "per_weight")
 class PerWeightResistance(hhs.Resistance):
