@@ -5,6 +5,7 @@ resistance from a table (``resistance: {model: table}``), a traction envelope pe
 from __future__ import annotations
 
 import copy
+import csv
 import math
 import subprocess
 import sys
@@ -406,3 +407,48 @@ def test_a_table_on_the_rigid_train_with_driven_axles_runs_as_its_davis_curve() 
     np.testing.assert_allclose(runs["table"][1], runs["davis"][1], rtol=0, atol=c[2] * 0.05**2 / 4 + 1e-9)
     assert abs(runs["off"][1][1] - runs["davis"][1][1]) > 0.05 * runs["davis"][1][1]
     assert abs(runs["off"][0] - runs["davis"][0]) > 1e-4
+
+
+MIXED = """\
+name: mixed_kernel_limits
+duration_s: 1.0
+control_period_s: 0.01
+train:
+  vehicle_types:
+    loco:
+      mass_kg: 90000
+      length_m: 20
+      resistance: {model: davis, c0_n: 1500, c1_n_s_per_m: 20, c2_n_s2_per_m2: 6}
+      coupler: {model: chen, stiffness_n_per_m: 2.0e+6, epsilon_per_m2: 0.0, end_stop_m: 0.08}
+      brake: {model: electro_pneumatic, lag_s: 0.5, max_brake_decel_mps2: 1.2}
+      traction: {model: envelope, traction_start_kn: 300, traction_start_until_kmh: 5, traction_intercept_kn: 320,
+                 traction_slope_kn_per_kmh: 2, traction_linear_until_kmh: 60, brake_slope_kn_per_kmh: 0,
+                 brake_linear_until_kmh: 0, brake_max_kn: 0, brake_constant_until_kmh: 1, power_kn_kmh: 12000}
+    car:
+      mass_kg: 40000
+      length_m: 20
+      resistance: {model: table, speed_mps: [0, 10, 20, 30], force_n: [600, 800, 1300, 2100]}
+      coupler: {model: chen, stiffness_n_per_m: 2.0e+6, epsilon_per_m2: 0.0}
+      brake: {model: ideal, max_brake_decel_mps2: 1.4}
+  vehicles: [{type: loco}, {type: car, count: 3}]
+initial: {speed_kmh: 60}
+reference: {speed_kmh: 60, decel_kmh_per_s: 2.0}
+controller: {name: pi}
+"""
+
+
+def test_a_train_with_every_per_vehicle_feature_runs_on_the_bus(tmp_path: Path) -> None:
+    """``canbrake run`` on the memory bus (one process per ECU): a locomotive with an envelope, a lag
+    and an end stop at its rear, cars with table resistance and ideal brakes: exit 0, finite
+    speeds, and the lowering as intended."""
+    p = tmp_path / "mixed.yaml"
+    p.write_text(MIXED)
+    c = resolve(yaml.safe_load(MIXED), str(p)).consist
+    assert c.actuator.lag_s == [0.5, 0.0, 0.0, 0.0] and c.coupler.end_stop_m == [0.08, None, None]
+    assert c.resistance_table[0] is None and c.traction_envelope[1] is None
+    r = subprocess.run([sys.executable, "-m", "canbrake", "run", str(p), "--bus", "memory", "--no-plots",
+                        "--out", str(tmp_path / "o")], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    rows = list(csv.DictReader((tmp_path / "o" / "signals.csv").open()))
+    assert len(rows) > 90
+    assert all(math.isfinite(float(row[f"speed_mps_c{i}"])) for row in rows for i in range(1, 5))
