@@ -22,7 +22,8 @@ about the same for 8 points as for 64):
   one call per tick for every slot and point (:class:`~canbrake.control.chen.ChenBatch`, arrays
   of points x slots); otherwise each point's own controller steps.
 * **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no wheelsets, no
-  end stop that refines the sub-step) step as one stack with a leading points axis; otherwise
+  resistance tables or traction envelopes, end stops the same on every coupler and never
+  refining the sub-step) step as one stack with a leading points axis; otherwise
   each its own.
 
 Every path gives each point the floats its per-point run computes: tests/test_batch_sweep.py

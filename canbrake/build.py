@@ -119,7 +119,8 @@ def _train_plant(scn: Scenario):
                                  brake_rating_mps2=a.per_car("max_brake_decel_mps2"),
                                  traction_rating_mps2=a.per_car("max_traction_accel_mps2"))
     else:
-        actuator = BrakeActuator(kind="realistic", time_constant_s=a.lag_s,
+        actuator = BrakeActuator(kind="realistic",
+                                 time_constant_s=tuple(float(x) for x in a.lag_s) if isinstance(a.lag_s, list) else a.lag_s,
                                  jerk_limit_mps3=a.per_car("jerk_limit_mps3"),
                                  brake_rating_mps2=a.per_car("max_brake_decel_mps2"),
                                  traction_rating_mps2=a.per_car("max_traction_accel_mps2"),
@@ -150,6 +151,10 @@ def _train_plant(scn: Scenario):
         disturbances=disturbances, max_substep_s=scn.control_period_s / scn.plant.substeps,
         blending=blending, wheels=wheels, wsp_valve_lag_s=valve_lag,
         wsp_max_vent_s=t.brakes.wsp.max_vent_s if t.brakes is not None and t.brakes.wsp is not None else math.inf,
+        resistance_table=None if t.resistance_table is None else [
+            None if r is None else (r.speed_mps, r.force_n) for r in t.resistance_table],
+        traction_envelope=None if t.traction_envelope is None else [
+            None if e is None else e.physics() for e in t.traction_envelope],
     )
 
 

@@ -204,7 +204,8 @@ def test_adhesion_on_a_vehicle_without_axles() -> None:
         load_scenario("cai2014_case1", overrides={"ecus.0.vehicle": 2})
 
 
-def test_the_coupled_kernel_takes_one_brake_for_the_train() -> None:
+def test_the_coupled_kernel_takes_one_brake_blending_for_the_train() -> None:
+    """Brake models and lags may differ per vehicle (an ideal one is lag 0); blending may not."""
     from canbrake.scenario import resolve
 
     data = {
@@ -214,9 +215,12 @@ def test_the_coupled_kernel_takes_one_brake_for_the_train() -> None:
                   "vehicles": [{"type": "a"}, {"type": "b"}]},
         "initial": {"speed_kmh": 50}, "reference": {"speed_kmh": 50, "decel_kmh_per_s": 1.0},
     }
+    act = resolve(data, "t.yaml").actuator
+    assert act.model == "realistic" and act.lag_s == [0.0, 0.3] and act.jerk_limit_mps3 == [None, 1.0]
+    data["train"]["vehicle_types"]["b"]["brake"]["easing"] = {}
     with pytest.raises(ScenarioError, match=r"train.vehicle_types.b.brake: the coupled kernel \(TrainPlant\) takes "
-                                            r"one brake equipment \(but its ed_brake, ratings and jerk limit\) for the "
-                                            r"whole train; vehicle "
+                                            r"one brake blending, easing and wsp \(its model, lag, ed_brake, ratings and "
+                                            r"jerk limit may differ\) for the whole train; vehicle "
                                             r"types a and b differ"):
         resolve(data, "t.yaml")
 

@@ -62,12 +62,16 @@ class PlotMeta:
 def plot_meta(scn: Any, bus: str = "") -> PlotMeta:
     """A :class:`PlotMeta` from a :class:`canbrake.scenario.Scenario` and the bus description."""
     act = scn.actuator
+
+    def largest(v: Any) -> float | None:  # one value, or the largest of the vehicles' (None: none given)
+        vals = [x for x in (v if isinstance(v, list) else [v]) if x is not None]
+        return float(max(vals)) if vals else None
     emergency = EMERGENCY_DECEL_MPS2
-    if getattr(act, "model", "") == "realistic" and getattr(act, "max_brake_decel_mps2", None):
-        emergency = float(act.max_brake_decel_mps2)
+    if getattr(act, "model", "") == "realistic" and largest(getattr(act, "max_brake_decel_mps2", None)):
+        emergency = largest(act.max_brake_decel_mps2)  # type: ignore[assignment]
     jerk = COMFORT_JERK_MPS3
-    if getattr(act, "model", "") == "realistic" and getattr(act, "jerk_limit_mps3", None):
-        jerk = float(act.jerk_limit_mps3)
+    if getattr(act, "model", "") == "realistic" and largest(getattr(act, "jerk_limit_mps3", None)):
+        jerk = largest(act.jerk_limit_mps3)  # type: ignore[assignment]
     ctrl = " + ".join(dict.fromkeys(p.controller.name for p in scn.placement()))  # every ECU's, in order
     from canbrake.analysis.verdict import deflection_bound_m
 

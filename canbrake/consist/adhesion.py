@@ -44,6 +44,8 @@ class AdhesionVehicleType(StrictModel):
 
     mass_kg: float = Field(gt=0)
     davis: AdhesionDavis = AdhesionDavis()
+    resistance_table: list[list[float]] | None = Field(None, description="[speeds m/s, forces N] (components' "
+                                                       "resistance table, validated there), added to davis")
     wheel: Wheel | None = None
     axles: list[Axle] = []
 
@@ -180,9 +182,11 @@ class AdhesionTrainConfig(StrictModel):
                 inertia_kgm2=np.array([w.inertia_kgm2 for w in wheels], dtype=float),  # type: ignore[union-attr]
                 radius_m=np.array([w.radius_m for w in wheels], dtype=float)))  # type: ignore[union-attr]
         davis = np.array([[t.davis.c0_n, t.davis.c1_n_s_per_m, t.davis.c2_n_s2_per_m2] for t in vts], dtype=float)
+        tables = [None if t.resistance_table is None else (t.resistance_table[0], t.resistance_table[1]) for t in vts]
         return AdhesionTrain(self.vehicle_masses_kg(), axles, davis, self.wheel_rail.schedule(),
                              variant=self.wheel_rail.curve, v_floor_mps=self.wheel_rail.v_floor_mps,
-                             speed_mps=speed_mps, position_m=position_m, substeps=substeps)
+                             speed_mps=speed_mps, position_m=position_m, substeps=substeps,
+                             resistance_table=None if all(t is None for t in tables) else tables)
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
         """The plant of scenario ``scn``: the train starts at the front vehicle's initial speed and

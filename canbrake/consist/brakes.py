@@ -159,7 +159,12 @@ def easing_lag_s(brakes: BrakeSystemConfig, actuator: Any) -> float:
     e = brakes.easing
     if e is not None and e.lag_s is not None:
         return float(e.lag_s)
-    lag = float(actuator.lag_s) if getattr(actuator, "model", "ideal") == "realistic" else 0.0
+    lag_s = getattr(actuator, "lag_s", 0.0)
+    if isinstance(lag_s, list) and getattr(actuator, "model", "ideal") == "realistic":
+        raise ValueError("@train.every_vehicle.brake.easing.lag_s: easing anticipates one brake lag, and this "
+                         f"train's vehicles have different ones ({', '.join(f'{x:g}' for x in sorted(set(lag_s)))} s; "
+                         "an ideal brake is 0): give the lag easing anticipates")
+    lag = float(lag_s) if getattr(actuator, "model", "ideal") == "realistic" else 0.0
     if brakes.blending is not None:
         lag += brakes.blending.friction_lag_s
     return lag

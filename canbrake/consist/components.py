@@ -18,7 +18,8 @@ A vehicle type is a composition of components, one per kind::
 Component kinds (:data:`KINDS`) and their built-in models:
 
 ==============  =============================================================================
-``resistance``  ``davis`` (c0 + c1 v + c2 v², N), ``per_weight`` (Li eq. 3, N per kN of weight)
+``resistance``  ``davis`` (c0 + c1 v + c2 v², N), ``table`` (N at m/s, linear, flat beyond the ends),
+                ``per_weight`` (Li eq. 3, N per kN of weight)
 ``coupler``     ``chen`` (κ (1 + ε Δl²) Δl with optional end stop), ``linear`` (κ Δl), ``draft_gear`` (Li's hysteretic
                 draft gear with slack: ``gear`` names one of ``train.draft_gears``), ``rigid``
 ``brake``       ``ideal``, ``electro_pneumatic`` (lag, jerk limit; both with ED/friction
@@ -134,6 +135,14 @@ def describe_components(kind: str | None = None) -> list[str]:
                 params.append(f"{fname}*" if f.is_required() else f"{fname}={f.get_default(call_default_factory=True)!r}")
             if params:
                 lines.append("      " + ", ".join(params))
+            runs = [kn for kn, sup in KERNELS.items() if name in sup[k] or (  # a user's davis_n() resistance too
+                k == "resistance" and kn != "heavy_haul" and callable(getattr(cls, "davis_n", None)))]
+            lines.append(f"      physics: {', '.join(f'{kn} ({_KERNEL_PLANT[kn]})' for kn in runs) or 'none yet'}")
+    if kind is None:
+        lines.append("physics kernels (chosen by the components; a vehicle type's components must all fit one):")
+        for kn, sup in KERNELS.items():
+            lines.append(f"  {kn} ({_KERNEL_PLANT[kn]}): {_support(sup)}")
+            lines.append(f"      {KERNEL_LIMITS[kn]}")
     return lines
 
 
@@ -172,6 +181,31 @@ class DavisResistance(_Model):
     def davis_n(self) -> tuple[float, float, float]:
         """(c0 N, c1 N s/m, c2 N s²/m²): what the coupled and adhesion kernels take."""
         return float(self.c0_n), float(self.c1_n_s_per_m), float(self.c2_n_s2_per_m2)
+
+
+@register_component("resistance", "table")
+class TableResistance(_Model):
+    """Running resistance from a table: ``force_n`` (N) at ``speed_mps`` (m/s, increasing from
+    >= 0), linear between the points, held flat beyond the ends."""
+
+    model: Literal["table"] = "table"
+    speed_mps: list[float] = Field(min_length=2, description="speeds (m/s), increasing, the first >= 0")
+    force_n: list[float] = Field(min_length=2, description="resistance at each speed (N, >= 0)")
+
+    @model_validator(mode="after")
+    def _table(self) -> "TableResistance":
+        v, f = self.speed_mps, self.force_n
+        if len(f) != len(v):
+            raise ValueError(f"@force_n: {len(f)} values for {len(v)} speeds (speed_mps); give one force per speed")
+        if v[0] < 0:
+            raise ValueError(f"@speed_mps.0: speeds are |v| and must be >= 0, got {v[0]:g}")
+        for i in range(1, len(v)):
+            if not v[i] > v[i - 1]:
+                raise ValueError(f"@speed_mps.{i}: speeds must increase, got {v[i]:g} after {v[i - 1]:g}")
+        for i, x in enumerate(f):
+            if x < 0:
+                raise ValueError(f"@force_n.{i}: a resistance must be >= 0 N, got {x:g}")
+        return self
 
 
 @register_component("resistance", "per_weight")
@@ -266,7 +300,8 @@ class AirBrakeRigging(hhs.BrakeEquipment):
 
 @register_component("traction", "envelope")
 class TractionEnvelope(hhs.Envelope):
-    """Li 2024's traction and dynamic-brake envelope; a vehicle with traction is a locomotive."""
+    """Li 2024's traction and dynamic-brake envelope; a vehicle with traction is a locomotive (on
+    Chen's couplers the traction curve limits the vehicle's traction, brake_force_n < 0)."""
 
     model: Literal["envelope"] = "envelope"
 
@@ -430,13 +465,22 @@ def _support(kinds: dict[str, set[str | None]]) -> str:
 #: what each physics kernel implements, by component kind (None: the component left out)
 KERNELS: dict[str, dict[str, set[str | None]]] = {
     "coupled": {"coupler": {"chen", "linear", None}, "brake": {"ideal", "electro_pneumatic", None},
-                "resistance": {"davis", None}, "traction": {None}, "wheels": {"wheelsets", None}},
+                "resistance": {"davis", "table", None}, "traction": {"envelope", None}, "wheels": {"wheelsets", None}},
     "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
                    "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
-    "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", None}, "traction": {None},
+    "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", "table", None}, "traction": {None},
                  "wheels": {"driven_axles", None}},
 }
 _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhesion": "AdhesionTrain"}
+#: what a kernel still takes once for the whole train (everything else may differ per vehicle)
+KERNEL_LIMITS: dict[str, str] = {
+    "coupled": "per vehicle: mass, resistance (davis or table), coupler (stiffness, ε, end stop), brake model "
+               "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, traction envelope; once for the "
+               "train: the brake's blending, easing and wsp, the wheelset model",
+    "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
+    "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
+                "conditions",
+}
 #: train-level fields only the heavy-haul kernel uses
 _HH_ONLY = ("draft_gears", "air_brake", "uncertainty", "disturbance", "start_position_m", "integration_step_s")
 
@@ -562,14 +606,14 @@ class TrainSpec(_Model):
 
     # --- lowering onto today's kernels ----------------------------------------------------------
     def _uniform(self, ex: list[tuple[str, VehicleTypeSpec, float]], kind: str, what: str,
-                 per_vehicle: frozenset[str] = frozenset()) -> BaseModel | None:
+                 per_vehicle: frozenset[str] = frozenset(), default: BaseModel | None = None) -> BaseModel | None:
         """The component ``kind`` every vehicle shares (the coupled kernel takes one for the train;
-        the fields ``per_vehicle`` may differ)."""
-        first_name, first = ex[0][0], getattr(ex[0][1], kind)
+        the fields ``per_vehicle`` may differ; a vehicle without one has ``default``)."""
+        first_name, first = ex[0][0], getattr(ex[0][1], kind) or default
         dump = lambda c: None if c is None else c.model_dump(exclude=set(per_vehicle))  # noqa: E731
         want = dump(first)
         for name, vt in {n: t for n, t, _ in ex}.items():  # each type once, in train order
-            c = getattr(vt, kind)
+            c = getattr(vt, kind) or default
             if dump(c) != want:
                 raise ValueError(f"@vehicle_types.{name}.{kind}: the coupled kernel (TrainPlant) takes one {what} for "
                                  f"the whole train; vehicle types {first_name} and {name} differ (set it in "
@@ -588,27 +632,32 @@ class TrainSpec(_Model):
                                  f"type {name} has no wheels (give it wheels: {{model: wheelsets, axles, radius_m, "
                                  f"inertia_kgm2}})")
         rated = ("max_brake_decel_mps2", "max_traction_accel_mps2", "jerk_limit_mps3")  # may differ per vehicle
-        brake = self._uniform(ex, "brake", "brake equipment (but its ed_brake, ratings and jerk limit)",
-                              frozenset({"ed_brake", *rated}))
+        # a vehicle without a brake has an ideal one where others have one
+        ideal = IdealBrake() if any(vt.brake is not None for _, vt, _ in ex) else None
+        brake = self._uniform(ex, "brake", "brake blending, easing and wsp (its model, lag, ed_brake, ratings and "
+                              "jerk limit may differ)", frozenset({"model", "lag_s", "ed_brake", *rated}), ideal)
         wheels = self._uniform(ex, "wheels", "wheelset model")
         data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
         if any(vt.resistance is not None for _, vt, _ in ex):
-            ds = [vt.resistance.davis_n() if vt.resistance is not None else (0.0, 0.0, 0.0) for _, vt, _ in ex]
+            table = [vt.resistance if isinstance(vt.resistance, TableResistance) else None for _, vt, _ in ex]
+            ds = [vt.resistance.davis_n() if vt.resistance is not None and t is None else (0.0, 0.0, 0.0)
+                  for (_, vt, _), t in zip(ex, table)]
             data["davis"] = {"c0_n": [d[0] for d in ds], "c1_n_s_per_m": [d[1] for d in ds],
                              "c2_n_s2_per_m2": [d[2] for d in ds]}
+            if any(t is not None for t in table):
+                data["resistance_table"] = table
+        if any(vt.traction is not None for _, vt, _ in ex):
+            data["traction_envelope"] = [None if vt.traction is None else hhs.Envelope.model_validate(_params(vt.traction))
+                                         for _, vt, _ in ex]
         cps = [vt.coupler if vt.coupler is not None else ChenCoupler() for _, vt, _ in ex]
         act = cps[:-1] or cps
         coupler: dict[str, Any] = {}
         for f in ("stiffness_n_per_m", "epsilon_per_m2"):
             vals = [float(getattr(c, f)) for c in act]
             coupler[f] = vals[0] if len(set(vals)) == 1 else vals
-        for f in ("end_stop_m", "end_stop_stiffness_n_per_m", "end_stop_absorption"):
+        for f in ("end_stop_m", "end_stop_stiffness_n_per_m", "end_stop_absorption"):  # one value, or per coupler
             vals = [getattr(c, f) for c in act]
-            if len(set(vals)) > 1:
-                j = vals.index(next(v for v in vals if v != vals[0]))
-                raise ValueError(f"@vehicle_types.{ex[j][0]}.coupler.{f}: the coupled kernel takes one {f} for every "
-                                 f"coupler; vehicle types {ex[0][0]} and {ex[j][0]} differ")
-            coupler[f] = vals[0]
+            coupler[f] = vals[0] if len(set(vals)) == 1 else vals
         lengths = [vt.length_m for _, vt, _ in ex]
         if n > 1 and all(x is not None for x in lengths):
             coupler["spacing_m"] = [0.5 * (a + b) for a, b in zip(lengths, lengths[1:])]  # type: ignore[operator]
@@ -632,13 +681,15 @@ class TrainSpec(_Model):
         a: dict[str, Any] = {"adhesion_limited": self.wheel_rail.adhesion_limited,
                              "adhesion_mu": self.wheel_rail.adhesion_mu}
         if brake is not None:
-            def per_vehicle(f: str) -> Any:  # one value, or one per vehicle where the types differ
-                vals = [getattr(vt.brake, f) for _, vt, _ in ex]
+            brakes = [vt.brake or ideal for _, vt, _ in ex]
+
+            def per_vehicle(f: str, instead: Any = None) -> Any:  # one value, or one per vehicle where they differ
+                vals = [getattr(b, f, instead) for b in brakes]
                 return vals[0] if all(v == vals[0] for v in vals) else vals
             a["max_brake_decel_mps2"] = per_vehicle("max_brake_decel_mps2")
             a["max_traction_accel_mps2"] = per_vehicle("max_traction_accel_mps2")
-            if brake.model == "electro_pneumatic":
-                a.update(model="realistic", lag_s=brake.lag_s, jerk_limit_mps3=per_vehicle("jerk_limit_mps3"))
+            if any(b.model == "electro_pneumatic" for b in brakes):  # an ideal brake among them: lag 0, no jerk limit
+                a.update(model="realistic", lag_s=per_vehicle("lag_s", 0.0), jerk_limit_mps3=per_vehicle("jerk_limit_mps3"))
         data["actuator"] = ActuatorConfig(**a)
         return TrainConfig.model_validate(data)
 
@@ -709,7 +760,9 @@ class TrainSpec(_Model):
                              "(wheel_rail.conditions)")
         def kernel_type(vt: VehicleTypeSpec, m: float) -> dict[str, Any]:
             t: dict[str, Any] = {"mass_kg": m}
-            if vt.resistance is not None:
+            if isinstance(vt.resistance, TableResistance):
+                t["resistance_table"] = [list(vt.resistance.speed_mps), list(vt.resistance.force_n)]
+            elif vt.resistance is not None:
                 c0, c1, c2 = vt.resistance.davis_n()
                 t["davis"] = {"c0_n": c0, "c1_n_s_per_m": c1, "c2_n_s2_per_m2": c2}
             if vt.wheels is not None:

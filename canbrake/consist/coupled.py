@@ -35,7 +35,8 @@ class ActuatorConfig(_Model):
     """Brake actuator: ``ideal`` applies the command at once; ``realistic`` adds lag, jerk limit, saturation."""
 
     model: Literal["ideal", "realistic"] = "ideal"
-    lag_s: float = Field(0.3, gt=0, description="first-order brake lag time constant (realistic)")
+    lag_s: float | list[float] = Field(0.3, description="first-order brake lag time constant (realistic; a list: "
+                                       "per car, 0 = that car's brake applies the command at once)")
     jerk_limit_mps3: float | list[float | None] | None = Field(
         1.0, description="max |dF/dt|/m (realistic; null = none; a list: per car)")
     max_brake_decel_mps2: float | list[float | None] | None = Field(
@@ -45,6 +46,11 @@ class ActuatorConfig(_Model):
 
     @model_validator(mode="after")
     def _signs(self) -> "ActuatorConfig":
+        lag = self.lag_s
+        for i, x in enumerate(lag if isinstance(lag, list) else [lag]):
+            if not (x >= 0 if isinstance(lag, list) else x > 0):
+                where = f"lag_s.{i}" if isinstance(lag, list) else "lag_s"
+                raise ValueError(f"@{where}: must be {'>=' if isinstance(lag, list) else '>'} 0, got {x:g}")
         for name, strict in (("jerk_limit_mps3", True), ("max_brake_decel_mps2", True), ("max_traction_accel_mps2", False)):
             v = getattr(self, name)
             for i, x in enumerate(v if isinstance(v, list) else [v]):
@@ -69,11 +75,24 @@ class CouplerConfig(_Model):
     stiffness_n_per_m: PerCar = Field(80000.0, description="κ per coupler (n-1 values or one)")
     epsilon_per_m2: PerCar = Field(-0.5, description="ε per coupler (1/m²; negative = softening)")
     spacing_m: PerCar | None = Field(None, description="nominal x_i - x_{i+1} at rest; default: from initial positions")
-    end_stop_m: float | None = Field(None, gt=0, description="|Δl| at which the draft gear's travel ends and its "
-                                     "buffer acts (none by default; docs/braking-models.md)")
-    end_stop_stiffness_n_per_m: float = Field(2.0e7, gt=0, description="the buffer's loading stiffness beyond the end stop")
-    end_stop_absorption: float = Field(0.6, ge=0, lt=1, description="share of an impact's energy the buffer absorbs "
-                                       "(unloading stiffness (1 - a) x loading)")
+    end_stop_m: float | list[float | None] | None = Field(
+        None, description="|Δl| at which the draft gear's travel ends and its buffer acts (none by default; a list: "
+                          "per coupler, null = none on that coupler; docs/braking-models.md)")
+    end_stop_stiffness_n_per_m: PerCar = Field(2.0e7, description="the buffer's loading stiffness beyond the end stop "
+                                               "(a list: per coupler)")
+    end_stop_absorption: PerCar = Field(0.6, description="share of an impact's energy the buffer absorbs "
+                                        "(unloading stiffness (1 - a) x loading; a list: per coupler)")
+
+    @model_validator(mode="after")
+    def _end_stops(self) -> "CouplerConfig":
+        for name, ok, says in (("end_stop_m", lambda x: x is None or x > 0, "> 0"),
+                               ("end_stop_stiffness_n_per_m", lambda x: x > 0, "> 0"),
+                               ("end_stop_absorption", lambda x: 0 <= x < 1, "in [0, 1)")):
+            v = getattr(self, name)
+            for i, x in enumerate(v if isinstance(v, list) else [v]):
+                if not ok(x):
+                    raise ValueError(f"@{name}{f'.{i}' if isinstance(v, list) else ''}: must be {says}, got {x:g}")
+        return self
 
     @field_validator("stiffness_n_per_m")
     @classmethod
@@ -105,6 +124,10 @@ class TrainConfig(_Model):
     brakes: BrakeSystemConfig | None = Field(None, description="brake equipment: blending, easing, wheels with "
                                                                "adhesion, wheel-slide protection (canbrake.consist.brakes)")
     actuator: ActuatorConfig = Field(default_factory=ActuatorConfig, description="every car's brake/traction equipment")
+    resistance_table: list[Any] | None = Field(None, description="per car: a resistance table (speed_mps, force_n; "
+                                               "components.TableResistance) added to its Davis terms, or None")
+    traction_envelope: list[Any] | None = Field(None, description="per car: a traction envelope (heavy_haul.Envelope, "
+                                                "Li 2024 eq. 1) limiting its traction, or None")
 
     @field_validator("mass_kg")
     @classmethod

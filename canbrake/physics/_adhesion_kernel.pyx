@@ -17,13 +17,15 @@ import numpy as np
 def step_coupled(const double[::1] w0, const double[::1] J, const double[::1] R, const double[::1] N,
                  const double[::1] T, double v0, double dt, double mass, bint body, double b1, double b2, double b3,
                  double c1, double c2, double c3, double peak, double mu0, double floor, int iters, davis=None,
-                 resistance=None):
+                 resistance=None, table=None):
         """Newton on J (ω − ω0) = dt (T − F_a(ω, v) R) per axle and, if ``body``, m (v − v0) = dt (Σ F_a −
         F_d(v)) (arrow-shaped Jacobian, Schur complement on v), ``iters`` iterations. Per axle (p,):
         ``w0`` (rad/s), ``J`` (kg·m²), ``R`` (m), ``N`` (N), ``T`` (N·m). The slip curve (eq. 13:
         ``b1..b3``), its speed decay (eq. 15: ``c1..c3``, μ_max(0) = ``mu0``) times ``peak``; ``floor``
         the slip denominator's floor (m/s). F_d: ``davis`` = (a0, a1, a2) for sgn(v) a0 + a1 v + a2 v|v|
-        (sgn 0 below 1e-6 m/s), or a ``resistance(v) -> (F_d, dF_d/dv)`` callable, or none.
+        (sgn 0 below 1e-6 m/s), or a ``resistance(v) -> (F_d, dF_d/dv)`` callable, or none;
+        ``table`` = (speeds m/s increasing, forces N): the vehicles' resistance tables summed, added
+        as sgn(v) T(|v|) (linear between the points, flat beyond the ends; slope T' in dF_d/dv).
 
         Returns (v_new, ω_new as an array (p,))."""
         cdef Py_ssize_t p = w0.shape[0], k
@@ -37,6 +39,15 @@ def step_coupled(const double[::1] w0, const double[::1] J, const double[::1] R,
         cdef bint has_davis = davis is not None
         if has_davis:
             a0, a1, a2 = davis
+        cdef bint has_table = table is not None
+        cdef const double[::1] tv
+        cdef const double[::1] tf
+        cdef Py_ssize_t m = 0, lo, hi, mid
+        cdef double s, tval, tslope
+        if has_table:
+            tv = np.ascontiguousarray(table[0], dtype=float)
+            tf = np.ascontiguousarray(table[1], dtype=float)
+            m = tv.shape[0]
         for _ in range(iters):
             av = fabs(v)
             scale = (c1 + c2 / (c3 + av)) / mu0 * peak  # eq. 14 (× the variant's peak)
@@ -82,6 +93,24 @@ def step_coupled(const double[::1] w0, const double[::1] J, const double[::1] R,
                 fd, dfd = resistance(v)
             else:
                 fd, dfd = 0.0, 0.0
+            if has_table:
+                s = fabs(v)
+                sgn = (1.0 if v > 0 else (-1.0 if v < 0 else 0.0)) if s > 1e-6 else 0.0
+                if s <= tv[0]:
+                    tval, tslope = tf[0], 0.0
+                elif s >= tv[m - 1]:
+                    tval, tslope = tf[m - 1], 0.0
+                else:
+                    lo, hi = 0, m - 1
+                    while hi - lo > 1:
+                        mid = (lo + hi) // 2
+                        if tv[mid] <= s:
+                            lo = mid
+                        else:
+                            hi = mid
+                    tslope = (tf[hi] - tf[lo]) / (tv[hi] - tv[lo])
+                    tval = tf[lo] + tslope * (s - tv[lo])
+                fd, dfd = fd + sgn * tval, dfd + tslope
             r_v = mass * (v - v0) - dt * (sum_fa - fd)
             d = mass - dt * (sum_fv - dfd)
             s1 = 0.0

@@ -47,6 +47,34 @@ cdef Rows _rows(Py_buffer* view, object a, Py_ssize_t n, Py_ssize_t P, bint writ
     return r
 
 
+cdef inline double _envelope_n(const double* e, double v_mps) noexcept nogil:
+    """Li 2024 eq. 1's traction force limit (N) at speed ``v_mps`` for the envelope row ``e`` (kN,
+    km/h; the formula of :meth:`canbrake.physics.heavy_haul.TractionEnvelope.saturate_n`)."""
+    cdef double v = fabs(v_mps) / (1.0 / 3.6)
+    if v <= e[1]:
+        return 1000.0 * e[0]
+    if v <= e[4]:
+        return 1000.0 * (e[2] - e[3] * v)
+    return 1000.0 * (e[5] / v)
+
+
+cdef inline double _interp(const double* xs, const double* ys, Py_ssize_t m, double s) noexcept nogil:
+    """The table (``xs`` increasing, ``m`` points) at ``s``: linear between points, flat beyond the
+    ends; NaN stays NaN."""
+    cdef Py_ssize_t lo = 0, hi = m - 1, mid
+    if s <= xs[0]:
+        return ys[0]
+    if s >= xs[m - 1]:
+        return ys[m - 1]
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if xs[mid] <= s:
+            lo = mid
+        else:
+            hi = mid
+    return ys[lo] + (ys[hi] - ys[lo]) * ((s - xs[lo]) / (xs[hi] - xs[lo]))
+
+
 cdef class CoupledKernel:
     """The constant parameters of a coupled train (or a stack of P of them) in C, and its step.
 
@@ -56,6 +84,16 @@ cdef class CoupledKernel:
     ``(n-1,)``): ``spacing`` (m), ``kappa`` (N/m), ``epsilon`` (1/m²), ``kappa_eps`` (κ·ε);
     disturbances ``dist_start``, ``dist_end`` (s), ``dist_w`` (rad/s), ``dist_phase`` (rad), shape
     (D,), and ``dist_amp``, ``dist_off`` (N), shape (D, n). ``points``: P (1 for a single plant).
+
+    Per-vehicle features (each None = no vehicle has it; rows shared by every point of a stack):
+    ``end_stop_m``, ``end_stop_stiffness``, ``end_stop_absorption``: one value for every coupler or
+    one per coupler (``inf`` end stop: none on that coupler); ``instant``: 1 per car whose brake
+    applies the command at once (an ideal brake in a train with lagged ones), 0 otherwise;
+    ``envelope``: shape (n, 6) per car, Li 2024 eq. 1's traction envelope (kN, km/h: start force,
+    start until, intercept, slope, linear until, power), a NaN first value for a car without one;
+    ``table_start`` (n + 1 offsets), ``table_v`` (m/s, increasing), ``table_f`` (N): each car's
+    running-resistance table, interpolated linearly and held flat beyond its ends, added to the
+    Davis terms (an empty table: none).
     """
 
     cdef readonly Py_ssize_t n, nc, points
@@ -64,8 +102,12 @@ cdef class CoupledKernel:
     cdef Rows spacing, kappa, eps, kappa_eps
     cdef const double[::1] d_start, d_end, d_w, d_ph
     cdef const double[:, ::1] d_amp, d_off
-    cdef double g, es_m, es_k, es_a, es_vt
-    cdef bint end_stop, has_grade, unrated, jerk_limited, adhesion_limited
+    cdef double g, es_vt
+    cdef const double[::1] es_m, es_k, es_a, inst
+    cdef const double[:, ::1] env
+    cdef const Py_ssize_t[::1] tab_start
+    cdef const double[::1] tab_v, tab_f
+    cdef bint end_stop, has_grade, unrated, jerk_limited, adhesion_limited, has_instant, has_env, has_table
     cdef Py_ssize_t n_dist
     cdef double[::1] phi
     #: after a step: 1 for each point whose speeds are not all finite, and its last max |Δl| (m)
@@ -73,9 +115,10 @@ cdef class CoupledKernel:
 
     def __init__(self, mass, inv_m, c_static, c1, c2, grade_force_n, brake_max, trac_max, rate_max,
                  spacing, kappa, epsilon, kappa_eps, dist_start, dist_end, dist_w, dist_phase, dist_amp,
-                 dist_off, *, int points, double gravity, end_stop_m, double end_stop_stiffness,
-                 double end_stop_absorption, double end_stop_transition, bint unrated, bint jerk_limited,
-                 bint adhesion_limited):
+                 dist_off, *, int points, double gravity, end_stop_m, end_stop_stiffness,
+                 end_stop_absorption, double end_stop_transition, bint unrated, bint jerk_limited,
+                 bint adhesion_limited, instant=None, envelope=None, table_start=None, table_v=None,
+                 table_f=None):
         self.points = points
         shp = np.shape(mass)
         n = int(shp[len(shp) - 1])
@@ -118,22 +161,39 @@ cdef class CoupledKernel:
         self.d_off = np.ascontiguousarray(np.reshape(dist_off, (self.n_dist, n)), dtype=float)
         self.g = gravity
         self.end_stop = end_stop_m is not None
-        self.es_m = end_stop_m if end_stop_m is not None else 0.0
-        self.es_k, self.es_a, self.es_vt = end_stop_stiffness, end_stop_absorption, end_stop_transition
+        ncs = max(self.nc, 1)
+        per_coupler = lambda a: np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=float), (ncs,)))  # noqa: E731
+        self.es_m = per_coupler(end_stop_m if end_stop_m is not None else 0.0)
+        self.es_k = per_coupler(end_stop_stiffness)
+        self.es_a = per_coupler(end_stop_absorption)
+        self.es_vt = end_stop_transition
+        self.has_instant = instant is not None
+        self.inst = np.ascontiguousarray(np.broadcast_to(np.asarray(0.0 if instant is None else instant, dtype=float),
+                                                         (n,)))
+        self.has_env = envelope is not None
+        self.env = np.ascontiguousarray(np.full((n, 6), np.nan) if envelope is None else
+                                        np.reshape(np.asarray(envelope, dtype=float), (n, 6)))
+        self.has_table = table_start is not None
+        self.tab_start = np.ascontiguousarray(np.zeros(n + 1) if table_start is None else table_start, dtype=np.intp)
+        self.tab_v = np.ascontiguousarray(np.zeros(1) if table_v is None or len(table_v) == 0 else table_v, dtype=float)
+        self.tab_f = np.ascontiguousarray(np.zeros(1) if table_f is None or len(table_f) == 0 else table_f, dtype=float)
+        if self.tab_start.shape[0] != n + 1:
+            raise ValueError(f"the plant kernel needs {n + 1} table offsets, got {self.tab_start.shape[0]}")
         self.unrated, self.jerk_limited, self.adhesion_limited = unrated, jerk_limited, adhesion_limited
         self.phi = np.zeros(max(self.nc, 1))
         self.bad = np.zeros(points, dtype=np.uint8)
         self.dl_max = np.zeros(points)
 
     def step(self, x0, v0, cmd, rail0, effort, mu, eff, double t0, double h, int n_sub, bint ideal,
-             bint plain_rail, double lag, grade_fn=None):
+             bint plain_rail, double lag, grade_fn=None, lag_per_car=None):
         """Advance ``n_sub`` sub-steps of ``h`` s from time ``t0``: positions ``x0`` (m), speeds ``v0``
         (m/s), brake command ``cmd`` (N, + brakes), the actuator's ``effort`` (N, updated in place).
         ``ideal``: the rail force ``rail0`` (N) is held (the plant computed it); otherwise the actuator
         (lag factor ``lag`` = 1 − e^(−h/τ), ratings, jerk limit) and the rail limits (adhesion ``mu``,
         brake effectiveness ``eff``; ``plain_rail``: neither acts) give it every sub-step.
         ``grade_fn`` (a single plant only): a callable giving m g sin θ (N) per car from the
-        positions, evaluated every sub-step.
+        positions, evaluated every sub-step. ``lag_per_car``: 1 − e^(−h/τ_i) per car (``(n,)``),
+        used instead of ``lag`` (vehicles with different brake lags).
 
         Returns (time_s, x, v, accel, rail, n_bad): the new state, the acceleration over the last
         sub-step, the last rail force (``rail0`` itself when ideal) and the number of points whose
@@ -165,8 +225,10 @@ cdef class CoupledKernel:
             rvo = _rows(&bufs[8], v_out, n, P, True); held = 9
             rao = _rows(&bufs[9], a_out, n, P, True); held = 10
             rro = _rows(&bufs[10], rail_out, n, P, not ideal); held = 11
+            lagv = None if lag_per_car is None else np.ascontiguousarray(
+                np.broadcast_to(np.asarray(lag_per_car, dtype=float), (n,)))
             t = self._run(rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro, P, t0, h, n_sub,
-                          ideal, plain_rail, lag, grade_fn, x_out)
+                          ideal, plain_rail, lag, grade_fn, x_out, lagv)
         finally:
             while held > 0:
                 held -= 1
@@ -178,7 +240,7 @@ cdef class CoupledKernel:
 
     cdef double _run(self, Rows rx0, Rows rv0, Rows rc, Rows rr0, Rows re, Rows rmu, Rows ref, Rows rx, Rows rv,
                      Rows ra, Rows rr, Py_ssize_t P, double t0, double h, int n_sub, bint ideal, bint plain_rail,
-                     double lag, object grade_fn, object x_arr) except? -1.0:
+                     double lag, object grade_fn, object x_arr, object lag_per_car) except? -1.0:
         cdef Py_ssize_t n = self.n, nc = self.nc, p, i, j, k, s
         cdef double* phi = &self.phi[0]
         cdef double t = t0, hm, d, st, lim, e, rf, cap, dlj, rate, over, sg, loading, share, f, fc, brake
@@ -196,6 +258,9 @@ cdef class CoupledKernel:
         cdef unsigned char[::1] bad = self.bad
         cdef double[::1] dl_max = self.dl_max
         cdef double* mass = self.mass.p
+        cdef bint per_car_lag = lag_per_car is not None
+        cdef const double[::1] lagv = lag_per_car if per_car_lag else self.inst
+        cdef double lag_i = lag
         for p in range(P):
             x = rx.p + p * rx.step
             v = rv.p + p * rv.step
@@ -219,11 +284,16 @@ cdef class CoupledKernel:
                         if not self.unrated:
                             d = _min(_max(d, -self.trac_max.p[p * self.trac_max.step + i]),
                                      self.brake_max.p[p * self.brake_max.step + i])
-                        st = (d - eff_n[i]) * lag
-                        if self.jerk_limited:
-                            lim = self.rate_max.p[p * self.rate_max.step + i] * h
-                            st = _min(_max(st, -lim), lim)
-                        e = eff_n[i] + st
+                        if self.has_instant and self.inst[i] != 0.0:
+                            e = d  # this vehicle's brake applies the command at once
+                        else:
+                            if per_car_lag:
+                                lag_i = lagv[i]
+                            st = (d - eff_n[i]) * lag_i
+                            if self.jerk_limited:
+                                lim = self.rate_max.p[p * self.rate_max.step + i] * h
+                                st = _min(_max(st, -lim), lim)
+                            e = eff_n[i] + st
                         eff_n[i] = e
                         if plain_rail:
                             rail[i] = e
@@ -233,6 +303,8 @@ cdef class CoupledKernel:
                                 cap = mu[i] * mass[p * self.mass.step + i] * self.g
                                 rf = _min(_max(rf, -cap), cap)
                             rail[i] = rf
+                        if self.has_env and rail[i] < 0.0 and self.env[i, 0] == self.env[i, 0]:
+                            rail[i] = _max(rail[i], -_envelope_n(&self.env[i, 0], v[i]))
                 # couplers: Φ_j of the deflection (and, with an end stop, of its rate)
                 dmax = 0.0
                 for j in range(nc):
@@ -242,12 +314,12 @@ cdef class CoupledKernel:
                     if self.end_stop:
                         f = self.kappa.p[p * self.kappa.step + j] * (
                             1.0 + self.eps.p[p * self.eps.step + j] * dlj * dlj) * dlj
-                        over = fabs(dlj) - self.es_m
+                        over = fabs(dlj) - self.es_m[j]
                         sg = _sign(dlj)
                         rate = v[j] - v[j + 1]
                         loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
-                        share = 1.0 - self.es_a * (1.0 - loading)
-                        phi[j] = f + (sg * over * self.es_k * share if over > 0.0 else 0.0)
+                        share = 1.0 - self.es_a[j] * (1.0 - loading)
+                        phi[j] = f + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
                     else:
                         phi[j] = dlj * (self.kappa.p[p * self.kappa.step + j]
                                         + self.kappa_eps.p[p * self.kappa_eps.step + j] * (dlj * dlj))
@@ -286,6 +358,9 @@ cdef class CoupledKernel:
                     speed = fabs(vi)
                     r = brake + self.c_static.p[p * self.c_static.step + i] + speed * (
                         self.c1.p[p * self.c1.step + i] + self.c2.p[p * self.c2.step + i] * speed)
+                    if self.has_table and self.tab_start[i + 1] > self.tab_start[i]:
+                        r = r + _interp(&self.tab_v[self.tab_start[i]], &self.tab_f[self.tab_start[i]],
+                                        self.tab_start[i + 1] - self.tab_start[i], speed)
                     hm = h * self.inv_m.p[p * self.inv_m.step + i]
                     if all_moving:
                         sgn = _sign(vi)
@@ -312,3 +387,33 @@ cdef class CoupledKernel:
             bad[p] = not finite
             dl_max[p] = dmax
         return t
+
+
+def traction_capped(const double[:, ::1] envelope, const double[::1] v, const double[::1] force):
+    """``force`` (N per car, + brakes, − traction) with each car's traction limited by its envelope
+    row (``envelope``, shape (n, 6) as :class:`CoupledKernel` takes it; NaN first value: none) at
+    its speed ``v`` (m/s): the step with brake equipment (blending, wheelsets), which caps the
+    actuator's effort before the equipment, as the kernel caps the rail force."""
+    cdef Py_ssize_t i, n = force.shape[0]
+    out_a = np.empty(n)
+    cdef double[::1] out = out_a
+    for i in range(n):
+        out[i] = force[i]
+        if force[i] < 0.0 and envelope[i, 0] == envelope[i, 0]:
+            out[i] = _max(force[i], -_envelope_n(&envelope[i, 0], v[i]))
+    return out_a
+
+
+def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v, const double[::1] table_f,
+                          const double[::1] speed, const double[::1] r):
+    """``r`` (N per car) plus each car's resistance table (offsets ``start``, n + 1; speeds
+    ``table_v`` m/s, forces ``table_f`` N, as :class:`CoupledKernel` takes them) at ``speed``
+    (|v|, m/s): the step with brake equipment."""
+    cdef Py_ssize_t i, n = r.shape[0]
+    out_a = np.empty(n)
+    cdef double[::1] out = out_a
+    for i in range(n):
+        out[i] = r[i]
+        if start[i + 1] > start[i]:
+            out[i] = r[i] + _interp(&table_v[start[i]], &table_f[start[i]], start[i + 1] - start[i], speed[i])
+    return out_a

@@ -31,13 +31,14 @@ ActuatorKind = Literal["ideal", "realistic"]
 
 @dataclass(frozen=True)
 class BrakeActuator:
-    """Actuator parameters (ratings and the jerk limit per unit mass: one value for every car, or
-    a tuple with one per car; the kind and the lag are the train's).
+    """Actuator parameters (the lag, the ratings and the jerk limit per unit mass: one value for
+    every car, or a tuple with one per car; the kind is the train's).
 
     Attributes
     ----------
     kind: ``"ideal"`` or ``"realistic"``.
-    time_constant_s: first-order lag (s), realistic only.
+    time_constant_s: first-order lag (s), realistic only; per car, 0 = that car's brake applies the
+        command at once (an ideal brake among lagged ones; give it an ``inf`` jerk limit).
     jerk_limit_mps3: max |dF/dt| / m (m/s³), realistic only; ``inf`` disables it.
     brake_rating_mps2: max brake force / m (m/s²); ``inf`` = no rating.
     traction_rating_mps2: max traction force / m (m/s²); ``inf`` = no rating.
@@ -45,7 +46,7 @@ class BrakeActuator:
     """
 
     kind: ActuatorKind = "ideal"
-    time_constant_s: float = 0.3
+    time_constant_s: float | tuple[float, ...] = 0.3
     jerk_limit_mps3: float | tuple[float, ...] = 1.0
     brake_rating_mps2: float | tuple[float, ...] = math.inf
     traction_rating_mps2: float | tuple[float, ...] = math.inf
@@ -59,8 +60,9 @@ class BrakeActuator:
     def __post_init__(self) -> None:
         if self.kind not in ("ideal", "realistic"):
             raise ValueError(f"actuator kind must be 'ideal' or 'realistic', not {self.kind!r}")
-        if self.kind == "realistic" and not self.time_constant_s > 0:
-            raise ValueError("realistic actuator needs time_constant_s > 0")
+        if self.kind == "realistic" and not (self.time_constant_s > 0 if isinstance(self.time_constant_s, (int, float))
+                                             else all(t >= 0 for t in self.time_constant_s)):
+            raise ValueError("realistic actuator needs time_constant_s > 0 (per car: >= 0, 0 = at once)")
 
     @classmethod
     def ideal(cls, *, adhesion_limited: bool = False) -> "BrakeActuator":
@@ -105,7 +107,14 @@ class ActuatorState:
         self._rate_max = f(params.jerk_limit_mps3) * mass_kg
         self._unrated = bool(np.all(np.isinf(params.brake_rating_mps2)) and np.all(np.isinf(params.traction_rating_mps2)))
         self._jerk_limited = params.jerk_limited
-        self._lag = 0.0
+        tau = params.time_constant_s
+        #: per car: 1 where the brake applies the command at once (time constant 0), else None
+        self._instant = None
+        if params.kind == "ideal":
+            self._instant = np.ones(np.shape(mass_kg)[-1:], dtype=bool)
+        elif not isinstance(tau, (int, float)) and any(t == 0 for t in tau):
+            self._instant = np.asarray(tau, dtype=float) == 0.0
+        self._lag: float | np.ndarray = 0.0
         self._lag_h = -1.0
 
     def demand_n(self, command_n: np.ndarray) -> np.ndarray:
@@ -127,13 +136,21 @@ class ActuatorState:
             lim = self._rate_max * h_s
             step = np.minimum(np.maximum(step, -lim), lim)
         self.effort_n = self.effort_n + step
+        if self._instant is not None:
+            self.effort_n = np.where(self._instant, demand, self.effort_n)
         return self.effort_n
 
-    def lag_factor(self, h_s: float) -> float:
-        """The first-order lag's share of the gap closed over ``h_s`` seconds, 1 − e^(−h/τ) (realistic)."""
+    def lag_factor(self, h_s: float) -> float | np.ndarray:
+        """The first-order lag's share of the gap closed over ``h_s`` seconds, 1 − e^(−h/τ) (realistic;
+        per car where the cars' time constants differ, 1 for a car whose brake applies at once)."""
         if h_s != self._lag_h:
             self._lag_h = h_s
-            self._lag = 1.0 - math.exp(-h_s / self.params.time_constant_s)
+            tau = self.params.time_constant_s
+            if isinstance(tau, (int, float)):
+                self._lag = 1.0 - math.exp(-h_s / tau)
+            else:
+                t = np.asarray(tau, dtype=float)
+                self._lag = np.where(t > 0.0, 1.0 - np.exp(-h_s / np.where(t > 0.0, t, 1.0)), 1.0)
         return self._lag
 
     def rail_force_n(

@@ -57,7 +57,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from canbrake.physics._train_kernel import CoupledKernel
+from canbrake.physics._train_kernel import CoupledKernel, traction_capped, with_table_resistance
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
 from canbrake.physics._brakes_kernel import EquipmentKernel
 from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets
@@ -103,15 +103,21 @@ class TrainPlant:
     coupler_nonlinearity_per_m2: ε_i (1/m²). Default −0.5 (Chen Table 2).
     coupler_spacing_m: nominal x_i − x_{i+1} (m); ``None`` = from the initial positions (Δl(0) = 0).
     resistance: Davis coefficients; ``None`` = :func:`davis_1926` for these masses.
+    resistance_table: per car, ``(speeds m/s, forces N)`` or ``None``: a running resistance
+        interpolated linearly in |v| and held flat beyond the ends, added to the Davis terms (give
+        those cars zero Davis coefficients); ``None`` = no car has one.
+    traction_envelope: per car, a :class:`canbrake.physics.heavy_haul.TractionEnvelope` or ``None``:
+        that car's traction (a negative rail force) is at most F_T(|v|) (Li 2024 eq. 1), every sub-step.
     grade_rad: track slope θ (rad), scalar, per car, or a function of the positions returning per-car θ.
     curve_resistance_n: extra dissipative resistance per car (N), e.g. Chen's 0.004·m·D_c.
     actuator: :class:`BrakeActuator` (default ideal).
     rail: :class:`RailConditions` (base μ and events); default μ = 0.3 everywhere, no events.
     disturbances: external forces, :class:`DisturbanceForce` list.
-    end_stop_m: |Δl| at which the draft gear's travel ends and the buffer acts (m); ``None`` = no end stop.
-    end_stop_stiffness_n_per_m: the buffer's loading stiffness beyond the end stop, k_b (N/m).
+    end_stop_m: |Δl| at which the draft gear's travel ends and the buffer acts (m); ``None`` = no end stop;
+        a sequence: per coupler (``None`` or ``inf``: none on that coupler).
+    end_stop_stiffness_n_per_m: the buffer's loading stiffness beyond the end stop, k_b (N/m; a sequence: per coupler).
     end_stop_absorption: share a of an impact's energy the buffer absorbs (0 ≤ a < 1; unloading
-        stiffness (1 − a)·k_b). 0 = a lossless solid stop.
+        stiffness (1 − a)·k_b; a sequence: per coupler). 0 = a lossless solid stop.
     max_substep_s: longest integration sub-step (s).
     gravity_mps2: g (m/s²).
     """
@@ -131,15 +137,17 @@ class TrainPlant:
         actuator: BrakeActuator | None = None,
         rail: RailConditions | None = None,
         disturbances: Sequence[DisturbanceForce] = (),
-        end_stop_m: float | None = None,
-        end_stop_stiffness_n_per_m: float = 2.0e7,
-        end_stop_absorption: float = 0.6,
+        end_stop_m: float | Sequence[float | None] | None = None,
+        end_stop_stiffness_n_per_m: float | Sequence[float] = 2.0e7,
+        end_stop_absorption: float | Sequence[float] = 0.6,
         max_substep_s: float = 1e-3,
         gravity_mps2: float = GRAVITY_MPS2,
         blending: BrakeBlending | None = None,
         wheels: Wheelsets | None = None,
         wsp_valve_lag_s: float = 0.05,
         wsp_max_vent_s: float = math.inf,
+        resistance_table: Sequence[tuple[Sequence[float], Sequence[float]] | None] | None = None,
+        traction_envelope: Sequence[object | None] | None = None,
     ) -> None:
         self.mass_kg = np.asarray(mass_kg, dtype=float).copy()
         n = self.mass_kg.size
@@ -182,12 +190,23 @@ class TrainPlant:
             for ev in self.rail.events
         ]
         self._base_mu = _per_car(self.rail.base_adhesion_mu, n, "base_adhesion_mu")
+        #: per coupler (arrays of shape (n-1,)) where the couplers' end stops differ, else one value
+        self.end_stops_per_coupler = any(np.ndim(a) > 0 for a in (end_stop_m, end_stop_stiffness_n_per_m,
+                                                                    end_stop_absorption))
+        if self.end_stops_per_coupler:
+            stop = [math.inf if x is None else x for x in np.broadcast_to(np.asarray(end_stop_m, dtype=object), (nc,))]
+            end_stop_m = None if all(x == math.inf for x in stop) else _per_car(np.asarray(stop, dtype=float), nc,
+                                                                                  "end_stop_m")
+            end_stop_stiffness_n_per_m = _per_car(end_stop_stiffness_n_per_m, nc, "end_stop_stiffness_n_per_m")
+            end_stop_absorption = _per_car(end_stop_absorption, nc, "end_stop_absorption")
         self.end_stop_m = end_stop_m
-        self.end_stop_stiffness_n_per_m = float(end_stop_stiffness_n_per_m)
-        if not 0.0 <= end_stop_absorption < 1.0:
+        self.end_stop_stiffness_n_per_m = (end_stop_stiffness_n_per_m if self.end_stops_per_coupler
+                                           else float(end_stop_stiffness_n_per_m))  # type: ignore[arg-type]
+        if not np.all((0.0 <= np.asarray(end_stop_absorption)) & (np.asarray(end_stop_absorption) < 1.0)):
             raise ValueError(f"end_stop_absorption must be in [0, 1), got {end_stop_absorption}")
-        self.end_stop_absorption = float(end_stop_absorption)
-        if end_stop_m is not None and not end_stop_m > 0:
+        self.end_stop_absorption = (end_stop_absorption if self.end_stops_per_coupler
+                                    else float(end_stop_absorption))  # type: ignore[arg-type]
+        if end_stop_m is not None and not np.all(np.asarray(end_stop_m) > 0):
             raise ValueError(f"end_stop_m must be > 0, got {end_stop_m}")
         if not max_substep_s > 0:
             raise ValueError("max_substep_s must be > 0")
@@ -206,11 +225,54 @@ class TrainPlant:
         self.wsp_valve_lag_s = float(wsp_valve_lag_s)
         self.wsp_max_vent_s = float(wsp_max_vent_s)
         self._wheels0 = None if wheels is None else wheels.omega.copy()
+        self.resistance_table = self._tables(resistance_table)
+        self.traction_envelope = self._envelopes(traction_envelope)
         #: a stack of plants (stack_plants): arrays have a leading points axis
         self.stacked = False
         self._kern: CoupledKernel | None = None  # built at the first step
         self._ekern: EquipmentKernel | None = None  # the brake equipment's, likewise
         self.reset()
+
+    def _tables(self, tables: Sequence[tuple[Sequence[float], Sequence[float]] | None] | None
+                ) -> tuple[tuple[np.ndarray, np.ndarray] | None, ...] | None:
+        """Check the per-car resistance tables and keep them for the kernel as offsets and two flat
+        arrays (``self._tab``, None without tables)."""
+        self._tab: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        if tables is None or all(t is None for t in tables):
+            return None
+        if len(tables) != self.n_cars:
+            raise ValueError(f"resistance_table must have one entry per car ({self.n_cars}), got {len(tables)}")
+        out: list[tuple[np.ndarray, np.ndarray] | None] = []
+        start = [0]
+        for i, t in enumerate(tables):
+            if t is None:
+                out.append(None)
+                start.append(start[-1])
+                continue
+            v, f = (np.asarray(a, dtype=float).reshape(-1) for a in t)
+            if v.size < 1 or v.size != f.size or not (np.all(np.isfinite(v)) and np.all(np.isfinite(f))) \
+                    or np.any(np.diff(v) <= 0.0) or v[0] < 0.0:
+                raise ValueError(f"resistance_table of car {i + 1}: needs finite speeds >= 0, increasing, "
+                                 "and as many finite forces")
+            out.append((v, f))
+            start.append(start[-1] + v.size)
+        self._tab = (np.asarray(start, dtype=np.intp), np.concatenate([t[0] for t in out if t is not None]),
+                     np.concatenate([t[1] for t in out if t is not None]))
+        return tuple(out)
+
+    def _envelopes(self, envelopes: Sequence[object | None] | None) -> tuple[object | None, ...] | None:
+        """Keep the per-car traction envelopes as the kernel's rows (``self._env``, (n, 6), NaN rows
+        for cars without; None without envelopes)."""
+        self._env: np.ndarray | None = None
+        if envelopes is None or all(e is None for e in envelopes):
+            return None
+        if len(envelopes) != self.n_cars:
+            raise ValueError(f"traction_envelope must have one entry per car ({self.n_cars}), got {len(envelopes)}")
+        fields = ("traction_start_kn", "traction_start_until_kmh", "traction_intercept_kn",
+                  "traction_slope_kn_per_kmh", "traction_linear_until_kmh", "power_kn_kmh")
+        self._env = np.array([[math.nan] * 6 if e is None else [float(getattr(e, k)) for k in fields]
+                              for e in envelopes])
+        return tuple(envelopes)
 
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
@@ -275,7 +337,8 @@ class TrainPlant:
         else:  # 1 loading (moving into the stop), 1 - a unloading, linear across ±v_t
             loading = np.clip(0.5 + sgn * rate_mps / (2.0 * END_STOP_TRANSITION_MPS), 0.0, 1.0)
             share = 1.0 - self.end_stop_absorption * (1.0 - loading)
-        return np.where(over > 0.0, sgn * over * self.end_stop_stiffness_n_per_m * share, 0.0)
+        with np.errstate(invalid="ignore"):  # a coupler without a stop (inf): 0 · inf where np.where drops it
+            return np.where(over > 0.0, sgn * over * self.end_stop_stiffness_n_per_m * share, 0.0)
 
     def _substeps(self, dt_s: float) -> int:
         """Sub-steps for a control period of ``dt_s``: ``max_substep_s``, and at most 0.05/ω_b while a
@@ -292,6 +355,10 @@ class TrainPlant:
     def _end_stop_substep_s(self) -> float:
         """The sub-step near an end stop (s): 0.05/ω_b, ω_b = sqrt(k_b/μ) for the lightest pair of cars."""
         m = self.mass_kg
+        if self.end_stops_per_coupler:  # the couplers that have a stop, each with its own pair and buffer
+            has = np.isfinite(np.asarray(self.end_stop_m, dtype=float))
+            pair = (m[:-1] * m[1:] / (m[:-1] + m[1:]))[has]
+            return float(np.min(0.05 / np.sqrt(np.asarray(self.end_stop_stiffness_n_per_m)[has] / pair)))
         mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
         return 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
 
@@ -347,17 +414,19 @@ class TrainPlant:
         act = self._act
         kernel = self._kern if self._kern is not None else self._kernel()
         gcb = None if self._grade_fn is None else self._grade_force_fn
-        if act.params.kind == "ideal":  # the rail force is held over the period
+        if act.params.kind == "ideal" and self._env is None:  # the rail force is held over the period
             effort = act.advance(cmd, h)
             rail = effort if self._plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
             self.time_s, x, v, acc, rail, n_bad = kernel.step(
                 self.position_m, self.speed_mps, cmd, rail, self._mu, self._mu, self._eff, self.time_s, h, n_sub,
                 True, self._plain_rail, 0.0, gcb)  # (the effort argument is not used when ideal)
-        else:
+        else:  # the actuator (and the traction envelopes) every sub-step
             effort = np.array(np.broadcast_to(act.effort_n, cmd.shape), dtype=float)
+            lag = 0.0 if act.params.kind == "ideal" else act.lag_factor(h)
+            per_car = None if isinstance(lag, float) else lag
             self.time_s, x, v, acc, rail, n_bad = kernel.step(
                 self.position_m, self.speed_mps, cmd, self.applied_force_n, effort, self._mu, self._eff,
-                self.time_s, h, n_sub, False, self._plain_rail, act.lag_factor(h), gcb)
+                self.time_s, h, n_sub, False, self._plain_rail, 0.0 if per_car is not None else lag, gcb, per_car)
             act.effort_n = effort
         if n_bad:
             if not self.stacked:
@@ -389,7 +458,9 @@ class TrainPlant:
                 end_stop_stiffness=self.end_stop_stiffness_n_per_m, end_stop_absorption=self.end_stop_absorption,
                 end_stop_transition=END_STOP_TRANSITION_MPS, unrated=act._unrated,
                 jerk_limited=self.actuator.jerk_limited,
-                adhesion_limited=self.actuator.adhesion_limited)
+                adhesion_limited=self.actuator.adhesion_limited, instant=act._instant, envelope=self._env,
+                table_start=None if self._tab is None else self._tab[0],
+                table_v=None if self._tab is None else self._tab[1], table_f=None if self._tab is None else self._tab[2])
         return self._kern
 
     def diverged_text(self, max_deflection_m: float) -> str:
@@ -449,6 +520,8 @@ class TrainPlant:
             t = self.time_s
             self._update_rail(t)
             effort = act.advance(cmd, h)
+            if self._env is not None:  # each car's traction within its envelope at its speed
+                effort = traction_capped(self._env, flat(v), flat(effort))
             dl = x[..., :-1] - x[..., 1:] - self.coupler_spacing_m
             phi = self.coupler_force_from_deflection(dl, v[..., :-1] - v[..., 1:])
             f = self._incidence.dot(phi) if phi.ndim == 1 else phi @ self._incidence.T
@@ -460,6 +533,8 @@ class TrainPlant:
                 f = f + self.external_force_n(t)
             speed = np.abs(v)
             r = self._c_static + speed * (c1 + c2 * speed)
+            if self._tab is not None:
+                r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], flat(speed), flat(r))
             # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake), compiled
             v_new, rail = kern.substep(h, blend_k, valve_k, flat(effort), flat(v), flat(f), flat(r), mass,
                                        flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve, self._vent_s,
@@ -524,15 +599,17 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     uses, so each row equals its own plant's state bit for bit (tests/test_batch_sweep.py). A
     point whose state becomes non-finite is flagged in ``diverged_rows`` and parked at rest.
 
-    None where the plants do not qualify: wheelsets, an end stop that can refine the sub-step (it
-    would depend on each point's state), a grade function, or plants that differ in anything but
-    their per-car arrays (actuator, blending, end stop, rail conditions, disturbances, sub-step,
+    None where the plants do not qualify: wheelsets, resistance tables, traction envelopes, end
+    stops that differ per coupler, an end stop that can refine the sub-step (it would depend on each point's state), a grade function,
+    or plants that differ in anything but their per-car arrays (actuator, blending, end stop, rail conditions, disturbances, sub-step,
     gravity)."""
     import copy
 
     p0 = plants[0]
     for p in plants:
-        if (p.wheels is not None or p._grade_fn is not None or not _substeps_fixed(p)
+        if (p.wheels is not None or p._grade_fn is not None or p.end_stops_per_coupler or p0.end_stops_per_coupler
+                or not _substeps_fixed(p)
+                or p._tab is not None or p._env is not None
                 or repr(p.blending) != repr(p0.blending) or p.end_stop_m != p0.end_stop_m
                 or p.end_stop_stiffness_n_per_m != p0.end_stop_stiffness_n_per_m
                 or p.end_stop_absorption != p0.end_stop_absorption

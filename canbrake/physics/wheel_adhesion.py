@@ -32,7 +32,7 @@ Two curve variants (``variant``):
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -159,7 +159,8 @@ class WheelSet:
 
     def step_coupled(self, torque_nm: np.ndarray, v_mps: float, cond: RailCondition, dt_s: float,
                      mass_kg: float | None, resistance: Callable[[float], tuple[float, float]] | None = None,
-                     newton_iters: int = 4, davis: tuple[float, float, float] | None = None) -> tuple[float, np.ndarray]:
+                     newton_iters: int = 4, davis: tuple[float, float, float] | None = None,
+                     table: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[float, np.ndarray]:
         """One backward-Euler step of the wheels and (unless ``mass_kg`` is None) the train body.
 
         Solves jointly, for ω (shape ``(p,)``, rad/s) and v (m/s)::
@@ -168,7 +169,8 @@ class WheelSet:
             m (v − v0) = dt (Σ F_a(ω, v) − F_d(v))
 
         with ``resistance(v) -> (F_d in N, dF_d/dv in N·s/m)``, or ``davis`` = (a0, a1, a2) for
-        F_d = sgn(v) a0 + a1 v + a2 v|v| (sgn = 0 below 1e-6 m/s; evaluated in the compiled loop). Both equations are stiff through
+        F_d = sgn(v) a0 + a1 v + a2 v|v| (sgn = 0 below 1e-6 m/s; evaluated in the compiled loop), plus
+        sgn(v) T(|v|) for ``table`` = (speeds m/s, forces N): a resistance table (linear, flat beyond its ends). Both equations are stiff through
         the slip: dF_a/dω ∝ N μ' R / v and dF_a/dv ∝ −N μ'/v give time constants of microseconds
         (wheel) and fractions of a millisecond (body) near standstill, so an explicit step of 1 ms
         is unstable there. Newton on the arrow-shaped Jacobian (Schur complement on v) solves the
@@ -183,7 +185,7 @@ class WheelSet:
         v, w = _adhesion_kernel.step_coupled(
             _axle_array(self.omega_radps, p), J, R, N, T, float(v_mps), dt_s,
             0.0 if mass_kg is None else float(mass_kg), mass_kg is not None, cond.b1, cond.b2, cond.b3, cond.c1,
-            cond.c2, cond.c3, peak, mu0, self.v_floor_mps, newton_iters, davis, resistance)
+            cond.c2, cond.c3, peak, mu0, self.v_floor_mps, newton_iters, davis, resistance, table)
         self.omega_radps = w
         res = self.adhesion(v, cond, w)
         #: (condition, v, ω, (λ, μ, F_a)) of the last step, for a measurement of the same state
@@ -231,7 +233,8 @@ class AdhesionTrain:
 
     Single-coordinate body (eq. 3: the vehicles are rigidly coupled, in-train forces cancel in the
     sum): one position x and speed v for the whole train, ``m v̇ = Σ F_a − Σ F_d,i(v)`` with
-    ``m = Σ m_i`` and per-vehicle Davis resistance ``F_d,i = c0_i sgn v + c1_i v + c2_i v|v|`` (N).
+    ``m = Σ m_i`` and per-vehicle Davis resistance ``F_d,i = c0_i sgn v + c1_i v + c2_i v|v|`` (N),
+    plus ``sgn v · T_i(|v|)`` for a vehicle with a resistance table (linear, flat beyond its ends).
     Every driven axle k has its own wheel speed, ``J_k ω̇_k = T_k − F_a,k R_k`` (eq. 12) with
     ``F_a,k = μ(λ_k, v) N_k`` (eqs. 10–15) on the rail condition of the moment (:class:`RailSchedule`).
 
@@ -256,10 +259,12 @@ class AdhesionTrain:
 
     def __init__(self, mass_kg: np.ndarray, axles: list[DrivenAxles], davis_n: np.ndarray, rail: RailSchedule,
                  *, variant: Variant = "paper", v_floor_mps: float = 0.1, speed_mps: float = 0.0,
-                 position_m: float = 0.0, substeps: int = 1) -> None:
+                 position_m: float = 0.0, substeps: int = 1,
+                 resistance_table: Sequence[tuple[Sequence[float], Sequence[float]] | None] | None = None) -> None:
         """``mass_kg`` (n,) kg; ``axles`` one :class:`DrivenAxles` per vehicle; ``davis_n`` (n, 3):
-        c0 (N), c1 (N·s/m), c2 (N·s²/m²) per vehicle; ``speed_mps`` and ``position_m`` the initial
-        state (wheels start rolling without slip)."""
+        c0 (N), c1 (N·s/m), c2 (N·s²/m²) per vehicle; ``resistance_table``: per vehicle (speeds m/s
+        increasing, forces N) or None, added to its Davis terms; ``speed_mps`` and ``position_m``
+        the initial state (wheels start rolling without slip)."""
         self.mass_kg = np.asarray(mass_kg, dtype=float)
         self.n_vehicles = int(self.mass_kg.size)
         if len(axles) != self.n_vehicles:
@@ -268,6 +273,20 @@ class AdhesionTrain:
         self._davis_sum = self.davis_n.sum(axis=0)
         self._davis_terms = tuple(float(a) for a in self._davis_sum)  # (a0, a1, a2) of :meth:`resistance`
         self.total_mass_kg = float(self.mass_kg.sum())
+        #: the vehicles' tables as offsets and flat arrays (measurements), and summed on the union of
+        #: their speeds (the body's F_d: a sum of piecewise-linear, flat-ended curves is one, exactly)
+        self._tab: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._table_sum: tuple[np.ndarray, np.ndarray] | None = None
+        if resistance_table is not None and any(t is not None for t in resistance_table):
+            if len(resistance_table) != self.n_vehicles:
+                raise ValueError(f"resistance_table: {len(resistance_table)} entries for {self.n_vehicles} vehicles")
+            tabs = [None if t is None else (np.asarray(t[0], dtype=float), np.asarray(t[1], dtype=float))
+                    for t in resistance_table]
+            have = [t for t in tabs if t is not None]
+            start = np.concatenate([[0], np.cumsum([0 if t is None else t[0].size for t in tabs])]).astype(np.intp)
+            self._tab = (start, np.concatenate([t[0] for t in have]), np.concatenate([t[1] for t in have]))
+            union = np.unique(self._tab[1])
+            self._table_sum = (union, np.sum([np.interp(union, t[0], t[1]) for t in have], axis=0))
         self.rail = rail
         self.substeps = int(substeps)
         veh, num = [], []
@@ -303,13 +322,27 @@ class AdhesionTrain:
         """Train resistance Σ F_d,i(v) (N) and its slope (N·s/m); the constant term opposes motion."""
         a0, a1, a2 = self._davis_sum
         sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
-        return sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps), a1 + 2.0 * a2 * abs(v_mps)
+        fd, dfd = sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps), a1 + 2.0 * a2 * abs(v_mps)
+        if self._table_sum is not None:
+            tv, tf = self._table_sum
+            s = abs(v_mps)
+            k = int(np.clip(np.searchsorted(tv, s, side="right") - 1, 0, max(tv.size - 2, 0)))
+            inside = tv.size > 1 and tv[0] < s < tv[-1]
+            fd += sgn * float(np.interp(s, tv, tf))
+            dfd += float((tf[k + 1] - tf[k]) / (tv[k + 1] - tv[k])) if inside else 0.0
+        return fd, dfd
 
     def vehicle_resistance_n(self, v_mps: float) -> np.ndarray:
         """F_d,i(v) per vehicle (N), shape (n,)."""
         c0, c1, c2 = self.davis_n.T
         sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
-        return sgn * c0 + c1 * v_mps + c2 * v_mps * abs(v_mps)
+        fd = sgn * c0 + c1 * v_mps + c2 * v_mps * abs(v_mps)
+        if self._tab is not None:  # each vehicle's own table, compiled (the coupled kernel's interpolation)
+            from canbrake.physics._train_kernel import with_table_resistance
+
+            fd = fd + sgn * with_table_resistance(self._tab[0], self._tab[1], self._tab[2],
+                                                  np.full(self.n_vehicles, abs(v_mps)), np.zeros(self.n_vehicles))
+        return fd
 
     def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
         """Advance by ``dt_s`` (s) holding the axle torque commands (see the class docstring)."""
@@ -328,7 +361,7 @@ class AdhesionTrain:
         for _ in range(self.substeps):
             cond = self.rail.at(self.time_s)
             v_new, fa = self.wheels.step_coupled(torque, self.speed_mps, cond, h, mass_kg=self.total_mass_kg,
-                                                 davis=self._davis_terms)
+                                                 davis=self._davis_terms, table=self._table_sum)
             self._a_last = (v_new - self.speed_mps) / h
             self.position_m += 0.5 * h * (self.speed_mps + v_new)
             self.speed_mps = v_new
