@@ -552,3 +552,23 @@ def test_a_reader_waiting_for_n_frames_is_woken_once_and_loses_none_at_a_timeout
         rest = got[0] + r.recv_batch(0)
         assert [m.arbitration_id for m in rest] == [0x110, 0x111]
         assert_sleepers_consistent(w)
+
+
+def test_a_reader_waiting_for_n_frames_keeps_what_came_under_a_flood(shm_dir: Path) -> None:
+    """A protected reader (backpressure="accepted") asleep for 3 frames with 1 come: a writer
+    going round a small ring with frames it does not accept may not overwrite that one; it
+    wakes the reader to read it instead of waiting for it, and nothing is lost."""
+    with bus("mff", ring_size=64, backpressure="accepted", yield_before_sleep=False,
+             can_filters=[{"can_id": 0x100, "can_mask": 0x700, "extended": False}]) as r, \
+            bus("mff", can_filters=[{"can_id": 0x7FF, "can_mask": 0x7FF, "extended": False}]) as w:
+        got: list[can.Message] = []
+        t = threading.Thread(target=lambda: got.extend(r.recv_batch(3.0, min_frames=3)))  # 2 never come
+        t.start()
+        _wait_for_sleeper(w)
+        w.send(frame(0x101, b"1"))
+        for _ in range(20):  # 20 rings of frames the reader does not accept
+            w.send_many([frame(0x200, b"x")] * 64, timeout=5.0)
+        t.join(TIMEOUT)
+        more = r.recv_batch(0)
+        assert [m.arbitration_id for m in got + more] == [0x101]
+        assert r.stats().frames_lost == 0

@@ -288,3 +288,28 @@ def test_recv_batch_across_processes_protected_reader_gets_every_accepted_frame(
             p.join()
         rx.shutdown()
     assert p.exitcode == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(std=st.sets(st.integers(0, 0x7FF), max_size=120), ext=st.sets(st.integers(0, 0x1FFFFFFF), max_size=40),
+       masked=st.lists(st.tuples(st.integers(0, 0x7FF), st.integers(0, 0x7FF)), max_size=3))
+def test_merged_exact_filters_accept_exactly_what_the_filters_accept(std, ext, masked):
+    """memory_shm.merge_exact (a node's many exact filters as aligned blocks, so they fit in its
+    reader entry): the same frames accepted, every standard identifier and the extended ones
+    around the given ones checked."""
+    from canbrake.bus import memory_shm as shm
+    from canbrake.bus._ring import Filters
+
+    filters = ([{"can_id": i, "can_mask": 0x7FF, "extended": False} for i in std]
+               + [{"can_id": i, "can_mask": 0x1FFFFFFF, "extended": True} for i in ext]
+               + [{"can_id": c, "can_mask": m} for c, m in masked])
+    if not filters:
+        return
+    c = shm.compile_filters(filters)
+    merged = shm.merge_exact(c)
+    a, b = Filters(c), Filters(merged)
+    for i in range(0x800):
+        assert a.accepts(i, False) == b.accepts(i, False), hex(i)
+    for i in {x + d for x in ext | {0x1FFFFFFF, 0} for d in (-1, 0, 1)} - {-1, 0x20000000}:
+        assert a.accepts(i, True) == b.accepts(i, True), hex(i)
+    assert len(merged) <= len(c)

@@ -347,6 +347,8 @@ class MemoryBus(BusABC):
     def _apply_filters(self, filters: Optional[CanFilters]) -> None:
         """Push ``filters`` into this bus's shared entry so writers wake it only for accepted frames."""
         compiled = shm.compile_filters(filters)
+        if compiled is not None and not shm.pushable(compiled):
+            compiled = shm.merge_exact(compiled)  # the same acceptance in fewer filters
         self._filters_c = None if compiled is None else Filters(compiled)
         if not self._open:
             return
@@ -432,7 +434,7 @@ class MemoryBus(BusABC):
         with self._txlock:
             while True:
                 wake: list[int] = []
-                blocker = 0
+                blocker = roused = 0
                 self._lock()
                 try:
                     if q[H_CLOSED]:
@@ -445,6 +447,13 @@ class MemoryBus(BusABC):
                     if not blocker and self._pr_peers and w + n - self._ring_n > self._pr_floor:
                         blocker = self._protecting_reader(w, n)
                     if blocker:
+                        if q[blocker + E_SLEEPING]:
+                            # it sleeps until more frames come (E_WANT) with unread ones in the
+                            # way: wake it to read them, or we would wait for each other
+                            q[blocker + E_SLEEPING] = 0
+                            q[H_SLEEPERS] = q[H_SLEEPERS] - 1
+                            q[blocker + E_WAKEUPS] = q[blocker + E_WAKEUPS] + 1
+                            roused = q[blocker + E_TOKEN]
                         if not q[eb + E_TX_WAITING]:
                             q[eb + E_TX_WAITING] = 1
                             q[H_TX_WAITERS] = q[H_TX_WAITERS] + 1
@@ -470,6 +479,8 @@ class MemoryBus(BusABC):
                     self._n_sent += n
                     return
                 # --- a backpressure reader is a full ring behind: wait for it (bounded)
+                if roused:
+                    self._notify(roused, "rx")
                 now = time.monotonic()
                 if deadline is None:
                     self._n_send_waits += 1
@@ -500,7 +511,9 @@ class MemoryBus(BusABC):
         """Oldest ring position backpressure reader ``b`` may still need (lock held)."""
         q = self._q
         if q[b + E_SLEEPING]:
-            return w  # everything published while it slept was checked against its filters
+            # everything published while it slept was checked against its filters: what it
+            # accepts woke it, unless it waits for several frames (E_WANT) and some have come
+            return q[b + E_WAKE_SEQ] if q[b + E_PENDING] else w
         return max(q[b + E_READ_SEQ], q[b + E_WAKE_SEQ])
 
     def _blocking_reader(self, end: int) -> int:

@@ -204,6 +204,46 @@ def compile_filters(filters: Optional[can.typechecking.CanFilters]) -> Optional[
     return tuple(out)
 
 
+#: the mask that makes a filter of each mode exact: standard (1) and extended (2) identifiers
+_EXACT_MASK = {1: 0x7FF, 2: 0x1FFFFFFF}
+
+
+def merge_exact(filters: Optional[tuple[Filter, ...]]) -> Optional[tuple[Filter, ...]]:
+    """The same acceptance with exact-identifier filters merged: the identifiers of each mode
+    (standard, extended) are split into aligned power-of-two blocks, one masked filter each
+    (0x081..0x0BF: six filters instead of 63). A frame is accepted by the result if and only if
+    it is by ``filters``; other filters are kept as they are. Written by hand: python-can
+    matches filters one by one and has no such merge. Lets a node that filters for many
+    identifiers (a plant hearing 106 ECUs' commands) keep its filters in its reader entry, so
+    writers wake it only for frames it accepts."""
+    if filters is None:
+        return None
+    ids: dict[int, set[int]] = {}
+    rest: list[Filter] = []
+    for cid, mask, mode in filters:
+        if _EXACT_MASK.get(mode) == mask:
+            ids.setdefault(mode, set()).add(cid)
+        else:
+            rest.append((cid, mask, mode))
+    out: list[Filter] = []
+    for mode, full in _EXACT_MASK.items():
+        run = sorted(ids.get(mode, ()))
+        i = 0
+        while i < len(run):  # each run of consecutive identifiers a..b
+            a = b = run[i]
+            while i + 1 < len(run) and run[i + 1] == b + 1:
+                i += 1
+                b = run[i]
+            i += 1
+            while a <= b:  # the largest aligned block starting at a that ends by b
+                size = (a & -a) if a else 1 << full.bit_length()
+                while a + size - 1 > b:
+                    size >>= 1
+                out.append((a, full & ~(size - 1), mode))
+                a += size
+    return tuple(out + rest)
+
+
 def pushable(filters: Optional[tuple[Filter, ...]]) -> bool:
     """True if ``filters`` fit in a reader entry (else the entry says "accept all")."""
     return (
