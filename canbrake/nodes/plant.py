@@ -599,9 +599,11 @@ class PlantNode(Node):
             self._trace.append(row)
 
     def close(self, status: str = "ok") -> None:
-        self.after_send()
-        if self._trace is not None:
-            self._trace.close()
+        try:
+            self.after_send()  # the last period's row (a full disk: the close below trims it)
+        finally:
+            if self._trace is not None:
+                self._trace.close()
         if self.stats.status == "running":
             self.stats.status = status
         self.stats.guard = self.guard.stats()
