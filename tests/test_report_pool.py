@@ -29,8 +29,8 @@ def _marked(task: tuple[str, int, float]) -> int:
     from canbrake.run import Terminated
 
     d, i, sleep_s = task
-    Path(d, f"{i}.started").write_text(str(os.getpid()))
-    try:
+    try:  # (the interrupt comes once .started exists: inside the try, whenever it lands)
+        Path(d, f"{i}.started").write_text(str(os.getpid()))
         time.sleep(sleep_s)
     except Terminated:
         Path(d, f"{i}.terminated").write_text("")
