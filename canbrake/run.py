@@ -284,6 +284,10 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", loc
     if choice.interface == "canbrake" and role == "recorder":
         # the recorder must see every frame: senders wait for it rather than overrun its ring
         kwargs["backpressure"] = True
+        if lockstep:  # it writes a period's frames when the next SYNC comes: woken by that alone
+            from canbrake.bus.dbc import SYNC_ID
+
+            kwargs["wake_on"] = SYNC_ID
     elif choice.interface == "canbrake" and lockstep:
         # a lockstep node waits for every frame it filters for: a flood may not overwrite those
         # (it is held back instead), frames it filters out may go by (canbrake.bus.memory)

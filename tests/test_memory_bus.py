@@ -572,3 +572,35 @@ def test_a_reader_waiting_for_n_frames_keeps_what_came_under_a_flood(shm_dir: Pa
         more = r.recv_batch(0)
         assert [m.arbitration_id for m in got + more] == [0x101]
         assert r.stats().frames_lost == 0
+
+
+def test_a_reader_woken_only_by_one_identifier_keeps_every_frame_before_it(shm_dir: Path) -> None:
+    """wake_on (the lockstep recorder: SYNC): asleep, the frames it accepts do not wake it, the
+    named one does, and it then has every frame in order; writers going round a small ring wait
+    for it (backpressure) and wake it to read instead of overwriting what it has not read."""
+    with bus("wko", ring_size=64, backpressure=True, yield_before_sleep=False, wake_on=0x010) as r, \
+            bus("wko", can_filters=[{"can_id": 0x7FF, "can_mask": 0x7FF, "extended": False}]) as w:
+        got: list[can.Message] = []
+        t = threading.Thread(target=lambda: got.extend(r.recv_batch(TIMEOUT)))
+        t.start()
+        _wait_for_sleeper(w)
+        for k in range(5):
+            w.send(frame(0x100 + k, bytes([k])))
+            time.sleep(0.02)
+        assert not got and r.stats().wakeups == 0
+        w.send(frame(0x010, b"\x01\x00\x00\x00"))
+        t.join(TIMEOUT)
+        assert [m.arbitration_id for m in got] == [0x100, 0x101, 0x102, 0x103, 0x104, 0x010]
+        assert r.stats().wakeups == 1
+        # a flood of 10 rings while it sleeps: held back and woken, nothing lost
+        got.clear()
+        t = threading.Thread(target=lambda: [got.extend(r.recv_batch(TIMEOUT)) for _ in iter(
+            lambda: not got or got[-1].arbitration_id != 0x010, False)])
+        t.start()
+        _wait_for_sleeper(w)
+        for i in range(640):
+            w.send(frame(0x200, i.to_bytes(2, "little")), timeout=5.0)
+        w.send(frame(0x010, b"\x02\x00\x00\x00"))
+        t.join(TIMEOUT)
+        assert [int.from_bytes(m.data, "little") for m in got[:-1]] == list(range(640))
+        assert r.stats().frames_lost == 0

@@ -62,6 +62,7 @@ DEF E_WAKE_SEQ_BYTE = 80
 DEF E_WAKEUPS_BYTE = 88
 DEF E_WANT_BYTE = 104          # E_WANT (13): accepted frames a sleeping reader waits for
 DEF E_PENDING_BYTE = 112       # E_PENDING (14): accepted frames published since it slept
+DEF E_WAKE_ON_BYTE = 120       # E_WAKE_ON (15): 0, or 1 << 40 | ext << 31 | id: only that frame wakes it
 DEF M_EXT = 1
 DEF M_RTR = 2
 DEF M_ERR = 4
@@ -74,7 +75,7 @@ LAYOUT = {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_
           "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": WRITE_SEQ_BYTE // 8,
           "H_SLEEPERS": SLEEPERS_BYTE // 8, "E_SLEEPING": E_SLEEPING_BYTE // 8,
           "E_WAKE_SEQ": E_WAKE_SEQ_BYTE // 8, "E_WAKEUPS": E_WAKEUPS_BYTE // 8,
-          "E_WANT": E_WANT_BYTE // 8, "E_PENDING": E_PENDING_BYTE // 8}
+          "E_WANT": E_WANT_BYTE // 8, "E_PENDING": E_PENDING_BYTE // 8, "E_WAKE_ON": E_WAKE_ON_BYTE // 8}
 
 # python-can's Message has __slots__ and an __init__ that, given a bytearray and a dlc, only
 # stores its arguments. Setting the slots directly on a new object gives the same object for
@@ -208,6 +209,20 @@ cdef Py_ssize_t _count_accepted(bytes frames, Filters filters, Py_ssize_t start)
     return n
 
 
+cdef bint _has_frame(bytes frames, uint64_t wake_on):
+    """Whether ``frames`` hold the frame ``wake_on`` names (``ext << 31 | identifier``)."""
+    cdef Py_ssize_t k = PyBytes_GET_SIZE(frames) // SLOT_BYTES, i
+    cdef const char *p = PyBytes_AS_STRING(frames)
+    cdef uint32_t aid = <uint32_t>(wake_on & 0x1FFFFFFF)
+    cdef bint ext = (wake_on >> 31) & 1
+    cdef uint32_t a
+    for i in range(k):
+        memcpy(&a, p + i * SLOT_BYTES + 8, 4)
+        if a == aid and (((<uint8_t>p[i * SLOT_BYTES + 16]) & M_EXT) != 0) == ext:
+            return True
+    return False
+
+
 cdef class Ring:
     """The ring of one channel mapping: ``buf`` (the ``mmap``, held until :meth:`release`), the
     ring's byte offset and size (slots, a power of two), this bus's sender ``token`` and the
@@ -325,14 +340,16 @@ cdef class Ring:
         """After :meth:`write` of ``frames`` at seq ``w`` (lock held): clear the *sleeping* flag
         of every sleeping reader in ``peers`` (``(entry word, token, filters or None)``) whose
         filters accept one of the frames and that now has as many accepted frames since it slept
-        as it waits for (``E_WANT``, at least 1; counted in ``E_PENDING``), after storing where the
-        first of them is (``wake_seq``) and counting the wake-up; returns their tokens, to be woken
-        through their FIFOs once the lock is released. Awake readers find the frames themselves."""
+        as it waits for (``E_WANT``, at least 1; counted in ``E_PENDING``), or, if it is woken only
+        by one frame (``E_WAKE_ON``), that the frames hold, after storing where the first accepted
+        one since it slept is (``wake_seq``) and counting the wake-up; returns their tokens, to be
+        woken through their FIFOs once the lock is released. Awake readers find the frames
+        themselves."""
         self._check()
         cdef list out = []
         cdef char *e
         cdef int64_t first
-        cdef uint64_t pending, n
+        cdef uint64_t pending, n, wake_on
         cdef Py_ssize_t i
         if cb_load(self.mem + SLEEPERS_BYTE) == 0:
             return out
@@ -353,7 +370,11 @@ cdef class Ring:
                 cb_store(e + E_WAKE_SEQ_BYTE, <uint64_t>(w + i))
             pending += n
             cb_store(e + E_PENDING_BYTE, pending)
-            if pending < cb_load(e + E_WANT_BYTE):
+            wake_on = cb_load(e + E_WAKE_ON_BYTE)
+            if wake_on:
+                if not _has_frame(frames, wake_on):
+                    continue  # kept for it (writers do not overwrite them): it reads them when woken
+            elif pending < cb_load(e + E_WANT_BYTE):
                 continue  # not yet as many as it waits for
             cb_store(e + E_SLEEPING_BYTE, 0)  # after wake_seq: the reader reads them in that order
             cb_store(self.mem + SLEEPERS_BYTE, cb_load(self.mem + SLEEPERS_BYTE) - 1)

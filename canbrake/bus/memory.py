@@ -22,7 +22,10 @@ Design
     reader's filters reject never wakes it; a burst wakes a sleeping reader once.
   * A reader may ask to sleep until n frames it accepts have come (``recv_batch(min_frames=n)``,
     ``E_WANT``): the writers count them (``E_PENDING``) and wake it at the n-th, so a lockstep
-    node that needs every ECU's frame before it can go on is woken once, not at each frame.
+    node that needs every ECU's frame before it can go on is woken once, not at each frame;
+    or to be woken by one identifier alone (``wake_on``, ``E_WAKE_ON``: the lockstep recorder,
+    by SYNC). Either way the frames it accepts while it sleeps stay unread for the writers (its
+    position is its ``wake_seq``), and a writer they hold back wakes it to read them.
   * Frames that went by while a reader slept were checked against its filters by the writers,
     so on waking it starts at ``wake_seq`` (or at ``write_seq`` after a timeout) and never
     scans, or overruns on, traffic it does not want.
@@ -109,6 +112,7 @@ from canbrake.bus.memory_shm import (
     E_TOKEN,
     E_TX_WAITING,
     E_PENDING,
+    E_WAKE_ON,
     E_WAKE_SEQ,
     E_WAKEUPS,
     E_WANT,
@@ -136,7 +140,7 @@ __all__ = ["MemoryBus", "MemoryBusStats", "remove_channel", "list_channels", "ch
 if _RING_LAYOUT != {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_DATA,
                     "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": H_WRITE_SEQ, "H_SLEEPERS": H_SLEEPERS,
                     "E_SLEEPING": E_SLEEPING, "E_WAKE_SEQ": E_WAKE_SEQ, "E_WAKEUPS": E_WAKEUPS,
-                    "E_WANT": E_WANT, "E_PENDING": E_PENDING}:
+                    "E_WANT": E_WANT, "E_PENDING": E_PENDING, "E_WAKE_ON": E_WAKE_ON}:
     raise ImportError(f"canbrake.bus._ring was built for another slot layout ({_RING_LAYOUT}): "
                       "rebuild canbrake (pip install .)")
 _WAIT_SLICE_S = 0.1  # a writer blocked by a backpressure reader re-checks that reader's pid this often
@@ -207,6 +211,10 @@ class MemoryBus(BusABC):
         are ready to run (``sched_yield``, a no-op on an idle CPU) and look again: when nodes
         outnumber cores, the frames a reader waits for are often there by then, which saves
         a sleep and a cross-core wake-up. One yield per blocking call, never a spin.
+    :param wake_on: an identifier (29-bit if above 0x7FF): while this bus sleeps in ``recv``, only
+        a frame with it wakes it; the frames it accepts before are kept for it (writers treat
+        them as unread, and one held back by them wakes it). A lockstep recorder is woken once a
+        period, by SYNC, instead of at each burst.
     :raises can.CanInitializationError: bad channel name, incompatible channel file, table full.
     """
 
@@ -222,6 +230,7 @@ class MemoryBus(BusABC):
         shm_dir: Optional[str] = None,
         fd: bool = False,
         yield_before_sleep: bool = True,
+        wake_on: Optional[int] = None,
         **kwargs: Any,
     ) -> None:
         self._open = False
@@ -236,6 +245,8 @@ class MemoryBus(BusABC):
         self._backpressure = bool(backpressure) and not self._protect
         self._send_timeout = float(send_timeout)
         self._yield = bool(yield_before_sleep) and hasattr(os, "sched_yield")
+        self._wake_on = 0 if wake_on is None else (shm.WAKE_ON_SET | (int(wake_on > 0x7FF) << 31)
+                                                   | (int(wake_on) & 0x1FFFFFFF))
         self._can_protocol = CanProtocol.CAN_FD if fd else CanProtocol.CAN_20
         self._state = BusState.ACTIVE
         self._tlock = threading.Lock()  # flock is per open file: also exclude our own threads
@@ -338,6 +349,8 @@ class MemoryBus(BusABC):
         q[b + E_WAKE_SEQ] = w
         q[b + E_WAKEUPS] = 0
         q[b + E_TX_WAITING] = 0
+        q[b + E_WANT] = q[b + E_PENDING] = 0
+        q[b + E_WAKE_ON] = self._wake_on
         q[b + E_TOKEN] = token
         q[H_READER_GEN] = q[H_READER_GEN] + 1
         self._eb = b

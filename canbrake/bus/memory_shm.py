@@ -71,6 +71,8 @@ E_WAKEUPS = 11
 E_TX_WAITING = 12
 E_WANT = 13  # accepted frames a sleeping reader waits for before it is woken (0 or 1: the first)
 E_PENDING = 14  # accepted frames published since it went to sleep (counted by the writers)
+E_WAKE_ON = 15  # 0, or WAKE_ON_SET | extended << 31 | identifier: only that frame wakes it
+WAKE_ON_SET = 1 << 40
 E_FILTERS = 16  # MAX_PUSHED_FILTERS x (can_id & mask, mask, mode)
 
 # reader-entry flags
