@@ -53,7 +53,7 @@ from pydantic import BaseModel, Field, PrivateAttr, ValidationError, model_valid
 
 from canbrake.consist import heavy_haul as hhs
 from canbrake.consist.adhesion import AdhesionSpec, Axle, Wheel
-from canbrake.consist.brakes import BlendingConfig, EasingConfig, EdBrake, WheelsConfig, WspConfig
+from canbrake.consist.brakes import BlendingConfig, CarBrakes, EasingConfig, EdBrake, WheelsConfig, WspConfig
 from canbrake.consist.coupled import MAX_VEHICLES, PerCar, _Model
 
 #: the component kinds of a vehicle type, in the order they are listed
@@ -475,8 +475,8 @@ _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhes
 #: what a kernel still takes once for the whole train (everything else may differ per vehicle)
 KERNEL_LIMITS: dict[str, str] = {
     "coupled": "per vehicle: mass, resistance (davis or table), coupler (stiffness, ε, end stop), brake model "
-               "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, traction envelope; once for the "
-               "train: the brake's blending, easing and wsp, the wheelset model",
+               "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, blending (or none: friction only), "
+               "easing, wsp, traction envelope; once for the train: the wheelset model",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
                 "conditions",
@@ -634,8 +634,8 @@ class TrainSpec(_Model):
         rated = ("max_brake_decel_mps2", "max_traction_accel_mps2", "jerk_limit_mps3")  # may differ per vehicle
         # a vehicle without a brake has an ideal one where others have one
         ideal = IdealBrake() if any(vt.brake is not None for _, vt, _ in ex) else None
-        brake = self._uniform(ex, "brake", "brake blending, easing and wsp (its model, lag, ed_brake, ratings and "
-                              "jerk limit may differ)", frozenset({"model", "lag_s", "ed_brake", *rated}), ideal)
+        functions = ("blending", "easing", "wsp")  # per vehicle too: BrakeSystemConfig.cars where they differ
+        brake = ex[0][1].brake or ideal  # every field of the brake may differ per vehicle
         wheels = self._uniform(ex, "wheels", "wheelset model")
         data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
         if any(vt.resistance is not None for _, vt, _ in ex):
@@ -664,13 +664,22 @@ class TrainSpec(_Model):
         data["coupler"] = coupler
         data["grade_permille"] = self.track.grade_permille
         data["curve_resistance_n"] = self.track.curve_resistance_n
-        parts = {k: getattr(brake, k, None) for k in ("blending", "easing", "wsp")}
+        parts: dict[str, Any] = {k: getattr(brake, k, None) for k in functions}
+        own = [{k: getattr(vt.brake, k, None) for k in functions} for _, vt, _ in ex]
+        differ = any(o[k] != own[0][k] for o in own for k in functions)
+        if differ:  # each car its own; the train's fields: the first car's that has one
+            parts = {k: next((o[k] for o in own if o[k] is not None), None) for k in functions}
+            if parts["wsp"] is not None and not parts["wsp"].enabled:
+                parts["wsp"] = next((o["wsp"] for o in own if o["wsp"] is not None and o["wsp"].enabled), parts["wsp"])
+            parts["cars"] = [CarBrakes(vehicle_type=name, **o) for (name, _, _), o in zip(ex, own)]
         eds = [getattr(vt.brake, "ed_brake", None) for _, vt, _ in ex]
         if any(e is not None for e in eds):
-            if parts["blending"] is None:
-                name = next(nm for (nm, _, _), e in zip(ex, eds) if e is not None)
+            lacking = [nm for (nm, _, _), e, o in zip(ex, eds, own) if e is not None and o["blending"] is None]
+            if parts["blending"] is None or (differ and lacking):
+                name = lacking[0] if lacking else next(nm for (nm, _, _), e in zip(ex, eds) if e is not None)
                 raise ValueError(f"@vehicle_types.{name}.brake.ed_brake: an ED brake is blended with the friction "
-                                 "brake by brake.blending, which this train's brake does not have")
+                                 f"brake by brake.blending, which {'this train' if not differ else 'vehicle type ' + name}"
+                                 f"'s brake does not have")
             parts["blending"] = BlendingConfig.model_validate(
                 {**parts["blending"].model_dump(exclude={"per_car"}),
                  "per_car": [None if e is None else e.model_dump() for e in eds]})

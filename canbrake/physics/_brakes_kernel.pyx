@@ -77,12 +77,13 @@ cdef inline double _clip01(double x) noexcept nogil:
 cdef class EquipmentKernel:
     """Constants of a coupled train's brake equipment, and its sub-step.
 
-    Blending (``blending`` True): per car ``ed_max`` (m/s²) and ``ed_power`` (W/kg) (one value, or
-    one per car; 0 for a car without ED brake), ``fade_start``, ``fade_end`` (m/s),
-    ``friction_lag_s`` (s); ``envelope``: None, or per car (n, 5) the ED brake's force envelope
+    Blending (``blending`` True): per car ``ed_max`` (m/s²) and ``ed_power`` (W/kg), ``fade_start``,
+    ``fade_end`` (m/s) and ``friction_lag_s`` (s), each one value or one per car (a car without
+    blending: ``ed_max`` 0 and ``friction_lag_s`` 0, so its friction brake gives the demand at
+    once); ``envelope``: None, or per car (n, 5) the ED brake's force envelope
     (Li 2024 eq. 2) ``(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W)``, NaN rows for the cars that
     use ``ed_max``/``ed_power`` with the fade: F = slope·|v| up to v1, F_max up to v2, power/|v| above.
-    Dump valves: ``valve_lag_s``, ``max_vent_s`` (s).
+    Dump valves: ``valve_lag_s``, ``max_vent_s`` (s; one value, or one per car).
     Wheelsets (``axles`` p > 0): radius ``R`` (m), inertia ``J`` (kg·m²), normal loads ``N`` (n, p)
     (N), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
     ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), ``iters`` Newton iterations.
@@ -90,15 +91,15 @@ cdef class EquipmentKernel:
     """
 
     cdef bint blending, adhesion_limited, has_env
-    cdef double fade_start, fade_end, friction_lag, valve_lag, max_vent, g
-    cdef const double[::1] ed_max, ed_power
+    cdef double g
+    cdef const double[::1] ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent
     cdef const double[:, ::1] env
     cdef Py_ssize_t p, iters
     cdef double R, J, b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
     cdef const double[:, ::1] N
 
-    def __init__(self, *, bint blending, ed_max, ed_power, double fade_start, double fade_end,
-                 double friction_lag_s, double valve_lag_s, double max_vent_s, bint adhesion_limited,
+    def __init__(self, *, bint blending, ed_max, ed_power, fade_start, fade_end,
+                 friction_lag_s, valve_lag_s, max_vent_s, bint adhesion_limited,
                  double gravity, envelope=None, int axles=0, double R=1.0, double J=1.0, N=None, double b1=0.0,
                  double b2=0.0, double b3=1.0, double c1=0.0, double c2=0.0, double c3=1.0, double mu0=1.0,
                  double peak_curve=1.0, double v_floor=0.1, int iters=5):
@@ -107,8 +108,9 @@ cdef class EquipmentKernel:
         self.ed_power = np.ascontiguousarray(np.atleast_1d(np.asarray(ed_power, dtype=float)))
         self.has_env = envelope is not None
         self.env = np.ascontiguousarray(np.zeros((1, 5)) if envelope is None else np.asarray(envelope, dtype=float))
-        self.fade_start, self.fade_end = fade_start, fade_end
-        self.friction_lag, self.valve_lag, self.max_vent = friction_lag_s, valve_lag_s, max_vent_s
+        arr = lambda x: np.ascontiguousarray(np.atleast_1d(np.asarray(x, dtype=float)))  # noqa: E731
+        self.fade_start, self.fade_end = arr(fade_start), arr(fade_end)
+        self.friction_lag, self.valve_lag, self.max_vent = arr(friction_lag_s), arr(valve_lag_s), arr(max_vent_s)
         self.adhesion_limited, self.g = adhesion_limited, gravity
         self.p, self.iters = axles, iters
         self.R, self.J = R, J
@@ -117,7 +119,7 @@ cdef class EquipmentKernel:
         if axles > 0:
             self.N = np.ascontiguousarray(N, dtype=float)
 
-    def substep(self, double h, double blend_k, double valve_k, const double[::1] effort,
+    def substep(self, double h, const double[::1] blend_k, const double[::1] valve_k, const double[::1] effort,
                 const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] mass,
                 const double[::1] mu, const double[::1] eff, wsp, double[::1] friction, double[::1] ed,
                 double[::1] valve, double[::1] vent, double[::1] omega, double[::1] force, double[::1] slip):
@@ -127,7 +129,8 @@ cdef class EquipmentKernel:
         ``wsp`` the dump valves' command (0..1, NaN none) or None. State, updated in place:
         ``friction``, ``ed`` (blending, N), ``valve`` (opening) and ``vent`` (s venting) shaped as
         ``wsp``; per axle (n·p): ``omega`` (rad/s), ``force`` (creep force, N), ``slip``.
-        ``blend_k``, ``valve_k``: 1 − exp(−h/lag) of the friction brake and the valve.
+        ``blend_k``, ``valve_k``: 1 − exp(−h/lag) of the friction brake and the valve (one value,
+        or one per car as the lags are given).
 
         Returns (v_new, rail): the new speeds (m/s) and the rail force per car (N, + brakes)."""
         cdef Py_ssize_t nv = v.shape[0], i
@@ -137,7 +140,9 @@ cdef class EquipmentKernel:
         cdef double s, fade, per_kg, demand, e, share, total, tr, cap, rail_i, ff, rr, sg, vn, want, ed_cap
         cdef const double[::1] cmd
         cdef Py_ssize_t nw = 0, nea = self.ed_max.shape[0], nep = self.ed_power.shape[0], nen = self.env.shape[0]
-        cdef Py_ssize_t ie
+        cdef Py_ssize_t ie, nfs = self.fade_start.shape[0], nfe = self.fade_end.shape[0]
+        cdef Py_ssize_t nfl = self.friction_lag.shape[0], nbk = blend_k.shape[0], nvk = valve_k.shape[0]
+        cdef Py_ssize_t nvl = self.valve_lag.shape[0], nmv = self.max_vent.shape[0]
         if nf > nn:
             nn = nf
         brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
@@ -155,14 +160,14 @@ cdef class EquipmentKernel:
                     else:
                         ed_cap = self.env[ie, 4] / _max(s, 1e-9)
                 else:
-                    fade = _clip01((s - self.fade_end) / (self.fade_start - self.fade_end))
+                    fade = _clip01((s - self.fade_end[i % nfe]) / (self.fade_start[i % nfs] - self.fade_end[i % nfe]))
                     per_kg = _min(self.ed_max[i % nea], self.ed_power[i % nep] / _max(s, 1e-9))
                     ed_cap = mass[i % nm] * per_kg * fade
                 demand = _max(e, 0.0)
                 ed[i] = _min(demand, ed_cap)
                 share = demand - ed[i]
-                if self.friction_lag > 0.0:
-                    friction[i] = friction[i] + (share - friction[i]) * blend_k
+                if self.friction_lag[i % nfl] > 0.0:
+                    friction[i] = friction[i] + (share - friction[i]) * blend_k[i % nbk]
                 else:
                     friction[i] = share
                 total = ed[i] + friction[i] + _min(e, 0.0)
@@ -177,13 +182,13 @@ cdef class EquipmentKernel:
                 want = cmd[i]
                 want = _clip01(0.0 if want != want else want)
                 vent[i] = vent[i] + h if want > 0.5 else 0.0
-                if vent[i] > self.max_vent:
+                if vent[i] > self.max_vent[i % nmv]:
                     want = 0.0
                 want = _clip01(want)  # the valve's own clip (valve_step)
-                if self.valve_lag <= 0.0:
+                if self.valve_lag[i % nvl] <= 0.0:
                     valve[i] = want
                 else:
-                    valve[i] = valve[i] + (want - valve[i]) * valve_k
+                    valve[i] = valve[i] + (want - valve[i]) * valve_k[i % nvk]
             for i in range(nn):
                 brake[i] = brake[i] * (1.0 - valve[i % nw])
         cdef Py_ssize_t p = self.p, k

@@ -58,7 +58,8 @@ class BrakeBlending:
     e.g. a trailer); ``ed_power_w_per_kg``: ED power limit per unit mass (W/kg; inf = none);
     ``fade_start_mps`` / ``fade_end_mps``: the ED force fades linearly to zero between these speeds
     (m/s); ``friction_lag_s``: first-order lag of the friction brake behind its share of the demand
-    (s; 0 = immediate). ``envelope``: None, or per car the ED brake's own force envelope
+    (s; 0 = immediate); the fade speeds and the lag may be one per car too (a car without blending:
+    ``ed_max_decel_mps2`` 0 and ``friction_lag_s`` 0, friction only). ``envelope``: None, or per car the ED brake's own force envelope
     ``(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W)`` (Li 2024 eq. 2: F = slope·|v| up to v1, F_max
     up to v2, power/|v| above; it replaces that car's ``ed_max``/``ed_power`` and fade), NaN for the
     cars without one.
@@ -66,15 +67,16 @@ class BrakeBlending:
 
     ed_max_decel_mps2: float | tuple[float, ...] = 1.0
     ed_power_w_per_kg: float | tuple[float, ...] = math.inf
-    fade_start_mps: float = 10.0 / 3.6
-    fade_end_mps: float = 3.0 / 3.6
-    friction_lag_s: float = 0.2
+    fade_start_mps: float | tuple[float, ...] = 10.0 / 3.6
+    fade_end_mps: float | tuple[float, ...] = 3.0 / 3.6
+    friction_lag_s: float | tuple[float, ...] = 0.2
     envelope: tuple[tuple[float, float, float, float, float], ...] | None = None
 
     def __post_init__(self) -> None:
-        if not self.fade_start_mps > self.fade_end_mps >= 0.0:
+        if not (np.all(np.asarray(self.fade_start_mps) > np.asarray(self.fade_end_mps))
+                and np.all(np.asarray(self.fade_end_mps) >= 0.0)):
             raise ValueError("blending: need fade_start > fade_end >= 0")
-        if np.any(np.asarray(self.ed_max_decel_mps2) < 0) or self.friction_lag_s < 0:
+        if np.any(np.asarray(self.ed_max_decel_mps2) < 0) or np.any(np.asarray(self.friction_lag_s) < 0):
             raise ValueError("blending: ED capacity and friction lag must be >= 0")
 
 
