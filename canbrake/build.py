@@ -188,7 +188,15 @@ def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
     if b.wheels is not None:
         w = b.wheels
         curve = RailCondition(b1=w.b1, b2=w.b2, b3=w.b3, c1=w.c1, c2=w.c2, c3=w.c3, peak_mu0=1.0)
-        wheels = Wheelsets(scn.vehicle_masses_kg(), w.axles, w.radius_m, w.inertia_kgm2, scn.initial_speed_mps(),
+        axles: Any = w.axles
+        radius: Any = w.radius_m
+        inertia: Any = w.inertia_kgm2
+        if b.wheels_per_car is not None:  # per car; 0 axles: a car without wheels
+            cars = b.wheels_per_car
+            axles = [0 if c is None else c.axles for c in cars]
+            radius = [1.0 if c is None else c.radius_m for c in cars]
+            inertia = [1.0 if c is None else c.inertia_kgm2 for c in cars]
+        wheels = Wheelsets(scn.vehicle_masses_kg(), axles, radius, inertia, scn.initial_speed_mps(),
                            curve=curve, v_floor_mps=w.v_floor_mps)
     return blending, wheels, _per_car_wsp(b, "valve_lag_s", 0.05, scn.n_cars)
 

@@ -132,7 +132,7 @@ def test_a_users_component_from_an_entry_point(tmp_path: Path) -> None:
             load_scenario("chen2023_case1_fine_rail", overrides={{"train.every_vehicle.resistance":
                           {{"model": "kn_quadratic", "c0_kn": -1}}}})
         except ScenarioError as e:
-            assert "train.vehicle_types.metro_car.resistance.c0_kn: Input should be greater than or equal to 0" in str(e), e
+            assert "train.every_vehicle.resistance.c0_kn: Input should be greater than or equal to 0" in str(e), e
         else:
             raise AssertionError("accepted")
         print("ok")

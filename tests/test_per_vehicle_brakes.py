@@ -200,4 +200,105 @@ def test_components_lists_the_brake_functions_per_vehicle() -> None:
                        timeout=120)
     assert r.returncode == 0, r.stderr
     line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("per vehicle: mass, resistance (davis or"))
-    assert "blending (or none: friction only), easing, wsp" in line and "once for the train: the wheelset" in line
+    assert "blending (or none: friction only), easing, wsp" in line and "wheelsets (axles, radius, inertia, or none)" in line
+    assert "once for the train: the wheel-rail slip curve" in line
+
+
+# --- 4. wheelsets per vehicle ---------------------------------------------------------------------
+def _wheeled_plant(mu: float = 0.3, speed: float = 20.0) -> TrainPlant:
+    """Three 40-t cars on (almost) no couplers, no resistance: car 1 four wheelsets (R 0.42 m, J 120
+    kg·m²), car 2 no wheels, car 3 two wheelsets (R 0.46 m, J 200 kg·m²)."""
+    from canbrake.physics.brakes import Wheelsets
+    from canbrake.physics.rail import RailConditions
+    from canbrake.physics.resistance import DavisResistance
+
+    z = np.zeros(3)
+    return TrainPlant(np.full(3, M), [0.0, -20.0, -40.0], np.full(3, speed), coupler_stiffness_n_per_m=1e-6,
+                      coupler_nonlinearity_per_m2=0.0, resistance=DavisResistance(z, z.copy(), z.copy()),
+                      rail=RailConditions(base_adhesion_mu=mu), max_substep_s=0.001,
+                      wheels=Wheelsets(np.full(3, M), [4, 0, 2], [0.42, 1.0, 0.46], [120.0, 1.0, 200.0],
+                                       np.full(3, speed)))
+
+
+def test_each_car_decelerates_with_its_own_wheelsets_and_a_car_without_wheels_as_without() -> None:
+    """A steady 20 kN brake on good rail: a car with p wheelsets of inertia J and radius R
+    decelerates at F/(m + p·J/R²) once its wheels follow (the brake also stops the wheels): car 1
+    F/(m + 4·120/0.42²), car 3 F/(m + 2·200/0.46²); car 2 without wheels at F/m exactly, its rail
+    force the brake force, as a car of a train without wheelsets; its axle signals are NaN, and
+    car 3's third and fourth."""
+    p = _wheeled_plant()
+    F = 20000.0
+    for _ in range(100):
+        p.step(0.01, np.full(3, F))
+    v1 = p.speed_mps.copy()
+    for _ in range(100):
+        p.step(0.01, np.full(3, F))
+    decel = (v1 - p.speed_mps) / 1.0
+    want = [F / (M + 4 * 120 / 0.42 ** 2), F / M, F / (M + 2 * 200 / 0.46 ** 2)]
+    np.testing.assert_allclose(decel, want, rtol=1e-3)  # the slip creeps as the speed falls
+    assert decel[0] < decel[2] < decel[1]  # told apart: 1.5 % and 1.1 % of inertia
+    assert p.applied_force_n[1] == F
+    np.testing.assert_allclose(p.speed_mps[1], 20.0 - 2.0 * F / M, rtol=1e-9)
+    m = p.equipment_measurements()
+    assert np.isnan(m["axle1_slip"][1]) and np.isnan(m["axle3_slip"][2]) and not np.isnan(m["axle2_slip"][2])
+    assert not np.isnan(m["axle4_speed_radps"][0])
+    np.testing.assert_allclose(m["axle1_speed_radps"][2], p.speed_mps[2] / 0.46, rtol=2e-2)  # its own R
+    assert -0.02 < m["axle1_slip"][2] < 0.0 and m["axle1_slip"][2] == m["axle2_slip"][2]
+
+
+def test_adhesion_per_axle_only_on_the_cars_with_wheels() -> None:
+    """μ = 0.05 and a 30 kN brake (> μ m g = 19.6 kN), 8 s: both wheeled cars' wheels lock (slip −1)
+    and their rail force falls to the sliding creep force (< μ m g); the car without wheels has no
+    adhesion limit and keeps its full 30 kN."""
+    p = _wheeled_plant(mu=0.05)
+    F = 30000.0
+    for _ in range(800):
+        p.step(0.01, np.full(3, F))
+    m = p.equipment_measurements()
+    assert m["axle1_slip"][0] == -1.0 and m["axle2_slip"][2] == -1.0
+    assert p.applied_force_n[0] < 0.05 * M * 9.81 and p.applied_force_n[2] < 0.05 * M * 9.81
+    assert p.applied_force_n[1] == F
+
+
+def test_wheels_per_vehicle_from_the_scenario() -> None:
+    types = {"m": {"mass_kg": M, "brake": {"model": "ideal", "wsp": {}},
+                   "wheels": {"model": "wheelsets", "axles": 4, "radius_m": 0.42, "inertia_kgm2": 120}},
+             "t": {"mass_kg": M, "brake": {"model": "ideal"},
+                   "wheels": {"model": "wheelsets", "axles": 2, "radius_m": 0.46, "inertia_kgm2": 200}},
+             "x": {"mass_kg": M, "brake": {"model": "ideal"}}}
+    data = _scenario(types, [{"type": "m"}, {"type": "x"}, {"type": "t"}])
+    data["controller"] = {"name": "pi"}
+    scn = resolve(copy.deepcopy(data), "t.yaml")
+    w = build_plant_model(scn).plant.wheels
+    assert w.p == 4 and list(w.active) == [4, 0, 2] and list(w.R[[0, 2]]) == [0.42, 0.46]
+    assert build_controller(scn, 1).axles == 4
+    data["train"]["vehicle_types"]["t"]["wheels"]["b3"] = 2.0
+    with pytest.raises(ScenarioError, match=r"^t.yaml: train.vehicle_types.t.wheels.b3: the coupled kernel "
+                                            r"\(TrainPlant\) takes one wheel-rail slip curve .* differ \(10.0 and 2.0"):
+        resolve(data, "t.yaml")
+
+
+# --- 5. cleanups ----------------------------------------------------------------------------------
+def test_a_bad_every_vehicle_value_is_reported_once_where_it_is_written(tmp_path: Path) -> None:
+    """train.every_vehicle is merged over every vehicle type; its bad value is one line naming
+    train.every_vehicle (exit 2), not one line per vehicle type."""
+    data = _scenario({"motor": {"mass_kg": M, "brake": {"model": "ideal"}},
+                      "trailer": {"mass_kg": M, "brake": {"model": "ideal"}}}, [{"type": "motor"}, {"type": "trailer"}],
+                     every_vehicle={"brake": {"blending": {"fade_end_kmh": 20}}})
+    path = tmp_path / "ev.yaml"
+    path.write_text(yaml.safe_dump(data))
+    r = subprocess.run([sys.executable, "-m", "canbrake", "run", str(path), "--bus", "inprocess", "--out",
+                        str(tmp_path / "out")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip().splitlines() == [f"canbrake: error: {path}: train.every_vehicle.brake.blending.fade_end_kmh: "
+                                             "must be below fade_start_kmh (10), got 20"]
+
+
+def test_a_driven_axle_without_wheel_is_checked_once_in_the_component() -> None:
+    from canbrake.consist import adhesion
+
+    assert "_wheels_known" not in vars(adhesion.AdhesionVehicleType)
+    with pytest.raises(ValueError, match=r"@axles.0: no wheel \(give the axle's or the component's `wheel`\)"):
+        from canbrake.consist.components import parse_component
+
+        parse_component("wheels", {"model": "driven_axles", "axles": [{"load_n": 1e5}]})

@@ -158,6 +158,13 @@ class BrakeSystemConfig(StrictModel):
     wheels: WheelsConfig | None = None
     wsp: WspConfig | None = None
     cars: list[CarBrakes] | None = None
+    wheels_per_car: list[WheelsConfig | None] | None = Field(
+        None, description="None where every car has ``wheels``; else per car its wheelsets (None: no wheels), "
+                          "with one slip curve and v_floor_mps (those of ``wheels``, the first car's that has them)")
+
+    def car_wheels(self, i: int) -> WheelsConfig | None:
+        """Car ``i``'s (0-based) wheelsets (None: none)."""
+        return self.wheels if self.wheels_per_car is None else self.wheels_per_car[i]
 
     def car(self, i: int) -> CarBrakes:
         """Car ``i``'s (0-based) blending, easing and wsp."""

@@ -476,7 +476,8 @@ _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhes
 KERNEL_LIMITS: dict[str, str] = {
     "coupled": "per vehicle: mass, resistance (davis or table), coupler (stiffness, ε, end stop), brake model "
                "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, blending (or none: friction only), "
-               "easing, wsp, traction envelope; once for the train: the wheelset model",
+               "easing, wsp, traction envelope, wheelsets (axles, radius, inertia, or none); once for the train: "
+               "the wheel-rail slip curve (b1..b3, c1..c3, v_floor_mps)",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
                 "conditions",
@@ -539,6 +540,18 @@ class TrainSpec(_Model):
         if isinstance(every, dict) and every and isinstance(types, dict):
             data = dict(data)
             data["vehicle_types"] = {k: _deep_merge(v, every) if isinstance(v, dict) else v for k, v in types.items()}
+            for v in data["vehicle_types"].values():  # a bad value of every_vehicle's: once, where it is written
+                if not isinstance(v, dict):
+                    continue
+                try:
+                    _validated(VehicleTypeSpec, v)
+                except ValueError as e:
+                    msg = str(e)
+                    if msg.startswith("@") and ": " in msg:
+                        loc, text = msg[1:].split(": ", 1)
+                        if _sets(every, loc.split(".")):
+                            raise ValueError(f"@every_vehicle.{loc}: {text}") from None
+                    continue  # a type's own problem: reported per vehicle type below
         return data
 
     @model_validator(mode="after")
@@ -620,6 +633,24 @@ class TrainSpec(_Model):
                                  f"train.every_vehicle.{kind})")
         return first
 
+    def _wheels(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> BaseModel | None:
+        """The first vehicle's wheelsets that has them: vehicles may differ in ``axles``, ``radius_m``
+        and ``inertia_kgm2`` or have none; the slip curve and ``v_floor_mps`` are one for the train."""
+        own = frozenset({"model", "axles", "radius_m", "inertia_kgm2"})
+        with_wheels = [(name, vt.wheels) for name, vt in {n: t for n, t, _ in ex}.items() if vt.wheels is not None]
+        if not with_wheels:
+            return None
+        first_name, first = with_wheels[0]
+        for name, w in with_wheels[1:]:
+            for f, value in w.model_dump(exclude=set(own)).items():
+                if value != getattr(first, f):
+                    raise ValueError(f"@vehicle_types.{name}.wheels.{f}: the coupled kernel (TrainPlant) takes one "
+                                     f"wheel-rail slip curve (b1..b3, c1..c3) and v_floor_mps for the whole train "
+                                     f"(axles, radius_m and inertia_kgm2 may differ); vehicle types {first_name} and "
+                                     f"{name} differ ({getattr(first, f)!r} and {value!r}; set it in "
+                                     f"train.every_vehicle.wheels)")
+        return first
+
     def _lower_coupled(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
         from canbrake.consist.brakes import BrakeSystemConfig
         from canbrake.consist.coupled import ActuatorConfig, TrainConfig
@@ -636,7 +667,7 @@ class TrainSpec(_Model):
         ideal = IdealBrake() if any(vt.brake is not None for _, vt, _ in ex) else None
         functions = ("blending", "easing", "wsp")  # per vehicle too: BrakeSystemConfig.cars where they differ
         brake = ex[0][1].brake or ideal  # every field of the brake may differ per vehicle
-        wheels = self._uniform(ex, "wheels", "wheelset model")
+        wheels = self._wheels(ex)
         data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
         if any(vt.resistance is not None for _, vt, _ in ex):
             table = [vt.resistance if isinstance(vt.resistance, TableResistance) else None for _, vt, _ in ex]
@@ -685,6 +716,9 @@ class TrainSpec(_Model):
                  "per_car": [None if e is None else e.model_dump() for e in eds]})
         if wheels is not None:
             parts["wheels"] = WheelsConfig.model_validate(_params(wheels))
+            if any(_params(vt.wheels) != _params(wheels) for _, vt, _ in ex):  # axles, radius or inertia differ
+                parts["wheels_per_car"] = [None if vt.wheels is None else WheelsConfig.model_validate(_params(vt.wheels))
+                                           for _, vt, _ in ex]
         if any(v is not None for v in parts.values()):
             data["brakes"] = BrakeSystemConfig(**parts)
         a: dict[str, Any] = {"adhesion_limited": self.wheel_rail.adhesion_limited,
@@ -784,6 +818,18 @@ class TrainSpec(_Model):
                 "windows": wr.windows}
         data = {"model": "adhesion", "vehicle_types": types, "vehicles": vehicles, "wheel_rail": spec}
         return _validated(AdhesionTrainConfig, data)
+
+
+def _sets(data: Any, path: list[str]) -> bool:
+    """Whether the nested mapping ``data`` gives a value at ``path`` (keys; list indices as digits)."""
+    for part in path:
+        if isinstance(data, dict) and part in data:
+            data = data[part]
+        elif isinstance(data, list) and part.isdigit() and int(part) < len(data):
+            data = data[int(part)]
+        else:
+            return False
+    return True
 
 
 def _validated(cls: type[BaseModel], data: dict[str, Any]) -> Any:

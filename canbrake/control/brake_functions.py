@@ -136,7 +136,7 @@ def brake_functions_of(ctrl: Controller, brakes: Any, actuator: Any, car: int = 
         tau = own.easing.time_constant_s
         lag = car_easing_lag_s(brakes, actuator, car)
     wsp = own.wsp if own.wsp is not None and own.wsp.enabled else None
-    w = brakes.wheels
+    w = brakes.car_wheels(car)
     return BrakeFunctions(ctrl, easing_tau_s=tau, lag_s=lag or 0.0, wsp=wsp,
                           axles=w.axles if w is not None else 0, wheel_radius_m=w.radius_m if w is not None else 0.42,
                           v_floor_mps=w.v_floor_mps if w is not None else 0.1)

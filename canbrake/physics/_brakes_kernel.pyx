@@ -84,8 +84,11 @@ cdef class EquipmentKernel:
     (Li 2024 eq. 2) ``(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W)``, NaN rows for the cars that
     use ``ed_max``/``ed_power`` with the fade: F = slope·|v| up to v1, F_max up to v2, power/|v| above.
     Dump valves: ``valve_lag_s``, ``max_vent_s`` (s; one value, or one per car).
-    Wheelsets (``axles`` p > 0): radius ``R`` (m), inertia ``J`` (kg·m²), normal loads ``N`` (n, p)
-    (N), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
+    Wheelsets (``axles`` p > 0, the most any car has): radius ``R`` (m) and inertia ``J`` (kg·m²) of
+    a car's wheelsets (one value, or one per car), normal loads ``N`` (n, p) (N), ``active`` (None:
+    every car has p axles; or per car its number of axles, 0 for a car without wheels, whose brake
+    and resistance act on its body as without wheelsets; a car's axles beyond its own are inactive:
+    ω, creep force and slip 0), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
     ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), ``iters`` Newton iterations.
     ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
     """
@@ -94,13 +97,16 @@ cdef class EquipmentKernel:
     cdef double g
     cdef const double[::1] ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent
     cdef const double[:, ::1] env
-    cdef Py_ssize_t p, iters
-    cdef double R, J, b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
+    cdef Py_ssize_t p, iters, nR, nJ
+    cdef double b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
+    cdef const double[::1] R, J
     cdef const double[:, ::1] N
+    cdef Py_ssize_t[::1] na
+    cdef bint bare
 
     def __init__(self, *, bint blending, ed_max, ed_power, fade_start, fade_end,
                  friction_lag_s, valve_lag_s, max_vent_s, bint adhesion_limited,
-                 double gravity, envelope=None, int axles=0, double R=1.0, double J=1.0, N=None, double b1=0.0,
+                 double gravity, envelope=None, int axles=0, R=1.0, J=1.0, N=None, active=None, double b1=0.0,
                  double b2=0.0, double b3=1.0, double c1=0.0, double c2=0.0, double c3=1.0, double mu0=1.0,
                  double peak_curve=1.0, double v_floor=0.1, int iters=5):
         self.blending = blending
@@ -113,11 +119,15 @@ cdef class EquipmentKernel:
         self.friction_lag, self.valve_lag, self.max_vent = arr(friction_lag_s), arr(valve_lag_s), arr(max_vent_s)
         self.adhesion_limited, self.g = adhesion_limited, gravity
         self.p, self.iters = axles, iters
-        self.R, self.J = R, J
+        self.R, self.J = arr(R), arr(J)
+        self.nR, self.nJ = self.R.shape[0], self.J.shape[0]
         self.b1, self.b2, self.b3, self.c1, self.c2, self.c3 = b1, b2, b3, c1, c2, c3
         self.mu0, self.peak_curve, self.v_floor = mu0, peak_curve, v_floor
         if axles > 0:
             self.N = np.ascontiguousarray(N, dtype=float)
+            na = np.full(self.N.shape[0], axles, dtype=np.intp) if active is None else np.asarray(active, dtype=np.intp)
+            self.na = np.ascontiguousarray(na)
+            self.bare = bool(np.any(na == 0))
 
     def substep(self, double h, const double[::1] blend_k, const double[::1] valve_k, const double[::1] effort,
                 const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] mass,
@@ -192,18 +202,21 @@ cdef class EquipmentKernel:
             for i in range(nn):
                 brake[i] = brake[i] * (1.0 - valve[i % nw])
         cdef Py_ssize_t p = self.p, k
-        cdef double per_axle
         if p > 0:  # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
-            per_axle = self.R / p
             oth_a, tb_a, td_a = np.empty(nv), np.empty(nv * p), np.empty(nv * p)
-            self._prep(v, f, r, brake, trac, per_axle, oth_a, tb_a, td_a)
+            self._prep(v, f, r, brake, trac, oth_a, tb_a, td_a)
             self._wheels(h, v, oth_a, mass, mu, tb_a, td_a, omega, force, slip, vnew)
             for i in range(nv):
+                if self.na[i] == 0:
+                    continue  # a car without wheels: below
                 vn = vnew[i]
                 vnew[i] = 0.0 if v[i] != 0.0 and vn * v[i] < 0.0 else vn  # the exact stop
-                rail[i] = -_npsum(&force[i * p], p)
-            return vnew_a, rail_a
+                rail[i] = -_npsum(&force[i * p], self.na[i])
+            if not self.bare:
+                return vnew_a, rail_a
         for i in range(nn):
+            if p > 0 and self.na[i] > 0:
+                continue
             rail_i = brake[i] + trac[i]
             if self.adhesion_limited:
                 cap = mu[i % nmu] * mass[i % nm] * self.g
@@ -223,19 +236,22 @@ cdef class EquipmentKernel:
         return vnew_a, rail_a
 
     cdef void _prep(self, const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] brake,
-                    const double[::1] trac, double per_axle, double[::1] oth, double[::1] tb,
+                    const double[::1] trac, double[::1] oth, double[::1] tb,
                     double[::1] td) noexcept:
         """The wheels' inputs: the body's forces besides the creep forces (f − sgn(v) r) per car and
-        the brake and drive torques per axle (brake·R/p, −traction·R/p, the same on each axle)."""
-        cdef Py_ssize_t i, k, p = self.p
-        cdef double b, d
+        the brake and drive torques per axle (brake·R/p, −traction·R/p with the car's own R and p,
+        the same on each of its axles; 0 on inactive axles)."""
+        cdef Py_ssize_t i, k, p = self.p, pi
+        cdef double b, d, per_axle
         for i in range(v.shape[0]):
             oth[i] = f[i] - _sign(v[i]) * r[i]
+            pi = self.na[i]
+            per_axle = self.R[i % self.nR] / pi if pi > 0 else 0.0
             b = brake[i] * per_axle
             d = -trac[i] * per_axle
             for k in range(p):
-                tb[i * p + k] = b
-                td[i * p + k] = d
+                tb[i * p + k] = b if k < pi else 0.0
+                td[i * p + k] = d if k < pi else 0.0
 
     cdef int _creep(self, Py_ssize_t n, const double* w, const double* v, const double[::1] mu, double* lam,
                     double* f, double* fw, double* fv, double[::1] arg, object arg_a, object ex_a) except -1:
@@ -243,12 +259,20 @@ cdef class EquipmentKernel:
         (N, + forward), ∂F/∂ω and ∂F/∂v (the former Wheelsets.creep formulas, elementwise). The
         exponentials of the slip curve are numpy's (one ``numpy.exp`` over every axle, as before):
         numpy's SIMD exp differs from libm's in the last bit for some arguments."""
-        cdef Py_ssize_t i, k, j, p = self.p, nmu = mu.shape[0]
-        cdef double R = self.R, wr, awr, av, den, lm, dw, dv, scale, a, ex, sn, dmu
+        cdef Py_ssize_t i, k, j, p = self.p, nmu = mu.shape[0], pi
+        cdef double R, wr, awr, av, den, lm, dw, dv, scale, a, ex, sn, dmu
         cdef const double[::1] exv
         for i in range(n):
             av = fabs(v[i])
-            for k in range(p):
+            R = self.R[i % self.nR]
+            pi = self.na[i]
+            for k in range(pi, p):  # inactive axles
+                j = i * p + k
+                lam[j] = 0.0
+                fw[j] = 0.0
+                fv[j] = 0.0
+                arg[j] = 0.0
+            for k in range(pi):
                 j = i * p + k
                 wr = w[j] * R
                 awr = fabs(wr)
@@ -272,7 +296,10 @@ cdef class EquipmentKernel:
         for i in range(n):
             av = fabs(v[i])
             scale = (self.c1 + self.c2 / (self.c3 + av)) / self.mu0 * (mu[i % nmu] / self.peak_curve)
-            for k in range(p):
+            pi = self.na[i]
+            for k in range(pi, p):
+                f[i * p + k] = 0.0
+            for k in range(pi):
                 j = i * p + k
                 lm = lam[j]
                 a = fabs(lm)
@@ -300,8 +327,8 @@ cdef class EquipmentKernel:
         """Backward Euler of wheels and bodies (Wheelsets.step, module docstring of brakes.py): J(ω − ω0)
         = h(T_d − T_b sgn ω − F R) per axle, m(v − v0) = h(Σ F + other) per car, Newton on the
         arrow-shaped Jacobian; a wheel whose ω would pass through zero under the brake locks."""
-        cdef Py_ssize_t n = v0.shape[0], p = self.p, i, k, it, attempt, nmu = mu.shape[0]
-        cdef double R = self.R, J = self.J, hR = h * R, mh = -h
+        cdef Py_ssize_t n = v0.shape[0], p = self.p, i, k, it, attempt, nmu = mu.shape[0], pi
+        cdef double R, J, hR, mh = -h
         cdef double other, spin, ak, d, dv, vv, vi
         cdef bint any_over
         cdef double* buf = <double*>PyMem_Malloc(12 * n * p * sizeof(double))
@@ -323,7 +350,14 @@ cdef class EquipmentKernel:
                 w0[i] = omega[i]
             self._creep(n, w0, &v0[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
             for i in range(n):
+                R = self.R[i % self.nR]
+                pi = self.na[i]
                 for k in range(p):
+                    if k >= pi:  # an inactive axle: held at rest
+                        locked[i * p + k] = 1
+                        sg[i * p + k] = 0.0
+                        w[i * p + k] = 0.0
+                        continue
                     spin = Td[i * p + k] - f[i * p + k] * R
                     if w0[i * p + k] == 0.0:
                         locked[i * p + k] = fabs(spin) <= Tb[i * p + k]
@@ -336,8 +370,13 @@ cdef class EquipmentKernel:
                 for it in range(self.iters):
                     self._creep(n, w, &v[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
                     for i in range(n):
+                        pi = self.na[i]
+                        if pi == 0:
+                            continue  # a car without wheels: the caller's Coulomb step
+                        R, J = self.R[i % self.nR], self.J[i % self.nJ]
+                        hR = h * R
                         vi = v[i]
-                        for k in range(p):
+                        for k in range(pi):
                             if locked[i * p + k]:
                                 a[i * p + k] = 1.0
                                 rw[i * p + k] = 0.0
@@ -351,15 +390,15 @@ cdef class EquipmentKernel:
                                 b[i * p + k] = hR * fv[i * p + k]
                                 cc[i * p + k] = mh * fw[i * p + k]
                         other = oth[i]
-                        vv = mass[i] * (vi - v0[i]) - h * (_npsum(f + i * p, p) + other)
-                        d = mass[i] - h * _npsum(fv + i * p, p)
-                        for k in range(p):
+                        vv = mass[i] * (vi - v0[i]) - h * (_npsum(f + i * p, pi) + other)
+                        d = mass[i] - h * _npsum(fv + i * p, pi)
+                        for k in range(pi):
                             tmp[i * p + k] = cc[i * p + k] * rw[i * p + k] / a[i * p + k]
-                        dv = -vv + _npsum(tmp + i * p, p)
-                        for k in range(p):
+                        dv = -vv + _npsum(tmp + i * p, pi)
+                        for k in range(pi):
                             tmp[i * p + k] = cc[i * p + k] * b[i * p + k] / a[i * p + k]
-                        dv = dv / (d - _npsum(tmp + i * p, p))
-                        for k in range(p):
+                        dv = dv / (d - _npsum(tmp + i * p, pi))
+                        for k in range(pi):
                             w[i * p + k] = w[i * p + k] + (-rw[i * p + k] - b[i * p + k] * dv) / a[i * p + k]
                         v[i] = vi + dv
                 any_over = False

@@ -595,10 +595,10 @@ class TrainPlant:
         if self.wheels is not None:
             out["wsp_valve"] = self.wsp_valve.copy()
             w = self.wheels
+            off = None if w.active is None else np.arange(w.p)[None, :] >= w.active[:, None]  # NaN: no such axle
             for j in range(w.p):
-                out[f"axle{j + 1}_speed_radps"] = w.omega[:, j].copy()
-                out[f"axle{j + 1}_slip"] = w.slip[:, j].copy()
-                out[f"axle{j + 1}_adhesion_n"] = w.force_n[:, j].copy()
+                for name, a in (("speed_radps", w.omega), ("slip", w.slip), ("adhesion_n", w.force_n)):
+                    out[f"axle{j + 1}_{name}"] = a[:, j].copy() if off is None else np.where(off[:, j], np.nan, a[:, j])
         return out
 
 
