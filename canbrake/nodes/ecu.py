@@ -628,8 +628,10 @@ class EcuNode(Node):
     # ---------------------------------------------------------------- trace
     def close(self, status: str = "ok") -> None:
         if self._trace is not None:
-            self.after_send()
-            self._trace.close()
+            try:
+                self.after_send()  # its last row: may fail on a full disk
+            finally:
+                self._trace.close()  # closes and trims the trace whatever happened
         self.stats.status = "ok" if self.finished else status
         self.stats.guard = self.guard.stats()
         self.stats.scheduling = self.scheduling
