@@ -150,7 +150,7 @@ def _train_plant(scn: Scenario):
         actuator=actuator, rail=RailConditions(base_adhesion_mu=per_car(a.adhesion_mu, n, "mu"), events=rail_events),
         disturbances=disturbances, max_substep_s=scn.control_period_s / scn.plant.substeps,
         blending=blending, wheels=wheels, wsp_valve_lag_s=valve_lag,
-        wsp_max_vent_s=t.brakes.wsp.max_vent_s if t.brakes is not None and t.brakes.wsp is not None else math.inf,
+        wsp_max_vent_s=_per_car_wsp(t.brakes, "max_vent_s", math.inf, n),
         resistance_table=None if t.resistance_table is None else [
             None if r is None else (r.speed_mps, r.force_n) for r in t.resistance_table],
         traction_envelope=None if t.traction_envelope is None else [
@@ -167,7 +167,9 @@ def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
     from canbrake.physics.wheel_adhesion import RailCondition
 
     blending = wheels = None
-    if b.blending is not None:
+    if b.blending is not None and b.cars is not None:
+        blending = _blending_per_car(b)
+    elif b.blending is not None:
         e = b.blending
         ed_max: Any = e.ed_max_decel_mps2
         ed_power: Any = math.inf if e.ed_power_kw_per_t is None else e.ed_power_kw_per_t
@@ -186,10 +188,63 @@ def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
     if b.wheels is not None:
         w = b.wheels
         curve = RailCondition(b1=w.b1, b2=w.b2, b3=w.b3, c1=w.c1, c2=w.c2, c3=w.c3, peak_mu0=1.0)
-        wheels = Wheelsets(scn.vehicle_masses_kg(), w.axles, w.radius_m, w.inertia_kgm2, scn.initial_speed_mps(),
+        axles: Any = w.axles
+        radius: Any = w.radius_m
+        inertia: Any = w.inertia_kgm2
+        if b.wheels_per_car is not None:  # per car; 0 axles: a car without wheels
+            cars = b.wheels_per_car
+            axles = [0 if c is None else c.axles for c in cars]
+            radius = [1.0 if c is None else c.radius_m for c in cars]
+            inertia = [1.0 if c is None else c.inertia_kgm2 for c in cars]
+        wheels = Wheelsets(scn.vehicle_masses_kg(), axles, radius, inertia, scn.initial_speed_mps(),
                            curve=curve, v_floor_mps=w.v_floor_mps)
-    lag = b.wsp.valve_lag_s if b.wsp is not None else 0.05
-    return blending, wheels, lag
+    return blending, wheels, _per_car_wsp(b, "valve_lag_s", 0.05, scn.n_cars)
+
+
+def _per_car_wsp(b: Any, name: str, none: float, n: int) -> Any:
+    """The dump valves' ``name`` (valve_lag_s, max_vent_s): the train's wsp's (``none`` without),
+    or a tuple per car where the cars' wsp differ (a car without wsp takes the train's: its valve
+    is never commanded)."""
+    if b is None or b.wsp is None:
+        return none
+    first = getattr(b.wsp, name)
+    if b.cars is None:
+        return first
+    vals = tuple(float(getattr(c.wsp, name)) if c.wsp is not None else float(first) for c in b.cars)
+    return vals[0] if len(set(vals)) == 1 else vals
+
+
+def _blending_per_car(b: Any) -> Any:
+    """The blending of a train whose vehicle types differ in it (``b.cars``): per car its ED
+    capacity (its ``ed_brake``, else its blending's ``ed_max_decel_mps2``/``ed_power_kw_per_t``; 0
+    without blending), fade speeds and friction lag (0 without blending: friction only, at once)."""
+    from canbrake.physics.brakes import BrakeBlending
+
+    nan = (math.nan,) * 5
+    first = b.blending
+    per_car = first.per_car if first.per_car is not None else [None] * len(b.cars)
+    ed_max, ed_power, env, fs, fe, lag = [], [], [], [], [], []
+    for c, ed in zip(b.cars, per_car):
+        e = c.blending
+        if e is None:  # friction only: no ED force, the friction brake follows the demand at once
+            row = (0.0, math.inf, nan, first.fade_start_kmh, first.fade_end_kmh, 0.0)
+        elif ed is None:
+            row = (e.ed_max_decel_mps2, math.inf if e.ed_power_kw_per_t is None else e.ed_power_kw_per_t, nan,
+                   e.fade_start_kmh, e.fade_end_kmh, e.friction_lag_s)
+        elif ed.model == "none":
+            row = (0.0, math.inf, nan, e.fade_start_kmh, e.fade_end_kmh, e.friction_lag_s)
+        elif ed.model == "per_mass":
+            row = (ed.max_decel_mps2, math.inf if ed.power_kw_per_t is None else ed.power_kw_per_t, nan,
+                   e.fade_start_kmh, e.fade_end_kmh, e.friction_lag_s)
+        else:
+            row = (0.0, math.inf, ed.row_si(), e.fade_start_kmh, e.fade_end_kmh, e.friction_lag_s)
+        for out, x in zip((ed_max, ed_power, env, fs, fe, lag), row):
+            out.append(x)
+    return BrakeBlending(ed_max_decel_mps2=tuple(float(x) for x in ed_max),
+                         ed_power_w_per_kg=tuple(float(x) for x in ed_power),
+                         fade_start_mps=tuple(x / 3.6 for x in fs), fade_end_mps=tuple(x / 3.6 for x in fe),
+                         friction_lag_s=tuple(float(x) for x in lag),
+                         envelope=tuple(env) if any(r is not nan for r in env) else None)
 
 
 def needs_barrier(scn: Scenario) -> bool:
@@ -292,10 +347,11 @@ def build_controller(scn: Scenario, ecu_index: int) -> Controller:
     ctrl = make_controller(p.controller.name, p.controller.params, car_index=ecu_index - 1, n_cars=scn.n_ecus,
                            mass_kg=float(scn.vehicle_masses_kg()[p.vehicle - 1]), dt_s=scn.control_period_s)
     brakes = getattr(scn.consist, "brakes", None)
-    if brakes is not None and (brakes.easing is not None or (brakes.wsp is not None and brakes.wsp.enabled)):
+    own = None if brakes is None else brakes.car(p.vehicle - 1)
+    if own is not None and (own.easing is not None or (own.wsp is not None and own.wsp.enabled)):
         from canbrake.control.brake_functions import brake_functions_of
 
-        ctrl = brake_functions_of(ctrl, brakes, scn.actuator)
+        ctrl = brake_functions_of(ctrl, brakes, scn.actuator, p.vehicle - 1)
     ecp = getattr(scn.consist, "ecp_unit_params", None)
     if ecp is not None and "brake_force_n" in ctrl.command_names and "ecp_demand" not in ctrl.command_names:
         unit = ecp(p.vehicle)  # None: not an ECP wagon (a locomotive, or a pneumatic train)

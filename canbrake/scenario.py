@@ -455,7 +455,18 @@ class Scenario(_Model):
         b = self.consist.brakes
         if b is None or b.easing is None:
             return
-        from canbrake.consist.brakes import easing_lag_s
+        from canbrake.consist.brakes import car_easing_lag_s, easing_lag_s
+
+        if b.cars is not None:  # each car's easing anticipates its own lag
+            for i, c in enumerate(b.cars):
+                if c.easing is None:
+                    continue
+                lag = car_easing_lag_s(b, self.actuator, i)
+                if not c.easing.time_constant_s > lag:
+                    raise ValueError(f"@train.vehicle_types.{c.vehicle_type}.brake.easing.time_constant_s: must exceed "
+                                     f"the brake lag it anticipates ({lag:g} s: brake.lag_s + "
+                                     f"brake.blending.friction_lag_s, or easing.lag_s), got {c.easing.time_constant_s:g}")
+            return
 
         lag = easing_lag_s(b, self.actuator)
         if not b.easing.time_constant_s > lag:

@@ -193,7 +193,7 @@ def test_substep_bit_identical_to_the_numpy_form(wheels, blending, lag, adhesion
             bk = (1.0 - math.exp(-h / lag)) if lag > 0 else 0.0
             vk = 1.0 - math.exp(-h / pl.wsp_valve_lag_s)
             z = np.zeros(0)
-            got_v, got_rail = kern.substep(h, bk, vk, effort, v, f, r, pl.mass_kg, mu, eff, wsp,
+            got_v, got_rail = kern.substep(h, np.array([bk]), np.array([vk]), effort, v, f, r, pl.mass_kg, mu, eff, wsp,
                                            fr if blending else z, ed if blending else z, valve, vent,
                                            z if ws is None else om.reshape(-1), z if ws is None else fo.reshape(-1),
                                            z if ws is None else sl.reshape(-1))

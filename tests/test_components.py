@@ -132,7 +132,7 @@ def test_a_users_component_from_an_entry_point(tmp_path: Path) -> None:
             load_scenario("chen2023_case1_fine_rail", overrides={{"train.every_vehicle.resistance":
                           {{"model": "kn_quadratic", "c0_kn": -1}}}})
         except ScenarioError as e:
-            assert "train.vehicle_types.metro_car.resistance.c0_kn: Input should be greater than or equal to 0" in str(e), e
+            assert "train.every_vehicle.resistance.c0_kn: Input should be greater than or equal to 0" in str(e), e
         else:
             raise AssertionError("accepted")
         print("ok")
@@ -204,8 +204,9 @@ def test_adhesion_on_a_vehicle_without_axles() -> None:
         load_scenario("cai2014_case1", overrides={"ecus.0.vehicle": 2})
 
 
-def test_the_coupled_kernel_takes_one_brake_blending_for_the_train() -> None:
-    """Brake models and lags may differ per vehicle (an ideal one is lag 0); blending may not."""
+def test_the_coupled_kernel_takes_brake_models_lags_and_functions_per_vehicle() -> None:
+    """Brake models and lags may differ per vehicle (an ideal one is lag 0), and so may the brake
+    functions (here easing on one vehicle type only: tests/test_per_vehicle_brakes.py)."""
     from canbrake.scenario import resolve
 
     data = {
@@ -218,11 +219,8 @@ def test_the_coupled_kernel_takes_one_brake_blending_for_the_train() -> None:
     act = resolve(data, "t.yaml").actuator
     assert act.model == "realistic" and act.lag_s == [0.0, 0.3] and act.jerk_limit_mps3 == [None, 1.0]
     data["train"]["vehicle_types"]["b"]["brake"]["easing"] = {}
-    with pytest.raises(ScenarioError, match=r"train.vehicle_types.b.brake: the coupled kernel \(TrainPlant\) takes "
-                                            r"one brake blending, easing and wsp \(its model, lag, ed_brake, ratings and "
-                                            r"jerk limit may differ\) for the whole train; vehicle "
-                                            r"types a and b differ"):
-        resolve(data, "t.yaml")
+    cars = resolve(data, "t.yaml").consist.brakes.cars
+    assert [c.vehicle_type for c in cars] == ["a", "b"] and cars[0].easing is None and cars[1].easing is not None
 
 
 def test_heavy_haul_only_fields_on_another_train() -> None:

@@ -231,12 +231,13 @@ def test_kernels_and_components_list_the_new_features() -> None:
     assert "speed_mps*, force_n*\n      physics: coupled (TrainPlant), adhesion (AdhesionTrain)\n" in r.stdout
 
 
-def test_brake_blending_must_still_be_the_trains() -> None:
+def test_brake_blending_may_differ_per_vehicle_now() -> None:
+    """Blending per vehicle (kernlim2; physics in tests/test_per_vehicle_brakes.py): a blended
+    vehicle beside one without blending is accepted, each car with its own."""
     types = {"a": {"mass_kg": 2e4, "brake": {"model": "ideal", "blending": {}}},
              "b": {"mass_kg": 2e4, "brake": {"model": "electro_pneumatic"}}}
-    with pytest.raises(ScenarioError, match=r"train.vehicle_types.b.brake: the coupled kernel \(TrainPlant\) takes one "
-                                            r"brake blending, easing and wsp .* vehicle types a and b differ"):
-        resolve(_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml")
+    b = resolve(_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml").consist.brakes
+    assert b.blending is not None and [c.blending is not None for c in b.cars] == [True, False]
 
 
 _MIN = {"model": "table", "speed_mps": [0.0, 10.0, 20.0], "force_n": [500.0, 800.0, 1500.0]}

@@ -40,7 +40,9 @@ class Axle(StrictModel):
 
 
 class AdhesionVehicleType(StrictModel):
-    """A vehicle: mass (kg), resistance, driven axles (none for a trailer) and their default wheel."""
+    """A vehicle: mass (kg), resistance, driven axles (none for a trailer) and their default wheel.
+    Every axle has a wheel (its own or ``wheel``): checked where the user writes them, the
+    ``driven_axles`` wheels component (:class:`canbrake.consist.components.DrivenAxles`)."""
 
     mass_kg: float = Field(gt=0)
     davis: AdhesionDavis = AdhesionDavis()
@@ -48,13 +50,6 @@ class AdhesionVehicleType(StrictModel):
                                                        "resistance table, validated there), added to davis")
     wheel: Wheel | None = None
     axles: list[Axle] = []
-
-    @model_validator(mode="after")
-    def _wheels_known(self) -> "AdhesionVehicleType":
-        for k, a in enumerate(self.axles):
-            if a.wheel is None and self.wheel is None:
-                raise ValueError(f"axles.{k}: no wheel (give the axle's or the vehicle type's `wheel`)")
-        return self
 
 
 class RailConditionSpec(StrictModel):

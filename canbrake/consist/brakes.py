@@ -137,14 +137,40 @@ class WspConfig(StrictModel):
         return self
 
 
+class CarBrakes(StrictModel):
+    """One car's blending, easing and wheel-slide protection where the vehicle types differ in them
+    (``vehicle_type`` names the car's type for messages); None: the car has none."""
+
+    vehicle_type: str
+    blending: BlendingConfig | None = None
+    easing: EasingConfig | None = None
+    wsp: WspConfig | None = None
+
+
 class BrakeSystemConfig(StrictModel):
     """The coupled kernel's brake equipment (assembled from the brake and wheels components); every
-    part is off unless given."""
+    part is off unless given. ``cars``: None where every car has the same blending, easing and wsp
+    (the fields above); else one entry per car, front first, and the fields above are those of the
+    first car that has each (they say the train has it)."""
 
     blending: BlendingConfig | None = None
     easing: EasingConfig | None = None
     wheels: WheelsConfig | None = None
     wsp: WspConfig | None = None
+    cars: list[CarBrakes] | None = None
+    wheels_per_car: list[WheelsConfig | None] | None = Field(
+        None, description="None where every car has ``wheels``; else per car its wheelsets (None: no wheels), "
+                          "with one slip curve and v_floor_mps (those of ``wheels``, the first car's that has them)")
+
+    def car_wheels(self, i: int) -> WheelsConfig | None:
+        """Car ``i``'s (0-based) wheelsets (None: none)."""
+        return self.wheels if self.wheels_per_car is None else self.wheels_per_car[i]
+
+    def car(self, i: int) -> CarBrakes:
+        """Car ``i``'s (0-based) blending, easing and wsp."""
+        if self.cars is not None:
+            return self.cars[i]
+        return CarBrakes(vehicle_type="", blending=self.blending, easing=self.easing, wsp=self.wsp)
 
     @model_validator(mode="after")
     def _wsp_needs_wheels(self) -> "BrakeSystemConfig":
@@ -167,4 +193,22 @@ def easing_lag_s(brakes: BrakeSystemConfig, actuator: Any) -> float:
     lag = float(lag_s) if getattr(actuator, "model", "ideal") == "realistic" else 0.0
     if brakes.blending is not None:
         lag += brakes.blending.friction_lag_s
+    return lag
+
+
+def car_easing_lag_s(brakes: BrakeSystemConfig, actuator: Any, i: int) -> float:
+    """The brake lag (s) car ``i``'s easing anticipates where the cars' brake functions differ
+    (``brakes.cars``): its ``easing.lag_s`` if given, else its own brake lag (0 for an ideal
+    brake) plus its own blending's friction lag; :func:`easing_lag_s` otherwise."""
+    if brakes.cars is None:
+        return easing_lag_s(brakes, actuator)
+    c = brakes.cars[i]
+    if c.easing is not None and c.easing.lag_s is not None:
+        return float(c.easing.lag_s)
+    lag = 0.0
+    if getattr(actuator, "model", "ideal") == "realistic":
+        lag_s = actuator.lag_s
+        lag = float(lag_s[i] if isinstance(lag_s, list) else lag_s)
+    if c.blending is not None:
+        lag += c.blending.friction_lag_s
     return lag

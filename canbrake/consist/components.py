@@ -53,7 +53,7 @@ from pydantic import BaseModel, Field, PrivateAttr, ValidationError, model_valid
 
 from canbrake.consist import heavy_haul as hhs
 from canbrake.consist.adhesion import AdhesionSpec, Axle, Wheel
-from canbrake.consist.brakes import BlendingConfig, EasingConfig, EdBrake, WheelsConfig, WspConfig
+from canbrake.consist.brakes import BlendingConfig, CarBrakes, EasingConfig, EdBrake, WheelsConfig, WspConfig
 from canbrake.consist.coupled import MAX_VEHICLES, PerCar, _Model
 
 #: the component kinds of a vehicle type, in the order they are listed
@@ -475,8 +475,9 @@ _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhes
 #: what a kernel still takes once for the whole train (everything else may differ per vehicle)
 KERNEL_LIMITS: dict[str, str] = {
     "coupled": "per vehicle: mass, resistance (davis or table), coupler (stiffness, ε, end stop), brake model "
-               "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, traction envelope; once for the "
-               "train: the brake's blending, easing and wsp, the wheelset model",
+               "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, blending (or none: friction only), "
+               "easing, wsp, traction envelope, wheelsets (axles, radius, inertia, or none); once for the train: "
+               "the wheel-rail slip curve (b1..b3, c1..c3, v_floor_mps)",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
                 "conditions",
@@ -539,6 +540,18 @@ class TrainSpec(_Model):
         if isinstance(every, dict) and every and isinstance(types, dict):
             data = dict(data)
             data["vehicle_types"] = {k: _deep_merge(v, every) if isinstance(v, dict) else v for k, v in types.items()}
+            for v in data["vehicle_types"].values():  # a bad value of every_vehicle's: once, where it is written
+                if not isinstance(v, dict):
+                    continue
+                try:
+                    _validated(VehicleTypeSpec, v)
+                except ValueError as e:
+                    msg = str(e)
+                    if msg.startswith("@") and ": " in msg:
+                        loc, text = msg[1:].split(": ", 1)
+                        if _sets(every, loc.split(".")):
+                            raise ValueError(f"@every_vehicle.{loc}: {text}") from None
+                    continue  # a type's own problem: reported per vehicle type below
         return data
 
     @model_validator(mode="after")
@@ -620,6 +633,24 @@ class TrainSpec(_Model):
                                  f"train.every_vehicle.{kind})")
         return first
 
+    def _wheels(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> BaseModel | None:
+        """The first vehicle's wheelsets that has them: vehicles may differ in ``axles``, ``radius_m``
+        and ``inertia_kgm2`` or have none; the slip curve and ``v_floor_mps`` are one for the train."""
+        own = frozenset({"model", "axles", "radius_m", "inertia_kgm2"})
+        with_wheels = [(name, vt.wheels) for name, vt in {n: t for n, t, _ in ex}.items() if vt.wheels is not None]
+        if not with_wheels:
+            return None
+        first_name, first = with_wheels[0]
+        for name, w in with_wheels[1:]:
+            for f, value in w.model_dump(exclude=set(own)).items():
+                if value != getattr(first, f):
+                    raise ValueError(f"@vehicle_types.{name}.wheels.{f}: the coupled kernel (TrainPlant) takes one "
+                                     f"wheel-rail slip curve (b1..b3, c1..c3) and v_floor_mps for the whole train "
+                                     f"(axles, radius_m and inertia_kgm2 may differ); vehicle types {first_name} and "
+                                     f"{name} differ ({getattr(first, f)!r} and {value!r}; set it in "
+                                     f"train.every_vehicle.wheels)")
+        return first
+
     def _lower_coupled(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
         from canbrake.consist.brakes import BrakeSystemConfig
         from canbrake.consist.coupled import ActuatorConfig, TrainConfig
@@ -634,9 +665,9 @@ class TrainSpec(_Model):
         rated = ("max_brake_decel_mps2", "max_traction_accel_mps2", "jerk_limit_mps3")  # may differ per vehicle
         # a vehicle without a brake has an ideal one where others have one
         ideal = IdealBrake() if any(vt.brake is not None for _, vt, _ in ex) else None
-        brake = self._uniform(ex, "brake", "brake blending, easing and wsp (its model, lag, ed_brake, ratings and "
-                              "jerk limit may differ)", frozenset({"model", "lag_s", "ed_brake", *rated}), ideal)
-        wheels = self._uniform(ex, "wheels", "wheelset model")
+        functions = ("blending", "easing", "wsp")  # per vehicle too: BrakeSystemConfig.cars where they differ
+        brake = ex[0][1].brake or ideal  # every field of the brake may differ per vehicle
+        wheels = self._wheels(ex)
         data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
         if any(vt.resistance is not None for _, vt, _ in ex):
             table = [vt.resistance if isinstance(vt.resistance, TableResistance) else None for _, vt, _ in ex]
@@ -664,18 +695,30 @@ class TrainSpec(_Model):
         data["coupler"] = coupler
         data["grade_permille"] = self.track.grade_permille
         data["curve_resistance_n"] = self.track.curve_resistance_n
-        parts = {k: getattr(brake, k, None) for k in ("blending", "easing", "wsp")}
+        parts: dict[str, Any] = {k: getattr(brake, k, None) for k in functions}
+        own = [{k: getattr(vt.brake, k, None) for k in functions} for _, vt, _ in ex]
+        differ = any(o[k] != own[0][k] for o in own for k in functions)
+        if differ:  # each car its own; the train's fields: the first car's that has one
+            parts = {k: next((o[k] for o in own if o[k] is not None), None) for k in functions}
+            if parts["wsp"] is not None and not parts["wsp"].enabled:
+                parts["wsp"] = next((o["wsp"] for o in own if o["wsp"] is not None and o["wsp"].enabled), parts["wsp"])
+            parts["cars"] = [CarBrakes(vehicle_type=name, **o) for (name, _, _), o in zip(ex, own)]
         eds = [getattr(vt.brake, "ed_brake", None) for _, vt, _ in ex]
         if any(e is not None for e in eds):
-            if parts["blending"] is None:
-                name = next(nm for (nm, _, _), e in zip(ex, eds) if e is not None)
+            lacking = [nm for (nm, _, _), e, o in zip(ex, eds, own) if e is not None and o["blending"] is None]
+            if parts["blending"] is None or (differ and lacking):
+                name = lacking[0] if lacking else next(nm for (nm, _, _), e in zip(ex, eds) if e is not None)
                 raise ValueError(f"@vehicle_types.{name}.brake.ed_brake: an ED brake is blended with the friction "
-                                 "brake by brake.blending, which this train's brake does not have")
+                                 f"brake by brake.blending, which {'this train' if not differ else 'vehicle type ' + name}"
+                                 f"'s brake does not have")
             parts["blending"] = BlendingConfig.model_validate(
                 {**parts["blending"].model_dump(exclude={"per_car"}),
                  "per_car": [None if e is None else e.model_dump() for e in eds]})
         if wheels is not None:
             parts["wheels"] = WheelsConfig.model_validate(_params(wheels))
+            if any(_params(vt.wheels) != _params(wheels) for _, vt, _ in ex):  # axles, radius or inertia differ
+                parts["wheels_per_car"] = [None if vt.wheels is None else WheelsConfig.model_validate(_params(vt.wheels))
+                                           for _, vt, _ in ex]
         if any(v is not None for v in parts.values()):
             data["brakes"] = BrakeSystemConfig(**parts)
         a: dict[str, Any] = {"adhesion_limited": self.wheel_rail.adhesion_limited,
@@ -775,6 +818,18 @@ class TrainSpec(_Model):
                 "windows": wr.windows}
         data = {"model": "adhesion", "vehicle_types": types, "vehicles": vehicles, "wheel_rail": spec}
         return _validated(AdhesionTrainConfig, data)
+
+
+def _sets(data: Any, path: list[str]) -> bool:
+    """Whether the nested mapping ``data`` gives a value at ``path`` (keys; list indices as digits)."""
+    for part in path:
+        if isinstance(data, dict) and part in data:
+            data = data[part]
+        elif isinstance(data, list) and part.isdigit() and int(part) < len(data):
+            data = data[int(part)]
+        else:
+            return False
+    return True
 
 
 def _validated(cls: type[BaseModel], data: dict[str, Any]) -> Any:

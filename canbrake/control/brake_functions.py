@@ -123,18 +123,20 @@ class BrakeFunctions(Controller):
         return out
 
 
-def brake_functions_of(ctrl: Controller, brakes: Any, actuator: Any) -> BrakeFunctions:
+def brake_functions_of(ctrl: Controller, brakes: Any, actuator: Any, car: int = 0) -> BrakeFunctions:
     """Wrap ``ctrl`` with the ECU functions configured in the brake component (a
-    :class:`canbrake.consist.brakes.BrakeSystemConfig`); ``actuator`` is the scenario's actuator
+    :class:`canbrake.consist.brakes.BrakeSystemConfig`) for vehicle ``car`` (0-based: its own
+    easing and wsp where the vehicle types differ); ``actuator`` is the scenario's actuator
     section (its lag is what easing anticipates unless ``easing.lag_s`` is given)."""
-    from canbrake.consist.brakes import easing_lag_s
+    from canbrake.consist.brakes import car_easing_lag_s
 
+    own = brakes.car(car)
     tau = lag = None
-    if brakes.easing is not None:
-        tau = brakes.easing.time_constant_s
-        lag = easing_lag_s(brakes, actuator)
-    wsp = brakes.wsp if brakes.wsp is not None and brakes.wsp.enabled else None
-    w = brakes.wheels
+    if own.easing is not None:
+        tau = own.easing.time_constant_s
+        lag = car_easing_lag_s(brakes, actuator, car)
+    wsp = own.wsp if own.wsp is not None and own.wsp.enabled else None
+    w = brakes.car_wheels(car)
     return BrakeFunctions(ctrl, easing_tau_s=tau, lag_s=lag or 0.0, wsp=wsp,
                           axles=w.axles if w is not None else 0, wheel_radius_m=w.radius_m if w is not None else 0.42,
                           v_floor_mps=w.v_floor_mps if w is not None else 0.1)

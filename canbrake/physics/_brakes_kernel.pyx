@@ -77,29 +77,36 @@ cdef inline double _clip01(double x) noexcept nogil:
 cdef class EquipmentKernel:
     """Constants of a coupled train's brake equipment, and its sub-step.
 
-    Blending (``blending`` True): per car ``ed_max`` (m/s²) and ``ed_power`` (W/kg) (one value, or
-    one per car; 0 for a car without ED brake), ``fade_start``, ``fade_end`` (m/s),
-    ``friction_lag_s`` (s); ``envelope``: None, or per car (n, 5) the ED brake's force envelope
+    Blending (``blending`` True): per car ``ed_max`` (m/s²) and ``ed_power`` (W/kg), ``fade_start``,
+    ``fade_end`` (m/s) and ``friction_lag_s`` (s), each one value or one per car (a car without
+    blending: ``ed_max`` 0 and ``friction_lag_s`` 0, so its friction brake gives the demand at
+    once); ``envelope``: None, or per car (n, 5) the ED brake's force envelope
     (Li 2024 eq. 2) ``(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W)``, NaN rows for the cars that
     use ``ed_max``/``ed_power`` with the fade: F = slope·|v| up to v1, F_max up to v2, power/|v| above.
-    Dump valves: ``valve_lag_s``, ``max_vent_s`` (s).
-    Wheelsets (``axles`` p > 0): radius ``R`` (m), inertia ``J`` (kg·m²), normal loads ``N`` (n, p)
-    (N), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
+    Dump valves: ``valve_lag_s``, ``max_vent_s`` (s; one value, or one per car).
+    Wheelsets (``axles`` p > 0, the most any car has): radius ``R`` (m) and inertia ``J`` (kg·m²) of
+    a car's wheelsets (one value, or one per car), normal loads ``N`` (n, p) (N), ``active`` (None:
+    every car has p axles; or per car its number of axles, 0 for a car without wheels, whose brake
+    and resistance act on its body as without wheelsets; a car's axles beyond its own are inactive:
+    ω, creep force and slip 0), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
     ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), ``iters`` Newton iterations.
     ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
     """
 
     cdef bint blending, adhesion_limited, has_env
-    cdef double fade_start, fade_end, friction_lag, valve_lag, max_vent, g
-    cdef const double[::1] ed_max, ed_power
+    cdef double g
+    cdef const double[::1] ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent
     cdef const double[:, ::1] env
-    cdef Py_ssize_t p, iters
-    cdef double R, J, b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
+    cdef Py_ssize_t p, iters, nR, nJ
+    cdef double b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
+    cdef const double[::1] R, J
     cdef const double[:, ::1] N
+    cdef Py_ssize_t[::1] na
+    cdef bint bare
 
-    def __init__(self, *, bint blending, ed_max, ed_power, double fade_start, double fade_end,
-                 double friction_lag_s, double valve_lag_s, double max_vent_s, bint adhesion_limited,
-                 double gravity, envelope=None, int axles=0, double R=1.0, double J=1.0, N=None, double b1=0.0,
+    def __init__(self, *, bint blending, ed_max, ed_power, fade_start, fade_end,
+                 friction_lag_s, valve_lag_s, max_vent_s, bint adhesion_limited,
+                 double gravity, envelope=None, int axles=0, R=1.0, J=1.0, N=None, active=None, double b1=0.0,
                  double b2=0.0, double b3=1.0, double c1=0.0, double c2=0.0, double c3=1.0, double mu0=1.0,
                  double peak_curve=1.0, double v_floor=0.1, int iters=5):
         self.blending = blending
@@ -107,17 +114,22 @@ cdef class EquipmentKernel:
         self.ed_power = np.ascontiguousarray(np.atleast_1d(np.asarray(ed_power, dtype=float)))
         self.has_env = envelope is not None
         self.env = np.ascontiguousarray(np.zeros((1, 5)) if envelope is None else np.asarray(envelope, dtype=float))
-        self.fade_start, self.fade_end = fade_start, fade_end
-        self.friction_lag, self.valve_lag, self.max_vent = friction_lag_s, valve_lag_s, max_vent_s
+        arr = lambda x: np.ascontiguousarray(np.atleast_1d(np.asarray(x, dtype=float)))  # noqa: E731
+        self.fade_start, self.fade_end = arr(fade_start), arr(fade_end)
+        self.friction_lag, self.valve_lag, self.max_vent = arr(friction_lag_s), arr(valve_lag_s), arr(max_vent_s)
         self.adhesion_limited, self.g = adhesion_limited, gravity
         self.p, self.iters = axles, iters
-        self.R, self.J = R, J
+        self.R, self.J = arr(R), arr(J)
+        self.nR, self.nJ = self.R.shape[0], self.J.shape[0]
         self.b1, self.b2, self.b3, self.c1, self.c2, self.c3 = b1, b2, b3, c1, c2, c3
         self.mu0, self.peak_curve, self.v_floor = mu0, peak_curve, v_floor
         if axles > 0:
             self.N = np.ascontiguousarray(N, dtype=float)
+            na = np.full(self.N.shape[0], axles, dtype=np.intp) if active is None else np.asarray(active, dtype=np.intp)
+            self.na = np.ascontiguousarray(na)
+            self.bare = bool(np.any(na == 0))
 
-    def substep(self, double h, double blend_k, double valve_k, const double[::1] effort,
+    def substep(self, double h, const double[::1] blend_k, const double[::1] valve_k, const double[::1] effort,
                 const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] mass,
                 const double[::1] mu, const double[::1] eff, wsp, double[::1] friction, double[::1] ed,
                 double[::1] valve, double[::1] vent, double[::1] omega, double[::1] force, double[::1] slip):
@@ -127,7 +139,8 @@ cdef class EquipmentKernel:
         ``wsp`` the dump valves' command (0..1, NaN none) or None. State, updated in place:
         ``friction``, ``ed`` (blending, N), ``valve`` (opening) and ``vent`` (s venting) shaped as
         ``wsp``; per axle (n·p): ``omega`` (rad/s), ``force`` (creep force, N), ``slip``.
-        ``blend_k``, ``valve_k``: 1 − exp(−h/lag) of the friction brake and the valve.
+        ``blend_k``, ``valve_k``: 1 − exp(−h/lag) of the friction brake and the valve (one value,
+        or one per car as the lags are given).
 
         Returns (v_new, rail): the new speeds (m/s) and the rail force per car (N, + brakes)."""
         cdef Py_ssize_t nv = v.shape[0], i
@@ -137,7 +150,9 @@ cdef class EquipmentKernel:
         cdef double s, fade, per_kg, demand, e, share, total, tr, cap, rail_i, ff, rr, sg, vn, want, ed_cap
         cdef const double[::1] cmd
         cdef Py_ssize_t nw = 0, nea = self.ed_max.shape[0], nep = self.ed_power.shape[0], nen = self.env.shape[0]
-        cdef Py_ssize_t ie
+        cdef Py_ssize_t ie, nfs = self.fade_start.shape[0], nfe = self.fade_end.shape[0]
+        cdef Py_ssize_t nfl = self.friction_lag.shape[0], nbk = blend_k.shape[0], nvk = valve_k.shape[0]
+        cdef Py_ssize_t nvl = self.valve_lag.shape[0], nmv = self.max_vent.shape[0]
         if nf > nn:
             nn = nf
         brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
@@ -155,14 +170,14 @@ cdef class EquipmentKernel:
                     else:
                         ed_cap = self.env[ie, 4] / _max(s, 1e-9)
                 else:
-                    fade = _clip01((s - self.fade_end) / (self.fade_start - self.fade_end))
+                    fade = _clip01((s - self.fade_end[i % nfe]) / (self.fade_start[i % nfs] - self.fade_end[i % nfe]))
                     per_kg = _min(self.ed_max[i % nea], self.ed_power[i % nep] / _max(s, 1e-9))
                     ed_cap = mass[i % nm] * per_kg * fade
                 demand = _max(e, 0.0)
                 ed[i] = _min(demand, ed_cap)
                 share = demand - ed[i]
-                if self.friction_lag > 0.0:
-                    friction[i] = friction[i] + (share - friction[i]) * blend_k
+                if self.friction_lag[i % nfl] > 0.0:
+                    friction[i] = friction[i] + (share - friction[i]) * blend_k[i % nbk]
                 else:
                     friction[i] = share
                 total = ed[i] + friction[i] + _min(e, 0.0)
@@ -177,28 +192,31 @@ cdef class EquipmentKernel:
                 want = cmd[i]
                 want = _clip01(0.0 if want != want else want)
                 vent[i] = vent[i] + h if want > 0.5 else 0.0
-                if vent[i] > self.max_vent:
+                if vent[i] > self.max_vent[i % nmv]:
                     want = 0.0
                 want = _clip01(want)  # the valve's own clip (valve_step)
-                if self.valve_lag <= 0.0:
+                if self.valve_lag[i % nvl] <= 0.0:
                     valve[i] = want
                 else:
-                    valve[i] = valve[i] + (want - valve[i]) * valve_k
+                    valve[i] = valve[i] + (want - valve[i]) * valve_k[i % nvk]
             for i in range(nn):
                 brake[i] = brake[i] * (1.0 - valve[i % nw])
         cdef Py_ssize_t p = self.p, k
-        cdef double per_axle
         if p > 0:  # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
-            per_axle = self.R / p
             oth_a, tb_a, td_a = np.empty(nv), np.empty(nv * p), np.empty(nv * p)
-            self._prep(v, f, r, brake, trac, per_axle, oth_a, tb_a, td_a)
+            self._prep(v, f, r, brake, trac, oth_a, tb_a, td_a)
             self._wheels(h, v, oth_a, mass, mu, tb_a, td_a, omega, force, slip, vnew)
             for i in range(nv):
+                if self.na[i] == 0:
+                    continue  # a car without wheels: below
                 vn = vnew[i]
                 vnew[i] = 0.0 if v[i] != 0.0 and vn * v[i] < 0.0 else vn  # the exact stop
-                rail[i] = -_npsum(&force[i * p], p)
-            return vnew_a, rail_a
+                rail[i] = -_npsum(&force[i * p], self.na[i])
+            if not self.bare:
+                return vnew_a, rail_a
         for i in range(nn):
+            if p > 0 and self.na[i] > 0:
+                continue
             rail_i = brake[i] + trac[i]
             if self.adhesion_limited:
                 cap = mu[i % nmu] * mass[i % nm] * self.g
@@ -218,19 +236,22 @@ cdef class EquipmentKernel:
         return vnew_a, rail_a
 
     cdef void _prep(self, const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] brake,
-                    const double[::1] trac, double per_axle, double[::1] oth, double[::1] tb,
+                    const double[::1] trac, double[::1] oth, double[::1] tb,
                     double[::1] td) noexcept:
         """The wheels' inputs: the body's forces besides the creep forces (f − sgn(v) r) per car and
-        the brake and drive torques per axle (brake·R/p, −traction·R/p, the same on each axle)."""
-        cdef Py_ssize_t i, k, p = self.p
-        cdef double b, d
+        the brake and drive torques per axle (brake·R/p, −traction·R/p with the car's own R and p,
+        the same on each of its axles; 0 on inactive axles)."""
+        cdef Py_ssize_t i, k, p = self.p, pi
+        cdef double b, d, per_axle
         for i in range(v.shape[0]):
             oth[i] = f[i] - _sign(v[i]) * r[i]
+            pi = self.na[i]
+            per_axle = self.R[i % self.nR] / pi if pi > 0 else 0.0
             b = brake[i] * per_axle
             d = -trac[i] * per_axle
             for k in range(p):
-                tb[i * p + k] = b
-                td[i * p + k] = d
+                tb[i * p + k] = b if k < pi else 0.0
+                td[i * p + k] = d if k < pi else 0.0
 
     cdef int _creep(self, Py_ssize_t n, const double* w, const double* v, const double[::1] mu, double* lam,
                     double* f, double* fw, double* fv, double[::1] arg, object arg_a, object ex_a) except -1:
@@ -238,12 +259,20 @@ cdef class EquipmentKernel:
         (N, + forward), ∂F/∂ω and ∂F/∂v (the former Wheelsets.creep formulas, elementwise). The
         exponentials of the slip curve are numpy's (one ``numpy.exp`` over every axle, as before):
         numpy's SIMD exp differs from libm's in the last bit for some arguments."""
-        cdef Py_ssize_t i, k, j, p = self.p, nmu = mu.shape[0]
-        cdef double R = self.R, wr, awr, av, den, lm, dw, dv, scale, a, ex, sn, dmu
+        cdef Py_ssize_t i, k, j, p = self.p, nmu = mu.shape[0], pi
+        cdef double R, wr, awr, av, den, lm, dw, dv, scale, a, ex, sn, dmu
         cdef const double[::1] exv
         for i in range(n):
             av = fabs(v[i])
-            for k in range(p):
+            R = self.R[i % self.nR]
+            pi = self.na[i]
+            for k in range(pi, p):  # inactive axles
+                j = i * p + k
+                lam[j] = 0.0
+                fw[j] = 0.0
+                fv[j] = 0.0
+                arg[j] = 0.0
+            for k in range(pi):
                 j = i * p + k
                 wr = w[j] * R
                 awr = fabs(wr)
@@ -267,7 +296,10 @@ cdef class EquipmentKernel:
         for i in range(n):
             av = fabs(v[i])
             scale = (self.c1 + self.c2 / (self.c3 + av)) / self.mu0 * (mu[i % nmu] / self.peak_curve)
-            for k in range(p):
+            pi = self.na[i]
+            for k in range(pi, p):
+                f[i * p + k] = 0.0
+            for k in range(pi):
                 j = i * p + k
                 lm = lam[j]
                 a = fabs(lm)
@@ -295,8 +327,8 @@ cdef class EquipmentKernel:
         """Backward Euler of wheels and bodies (Wheelsets.step, module docstring of brakes.py): J(ω − ω0)
         = h(T_d − T_b sgn ω − F R) per axle, m(v − v0) = h(Σ F + other) per car, Newton on the
         arrow-shaped Jacobian; a wheel whose ω would pass through zero under the brake locks."""
-        cdef Py_ssize_t n = v0.shape[0], p = self.p, i, k, it, attempt, nmu = mu.shape[0]
-        cdef double R = self.R, J = self.J, hR = h * R, mh = -h
+        cdef Py_ssize_t n = v0.shape[0], p = self.p, i, k, it, attempt, nmu = mu.shape[0], pi
+        cdef double R, J, hR, mh = -h
         cdef double other, spin, ak, d, dv, vv, vi
         cdef bint any_over
         cdef double* buf = <double*>PyMem_Malloc(12 * n * p * sizeof(double))
@@ -318,7 +350,14 @@ cdef class EquipmentKernel:
                 w0[i] = omega[i]
             self._creep(n, w0, &v0[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
             for i in range(n):
+                R = self.R[i % self.nR]
+                pi = self.na[i]
                 for k in range(p):
+                    if k >= pi:  # an inactive axle: held at rest
+                        locked[i * p + k] = 1
+                        sg[i * p + k] = 0.0
+                        w[i * p + k] = 0.0
+                        continue
                     spin = Td[i * p + k] - f[i * p + k] * R
                     if w0[i * p + k] == 0.0:
                         locked[i * p + k] = fabs(spin) <= Tb[i * p + k]
@@ -331,8 +370,13 @@ cdef class EquipmentKernel:
                 for it in range(self.iters):
                     self._creep(n, w, &v[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
                     for i in range(n):
+                        pi = self.na[i]
+                        if pi == 0:
+                            continue  # a car without wheels: the caller's Coulomb step
+                        R, J = self.R[i % self.nR], self.J[i % self.nJ]
+                        hR = h * R
                         vi = v[i]
-                        for k in range(p):
+                        for k in range(pi):
                             if locked[i * p + k]:
                                 a[i * p + k] = 1.0
                                 rw[i * p + k] = 0.0
@@ -346,15 +390,15 @@ cdef class EquipmentKernel:
                                 b[i * p + k] = hR * fv[i * p + k]
                                 cc[i * p + k] = mh * fw[i * p + k]
                         other = oth[i]
-                        vv = mass[i] * (vi - v0[i]) - h * (_npsum(f + i * p, p) + other)
-                        d = mass[i] - h * _npsum(fv + i * p, p)
-                        for k in range(p):
+                        vv = mass[i] * (vi - v0[i]) - h * (_npsum(f + i * p, pi) + other)
+                        d = mass[i] - h * _npsum(fv + i * p, pi)
+                        for k in range(pi):
                             tmp[i * p + k] = cc[i * p + k] * rw[i * p + k] / a[i * p + k]
-                        dv = -vv + _npsum(tmp + i * p, p)
-                        for k in range(p):
+                        dv = -vv + _npsum(tmp + i * p, pi)
+                        for k in range(pi):
                             tmp[i * p + k] = cc[i * p + k] * b[i * p + k] / a[i * p + k]
-                        dv = dv / (d - _npsum(tmp + i * p, p))
-                        for k in range(p):
+                        dv = dv / (d - _npsum(tmp + i * p, pi))
+                        for k in range(pi):
                             w[i * p + k] = w[i * p + k] + (-rw[i * p + k] - b[i * p + k] * dv) / a[i * p + k]
                         v[i] = vi + dv
                 any_over = False

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -58,7 +59,8 @@ class BrakeBlending:
     e.g. a trailer); ``ed_power_w_per_kg``: ED power limit per unit mass (W/kg; inf = none);
     ``fade_start_mps`` / ``fade_end_mps``: the ED force fades linearly to zero between these speeds
     (m/s); ``friction_lag_s``: first-order lag of the friction brake behind its share of the demand
-    (s; 0 = immediate). ``envelope``: None, or per car the ED brake's own force envelope
+    (s; 0 = immediate); the fade speeds and the lag may be one per car too (a car without blending:
+    ``ed_max_decel_mps2`` 0 and ``friction_lag_s`` 0, friction only). ``envelope``: None, or per car the ED brake's own force envelope
     ``(slope N·s/m, v1 m/s, F_max N, v2 m/s, power W)`` (Li 2024 eq. 2: F = slope·|v| up to v1, F_max
     up to v2, power/|v| above; it replaces that car's ``ed_max``/``ed_power`` and fade), NaN for the
     cars without one.
@@ -66,15 +68,16 @@ class BrakeBlending:
 
     ed_max_decel_mps2: float | tuple[float, ...] = 1.0
     ed_power_w_per_kg: float | tuple[float, ...] = math.inf
-    fade_start_mps: float = 10.0 / 3.6
-    fade_end_mps: float = 3.0 / 3.6
-    friction_lag_s: float = 0.2
+    fade_start_mps: float | tuple[float, ...] = 10.0 / 3.6
+    fade_end_mps: float | tuple[float, ...] = 3.0 / 3.6
+    friction_lag_s: float | tuple[float, ...] = 0.2
     envelope: tuple[tuple[float, float, float, float, float], ...] | None = None
 
     def __post_init__(self) -> None:
-        if not self.fade_start_mps > self.fade_end_mps >= 0.0:
+        if not (np.all(np.asarray(self.fade_start_mps) > np.asarray(self.fade_end_mps))
+                and np.all(np.asarray(self.fade_end_mps) >= 0.0)):
             raise ValueError("blending: need fade_start > fade_end >= 0")
-        if np.any(np.asarray(self.ed_max_decel_mps2) < 0) or self.friction_lag_s < 0:
+        if np.any(np.asarray(self.ed_max_decel_mps2) < 0) or np.any(np.asarray(self.friction_lag_s) < 0):
             raise ValueError("blending: ED capacity and friction lag must be >= 0")
 
 
@@ -94,18 +97,44 @@ class Wheelsets:
     ``mass_kg`` (n,) car masses (the normal load per axle is m g / p); ``radius_m``, ``inertia_kgm2``
     per wheelset; ``curve`` the slip-curve shape (peak scaled to each car's μ); ``v_floor_mps`` the
     slip denominator's floor; ``speed_mps`` (n,) initial speeds (wheels roll without slip).
+    ``axles``, ``radius_m`` and ``inertia_kgm2`` may be one per car (``axles`` 0: a car without
+    wheels, braking as a train without wheelsets does); p is then the most axles of a car and a
+    car's axles beyond its own are inactive (``active``: axles per car; ω, force and slip 0).
     """
 
-    def __init__(self, mass_kg: np.ndarray, axles: int, radius_m: float, inertia_kgm2: float,
-                 speed_mps: np.ndarray, *, curve: RailCondition = CAI_DRY, v_floor_mps: float = 0.1,
-                 gravity_mps2: float = 9.81, newton_iters: int = 5) -> None:
+    def __init__(self, mass_kg: np.ndarray, axles: int | Sequence[int], radius_m: float | Sequence[float],
+                 inertia_kgm2: float | Sequence[float], speed_mps: np.ndarray, *, curve: RailCondition = CAI_DRY,
+                 v_floor_mps: float = 0.1, gravity_mps2: float = 9.81, newton_iters: int = 5) -> None:
+        self.curve = curve
+        self.v_floor = float(v_floor_mps)
+        self.iters = int(newton_iters)
+        self.active: np.ndarray | None = None
+        if np.ndim(axles) or np.ndim(radius_m) or np.ndim(inertia_kgm2):  # per car
+            n = np.size(mass_kg)
+            na = np.broadcast_to(np.asarray(axles, dtype=np.intp), (n,))
+            R = np.broadcast_to(np.asarray(radius_m, dtype=float), (n,)).copy()
+            J = np.broadcast_to(np.asarray(inertia_kgm2, dtype=float), (n,)).copy()
+            if np.any(na < 0) or not np.any(na > 0) or np.any((na > 0) & ((R <= 0) | (J <= 0))):
+                raise ValueError("wheelsets: need axles >= 0 per car (some > 0), radius > 0, inertia > 0")
+            R[na == 0], J[na == 0] = 1.0, 1.0  # unused
+            self.p = int(na.max())
+            self.active = na.copy()
+            self.R, self.J = R, J
+            on = np.arange(self.p)[None, :] < na[:, None]
+            load = np.asarray(mass_kg, dtype=float) * gravity_mps2 / np.maximum(na, 1)
+            self.N = np.where(on, load[:, None], 0.0)
+            self.omega = np.where(on, (np.asarray(speed_mps, dtype=float) / R)[:, None], 0.0)
+            self._mu0 = float(curve.mu_max(0.0))
+            self._peak_curve = curve.peak_curve
+            self.force_n = np.zeros_like(self.omega)
+            self.slip = np.zeros_like(self.omega)
+            self._kern = None
+            return
         if axles < 1 or radius_m <= 0 or inertia_kgm2 <= 0:
             raise ValueError("wheelsets: need axles >= 1, radius > 0, inertia > 0")
         self.p = int(axles)
         self.R = float(radius_m)
         self.J = float(inertia_kgm2)
-        self.curve = curve
-        self.v_floor = float(v_floor_mps)
         self.N = np.repeat((np.asarray(mass_kg, dtype=float) * gravity_mps2 / axles)[:, None], axles, axis=1)
         self.omega = np.repeat((np.asarray(speed_mps, dtype=float) / radius_m)[:, None], axles, axis=1)
         self.iters = int(newton_iters)
@@ -119,7 +148,7 @@ class Wheelsets:
     def kernel_params(self) -> dict:
         """The wheelsets' constants as :class:`~canbrake.physics._brakes_kernel.EquipmentKernel` takes them."""
         c = self.curve
-        return dict(axles=self.p, R=self.R, J=self.J, N=self.N, b1=c.b1, b2=c.b2, b3=c.b3, c1=c.c1, c2=c.c2,
+        return dict(axles=self.p, R=self.R, J=self.J, N=self.N, active=self.active, b1=c.b1, b2=c.b2, b3=c.b3, c1=c.c1, c2=c.c2,
                     c3=c.c3, mu0=self._mu0, peak_curve=self._peak_curve, v_floor=self.v_floor, iters=self.iters)
 
     def step(self, h_s: float, v0: np.ndarray, mass_kg: np.ndarray, other_n: np.ndarray, brake_torque_nm: np.ndarray,

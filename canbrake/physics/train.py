@@ -144,8 +144,8 @@ class TrainPlant:
         gravity_mps2: float = GRAVITY_MPS2,
         blending: BrakeBlending | None = None,
         wheels: Wheelsets | None = None,
-        wsp_valve_lag_s: float = 0.05,
-        wsp_max_vent_s: float = math.inf,
+        wsp_valve_lag_s: float | Sequence[float] = 0.05,
+        wsp_max_vent_s: float | Sequence[float] = math.inf,
         resistance_table: Sequence[tuple[Sequence[float], Sequence[float]] | None] | None = None,
         traction_envelope: Sequence[object | None] | None = None,
     ) -> None:
@@ -222,8 +222,12 @@ class TrainPlant:
         self._has_grade = self._grade_force is not None and bool(np.any(self._grade_force != 0.0))
         self.blending = blending
         self.wheels = wheels
-        self.wsp_valve_lag_s = float(wsp_valve_lag_s)
-        self.wsp_max_vent_s = float(wsp_max_vent_s)
+        #: the dump valves' lag and watchdog (s): one value, or an array per car
+        self.wsp_valve_lag_s = (float(wsp_valve_lag_s) if np.ndim(wsp_valve_lag_s) == 0
+                                else _per_car(wsp_valve_lag_s, n, "wsp_valve_lag_s"))
+        self.wsp_max_vent_s = (float(wsp_max_vent_s) if np.ndim(wsp_max_vent_s) == 0
+                               else _per_car(wsp_max_vent_s, n, "wsp_max_vent_s"))
+        self._lag_k: dict[tuple[str, float], np.ndarray] = {}  # 1 - exp(-h/lag) per sub-step h
         self._wheels0 = None if wheels is None else wheels.omega.copy()
         self.resistance_table = self._tables(resistance_table)
         self.traction_envelope = self._envelopes(traction_envelope)
@@ -499,9 +503,8 @@ class TrainPlant:
         c1, c2 = self.resistance.c1_n_per_mps, self.resistance.c2_n_per_mps2
         kern = self._equip_kernel()
         blend = self._blend
-        lag = 0.0 if blend is None else blend.params.friction_lag_s
-        blend_k = (1.0 - math.exp(-h / lag)) if lag > 0.0 else 0.0
-        valve_k = (1.0 - math.exp(-h / self.wsp_valve_lag_s)) if self.wsp_valve_lag_s > 0.0 else 0.0
+        blend_k = self._lag_factor("friction", 0.0 if blend is None else blend.params.friction_lag_s, h)
+        valve_k = self._lag_factor("valve", self.wsp_valve_lag_s, h)
         if blend is not None and blend.friction_n.shape != v.shape:
             blend.friction_n = np.array(np.broadcast_to(blend.friction_n, v.shape), dtype=float)
             blend.ed_n = np.array(np.broadcast_to(blend.ed_n, v.shape), dtype=float)
@@ -554,6 +557,18 @@ class TrainPlant:
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
 
+    def _lag_factor(self, what: str, lag: float | tuple[float, ...] | np.ndarray, h: float) -> np.ndarray:
+        """1 − exp(−h/lag) of a first-order lag (0 where lag = 0; s): one value, or one per car for
+        per-car lags (computed once per sub-step length and kept)."""
+        k = self._lag_k.get((what, h))
+        if k is None:
+            lags = np.atleast_1d(np.asarray(lag, dtype=float))
+            uniq = np.unique(lags)  # per vehicle type, not per car
+            ks = np.array([(1.0 - math.exp(-h / float(u))) if u > 0.0 else 0.0 for u in uniq])
+            k = ks[np.searchsorted(uniq, lags)] if lags.size > 1 else ks
+            self._lag_k[(what, h)] = k = np.ascontiguousarray(k, dtype=float)
+        return k
+
     def _equip_kernel(self) -> EquipmentKernel:
         """The compiled brake-equipment sub-step with this plant's constants (built once)."""
         if self._ekern is None:
@@ -580,10 +595,10 @@ class TrainPlant:
         if self.wheels is not None:
             out["wsp_valve"] = self.wsp_valve.copy()
             w = self.wheels
+            off = None if w.active is None else np.arange(w.p)[None, :] >= w.active[:, None]  # NaN: no such axle
             for j in range(w.p):
-                out[f"axle{j + 1}_speed_radps"] = w.omega[:, j].copy()
-                out[f"axle{j + 1}_slip"] = w.slip[:, j].copy()
-                out[f"axle{j + 1}_adhesion_n"] = w.force_n[:, j].copy()
+                for name, a in (("speed_radps", w.omega), ("slip", w.slip), ("adhesion_n", w.force_n)):
+                    out[f"axle{j + 1}_{name}"] = a[:, j].copy() if off is None else np.where(off[:, j], np.nan, a[:, j])
         return out
 
 
