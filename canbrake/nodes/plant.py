@@ -483,8 +483,9 @@ class PlantNode(Node):
 
     def _advance(self, now: float) -> list[can.Message]:
         self._ext_deadline = None
-        self.stats.commands_missed += int((~self._fresh).sum())
-        for i in np.flatnonzero(~self._fresh):
+        missed = np.flatnonzero(~self._fresh)
+        self.stats.commands_missed += missed.size
+        for i in missed:
             self.stats.commands_missed_per_car[i] += 1
             if self._ext_mask >> int(i) & 1:
                 self.stats.external[self.ecus[int(i)].name]["periods_missed"] += 1
@@ -593,8 +594,9 @@ class PlantNode(Node):
             row += [int(x) for x in fs]
         for name, arr in cmds.items():
             row += [np.nan if arr is None else float(arr[e.vehicle - 1]) for e in self.ecus if name in e.commands]
-        for name in self._extra_measurements():
-            row += np.asarray(m[name], dtype=float).tolist()
+        extra = self._extra_measurements()
+        if extra:  # one list of Python floats for all of them (not a tolist per array)
+            row += np.concatenate([np.asarray(m[name], dtype=float) for name in extra]).tolist()
         if self._trace is not None:
             self._trace.append(row)
 

@@ -36,6 +36,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
+import math
+
 import numpy as np
 
 from canbrake.physics import _adhesion_kernel
@@ -371,7 +373,7 @@ class AdhesionTrain:
         self._accel = (self.speed_mps - v_start) / dt_s
         w = self.wheels
         self._inertia_force = w.inertia_kgm2 * (w.omega_radps - w_start) / dt_s / w.radius_m
-        if not (np.isfinite(self.speed_mps) and np.isfinite(self.position_m) and np.all(np.isfinite(w.omega_radps))):
+        if not (math.isfinite(self.speed_mps) and math.isfinite(self.position_m) and np.isfinite(w.omega_radps).all()):
             raise PlantDiverged(f"adhesion train: non-finite state at t = {self.time_s:g} s")
 
     # ---------------------------------------------------------------- outputs
