@@ -11,6 +11,8 @@ former Python float code's, in the same order (Python floats are C doubles; ``ma
 """
 from libc.math cimport exp, fabs
 
+from canbrake.physics._table cimport table_at  # the speed tables' interpolation, shared
+
 import numpy as np
 
 
@@ -42,7 +44,7 @@ def step_coupled(const double[::1] w0, const double[::1] J, const double[::1] R,
         cdef bint has_table = table is not None
         cdef const double[::1] tv
         cdef const double[::1] tf
-        cdef Py_ssize_t m = 0, lo, hi, mid
+        cdef Py_ssize_t m = 0
         cdef double s, tval, tslope
         if has_table:
             tv = np.ascontiguousarray(table[0], dtype=float)
@@ -96,20 +98,7 @@ def step_coupled(const double[::1] w0, const double[::1] J, const double[::1] R,
             if has_table:
                 s = fabs(v)
                 sgn = (1.0 if v > 0 else (-1.0 if v < 0 else 0.0)) if s > 1e-6 else 0.0
-                if s <= tv[0]:
-                    tval, tslope = tf[0], 0.0
-                elif s >= tv[m - 1]:
-                    tval, tslope = tf[m - 1], 0.0
-                else:
-                    lo, hi = 0, m - 1
-                    while hi - lo > 1:
-                        mid = (lo + hi) // 2
-                        if tv[mid] <= s:
-                            lo = mid
-                        else:
-                            hi = mid
-                    tslope = (tf[hi] - tf[lo]) / (tv[hi] - tv[lo])
-                    tval = tf[lo] + tslope * (s - tv[lo])
+                tval = table_at(&tv[0], &tf[0], m, s, &tslope)
                 fd, dfd = fd + sgn * tval, dfd + tslope
             r_v = mass * (v - v0) - dt * (sum_fa - fd)
             d = mass - dt * (sum_fv - dfd)

@@ -19,6 +19,7 @@ from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBUF_WRITABLE, Py
 from libc.math cimport fabs, isfinite, sin
 
 from canbrake.physics._npmath cimport _max, _min, _sign  # numpy's NaN rules, shared
+from canbrake.physics._table cimport table_at  # the speed tables' interpolation, shared
 
 import numpy as np
 
@@ -56,23 +57,6 @@ cdef inline double _envelope_n(const double* e, double v_mps) noexcept nogil:
     if v <= e[4]:
         return 1000.0 * (e[2] - e[3] * v)
     return 1000.0 * (e[5] / v)
-
-
-cdef inline double _interp(const double* xs, const double* ys, Py_ssize_t m, double s) noexcept nogil:
-    """The table (``xs`` increasing, ``m`` points) at ``s``: linear between points, flat beyond the
-    ends; NaN stays NaN."""
-    cdef Py_ssize_t lo = 0, hi = m - 1, mid
-    if s <= xs[0]:
-        return ys[0]
-    if s >= xs[m - 1]:
-        return ys[m - 1]
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if xs[mid] <= s:
-            lo = mid
-        else:
-            hi = mid
-    return ys[lo] + (ys[hi] - ys[lo]) * ((s - xs[lo]) / (xs[hi] - xs[lo]))
 
 
 cdef class CoupledKernel:
@@ -359,8 +343,8 @@ cdef class CoupledKernel:
                     r = brake + self.c_static.p[p * self.c_static.step + i] + speed * (
                         self.c1.p[p * self.c1.step + i] + self.c2.p[p * self.c2.step + i] * speed)
                     if self.has_table and self.tab_start[i + 1] > self.tab_start[i]:
-                        r = r + _interp(&self.tab_v[self.tab_start[i]], &self.tab_f[self.tab_start[i]],
-                                        self.tab_start[i + 1] - self.tab_start[i], speed)
+                        r = r + table_at(&self.tab_v[self.tab_start[i]], &self.tab_f[self.tab_start[i]],
+                                         self.tab_start[i + 1] - self.tab_start[i], speed, NULL)
                     hm = h * self.inv_m.p[p * self.inv_m.step + i]
                     if all_moving:
                         sgn = _sign(vi)
@@ -415,5 +399,5 @@ def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v
     for i in range(n):
         out[i] = r[i]
         if start[i + 1] > start[i]:
-            out[i] = r[i] + _interp(&table_v[start[i]], &table_f[start[i]], start[i + 1] - start[i], speed[i])
+            out[i] = r[i] + table_at(&table_v[start[i]], &table_f[start[i]], start[i + 1] - start[i], speed[i], NULL)
     return out_a
