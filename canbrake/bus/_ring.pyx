@@ -185,26 +185,18 @@ cdef class Filters:
         return self._accepts(<uint32_t>arbitration_id, bool(extended))
 
 
-cdef Py_ssize_t _first_accepted(bytes frames, Filters filters):
-    """Index of the first slot image in ``frames`` that ``filters`` accept, else -1."""
-    cdef Py_ssize_t k = PyBytes_GET_SIZE(frames) // SLOT_BYTES, i
-    cdef const char *p = PyBytes_AS_STRING(frames)
-    cdef uint32_t aid
-    for i in range(k):
-        memcpy(&aid, p + i * SLOT_BYTES + 8, 4)
-        if filters._accepts(aid, (<uint8_t>p[i * SLOT_BYTES + 16]) & M_EXT):
-            return i
-    return -1
-
-
-cdef Py_ssize_t _count_accepted(bytes frames, Filters filters, Py_ssize_t start):
-    """Slot images in ``frames`` from index ``start`` on that ``filters`` accept."""
+cdef Py_ssize_t _accepted(bytes frames, Filters filters, Py_ssize_t *first):
+    """How many slot images in ``frames`` ``filters`` accept; ``first`` gets the index of the
+    first of them (-1: none)."""
     cdef Py_ssize_t k = PyBytes_GET_SIZE(frames) // SLOT_BYTES, i, n = 0
     cdef const char *p = PyBytes_AS_STRING(frames)
     cdef uint32_t aid
-    for i in range(start, k):
+    first[0] = -1
+    for i in range(k):
         memcpy(&aid, p + i * SLOT_BYTES + 8, 4)
         if filters._accepts(aid, (<uint8_t>p[i * SLOT_BYTES + 16]) & M_EXT):
+            if n == 0:
+                first[0] = i
             n += 1
     return n
 
@@ -361,10 +353,9 @@ cdef class Ring:
                 i = 0
                 n = PyBytes_GET_SIZE(frames) // SLOT_BYTES
             else:
-                i = _first_accepted(frames, <Filters>filt)
-                if i < 0:
+                n = _accepted(frames, <Filters>filt, &i)
+                if n == 0:
                     continue
-                n = _count_accepted(frames, <Filters>filt, i)
             pending = cb_load(e + E_PENDING_BYTE)
             if pending == 0:  # the first accepted frame since it slept: where it reads from
                 cb_store(e + E_WAKE_SEQ_BYTE, <uint64_t>(w + i))

@@ -352,7 +352,7 @@ class PlantNode(Node):
     def frames_wanted(self) -> int:
         """The command pages still missing this tick, when they are sure to come (see
         :meth:`_commands_close_slots`); else 1."""
-        if self.finished or self.k < 0 or not self._commands_close_slots():
+        if self.finished or not self._commands_close_slots():
             return 1
         return max(1, self._n_pages - int(self._fresh_pages.sum()))
 
