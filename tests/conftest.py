@@ -22,6 +22,24 @@ def case1_short():
     return load_scenario(CASE1, overrides={"duration_s": 0.3})
 
 
+def component_scenario(types: dict, vehicles: list, speed_kmh: float = 60.0, **train: object) -> dict:
+    """A scenario mapping of a train built from ``train.vehicle_types`` and ``vehicles`` (issue
+    27's component schema), 2 s at 10 ms from ``speed_kmh``; ``train``: further train-level keys."""
+    return {"name": "t", "duration_s": 2.0, "control_period_s": 0.01,
+            "train": {"vehicle_types": types, "vehicles": vehicles, **train},
+            "initial": {"speed_kmh": speed_kmh}, "reference": {"speed_kmh": speed_kmh, "decel_kmh_per_s": 1.0}}
+
+
+def component_plant(data: dict):
+    """The coupled kernel's TrainPlant that scenario mapping ``data`` builds."""
+    import copy
+
+    from canbrake.build import build_plant_model
+    from canbrake.scenario import resolve
+
+    return build_plant_model(resolve(copy.deepcopy(data), "t.yaml")).plant
+
+
 def default_sigint() -> None:
     """preexec_fn for children the tests interrupt: a shell that starts jobs in the background
     hands them SIGINT ignored, and Python then never raises KeyboardInterrupt; restore it."""

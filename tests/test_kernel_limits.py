@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import component_plant, component_scenario
+
 from canbrake.build import build_plant_model
 from canbrake.consist import components as C
 from canbrake.errors import ScenarioError
@@ -39,14 +41,6 @@ def _davis_table(c: tuple[float, float, float], top_mps: float = 45.0, step: flo
     return {"model": "table", "speed_mps": v.tolist(), "force_n": (c[0] + c[1] * v + c[2] * v * v).tolist()}
 
 
-def _scenario(types: dict, vehicles: list, speed_kmh: float = 60.0, **train: object) -> dict:
-    return {"name": "t", "duration_s": 2.0, "control_period_s": 0.01,
-            "train": {"vehicle_types": types, "vehicles": vehicles, **train},
-            "initial": {"speed_kmh": speed_kmh}, "reference": {"speed_kmh": speed_kmh, "decel_kmh_per_s": 1.0}}
-
-
-def _plant(data: dict) -> TrainPlant:
-    return build_plant_model(resolve(copy.deepcopy(data), "t.yaml")).plant
 
 
 # --- 1. resistance tables ------------------------------------------------------------------------
@@ -97,12 +91,11 @@ def test_table_and_davis_vehicles_in_one_train() -> None:
     davis = {"model": "davis", "c0_n": DAVIS[0], "c1_n_s_per_m": DAVIS[1], "c2_n_s2_per_m2": DAVIS[2]}
     vehicles = [{"type": "d"}, {"type": "t"}, {"type": "d"}, {"type": "t"}]
     base = {"mass_kg": 30000.0, "length_m": 20.0, "coupler": coupler}
-    ref = _plant(_scenario({"d": {**base, "resistance": davis}, "t": {**base, "resistance": davis}}, vehicles))
-    mixed = _plant(_scenario({"d": {**base, "resistance": davis}, "t": {**base, "resistance": _davis_table(DAVIS)}},
-                             vehicles))
-    zero = _plant(_scenario({"d": {**base, "resistance": davis},
-                             "t": {**base, "resistance": {"model": "table", "speed_mps": [0, 1], "force_n": [0, 0]}}},
-                            vehicles))
+    d = {**base, "resistance": davis}
+    ref = component_plant(component_scenario({"d": d, "t": d}, vehicles))
+    mixed = component_plant(component_scenario({"d": d, "t": {**base, "resistance": _davis_table(DAVIS)}}, vehicles))
+    zero = component_plant(component_scenario(
+        {"d": d, "t": {**base, "resistance": {"model": "table", "speed_mps": [0, 1], "force_n": [0, 0]}}}, vehicles))
     assert mixed.resistance_table is not None and mixed.resistance_table[0] is None
     for _ in range(300):
         for p in (ref, mixed, zero):
@@ -161,7 +154,7 @@ def test_a_locomotive_envelope_on_chen_couplers_from_a_scenario() -> None:
     coupler = {"model": "chen", "stiffness_n_per_m": 2.0e6, "epsilon_per_m2": 0.0}
     types = {"loco": {"mass_kg": 138000.0, "length_m": 20.0, "coupler": coupler, "traction": {"model": "envelope", **HXD1}},
              "car": {"mass_kg": 40000.0, "length_m": 20.0, "coupler": coupler}}
-    data = _scenario(types, [{"type": "loco"}, {"type": "car", "count": 2}], speed_kmh=72.0)
+    data = component_scenario(types, [{"type": "loco"}, {"type": "car", "count": 2}], speed_kmh=72.0)
     scn = resolve(copy.deepcopy(data), "t.yaml")
     assert scn.train.kernel_name == "coupled"
     p = build_plant_model(scn).plant
@@ -180,8 +173,8 @@ def test_each_vehicle_follows_its_own_first_order_lag() -> None:
     types = {"slow": {"mass_kg": 30000.0, "length_m": 20.0, "coupler": coupler, "brake": {**ep, "lag_s": 1.2}},
              "fast": {"mass_kg": 30000.0, "length_m": 20.0, "coupler": coupler, "brake": {**ep, "lag_s": 0.5}},
              "ideal": {"mass_kg": 30000.0, "length_m": 20.0, "coupler": coupler, "brake": {"model": "ideal"}}}
-    p = _plant(_scenario(types, [{"type": "slow"}, {"type": "ideal"}, {"type": "fast"}], speed_kmh=80.0,
-                         every_vehicle={"resistance": {"model": "davis"}}))
+    p = component_plant(component_scenario(types, [{"type": "slow"}, {"type": "ideal"}, {"type": "fast"}],
+                                           speed_kmh=80.0, every_vehicle={"resistance": {"model": "davis"}}))
     assert p.actuator.time_constant_s == (1.2, 0.0, 0.5)
     f = np.full(3, 2.0e4)
     for k in range(1, 151):
@@ -206,7 +199,7 @@ def test_uniform_lag_lowers_to_one_value_and_stacks_keep_per_vehicle_lags() -> N
     coupler = {"model": "chen", "stiffness_n_per_m": 2.0e6, "epsilon_per_m2": 0.0}
     same = {"a": {"mass_kg": 30000.0, "length_m": 20.0, "coupler": coupler,
                   "brake": {"model": "electro_pneumatic", "lag_s": 0.4}}}
-    assert _plant(_scenario(same, [{"type": "a", "count": 3}])).actuator.time_constant_s == 0.4
+    assert component_plant(component_scenario(same, [{"type": "a", "count": 3}])).actuator.time_constant_s == 0.4
     act = BrakeActuator(kind="realistic", time_constant_s=(0.3, 0.0, 0.9), jerk_limit_mps3=(1.0, math.inf, 2.0))
     plants = [TrainPlant([3e4, 3.1e4, 2.9e4], [0.0, -20.0, -40.0], [20.0 + i, 20.0, 20.0], actuator=act,
                          coupler_stiffness_n_per_m=2e6, coupler_nonlinearity_per_m2=0.0) for i in range(3)]
@@ -236,7 +229,7 @@ def test_brake_blending_may_differ_per_vehicle_now() -> None:
     vehicle beside one without blending is accepted, each car with its own."""
     types = {"a": {"mass_kg": 2e4, "brake": {"model": "ideal", "blending": {}}},
              "b": {"mass_kg": 2e4, "brake": {"model": "electro_pneumatic"}}}
-    b = resolve(_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml").consist.brakes
+    b = resolve(component_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml").consist.brakes
     assert b.blending is not None and [c.blending is not None for c in b.cars] == [True, False]
 
 
@@ -322,7 +315,7 @@ def test_easing_with_different_lags_needs_its_own_lag_and_plots_take_the_largest
     types = {"a": {"mass_kg": 2e4, "brake": {"model": "ideal", "max_brake_decel_mps2": 1.2}},
              "b": {"mass_kg": 2e4, "brake": {"model": "electro_pneumatic", "lag_s": 0.4, "max_brake_decel_mps2": 1.4,
                                              "jerk_limit_mps3": 0.8}}}
-    data = _scenario(types, [{"type": "a"}, {"type": "b"}])
+    data = component_scenario(types, [{"type": "a"}, {"type": "b"}])
     meta = plot_meta(resolve(copy.deepcopy(data), "t.yaml"))
     assert (meta.emergency_decel_mps2, meta.jerk_limit_mps3) == (1.4, 0.8)
     data["train"]["every_vehicle"] = {"brake": {"easing": {"time_constant_s": 1.0}}}
@@ -373,7 +366,7 @@ def test_vehicle_types_with_different_end_stops_lower_to_one_per_coupler() -> No
              "b": {"mass_kg": 3e4, "length_m": 20.0, "coupler": {**chen, "end_stop_m": 0.05,
                                                                  "end_stop_absorption": 0.3}},
              "c": {"mass_kg": 3e4, "length_m": 20.0, "coupler": chen}}
-    scn = resolve(_scenario(types, [{"type": "a"}, {"type": "c"}, {"type": "b"}, {"type": "a"}]), "t.yaml")
+    scn = resolve(component_scenario(types, [{"type": "a"}, {"type": "c"}, {"type": "b"}, {"type": "a"}]), "t.yaml")
     c = scn.consist.coupler
     assert c.end_stop_m == [0.08, None, 0.05] and c.end_stop_absorption == [0.6, 0.6, 0.3]
     assert c.end_stop_stiffness_n_per_m == 2e7
@@ -383,7 +376,7 @@ def test_vehicle_types_with_different_end_stops_lower_to_one_per_coupler() -> No
     types["b"]["coupler"]["end_stop_absorption"] = 1.0
     with pytest.raises(ScenarioError, match=r"train.vehicle_types.b.coupler.end_stop_absorption: Input should be less "
                                             r"than 1"):
-        resolve(_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml")
+        resolve(component_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml")
 
 
 def test_a_table_on_the_rigid_train_with_driven_axles_runs_as_its_davis_curve() -> None:

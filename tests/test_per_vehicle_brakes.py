@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 import yaml
 
+from conftest import component_plant, component_scenario
+
 from canbrake.build import build_controller, build_plant_model
 from canbrake.errors import ScenarioError
 from canbrake.physics.train import TrainPlant
@@ -23,14 +25,6 @@ ROOT = Path(__file__).resolve().parents[1]
 KMH = 1 / 3.6
 
 
-def _scenario(types: dict, vehicles: list, speed_kmh: float = 60.0, **train: object) -> dict:
-    return {"name": "t", "duration_s": 2.0, "control_period_s": 0.01,
-            "train": {"vehicle_types": types, "vehicles": vehicles, **train},
-            "initial": {"speed_kmh": speed_kmh}, "reference": {"speed_kmh": speed_kmh, "decel_kmh_per_s": 1.0}}
-
-
-def _plant(data: dict) -> TrainPlant:
-    return build_plant_model(resolve(copy.deepcopy(data), "t.yaml")).plant
 
 
 # --- 1. blending per vehicle ---------------------------------------------------------------------
@@ -43,7 +37,7 @@ def _mixed_blending(speed_kmh: float) -> dict:
     types = {"a": {"mass_kg": M, "brake": {"model": "ideal", "blending": _A}},
              "b": {"mass_kg": M, "brake": {"model": "ideal", "blending": _B}},
              "c": {"mass_kg": M, "brake": {"model": "ideal"}}}  # friction only
-    return _scenario(types, [{"type": "a"}, {"type": "b"}, {"type": "c"}], speed_kmh=speed_kmh)
+    return component_scenario(types, [{"type": "a"}, {"type": "b"}, {"type": "c"}], speed_kmh=speed_kmh)
 
 
 def test_each_car_splits_its_demand_by_its_own_blending() -> None:
@@ -51,7 +45,7 @@ def test_each_car_splits_its_demand_by_its_own_blending() -> None:
     sub-steps: car a's ED brake gives m·1.0 = 40 kN and its friction brake follows the 20 kN rest
     with 0.2 s lag; car b's ED 20 kN, friction 40 kN with 0.5 s lag; car c (no blending) has no ED
     brake and its friction brake gives the 60 kN at once, as without blending."""
-    p = _plant(_mixed_blending(60.0))
+    p = component_plant(_mixed_blending(60.0))
     F, t = 60000.0, 0.01
     p.step(t, np.full(3, F))
     m = p.equipment_measurements()
@@ -60,7 +54,7 @@ def test_each_car_splits_its_demand_by_its_own_blending() -> None:
     np.testing.assert_allclose(m["friction_brake_n"], want, rtol=1e-9)
     # the rail force: ED + friction (car c: the whole demand, like a train without blending)
     np.testing.assert_allclose(p.applied_force_n, np.asarray(want) + [M, M * 0.5, 0.0], rtol=1e-9)
-    alone = _plant(_scenario({"c": {"mass_kg": M, "brake": {"model": "ideal"}}}, [{"type": "c"}] * 3))
+    alone = component_plant(component_scenario({"c": {"mass_kg": M, "brake": {"model": "ideal"}}}, [{"type": "c"}] * 3))
     alone.step(t, np.full(3, F))
     assert p.applied_force_n[2] == alone.applied_force_n[2] == F
 
@@ -68,14 +62,14 @@ def test_each_car_splits_its_demand_by_its_own_blending() -> None:
 def test_each_car_fades_by_its_own_speeds() -> None:
     """At 15 km/h (one sub-step of 1 ms, the speed it is computed at): car a (fade 10 -> 3 km/h)
     has its full ED force; car b (fade 20 -> 8 km/h) fades to (15 − 8)/(20 − 8) = 7/12 of m·0.5."""
-    p = _plant(_mixed_blending(15.0))
+    p = component_plant(_mixed_blending(15.0))
     p.step(0.001, np.full(3, 60000.0))
     ed = p.equipment_measurements()["ed_brake_n"]
     np.testing.assert_allclose(ed, [M * 1.0, M * 0.5 * 7 / 12, 0.0], rtol=1e-12)
     # the same split with both cars of type b's blending throughout: car a's ED is then 7/12 too
     d = _mixed_blending(15.0)
     d["train"]["vehicle_types"]["a"]["brake"]["blending"] = _B
-    q = _plant(d)
+    q = component_plant(d)
     q.step(0.001, np.full(3, 60000.0))
     np.testing.assert_allclose(q.equipment_measurements()["ed_brake_n"][:2], [M * 0.5 * 7 / 12] * 2, rtol=1e-12)
 
@@ -86,7 +80,7 @@ def test_an_ed_brake_on_a_vehicle_without_blending_is_refused() -> None:
     with pytest.raises(ScenarioError, match=r"^t.yaml: train.vehicle_types.c.brake.ed_brake: an ED brake is blended "
                                             r"with the friction brake by brake.blending, which vehicle type c's brake "
                                             r"does not have$"):
-        resolve(_scenario(types, [{"type": "a"}, {"type": "c"}]), "t.yaml")
+        resolve(component_scenario(types, [{"type": "a"}, {"type": "c"}]), "t.yaml")
 
 
 def test_ed_brake_under_per_vehicle_blending() -> None:
@@ -95,7 +89,7 @@ def test_ed_brake_under_per_vehicle_blending() -> None:
     types = {"a": {"mass_kg": M, "brake": {"model": "ideal", "blending": _A,
                                            "ed_brake": {"model": "per_mass", "max_decel_mps2": 0.8}}},
              "b": {"mass_kg": M, "brake": {"model": "ideal", "blending": _B}}}
-    p = _plant(_scenario(types, [{"type": "a"}, {"type": "b"}]))
+    p = component_plant(component_scenario(types, [{"type": "a"}, {"type": "b"}]))
     p.step(0.001, np.full(2, 60000.0))
     np.testing.assert_allclose(p.equipment_measurements()["ed_brake_n"], [M * 0.8, M * 0.5], rtol=1e-12)
 
@@ -183,7 +177,7 @@ def test_easing_per_vehicle() -> None:
              "b": {"mass_kg": M, "brake": {"model": "electro_pneumatic", "lag_s": 0.3, "blending": _A,
                                            "easing": {"time_constant_s": 2.0}}},
              "c": {"mass_kg": M, "brake": {"model": "electro_pneumatic", "lag_s": 0.3, "blending": _A}}}
-    data = _scenario(types, [{"type": "a"}, {"type": "b"}, {"type": "c"}])
+    data = component_scenario(types, [{"type": "a"}, {"type": "b"}, {"type": "c"}])
     data["controller"] = {"name": "pi"}
     scn = resolve(data, "t.yaml")
     gains = [getattr(build_controller(scn, i), "ease_gain", None) for i in (1, 2, 3)]
@@ -192,7 +186,7 @@ def test_easing_per_vehicle() -> None:
     types["b"]["brake"]["easing"]["time_constant_s"] = 0.4
     with pytest.raises(ScenarioError, match=r"^t.yaml: train.vehicle_types.b.brake.easing.time_constant_s: must "
                                             r"exceed the brake lag it anticipates \(0.5 s"):
-        resolve(_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml")
+        resolve(component_scenario(types, [{"type": "a"}, {"type": "b"}]), "t.yaml")
 
 
 def test_components_lists_the_brake_functions_per_vehicle() -> None:
@@ -266,7 +260,7 @@ def test_wheels_per_vehicle_from_the_scenario() -> None:
              "t": {"mass_kg": M, "brake": {"model": "ideal"},
                    "wheels": {"model": "wheelsets", "axles": 2, "radius_m": 0.46, "inertia_kgm2": 200}},
              "x": {"mass_kg": M, "brake": {"model": "ideal"}}}
-    data = _scenario(types, [{"type": "m"}, {"type": "x"}, {"type": "t"}])
+    data = component_scenario(types, [{"type": "m"}, {"type": "x"}, {"type": "t"}])
     data["controller"] = {"name": "pi"}
     scn = resolve(copy.deepcopy(data), "t.yaml")
     w = build_plant_model(scn).plant.wheels
@@ -282,7 +276,7 @@ def test_wheels_per_vehicle_from_the_scenario() -> None:
 def test_a_bad_every_vehicle_value_is_reported_once_where_it_is_written(tmp_path: Path) -> None:
     """train.every_vehicle is merged over every vehicle type; its bad value is one line naming
     train.every_vehicle (exit 2), not one line per vehicle type."""
-    data = _scenario({"motor": {"mass_kg": M, "brake": {"model": "ideal"}},
+    data = component_scenario({"motor": {"mass_kg": M, "brake": {"model": "ideal"}},
                       "trailer": {"mass_kg": M, "brake": {"model": "ideal"}}}, [{"type": "motor"}, {"type": "trailer"}],
                      every_vehicle={"brake": {"blending": {"fade_end_kmh": 20}}})
     path = tmp_path / "ev.yaml"
