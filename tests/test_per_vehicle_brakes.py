@@ -193,7 +193,7 @@ def test_components_lists_the_brake_functions_per_vehicle() -> None:
     r = subprocess.run([sys.executable, "-m", "canbrake", "components"], capture_output=True, text=True, cwd=ROOT,
                        timeout=120)
     assert r.returncode == 0, r.stderr
-    line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("per vehicle: mass, resistance (davis or"))
+    line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("per vehicle: mass, resistance (davis, table or per_weight"))
     assert "blending (or none: friction only), easing, wsp" in line and "wheelsets (axles, radius, inertia, or none)" in line
     assert "once for the train: the wheel-rail slip curve" in line
 
