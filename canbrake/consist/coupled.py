@@ -200,6 +200,23 @@ class TrainConfig(_Model):
         return {"k_full_kn": float(r.block_force_kn()), "n_blocks": float(r.blocks()),
                 "friction_coef": float(r.friction_coefficient), "beta_c": float(self.air_brake.service_factor)}
 
+    def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
+        """ValueError (one line) for an ECU that works the driver's brake valve (``airbrake_apply``)
+        anywhere but on the leading vehicle, where the brake pipe is fed (trains with air brakes)."""
+        if self.air_brake is None:
+            return
+        from canbrake.control.base import controller_class
+
+        for p in placed:
+            try:
+                cmds = tuple(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
+            except Exception:  # noqa: BLE001 - an unknown controller is reported by its own check
+                continue
+            if "airbrake_apply" in cmds and p.vehicle != 1:
+                raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which works "
+                                 "the driver's brake valve (airbrake_apply): the valve is on the leading vehicle "
+                                 "(vehicle 1), where the brake pipe is fed; place that ECU on vehicle 1")
+
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
         from canbrake.build import build_coupled_plant
 
