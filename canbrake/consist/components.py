@@ -38,9 +38,10 @@ list: one vehicle per value), so Chen's six different cars are one type and one 
 
 The assembler (:meth:`TrainSpec.assemble`) builds the plant through the one plant contract
 (:mod:`canbrake.physics.contract`). In this stage it chooses among the three physics kernels by the
-components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes ->
-``TrainPlant``; draft gears with air brakes -> ``HeavyHaulModel``; rigid coupling with driven axles
--> ``AdhesionTrain``. A combination no kernel implements yet is refused in one line that names the
+components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes, and trains
+mixing them with Li's draft gears, air brakes and per-weight resistance -> ``TrainPlant``; draft
+gears with air brakes alone -> ``HeavyHaulModel`` (the first vehicle's coupler picks the kernel
+tried first, :data:`_NATIVE_COUPLER`); rigid coupling with driven axles -> ``AdhesionTrain``. A combination no kernel implements yet is refused in one line that names the
 vehicle type, its components and what each kernel takes.
 """
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 Internal: the user writes ``train:`` as components (:mod:`canbrake.consist.components`); the
 assembler lowers a train whose couplers are Chen's and whose brakes are ideal or
-electro-pneumatic into a :class:`TrainConfig` (per-car lists, SI) and an :class:`ActuatorConfig`.
+electro-pneumatic, or that mixes them with Li's draft gears, air brakes and per-weight resistance,
+into a :class:`TrainConfig` (per-car lists, SI) and an :class:`ActuatorConfig`.
 Also home of the strict base model every scenario section derives from (``_Model``).
 """
 from __future__ import annotations
