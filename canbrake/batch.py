@@ -21,10 +21,9 @@ about the same for 8 points as for 64):
   ECU slots whose controllers differ only in car and mass (``group_key``: Chen's) step together,
   one call per tick for every slot and point (:class:`~canbrake.control.chen.ChenBatch`, arrays
   of points x slots); otherwise each point's own controller steps.
-* **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no wheelsets, no
-  resistance tables or traction envelopes, end stops the same on every coupler and never
-  refining the sub-step) step as one stack with a leading points axis; otherwise
-  each its own.
+* **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no wheelsets,
+  the same resistance tables, traction envelopes and end stops at every point, end stops never
+  refining the sub-step) step as one stack with a leading points axis; otherwise each its own.
 
 Every path gives each point the floats its per-point run computes: tests/test_batch_sweep.py
 compares them text for text, tests/test_control.py, test_physics.py and test_impair.py the batch

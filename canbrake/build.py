@@ -195,13 +195,17 @@ def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
         axles: Any = w.axles
         radius: Any = w.radius_m
         inertia: Any = w.inertia_kgm2
-        if b.wheels_per_car is not None:  # per car; 0 axles: a car without wheels
-            cars = b.wheels_per_car
-            axles = [0 if c is None else c.axles for c in cars]
-            radius = [1.0 if c is None else c.radius_m for c in cars]
-            inertia = [1.0 if c is None else c.inertia_kgm2 for c in cars]
+        floor: Any = w.v_floor_mps
+        curves: Any = curve
+        if b.wheels_per_car is not None:  # per car; 0 axles: a car without wheels (its curve unused)
+            cars = [c or w for c in b.wheels_per_car]
+            axles = [0 if c is None else c.axles for c in b.wheels_per_car]
+            radius = [1.0 if c is None else c.radius_m for c in b.wheels_per_car]
+            inertia = [1.0 if c is None else c.inertia_kgm2 for c in b.wheels_per_car]
+            curves = [RailCondition(b1=c.b1, b2=c.b2, b3=c.b3, c1=c.c1, c2=c.c2, c3=c.c3, peak_mu0=1.0) for c in cars]
+            floor = [c.v_floor_mps for c in cars]
         wheels = Wheelsets(scn.vehicle_masses_kg(), axles, radius, inertia, scn.initial_speed_mps(),
-                           curve=curve, v_floor_mps=w.v_floor_mps)
+                           curve=curves, v_floor_mps=floor)
     return blending, wheels, _per_car_wsp(b, "valve_lag_s", 0.05, scn.n_cars)
 
 

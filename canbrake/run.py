@@ -186,7 +186,6 @@ def prepare_run_dir(scn: Scenario, out_dir: str | Path, dbc_path: str | Path | N
         if user is not None:
             (out / user[0]).write_bytes(user[1])
         (out / "scenario.yaml").write_text(scn.to_yaml())
-        (out / "plots").mkdir(exist_ok=True)
     except OSError as e:
         raise RunDirError(f"--out {out}: cannot write the run directory: {e.strerror or e}") from None
     return out

@@ -194,8 +194,8 @@ def test_components_lists_the_brake_functions_per_vehicle() -> None:
                        timeout=120)
     assert r.returncode == 0, r.stderr
     line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("per vehicle: mass, resistance (davis, table or per_weight"))
-    assert "blending (or none: friction only), easing, wsp" in line and "wheelsets (axles, radius, inertia, or none)" in line
-    assert "once for the train: the wheel-rail slip curve" in line
+    assert "blending (or none: friction only), easing, wsp" in line and "wheelsets (axles, radius, inertia," in line
+    assert "slip curve b1..b3, c1..c3, v_floor_mps, or none); once for the train: the rail conditions" in line
 
 
 # --- 4. wheelsets per vehicle ---------------------------------------------------------------------
@@ -266,10 +266,63 @@ def test_wheels_per_vehicle_from_the_scenario() -> None:
     w = build_plant_model(scn).plant.wheels
     assert w.p == 4 and list(w.active) == [4, 0, 2] and list(w.R[[0, 2]]) == [0.42, 0.46]
     assert build_controller(scn, 1).axles == 4
-    data["train"]["vehicle_types"]["t"]["wheels"]["b3"] = 2.0
-    with pytest.raises(ScenarioError, match=r"^t.yaml: train.vehicle_types.t.wheels.b3: the coupled kernel "
-                                            r"\(TrainPlant\) takes one wheel-rail slip curve .* differ \(10.0 and 2.0"):
-        resolve(data, "t.yaml")
+    assert len(w.curves) == 1 and list(w.v_floor) == [0.1]  # one slip curve: the train's
+    # a slip curve and v_floor of its own (physics below): each car's wheels, its ECU's slip estimate
+    data["train"]["vehicle_types"]["t"]["wheels"].update(b3=2.0, v_floor_mps=0.3)
+    scn = resolve(copy.deepcopy(data), "t.yaml")
+    w = build_plant_model(scn).plant.wheels
+    assert [c.b3 for c in w.curves] == [10.0, 10.0, 2.0] and list(w.v_floor) == [0.1, 0.1, 0.3]
+    data["train"]["vehicle_types"]["t"]["brake"]["wsp"] = {}
+    scn = resolve(copy.deepcopy(data), "t.yaml")
+    assert build_controller(scn, 3).v_floor == 0.3 and build_controller(scn, 1).v_floor == 0.1
+
+
+def _lone_or_train(curves: list, floors: list, cars: list[int], v0: float) -> TrainPlant:
+    """Cars ``cars`` of a 40-t train on (almost) no couplers, four wheelsets each (R 0.42 m, J 120
+    kg·m²), braking from ``v0`` (m/s) on a rail of μ 0.3 with their own slip curves and v_floor."""
+    from canbrake.physics.brakes import Wheelsets
+    from canbrake.physics.rail import RailConditions
+    from canbrake.physics.resistance import DavisResistance
+
+    n = len(cars)
+    z = np.zeros(n)
+    return TrainPlant(np.full(n, M), [-20.0 * i for i in range(n)], np.full(n, v0), coupler_stiffness_n_per_m=1e-6,
+                      coupler_nonlinearity_per_m2=0.0, resistance=DavisResistance(z, z.copy(), z.copy()),
+                      rail=RailConditions(base_adhesion_mu=0.3), max_substep_s=0.001,
+                      wheels=Wheelsets(np.full(n, M), 4, 0.42, 120.0, np.full(n, v0),
+                                       curve=[curves[i] for i in cars], v_floor_mps=[floors[i] for i in cars]))
+
+
+@pytest.mark.parametrize("v0, ticks", [(20.0, 150), (0.4, 12)], ids=["sliding", "below-the-floor"])
+def test_each_car_slides_on_its_own_slip_curve_and_floor(v0: float, ticks: int) -> None:
+    """Three cars with different slip curves and floors (Cai's dry rail; a curve peaking at a larger
+    slip with a flatter fall; dry with v_floor 1 m/s instead of 0.1) braked beyond adhesion: each car
+    of the train moves, spins and slips as the same car alone on its own curve (to 1e-9: the cars
+    are coupled by 1e-6 N/m), and the cars differ: at speed by their curves, below 1 m/s by their
+    floors (λ = (ωR − v)/max(ωR, v, v_floor))."""
+    from canbrake.physics.wheel_adhesion import RailCondition
+
+    dry = RailCondition(b1=1.786, b2=40.0, b3=10.0, c1=0.040, c2=3.78, c3=33.3, peak_mu0=1.0)
+    soft = RailCondition(b1=1.2, b2=12.0, b3=4.0, c1=0.040, c2=3.78, c3=33.3, peak_mu0=1.0)
+    curves, floors = [dry, soft, dry], [0.1, 0.1, 1.0]
+    train = _lone_or_train(curves, floors, [0, 1, 2], v0)
+    lone = [_lone_or_train(curves, floors, [i], v0) for i in range(3)]
+    cmd = np.full(3, 0.4 * M * 9.81)  # above μ m g: the wheels slide
+    slips = []
+    for _ in range(ticks):
+        train.step(0.01, cmd)
+        slips.append(train.wheels.slip[:, 0].copy())
+        for i, p in enumerate(lone):
+            p.step(0.01, cmd[:1])
+    for i, p in enumerate(lone):
+        assert train.speed_mps[i] == pytest.approx(p.speed_mps[0], rel=1e-9, abs=1e-12)
+        np.testing.assert_allclose(train.wheels.omega[i], p.wheels.omega[0], rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(train.wheels.slip[i], p.wheels.slip[0], rtol=1e-7, atol=1e-12)
+    d = np.abs(np.array(slips) - np.array(slips)[:, :1]).max(axis=0)  # each car's slip against car 1's
+    if v0 > 1.0:
+        assert d[1] > 0.01 and d[2] == 0.0  # the curve matters, the floor not at speed
+    else:
+        assert d[2] > 0.01  # below 1 m/s car 3's floor sets its slip
 
 
 # --- 5. cleanups ----------------------------------------------------------------------------------

@@ -328,6 +328,7 @@ def plot_bus(run_dir: Path, out_dir: Path, title: str = "") -> list[str]:
         rows = list(csv.DictReader(f))
     if not rows:
         return []
+    out_dir.mkdir(parents=True, exist_ok=True)
     t = np.array([float(r["t_s"]) for r in rows])
     load = np.array([float(r["bus_load"]) for r in rows])
     errs = np.array([float(r["error_frames"] or 0) for r in rows])

@@ -160,7 +160,7 @@ class BrakeSystemConfig(StrictModel):
     cars: list[CarBrakes] | None = None
     wheels_per_car: list[WheelsConfig | None] | None = Field(
         None, description="None where every car has ``wheels``; else per car its wheelsets (None: no wheels), "
-                          "with one slip curve and v_floor_mps (those of ``wheels``, the first car's that has them)")
+                          "each with its own slip curve and v_floor_mps (``wheels``: the first car's that has them)")
 
     def car_wheels(self, i: int) -> WheelsConfig | None:
         """Car ``i``'s (0-based) wheelsets (None: none)."""

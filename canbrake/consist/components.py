@@ -491,9 +491,9 @@ KERNEL_LIMITS: dict[str, str] = {
     "coupled": "per vehicle: mass, resistance (davis, table or per_weight), coupler (chen/linear: stiffness, ε, "
                "end stop; or Li's draft_gear), brake model (ideal, electro_pneumatic or air), lag, jerk limit, "
                "ratings, ED brake, blending (or none: friction only), easing, wsp, traction envelope, wheelsets "
-               "(axles, radius, inertia, or none) but none under an air brake; once for the train: the "
-               "wheel-rail slip curve (b1..b3, c1..c3, v_floor_mps) and the air brake (train.air_brake, fed "
-               "from a locomotive at the head); a constant grade (no route)",
+               "(axles, radius, inertia, slip curve b1..b3, c1..c3, v_floor_mps, or none) but none under an air "
+               "brake; once for the train: the rail conditions (train.wheel_rail), the air brake "
+               "(train.air_brake, fed from a locomotive at the head) and a constant grade (no route)",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
                 "conditions",
@@ -659,22 +659,10 @@ class TrainSpec(_Model):
         return first
 
     def _wheels(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> BaseModel | None:
-        """The first vehicle's wheelsets that has them: vehicles may differ in ``axles``, ``radius_m``
-        and ``inertia_kgm2`` or have none; the slip curve and ``v_floor_mps`` are one for the train."""
-        own = frozenset({"model", "axles", "radius_m", "inertia_kgm2"})
-        with_wheels = [(name, vt.wheels) for name, vt in {n: t for n, t, _ in ex}.items() if vt.wheels is not None]
-        if not with_wheels:
-            return None
-        first_name, first = with_wheels[0]
-        for name, w in with_wheels[1:]:
-            for f, value in w.model_dump(exclude=set(own)).items():
-                if value != getattr(first, f):
-                    raise ValueError(f"@vehicle_types.{name}.wheels.{f}: the coupled kernel (TrainPlant) takes one "
-                                     f"wheel-rail slip curve (b1..b3, c1..c3) and v_floor_mps for the whole train "
-                                     f"(axles, radius_m and inertia_kgm2 may differ); vehicle types {first_name} and "
-                                     f"{name} differ ({getattr(first, f)!r} and {value!r}; set it in "
-                                     f"train.every_vehicle.wheels)")
-        return first
+        """The first vehicle's wheelsets that has them (the train's, as the brake functions see them);
+        vehicles may differ in every field (axles, radius, inertia, slip curve, ``v_floor_mps``) or have
+        none: ``wheels_per_car`` then holds each car's."""
+        return next((vt.wheels for _, vt, _ in ex if vt.wheels is not None), None)
 
     def _lower_coupled(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
         from canbrake.consist.brakes import BrakeSystemConfig
@@ -756,7 +744,7 @@ class TrainSpec(_Model):
                  "per_car": [None if e is None else e.model_dump() for e in eds]})
         if wheels is not None:
             parts["wheels"] = WheelsConfig.model_validate(_params(wheels))
-            if any(_params(vt.wheels) != _params(wheels) for _, vt, _ in ex):  # axles, radius or inertia differ
+            if any(_params(vt.wheels) != _params(wheels) for _, vt, _ in ex):  # some vehicles' wheels differ
                 parts["wheels_per_car"] = [None if vt.wheels is None else WheelsConfig.model_validate(_params(vt.wheels))
                                            for _, vt, _ in ex]
         if any(v is not None for v in parts.values()):

@@ -89,7 +89,8 @@ cdef class EquipmentKernel:
     every car has p axles; or per car its number of axles, 0 for a car without wheels, whose brake
     and resistance act on its body as without wheelsets; a car's axles beyond its own are inactive:
     ω, creep force and slip 0), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
-    ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), ``iters`` Newton iterations.
+    ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), each one value for the train or one per
+    car, ``iters`` Newton iterations.
     ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
     """
 
@@ -97,8 +98,8 @@ cdef class EquipmentKernel:
     cdef double g
     cdef const double[::1] ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent
     cdef const double[:, ::1] env
-    cdef Py_ssize_t p, iters, nR, nJ
-    cdef double b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor
+    cdef Py_ssize_t p, iters, nR, nJ, nsc
+    cdef const double[::1] b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor  # the slip curve: 1 or n values
     cdef const double[::1] R, J
     cdef const double[:, ::1] N
     cdef Py_ssize_t[::1] na
@@ -106,9 +107,8 @@ cdef class EquipmentKernel:
 
     def __init__(self, *, bint blending, ed_max, ed_power, fade_start, fade_end,
                  friction_lag_s, valve_lag_s, max_vent_s, bint adhesion_limited,
-                 double gravity, envelope=None, int axles=0, R=1.0, J=1.0, N=None, active=None, double b1=0.0,
-                 double b2=0.0, double b3=1.0, double c1=0.0, double c2=0.0, double c3=1.0, double mu0=1.0,
-                 double peak_curve=1.0, double v_floor=0.1, int iters=5):
+                 double gravity, envelope=None, int axles=0, R=1.0, J=1.0, N=None, active=None, b1=0.0,
+                 b2=0.0, b3=1.0, c1=0.0, c2=0.0, c3=1.0, mu0=1.0, peak_curve=1.0, v_floor=0.1, int iters=5):
         self.blending = blending
         self.ed_max = np.ascontiguousarray(np.atleast_1d(np.asarray(ed_max, dtype=float)))
         self.ed_power = np.ascontiguousarray(np.atleast_1d(np.asarray(ed_power, dtype=float)))
@@ -121,8 +121,11 @@ cdef class EquipmentKernel:
         self.p, self.iters = axles, iters
         self.R, self.J = arr(R), arr(J)
         self.nR, self.nJ = self.R.shape[0], self.J.shape[0]
-        self.b1, self.b2, self.b3, self.c1, self.c2, self.c3 = b1, b2, b3, c1, c2, c3
-        self.mu0, self.peak_curve, self.v_floor = mu0, peak_curve, v_floor
+        sc = [arr(x) for x in (b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor)]
+        if len({x.shape[0] for x in sc}) != 1:
+            raise ValueError("the slip curve's coefficients need one value each, or one per car each")
+        self.b1, self.b2, self.b3, self.c1, self.c2, self.c3, self.mu0, self.peak_curve, self.v_floor = sc
+        self.nsc = sc[0].shape[0]
         if axles > 0:
             self.N = np.ascontiguousarray(N, dtype=float)
             na = np.full(self.N.shape[0], axles, dtype=np.intp) if active is None else np.asarray(active, dtype=np.intp)
@@ -259,12 +262,14 @@ cdef class EquipmentKernel:
         (N, + forward), ∂F/∂ω and ∂F/∂v (the former Wheelsets.creep formulas, elementwise). The
         exponentials of the slip curve are numpy's (one ``numpy.exp`` over every axle, as before):
         numpy's SIMD exp differs from libm's in the last bit for some arguments."""
-        cdef Py_ssize_t i, k, j, p = self.p, nmu = mu.shape[0], pi
-        cdef double R, wr, awr, av, den, lm, dw, dv, scale, a, ex, sn, dmu
+        cdef Py_ssize_t i, k, j, p = self.p, nmu = mu.shape[0], pi, ic
+        cdef double R, wr, awr, av, den, lm, dw, dv, scale, a, ex, sn, dmu, vf
         cdef const double[::1] exv
         for i in range(n):
             av = fabs(v[i])
             R = self.R[i % self.nR]
+            ic = i % self.nsc  # the car's slip curve
+            vf = self.v_floor[ic]
             pi = self.na[i]
             for k in range(pi, p):  # inactive axles
                 j = i * p + k
@@ -276,12 +281,12 @@ cdef class EquipmentKernel:
                 j = i * p + k
                 wr = w[j] * R
                 awr = fabs(wr)
-                den = _max(_max(awr, av), self.v_floor)
+                den = _max(_max(awr, av), vf)
                 lm = (wr - v[i]) / den
-                if awr >= av and awr >= self.v_floor:
+                if awr >= av and awr >= vf:
                     dw = R * av / (wr * wr)
                     dv = -1.0 / den
-                elif av >= self.v_floor:
+                elif av >= vf:
                     dw = R / den
                     dv = -wr / (den * den)
                 else:
@@ -290,12 +295,13 @@ cdef class EquipmentKernel:
                 lam[j] = lm
                 fw[j] = dw  # dλ/dω and dλ/dv until the exponentials are known
                 fv[j] = dv
-                arg[j] = -self.b2 * fabs(lm)
+                arg[j] = -self.b2[ic] * fabs(lm)
         _np_exp(arg_a, out=ex_a)
         exv = ex_a
         for i in range(n):
             av = fabs(v[i])
-            scale = (self.c1 + self.c2 / (self.c3 + av)) / self.mu0 * (mu[i % nmu] / self.peak_curve)
+            ic = i % self.nsc
+            scale = (self.c1[ic] + self.c2[ic] / (self.c3[ic] + av)) / self.mu0[ic] * (mu[i % nmu] / self.peak_curve[ic])
             pi = self.na[i]
             for k in range(pi, p):
                 f[i * p + k] = 0.0
@@ -305,8 +311,8 @@ cdef class EquipmentKernel:
                 a = fabs(lm)
                 ex = exv[j]
                 sn = scale * self.N[i, k]
-                f[j] = _sign(lm) * sn * (self.b1 * (1.0 - ex) - a / self.b3)
-                dmu = sn * (self.b1 * self.b2 * ex - 1.0 / self.b3)
+                f[j] = _sign(lm) * sn * (self.b1[ic] * (1.0 - ex) - a / self.b3[ic])
+                dmu = sn * (self.b1[ic] * self.b2[ic] * ex - 1.0 / self.b3[ic])
                 fw[j] = dmu * fw[j]
                 fv[j] = dmu * fv[j]
         return 0

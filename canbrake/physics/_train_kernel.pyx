@@ -377,14 +377,18 @@ def traction_capped(const double[:, ::1] envelope, const double[::1] v, const do
     """``force`` (N per car, + brakes, − traction) with each car's traction limited by its envelope
     row (``envelope``, shape (n, 6) as :class:`CoupledKernel` takes it; NaN first value: none) at
     its speed ``v`` (m/s): the step with brake equipment (blending, wheelsets), which caps the
-    actuator's effort before the equipment, as the kernel caps the rail force."""
-    cdef Py_ssize_t i, n = force.shape[0]
+    actuator's effort before the equipment, as the kernel caps the rail force. A stack's P rows of
+    n cars (``v``, ``force`` of P·n values) share the envelope rows."""
+    cdef Py_ssize_t i, k, n = force.shape[0], ne = envelope.shape[0]
     out_a = np.empty(n)
     cdef double[::1] out = out_a
+    if ne == 0 or n % ne:
+        raise ValueError(f"traction_capped: {n} forces for {ne} envelope rows")
     for i in range(n):
+        k = i % ne
         out[i] = force[i]
-        if force[i] < 0.0 and envelope[i, 0] == envelope[i, 0]:
-            out[i] = _max(force[i], -_envelope_n(&envelope[i, 0], v[i]))
+        if force[i] < 0.0 and envelope[k, 0] == envelope[k, 0]:
+            out[i] = _max(force[i], -_envelope_n(&envelope[k, 0], v[i]))
     return out_a
 
 
@@ -392,12 +396,16 @@ def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v
                           const double[::1] speed, const double[::1] r):
     """``r`` (N per car) plus each car's resistance table (offsets ``start``, n + 1; speeds
     ``table_v`` m/s, forces ``table_f`` N, as :class:`CoupledKernel` takes them) at ``speed``
-    (|v|, m/s): the step with brake equipment."""
-    cdef Py_ssize_t i, n = r.shape[0]
+    (|v|, m/s): the step with brake equipment. A stack's P rows of n cars (``speed``, ``r`` of P·n
+    values) share the tables."""
+    cdef Py_ssize_t i, k, n = r.shape[0], nt = start.shape[0] - 1
     out_a = np.empty(n)
     cdef double[::1] out = out_a
+    if nt <= 0 or n % nt:
+        raise ValueError(f"with_table_resistance: {n} speeds for {nt} cars' tables")
     for i in range(n):
+        k = i % nt
         out[i] = r[i]
-        if start[i + 1] > start[i]:
-            out[i] = r[i] + table_at(&table_v[start[i]], &table_f[start[i]], start[i + 1] - start[i], speed[i], NULL)
+        if start[k + 1] > start[k]:
+            out[i] = r[i] + table_at(&table_v[start[k]], &table_f[start[k]], start[k + 1] - start[k], speed[i], NULL)
     return out_a

@@ -96,17 +96,31 @@ class Wheelsets:
 
     ``mass_kg`` (n,) car masses (the normal load per axle is m g / p); ``radius_m``, ``inertia_kgm2``
     per wheelset; ``curve`` the slip-curve shape (peak scaled to each car's μ); ``v_floor_mps`` the
-    slip denominator's floor; ``speed_mps`` (n,) initial speeds (wheels roll without slip).
+    slip denominator's floor (m/s); both one for the train or one per car; ``speed_mps`` (n,)
+    initial speeds (wheels roll without slip).
     ``axles``, ``radius_m`` and ``inertia_kgm2`` may be one per car (``axles`` 0: a car without
     wheels, braking as a train without wheelsets does); p is then the most axles of a car and a
     car's axles beyond its own are inactive (``active``: axles per car; ω, force and slip 0).
     """
 
     def __init__(self, mass_kg: np.ndarray, axles: int | Sequence[int], radius_m: float | Sequence[float],
-                 inertia_kgm2: float | Sequence[float], speed_mps: np.ndarray, *, curve: RailCondition = CAI_DRY,
-                 v_floor_mps: float = 0.1, gravity_mps2: float = 9.81, newton_iters: int = 5) -> None:
-        self.curve = curve
-        self.v_floor = float(v_floor_mps)
+                 inertia_kgm2: float | Sequence[float], speed_mps: np.ndarray, *,
+                 curve: RailCondition | Sequence[RailCondition] = CAI_DRY, v_floor_mps: float | Sequence[float] = 0.1,
+                 gravity_mps2: float = 9.81, newton_iters: int = 5) -> None:
+        n_cars = np.size(mass_kg)
+        curves = (curve,) if isinstance(curve, RailCondition) else tuple(curve)
+        floors = np.atleast_1d(np.asarray(v_floor_mps, dtype=float))
+        if len(curves) not in (1, n_cars) or floors.size not in (1, n_cars) or np.any(~(floors > 0)):
+            raise ValueError(f"wheelsets: need one slip curve and one v_floor_mps > 0 for the train or one per car "
+                             f"({n_cars}), got {len(curves)} and {floors.size}")
+        if len(set(curves)) == 1 and np.all(floors == floors[0]):  # one for the train
+            curves, floors = curves[:1], floors[:1]
+        #: the slip curve of every car (one entry: the train's), and the slip denominator's floor (m/s)
+        self.curves: tuple[RailCondition, ...] = curves
+        self.v_floor: np.ndarray = floors
+        self.curve = curves[0]
+        self._mu0 = np.array([float(c.mu_max(0.0)) for c in curves])
+        self._peak_curve = np.array([c.peak_curve for c in curves])
         self.iters = int(newton_iters)
         self.active: np.ndarray | None = None
         if np.ndim(axles) or np.ndim(radius_m) or np.ndim(inertia_kgm2):  # per car
@@ -124,8 +138,6 @@ class Wheelsets:
             load = np.asarray(mass_kg, dtype=float) * gravity_mps2 / np.maximum(na, 1)
             self.N = np.where(on, load[:, None], 0.0)
             self.omega = np.where(on, (np.asarray(speed_mps, dtype=float) / R)[:, None], 0.0)
-            self._mu0 = float(curve.mu_max(0.0))
-            self._peak_curve = curve.peak_curve
             self.force_n = np.zeros_like(self.omega)
             self.slip = np.zeros_like(self.omega)
             self._kern = None
@@ -137,19 +149,16 @@ class Wheelsets:
         self.J = float(inertia_kgm2)
         self.N = np.repeat((np.asarray(mass_kg, dtype=float) * gravity_mps2 / axles)[:, None], axles, axis=1)
         self.omega = np.repeat((np.asarray(speed_mps, dtype=float) / radius_m)[:, None], axles, axis=1)
-        self.iters = int(newton_iters)
-        c = curve
-        self._mu0 = float(c.mu_max(0.0))
-        self._peak_curve = c.peak_curve
         self.force_n = np.zeros_like(self.omega)
         self.slip = np.zeros_like(self.omega)
         self._kern = None  # the compiled step, built at the first step
 
     def kernel_params(self) -> dict:
         """The wheelsets' constants as :class:`~canbrake.physics._brakes_kernel.EquipmentKernel` takes them."""
-        c = self.curve
-        return dict(axles=self.p, R=self.R, J=self.J, N=self.N, active=self.active, b1=c.b1, b2=c.b2, b3=c.b3, c1=c.c1, c2=c.c2,
-                    c3=c.c3, mu0=self._mu0, peak_curve=self._peak_curve, v_floor=self.v_floor, iters=self.iters)
+        cs = self.curves
+        curve = {k: np.array([getattr(c, k) for c in cs], dtype=float) for k in ("b1", "b2", "b3", "c1", "c2", "c3")}
+        return dict(axles=self.p, R=self.R, J=self.J, N=self.N, active=self.active, **curve, mu0=self._mu0,
+                    peak_curve=self._peak_curve, v_floor=self.v_floor, iters=self.iters)
 
     def step(self, h_s: float, v0: np.ndarray, mass_kg: np.ndarray, other_n: np.ndarray, brake_torque_nm: np.ndarray,
              drive_torque_nm: np.ndarray, mu_peak: np.ndarray) -> np.ndarray:

@@ -698,20 +698,31 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     uses, so each row equals its own plant's state bit for bit (tests/test_batch_sweep.py). A
     point whose state becomes non-finite is flagged in ``diverged_rows`` and parked at rest.
 
-    None where the plants do not qualify: wheelsets, resistance tables, traction envelopes, end
-    stops that differ per coupler, an end stop that can refine the sub-step (it would depend on each point's state), a grade function,
-    or plants that differ in anything but their per-car arrays (actuator, blending, end stop, rail conditions, disturbances, sub-step,
-    gravity)."""
+    Per-vehicle resistance tables, traction envelopes and per-coupler end stops are rows the kernel
+    shares between the points of a stack: they qualify when every point has the same ones.
+
+    None where the plants do not qualify: wheelsets, draft gears, air brakes, an end stop that can refine the sub-step (it
+    would depend on each point's state), a grade function, or plants that differ in anything but
+    their per-car arrays (actuator, blending, end stops, resistance tables, traction envelopes, rail
+    conditions, disturbances, sub-step, gravity)."""
     import copy
+
+    def same(a: object, b: object) -> bool:
+        """Equal values (None, scalars, arrays or tuples of arrays; NaN equals NaN)."""
+        if a is None or b is None:
+            return a is b
+        if isinstance(a, tuple):
+            return isinstance(b, tuple) and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+        a, b = np.asarray(a), np.asarray(b)
+        return a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
 
     p0 = plants[0]
     for p in plants:
-        if (p.wheels is not None or p._gears is not None or p.air_brake is not None or p._grade_fn is not None or p.end_stops_per_coupler or p0.end_stops_per_coupler
-                or not _substeps_fixed(p)
-                or p._tab is not None or p._env is not None
-                or repr(p.blending) != repr(p0.blending) or p.end_stop_m != p0.end_stop_m
-                or p.end_stop_stiffness_n_per_m != p0.end_stop_stiffness_n_per_m
-                or p.end_stop_absorption != p0.end_stop_absorption
+        if (p.wheels is not None or p._gears is not None or p.air_brake is not None or p._grade_fn is not None or not _substeps_fixed(p)
+                or not same(p._tab, p0._tab) or not same(p._env, p0._env)
+                or repr(p.blending) != repr(p0.blending) or not same(p.end_stop_m, p0.end_stop_m)
+                or not same(p.end_stop_stiffness_n_per_m, p0.end_stop_stiffness_n_per_m)
+                or not same(p.end_stop_absorption, p0.end_stop_absorption)
                 or p.n_cars != p0.n_cars or repr(p.actuator) != repr(p0.actuator) or repr(p.rail) != repr(p0.rail)
                 or repr(p.disturbances) != repr(p0.disturbances) or p.max_substep_s != p0.max_substep_s
                 or p.gravity_mps2 != p0.gravity_mps2 or p.time_s != p0.time_s
