@@ -211,6 +211,7 @@ def _mixed(**over: object) -> dict:
              "wagon": WAGON}
     data = component_scenario(copy.deepcopy(types), [{"type": "loco"}, {"type": "car"}, {"type": "chen_car"}, {"type": "wagon"}],
                               speed_kmh=36.0, draft_gears=GEARS, air_brake=AIR)
+    data["ecus"] = [{"name": "e{v}", "vehicles": "1-3"}]  # none on the wagon: it has no force equipment
     for k, v in over.items():
         node = data
         *path, last = k.split(".")
@@ -316,6 +317,26 @@ def test_the_driver_valve_only_on_the_leading_vehicle() -> None:
     data["ecus"] = [{"name": "x", "vehicle": 2, "controller": {"name": "heavy_haul_brake_test"}}]
     with pytest.raises(ScenarioError, match="the valve is on the leading vehicle"):
         resolve(data, "t.yaml")
+
+
+def test_a_force_controller_on_an_air_braked_wagon_is_refused_pneumatic_and_wrapped_with_ecp() -> None:
+    """As on the heavy-haul kernel: a wagon has no force equipment; with ECP its ECU's force demand
+    becomes its cylinder demand (EcpUnit, inverting the air brake's force law)."""
+    from canbrake.build import build_controller
+    from canbrake.control.ecp import EcpUnit
+
+    data = _mixed()
+    data["controller"] = {"name": "chen2023"}
+    data["ecus"] = [{"name": "w", "vehicle": 4}]
+    with pytest.raises(ScenarioError, match="has no force equipment"):
+        resolve(copy.deepcopy(data), "t.yaml")
+    data["train"]["air_brake"] = {**AIR, "mode": "ecp"}
+    scn = resolve(data, "t.yaml")
+    ctrl = build_controller(scn, 1)
+    assert isinstance(ctrl, EcpUnit) and "ecp_demand" in ctrl.command_names
+    assert scn.consist.ecp_unit_params(1) is None  # the locomotive takes brake_force_n itself
+    unit = scn.consist.ecp_unit_params(4)
+    assert unit["n_blocks"] == 8.0 and unit["beta_c"] == 0.8
 
 
 # ----------------------------------------------------------------------------- the shipped scenario

@@ -217,6 +217,18 @@ class TrainConfig(_Model):
                 raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which works "
                                  "the driver's brake valve (airbrake_apply): the valve is on the leading vehicle "
                                  "(vehicle 1), where the brake pipe is fed; place that ECU on vehicle 1")
+            wagon = (1 <= p.vehicle <= self.n_cars and self.air_rigging is not None
+                     and self.air_rigging[p.vehicle - 1] is not None
+                     and (self.traction_envelope is None or self.traction_envelope[p.vehicle - 1] is None))
+            if not wagon or "brake_force_n" not in cmds or "ecp_demand" in cmds:
+                continue
+            if self.air_brake.mode == "ecp" and len(cmds) == 1:
+                continue  # wrapped by its ECP brake unit (build_controller)
+            raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which commands a "
+                             "brake force (brake_force_n): an air-braked vehicle without traction (a wagon) has no "
+                             "force equipment; with train.air_brake.mode: ecp its ECU turns a force-only "
+                             "controller's demand (e.g. chen2023) into its cylinder demand, or use a wagon "
+                             "controller such as ecp_wagon")
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
         from canbrake.build import build_coupled_plant
