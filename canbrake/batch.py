@@ -21,8 +21,8 @@ about the same for 8 points as for 64):
   ECU slots whose controllers differ only in car and mass (``group_key``: Chen's) step together,
   one call per tick for every slot and point (:class:`~canbrake.control.chen.ChenBatch`, arrays
   of points x slots); otherwise each point's own controller steps.
-* **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: no wheelsets,
-  the same resistance tables, traction envelopes and end stops at every point, end stops never
+* **plant**: plants that qualify (:func:`~canbrake.physics.train.stack_plants`: the same
+  resistance tables, traction envelopes, end stops and wheelsets at every point, end stops never
   refining the sub-step) step as one stack with a leading points axis; otherwise each its own.
 
 Every path gives each point the floats its per-point run computes: tests/test_batch_sweep.py
@@ -646,8 +646,12 @@ class BatchEngine:
             self._record(k, meas, refs)
         st = self.stack
         if st is not None:
-            f = self.hold["brake_force_n"]
-            st.step(self.dt, np.where(np.isnan(f), 0.0, f))
+            f = self.hold["brake_force_n"]  # as CoupledPlant.step takes the commands
+            wsp = self.hold.get("wsp_release")
+            if wsp is None:
+                st.step(self.dt, np.where(np.isnan(f), 0.0, f))
+            else:
+                st.step(self.dt, np.where(np.isnan(f), 0.0, f), wsp_release=wsp)
             gone = st.diverged_rows & live
             for i in np.flatnonzero(gone).tolist():
                 self._diverged(i, k, st.diverged_text(float(st.diverged_dl_m[i])))

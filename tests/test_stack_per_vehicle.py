@@ -5,6 +5,8 @@ the stack equals its own plant bit for bit, with and without brake blending (the
 equipment). Points whose tables, envelopes or end stops differ do not stack."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -114,3 +116,80 @@ def test_a_sweep_over_a_train_with_tables_and_envelopes_runs_stacked_and_equals_
     for i in range(len(scns)):
         assert _compare(tmp_path / f"batch{i}", tmp_path / f"point{i}", sb[i], sp[i]) == [], i
     assert _compare(tmp_path / "batch0", tmp_path / "point1", sb[0], sp[1])
+
+
+def _wheeled(v0: float, mu: float = 0.08):
+    """Three 40-t cars (four, none and two wheelsets), blended brakes, on a rail of μ ``mu``, from v0."""
+    from canbrake.physics.brakes import Wheelsets
+    from canbrake.physics.rail import RailConditions
+
+    m = np.full(3, 4.0e4)
+    return TrainPlant(m, [0.0, -20.0, -40.0], [v0, v0, v0], coupler_stiffness_n_per_m=2e6,
+                      coupler_nonlinearity_per_m2=0.0, resistance=DavisResistance.zero(3),
+                      rail=RailConditions(base_adhesion_mu=mu), max_substep_s=0.001,
+                      blending=BrakeBlending(ed_max_decel_mps2=0.8), wsp_valve_lag_s=(0.05, 0.05, 0.2),
+                      wheels=Wheelsets(m, [4, 0, 2], [0.42, 1.0, 0.46], [120.0, 1.0, 200.0], np.full(3, v0)))
+
+
+def test_points_with_wheelsets_stack_and_equal_their_plants_under_wheel_slide_protection() -> None:
+    """Wheelsets with their own axles per car, on poor rail, braked beyond adhesion with the dump
+    valves commanded (WSP): each stacked row's speeds, wheel speeds, slips and valves equal its own
+    plant's bit for bit, and its measurements too."""
+    plants = [_wheeled(15.0 + i) for i in range(3)]
+    st = stack_plants(plants)
+    assert st is not None and st.wheels.omega.shape == (3, 3, 4)
+    rng = np.random.default_rng(3)
+    for k in range(200):
+        cmd = np.stack([np.array([3e4, 2.5e4, 3.5e4]) * (1.0 + 0.2 * i) for i in range(3)])
+        wsp = np.where(rng.random((3, 3)) < 0.3, rng.random((3, 3)), np.nan)
+        st.step(0.01, cmd, wsp_release=wsp)
+        for i, p in enumerate(plants):
+            p.step(0.01, cmd[i], wsp_release=wsp[i])
+    sm = st.equipment_measurements()
+    for i, p in enumerate(plants):
+        assert np.array_equal(st.speed_mps[i], p.speed_mps) and np.array_equal(st.wheels.omega[i], p.wheels.omega)
+        assert np.array_equal(st.wheels.slip[i], p.wheels.slip) and np.array_equal(st.wsp_valve[i], p.wsp_valve)
+        pm = p.equipment_measurements()
+        assert sm.keys() == pm.keys()
+        for name, a in pm.items():
+            np.testing.assert_array_equal(sm[name][i], a, err_msg=name)
+    assert np.min(st.wheels.slip) < -0.05  # the wheels slid: the creep force was in play
+    assert not np.array_equal(st.wheels.omega[0], st.wheels.omega[1])
+
+
+def test_points_whose_wheelsets_differ_do_not_stack() -> None:
+    a, b = _wheeled(15.0), _wheeled(15.0)
+    assert stack_plants([a, b]) is not None
+    b.wheels.J = b.wheels.J * 1.01
+    assert stack_plants([a, b]) is None
+
+
+@pytest.mark.slow
+def test_a_sweep_over_a_train_with_wheels_runs_stacked_and_equals_per_point_runs(tmp_path) -> None:
+    """emu8_low_adhesion (wheelsets on every car, blending, a low-adhesion section), without its
+    end stops (they refine the sub-step by each point's state, which a stack cannot): the batch
+    engine steps its points as one stack, and each equals its own node-engine run (signals.csv,
+    metrics, verdict). Its WSP profile uses extended alive counters, which the batch engine does
+    not run; WSP in a stack is compared at the plant above."""
+    from test_batch_sweep import _compare, _run_both
+
+    from canbrake import sweep as sw
+    from canbrake.batch import BatchEngine, unsupported
+    from canbrake.build import bus_layout
+    from canbrake.scenario import load_scenario
+
+    path = Path(__file__).resolve().parents[1] / "scenarios" / "emu8_low_adhesion.yaml"
+    ov = {"duration_s": 7.0, "train.every_vehicle.coupler.end_stop_m": None}
+    base = load_scenario(path, overrides=ov)
+    data, lay = base.model_dump(mode="json"), bus_layout(base)
+    scns = [load_scenario(path, overrides={**ov, **sw.point_overrides(data, params, lay), "seed": seed})
+            for params, seed in [({"delay": 0.0, "loss": 0.0}, 1), ({"delay": 0.03, "loss": 0.2}, 2)]]
+    assert all(unsupported(s, 0) is None for s in scns)
+    eng = BatchEngine(scns, [None] * len(scns))
+    assert eng.stack is not None and eng.stack.wheels is not None
+    sb, sp = _run_both(tmp_path, scns)
+    for i in range(len(scns)):
+        assert _compare(tmp_path / f"batch{i}", tmp_path / f"point{i}", sb[i], sp[i]) == [], i
+    assert _compare(tmp_path / "batch0", tmp_path / "point1", sb[0], sp[1])
+    slip = np.genfromtxt(tmp_path / "batch0" / "signals.csv", delimiter=",", names=True)["axle1_slip_c1"]
+    assert np.nanmin(slip) < -0.02  # car 1 slid in the low-adhesion section: the wheels were in play

@@ -90,7 +90,8 @@ cdef class EquipmentKernel:
     and resistance act on its body as without wheelsets; a car's axles beyond its own are inactive:
     ω, creep force and slip 0), the slip curve ``b1..b3``, ``c1..c3`` with μ_max(0) = ``mu0`` and the curve's own peak
     ``peak_curve``, the slip denominator's floor ``v_floor`` (m/s), each one value for the train or one per
-    car, ``iters`` Newton iterations.
+    car, ``iters`` Newton iterations. A stack of P plants (``stack_plants``) passes P·n cars and P·n·p
+    axles to the steps; its points share these rows (car i is row i mod n).
     ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
     """
 
@@ -98,7 +99,7 @@ cdef class EquipmentKernel:
     cdef double g
     cdef const double[::1] ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent
     cdef const double[:, ::1] env
-    cdef Py_ssize_t p, iters, nR, nJ, nsc
+    cdef Py_ssize_t p, iters, nR, nJ, nsc, nna  # nna: cars (a stack's P·n cars share their rows: i % nna)
     cdef const double[::1] b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor  # the slip curve: 1 or n values
     cdef const double[::1] R, J
     cdef const double[:, ::1] N
@@ -119,6 +120,7 @@ cdef class EquipmentKernel:
         self.friction_lag, self.valve_lag, self.max_vent = arr(friction_lag_s), arr(valve_lag_s), arr(max_vent_s)
         self.adhesion_limited, self.g = adhesion_limited, gravity
         self.p, self.iters = axles, iters
+        self.nna = 1
         self.R, self.J = arr(R), arr(J)
         self.nR, self.nJ = self.R.shape[0], self.J.shape[0]
         sc = [arr(x) for x in (b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor)]
@@ -130,6 +132,7 @@ cdef class EquipmentKernel:
             self.N = np.ascontiguousarray(N, dtype=float)
             na = np.full(self.N.shape[0], axles, dtype=np.intp) if active is None else np.asarray(active, dtype=np.intp)
             self.na = np.ascontiguousarray(na)
+            self.nna = self.na.shape[0]
             self.bare = bool(np.any(na == 0))
 
     def substep(self, double h, const double[::1] blend_k, const double[::1] valve_k, const double[::1] effort,
@@ -210,15 +213,15 @@ cdef class EquipmentKernel:
             self._prep(v, f, r, brake, trac, oth_a, tb_a, td_a)
             self._wheels(h, v, oth_a, mass, mu, tb_a, td_a, omega, force, slip, vnew)
             for i in range(nv):
-                if self.na[i] == 0:
+                if self.na[i % self.nna] == 0:
                     continue  # a car without wheels: below
                 vn = vnew[i]
                 vnew[i] = 0.0 if v[i] != 0.0 and vn * v[i] < 0.0 else vn  # the exact stop
-                rail[i] = -_npsum(&force[i * p], self.na[i])
+                rail[i] = -_npsum(&force[i * p], self.na[i % self.nna])
             if not self.bare:
                 return vnew_a, rail_a
         for i in range(nn):
-            if p > 0 and self.na[i] > 0:
+            if p > 0 and self.na[i % self.nna] > 0:
                 continue
             rail_i = brake[i] + trac[i]
             if self.adhesion_limited:
@@ -248,7 +251,7 @@ cdef class EquipmentKernel:
         cdef double b, d, per_axle
         for i in range(v.shape[0]):
             oth[i] = f[i] - _sign(v[i]) * r[i]
-            pi = self.na[i]
+            pi = self.na[i % self.nna]
             per_axle = self.R[i % self.nR] / pi if pi > 0 else 0.0
             b = brake[i] * per_axle
             d = -trac[i] * per_axle
@@ -270,7 +273,7 @@ cdef class EquipmentKernel:
             R = self.R[i % self.nR]
             ic = i % self.nsc  # the car's slip curve
             vf = self.v_floor[ic]
-            pi = self.na[i]
+            pi = self.na[i % self.nna]
             for k in range(pi, p):  # inactive axles
                 j = i * p + k
                 lam[j] = 0.0
@@ -302,7 +305,7 @@ cdef class EquipmentKernel:
             av = fabs(v[i])
             ic = i % self.nsc
             scale = (self.c1[ic] + self.c2[ic] / (self.c3[ic] + av)) / self.mu0[ic] * (mu[i % nmu] / self.peak_curve[ic])
-            pi = self.na[i]
+            pi = self.na[i % self.nna]
             for k in range(pi, p):
                 f[i * p + k] = 0.0
             for k in range(pi):
@@ -310,7 +313,7 @@ cdef class EquipmentKernel:
                 lm = lam[j]
                 a = fabs(lm)
                 ex = exv[j]
-                sn = scale * self.N[i, k]
+                sn = scale * self.N[i % self.nna, k]
                 f[j] = _sign(lm) * sn * (self.b1[ic] * (1.0 - ex) - a / self.b3[ic])
                 dmu = sn * (self.b1[ic] * self.b2[ic] * ex - 1.0 / self.b3[ic])
                 fw[j] = dmu * fw[j]
@@ -357,7 +360,7 @@ cdef class EquipmentKernel:
             self._creep(n, w0, &v0[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
             for i in range(n):
                 R = self.R[i % self.nR]
-                pi = self.na[i]
+                pi = self.na[i % self.nna]
                 for k in range(p):
                     if k >= pi:  # an inactive axle: held at rest
                         locked[i * p + k] = 1
@@ -376,7 +379,7 @@ cdef class EquipmentKernel:
                 for it in range(self.iters):
                     self._creep(n, w, &v[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
                     for i in range(n):
-                        pi = self.na[i]
+                        pi = self.na[i % self.nna]
                         if pi == 0:
                             continue  # a car without wheels: the caller's Coulomb step
                         R, J = self.R[i % self.nR], self.J[i % self.nJ]

@@ -622,7 +622,8 @@ class TrainPlant:
                 r = r + air.last_force_n
             # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake), compiled
             v_new, rail = kern.substep(h, blend_k, valve_k, flat(effort), flat(v), flat(f), flat(r), mass,
-                                       flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve, self._vent_s,
+                                       flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve.reshape(-1),
+                                       self._vent_s.reshape(-1),
                                        om, fo, sl)
             v_new, rail = v_new.reshape(v.shape), rail.reshape(v.shape)
             x = x + h * v_new
@@ -680,9 +681,10 @@ class TrainPlant:
             out["wsp_valve"] = self.wsp_valve.copy()
             w = self.wheels
             off = None if w.active is None else np.arange(w.p)[None, :] >= w.active[:, None]  # NaN: no such axle
-            for j in range(w.p):
+            for j in range(w.p):  # a (n, p) array, or a stack's (P, n, p)
                 for name, a in (("speed_radps", w.omega), ("slip", w.slip), ("adhesion_n", w.force_n)):
-                    out[f"axle{j + 1}_{name}"] = a[:, j].copy() if off is None else np.where(off[:, j], np.nan, a[:, j])
+                    out[f"axle{j + 1}_{name}"] = a[..., j].copy() if off is None else np.where(off[:, j], np.nan,
+                                                                                             a[..., j])
         return out
 
 
@@ -698,13 +700,15 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     uses, so each row equals its own plant's state bit for bit (tests/test_batch_sweep.py). A
     point whose state becomes non-finite is flagged in ``diverged_rows`` and parked at rest.
 
-    Per-vehicle resistance tables, traction envelopes and per-coupler end stops are rows the kernel
-    shares between the points of a stack: they qualify when every point has the same ones.
+    Per-vehicle resistance tables, traction envelopes, per-coupler end stops and wheelsets (axles,
+    radius, inertia, normal loads, slip curves) are rows the kernels share between the points of a
+    stack: they qualify when every point has the same ones (the wheels' state, ω, creep force and
+    slip, is per point: (P, n, p)).
 
-    None where the plants do not qualify: wheelsets, draft gears, air brakes, an end stop that can refine the sub-step (it
-    would depend on each point's state), a grade function, or plants that differ in anything but
-    their per-car arrays (actuator, blending, end stops, resistance tables, traction envelopes, rail
-    conditions, disturbances, sub-step, gravity)."""
+    None where the plants do not qualify: draft gears or air brakes (their state is the plant's, not
+    a stack's), an end stop that can refine the sub-step (it would depend on each point's state), a grade function, or plants that differ in anything but their per-car
+    arrays (actuator, blending, end stops, resistance tables, traction envelopes, wheelsets, rail
+    conditions, disturbances, sub-step, dump valves, gravity)."""
     import copy
 
     def same(a: object, b: object) -> bool:
@@ -716,9 +720,17 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
         a, b = np.asarray(a), np.asarray(b)
         return a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
 
+    def same_wheels(a: Wheelsets | None, b: Wheelsets | None) -> bool:
+        if a is None or b is None:
+            return a is b
+        return (a.p == b.p and a.iters == b.iters and a.curves == b.curves and same(a.v_floor, b.v_floor)
+                and same(a.R, b.R) and same(a.J, b.J) and same(a.N, b.N) and same(a.active, b.active))
+
     p0 = plants[0]
     for p in plants:
-        if (p.wheels is not None or p._gears is not None or p.air_brake is not None or p._grade_fn is not None or not _substeps_fixed(p)
+        if (not same_wheels(p.wheels, p0.wheels) or p._gears is not None or p.air_brake is not None
+                or p._grade_fn is not None or not _substeps_fixed(p)
+                or not same(p.wsp_valve_lag_s, p0.wsp_valve_lag_s) or not same(p.wsp_max_vent_s, p0.wsp_max_vent_s)
                 or not same(p._tab, p0._tab) or not same(p._env, p0._env)
                 or repr(p.blending) != repr(p0.blending) or not same(p.end_stop_m, p0.end_stop_m)
                 or not same(p.end_stop_stiffness_n_per_m, p0.end_stop_stiffness_n_per_m)
@@ -744,6 +756,14 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     st._grade_force = None if p0._grade_force is None else np.stack([p._grade_force for p in plants])
     st._act = ActuatorState(p0.actuator, st.mass_kg)
     st._blend = None if p0.blending is None else BlendingState(p0.blending, st.mass_kg)
+    if p0.wheels is not None:  # the rows shared, the state per point
+        st.wheels = copy.copy(p0.wheels)
+        st.wheels.omega = np.stack([p.wheels.omega for p in plants])
+        st.wheels.force_n = np.stack([p.wheels.force_n for p in plants])
+        st.wheels.slip = np.stack([p.wheels.slip for p in plants])
+        st.wheels._kern = None
+        st.wsp_valve = np.stack([np.broadcast_to(p.wsp_valve, p.speed_mps.shape) for p in plants])
+        st._vent_s = np.stack([np.broadcast_to(p._vent_s, p.speed_mps.shape) for p in plants])
     st._mu = np.broadcast_to(p0._mu, st.speed_mps.shape).copy()
     st._eff = np.ones(st.speed_mps.shape)
     st._base_mu = p0._base_mu
