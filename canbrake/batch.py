@@ -84,6 +84,8 @@ def unsupported(scn: Scenario, base_impairments: int = 0) -> str | None:
     train = scn.train.kernel_name
     if train != "coupled":
         return f"not for {train} trains"
+    if getattr(scn.consist, "mixed", False):
+        return "not for trains with draft gears or air brakes on the coupled kernel"
     if scn.mode != "lockstep":
         return f"not in {scn.mode} mode"
     if scn.bus.timing != "ideal":

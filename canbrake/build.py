@@ -155,6 +155,10 @@ def _train_plant(scn: Scenario):
             None if r is None else (r.speed_mps, r.force_n) for r in t.resistance_table],
         traction_envelope=None if t.traction_envelope is None else [
             None if e is None else e.physics() for e in t.traction_envelope],
+        draft_gears=None if t.coupler_gear is None else [
+            None if g is None else t.draft_gears[g].physics(g) for g in t.coupler_gear],
+        air_brake=t.air_brake_physics(),
+        air_braked=None if t.air_rigging is None else [r is not None for r in t.air_rigging],
     )
 
 
@@ -397,11 +401,13 @@ def hosted_babblers(scn: Scenario) -> list[SendPath]:
 
 
 class CoupledPlant:
-    """A :class:`~canbrake.physics.train.TrainPlant` behind the plant contract: one command,
-    ``brake_force_n`` (NaN = no command = no force), and ``wsp_release`` (the dump valves of
-    wheel-slide protection, with the wheels component)."""
+    """A :class:`~canbrake.physics.train.TrainPlant` behind the plant contract: ``brake_force_n``
+    (NaN = no command = no force), ``wsp_release`` (the dump valves of wheel-slide protection, with
+    the wheels component) and, with air brakes, ``airbrake_apply`` (the driver's valve, read on the
+    leading car) and ``ecp_demand`` (per car), as the heavy-haul plant takes them; an air-braked car
+    without traction (a wagon) ignores ``brake_force_n``, as there."""
 
-    command_names = ("brake_force_n", "wsp_release")
+    command_names: tuple[str, ...] = ("brake_force_n", "wsp_release")
 
     def __init__(self, plant: Any) -> None:
         self.plant = plant
@@ -409,10 +415,20 @@ class CoupledPlant:
         self.n_cars = plant.n_cars
         self.mass_kg = plant.mass_kg
         self._meas: dict[str, np.ndarray] | None = None  # of the current state; step() drops it
+        self._wagons: np.ndarray | None = None  # air-braked cars without traction: no force equipment
+        if plant.air_brake is not None:
+            self.command_names = ("brake_force_n", "wsp_release", "airbrake_apply", "ecp_demand")
+            env = plant.traction_envelope
+            powered = np.array([False] * plant.n_cars if env is None else [e is not None for e in env])
+            self._wagons = plant.air_braked & ~powered
 
     def step(self, dt_s: float, commands: Any) -> None:
         self._meas = None
         f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
+        if self._wagons is not None:
+            f = np.where(self._wagons, np.nan, f)
+            ap = commands.get("airbrake_apply")
+            self.plant.command_air(None if ap is None else float(ap[0]), commands.get("ecp_demand"))
         wsp = commands.get("wsp_release")
         if wsp is None:
             self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f))
@@ -433,6 +449,14 @@ class CoupledPlant:
                "coupler_force_n": s.coupler_force_n}
         if self.plant.blending is not None or self.plant.wheels is not None:
             out.update(self.plant.equipment_measurements())
+        ab = self.plant.air_brake
+        if ab is not None:  # the air-braked cars' brake (NaN on the others)
+            on = self.plant.air_braked
+            out["applied_brake_n"] = s.applied_force_n + ab.last_force_n
+            out["air_brake_n"] = np.where(on, ab.last_force_n, np.nan)
+            out["brake_cylinder_pressure_pa"] = np.where(on, ab.fill * ab.cylinder_pressure_pa, np.nan)
+            if ab.pipe is not None:
+                out["brake_pipe_pressure_pa"] = np.where(on, ab.pipe_pressure_pa, np.nan)
         return out
 
 

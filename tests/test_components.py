@@ -171,12 +171,12 @@ def test_register_component_in_code() -> None:
 
 def test_a_combination_no_kernel_implements_is_one_line() -> None:
     with pytest.raises(ScenarioError) as e:
-        load_scenario("li2024_pid", overrides={"train.vehicle_types.c80.coupler": {"model": "chen"}})
+        load_scenario("li2024_pid", overrides={"train.vehicle_types.c80.coupler": {"model": "rigid"}})
     msg = str(e.value)
     assert "\n" not in msg
     assert "train.vehicle_types.c80: no physics kernel implements this train yet: vehicle type c80 has " \
-           "resistance=per_weight, coupler=chen, brake=air" in msg
-    assert "coupled (TrainPlant) takes coupler chen|linear|none, brake electro_pneumatic|ideal|none" in msg
+           "resistance=per_weight, coupler=rigid, brake=air" in msg
+    assert "coupled (TrainPlant) takes coupler chen|draft_gear|linear|none, brake air|electro_pneumatic|ideal|none" in msg
     assert "heavy_haul (HeavyHaulModel) takes coupler draft_gear, brake air" in msg
     assert "adhesion (AdhesionTrain) takes coupler rigid" in msg
 

@@ -193,9 +193,9 @@ def test_components_lists_the_brake_functions_per_vehicle() -> None:
     r = subprocess.run([sys.executable, "-m", "canbrake", "components"], capture_output=True, text=True, cwd=ROOT,
                        timeout=120)
     assert r.returncode == 0, r.stderr
-    line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("per vehicle: mass, resistance (davis or"))
+    line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith("per vehicle: mass, resistance (davis, table or per_weight"))
     assert "blending (or none: friction only), easing, wsp" in line and "wheelsets (axles, radius, inertia," in line
-    assert "slip curve b1..b3, c1..c3, v_floor_mps, or none); once for the train: the rail conditions" in line
+    assert "slip curve b1..b3, c1..c3, v_floor_mps, or none)" in line and "once for the train: the rail conditions" in line
 
 
 # --- 4. wheelsets per vehicle ---------------------------------------------------------------------

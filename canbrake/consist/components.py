@@ -38,9 +38,10 @@ list: one vehicle per value), so Chen's six different cars are one type and one 
 
 The assembler (:meth:`TrainSpec.assemble`) builds the plant through the one plant contract
 (:mod:`canbrake.physics.contract`). In this stage it chooses among the three physics kernels by the
-components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes ->
-``TrainPlant``; draft gears with air brakes -> ``HeavyHaulModel``; rigid coupling with driven axles
--> ``AdhesionTrain``. A combination no kernel implements yet is refused in one line that names the
+components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes, and trains
+mixing them with Li's draft gears, air brakes and per-weight resistance -> ``TrainPlant``; draft
+gears with air brakes alone -> ``HeavyHaulModel`` (the first vehicle's coupler picks the kernel
+tried first, :data:`_NATIVE_COUPLER`); rigid coupling with driven axles -> ``AdhesionTrain``. A combination no kernel implements yet is refused in one line that names the
 vehicle type, its components and what each kernel takes.
 """
 from __future__ import annotations
@@ -213,6 +214,13 @@ class PerWeightResistance(hhs.Resistance):
     """Li 2024 eq. 3: w = a + b v + c v² in N per kN of weight (v in km/h)."""
 
     model: Literal["per_weight"] = "per_weight"
+
+    def davis_n_for(self, mass_kg: float) -> tuple[float, float, float]:
+        """(c0 N, c1 N s/m, c2 N s²/m²) of a vehicle of ``mass_kg``: eq. 3 times its weight
+        m·g/1000 kN (g = 9.81 m/s², v in km/h = 3.6 v in m/s), what the coupled kernel takes."""
+        w = mass_kg * 9.81 / 1000.0
+        return (float(self.a_n_per_kn) * w, float(self.b_n_per_kn_per_kmh) * w * 3.6,
+                float(self.c_n_per_kn_per_kmh2) * w * 3.6 * 3.6)
 
 
 @register_component("coupler", "chen")
@@ -464,20 +472,28 @@ def _support(kinds: dict[str, set[str | None]]) -> str:
 
 #: what each physics kernel implements, by component kind (None: the component left out)
 KERNELS: dict[str, dict[str, set[str | None]]] = {
-    "coupled": {"coupler": {"chen", "linear", None}, "brake": {"ideal", "electro_pneumatic", None},
-                "resistance": {"davis", "table", None}, "traction": {"envelope", None}, "wheels": {"wheelsets", None}},
+    "coupled": {"coupler": {"chen", "linear", "draft_gear", None},
+                "brake": {"ideal", "electro_pneumatic", "air", None},
+                "resistance": {"davis", "table", "per_weight", None}, "traction": {"envelope", None},
+                "wheels": {"wheelsets", None}},
     "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
                    "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
     "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", "table", None}, "traction": {None},
                  "wheels": {"driven_axles", None}},
 }
+#: the kernel a train goes to first, by the coupler of its first vehicle (where every vehicle fits it):
+#: a train of draft gears and air brakes alone stays on the heavy-haul kernel
+_NATIVE_COUPLER: dict[str, set[str | None]] = {"coupled": {"chen", "linear", None}, "heavy_haul": {"draft_gear"},
+                                               "adhesion": {"rigid"}}
 _KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhesion": "AdhesionTrain"}
 #: what a kernel still takes once for the whole train (everything else may differ per vehicle)
 KERNEL_LIMITS: dict[str, str] = {
-    "coupled": "per vehicle: mass, resistance (davis or table), coupler (stiffness, ε, end stop), brake model "
-               "(ideal or electro_pneumatic), lag, jerk limit, ratings, ED brake, blending (or none: friction only), "
-               "easing, wsp, traction envelope, wheelsets (axles, radius, inertia, slip curve b1..b3, c1..c3, "
-               "v_floor_mps, or none); once for the train: the rail conditions (train.wheel_rail)",
+    "coupled": "per vehicle: mass, resistance (davis, table or per_weight), coupler (chen/linear: stiffness, ε, "
+               "end stop; or Li's draft_gear), brake model (ideal, electro_pneumatic or air), lag, jerk limit, "
+               "ratings, ED brake, blending (or none: friction only), easing, wsp, traction envelope, wheelsets "
+               "(axles, radius, inertia, slip curve b1..b3, c1..c3, v_floor_mps, or none) but none under an air "
+               "brake; once for the train: the rail conditions (train.wheel_rail), the air brake "
+               "(train.air_brake, fed from a locomotive at the head) and a constant grade (no route)",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
                 "conditions",
@@ -561,8 +577,17 @@ class TrainSpec(_Model):
             raise ValueError(f"@vehicles: {len(ex)} vehicles; at most {MAX_VEHICLES}")
         kernel = self._choose_kernel(ex)
         if kernel != "heavy_haul":
-            given = [k for k in _HH_ONLY if getattr(self, k) != _HH_DEFAULTS[k]] + \
+            used = set()  # what the coupled kernel takes of Li's train-level parts: its draft gears and air brake
+            if kernel == "coupled":
+                used = {k for k, kind, m in (("draft_gears", "coupler", "draft_gear"), ("air_brake", "brake", "air"))
+                        if any(_name(getattr(vt, kind)) == m for _, vt, _ in ex)}
+            given = [k for k in _HH_ONLY if k not in used and getattr(self, k) != _HH_DEFAULTS[k]] + \
                     (["track.route"] if self.track.route is not None else [])
+            if given and used:
+                raise ValueError(f"@{given[0]}: used by the heavy-haul kernel (draft gears and air brakes on every "
+                                 f"vehicle, per_weight resistance) only; this train mixes them with other components "
+                                 f"and runs on the coupled kernel, which takes train.draft_gears and train.air_brake "
+                                 f"(and a constant grade: train.track.grade_permille)")
             if given:
                 raise ValueError(f"@{given[0]}: used by draft-gear trains (coupler: {{model: draft_gear}}) only; "
                                  f"this train's couplers are {_name(ex[0][1].coupler) if ex[0][1].coupler else 'chen'}")
@@ -590,7 +615,7 @@ class TrainSpec(_Model):
     def _choose_kernel(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> str:
         first = ex[0][1]
         cname = _name(first.coupler) if first.coupler is not None else None
-        guess = next((k for k, sup in KERNELS.items() if cname in sup["coupler"]), "coupled")
+        guess = next((k for k, sup in _NATIVE_COUPLER.items() if cname in sup), "coupled")
         for name, vt, _ in ex:
             if not _fits(vt, guess):
                 alt = [k for k in KERNELS if all(_fits(t, k) for _, t, _ in ex)]
@@ -644,6 +669,9 @@ class TrainSpec(_Model):
         from canbrake.consist.coupled import ActuatorConfig, TrainConfig
 
         n = len(ex)
+        air = [vt.brake if isinstance(vt.brake, AirBrakeRigging) else None for _, vt, _ in ex]
+        gears = [vt.coupler.gear if isinstance(vt.coupler, DraftGearCoupler) else None for _, vt, _ in ex[:-1]]
+        self._check_mixed(ex, air, gears)
         for name, vt, _ in ex:
             b = vt.brake
             if b is not None and getattr(b, "wsp", None) is not None and b.wsp.enabled and vt.wheels is None:
@@ -659,8 +687,9 @@ class TrainSpec(_Model):
         data: dict[str, Any] = {"model": "coupled", "mass_kg": [m for _, _, m in ex]}
         if any(vt.resistance is not None for _, vt, _ in ex):
             table = [vt.resistance if isinstance(vt.resistance, TableResistance) else None for _, vt, _ in ex]
-            ds = [vt.resistance.davis_n() if vt.resistance is not None and t is None else (0.0, 0.0, 0.0)
-                  for (_, vt, _), t in zip(ex, table)]
+            ds = [vt.resistance.davis_n_for(m) if isinstance(vt.resistance, PerWeightResistance) else
+                  vt.resistance.davis_n() if vt.resistance is not None and t is None else (0.0, 0.0, 0.0)
+                  for (_, vt, m), t in zip(ex, table)]
             data["davis"] = {"c0_n": [d[0] for d in ds], "c1_n_s_per_m": [d[1] for d in ds],
                              "c2_n_s2_per_m2": [d[2] for d in ds]}
             if any(t is not None for t in table):
@@ -670,6 +699,10 @@ class TrainSpec(_Model):
                                          for _, vt, _ in ex]
         cps = [vt.coupler if vt.coupler is not None else ChenCoupler() for _, vt, _ in ex]
         act = cps[:-1] or cps
+        chen = next((c for c in act if not isinstance(c, DraftGearCoupler)), ChenCoupler())
+        # a draft-gear coupler's Chen terms are not used (its draft gear's force replaces Φ): the
+        # first Chen coupler's, without an end stop
+        act = [c if not isinstance(c, DraftGearCoupler) else chen.model_copy(update={"end_stop_m": None}) for c in act]
         coupler: dict[str, Any] = {}
         for f in ("stiffness_n_per_m", "epsilon_per_m2"):
             vals = [float(getattr(c, f)) for c in act]
@@ -677,6 +710,13 @@ class TrainSpec(_Model):
         for f in ("end_stop_m", "end_stop_stiffness_n_per_m", "end_stop_absorption"):  # one value, or per coupler
             vals = [getattr(c, f) for c in act]
             coupler[f] = vals[0] if len(set(vals)) == 1 else vals
+        if any(g is not None for g in gears):
+            data["draft_gears"] = {k: g for k, g in self.draft_gears.items() if k in gears}
+            data["coupler_gear"] = gears
+        if any(a is not None for a in air):
+            data["air_brake"] = self.air_brake
+            data["air_rigging"] = [None if a is None else hhs.BrakeEquipment.model_validate(_params(a)) for a in air]
+            data["length_m"] = [vt.length_m for _, vt, _ in ex]
         lengths = [vt.length_m for _, vt, _ in ex]
         if n > 1 and all(x is not None for x in lengths):
             coupler["spacing_m"] = [0.5 * (a + b) for a, b in zip(lengths, lengths[1:])]  # type: ignore[operator]
@@ -711,8 +751,9 @@ class TrainSpec(_Model):
             data["brakes"] = BrakeSystemConfig(**parts)
         a: dict[str, Any] = {"adhesion_limited": self.wheel_rail.adhesion_limited,
                              "adhesion_mu": self.wheel_rail.adhesion_mu}
-        if brake is not None:
-            brakes = [vt.brake or ideal for _, vt, _ in ex]
+        if brake is not None:  # an air-braked vehicle's brake_force_n (a locomotive's traction/ED brake) is ideal
+            brakes = [ideal if vt.brake is None or isinstance(vt.brake, AirBrakeRigging) else vt.brake
+                      for _, vt, _ in ex]
 
             def per_vehicle(f: str, instead: Any = None) -> Any:  # one value, or one per vehicle where they differ
                 vals = [getattr(b, f, instead) for b in brakes]
@@ -723,6 +764,37 @@ class TrainSpec(_Model):
                 a.update(model="realistic", lag_s=per_vehicle("lag_s", 0.0), jerk_limit_mps3=per_vehicle("jerk_limit_mps3"))
         data["actuator"] = ActuatorConfig(**a)
         return TrainConfig.model_validate(data)
+
+    def _check_mixed(self, ex: list[tuple[str, VehicleTypeSpec, float]], air: list[Any],
+                     gears: list[str | None]) -> None:
+        """One-line errors for Li's draft gears and air brakes on the coupled kernel: an unknown gear,
+        an air brake without the train's brake pipe, without a locomotive at the head feeding it,
+        without the vehicles' lengths (the pipe's distances), or on a vehicle with wheelsets."""
+        for (name, vt, _), g in zip(ex, gears):
+            if g is not None and g not in self.draft_gears:
+                raise ValueError(f"@vehicle_types.{name}.coupler.gear: unknown draft gear {g!r} "
+                                 f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
+        if all(a is None for a in air):
+            return
+        name = next(nm for (nm, _, _), a in zip(ex, air) if a is not None)
+        if self.air_brake is None:
+            raise ValueError(f"@air_brake: vehicle type {name} has an air brake, which needs the train's brake pipe "
+                             "and its rules (train.air_brake: mode, apply_wave_mps, release_wave_mps, "
+                             "cylinder_tau_s, service_factor)")
+        head, hvt, _ = ex[0]
+        if hvt.traction is None:
+            raise ValueError(f"@vehicles.0.type: vehicle type {name} has an air brake, but nothing feeds the brake "
+                             f"pipe: the leading vehicle ({head}) is not a locomotive (no traction); the pipe is "
+                             "charged and its driver's valve (with ECP: the head-end unit) worked from a locomotive "
+                             "at the head: put a vehicle type with traction first")
+        for nm, vt, _ in ex:
+            if vt.length_m is None:
+                raise ValueError(f"@vehicle_types.{nm}.length_m: a train with air brakes needs each vehicle's length "
+                                 "(the brake pipe's distance from the head)")
+            if isinstance(vt.brake, AirBrakeRigging) and vt.wheels is not None:
+                raise ValueError(f"@vehicle_types.{nm}.wheels: an air-braked vehicle's block force acts on its body "
+                                 "on the coupled kernel; wheelsets (adhesion per axle) take an ideal or "
+                                 "electro_pneumatic brake: leave wheels out of an air-braked vehicle type")
 
     def _kernel_types(self, make: Callable[[VehicleTypeSpec, float], dict[str, Any]]
                       ) -> tuple[dict[str, Any], list[dict[str, Any]]]:

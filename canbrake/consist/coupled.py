@@ -2,7 +2,8 @@
 
 Internal: the user writes ``train:`` as components (:mod:`canbrake.consist.components`); the
 assembler lowers a train whose couplers are Chen's and whose brakes are ideal or
-electro-pneumatic into a :class:`TrainConfig` (per-car lists, SI) and an :class:`ActuatorConfig`.
+electro-pneumatic, or that mixes them with Li's draft gears, air brakes and per-weight resistance,
+into a :class:`TrainConfig` (per-car lists, SI) and an :class:`ActuatorConfig`.
 Also home of the strict base model every scenario section derives from (``_Model``).
 """
 from __future__ import annotations
@@ -15,6 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from canbrake.consist.base import _INF_OK, StrictModel  # noqa: F401 - re-exported for the scenario loader
+from canbrake.consist import heavy_haul as hhs
 from canbrake.consist.brakes import BrakeSystemConfig
 
 #: most vehicles (and ECUs) a scenario may have: the 29-bit identifier plan holds 4095 ECUs; the
@@ -128,6 +130,13 @@ class TrainConfig(_Model):
                                                "components.TableResistance) added to its Davis terms, or None")
     traction_envelope: list[Any] | None = Field(None, description="per car: a traction envelope (heavy_haul.Envelope, "
                                                 "Li 2024 eq. 1) limiting its traction, or None")
+    draft_gears: dict[str, hhs.DraftGear] = Field(default_factory=dict, description="Li's draft gears by name")
+    coupler_gear: list[str | None] | None = Field(None, description="per coupler: the name of its draft gear "
+                                                  "(Li 2024, eqs. 7-9) or None (Chen's coupler)")
+    air_brake: hhs.AirBrake | None = Field(None, description="the automatic air brake / ECP of the air-braked cars")
+    air_rigging: list[hhs.BrakeEquipment | None] | None = Field(None, description="per car: its air brake rigging "
+                                                                "(Li 2024 Table 1) or None")
+    length_m: list[float] | None = Field(None, description="per car: length over couplers (m), spaces the brake pipe")
 
     @field_validator("mass_kg")
     @classmethod
@@ -152,6 +161,74 @@ class TrainConfig(_Model):
 
     def vehicle_masses_kg(self) -> np.ndarray:
         return np.asarray(self.mass_kg, dtype=float)
+
+    @property
+    def mixed(self) -> bool:
+        """Whether the train has Li's draft gears or air brakes among its couplers and brakes."""
+        return self.air_brake is not None or any(g is not None for g in self.coupler_gear or [])
+
+    def air_brake_physics(self) -> Any:
+        """The :class:`canbrake.physics.heavy_haul.AirBrake` over every car (None without air
+        brakes): a car without rigging has no blocks; the pipe runs the cars' lengths from the head."""
+        from canbrake.physics import heavy_haul as hh
+
+        if self.air_brake is None or self.air_rigging is None or self.length_m is None:
+            return None
+        n = self.n_cars
+        rig = self.air_rigging
+        z = np.zeros(n)
+        consist = hh.Consist(mass_kg=np.asarray(self.mass_kg, dtype=float), length_m=np.asarray(self.length_m, dtype=float),
+                             davis_a=z, davis_b=z, davis_c=z, is_loco=np.zeros(n, dtype=bool))
+        ab = self.air_brake
+        return hh.AirBrake(
+            consist, apply_wave_mps=ab.apply_wave_mps, release_wave_mps=ab.release_wave_mps,
+            cylinder_tau_s=ab.cylinder_tau_s, beta_c=ab.service_factor, mode=ab.mode,
+            block_force_kn=np.array([0.0 if r is None else r.block_force_kn() for r in rig]),
+            n_blocks=np.array([0.0 if r is None else r.blocks() for r in rig], dtype=float),
+            friction_coef=np.array([1.0 if r is None else r.friction_coefficient for r in rig]),
+            cylinder_pressure_pa=np.array([1.0 if r is None else 1000.0 * r.cylinder_pressure_kpa for r in rig]),
+            pipe=None if ab.pipe is None else ab.pipe.physics(),
+            emergency=ab.emergency.physics() if ab.application == "emergency" else None)
+
+    def ecp_unit_params(self, vehicle: int) -> dict[str, float] | None:
+        """An ECP air-braked car's brake data for its ECU's brake unit (:class:`canbrake.control.ecp.EcpUnit`),
+        vehicle ``vehicle`` 1-based; None for a car without air brake, with traction, or a pneumatic train."""
+        if self.air_brake is None or self.air_brake.mode != "ecp" or self.air_rigging is None:
+            return None
+        r = self.air_rigging[vehicle - 1]
+        if r is None or (self.traction_envelope is not None and self.traction_envelope[vehicle - 1] is not None):
+            return None
+        return {"k_full_kn": float(r.block_force_kn()), "n_blocks": float(r.blocks()),
+                "friction_coef": float(r.friction_coefficient), "beta_c": float(self.air_brake.service_factor)}
+
+    def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
+        """ValueError (one line) for an ECU that works the driver's brake valve (``airbrake_apply``)
+        anywhere but on the leading vehicle, where the brake pipe is fed (trains with air brakes)."""
+        if self.air_brake is None:
+            return
+        from canbrake.control.base import controller_class
+
+        for p in placed:
+            try:
+                cmds = tuple(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
+            except Exception:  # noqa: BLE001 - an unknown controller is reported by its own check
+                continue
+            if "airbrake_apply" in cmds and p.vehicle != 1:
+                raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which works "
+                                 "the driver's brake valve (airbrake_apply): the valve is on the leading vehicle "
+                                 "(vehicle 1), where the brake pipe is fed; place that ECU on vehicle 1")
+            wagon = (1 <= p.vehicle <= self.n_cars and self.air_rigging is not None
+                     and self.air_rigging[p.vehicle - 1] is not None
+                     and (self.traction_envelope is None or self.traction_envelope[p.vehicle - 1] is None))
+            if not wagon or "brake_force_n" not in cmds or "ecp_demand" in cmds:
+                continue
+            if self.air_brake.mode == "ecp" and len(cmds) == 1:
+                continue  # wrapped by its ECP brake unit (build_controller)
+            raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which commands a "
+                             "brake force (brake_force_n): an air-braked vehicle without traction (a wagon) has no "
+                             "force equipment; with train.air_brake.mode: ecp its ECU turns a force-only "
+                             "controller's demand (e.g. chen2023) into its cylinder demand, or use a wagon "
+                             "controller such as ecp_wagon")
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
         from canbrake.build import build_coupled_plant

@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -108,6 +108,13 @@ class TrainPlant:
         those cars zero Davis coefficients); ``None`` = no car has one.
     traction_envelope: per car, a :class:`canbrake.physics.heavy_haul.TractionEnvelope` or ``None``:
         that car's traction (a negative rail force) is at most F_T(|v|) (Li 2024 eq. 1), every sub-step.
+    draft_gears: per coupler, a :class:`canbrake.physics.heavy_haul.DraftGear` (Li 2024's hysteretic
+        draft gear with slack, eqs. 7-9, stepped by its compiled ``GearKernel`` once per sub-step; its
+        force replaces Φ on that coupler, + where Δl > 0) or ``None`` (Chen's coupler); ``None`` = none.
+    air_brake: a :class:`canbrake.physics.heavy_haul.AirBrake` over every car (cars without air brake
+        rigging have no blocks: force 0), stepped by its compiled ``AirKernel`` once per sub-step after
+        the speeds; its block force acts on the car's body as a dissipative force like the running
+        resistance (a car with wheelsets takes no air brake); ``air_braked``: which cars have rigging.
     grade_rad: track slope θ (rad), scalar, per car, or a function of the positions returning per-car θ.
     curve_resistance_n: extra dissipative resistance per car (N), e.g. Chen's 0.004·m·D_c.
     actuator: :class:`BrakeActuator` (default ideal).
@@ -148,6 +155,9 @@ class TrainPlant:
         wsp_max_vent_s: float | Sequence[float] = math.inf,
         resistance_table: Sequence[tuple[Sequence[float], Sequence[float]] | None] | None = None,
         traction_envelope: Sequence[object | None] | None = None,
+        draft_gears: Sequence[object | None] | None = None,
+        air_brake: object | None = None,
+        air_braked: Sequence[bool] | None = None,
     ) -> None:
         self.mass_kg = np.asarray(mass_kg, dtype=float).copy()
         n = self.mass_kg.size
@@ -231,6 +241,18 @@ class TrainPlant:
         self._wheels0 = None if wheels is None else wheels.omega.copy()
         self.resistance_table = self._tables(resistance_table)
         self.traction_envelope = self._envelopes(traction_envelope)
+        self._gears = self._draft_gears(draft_gears)
+        self.air_brake = air_brake
+        self.air_braked = None if air_brake is None else np.asarray(
+            [True] * n if air_braked is None else air_braked, dtype=bool)
+        if air_brake is not None and (self.air_braked.shape != (n,) or air_brake.dist.size != n):  # type: ignore[attr-defined]
+            raise ValueError(f"air_brake and air_braked must cover every car ({n})")
+        if air_brake is not None and wheels is not None and np.any(self.air_braked & (
+                np.ones(n, dtype=bool) if wheels.active is None else np.asarray(wheels.active) > 0)):
+            raise ValueError("a car with wheelsets takes no air brake (its block force acts on the body)")
+        if air_brake is not None:
+            self._air0 = (air_brake.fill.copy(), air_brake.ecp_target.copy(), air_brake.last_force_n.copy(),  # type: ignore[attr-defined]
+                          None if air_brake.pipe is None else air_brake.pipe_pressure_pa.copy())  # type: ignore[attr-defined]
         #: a stack of plants (stack_plants): arrays have a leading points axis
         self.stacked = False
         self._kern: CoupledKernel | None = None  # built at the first step
@@ -264,6 +286,20 @@ class TrainPlant:
                      np.concatenate([t[1] for t in out if t is not None]))
         return tuple(out)
 
+    def _draft_gears(self, gears: Sequence[object | None] | None) -> object | None:
+        """The couplers with Li's draft gears as one :class:`canbrake.physics.heavy_haul.CouplerBank`
+        over them (their indices in ``self.gear_couplers``); None without draft gears."""
+        from canbrake.physics.heavy_haul import CouplerBank
+
+        self.draft_gears = None if gears is None else tuple(gears)
+        self.gear_couplers = np.zeros(0, dtype=np.intp)
+        if gears is None or all(g is None for g in gears):
+            return None
+        if len(gears) != self.n_cars - 1:
+            raise ValueError(f"draft_gears must have one entry per coupler ({self.n_cars - 1}), got {len(gears)}")
+        self.gear_couplers = np.flatnonzero([g is not None for g in gears])
+        return CouplerBank([g for g in gears if g is not None])
+
     def _envelopes(self, envelopes: Sequence[object | None] | None) -> tuple[object | None, ...] | None:
         """Keep the per-car traction envelopes as the kernel's rows (``self._env``, (n, 6), NaN rows
         for cars without; None without envelopes)."""
@@ -296,6 +332,16 @@ class TrainPlant:
         self._vent_s = np.zeros(self.n_cars)
         if self.wheels is not None and self._wheels0 is not None:
             self.wheels.omega = self._wheels0.copy()
+        if self._gears is not None:  # every draft gear in its slack, unloaded
+            self._gears.force_state = np.zeros(self._gears.n)
+            self._gears.defl_prev = np.zeros(self._gears.n)
+        ab = self.air_brake
+        if ab is not None:  # brake released, pipe charged, no command issued
+            fill, target, force, pipe = self._air0
+            ab.fill, ab.ecp_target, ab.last_force_n = fill.copy(), target.copy(), force.copy()
+            ab.applied, ab.t_apply, ab.t_release = False, -np.inf, -np.inf
+            if pipe is not None:
+                ab.pipe_pressure_pa = pipe.copy()
 
     @property
     def deflection_m(self) -> np.ndarray:
@@ -305,7 +351,35 @@ class TrainPlant:
     @property
     def coupler_force_n(self) -> np.ndarray:
         """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1."""
-        return self.coupler_force_from_deflection(self.deflection_m, self.speed_mps[..., :-1] - self.speed_mps[..., 1:])
+        dl, rate = self.deflection_m, self.speed_mps[..., :-1] - self.speed_mps[..., 1:]
+        phi = self.coupler_force_from_deflection(dl, rate)
+        if self._gears is not None:  # the draft gears' force at this state, their history kept
+            g, k = self._gears, self.gear_couplers
+            phi[k] = g.kernel.step(np.ascontiguousarray(dl[k]), np.ascontiguousarray(rate[k]), g.force_state,
+                                   g.defl_prev)[0]
+        return phi
+
+    @property
+    def air_brake_n(self) -> np.ndarray | None:
+        """The air brake's block force per car (N, ≥ 0; 0 on cars without rigging); None without air brake."""
+        return None if self.air_brake is None else self.air_brake.last_force_n  # type: ignore[attr-defined]
+
+    def command_air(self, apply: float | None, ecp_demand: np.ndarray | None) -> None:
+        """The air brake's commands, as :class:`canbrake.physics.heavy_haul.HeavyHaulModel` takes them:
+        ``apply`` the driver's valve on the leading car (≥ 0.5 apply, < 0.5 release, None/NaN unchanged;
+        pneumatic mode), ``ecp_demand`` each car's cylinder target (fraction 0..1, NaN unchanged; ECP
+        mode). The command acts from the next sub-step (the heavy-haul plant also redoes the fill update
+        that reached this instant)."""
+        ab: Any = self.air_brake
+        if ab is None:
+            return
+        if ab.mode == "pneumatic":
+            if apply is not None and math.isfinite(apply) and (apply >= 0.5) != ab.applied:
+                ab.command(self.time_s, bool(apply >= 0.5))
+        elif ecp_demand is not None:
+            dm = np.asarray(ecp_demand, dtype=float)
+            ok = np.isfinite(dm)
+            ab.ecp_target = np.where(ok, np.clip(np.where(ok, dm, 0.0), 0.0, 1.0), ab.ecp_target)
 
     @property
     def brake_effort_n(self) -> np.ndarray:
@@ -410,7 +484,8 @@ class TrainPlant:
         cmd = np.asarray(brake_command_n, dtype=float)
         if cmd.shape != self.speed_mps.shape:
             raise ValueError(f"brake_command_n must have shape {self.speed_mps.shape}")
-        if self.blending is not None or self.wheels is not None:
+        if self.blending is not None or self.wheels is not None or self._gears is not None \
+                or self.air_brake is not None:
             return self._step_equipped(dt_s, cmd, wsp_release)
         n_sub = self._substeps(dt_s)
         h = dt_s / n_sub
@@ -519,6 +594,8 @@ class TrainPlant:
         flat = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
         mass = flat(self.mass_kg)
         dl = np.zeros(0)
+        gears, gk = self._gears, self.gear_couplers
+        air: Any = self.air_brake
         for _ in range(n_sub):
             t = self.time_s
             self._update_rail(t)
@@ -526,7 +603,10 @@ class TrainPlant:
             if self._env is not None:  # each car's traction within its envelope at its speed
                 effort = traction_capped(self._env, flat(v), flat(effort))
             dl = x[..., :-1] - x[..., 1:] - self.coupler_spacing_m
-            phi = self.coupler_force_from_deflection(dl, v[..., :-1] - v[..., 1:])
+            rate = v[..., :-1] - v[..., 1:]
+            phi = self.coupler_force_from_deflection(dl, rate)
+            if gears is not None:  # Li's draft gears (compiled GearKernel), their history advanced
+                phi[gk] = gears.step(dl[gk], rate[gk])  # type: ignore[attr-defined]
             f = self._incidence.dot(phi) if phi.ndim == 1 else phi @ self._incidence.T
             if self._grade_fn is not None:
                 f = f - self.mass_kg * g * np.sin(np.asarray(self._grade_fn(x), dtype=float))
@@ -538,6 +618,8 @@ class TrainPlant:
             r = self._c_static + speed * (c1 + c2 * speed)
             if self._tab is not None:
                 r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], flat(speed), flat(r))
+            if air is not None:  # the air brake's block force: dissipative on the body, as resistance
+                r = r + air.last_force_n
             # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake), compiled
             v_new, rail = kern.substep(h, blend_k, valve_k, flat(effort), flat(v), flat(f), flat(r), mass,
                                        flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve.reshape(-1),
@@ -547,6 +629,8 @@ class TrainPlant:
             x = x + h * v_new
             v_before, v = v, v_new
             self.time_s = t + h
+            if air is not None:  # cylinders and pipe to the new time, forces at the new speeds (AirKernel)
+                air.step(self.time_s, h, v_new)
         acc = (v - v_before) / h
         if self.stacked:
             bad = ~np.isfinite(v).all(axis=-1)
@@ -621,8 +705,8 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     stack: they qualify when every point has the same ones (the wheels' state, ω, creep force and
     slip, is per point: (P, n, p)).
 
-    None where the plants do not qualify: an end stop that can refine the sub-step (it would depend
-    on each point's state), a grade function, or plants that differ in anything but their per-car
+    None where the plants do not qualify: draft gears or air brakes (their state is the plant's, not
+    a stack's), an end stop that can refine the sub-step (it would depend on each point's state), a grade function, or plants that differ in anything but their per-car
     arrays (actuator, blending, end stops, resistance tables, traction envelopes, wheelsets, rail
     conditions, disturbances, sub-step, dump valves, gravity)."""
     import copy
@@ -644,7 +728,8 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
 
     p0 = plants[0]
     for p in plants:
-        if (not same_wheels(p.wheels, p0.wheels) or p._grade_fn is not None or not _substeps_fixed(p)
+        if (not same_wheels(p.wheels, p0.wheels) or p._gears is not None or p.air_brake is not None
+                or p._grade_fn is not None or not _substeps_fixed(p)
                 or not same(p.wsp_valve_lag_s, p0.wsp_valve_lag_s) or not same(p.wsp_max_vent_s, p0.wsp_max_vent_s)
                 or not same(p._tab, p0._tab) or not same(p._env, p0._env)
                 or repr(p.blending) != repr(p0.blending) or not same(p.end_stop_m, p0.end_stop_m)
