@@ -1097,9 +1097,35 @@ def check_buildable(scn: Scenario) -> None:
     except ValueError as e:
         raise ScenarioError(str(e)) from None
     try:
-        build_plant_model(scn)
+        model = build_plant_model(scn)
     except ValueError as e:
         raise ScenarioError(f"train: {e}") from None
+    check_plant_contract(scn, model)
+
+
+def check_plant_contract(scn: Scenario, model: Any) -> None:
+    """Every sensor a placed controller reads is a measurement of this train's plant, and every
+    command it sends is one the plant takes (physics/contract.py); otherwise the controller would
+    meet a missing value in the plant process, or its commands would be dropped without a word.
+    Raises :class:`ScenarioError` naming the controller field, the ECU, the signal and the plant's."""
+    from canbrake.build import bus_layout
+
+    measured = set(model.measurements())
+    takes = set(getattr(model, "command_names", ()))
+    kernel = scn.train.kernel_name
+    where = {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
+    for p, spec in zip(scn.placement(), bus_layout(scn).ecus):
+        field = where.get(id(p.controller), "controller")
+        reads = ["deflection_m" if s in ("deflection_front_m", "deflection_rear_m") else s for s in spec.sensors]
+        missing = [s for s in reads if s not in measured]
+        if missing:
+            raise ScenarioError(f"{field}.name: {p.controller.name} on {p.name} reads {missing[0]}, which this train's "
+                                f"plant ({kernel} kernel) does not measure (it measures "
+                                f"{', '.join(sorted(x for x in measured if not x.startswith('axle')))})")
+        dropped = [c for c in spec.commands if c not in takes]
+        if dropped:
+            raise ScenarioError(f"{field}.name: {p.controller.name} on {p.name} commands {dropped[0]}, which this "
+                                f"train's plant ({kernel} kernel) does not take (it takes {', '.join(sorted(takes))})")
 
 
 def _remove_memory_channel(channel: str | None) -> None:

@@ -10,8 +10,8 @@ Nothing else in canbrake reads YAML.
 from __future__ import annotations
 
 import copy
-import re
 import math
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal, Mapping, Union
 
@@ -733,13 +733,15 @@ def _kept_params(old: Any, new: Any, params: dict[str, Any]) -> dict[str, Any]:
         return {}
 
 
-def _switch_controller(data: dict[str, Any], old: Any, name: Any) -> None:
-    """Make ``name`` the top-level controller of ``data`` in place of ``old``, without ``old``'s
+def _switch_controller(data: dict[str, Any], old: Any, name: Any, holder: dict[str, Any] | None = None) -> None:
+    """Make ``name`` the top-level controller of ``data`` (or of ``holder``, an entry of ``ecus``)
+    in place of ``old``, without ``old``'s
     parameters (:func:`_kept_params`). The scenario's deflection bound stays: when ``old``'s barrier
     bounds ``theta_lower_m``/``theta_upper_m`` were the bound (no ``safety.max_abs_deflection_m``)
     and do not carry over, they become ``safety.max_abs_deflection_m``, so every controller is judged
     against the same bound."""
-    cur = data.get("controller")
+    holder = data if holder is None else holder
+    cur = holder.get("controller")
     params = cur.get("params") if isinstance(cur, dict) else None
     params = params if isinstance(params, dict) else {}
     kept = _kept_params(old, name, params) if params else {}
@@ -750,7 +752,7 @@ def _switch_controller(data: dict[str, Any], old: Any, name: Any) -> None:
             safety = data["safety"] = {}
         if isinstance(safety, dict) and safety.get("max_abs_deflection_m") is None:
             safety["max_abs_deflection_m"] = float(min(abs(lo), abs(hi)))
-    data["controller"] = {"name": name, **({"params": kept} if kept else {})}
+    holder["controller"] = {"name": name, **({"params": kept} if kept else {})}
 
 
 def _drop_stale_profile_params(data: dict[str, Any], written_for: Any) -> None:
@@ -805,6 +807,13 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
         data["profile"] = profile
     overrides = overrides or {}
     before = _controller_name(data)
+    ecus_before = {}  # an ECU's own controller switched by name (--set ecus.N.controller.name=X): as below
+    for k in overrides:
+        m = re.fullmatch(r"ecus\.(\d+)\.controller\.name", k)
+        entries = data.get("ecus")
+        if m and isinstance(entries, list) and int(m[1]) < len(entries) and isinstance(entries[int(m[1])], dict) \
+                and isinstance(entries[int(m[1])].get("controller"), dict):
+            ecus_before[int(m[1])] = entries[int(m[1])]["controller"].get("name")
     for k, v in overrides.items():
         _set_dotted(data, k, v, labels)
     after = _controller_name(data)
@@ -813,14 +822,28 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
         _switch_controller(data, before, after)
         for k, v in given.items():
             _set_dotted(data, k, v, labels)
+    for i, old_name in ecus_before.items():
+        entry = data["ecus"][i]
+        new_name = entry["controller"].get("name") if isinstance(entry.get("controller"), dict) else None
+        if new_name != old_name and f"ecus.{i}.controller" not in overrides:
+            given = {k: v for k, v in overrides.items() if k.startswith(f"ecus.{i}.controller.params")}
+            _switch_controller(data, old_name, new_name, holder=entry)
+            for k, v in given.items():
+                _set_dotted(data, k, v, labels)
     _drop_stale_profile_params(data, written_for)
     if external:
         data = mark_external(data, list(external))
     try:
-        return Scenario.model_validate(data)
+        scn = Scenario.model_validate(data)
     except ValidationError as e:
         raise ScenarioError(blame_overrides(format_validation_error(source, e), source, overrides or {},
                                             labels)) from None
+    unused = [k for k in overrides if k == "controller" or k.startswith("controller.")]
+    if unused and scn.ecus and all(e.controller is not None for e in scn.ecus):  # it would change nothing
+        label = (labels or {}).get(unused[0], f"--set {unused[0]}")
+        raise ScenarioError(f"{label}: no ECU of {source} runs the top-level controller: every entry of ecus "
+                            f"has its own (set ecus.0.controller.{unused[0].partition('.')[2] or 'name'} instead)")
+    return scn
 
 
 def blame_overrides(message: str, source: str, overrides: dict[str, Any],

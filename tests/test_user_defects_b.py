@@ -269,3 +269,16 @@ def test_a_derived_controller_keeps_the_parameters_it_accepts():
     data = back.model_dump(mode="json")
     chen = resolve(data, "<t>", overrides={"controller.name": "chen2023"})
     assert "predict" not in chen.controller.params and chen.controller.params["alpha1"] == 120
+
+
+def test_an_ecus_own_controller_switched_by_name_drops_the_old_ones_parameters():
+    """``--set ecus.0.controller.name=X`` switches that ECU's own controller as ``controller.name``
+    does the top-level one: the previous controller's parameters go (li2024_pid's
+    airbrake_schedule), parameters given with the switch stay, and the top-level controller is
+    untouched."""
+    li = SCENARIOS / "li2024_pid.yaml"
+    scn = load_scenario(li, overrides={"ecus.0.controller.name": "pi"})
+    assert scn.ecus[0].controller.name == "pi" and scn.ecus[0].controller.params == {}
+    scn = load_scenario(li, overrides={"ecus.0.controller.name": "pi", "ecus.0.controller.params.kp": 3})
+    assert scn.ecus[0].controller.params == {"kp": 3}
+    assert scn.controller == load_scenario(li).controller
