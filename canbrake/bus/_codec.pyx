@@ -613,6 +613,7 @@ cdef class PeerTable:
     cdef uint8_t* _ext               # an external ECU (not canbrake's)
     cdef readonly int missing        # listened ECUs neither done nor lost
     cdef bint _any_ext
+    cdef double* _speed              # values["speed_mps"]'s elements (NULL: no such signal)
     # an ECU's receive side (route_ecu)
     cdef dict _route                 # frame id -> kind << 24 | index
     cdef SensorPage* _sp
@@ -655,6 +656,11 @@ cdef class PeerTable:
 
         self.n = n
         self.values = {nm: np.full(n, np.nan) for nm in signal_names}
+        cdef double[::1] speed
+        self._speed = NULL
+        if "speed_mps" in self.values and n > 0:
+            speed = self.values["speed_mps"]
+            self._speed = &speed[0]
         self.origin = np.full(max(n, 1), -(10 ** 12), dtype=np.int64)
         self._fresh_arr = np.zeros(max(n, 1), dtype=np.int64)
         self._pages_arr = np.zeros(max(n, 1), dtype=np.int64)
@@ -953,12 +959,18 @@ cdef class PeerTable:
                 self.x_ref = _field_value(self._ref_pos, w, _swap64(w))
         return m << 3 | _END
 
-    def ages(self, int64_t k, double dt, int own, const double[::1] speed):
+    def ages(self, int64_t k, double dt, int own, speed=None):
         """(age, fresh, max_age) at tick ``k``: per ECU the age in s of its newest value (own
-        entry 0; inf for an ECU never heard whose speed is unknown), the ECUs with a value of
-        this tick (own included) and the oldest finite age (-inf: none)."""
+        entry 0; inf for an ECU never heard whose speed, in ``speed`` (float64, (n,); None: the
+        table's ``speed_mps``), is unknown), the ECUs with a value of this tick (own included) and
+        the oldest finite age (-inf: none)."""
         import numpy as np
 
+        cdef const double[::1] sv
+        cdef const double* sp = self._speed
+        if speed is not None or sp is NULL:
+            sv = self.values["speed_mps"] if speed is None else speed
+            sp = &sv[0]
         age = np.empty(self.n)
         cdef double[::1] a = age
         cdef int j, fresh = 1
@@ -966,7 +978,7 @@ cdef class PeerTable:
         cdef double x, max_age = -INFINITY
         for j in range(self.n):
             o = k if j == own else self._origin[j]
-            x = INFINITY if o < 0 and isnan(speed[j]) else <double>(k - o) * dt
+            x = INFINITY if o < 0 and isnan(sp[j]) else <double>(k - o) * dt
             a[j] = x
             if x != INFINITY and x > max_age:
                 max_age = x

@@ -557,7 +557,7 @@ class EcuNode(Node):
         pt = self._peers
         # per ECU the age of its newest value (compiled: one pass over the train's ECUs), the
         # ECUs with a value of this tick (own included), the oldest finite age (-inf: none)
-        age, fresh, max_age = pt.ages(k, self.dt, i, speed)
+        age, fresh, max_age = pt.ages(k, self.dt, i, None if peers is self._peer_views else speed)
         self.stats.peer_missing += len(self._listened) + 1 - fresh
         nan = math.nan
         obs = Observation.of(tick=k, time_s=k * self.dt, speed_mps=sensors.get("speed_mps", nan),
