@@ -8,7 +8,9 @@ Written by hand because both run every control period for every node (a signals.
 Python call per value; ``tests/test_trace_compiled.py`` checks them against ``csv.writer`` with
 ``%.9g`` floats and against ``LogHistogram.add``.
 """
+from cpython.dict cimport PyDict_GetItem
 from cpython.float cimport PyFloat_AS_DOUBLE
+from cpython.object cimport PyObject
 from cpython.long cimport PyLong_AsLongLongAndOverflow
 from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
@@ -33,6 +35,17 @@ cdef str _g9(double x):
         return s.decode("ascii")
     finally:
         PyMem_Free(s)
+
+
+def csv_dict_row(list head, dict values, tuple names, object default, list tail):
+    """``csv_row(head + [values.get(n, default) for n in names] + tail)`` without the list."""
+    cdef list row = list(head)
+    cdef PyObject* p
+    for nm in names:
+        p = PyDict_GetItem(values, nm)
+        row.append(default if p is NULL else <object>p)
+    row.extend(tail)
+    return csv_row(row)
 
 
 def csv_row(list row):
@@ -134,3 +147,38 @@ def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo
                 i = bins - 1
         counts[i] += 1
     return n, total, vmax
+
+
+#: take_frames' events
+TAKE_END = 0      # every frame taken
+TAKE_SYNC = 1     # msgs[i] is a SYNC (counted): the recorder's verdict, then resume at i
+TAKE_PHASE = 2    # msgs[i]'s key has no phase yet: set phase_of[key], then resume at i
+
+
+def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, object sync_id, dict phase_of,
+                list tick_frames):
+    """The lockstep recorder's receive loop (:meth:`canbrake.nodes.recorder.RecorderNode.handle_batch`)
+    over ``msgs[start:]``: each frame counted by key (identifier, extended, error frame), a frame
+    of ``closing`` counted as closing its tick, and kept as (phase, identifier, payload bytes,
+    frame) in ``tick_frames`` with its key's phase from ``phase_of``. Returns (i, TAKE_*, closing
+    frames seen); ``resume``: msgs[start] was counted already (it was returned)."""
+    cdef Py_ssize_t i, m = len(msgs)
+    cdef Py_ssize_t closed = 0
+    cdef PyObject* p
+    for i in range(start, m):
+        msg = msgs[i]
+        aid = msg.arbitration_id
+        ext = msg.is_extended_id
+        key = (aid, ext, msg.is_error_frame)
+        if not (resume and i == start):
+            p = PyDict_GetItem(counts, key)
+            counts[key] = 1 if p is NULL else <object>p + 1
+            if aid in closing:
+                closed += 1
+            elif aid == sync_id and ext == (aid > 0x7FF):
+                return i, TAKE_SYNC, closed
+        p = PyDict_GetItem(phase_of, key)
+        if p is NULL:
+            return i, TAKE_PHASE, closed
+        tick_frames.append((<object>p, aid, bytes(msg.data), msg))
+    return m, TAKE_END, closed

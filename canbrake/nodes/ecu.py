@@ -614,9 +614,8 @@ class EcuNode(Node):
             return
         self._pending_row = None
         k, force, diag, max_age, fresh = pending
-        nan = math.nan
-        self._trace.append([k, force, *[diag.get(n, nan) for n in self._diag_names],  # type: ignore[union-attr]
-                            max_age if max_age > -math.inf else math.inf, fresh])
+        self._trace.append_dict([k, force], diag, self._diag_names, math.nan,  # type: ignore[union-attr]
+                                [max_age if max_age > -math.inf else math.inf, fresh])
 
     def _peer_fallback(self, origin: list[int], peers: dict[str, np.ndarray]) -> None:
         """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
