@@ -32,6 +32,7 @@ from canbrake.nodes.base import (CsvTrace, LogHistogram, Node, PassThrough, Send
 #: the key of a command frame's Status field among the period's command values (not a name a
 #: controller's command can have)
 _STATUS = ("Status",)
+_perf_counter = time.perf_counter
 
 
 @dataclass
@@ -165,7 +166,7 @@ class EcuNode(Node):
             view = arr.view()
             view.flags.writeable = False
             self._peer_views[nm] = view
-        self._own_signals = [nm for nm in self.peer_signals if nm in spec.sensors]
+        self._own_signals = tuple(nm for nm in self.peer_signals if nm in spec.sensors)
         self._ext_timeout = float(external_timeout_s)
         self.time_scale = float(time_scale)
         # frames out: per message (id, codec, keys): the value of each of its fields is the value
@@ -544,7 +545,7 @@ class EcuNode(Node):
         sensors = self.sensors
         table = self.peer_signals
         i = self.i
-        for nm in self._own_signals:
+        for nm in self._own_signals:  # this ECU's own entries
             table[nm][i] = sensors[nm]
         if self.peer_hold_periods is not None:  # lost peers are NaN for the controller: a copy
             peers = {nm: arr.copy() for nm, arr in table.items()}
@@ -568,10 +569,10 @@ class EcuNode(Node):
                              deflection_rear_m=(sensors.get("deflection_rear_m")
                                                 if self._has_rear and "deflection_rear_m" in sensors else None),
                              ref_position_m=pt.x_ref, sensors=dict(sensors), peer_signals=peers)
-        t0 = time.perf_counter()
+        t0 = _perf_counter()
         result = self.controller.step(obs)
         pending = self._control_pending
-        pending.append(time.perf_counter() - t0)
+        pending.append(_perf_counter() - t0)
         if len(pending) >= 1024:
             self._control_time.add_many(pending)
             pending.clear()
