@@ -72,3 +72,17 @@ def test_block_equals_percent_formatting(n, m, last_int, data):
         cells[-1] = "%d"
     fmt = ",".join(cells) + "\r\n"
     assert csv_block(rows, last_int) == "".join(fmt % tuple(r) for r in rows.tolist())
+
+
+def test_csv_dict_row_is_csv_row_of_the_values_by_name():
+    """csv_dict_row (an ECU's trace row: diagnostics by name) gives csv_row of the row built with
+    dict.get, missing names as the default; None where csv_row takes the csv writer."""
+    import math
+
+    from canbrake.nodes._trace import csv_dict_row
+
+    diag = {"a": 1.5, "b": 2, "c": np.float64(-0.25), "skip": 9.0}
+    names = ("c", "missing", "a", "b")
+    want = csv_row([7, 1.25, *[diag.get(n, math.nan) for n in names], math.inf, 3])
+    assert csv_dict_row([7, 1.25], diag, names, math.nan, [math.inf, 3]) == want
+    assert csv_dict_row([7], {"a": "text"}, ("a",), math.nan, []) is None

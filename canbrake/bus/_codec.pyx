@@ -18,7 +18,7 @@ Python's own operators (same results, slower).
 from cpython.bytes cimport PyBytes_AS_STRING, PyBytes_FromStringAndSize, PyBytes_GET_SIZE
 from cpython.bytearray cimport PyByteArray_AS_STRING, PyByteArray_GET_SIZE
 from cpython.dict cimport PyDict_GetItem, PyDict_SetItem
-from cpython.float cimport PyFloat_AS_DOUBLE, PyFloat_FromDouble
+from cpython.float cimport PyFloat_AS_DOUBLE, PyFloat_AsDouble, PyFloat_FromDouble
 from cpython.long cimport PyLong_AsDouble, PyLong_AsLongLongAndOverflow, PyLong_FromLongLong
 from cpython.object cimport PyObject
 from libc.math cimport INFINITY, NAN, isfinite, isinf, isnan, rint
@@ -71,6 +71,27 @@ cdef inline int64_t _floordiv15(int64_t t):
     if t % 15 != 0 and t < 0:
         q -= 1
     return q
+
+
+cdef inline int64_t _field_raw(Field* fd, uint64_t w, uint64_t wb) noexcept:
+    """Field ``fd``'s raw value in a frame (its little-endian word ``w``, big-endian word ``wb``)."""
+    cdef int64_t raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
+    cdef uint64_t half
+    if fd.is_signed:
+        half = <uint64_t>1 << (fd.nbits - 1)
+        raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
+    return raw
+
+
+cdef object _field_value(Field* fd, uint64_t w, uint64_t wb):
+    """Field ``fd``'s physical value in a frame, as ``FieldCodec.decode`` gives it (an int for an
+    unscaled signal)."""
+    cdef int64_t raw = _field_raw(fd, w, wb)
+    if not fd.scaled:
+        return PyLong_FromLongLong(raw)
+    if fd.offset == 0.0 and fd.scale > 0.0:
+        return PyFloat_FromDouble(<double>raw * fd.scale)
+    return PyFloat_FromDouble(<double>raw * fd.scale + fd.offset)
 
 
 cdef class FieldCodec:
@@ -240,6 +261,59 @@ cdef class FieldCodec:
                 w |= x
         return self._payload_of(w, wb)
 
+    def keys_for(self, dict key_of):
+        """The ``keys`` of :meth:`encode_from` for the fields named in ``key_of`` (field name ->
+        key), None for the others."""
+        return tuple(key_of.get(nm) for nm in self.names)
+
+    def encode_from(self, dict values, tuple keys, counter, tick, bint as_float=False):
+        """``encode({field name: values[keys[i]] for each field i whose key is not None and whose
+        value is in ``values`` and finite}, counter, tick)`` without the dict: ``keys`` holds per
+        field of this codec the key of its value in ``values`` (a dict) or None (the field's
+        default, or its counter, CRC or constant). ``as_float``: each value taken as
+        ``float(value)``."""
+        cdef uint64_t w = 0
+        cdef uint64_t wb = 0
+        cdef uint64_t x
+        cdef int i
+        cdef Field* fd
+        cdef int64_t r
+        cdef PyObject* p
+        cdef double d
+        if len(keys) != self.n:
+            raise ValueError(f"{len(keys)} keys for {self.n} fields")
+        for i in range(self.n):
+            fd = &self.f[i]
+            if fd.role == ROLE_CRC:
+                continue
+            if fd.role == ROLE_COUNTER and counter is not None:
+                x = (<uint64_t><int64_t>counter & fd.mask) << fd.start
+            elif fd.role == ROLE_COUNTER_EXT and tick is not None:
+                x = (<uint64_t>_floordiv15(<int64_t>tick) & fd.mask) << fd.start
+            elif fd.role == ROLE_CONST:
+                x = (<uint64_t>fd.const_raw & fd.mask) << fd.start
+            else:
+                key = keys[i]
+                p = NULL if key is None else PyDict_GetItem(values, key)
+                if p is NULL:
+                    r = self._raw(i, self.defaults[i])
+                else:
+                    v = <object>p
+                    d = PyFloat_AS_DOUBLE(v) if PyFloat_Check(v) else (0.0 if PyLong_Check(v) and not as_float
+                                                                       else PyFloat_AsDouble(v))
+                    if not isfinite(d):  # left out of the frame: the field's default
+                        r = self._raw(i, self.defaults[i])
+                    elif as_float:
+                        r = self._raw_double(i, d)
+                    else:
+                        r = self._raw(i, v)
+                x = (<uint64_t>r & fd.mask) << fd.start
+            if fd.big:
+                wb |= x
+            else:
+                w |= x
+        return self._payload_of(w, wb)
+
     cdef bytes _payload_of(self, uint64_t w, uint64_t wb):
         """The payload bytes of the little-endian fields' word ``w`` and the big-endian fields'
         word ``wb``, with the E2E CRC if protected."""
@@ -280,22 +354,9 @@ cdef class FieldCodec:
     cdef dict _decode_word(self, uint64_t w):
         cdef dict d = {}
         cdef int i
-        cdef Field* fd
-        cdef int64_t raw
-        cdef uint64_t half
         cdef uint64_t wb = _swap64(w) if self.any_big else 0
         for i in range(self.n):
-            fd = &self.f[i]
-            raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
-            if fd.is_signed:
-                half = <uint64_t>1 << (fd.nbits - 1)
-                raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
-            if not fd.scaled:
-                PyDict_SetItem(d, self.names[i], PyLong_FromLongLong(raw))
-            elif fd.offset == 0.0 and fd.scale > 0.0:
-                PyDict_SetItem(d, self.names[i], PyFloat_FromDouble(<double>raw * fd.scale))
-            else:
-                PyDict_SetItem(d, self.names[i], PyFloat_FromDouble(<double>raw * fd.scale + fd.offset))
+            PyDict_SetItem(d, self.names[i], _field_value(&self.f[i], w, wb))
         return d
 
     def decode(self, data):
@@ -398,6 +459,51 @@ def frame_origin(unsigned int data_id, object payload, int64_t k, int64_t last_o
     return (None, code) if code < 0 else (o, 0)
 
 
+# ---------------------------------------------------------------- SYNC at a receiver
+#: sync_check's verdicts
+SYNC_REJECT = 0        # out of sequence or at a moment the protocol never sends it (reason "sync")
+SYNC_TICK = 1          # the next period (if authentic)
+SYNC_END = 2           # the end of the run (if authentic)
+SYNC_END_IGNORED = 3   # an unauthenticated END before the last scheduled tick
+DEF _S_REJECT = 0
+DEF _S_TICK = 1
+DEF _S_END = 2
+DEF _S_END_IGNORED = 3
+DEF END_TICK = 0xFFFFFFFF
+
+
+cdef int _sync_code(const uint8_t* s, Py_ssize_t n, int64_t own_k, bint tick_complete, bint lockstep,
+                    bint has_final, int64_t final_tick, bint secured, int64_t* tick) noexcept:
+    """The verdict on a SYNC payload (its Tick: bytes 0-3, little-endian, missing bytes 0) at a
+    receiver whose last accepted tick is ``own_k``; the tick into ``tick``."""
+    cdef int64_t t = 0
+    cdef Py_ssize_t i
+    for i in range(n if n < 4 else 4):
+        t |= (<int64_t>s[i]) << (8 * i)
+    tick[0] = t
+    cdef bint end = t == END_TICK
+    if (lockstep and not tick_complete) or (end and own_k < 0):  # no END before the first tick
+        return _S_REJECT
+    if not end and (t != own_k + 1 if lockstep else t <= own_k):
+        return _S_REJECT
+    if end and not secured and has_final and own_k != final_tick:
+        return _S_END_IGNORED
+    return _S_END if end else _S_TICK
+
+
+def sync_check(object payload, int64_t own_k, bint tick_complete, bint lockstep, final_tick, bint secured):
+    """(SYNC_*, tick) of a SYNC payload: see :func:`canbrake.bus.guard.sync_verdict`."""
+    cdef const uint8_t* s
+    cdef Py_ssize_t n
+    cdef int64_t t = 0
+    if not _payload(payload, &s, &n):
+        payload = bytes(payload)
+        _payload(payload, &s, &n)
+    cdef int code = _sync_code(s, n, own_k, tick_complete, lockstep, final_tick is not None,
+                               0 if final_tick is None else final_tick, secured, &t)
+    return code, t
+
+
 # ---------------------------------------------------------------- a receiver's peer table
 cdef struct PageField:
     Field* field     # the signal's field in its page's FieldCodec (kept alive by PeerTable._codecs)
@@ -409,15 +515,11 @@ cdef void _decode_into(PageField* pf, int count, uint64_t w) noexcept:
     ``FieldCodec.decode`` gives them (the float the array holds)."""
     cdef Field* fd
     cdef int64_t raw
-    cdef uint64_t half
     cdef uint64_t wb = _swap64(w)
     cdef int i
     for i in range(count):
         fd = pf[i].field
-        raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
-        if fd.is_signed:
-            half = <uint64_t>1 << (fd.nbits - 1)
-            raw = <int64_t>(<uint64_t>raw ^ half) - <int64_t>half
+        raw = _field_raw(fd, w, wb)
         if not fd.scaled:
             pf[i].target[0] = <double>raw
         elif fd.offset == 0.0 and fd.scale > 0.0:
@@ -435,18 +537,62 @@ cdef struct Page:
     int count
 
 
+cdef struct SensorField:
+    Field* field     # the signal's field in its page's FieldCodec (kept alive by PeerTable._codecs)
+    PyObject* name   # the sensor's name, the key in the sensors dict (kept alive by PeerTable._names)
+
+
+cdef struct SensorPage:
+    int first        # its fields: _sf[first:first + count]
+    int count
+    bint last        # the ECU's last sensor page: its phase 1 follows
+
+
+# what PeerTable.feed does with a frame, by identifier (PeerTable._route: id -> kind << 24 | index)
+DEF R_STATE = 1      # a listened ECU's state page (index: its page number)
+DEF R_SENSOR = 2     # one of this ECU's sensor pages (index: its number)
+DEF R_REF = 3        # the reference (speed, deceleration)
+DEF R_REF_POS = 4    # the reference position
+DEF R_PY = 5         # the node's Python (barrier frames, secured or linked state frames)
+DEF R_SYNC = 6       # SYNC
+
+#: PeerTable.feed's events (low 3 bits of its result; the frame's index above them)
+FEED_END = 0         # every frame taken
+FEED_FRAME = 1       # this frame is the node's to handle (R_PY)
+FEED_PHASE1 = 2      # this frame was the ECU's last sensor page
+FEED_PHASE2 = 3      # this state page completed the last peer of the tick in phase 1
+FEED_REJECT = 4      # this state page was rejected (PeerTable.last_code: REJECT_*)
+FEED_HELD = 5        # this state page came after its sender's barrier frame: held (lockstep)
+FEED_ARM = 6         # this state page completed a peer in phase 1, only external peers may be missing
+FEED_SYNC = 7        # this SYNC starts tick PeerTable.sync_tick (the table's new tick begun)
+DEF _END = 0
+DEF _FRAME = 1
+DEF _PHASE1 = 2
+DEF _PHASE2 = 3
+DEF _REJECT = 4
+DEF _HELD = 5
+DEF _ARM = 6
+DEF _SYNC = 7
+
+
 cdef class PeerTable:
     """What one ECU holds of its peers: per signal an array over the train's ECUs (NaN until
-    received), per ECU the newest origin (tick) and the state pages of that tick seen.
+    received), per ECU the newest origin (tick), the state pages of that tick seen and whether
+    the ECU is complete for this tick (``peer_done``).
 
     ``take`` checks a state page (E2E CRC, counter, origin: :func:`frame_origin`) and decodes it
     straight into the arrays; ``ages`` gives the peers' ages once per period. ``values`` are
-    the arrays themselves (numpy, float64, shape (n,))."""
+    the arrays themselves (numpy, float64, shape (n,)).
+
+    An ECU's receive side (:meth:`route_ecu`, :meth:`feed`): a batch of frames goes through one
+    compiled loop that takes the state pages, decodes the sensor pages into the ECU's sensor dict
+    and the reference into ``v_ref``/``a_ref``/``x_ref``, marks peers complete, and returns to
+    the node only where its Python acts (a phase, SYNC, a rejection; see ``FEED_*``)."""
 
     cdef readonly int n
     cdef readonly dict values
     cdef readonly object origin      # int64 array (n,)
-    cdef object _fresh_arr, _pages_arr
+    cdef object _fresh_arr, _pages_arr, _flags_arr
     cdef int64_t* _origin
     cdef int64_t* _fresh             # state pages of this tick seen, per ECU
     cdef int64_t* _pages_of          # state pages per ECU and tick
@@ -460,20 +606,61 @@ cdef class PeerTable:
     cdef object _listened_arr
     cdef int64_t* _listened
     cdef int _nlistened
+    # the peers' completion of this tick: per ECU flags (listened, done, lost, external)
+    cdef uint8_t* _is_listened
+    cdef uint8_t* _done              # complete this tick (its last page, or its barrier frame)
+    cdef uint8_t* _lost              # an external peer given up on this tick (not done)
+    cdef uint8_t* _ext               # an external ECU (not canbrake's)
+    cdef readonly int missing        # listened ECUs neither done nor lost
+    cdef bint _any_ext
+    cdef double* _speed              # values["speed_mps"]'s elements (NULL: no such signal)
+    # an ECU's receive side (route_ecu)
+    cdef dict _route                 # frame id -> kind << 24 | index
+    cdef SensorPage* _sp
+    cdef int _nsp
+    cdef SensorField* _sf
+    cdef int _nsf
+    cdef list _names
+    cdef dict _sensors
+    cdef Field* _ref_speed
+    cdef Field* _ref_decel
+    cdef Field* _ref_pos
+    cdef bint _barrier, _lockstep, _per_frame, _has_final
+    cdef int64_t _final_tick
+    cdef unsigned int _sync_id
+    #: the tick of the last FEED_SYNC
+    cdef readonly int64_t sync_tick
+    #: the reference as last received: speed (m/s), deceleration (m/s^2), position (m)
+    cdef public object v_ref, a_ref, x_ref
+    #: state pages accepted (take, apply, feed)
+    cdef readonly int64_t accepted
+    #: the REJECT_* code of the last FEED_REJECT
+    cdef readonly int last_code
 
     def __cinit__(self):
         self._pg = NULL
         self._pf = NULL
+        self._sp = NULL
+        self._sf = NULL
 
     def __dealloc__(self):
         PyMem_Free(self._pg)
         PyMem_Free(self._pf)
+        PyMem_Free(self._sp)
+        PyMem_Free(self._sf)
 
-    def __init__(self, int n, signal_names, listened, int64_t max_lag):
+    def __init__(self, int n, signal_names, listened, int64_t max_lag, external=()):
+        """``listened``: the ECU indices (0-based) this ECU listens to, ``external`` those of
+        them that are external ECUs."""
         import numpy as np
 
         self.n = n
         self.values = {nm: np.full(n, np.nan) for nm in signal_names}
+        cdef double[::1] speed
+        self._speed = NULL
+        if "speed_mps" in self.values and n > 0:
+            speed = self.values["speed_mps"]
+            self._speed = &speed[0]
         self.origin = np.full(max(n, 1), -(10 ** 12), dtype=np.int64)
         self._fresh_arr = np.zeros(max(n, 1), dtype=np.int64)
         self._pages_arr = np.zeros(max(n, 1), dtype=np.int64)
@@ -483,10 +670,30 @@ cdef class PeerTable:
         self.max_lag = max_lag
         self._index = {}
         self._codecs = []
-        self._npg = self._npf = 0
+        self._npg = self._npf = self._nsp = self._nsf = 0
         self._listened_arr = np.asarray(list(listened) or [0], dtype=np.int64)
         self._listened = _i64(self._listened_arr)
         self._nlistened = len(listened)
+        self._flags_arr = np.zeros((4, max(n, 1)), dtype=np.uint8)
+        cdef uint8_t[:, ::1] fl = self._flags_arr
+        self._is_listened, self._done, self._lost, self._ext = &fl[0, 0], &fl[1, 0], &fl[2, 0], &fl[3, 0]
+        for j in listened:
+            if not 0 <= j < n:
+                raise ValueError(f"ECU index {j} outside 0..{n - 1}")
+            self._is_listened[j] = 1
+        for j in external:
+            if 0 <= j < n and self._is_listened[j]:
+                self._ext[j] = 1
+                self._any_ext = True
+        self.missing = self._nlistened
+        self._route = {}
+        self._names = []
+        self._sensors = {}
+        self._ref_speed = self._ref_decel = self._ref_pos = NULL
+        self.v_ref, self.a_ref, self.x_ref = 0.0, 0.0, NAN
+        self._lockstep = True
+        self.accepted = 0
+        self.last_code = 0
 
     def add_page(self, unsigned int frame_id, int j, FieldCodec codec, signals, bint same_tick_ok, ext):
         """A state page of ECU index j (0-based): ``signals`` = [(array name, signal name)];
@@ -511,23 +718,133 @@ cdef class PeerTable:
             self._npf += 1
         self._codecs.append(codec)
         self._index[frame_id] = self._npg
+        self._route[frame_id] = R_STATE << 24 | self._npg
         self._npg += 1
         self._pages_of[j] += 1
 
+    def route_ecu(self, dict sensors, sensor_pages, FieldCodec reference, unsigned int reference_id,
+                  FieldCodec reference_pos, unsigned int reference_pos_id, unsigned int sync_id, python_ids, *,
+                  bint barrier, bint lockstep, bint per_frame, final_tick=None):
+        """Make this the receive side of an ECU (:meth:`feed`): ``sensors`` its sensor dict
+        (name -> value, written by its sensor pages), ``sensor_pages`` [(frame id, codec,
+        [(sensor name, signal name)])] in order (the last one starts phase 1), the reference's
+        messages (RefSpeed, RefDecel; RefPosition, None: not routed), the SYNC identifier,
+        ``python_ids`` the identifiers the node's Python handles (barrier frames, authenticators);
+        ``barrier``: peers complete by their barrier frames, not their last page; ``per_frame``:
+        state pages and SYNC go to the node's Python one by one (SecOC, receive links);
+        ``final_tick``: the last scheduled tick (an unauthenticated END before it is ignored).
+        Call after every :meth:`add_page`."""
+        cdef FieldCodec c
+        cdef int i = 0
+        route = {}  # the node's order of checks: a later entry wins
+        if reference_pos is not None:
+            route[reference_pos_id] = R_REF_POS << 24
+        route[reference_id] = R_REF << 24
+        for fid, c, sigs in sensor_pages:
+            self._sp = <SensorPage*>PyMem_Realloc(self._sp, (self._nsp + 1) * sizeof(SensorPage))
+            self._sf = <SensorField*>PyMem_Realloc(self._sf, (self._nsf + len(sigs)) * sizeof(SensorField))
+            if self._sp is NULL or self._sf is NULL:
+                raise MemoryError()
+            self._sp[self._nsp].first, self._sp[self._nsp].count = self._nsf, len(sigs)
+            self._sp[self._nsp].last = i == len(sensor_pages) - 1
+            for name, dbc_name in sigs:
+                self._names.append(name)
+                self._sf[self._nsf].field = &c.f[c.names.index(dbc_name)]
+                self._sf[self._nsf].name = <PyObject*>name
+                self._nsf += 1
+            self._codecs.append(c)
+            route[fid] = R_SENSOR << 24 | self._nsp
+            self._nsp += 1
+            i += 1
+        route[sync_id] = (R_PY if per_frame else R_SYNC) << 24
+        for fid in python_ids:
+            route[fid] = R_PY << 24
+        for fid, p in self._index.items():
+            route[fid] = (R_PY << 24) if per_frame else (R_STATE << 24 | p)
+        self._route = route
+        self._sensors = sensors
+        self._codecs += [reference, reference_pos]
+        self._ref_speed = &reference.f[reference.names.index("RefSpeed")]
+        self._ref_decel = &reference.f[reference.names.index("RefDecel")]
+        if reference_pos is not None:
+            self._ref_pos = &reference_pos.f[reference_pos.names.index("RefPosition")]
+        self._barrier, self._lockstep, self._per_frame = barrier, lockstep, per_frame
+        self._sync_id = sync_id
+        self._has_final = final_tick is not None
+        self._final_tick = final_tick if final_tick is not None else 0
+
     def new_tick(self):
-        """A new period: no page of it seen yet."""
+        """A new period: no page of it seen yet, no peer complete."""
+        self._new_tick()
+
+    cdef void _new_tick(self) noexcept:
         cdef int j
         for j in range(self.n):
             self._fresh[j] = 0
+            self._done[j] = 0
+        self.missing = 0
+        for j in range(self._nlistened):
+            self.missing += not self._lost[self._listened[j]]
 
     def origin_of(self, int j):
         """The newest origin (tick) accepted from ECU index j."""
         return self._origin[j]
 
+    # ------------------------------------------------------------ peers complete this tick
+    cdef inline void _peer_done(self, int j) noexcept:
+        if self._done[j] or not self._is_listened[j]:
+            return
+        self._done[j] = 1
+        if self._lost[j]:
+            self._lost[j] = 0  # a silent external peer on time again
+        else:
+            self.missing -= 1
+
+    def peer_done(self, int j):
+        """ECU index j (listened) is complete for this tick (its last page or barrier frame)."""
+        self._peer_done(j)
+
+    def is_done(self, int j):
+        """Whether ECU index j is complete for this tick."""
+        return bool(self._done[j])
+
+    def is_external(self, int j):
+        """Whether ECU index j is a listened external ECU."""
+        return bool(self._ext[j])
+
+    def not_done(self):
+        """Listened ECUs not complete for this tick."""
+        cdef int j, c = 0
+        for j in range(self._nlistened):
+            c += not self._done[self._listened[j]]
+        return c
+
+    def only_external_missing(self):
+        """Some listened ECUs are neither complete nor given up, and all of them are external."""
+        cdef int j, e
+        if self.missing == 0:
+            return False
+        for j in range(self._nlistened):
+            e = self._listened[j]
+            if not self._done[e] and not self._lost[e] and not self._ext[e]:
+                return False
+        return True
+
+    def lose_external(self):
+        """Give up, for this tick, on the external peers not complete (they are late)."""
+        cdef int j, e
+        for j in range(self._nlistened):
+            e = self._listened[j]
+            if self._ext[e] and not self._done[e] and not self._lost[e]:
+                self._lost[e] = 1
+                self.missing -= 1
+
+    # ------------------------------------------------------------ state pages
     cdef int _apply(self, int p, uint64_t w, int64_t origin, int64_t k):
         cdef Page* pg = &self._pg[p]
         cdef int j = pg.j
         _decode_into(self._pf + pg.first, pg.count, w)
+        self.accepted += 1
         if origin > self._origin[j]:
             self._origin[j] = origin
             self._fresh[j] = 0
@@ -535,6 +852,15 @@ cdef class PeerTable:
             self._fresh[j] += 1
             return 2 if self._fresh[j] == self._pages_of[j] else 1
         return 0
+
+    cdef int _take(self, int p, unsigned int frame_id, const uint8_t* s, Py_ssize_t n, int64_t k):
+        cdef Page* pg = &self._pg[p]
+        cdef int64_t o = 0
+        cdef int code = _origin(s, n, frame_id, k, self._origin[pg.j], pg.same_tick_ok, False,
+                                pg.ext_start, pg.ext_bits, self.max_lag, &o)
+        if code < 0:
+            return code
+        return self._apply(p, _le_word(s, n), o, k)
 
     def apply(self, unsigned int frame_id, object data, int64_t origin, int64_t k):
         """Use an accepted state page sent at tick ``origin`` (receiver at tick ``k``): 0 not of
@@ -552,23 +878,99 @@ cdef class PeerTable:
         cdef const uint8_t* s
         cdef Py_ssize_t n
         cdef int p = self._index[frame_id]
-        cdef Page* pg = &self._pg[p]
         if not _payload(data, &s, &n):
             data = bytes(data)
             _payload(data, &s, &n)
-        cdef int64_t o = 0
-        cdef int code = _origin(s, n, frame_id, k, self._origin[pg.j], pg.same_tick_ok, False,
-                                pg.ext_start, pg.ext_bits, self.max_lag, &o)
-        if code < 0:
-            return code
-        return self._apply(p, _le_word(s, n), o, k)
+        return self._take(p, frame_id, s, n, k)
 
-    def ages(self, int64_t k, double dt, int own, const double[::1] speed):
+    # ------------------------------------------------------------ an ECU's batch
+    def feed(self, list msgs, Py_ssize_t start, int64_t k, int phase):
+        """Take ``msgs[start:]`` (python-can messages, in bus order) at tick ``k`` in ``phase``
+        until the end or a frame the node's Python must act on: returns index << 3 | FEED_*.
+        State pages are checked and decoded (peers complete: their last page of tick k, unless
+        barrier frames complete them), sensor pages decoded into the sensor dict, the reference
+        into ``v_ref``/``a_ref``/``x_ref``, a SYNC checked (:func:`sync_check`; its tick starts
+        here, anything else goes to the node); frames of identifiers not routed are ignored."""
+        cdef Py_ssize_t i, m = len(msgs)
+        cdef PyObject* r
+        cdef long code
+        cdef int kind, idx, res, j, f
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        cdef uint64_t w, wb
+        cdef SensorPage* sp
+        cdef unsigned int aid
+        cdef int64_t t = 0
+        for i in range(start, m):
+            msg = msgs[i]
+            aid_obj = msg.arbitration_id
+            r = PyDict_GetItem(self._route, aid_obj)
+            if r is NULL:
+                continue
+            code = <long><object>r
+            kind = code >> 24
+            idx = code & 0xFFFFFF
+            if kind == R_PY:
+                return i << 3 | _FRAME
+            if kind == R_SYNC and msg.is_extended_id != (<unsigned int>aid_obj > 0x7FF):
+                continue  # not the SYNC: nothing of this node's
+            data = msg.data
+            if not _payload(data, &s, &n):
+                data = bytes(data)
+                _payload(data, &s, &n)
+            if kind == R_SYNC:
+                if _sync_code(s, n, k, phase == 2 or k < 0, self._lockstep, self._has_final, self._final_tick,
+                              False, &t) != _S_TICK:
+                    return i << 3 | _FRAME  # rejected, or the end: the node's verdict
+                self._new_tick()
+                self.sync_tick = t
+                return i << 3 | _SYNC
+            if kind == R_STATE:
+                j = self._pg[idx].j
+                if self._barrier and self._lockstep and phase != 2 and self._done[j]:
+                    return i << 3 | _HELD
+                aid = aid_obj
+                res = self._take(idx, aid, s, n, k)
+                if res < 0:
+                    self.last_code = res
+                    return i << 3 | _REJECT
+                if res == 2 and (not self._barrier or self._ext[j]):
+                    self._peer_done(j)
+                    if phase == 1:
+                        if self.missing == 0:
+                            return i << 3 | _PHASE2
+                        if self._any_ext:
+                            return i << 3 | _ARM
+            elif kind == R_SENSOR:
+                sp = &self._sp[idx]
+                w = _le_word(s, n)
+                wb = _swap64(w)
+                for f in range(sp.first, sp.first + sp.count):
+                    PyDict_SetItem(self._sensors, <object>self._sf[f].name, _field_value(self._sf[f].field, w, wb))
+                if sp.last:
+                    return i << 3 | _PHASE1
+            elif kind == R_REF:
+                w = _le_word(s, n)
+                wb = _swap64(w)
+                self.v_ref = _field_value(self._ref_speed, w, wb)
+                self.a_ref = _field_value(self._ref_decel, w, wb)
+            else:  # R_REF_POS
+                w = _le_word(s, n)
+                self.x_ref = _field_value(self._ref_pos, w, _swap64(w))
+        return m << 3 | _END
+
+    def ages(self, int64_t k, double dt, int own, speed=None):
         """(age, fresh, max_age) at tick ``k``: per ECU the age in s of its newest value (own
-        entry 0; inf for an ECU never heard whose speed is unknown), the ECUs with a value of
-        this tick (own included) and the oldest finite age (-inf: none)."""
+        entry 0; inf for an ECU never heard whose speed, in ``speed`` (float64, (n,); None: the
+        table's ``speed_mps``), is unknown), the ECUs with a value of this tick (own included) and
+        the oldest finite age (-inf: none)."""
         import numpy as np
 
+        cdef const double[::1] sv
+        cdef const double* sp = self._speed
+        if speed is not None or sp is NULL:
+            sv = self.values["speed_mps"] if speed is None else speed
+            sp = &sv[0]
         age = np.empty(self.n)
         cdef double[::1] a = age
         cdef int j, fresh = 1
@@ -576,7 +978,7 @@ cdef class PeerTable:
         cdef double x, max_age = -INFINITY
         for j in range(self.n):
             o = k if j == own else self._origin[j]
-            x = INFINITY if o < 0 and isnan(speed[j]) else <double>(k - o) * dt
+            x = INFINITY if o < 0 and isnan(sp[j]) else <double>(k - o) * dt
             a[j] = x
             if x != INFINITY and x > max_age:
                 max_age = x

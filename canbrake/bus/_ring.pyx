@@ -46,9 +46,21 @@ cdef extern from *:
     uint64_t cb_load(const char *p) noexcept nogil
     void cb_store(char *p, uint64_t v) noexcept nogil
 
+cdef extern from "structmember.h":
+    int T_OBJECT_EX
+
 cdef extern from "Python.h":
     object PyObject_GenericGetAttr(object o, object name)
     int PyObject_GenericSetAttr(object o, object name, object value) except -1
+    ctypedef struct PyMemberDef:
+        int type
+        Py_ssize_t offset
+    ctypedef struct PyMemberDescrObject:
+        PyMemberDef* d_member
+    PyObject* Py_True
+    PyObject* Py_False
+    PyObject* PyFloat_FromDouble(double v)
+    PyObject* PyLong_FromUnsignedLong(unsigned long v)
 
 # ---- the slot format (memory_shm: SLOT_HEAD "<dIIBBBB", data at 24, sequence number at 88)
 DEF SLOT_BYTES = 96
@@ -93,6 +105,40 @@ def fast_messages(on=None) -> bool:
     if on is not None:
         _FAST_MSG = bool(on) and set(getattr(Message, "__slots__", ())) - {"__weakref__"} == set(_SLOTS)
     return _FAST_MSG
+
+
+# each slot's offset in a Message object (its member descriptor's), in _SLOTS' order: _message
+# stores the values there, as the descriptor's set does on a new object (whose slots are empty)
+cdef Py_ssize_t _OFF[12]
+
+
+cdef bint _slot_offsets():
+    cdef PyMemberDescrObject* d
+    for i, name in enumerate(_SLOTS):
+        descr = Message.__dict__.get(name)
+        if type(descr).__name__ != "member_descriptor":
+            return False
+        d = <PyMemberDescrObject*><PyObject*>descr
+        if d.d_member.type != T_OBJECT_EX:
+            return False
+        _OFF[i] = d.d_member.offset
+    return True
+
+
+cdef bint _DIRECT = _FAST_MSG and _slot_offsets()
+
+
+cdef inline void _put(object m, int i, PyObject* v) noexcept:
+    """Store the new reference ``v`` in slot i of the new message ``m``."""
+    (<PyObject**>((<char*><PyObject*>m) + _OFF[i]))[0] = v
+
+
+cdef inline PyObject* _flag(bint b) noexcept:
+    cdef PyObject* r = Py_True if b else Py_False
+    Py_INCREF(<object>r)
+    return r
+
+
 cdef object S_TS = "timestamp", S_ID = "arbitration_id", S_EXT = "is_extended_id"
 cdef object S_RTR = "is_remote_frame", S_ERR = "is_error_frame", S_CH = "channel"
 cdef object S_FD = "is_fd", S_RX = "is_rx", S_BRS = "bitrate_switch", S_ESI = "error_state_indicator"
@@ -117,6 +163,24 @@ cdef object _message(double ts, uint32_t aid, uint8_t flags, uint8_t dlc, bytear
                        channel, dlc, data, bool(flags & M_FD), is_rx, bool(flags & M_BRS),
                        bool(flags & M_ESI))
     m = _new(Message)
+    if _DIRECT:  # the slots in _SLOTS' order
+        if flags & M_RTR:  # as Message.__init__: a remote frame has no data
+            data = bytearray()
+        _put(m, 0, PyFloat_FromDouble(ts))
+        _put(m, 1, PyLong_FromUnsignedLong(aid))
+        _put(m, 2, _flag(flags & M_EXT))
+        _put(m, 3, _flag(flags & M_RTR))
+        _put(m, 4, _flag(flags & M_ERR))
+        Py_INCREF(channel)
+        _put(m, 5, <PyObject*>channel)
+        _put(m, 6, _flag(flags & M_FD))
+        _put(m, 7, _flag(is_rx))
+        _put(m, 8, _flag(flags & M_BRS))
+        _put(m, 9, _flag(flags & M_ESI))
+        Py_INCREF(data)
+        _put(m, 10, <PyObject*>data)
+        _put(m, 11, PyLong_FromUnsignedLong(dlc))
+        return m
     PyObject_GenericSetAttr(m, S_TS, ts)
     PyObject_GenericSetAttr(m, S_ID, aid)
     PyObject_GenericSetAttr(m, S_EXT, bool(flags & M_EXT))

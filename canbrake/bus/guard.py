@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from canbrake.bus._codec import REJECT_CRC, frame_origin
+from canbrake.bus._codec import REJECT_CRC, SYNC_END, SYNC_END_IGNORED, SYNC_REJECT, frame_origin, sync_check
 from canbrake.bus.e2e import COUNTER_MODULO, counter_modulus
 from canbrake.bus.secoc import STALE_ALIASES, SecOC
 
@@ -120,8 +120,6 @@ def sign_protected(secoc: SecOC | None, data_id: int, payload: bytes, tick: int)
     return secoc.sign(data_id, payload, tick, has_crc=True)
 
 
-END_TICK = 0xFFFFFFFF
-
 
 def sync_verdict(guard: FrameGuard, data_id: int, payload: bytes | bytearray, own_k: int, *,
                  tick_complete: bool, lockstep: bool, final_tick: int | None = None) -> str | None:
@@ -135,19 +133,17 @@ def sync_verdict(guard: FrameGuard, data_id: int, payload: bytes | bytearray, ow
     diverged). Without SecOC an END is accepted only after ``final_tick``, the last scheduled tick
     (when given): a forged one cannot be told from the plant's early END, so an early end of the
     run is left to the driver, which ends the other nodes once the time master has finished.
-    Realtime: any newer tick is accepted.
+    Realtime: any newer tick is accepted. The sequence rules are compiled
+    (:func:`canbrake.bus._codec.sync_check`, which the ECU's peer table applies itself).
     """
-    tick = int.from_bytes(bytes(payload[:4]).ljust(4, b"\0"), "little")
-    end = tick == END_TICK
-    if (lockstep and not tick_complete) or (end and own_k < 0):  # no END before the first tick
+    code, tick = sync_check(payload, own_k, tick_complete, lockstep, final_tick, guard.secoc is not None)
+    if code == SYNC_REJECT:
         guard.reject("sync")
         return None
-    if not end and (tick != own_k + 1 if lockstep else tick <= own_k):
-        guard.reject("sync")
-        return None
-    if end and guard.secoc is None and final_tick is not None and own_k != final_tick:
+    if code == SYNC_END_IGNORED:
         guard.end_ignored += 1  # forged, or the plant's own early END (diverged): not a rejection reason
         return None
+    end = code == SYNC_END
     if not guard.control(data_id, payload, own_k if end else tick):
         return None
     return "end" if end else "tick"

@@ -8,14 +8,20 @@ Written by hand because both run every control period for every node (a signals.
 Python call per value; ``tests/test_trace_compiled.py`` checks them against ``csv.writer`` with
 ``%.9g`` floats and against ``LogHistogram.add``.
 """
+from cpython.dict cimport PyDict_GetItem
 from cpython.float cimport PyFloat_AS_DOUBLE
-from cpython.mem cimport PyMem_Free
+from cpython.object cimport PyObject
+from cpython.long cimport PyLong_AsLongLongAndOverflow
+from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
+from libc.stdio cimport snprintf
+from libc.string cimport memcpy, strlen
 
 import numpy as np
 
 cdef extern from "Python.h":
     char* PyOS_double_to_string(double val, char format_code, int precision, int flags, int* ptype) except NULL
+    object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
 
 cdef type NP_F64 = np.float64
 cdef type NP_I64 = np.int64
@@ -31,30 +37,70 @@ cdef str _g9(double x):
         PyMem_Free(s)
 
 
+def csv_dict_row(list head, dict values, tuple names, object default, list tail):
+    """``csv_row(head + [values.get(n, default) for n in names] + tail)`` without the list."""
+    cdef list row = list(head)
+    cdef PyObject* p
+    for nm in names:
+        p = PyDict_GetItem(values, nm)
+        row.append(default if p is NULL else <object>p)
+    row.extend(tail)
+    return csv_row(row)
+
+
 def csv_row(list row):
     """``row`` as the line ``csv.writer`` writes (excel dialect, ``\\r\\n``) with floats as
     ``f"{v:.9g}"``, for rows of floats, ints and bools (Python's or numpy's); None for a row with
-    any other value (the caller takes the csv writer)."""
-    cdef Py_ssize_t i, n = len(row)
-    cdef list parts = [None] * n
+    any other value (the caller takes the csv writer). The text is made in one buffer (no string
+    per value)."""
+    cdef Py_ssize_t i, n = len(row), pos = 0, k
+    cdef Py_ssize_t cap = 32 * n + 2   # a value's text is at most 24 characters (a 64-bit int's 20)
+    cdef char* buf = <char*>PyMem_Malloc(cap)
+    cdef char* s
     cdef object v
     cdef type t
-    for i in range(n):
-        v = row[i]
-        t = type(v)
-        if t is float:
-            parts[i] = _g9(PyFloat_AS_DOUBLE(v))
-        elif t is int:
-            parts[i] = int.__repr__(v)
-        elif t is NP_F64:
-            parts[i] = _g9(float(v))
-        elif t is bool or t is NP_BOOL:
-            parts[i] = "True" if v else "False"
-        elif t is NP_I64 or t is NP_I32:
-            parts[i] = int.__repr__(int(v))
-        else:
-            return None
-    return ",".join(parts) + "\r\n"
+    cdef long long iv
+    cdef int ovf = 0
+    if buf is NULL:
+        raise MemoryError()
+    try:
+        for i in range(n):
+            if i:
+                buf[pos] = b','
+                pos += 1
+            v = row[i]
+            t = type(v)
+            if t is float or t is NP_F64:
+                s = PyOS_double_to_string(PyFloat_AS_DOUBLE(v), b'g', 9, 0, NULL)
+                k = strlen(s)
+                memcpy(buf + pos, s, k)
+                PyMem_Free(s)
+                pos += k
+            elif t is int or t is NP_I64 or t is NP_I32:
+                iv = PyLong_AsLongLongAndOverflow(v if t is int else int(v), &ovf)
+                if ovf:  # beyond 64 bits: Python's own text
+                    s = NULL
+                    txt = int.__repr__(v if t is int else int(v)).encode("ascii")
+                    if len(txt) > 24:
+                        return None
+                    memcpy(buf + pos, <char*>txt, len(txt))
+                    pos += len(txt)
+                else:
+                    pos += snprintf(buf + pos, 24, "%lld", iv)
+            elif t is bool or t is NP_BOOL:
+                if v:
+                    memcpy(buf + pos, b"True", 4)
+                    pos += 4
+                else:
+                    memcpy(buf + pos, b"False", 5)
+                    pos += 5
+            else:
+                return None
+        buf[pos] = b'\r'
+        buf[pos + 1] = b'\n'
+        return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
+    finally:
+        PyMem_Free(buf)
 
 
 def csv_block(double[:, :] rows, bint last_int=False):
@@ -101,3 +147,38 @@ def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo
                 i = bins - 1
         counts[i] += 1
     return n, total, vmax
+
+
+#: take_frames' events
+TAKE_END = 0      # every frame taken
+TAKE_SYNC = 1     # msgs[i] is a SYNC (counted): the recorder's verdict, then resume at i
+TAKE_PHASE = 2    # msgs[i]'s key has no phase yet: set phase_of[key], then resume at i
+
+
+def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, object sync_id, dict phase_of,
+                list tick_frames):
+    """The lockstep recorder's receive loop (:meth:`canbrake.nodes.recorder.RecorderNode.handle_batch`)
+    over ``msgs[start:]``: each frame counted by key (identifier, extended, error frame), a frame
+    of ``closing`` counted as closing its tick, and kept as (phase, identifier, payload bytes,
+    frame) in ``tick_frames`` with its key's phase from ``phase_of``. Returns (i, TAKE_*, closing
+    frames seen); ``resume``: msgs[start] was counted already (it was returned)."""
+    cdef Py_ssize_t i, m = len(msgs)
+    cdef Py_ssize_t closed = 0
+    cdef PyObject* p
+    for i in range(start, m):
+        msg = msgs[i]
+        aid = msg.arbitration_id
+        ext = msg.is_extended_id
+        key = (aid, ext, msg.is_error_frame)
+        if not (resume and i == start):
+            p = PyDict_GetItem(counts, key)
+            counts[key] = 1 if p is NULL else <object>p + 1
+            if aid in closing:
+                closed += 1
+            elif aid == sync_id and ext == (aid > 0x7FF):
+                return i, TAKE_SYNC, closed
+        p = PyDict_GetItem(phase_of, key)
+        if p is NULL:
+            return i, TAKE_PHASE, closed
+        tick_frames.append((<object>p, aid, bytes(msg.data), msg))
+    return m, TAKE_END, closed

@@ -34,7 +34,7 @@ import can
 import numpy as np
 
 from canbrake.bus._ring import data_frame
-from canbrake.nodes._trace import csv_row, hist_add
+from canbrake.nodes._trace import csv_dict_row, csv_row, hist_add
 
 
 class LogHistogram:
@@ -212,11 +212,23 @@ class CsvTrace:
         # module's per-field work: the same bytes as csv.writer with floats as f"{v:.9g}"
         # (signals.csv of a 106-vehicle train is ~1,100 values per period). Rows with values it
         # does not write (str, None, ...) take the csv writer.
-        text = csv_row(row) if type(row) is list else None
+        self._write(csv_row(row) if type(row) is list else None, row)
+
+    def append_dict(self, head: list[Any], values: dict[str, Any], names: tuple[str, ...], default: Any,
+                    tail: list[Any]) -> None:
+        """``append(head + [values.get(n, default) for n in names] + tail)``, the row's text made
+        in one compiled call (an ECU's row: its controller's diagnostics by name)."""
+        if self._writer is None:
+            return
+        text = csv_dict_row(head, values, names, default, tail) if type(values) is dict else None
+        self._write(text, None if text is not None else [*head, *[values.get(n, default) for n in names], *tail])
+
+    def _write(self, text: str | None, row: list[Any] | None) -> None:
+        """Write a row's text, or (None) the row through the csv writer."""
         if text is not None:
             self._file.write(text)  # type: ignore[union-attr]
         else:
-            self._writer.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+            self._writer.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])  # type: ignore[union-attr]
         if self._row_by_row:
             self._file.flush()  # type: ignore[union-attr]
 

@@ -19,7 +19,8 @@ import can
 import numpy as np
 
 from canbrake.bus import dbc
-from canbrake.bus._codec import REJECT_CRC, PeerTable
+from canbrake.bus._codec import (FEED_END, FEED_FRAME, FEED_HELD, FEED_PHASE1, FEED_PHASE2, FEED_REJECT,
+                                  FEED_SYNC, REJECT_CRC, PeerTable)
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
@@ -27,6 +28,11 @@ from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
 from canbrake.nodes.base import (CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame,
                                  write_text_atomic)
+
+#: the key of a command frame's Status field among the period's command values (not a name a
+#: controller's command can have)
+_STATUS = ("Status",)
+_perf_counter = time.perf_counter
 
 
 @dataclass
@@ -105,19 +111,15 @@ class EcuNode(Node):
         self.k = -1
         self.phase = 0  # 0 waiting for sensors, 1 waiting for peers, 2 done for this tick
         self.sensors: dict[str, float] = {n: math.nan for n in spec.sensors}
-        self.v_ref = 0.0
-        self.a_ref = 0.0
-        self.x_ref = math.nan
         # frames in: sensor pages (the last one starts phase 1), peers' state pages
         self._sensor_pages = {m.frame_id: [(sig, spec_.name) for sig, spec_ in m.signals if sig]
                               for m in layout.messages if m.kind == "sensor" and m.ecu == self.index}
         self._last_sensor_id = max(self._sensor_pages)
         self._listens = list(spec.listens)                     # ECU indices (1-based)
-        self._slot = {j: s for s, j in enumerate(self._listens)}  # listened ECU -> bit
         self._state_pages: dict[int, tuple[int, int, list[tuple[str, str]]]] = {}  # id -> (ecu, page, sigs)
         self._pages_of: dict[int, int] = {}
         for m in layout.messages:
-            if m.kind == "state" and m.ecu in self._slot:
+            if m.kind == "state" and m.ecu in self._listens:
                 self._state_pages[m.frame_id] = (m.ecu, m.page, [(sig, sp.name) for sig, sp in m.signals if sig])
                 self._pages_of[m.ecu] = self._pages_of.get(m.ecu, 0) + 1
         self._state_done_ids = {layout.plan.state_done(j): j for j in self._listens}
@@ -127,20 +129,35 @@ class EcuNode(Node):
         if secoc is not None:
             state_id = {(m.ecu, m.page): m.frame_id for m in layout.messages if m.kind == "state"}
             self._auth_of = {m.frame_id: (m.ecu, state_id[(m.ecu, m.page)]) for m in layout.messages
-                             if m.kind == "state_auth" and m.ecu in self._slot}
+                             if m.kind == "state_auth" and m.ecu in self._listens}
         self._candidates: dict[int, list[tuple[int, bytes]]] = {}
         self._peer_ids = {**self._state_pages, **self._auth_of}  # id -> (ECU index, ...): one lookup per frame
         names = sorted({sig for _, _, sigs in self._state_pages.values() for sig, _ in sigs}
                        | {"speed_mps", "position_m"})
         self._multi_page = {j: c > 1 for j, c in self._pages_of.items()}  # ECU index (1-based) -> bool
         self._listened = [j - 1 for j in self._listens]  # listened ECUs' indices (0-based)
-        # peers' values (an array per signal over the train's ECUs), their newest origins (ticks)
-        # and the pages of this tick seen, filled by compiled code (canbrake.bus._codec.PeerTable):
-        # a state page is checked (E2E) and decoded straight into the arrays
-        self._peers = PeerTable(self.n, names, self._listened, self.guard.max_lag)
+        # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
+        # STATE_DONE; in lockstep they are waited for at most external_timeout_s (wall) once every other
+        # peer is in, then counted silent (not waited for) until they are on time again
+        self._has_ext = any(j in external for j in self._listens)
+        # peers' values (an array per signal over the train's ECUs), their newest origins (ticks),
+        # the pages of this tick seen and which peers are complete, kept by compiled code
+        # (canbrake.bus._codec.PeerTable): a state page is checked (E2E) and decoded straight into
+        # the arrays. The table is also this ECU's receive side (feed): a batch of frames is
+        # taken in one compiled loop that comes back here only where this node acts
+        self._peers = PeerTable(self.n, names, self._listened, self.guard.max_lag,
+                                [j - 1 for j in self._listens if j in external])
         for fid, (e, _p, sigs) in self._state_pages.items():
             self._peers.add_page(fid, e - 1, codec.by_id[fid]._c, sigs, self._multi_page[e],
                                  self.guard.counter_ext.get(fid))
+        self._peers.route_ecu(
+            self.sensors, [(fid, codec.by_id[fid]._c, sigs) for fid, sigs in sorted(self._sensor_pages.items())
+                           if fid != self._last_sensor_id] +
+            [(self._last_sensor_id, codec.by_id[self._last_sensor_id]._c, self._sensor_pages[self._last_sensor_id])],
+            codec.by_id[layout.reference_id]._c, layout.reference_id,
+            codec.by_id[layout.reference_pos_id]._c if layout.ref_position else None, layout.reference_pos_id,
+            layout.sync_id, [*self._state_done_ids, *self._auth_of], barrier=barrier, lockstep=mode == "lockstep",
+            per_frame=rx_path is not None or secoc is not None, final_tick=self.final_tick)
         self.peer_signals: dict[str, np.ndarray] = self._peers.values
         # what the controller sees: read-only views of the table (no copy per period; this ECU
         # writes its own sensor values into its own entry, which no peer page touches)
@@ -149,33 +166,31 @@ class EcuNode(Node):
             view = arr.view()
             view.flags.writeable = False
             self._peer_views[nm] = view
-        self._own_signals = [nm for nm in self.peer_signals if nm in spec.sensors]
-        self._all_done = (1 << len(self._listens)) - 1  # bit s set: listened ECU s complete this tick
-        self._done = 0
-        # listened external ECUs (not canbrake's): their state completes a tick by its pages or its
-        # STATE_DONE; in lockstep they are waited for at most external_timeout_s (wall) once every other
-        # peer is in, then counted silent (not waited for) until they are on time again
-        self._ext_bits = sum(1 << self._slot[j] for j in self._listens if j in external)
-        self._lost = 0
+        self._own_signals = tuple(nm for nm in self.peer_signals if nm in spec.sensors)
         self._ext_timeout = float(external_timeout_s)
         self.time_scale = float(time_scale)
-        # frames out
-        self._cmd_msgs = [(m.frame_id, codec[m.name], [(sig, sp.name) for sig, sp in m.signals if sig])
+        # frames out: per message (id, codec, keys): the value of each of its fields is the value
+        # of that key in the period's values (FieldCodec.encode_from)
+        self._cmd_msgs = [(m.frame_id, codec[m.name]._c,
+                           codec[m.name]._c.keys_for({"Status": _STATUS, **{sp.name: sig for sig, sp in m.signals if sig}}))
                           for m in layout.messages if m.kind == "cmd" and m.ecu == self.index]
-        self._state_msgs = ([(m.frame_id, codec[m.name], [(sig, sp.name) for sig, sp in m.signals if sig])
+        own = [m for m in layout.messages if m.ecu == self.index]  # (not all pairs of the layout: 106 ECUs)
+        auth_id = {sm.frame_id: am.frame_id for sm in own for am in own
+                   if sm.kind == "state" and am.kind == "state_auth" and sm.page == am.page}
+        #: (id, codec, keys, its authenticator's id or None)
+        self._state_msgs = ([(m.frame_id, codec[m.name]._c,
+                              codec[m.name]._c.keys_for({sp.name: sig for sig, sp in m.signals if sig}),
+                              auth_id.get(m.frame_id))
                              for m in layout.messages if m.kind == "state" and m.ecu == self.index]
                             if spec.listeners else [])
         self._broadcast: dict[str, float] = {}
-        own = [m for m in layout.messages if m.ecu == self.index]  # (not all pairs of the layout: 106 ECUs)
-        self._auth_id = {sm.frame_id: am.frame_id for sm in own for am in own
-                         if sm.kind == "state" and am.kind == "state_auth" and sm.page == am.page}
         #: lockstep: peers' STATE frames that came after the sender's STATE_DONE of this tick, held
         #: until this ECU has decided (see _held_late)
         self._late_rx: list[can.Message] = []
         self._hb_id = layout.plan.heartbeat(self.index)
         self._sdone_id = layout.plan.state_done(self.index)
         self._cdone_id = layout.plan.cmd_done(self.index)
-        self._hb = codec.by_id[self._hb_id]
+        self._hb_payload = codec.by_id[self._hb_id].encode({"NodeState": 5})  # the same every time
         self._sdone = codec.by_id.get(self._sdone_id)  # None: nobody listens, no state phase to close
         self._cdone = codec.by_id[self._cdone_id]
         self._sync_id = layout.sync_id
@@ -192,6 +207,11 @@ class EcuNode(Node):
         #: no timing model, no injected errors, no impairment: _emit appends the frame as it is
         #: (PassThrough.submit returns it alone, its release nothing)
         self._plain_send = bus_timing is None and self.rt_errors is None and type(self.send_path) is PassThrough
+        #: ... and no receive links: the phases need no send or release times
+        self._fast = self._plain_send and rx_path is None
+        self._has_front = self.car > 1                # a coupler ahead (deflection_front_m)
+        self._has_rear = not self._last_vehicle()     # a coupler behind (deflection_rear_m)
+        self._diag_names: tuple[str, ...] = tuple(controller.diagnostic_names)
 
     def filters(self) -> list[dict]:
         ids = [self.layout.sync_id, self.layout.reference_id, *self._sensor_pages, *self._state_pages, *self._auth_of]
@@ -202,25 +222,66 @@ class EcuNode(Node):
         return [exact_filter(i, self.layout.plan.extended and i > 0x7FF) for i in ids]
 
     def start(self, now: float) -> list[can.Message]:
+        self._diag_names = tuple(self.controller.diagnostic_names)
         self._trace = CsvTrace(None if self.out_dir is None else self.out_dir / f"ecu_c{self.car}.csv",
-                               ["tick", "brake_cmd_n", *self.controller.diagnostic_names,
-                                "max_peer_age_s", "peers_fresh"], self.flush_every)
+                               ["tick", "brake_cmd_n", *self._diag_names, "max_peer_age_s", "peers_fresh"],
+                               self.flush_every)
         return []
 
     # ---------------------------------------------------------------- receive
     def handle(self, msg: can.Message, now: float) -> list[can.Message]:
+        return self.handle_batch([msg], now)
+
+    def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
+        """Frames received together, in bus order: the peer table's compiled loop
+        (:meth:`~canbrake.bus._codec.PeerTable.feed`) takes the state pages, the sensor pages and
+        the reference, and comes back here for the frames and moments this node acts on."""
+        if type(msgs) is not list:
+            msgs = list(msgs)
+        out: list[can.Message] = []
+        feed, i, n = self._peers.feed, 0, len(msgs)
+        while i < n:
+            r = feed(msgs, i, self.k, self.phase)
+            ev, i = r & 7, r >> 3
+            if ev == FEED_END:
+                break
+            if ev == FEED_SYNC:  # the next period (the peer table has begun it)
+                self._start_period(self._peers.sync_tick)
+            elif ev == FEED_FRAME:
+                out += self._handle_frame(msgs[i], now)
+                if self.finished:
+                    break
+            elif ev == FEED_PHASE1:  # the last sensor page
+                if self.clock is not None and self.phase == 0 and self.k >= 0:
+                    self._p1_at = now + self.clock.offset_s(self.k)  # realtime: when this ECU's timer fires
+                else:
+                    out += self._phase1(now)
+            elif ev == FEED_PHASE2:  # the last peer of this tick is in
+                out += self._phase2(now)
+            elif ev == FEED_REJECT:
+                self.guard.reject("crc" if self._peers.last_code == REJECT_CRC else "counter")
+                self._count_peer_rejection()
+            elif ev == FEED_HELD:
+                self._late_rx.append(msgs[i])
+            else:  # FEED_ARM
+                self._arm_external(now)
+            i += 1
+        return out
+
+    def _handle_frame(self, msg: can.Message, now: float) -> list[can.Message]:
+        """A frame the peer table hands back: SYNC, a barrier frame, or (SecOC, receive links) a
+        peer's state frame or authenticator."""
         aid = msg.arbitration_id
-        st = self._peer_ids.get(aid)  # peers' state pages and authenticators: most of what an ECU hears
+        st = self._peer_ids.get(aid)
         if st is not None:
             j = st[0] - 1
             if self.rx_path is not None:
                 self._receive_linked(msg, j, now)
                 return []
-            bit = 1 << self._slot[j + 1]
-            if self._held_late(bit, msg):
+            if self._held_late(j, msg):
                 return []
-            if self._on_state(j, msg) == 2 and (not self.barrier or self._ext_bits & bit):
-                return self._peer_done(bit, now)  # the sender's last page of this tick
+            if self._on_state(j, msg) == 2 and (not self.barrier or self._peers.is_external(j)):
+                return self._peer_done(j, now)  # the sender's last page of this tick
             return []
         if aid == self._sync_id and msg.is_extended_id == (aid > 0x7FF):
             verdict = sync_verdict(self.guard, aid, msg.data, self.k, lockstep=self.mode == "lockstep",
@@ -230,99 +291,52 @@ class EcuNode(Node):
             if verdict == "end":
                 self.finished = True
                 return []
-            if self._p1_at is not None:  # the drifting timer did not fire within the period: a sample slip
-                self.stats.timer_slips += 1
-                self._p1_at = None
-            k_new = int.from_bytes(msg.data[:4], "little")  # SYNC's Tick (bits 0-31, LE): as sync_verdict reads it
-            if self.mode != "lockstep" and self.k >= 0:
-                # periods this ECU never commanded (a pause of its process: it takes the SYNCs it
-                # missed in a row): the current one unless done, and any it never saw the start of
-                self.stats.skipped_periods += k_new - self.k - 1 + (self.phase != 2)
-            self.k = k_new
-            self.phase = 0
-            self._done = 0
             self._peers.new_tick()
-            if self._candidates:
-                self._expire_candidates()
-            return []
-        page = self._sensor_pages.get(aid)
-        if page is not None:
-            d = self.codec.by_id[aid].decode(msg.data)
-            for sig, dbc_name in page:
-                self.sensors[sig] = d[dbc_name]
-            if aid != self._last_sensor_id:
-                return []
-            if self.clock is not None and self.phase == 0 and self.k >= 0:
-                self._p1_at = now + self.clock.offset_s(self.k)  # realtime: when this ECU's timer fires
-                return []
-            return self._phase1(now)
-        if aid == self.layout.reference_id:
-            d = self.codec.by_id[aid].decode_shared(msg.data)
-            self.v_ref, self.a_ref = d["RefSpeed"], d["RefDecel"]
-            return []
-        if aid == self.layout.reference_pos_id:
-            self.x_ref = self.codec.by_id[aid].decode(msg.data)["RefPosition"]
+            self._start_period(int.from_bytes(msg.data[:4], "little"))  # SYNC's Tick (bits 0-31, LE)
             return []
         src = self._state_done_ids.get(aid)
         if src is not None:
             tick = self.codec.by_id[aid].decode(msg.data)["Tick"]
-            bit = 1 << self._slot[src]
             if tick != (self.k & 0xFFFF):
-                if not self._ext_bits & bit:  # an external peer late for a period already gone: not a fault
+                if not self._peers.is_external(src - 1):  # an external peer late for a period already gone: not a fault
                     self.guard.reject("sync")
             elif self.guard.control(aid, msg.data, self.k):
-                return self._peer_done(bit, now)
+                return self._peer_done(src - 1, now)
         return []
 
-    def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
-        """:meth:`handle` for each frame, with the peers' state pages (most of what an ECU hears)
-        checked and decoded by the compiled peer table without a Python call per frame."""
-        if self.rx_path is not None or self.secoc is not None:
-            return super().handle_batch(msgs, now)
-        out: list[can.Message] = []
-        peer_ids, take, slot = self._peer_ids, self._peers.take, self._slot
-        taken = 0
-        for msg in msgs:
-            aid = msg.arbitration_id
-            st = peer_ids.get(aid)
-            if st is None:
-                out += self.handle(msg, now)
-                if self.finished:
-                    break
-                continue
-            if self._held_late(1 << slot[st[0]], msg):
-                continue
-            r = take(aid, msg.data, self.k)
-            if r < 0:
-                self.guard.reject("crc" if r == REJECT_CRC else "counter")
-                self._count_peer_rejection()
-                continue
-            taken += 1
-            if r == 2:
-                bit = 1 << slot[st[0]]
-                if not self.barrier or self._ext_bits & bit:
-                    out += self._peer_done(bit, now)  # the sender's last page of this tick
-        self.stats.peer_frames += taken
-        return out
+    def _start_period(self, k_new: int) -> None:
+        """SYNC(k_new) accepted (the peer table's new tick begun)."""
+        if self._p1_at is not None:  # the drifting timer did not fire within the period: a sample slip
+            self.stats.timer_slips += 1
+            self._p1_at = None
+        if self.mode != "lockstep" and self.k >= 0:
+            # periods this ECU never commanded (a pause of its process: it takes the SYNCs it
+            # missed in a row): the current one unless done, and any it never saw the start of
+            self.stats.skipped_periods += k_new - self.k - 1 + (self.phase != 2)
+        self.k = k_new
+        self.phase = 0
+        if self._candidates:
+            self._expire_candidates()
 
     def frames_wanted(self) -> int:
         """Lockstep, waiting for peers whose state frames are sure to come (no barrier frames, no
         receive links, no SecOC, no external peer): one frame at least from each listened ECU not
         complete yet; else 1."""
         if (self.phase != 1 or self.mode != "lockstep" or self.barrier or self.rx_path is not None
-                or self.secoc is not None or self._ext_bits):
+                or self.secoc is not None or self._has_ext):
             return 1
-        return max(1, bin(self._all_done & ~self._done).count("1"))
+        return max(1, self._peers.not_done())
 
-    def _held_late(self, bit: int, msg: can.Message) -> bool:
-        """Lockstep: hold a peer's STATE frame that comes after that peer's STATE_DONE of this tick
+    def _held_late(self, j: int, msg: can.Message) -> bool:
+        """Lockstep: hold a STATE frame of ECU index j+1 that comes after that peer's STATE_DONE of this tick
         until this ECU has decided (True: held). Such a frame is one the sender's send path released
         after the decision point (phase 2: the CAN timing model or an impairment made it late); by the
         lockstep rule it is for the next tick. The sender sends it after its STATE_DONE, so it reaches
         an ECU already past its own barrier only then, but one still waiting for another peer's
         STATE_DONE before it decides: without the hold, which tick used it would depend on the
-        processes' speed (the in-process engine always delivers it after every decision)."""
-        if self.barrier and self.phase != 2 and self._done & bit and self.mode == "lockstep":
+        processes' speed (the in-process engine always delivers it after every decision). The
+        peer table holds the state pages it takes likewise (FEED_HELD)."""
+        if self.barrier and self.phase != 2 and self.mode == "lockstep" and self._peers.is_done(j):
             self._late_rx.append(msg)
             return True
         return False
@@ -330,24 +344,22 @@ class EcuNode(Node):
     def _take_held(self, now: float) -> None:
         """The held late STATE frames (see :meth:`_held_late`), once this ECU has decided."""
         held, self._late_rx = self._late_rx, []
-        for m in held:
-            self.handle(m, now)
+        self.handle_batch(held, now)
 
-    def _peer_done(self, bit: int, now: float) -> list[can.Message]:
-        self._done |= bit
-        self._lost &= ~bit  # a silent external peer on time again
+    def _peer_done(self, j: int, now: float) -> list[can.Message]:
+        """ECU index j+1 is complete for this tick: phase 2 once every peer is."""
+        self._peers.peer_done(j)
         if self.phase == 1:
-            if (self._done | self._lost) == self._all_done:
+            if self._peers.missing == 0:
                 return self._phase2(now)
             self._arm_external(now)
         return []
 
     def _arm_external(self, now: float) -> None:
         """Lockstep, phase 1: once only external peers are missing, wait for them at most external_timeout_s."""
-        if self.mode != "lockstep" or not self._ext_bits or self._deadline is not None:
+        if self.mode != "lockstep" or not self._has_ext or self._deadline is not None:
             return
-        missing = self._all_done & ~(self._done | self._lost)
-        if missing and not missing & ~self._ext_bits:
+        if self._peers.only_external_missing():
             self._deadline = now + self._ext_timeout
 
     def _receive_linked(self, msg: can.Message, j: int, now: float) -> None:
@@ -377,7 +389,6 @@ class EcuNode(Node):
                 self.guard.reject("crc" if r == REJECT_CRC else "counter")
                 self._count_peer_rejection()
                 return 0
-            self.stats.peer_frames += 1
             return r
         origin = self.guard.origin(msg.arbitration_id, msg.data, self.k, self._peers.origin_of(j),
                                    same_tick_ok=self._multi_page[j + 1])
@@ -440,7 +451,6 @@ class EcuNode(Node):
 
     def _apply_state(self, j: int, state_id: int, data: bytes | bytearray, origin: int) -> int:
         """Use an accepted state page of ECU index j+1 sent at tick ``origin`` (as _on_state)."""
-        self.stats.peer_frames += 1
         return self._peers.apply(state_id, data, origin, self.k)
 
     # ---------------------------------------------------------------- send
@@ -479,97 +489,120 @@ class EcuNode(Node):
     def _phase1(self, now: float) -> list[can.Message]:
         if self.phase != 0 or self.k < 0:
             return []
-        if self.crash_at_tick is not None and self.k >= self.crash_at_tick:
-            raise RuntimeError(f"injected crash of {self.name} at tick {self.k} (ecu.crash in the scenario)")
-        t, horizon = self._times(now, 1)
-        self._release_linked(now)
+        k = self.k
+        if self.crash_at_tick is not None and k >= self.crash_at_tick:
+            raise RuntimeError(f"injected crash of {self.name} at tick {k} (ecu.crash in the scenario)")
+        plain = self._plain_send
+        if not self._fast:
+            t, horizon = self._times(now, 1)
+            self._release_linked(now)
         out: list[can.Message] = []
-        if self.k % self.heartbeat_every == 0:
-            self._emit(frame(self._hb_id, self._hb.encode({"NodeState": 5})), t, out)
+        if k % self.heartbeat_every == 0:
+            if plain:
+                out.append(frame(self._hb_id, self._hb_payload))
+            else:
+                self._emit(frame(self._hb_id, self._hb_payload), t, out)
         if self._state_msgs:
-            values = {**self._broadcast, **self.sensors}
-            for fid, codec, sigs in self._state_msgs:
-                payload = codec.encode({dn: values[sig] for sig, dn in sigs if math.isfinite(values.get(sig, math.nan))},
-                                       counter=self.k % COUNTER_MODULO, tick=self.k)
-                self._emit(frame(fid, payload), t, out)
+            # a value that is not finite is left out of the frame; a sensor over a broadcast of its name
+            values = {**self._broadcast, **self.sensors} if self._broadcast else self.sensors
+            counter = k % COUNTER_MODULO
+            for fid, codec, keys, auth_id in self._state_msgs:
+                payload = codec.encode_from(values, keys, counter, k)
+                if plain:
+                    out.append(frame(fid, payload))
+                else:
+                    self._emit(frame(fid, payload), t, out)
                 if self.secoc is not None:  # its authenticator, right after it (canbrake.bus.secoc)
-                    auth_id = self._auth_id[fid]
-                    self._emit(frame(auth_id, state_authenticator(self.secoc, auth_id, fid, payload, self.k)), t, out)
-        out += self.send_path.release(horizon)
+                    auth = frame(auth_id, state_authenticator(self.secoc, auth_id, fid, payload, k))
+                    if plain:
+                        out.append(auth)
+                    else:
+                        self._emit(auth, t, out)
+        if not plain:
+            out += self.send_path.release(horizon)
         if self.barrier and self._state_msgs:
-            sdone = sign_control(self.secoc, self._sdone_id, self._sdone.encode({"Tick": self.k & 0xFFFF}), self.k)
+            sdone = sign_control(self.secoc, self._sdone_id, self._sdone.encode({"Tick": k & 0xFFFF}), k)
             out.append(frame(self._sdone_id, sdone))
         self.phase = 1
         if self.mode == "realtime":
             self._deadline = now + self.compute_deadline * self.dt / self.time_scale
-        if (self._done | self._lost) == self._all_done:
+        if self._peers.missing == 0:
             out += self._phase2(now)
-        else:
+        elif self._has_ext:
             self._arm_external(now)
         return out
 
     def _phase2(self, now: float) -> list[can.Message]:
-        self.after_send()  # the last period's row, before the controller makes this one's diagnostics
+        if self._pending_row is not None:
+            self.after_send()  # the last period's row, before the controller makes this one's diagnostics
         self.phase = 2
         self._deadline = None
-        t, horizon = self._times(now, 2)
-        self._release_linked(now)
-        own_speed = self.sensors.get("speed_mps", math.nan)
-        own_pos = self.sensors.get("position_m", math.nan)
+        k = self.k
+        plain = self._plain_send
+        if not self._fast:
+            t, horizon = self._times(now, 2)
+            self._release_linked(now)
+        sensors = self.sensors
         table = self.peer_signals
-        for nm in self._own_signals:
-            table[nm][self.i] = self.sensors[nm]
-        n_listened = len(self._listened)
+        i = self.i
+        for nm in self._own_signals:  # this ECU's own entries
+            table[nm][i] = sensors[nm]
         if self.peer_hold_periods is not None:  # lost peers are NaN for the controller: a copy
             peers = {nm: arr.copy() for nm, arr in table.items()}
             origin = self._peers.origin.tolist()
-            origin[self.i] = self.k
+            origin[i] = k
             self._peer_fallback(origin, peers)
         else:
             peers = self._peer_views
         speed = peers["speed_mps"]
+        pt = self._peers
         # per ECU the age of its newest value (compiled: one pass over the train's ECUs), the
         # ECUs with a value of this tick (own included), the oldest finite age (-inf: none)
-        age, fresh, max_age = self._peers.ages(self.k, self.dt, self.i, speed)
-        self.stats.peer_missing += n_listened + 1 - fresh
-        sensors = self.sensors
-        obs = Observation.of(tick=self.k, time_s=self.k * self.dt, speed_mps=own_speed, position_m=own_pos,
-                          ref_speed_mps=self.v_ref, ref_decel_mps2=self.a_ref, peer_speed_mps=speed,
-                          peer_position_m=peers["position_m"], peer_age_s=age,
-                          deflection_front_m=sensors.get("deflection_front_m") if self.car > 1 else None,
-                          deflection_rear_m=(sensors.get("deflection_rear_m")
-                                             if "deflection_rear_m" in sensors and not self._last_vehicle() else None),
-                          ref_position_m=self.x_ref, sensors=dict(sensors), peer_signals=peers)
-        t0 = time.perf_counter()
+        age, fresh, max_age = pt.ages(k, self.dt, i, None if peers is self._peer_views else speed)
+        self.stats.peer_missing += len(self._listened) + 1 - fresh
+        nan = math.nan
+        obs = Observation.of(tick=k, time_s=k * self.dt, speed_mps=sensors.get("speed_mps", nan),
+                             position_m=sensors.get("position_m", nan), ref_speed_mps=pt.v_ref,
+                             ref_decel_mps2=pt.a_ref, peer_speed_mps=speed, peer_position_m=peers["position_m"],
+                             peer_age_s=age,
+                             deflection_front_m=sensors.get("deflection_front_m") if self._has_front else None,
+                             deflection_rear_m=(sensors.get("deflection_rear_m")
+                                                if self._has_rear and "deflection_rear_m" in sensors else None),
+                             ref_position_m=pt.x_ref, sensors=dict(sensors), peer_signals=peers)
+        t0 = _perf_counter()
         result = self.controller.step(obs)
         pending = self._control_pending
-        pending.append(time.perf_counter() - t0)
+        pending.append(_perf_counter() - t0)
         if len(pending) >= 1024:
             self._control_time.add_many(pending)
             pending.clear()
         self._broadcast = result.broadcast
         out: list[can.Message] = []
-        values = {"brake_force_n": result.brake_force_n, **result.commands}
         diag = result.diagnostics
-        status = int(diag.get("status", 0)) if "status" in diag else 0
+        status = int(diag["status"]) if "status" in diag else 0
         if self._in_fallback and status == 0:
             status = 1  # degraded: running without a lost peer
-        isfinite, nan = math.isfinite, math.nan
-        for fid, codec, sigs in self._cmd_msgs:
-            fields: dict[str, Any] = {"Status": status}
-            for sig, dn in sigs:  # a value that is not finite is left out of the frame
-                x = values.get(sig, nan)
-                if isfinite(x):
-                    fields[dn] = float(x)
-            cmd = codec.encode(fields, counter=self.k % COUNTER_MODULO, tick=self.k)
-            self._emit(frame(fid, sign_protected(self.secoc, fid, cmd, self.k)), t, out)
-        out += self.send_path.release(horizon)
+        # the command frames' values (a value that is not finite is left out of the frame)
+        values = {"brake_force_n": result.brake_force_n, **result.commands} if result.commands else \
+            {"brake_force_n": result.brake_force_n}
+        values[_STATUS] = status
+        counter = k % COUNTER_MODULO
+        for fid, codec, keys in self._cmd_msgs:
+            cmd = codec.encode_from(values, keys, counter, k, True)
+            if self.secoc is not None:
+                cmd = sign_protected(self.secoc, fid, cmd, k)
+            if plain:
+                out.append(frame(fid, cmd))
+            else:
+                self._emit(frame(fid, cmd), t, out)
+        if not plain:
+            out += self.send_path.release(horizon)
         if self.barrier:
-            cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": self.k & 0xFFFF}), self.k)
+            cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": k & 0xFFFF}), k)
             out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
         if self._trace is not None:  # written once the frames are sent (after_send)
-            self._pending_row = (self.k, result.brake_force_n, diag, max_age, fresh)
+            self._pending_row = (k, result.brake_force_n, diag, max_age, fresh)
         if self._late_rx:
             self._take_held(now)
         return out
@@ -582,11 +615,8 @@ class EcuNode(Node):
             return
         self._pending_row = None
         k, force, diag, max_age, fresh = pending
-        nan = math.nan
-        row = [k, force]
-        row += [diag.get(n, nan) for n in self.controller.diagnostic_names]
-        row += [max_age if max_age > -math.inf else math.inf, fresh]
-        self._trace.append(row)  # type: ignore[union-attr]
+        self._trace.append_dict([k, force], diag, self._diag_names, math.nan,  # type: ignore[union-attr]
+                                [max_age if max_age > -math.inf else math.inf, fresh])
 
     def _peer_fallback(self, origin: list[int], peers: dict[str, np.ndarray]) -> None:
         """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
@@ -620,7 +650,7 @@ class EcuNode(Node):
             return []
         if self.mode == "lockstep":  # external peers late: go on without them (see _arm_external)
             self.stats.external_timeouts += 1
-            self._lost |= self._all_done & ~self._done & self._ext_bits
+            self._peers.lose_external()
             return self._phase2(now)
         self.stats.deadline_misses += 1
         return self._phase2(now)
@@ -633,6 +663,7 @@ class EcuNode(Node):
             finally:
                 self._trace.close()
         self.stats.status = "ok" if self.finished else status
+        self.stats.peer_frames = self._peers.accepted  # state pages accepted (counted by the peer table)
         self.stats.guard = self.guard.stats()
         self.stats.scheduling = self.scheduling
         if self._control_pending:

@@ -14,6 +14,7 @@ from typing import Any, Sequence
 
 import can
 
+from canbrake.nodes._route import hand, split
 from canbrake.nodes.base import Node
 
 
@@ -41,43 +42,28 @@ class Router:
             full = f and all(x["can_mask"] == (0x1FFFFFFF if x.get("extended") else 0x7FF) and "extended" in x
                              for x in f)
             self._exact.append({(x["can_id"], bool(x["extended"])) for x in f} if full else None)  # type: ignore[union-attr]
-        self._routes: dict[tuple[int, bool], tuple[int, ...]] = {}
+        #: identifier << 1 | extended -> indices of the nodes that accept it (empty routes too)
+        self._routes: dict[int, tuple[int, ...]] = {}
         self.current: Node | None = None  # the node being called (names a crash)
 
     def route(self, aid: int, extended: bool) -> tuple[int, ...]:
         """Indices of the nodes that accept identifier ``aid``."""
-        key = (aid, extended)
+        key = aid << 1 | bool(extended)
         r = self._routes.get(key)
         if r is None:
             probe = can.Message(arbitration_id=aid, is_extended_id=extended)
+            pair = (aid, bool(extended))
             r = self._routes[key] = tuple(i for i, (f, ex) in enumerate(zip(self.filters, self._exact))
-                                          if (key in ex if ex is not None else _matches(f, probe)))
+                                          if (pair in ex if ex is not None else _matches(f, probe)))
         return r
 
     def inboxes(self, gen: list[tuple[int, can.Message]]) -> list[list[can.Message]]:
-        """Each node's share of a generation of (sender index or -1, frame)."""
-        inbox: list[list[can.Message]] = [[] for _ in self.nodes]
-        routes, route = self._routes, self.route
-        for sender, msg in gen:
-            targets = routes.get((msg.arbitration_id, msg.is_extended_id))
-            if targets is None:  # (an empty route is cached too: frames no other member takes)
-                targets = route(msg.arbitration_id, msg.is_extended_id)
-            for idx in targets:
-                if idx != sender:
-                    inbox[idx].append(msg)
-        return inbox
+        """Each node's share of a generation of (sender index or -1, frame) (compiled)."""
+        return split(gen, self._routes, self.route, len(self.nodes))
 
     def step(self, inbox: list[list[can.Message]], now: float) -> list[tuple[int, can.Message]]:
-        """Hand each node its batch; returns the next generation."""
-        gen: list[tuple[int, can.Message]] = []
-        for idx, batch in enumerate(inbox):
-            if batch:
-                node = self.current = self.nodes[idx]
-                if not node.finished:
-                    out = node.handle_batch(batch, now)
-                    if out:
-                        gen.extend([(idx, m) for m in out])
-        return gen
+        """Hand each node its batch; returns the next generation (compiled)."""
+        return hand(self, self.nodes, inbox, now)
 
 
 class NodeGroup(Node):

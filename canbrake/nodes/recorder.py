@@ -62,6 +62,7 @@ from canbrake.bus._wire import ideal_period
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
+from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames
 from canbrake.nodes.base import LogHistogram, Node, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
@@ -294,24 +295,26 @@ class RecorderNode(Node):
                 counts[key] = counts.get(key, 0) + 1
                 self._realtime(msg, now)
             return []
-        tick_frames, closing, phase_of = self._tick_frames, self._closing_ids, self._phase_of
-        sync_id = self.layout.sync_id
-        for msg in msgs:
-            aid, ext = msg.arbitration_id, msg.is_extended_id
-            key = (aid, ext, msg.is_error_frame)
-            counts[key] = counts.get(key, 0) + 1
-            if aid in closing:
-                self._closing_seen += 1
-            elif aid == sync_id and ext == (aid > 0x7FF):
+        # the frames in one compiled loop, back here at a SYNC and at a key not seen before
+        i, n, resume = 0, len(msgs), False
+        if type(msgs) is not list:
+            msgs = list(msgs)
+        while i < n:
+            i, ev, closed = take_frames(msgs, i, resume, counts, self._closing_ids, self.layout.sync_id,
+                                        self._phase_of, self._tick_frames)
+            self._closing_seen += closed
+            if ev == TAKE_END:
+                break
+            msg = msgs[i]
+            if ev == TAKE_SYNC:
                 if self._on_sync(msg):
                     return []  # the END: the log is complete
-                tick_frames = self._tick_frames  # a new period's list if it flushed
-            phase = phase_of.get(key)
-            if phase is None:
-                kind = "error" if key[2] else self._kinds.get(aid, "other")
-                phase = phase_of[key] = (0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF)
-                                         else _PHASE.get(kind, 1))
-            tick_frames.append((phase, aid, bytes(msg.data), msg))
+            else:  # TAKE_PHASE
+                aid, ext = msg.arbitration_id, msg.is_extended_id
+                kind = "error" if msg.is_error_frame else self._kinds.get(aid, "other")
+                self._phase_of[(aid, ext, msg.is_error_frame)] = (
+                    0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF) else _PHASE.get(kind, 1))
+            resume = True
         return []
 
     def _on_sync(self, msg: can.Message) -> bool:
