@@ -19,6 +19,8 @@ import numpy as np
 
 _np_exp = np.exp
 _np_empty = np.empty
+_ndarray = np.ndarray
+_float64 = np.dtype(np.float64)
 
 
 def step_coupled(const double[::1] w0, const double[::1] J, const double[::1] R, const double[::1] N,
@@ -241,15 +243,15 @@ def axle_torques(commands, const int64_t[::1] vehicle, const int64_t[::1] number
     cdef Py_ssize_t P = vehicle.shape[0], k, j, m = len(commands)
     out = _np_empty(P)
     cdef double[::1] t = out
-    cdef list cmds = [None if c is None else np.asarray(c, dtype=float) for c in commands]
     cdef const double[:] c
     cdef double x
     for k in range(P):
         t[k] = 0.0
     for j in range(m):
-        if cmds[j] is None:
+        cmd = commands[j]
+        if cmd is None:
             continue
-        c = cmds[j]
+        c = cmd if type(cmd) is _ndarray and cmd.dtype is _float64 else np.asarray(cmd, dtype=float)
         for k in range(P):
             if number[k] == j + 1:
                 x = c[vehicle[k]]
