@@ -156,3 +156,23 @@ def test_the_wheels_backward_euler_equations_are_solved(torque):
                                resistance=lambda u: (2000.0 * np.sign(u) + 40.0 * u + 6.0 * u * abs(u),
                                                      40.0 + 12.0 * abs(u)))
     assert v2 == v and np.array_equal(fa2, fa)
+
+
+@pytest.mark.parametrize("variant", ["paper", "physical"])
+def test_the_steps_adhesion_is_the_numpy_adhesion_bit_for_bit(variant):
+    """The kernel evaluates (λ, μ, F_a) at the new state itself (the plant's measurements use it):
+    exactly what WheelSet.adhesion (slip_ratio, adhesion_coefficient in numpy) gives there,
+    through standstill (the floored slip denominator), traction, braking and wheel lock."""
+    cond = RailCondition(b1=2.046, b2=15.0, b3=10.0, c1=0.060, c2=12.9, c3=72.2, peak_mu0=0.25)
+    rng = np.random.default_rng(5)
+    ws = WheelSet(np.array([117600.0, 115000.0, 120000.0]), 80.0, 0.495, np.zeros(3), variant=variant)
+    v = 0.0
+    for k in range(600):
+        torque = rng.normal(0.0, 20000.0, 3) if k % 50 else np.array([-1e6, 0.0, 1e6])
+        v, fa = ws.step_coupled(torque, v, cond, 1e-3, mass_kg=96000.0, davis=(407.0, 291.6, 6.7))
+        lam, mu, fa_np = ws.adhesion(v, cond)
+        got = ws.last_adhesion[3]
+        assert all(a.tobytes() == b.tobytes() for a, b in zip(got, (lam, mu, fa_np)))
+        assert fa is got[2] and ws.finite
+        if k % 100 == 0:
+            v = 0.0  # a body at rest under turning wheels

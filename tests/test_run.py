@@ -301,11 +301,19 @@ def test_the_fast_readers_give_the_bytes_and_floats_of_the_row_by_row_ones(tmp_p
     b = S._read_signals_rows(tmp_path / "slow" / "signals.csv")
     assert list(a) == list(b) and all(np.array_equal(a[k], b[k], equal_nan=True) for k in a)
     assert len(a["tick"]) == 50 and np.isnan(a["brake_cmd_n_c1"][11])
-    S.merge_ecu_columns(tmp_path / "fast", 2)
+    content = S.merge_ecu_columns(tmp_path / "fast", 2)
     monkeypatch.setattr(S, "_merge_ecu_columns_fast", lambda *x: False)
-    S.merge_ecu_columns(tmp_path / "slow", 2)
+    assert S.merge_ecu_columns(tmp_path / "slow", 2) is None
     merged = (tmp_path / "fast" / "signals.csv").read_bytes()
     assert merged == (tmp_path / "slow" / "signals.csv").read_bytes()
+    # the merged content handed on (a partial last row is dropped, as the merge drops it) and a
+    # column filter: the file's floats
+    assert content is not None and merged.endswith(content[1]) and content[0] == merged.decode().splitlines()[0].split(",")
+    whole = S._read_signals_rows(tmp_path / "slow" / "signals.csv")
+    keep = {"tick", "speed_mps_c1", "observer_accel_mps2_c2"}
+    some = S.read_signals(tmp_path / "fast" / "signals.csv", keep=keep.__contains__, content=content)
+    assert list(some) == [k for k in whole if k in keep]
+    assert all(np.array_equal(some[k], whole[k], equal_nan=True) for k in some)
     lines = merged.decode().splitlines()
     assert lines[0].endswith(",ecu_brake_cmd_n_c1,observer_accel_mps2_c1,brake_cmd_n_c2,observer_accel_mps2_c2")
     assert lines[1 + 7].endswith(",,")                   # ECU 2 has no tick 7

@@ -7,7 +7,7 @@ import io
 import json
 import os
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
@@ -30,24 +30,29 @@ def _complete_rows(path: str | Path) -> tuple[list[str], bytes] | None:
     return header, body
 
 
-def read_signals(path: str | Path) -> dict[str, np.ndarray]:
-    """signals.csv as a dict of float columns. pandas' C parser reads a file of complete rows
-    (exactly the floats Python's ``float`` gives: tests/test_run.py); a damaged file is read row
-    by row, dropping rows cut short and stopping at the first cell that is not a number."""
+def read_signals(path: str | Path, keep: Callable[[str], bool] | None = None,
+                 content: tuple[list[str], bytes] | None = None) -> dict[str, np.ndarray]:
+    """signals.csv as a dict of float columns (only those whose name ``keep`` accepts, if given).
+    pandas' C parser reads a file of complete rows (exactly the floats Python's ``float`` gives:
+    tests/test_run.py); a damaged file is read row by row, dropping rows cut short and stopping at
+    the first cell that is not a number. ``content``: the file's (header, rows) as
+    :func:`merge_ecu_columns` returns them, complete rows, not read again."""
     import pandas as pd
 
-    ok = _complete_rows(path)
+    ok = content if content is not None else _complete_rows(path)
     if ok is not None:
         header, body = ok
+        use = [j for j, name in enumerate(header) if keep is None or keep(name)]
         try:
-            df = pd.read_csv(io.BytesIO(body), header=None, names=range(len(header)), dtype=float,
+            df = pd.read_csv(io.BytesIO(body), header=None, names=range(len(header)), usecols=use, dtype=float,
                              keep_default_na=False, na_values=["", "nan"], engine="c")
         except (ValueError, pd.errors.ParserError):
             pass
         else:
-            arr = df.to_numpy(dtype=float)
-            return {name: arr[:, j].copy() for j, name in enumerate(header)}
-    return _read_signals_rows(path)
+            # column by column (a copy each: no 2-D interleave of every column first)
+            return {header[j]: df[j].to_numpy(dtype=float, copy=True) for j in use}
+    cols = _read_signals_rows(path)
+    return cols if keep is None else {name: a for name, a in cols.items() if keep(name)}
 
 
 def _read_signals_rows(path: str | Path) -> dict[str, np.ndarray]:
@@ -90,20 +95,23 @@ def trace_from_columns(cols: dict[str, np.ndarray], n: int) -> Trace:
                  observer_accel_mps2=obs, ref_position_m=cols.get("ref_position_m"))
 
 
-def merge_ecu_columns(run_dir: Path, n: int) -> None:
+def merge_ecu_columns(run_dir: Path, n: int) -> tuple[list[str], bytes] | None:
     """Add each ECU's diagnostics (e.g. observer estimate) to signals.csv, joined on tick.
 
-    Written to a temporary file and renamed, so signals.csv is never left half-written.
+    Written to a temporary file and renamed, so signals.csv is never left half-written. Returns
+    signals.csv's content as it now is, (header, the rows' bytes), when the files were complete
+    (every row of the header's width: :func:`read_signals` can parse it as it is); else None.
     """
     sig = run_dir / "signals.csv"
     if not sig.exists():
-        return
-    if _merge_ecu_columns_fast(run_dir, n):
-        return
+        return None
+    done = _merge_ecu_columns_fast(run_dir, n)
+    if done:
+        return done
     with open(sig, newline="") as f:
         rows = list(csv.reader(f))
     if not rows:
-        return
+        return None
     header, body = rows[0], [r for r in rows[1:] if len(r) == len(rows[0])]
     extra_header: list[str] = []
     extra: dict[int, list[str]] = {}
@@ -131,7 +139,7 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
             extra.setdefault(k, []).extend([""] * (start - len(extra.get(k, []))))
             extra[k][start:start + len(names)] = vals
     if not extra_header or set(extra_header) & set(header):
-        return  # nothing to add, or already merged (never duplicate columns)
+        return None  # nothing to add, or already merged (never duplicate columns)
     total = sum(widths)
     with _rewrite(sig) as f:
         w = csv.writer(f)
@@ -139,48 +147,66 @@ def merge_ecu_columns(run_dir: Path, n: int) -> None:
         for r in body:
             e = extra.get(int(float(r[0])), [])
             w.writerow(r + e + [""] * (total - len(e)))
+    return None
 
 
-def _merge_ecu_columns_fast(run_dir: Path, n: int) -> bool:
-    """:func:`merge_ecu_columns` on the lines' text (no CSV parsing: no cell of ours is quoted),
+def _merge_ecu_columns_fast(run_dir: Path, n: int) -> tuple[list[str], bytes] | None:
+    """:func:`merge_ecu_columns` on the lines' bytes (no CSV parsing: no cell of ours is quoted),
     ~5x faster for long runs; False when a file is damaged (short rows, a tick that is not a
-    number, quoting) and the row-by-row merge must do it. Same bytes out (tests/test_run.py)."""
+    number, quoting, text that is not ASCII) and the row-by-row merge must do it. Same bytes out
+    (tests/test_run.py). Else signals.csv's content as it now is, (header, rows). Where an ECU wrote ticks 0, 1, 2, ... one per row, as the nodes do, and
+    signals.csv holds ticks 0, 1, 2, ..., its rows pair up in order without a lookup by tick."""
     sig = run_dir / "signals.csv"
     ok = _complete_rows(sig)
     if ok is None:
-        return False
+        return None
     header, body = ok
+    if not body.isascii():
+        return None
+    lines = body.splitlines()
+    sig_ticks: list[int] | None = None  # signals.csv's ticks, read only if an ECU's rows do not pair up
+    in_order: bool | None = None  # signals.csv's ticks are 0, 1, 2, ...
     extra_header: list[str] = []
-    extras: list[tuple[dict[int, str], str]] = []  # per ECU: tick -> its cells' text; the empty cells
+    columns: list[list[bytes]] = []  # per ECU, its cells' text for each row of signals.csv
     for c in range(1, n + 1):
         p = run_dir / f"ecu_c{c}.csv"
         if not p.exists() or p.stat().st_size == 0:
             continue
         got = _complete_rows(p)
         if got is None:
-            return False
+            return None
         eh, eb = got
-        if eh[0] != "tick":
-            return False
+        if eh[0] != "tick" or not eb.isascii():
+            return None
         names = eh[1:]
         extra_header += [f"ecu_{h}_c{c}" if f"{h}_c{c}" in header else f"{h}_c{c}" for h in names]
-        rows: dict[int, str] = {}
-        for line in eb.decode().splitlines():
-            tick, _, rest = line.partition(",")
-            if not tick.isdigit():
-                return False
-            rows[int(tick)] = rest  # a tick written twice: the last one
-        extras.append((rows, "," * (len(names) - 1)))
+        empty = b"," * (len(names) - 1)
+        rows = [line.partition(b",") for line in eb.splitlines()]
+        ticks = [t for t, _s, _r in rows]
+        if in_order is None:
+            in_order = [line.partition(b",")[0] for line in lines] == [b"%d" % k for k in range(len(lines))]
+        if in_order and ticks == [b"%d" % k for k in range(len(ticks))]:
+            cells = [r for _t, _s, r in rows[:len(lines)]]
+            columns.append(cells + [empty] * (len(lines) - len(cells)))
+            continue
+        by_tick: dict[int, bytes] = {}
+        for t, _s, rest in rows:
+            if not t.isdigit():
+                return None
+            by_tick[int(t)] = rest  # a tick written twice: the last one
+        if sig_ticks is None:
+            sig_ticks = [int(float(line[:line.index(b",")] if b"," in line else line)) for line in lines]
+        columns.append([by_tick.get(k, empty) for k in sig_ticks])
     if not extra_header or set(extra_header) & set(header):
-        return True  # nothing to add, or already merged (never duplicate columns)
-    out = io.StringIO()
-    csv.writer(out).writerow(header + extra_header)
-    for line in body.decode().splitlines():
-        k = int(float(line[:line.index(",")] if "," in line else line))
-        out.write(",".join([line, *[r.get(k, empty) for r, empty in extras]]) + "\r\n")
+        return ok  # nothing to add, or already merged (never duplicate columns)
+    head = io.StringIO()
+    csv.writer(head).writerow(header + extra_header)
+    merged = b"".join([b",".join(cells) + b"\r\n" for cells in zip(lines, *columns)])
     with _rewrite(sig) as f:
-        f.write(out.getvalue())
-    return True
+        f.write(head.getvalue())
+        f.flush()
+        f.buffer.write(merged)
+    return header + extra_header, merged
 
 
 def merge_tick_file(run_dir: Path, name: str) -> None:
@@ -340,14 +366,29 @@ def realtime_figures(plant: dict[str, Any], ecus: list[dict[str, Any]], busst: d
             "ecu_skipped_periods": sum(int(e.get("skipped_periods", 0)) for e in ecus), "scheduling": sched}
 
 
+#: signals.csv's columns the summary reads (trace_from_columns), by prefix
+_SUMMARY_PREFIXES = ("position_m_c", "speed_mps_c", "accel_mps2_c", "brake_cmd_n_c", "brake_applied_n_c",
+                     "deflection_m_k", "coupler_force_n_k", "observer_accel_mps2_c")
+
+
+def _summary_column(name: str, brakes: bool) -> bool:
+    """Whether the summary reads signals.csv's column ``name`` (the trace; with brake equipment
+    also the axles' slips and the dump valves, :func:`canbrake.analysis.braking.braking_summary`)."""
+    return (name in ("tick", "t_s", "ref_speed_mps", "ref_position_m") or name.startswith(_SUMMARY_PREFIXES)
+            or (brakes and ((name.startswith("axle") and "_slip_c" in name) or name.startswith("wsp_valve_c"))))
+
+
 def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], *, plots: bool) -> dict[str, Any]:
     from canbrake.analysis.verdict import judge
 
     n = scn.n_cars
     live = outcome.get("live_nodes") or []
+    content = None  # signals.csv's (header, rows) once merged, when complete: not read again
     if not live:  # never rewrite signals.csv while a node may still write it
-        merge_ecu_columns(run_dir, n)
-        merge_tick_file(run_dir, "can_errors.csv")
+        content = merge_ecu_columns(run_dir, n)
+        if (run_dir / "can_errors.csv").exists():
+            content = None
+            merge_tick_file(run_dir, "can_errors.csv")
     plant = _load_json(run_dir / "plant_stats.json")
     busst = _load_json(run_dir / "bus_stats.json")
     ecus = [_load_json(run_dir / f"ecu_c{c}_stats.json") for c in range(1, n + 1)]
@@ -361,7 +402,8 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
     sig = run_dir / "signals.csv"
     tr = None
     if sig.exists():
-        cols = read_signals(sig)
+        brakes = getattr(scn.consist, "brakes", None) is not None
+        cols = read_signals(sig, keep=lambda name: _summary_column(name, brakes), content=content)
         if cols.get("t_s") is not None and len(cols["t_s"]) > 0:
             tr = trace_from_columns(cols, n)
             tr.mass_kg = scn.vehicle_masses_kg()
@@ -369,7 +411,7 @@ def _summarise(scn: Scenario, run_dir: Path, bus: str, outcome: dict[str, Any], 
                 summary["ticks"] = max(int(summary["ticks"]), int(cols["tick"][-1]) if "tick" in cols else 0)
         if tr is not None and len(tr.t_s) > 1:
             summary["metrics"] = compute_metrics(tr)
-            if getattr(scn.consist, "brakes", None) is not None:  # brake equipment: the stop and the wheels
+            if brakes:  # brake equipment: the stop and the wheels
                 from canbrake.analysis.braking import braking_summary
 
                 summary["braking"] = braking_summary(tr.t_s, tr.speed_mps, tr.accel_mps2, cols)

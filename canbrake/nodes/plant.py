@@ -187,6 +187,13 @@ class PlantNode(Node):
         #: the trace row taken at the last tick and not yet written (see _record / after_send)
         self._pending_row: tuple[Any, ...] | None = None
         self._extra_meas: list[str] | None = None
+        #: (tick, v*, a*, x* or None) of the last tick's frames, for its trace row
+        self._ref_of_tick: tuple[int, float, float, float | None] | None = None
+        #: the commands written to the trace (besides brake_force_n), and their ECUs' vehicles
+        self._row_cmds = [(name, [e.vehicle - 1 for e in self.ecus if name in e.commands])
+                          for name in self.command_names if name != "brake_force_n"]
+        #: where the trace row's floats are in one concatenation of its arrays (:meth:`_plan_row`)
+        self._row_plan: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
         # realtime: wall time the current period's SYNC was sent, and per period the time from it
         # to the last command of the period (s; command latency, `canbrake bench`)
         self._sync_wall: float | None = None
@@ -226,12 +233,14 @@ class PlantNode(Node):
         t = k * self.dt
         meas = self.model.measurements()
         v_ref, a_ref = self.reference(t)
+        x_ref = self.reference.position(t) if self._ref_pos is not None else None
+        self._ref_of_tick = (k, v_ref, a_ref, x_ref)  # the trace row of tick k reads them again
         self._last_sync_k = k
         lay = self.layout
         out = [frame(lay.sync_id, sign_control(self.secoc, lay.sync_id, self._sync.encode({"Tick": k}), k)),
                frame(lay.reference_id, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
         if self._ref_pos is not None:
-            out.append(frame(lay.reference_pos_id, self._ref_pos.encode({"RefPosition": self.reference.position(t)})))
+            out.append(frame(lay.reference_pos_id, self._ref_pos.encode({"RefPosition": x_ref})))
         if k % self.heartbeat_every == 0:
             out.append(frame(lay.plant_heartbeat_id, self._hb.encode({"NodeState": 5})))
         payloads = self._sensor_pages.pack([np.ascontiguousarray(meas[name], dtype=float)
@@ -483,12 +492,13 @@ class PlantNode(Node):
 
     def _advance(self, now: float) -> list[can.Message]:
         self._ext_deadline = None
-        missed = np.flatnonzero(~self._fresh)
-        self.stats.commands_missed += missed.size
-        for i in missed:
-            self.stats.commands_missed_per_car[i] += 1
-            if self._ext_mask >> int(i) & 1:
-                self.stats.external[self.ecus[int(i)].name]["periods_missed"] += 1
+        if not self._fresh.all():  # (most periods: every ECU's commands came)
+            missed = np.flatnonzero(~self._fresh)
+            self.stats.commands_missed += missed.size
+            for i in missed:
+                self.stats.commands_missed_per_car[i] += 1
+                if self._ext_mask >> int(i) & 1:
+                    self.stats.external[self.ecus[int(i)].name]["periods_missed"] += 1
         applied = self._applied_commands()
         if self.k % self.trace_every == 0:
             self._record()
@@ -562,15 +572,36 @@ class PlantNode(Node):
         the bus: in a node process, while the ECUs compute) or before anything else happens here."""
         self.after_send()
         m = self.model.measurements()  # (arrays made per state: the next step leaves them alone)
-        cmd = np.full(self.n, np.nan) if final else self.cmd_n.copy()
+        # brake_force_n, then each traced command, over the vehicles (copied in one call)
+        n_cmd = self.n * (1 + len(self._row_cmds))
+        cmds = np.full(n_cmd, np.nan) if final else np.concatenate(
+            [self.cmd_n, *[self.commands[name] for name, _v in self._row_cmds]]) if self._row_cmds \
+            else self.cmd_n.copy()
         fs = self._in_failsafe.copy() if self.failsafe is not None else None
-        cmds = {name: None if final else self.commands[name].copy()
-                for name in self.command_names if name != "brake_force_n"}
-        self._pending_row = (self.k, m, cmd, fs, cmds)
+        self._pending_row = (self.k, m, cmds, fs)
         if final:
             self.after_send()
             if self._trace is not None:
                 self._trace.flush()
+
+    def _plan_row(self, sizes: list[int]) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+        """Where the trace row's floats are in the concatenation of :meth:`after_send`'s arrays
+        (sizes ``sizes``): per vehicle position, speed, accel, command, applied; per coupler
+        deflection, force (then the fail-safe flags, not floats); each traced command of its ECUs'
+        vehicles; the extra measurements whole, in their order. (size, the indices before the
+        flags, after them, both)."""
+        n = self.n
+        start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+        pos, speed, accel, applied, defl, force, cmds = start[:7]
+        per_vehicle = np.column_stack([pos + np.arange(n), speed + np.arange(n), accel + np.arange(n),
+                                       cmds + np.arange(n), applied + np.arange(n)]).ravel()
+        nc = sizes[4]
+        per_coupler = np.column_stack([defl + np.arange(nc), force + np.arange(sizes[5])]).ravel()
+        after = [cmds + n * (1 + i) + np.asarray(veh, dtype=np.intp) for i, (_name, veh) in enumerate(self._row_cmds)]
+        after.append(np.arange(start[7], start[-1], dtype=np.intp))
+        first = np.concatenate([per_vehicle, per_coupler]).astype(np.intp)
+        second = np.concatenate(after).astype(np.intp)
+        return int(start[-1]), first, second, np.concatenate([first, second])
 
     def after_send(self) -> None:
         """Write the trace row taken by :meth:`_record`, if one is pending (the drivers call this
@@ -579,24 +610,31 @@ class PlantNode(Node):
         if pending is None:
             return
         self._pending_row = None
-        k, m, cmd, fs, cmds = pending
+        k, m, cmds, fs = pending
         t = k * self.dt
-        v_ref, a_ref = self.reference(t)
+        ref = self._ref_of_tick
+        if ref is not None and ref[0] == k:
+            v_ref, a_ref, x_ref = ref[1:]
+        else:  # the last row (no tick frames after it)
+            v_ref, a_ref = self.reference(t)
+            x_ref = self.reference.position(t) if self._ref_pos is not None else None
         row: list[float] = [k, t, v_ref, a_ref]
         if self._ref_pos is not None:
-            row.append(self.reference.position(t))
-        # per vehicle (position, speed, accel, command, applied), then per coupler (deflection,
-        # force): interleaved by numpy, Python floats by tolist (not a numpy scalar per value)
-        row += np.column_stack([m["position_m"], m["speed_mps"], m["accel_mps2"], cmd,
-                                m["applied_brake_n"]]).ravel().tolist()
-        row += np.column_stack([m["deflection_m"], m["coupler_force_n"]]).ravel().tolist()
-        if fs is not None:
+            row.append(x_ref)
+        # every float of the row from one concatenation, picked in the row's order (per vehicle
+        # and per coupler interleaved) and made Python floats by one tolist
+        parts = [m["position_m"], m["speed_mps"], m["accel_mps2"], m["applied_brake_n"], m["deflection_m"],
+                 m["coupler_force_n"], cmds, *[m[name] for name in self._extra_measurements()]]
+        values = np.concatenate(parts, dtype=float)
+        plan = self._row_plan
+        if plan is None or plan[0] != values.size:
+            plan = self._row_plan = self._plan_row([np.size(a) for a in parts])
+        if fs is None:
+            row += values.take(plan[3]).tolist()
+        else:
+            row += values.take(plan[1]).tolist()
             row += [int(x) for x in fs]
-        for name, arr in cmds.items():
-            row += [np.nan if arr is None else float(arr[e.vehicle - 1]) for e in self.ecus if name in e.commands]
-        extra = self._extra_measurements()
-        if extra:  # one list of Python floats for all of them (not a tolist per array)
-            row += np.concatenate([np.asarray(m[name], dtype=float) for name in extra]).tolist()
+            row += values.take(plan[2]).tolist()
         if self._trace is not None:
             self._trace.append(row)
 

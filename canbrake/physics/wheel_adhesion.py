@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import math
@@ -123,10 +123,17 @@ def _axle_array(x: np.ndarray | float, p: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=64)
-def _curve_constants(cond: RailCondition, variant: Variant) -> tuple[float, float]:
-    """(the variant's peak factor, μ_max(0)) of a rail condition, as the Newton loop uses them."""
+def _curve_constants(cond: RailCondition, variant: Variant) -> tuple[float, ...]:
+    """A rail condition's arguments of the compiled kernel (canbrake.physics._adhesion_kernel) for
+    ``variant``: b1, b2, b3, c1, c2, c3, the Newton loop's peak factor and μ_max(0), then for the
+    adhesion's own evaluation whether the variant is "physical", ``peak_mu0`` and the printed
+    curve's peak (:func:`_scale`)."""
+    if variant not in ("paper", "physical"):
+        _scale(0.0, cond, variant)  # the message naming the variants
     peak = 1.0 if variant == "paper" else float(_scale(0.0, cond, variant))
-    return peak, float(cond.mu_max(0.0))
+    physical = variant == "physical"
+    return (cond.b1, cond.b2, cond.b3, cond.c1, cond.c2, cond.c3, peak, float(cond.mu_max(0.0)), physical,
+            cond.peak_mu0 if physical else 1.0, cond.peak_curve if physical else 1.0)
 
 
 @dataclass
@@ -142,6 +149,24 @@ class WheelSet:
     omega_radps: np.ndarray
     variant: Variant = "paper"
     v_floor_mps: float = 0.1
+    #: the kernel's per-axle parameter arrays (J, R, N) and the last rail condition's constants, kept
+    #: while the attributes they come from are the same objects (see :meth:`_kernel_args`)
+    _args: tuple | None = field(default=None, init=False, repr=False, compare=False)
+    _cond_args: tuple | None = field(default=None, init=False, repr=False, compare=False)
+
+    def _kernel_args(self, cond: RailCondition) -> tuple[tuple[np.ndarray, np.ndarray, np.ndarray], tuple]:
+        """((J, R, N) as arrays (p,), the rail condition's kernel constants (:func:`_curve_constants`)),
+        made again only when an attribute they come from is replaced."""
+        p = np.size(self.omega_radps)
+        a = self._args
+        if a is None or a[0] is not self.inertia_kgm2 or a[1] is not self.radius_m or a[2] is not self.normal_load_n \
+                or a[3] != p:
+            a = self._args = (self.inertia_kgm2, self.radius_m, self.normal_load_n, p,
+                              tuple(_axle_array(x, p) for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n)))
+        c = self._cond_args
+        if c is None or c[0] is not cond or c[1] != self.variant:
+            c = self._cond_args = (cond, self.variant, _curve_constants(cond, self.variant))
+        return a[4], c[2]
 
     def adhesion(self, v_mps: float, cond: RailCondition,
                  omega_radps: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -177,22 +202,22 @@ class WheelSet:
         (wheel) and fractions of a millisecond (body) near standstill, so an explicit step of 1 ms
         is unstable there. Newton on the arrow-shaped Jacobian (Schur complement on v) solves the
         step; the speed-dependence of μ_max is left out of the Jacobian (it only slows Newton).
-        Returns (v_new in m/s, F_a in N per axle); ω is updated in place.
+        Returns (v_new in m/s, F_a in N per axle); ω is updated (a new array), ``finite`` says
+        whether all of it is finite.
         """
         # compiled (canbrake.physics._adhesion_kernel): a train has a handful of driven axles, where
         # numpy's per-call overhead would cost ~10x the arithmetic (this runs every sub-step)
-        p = np.size(self.omega_radps)
-        J, R, N, T = (_axle_array(x, p) for x in (self.inertia_kgm2, self.radius_m, self.normal_load_n, torque_nm))
-        peak, mu0 = _curve_constants(cond, self.variant)
-        v, w = _adhesion_kernel.step_coupled(
-            _axle_array(self.omega_radps, p), J, R, N, T, float(v_mps), dt_s,
-            0.0 if mass_kg is None else float(mass_kg), mass_kg is not None, cond.b1, cond.b2, cond.b3, cond.c1,
-            cond.c2, cond.c3, peak, mu0, self.v_floor_mps, newton_iters, davis, resistance, table)
+        (J, R, N), (b1, b2, b3, c1, c2, c3, peak, mu0, physical, peak_mu0, peak_curve) = self._kernel_args(cond)
+        p = J.shape[0]
+        v, w, lam, mu, fa, self.finite = _adhesion_kernel.step_coupled(
+            _axle_array(self.omega_radps, p), J, R, N, _axle_array(torque_nm, p), float(v_mps), dt_s,
+            0.0 if mass_kg is None else float(mass_kg), mass_kg is not None, b1, b2, b3, c1, c2, c3, peak, mu0,
+            self.v_floor_mps, newton_iters, davis, resistance, table, physical, peak_mu0, peak_curve)
         self.omega_radps = w
-        res = self.adhesion(v, cond, w)
-        #: (condition, v, ω, (λ, μ, F_a)) of the last step, for a measurement of the same state
-        self.last_adhesion = (cond, v, w, res)
-        return v, res[2]
+        #: (condition, v, ω, (λ, μ, F_a)) of the last step, for a measurement of the same state: the
+        #: kernel's evaluation, bit for bit :meth:`adhesion`'s
+        self.last_adhesion = (cond, v, w, (lam, mu, fa))
+        return v, fa
 
 
 # ------------------------------------------------------------------------------ the plant model
@@ -295,8 +320,8 @@ class AdhesionTrain:
         for i, ax in enumerate(axles):
             veh += [i] * len(ax.normal_load_n)
             num += list(range(1, len(ax.normal_load_n) + 1))
-        self.axle_vehicle = np.asarray(veh, dtype=int)      # (P,) vehicle of each axle, 0-based
-        self.axle_number = np.asarray(num, dtype=int)       # (P,) axle number within its vehicle, 1-based
+        self.axle_vehicle = np.asarray(veh, dtype=np.int64)      # (P,) vehicle of each axle, 0-based
+        self.axle_number = np.asarray(num, dtype=np.int64)       # (P,) axle number within its vehicle, 1-based
         self.max_axles = int(self.axle_number.max()) if num else 0
         self.command_names = tuple(f"axle{j}_torque_nm" for j in range(1, self.max_axles + 1))
 
@@ -313,11 +338,18 @@ class AdhesionTrain:
         self.time_s = 0.0
         self._t0, self._k, self._h = 0.0, 0, 0.0
         self._accel = 0.0
-        self._inertia_force = np.zeros(len(num))
+        self._a_last = 0.0  # the body's acceleration over the last sub-step (m/s²)
+        #: the wheel speeds before the last step and its length (s): the wheels' inertia force
+        self._w_start: np.ndarray | None = None
+        self._dt_last = 1.0
         self._fa_step: np.ndarray | None = None
         self._meas: dict[str, np.ndarray] | None = None  # measurements of the current state (cached)
-        self._mass_cumsum: np.ndarray | None = None
-        self._axle_keys: list[tuple[str, int, int]] = []
+        self._mass_cumsum = np.cumsum(self.mass_kg)
+        #: the measurements' names in the order of the kernel's rows (canbrake.physics._adhesion_kernel.measure)
+        self._meas_keys = ["position_m", "speed_mps", "ground_speed_mps", "accel_mps2", "applied_brake_n",
+                           "resistance_n", "wheel_inertia_force_n", "deflection_m", "coupler_force_n"] + [
+            f"axle{j}_{name}" for name in ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")
+            for j in range(1, self.max_axles + 1)]
 
     # ---------------------------------------------------------------- physics
     def resistance(self, v_mps: float) -> tuple[float, float]:
@@ -348,22 +380,19 @@ class AdhesionTrain:
 
     def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
         """Advance by ``dt_s`` (s) holding the axle torque commands (see the class docstring)."""
-        torque = np.zeros(len(self.axle_vehicle))
-        for j, sel in self._sel.items():
-            cmd = commands.get(f"axle{j}_torque_nm")
-            if cmd is not None:
-                torque[sel] = np.asarray(cmd, dtype=float)[self.axle_vehicle[sel]]
-        torque[np.isnan(torque)] = 0.0  # not commanded: no torque
+        torque = _adhesion_kernel.axle_torques([commands.get(c) for c in self.command_names], self.axle_vehicle,
+                                               self.axle_number)  # not commanded (NaN or absent): no torque
         self.torque_nm = torque
         self._meas = None
         h = dt_s / self.substeps
         if h != self._h:
             self._t0, self._k, self._h = self.time_s, 0, h
-        v_start, w_start = self.speed_mps, self.wheels.omega_radps
+        wheels = self.wheels
+        v_start, w_start = self.speed_mps, _axle_array(wheels.omega_radps, self.axle_vehicle.size)
         for _ in range(self.substeps):
             cond = self.rail.at(self.time_s)
-            v_new, fa = self.wheels.step_coupled(torque, self.speed_mps, cond, h, mass_kg=self.total_mass_kg,
-                                                 davis=self._davis_terms, table=self._table_sum)
+            v_new, fa = wheels.step_coupled(torque, self.speed_mps, cond, h, mass_kg=self.total_mass_kg,
+                                            davis=self._davis_terms, table=self._table_sum)
             self._a_last = (v_new - self.speed_mps) / h
             self.position_m += 0.5 * h * (self.speed_mps + v_new)
             self.speed_mps = v_new
@@ -371,16 +400,11 @@ class AdhesionTrain:
             self._k += 1
             self.time_s = self._t0 + self._k * h
         self._accel = (self.speed_mps - v_start) / dt_s
-        w = self.wheels
-        self._inertia_force = w.inertia_kgm2 * (w.omega_radps - w_start) / dt_s / w.radius_m
-        if not (math.isfinite(self.speed_mps) and math.isfinite(self.position_m) and np.isfinite(w.omega_radps).all()):
+        self._w_start, self._dt_last = w_start, dt_s
+        if not (math.isfinite(self.speed_mps) and math.isfinite(self.position_m) and wheels.finite):
             raise PlantDiverged(f"adhesion train: non-finite state at t = {self.time_s:g} s")
 
     # ---------------------------------------------------------------- outputs
-    def _per_vehicle(self, per_axle: np.ndarray) -> np.ndarray:
-        """Σ over each vehicle's axles, shape (n,)."""
-        return np.bincount(self.axle_vehicle, weights=per_axle, minlength=self.n_vehicles).astype(float)
-
     def measurements(self) -> dict[str, np.ndarray]:
         """Current state by name (see the class docstring); arrays are shared, do not modify them."""
         if self._meas is None:
@@ -388,38 +412,27 @@ class AdhesionTrain:
         return dict(self._meas)
 
     def _measure(self) -> dict[str, np.ndarray]:
-        n, v = self.n_vehicles, self.speed_mps
+        """Every measurement of the current state in one compiled call (fresh arrays per state: a
+        caller may keep them), rows of two blocks (per vehicle, per coupler)."""
+        n, v, w = self.n_vehicles, self.speed_mps, self.wheels
         cond = self.rail.at(self.time_s)
-        last = getattr(self.wheels, "last_adhesion", None)
-        if last is not None and last[0] is cond and last[1] == v and last[2] is self.wheels.omega_radps:
+        last = getattr(w, "last_adhesion", None)
+        if last is not None and last[0] is cond and last[1] == v and last[2] is w.omega_radps:
             lam, mu, fa = last[3]  # the step's own evaluation at this state
         else:
-            lam, mu, fa = self.wheels.adhesion(v, cond)
-        fd = self.vehicle_resistance_n(v)
+            lam, mu, fa = (np.ascontiguousarray(x, dtype=float) for x in w.adhesion(v, cond))
+        table = None
+        if self._tab is not None:  # each vehicle's own table, compiled (the coupled kernel's interpolation)
+            from canbrake.physics._train_kernel import with_table_resistance
 
-        def full(x: float) -> np.ndarray:
-            a = np.empty(n)
-            a[:] = x
-            return a
-
-        out = {"position_m": full(self.position_m), "speed_mps": full(v), "ground_speed_mps": full(v),
-               "accel_mps2": full(self._accel), "applied_brake_n": -self._per_vehicle(fa),
-               "resistance_n": fd, "wheel_inertia_force_n": self._per_vehicle(self._inertia_force),
-               "deflection_m": np.zeros(max(n - 1, 0))}
-        if self._fa_step is None:
-            net = self._per_vehicle(fa) - fd
-            a = 0.0
-        else:
-            net = self._per_vehicle(self._fa_step) - fd
-            a = self._a_last
-        if self._mass_cumsum is None:
-            self._mass_cumsum = np.cumsum(self.mass_kg)
-            self._axle_keys = [(f"axle{j}_{name}", q, j - 1) for q, name in enumerate(
-                ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")) for j in range(1, self.max_axles + 1)]
-        out["coupler_force_n"] = (self._mass_cumsum * a - np.cumsum(net))[:-1]
-        per_axle = np.full((5, self.max_axles, n), np.nan)  # [quantity, axle j-1, vehicle]
-        per_axle[:, self.axle_number - 1, self.axle_vehicle] = np.stack(
-            [self.wheels.omega_radps, lam, mu, fa, self.torque_nm])
-        for key, q, j in self._axle_keys:
-            out[key] = per_axle[q, j]
-        return out
+            table = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], np.full(n, abs(v)), np.zeros(n))
+        (J, R, _N), _c = w._kernel_args(cond)
+        p = J.shape[0]
+        rows = np.empty((7 + 5 * self.max_axles, n))
+        couplers = np.empty((2, max(n - 1, 0)))
+        _adhesion_kernel.measure(rows, couplers, self.position_m, v, self._accel, self._a_last, self._fa_step, lam,
+                                 mu, fa, _axle_array(w.omega_radps, p), self.torque_nm, self._w_start,
+                                 self._dt_last, J, R, self.axle_vehicle, self.axle_number, self.davis_n, table,
+                                 self._mass_cumsum)
+        per = list(rows)
+        return dict(zip(self._meas_keys, per[:7] + list(couplers) + per[7:]))
