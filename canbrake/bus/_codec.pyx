@@ -73,6 +73,21 @@ cdef inline int64_t _floordiv15(int64_t t):
     return q
 
 
+cdef inline bint _own_bits(Field* fd, object counter, object tick, uint64_t* x):
+    """A field the codec fills itself: the alive counter (``counter`` mod its width), CounterExt
+    (floor(``tick`` / 15)) or a constant, its bits in ``x``; False for a field whose value the
+    caller gives (the E2E CRC is the caller's to skip)."""
+    if fd.role == ROLE_COUNTER and counter is not None:
+        x[0] = (<uint64_t><int64_t>counter & fd.mask) << fd.start
+    elif fd.role == ROLE_COUNTER_EXT and tick is not None:
+        x[0] = (<uint64_t>_floordiv15(<int64_t>tick) & fd.mask) << fd.start
+    elif fd.role == ROLE_CONST:
+        x[0] = (<uint64_t>fd.const_raw & fd.mask) << fd.start
+    else:
+        return False
+    return True
+
+
 cdef inline int64_t _field_raw(Field* fd, uint64_t w, uint64_t wb) noexcept:
     """Field ``fd``'s raw value in a frame (its little-endian word ``w``, big-endian word ``wb``)."""
     cdef int64_t raw = <int64_t>(((wb if fd.big else w) >> fd.start) & fd.mask)
@@ -241,13 +256,7 @@ cdef class FieldCodec:
             fd = &self.f[i]
             if fd.role == ROLE_CRC:
                 continue
-            if fd.role == ROLE_COUNTER and counter is not None:
-                x = (<uint64_t><int64_t>counter & fd.mask) << fd.start
-            elif fd.role == ROLE_COUNTER_EXT and tick is not None:
-                x = (<uint64_t>_floordiv15(<int64_t>tick) & fd.mask) << fd.start
-            elif fd.role == ROLE_CONST:
-                x = (<uint64_t>fd.const_raw & fd.mask) << fd.start
-            else:
+            if not _own_bits(fd, counter, tick, &x):
                 if exact:
                     p = PyDict_GetItem(values, self.names[i])
                     v = self.defaults[i] if p is NULL else <object>p
@@ -286,13 +295,7 @@ cdef class FieldCodec:
             fd = &self.f[i]
             if fd.role == ROLE_CRC:
                 continue
-            if fd.role == ROLE_COUNTER and counter is not None:
-                x = (<uint64_t><int64_t>counter & fd.mask) << fd.start
-            elif fd.role == ROLE_COUNTER_EXT and tick is not None:
-                x = (<uint64_t>_floordiv15(<int64_t>tick) & fd.mask) << fd.start
-            elif fd.role == ROLE_CONST:
-                x = (<uint64_t>fd.const_raw & fd.mask) << fd.start
-            else:
+            if not _own_bits(fd, counter, tick, &x):
                 key = keys[i]
                 p = NULL if key is None else PyDict_GetItem(values, key)
                 if p is NULL:

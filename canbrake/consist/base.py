@@ -159,3 +159,38 @@ def load_table(path: str | Path, columns: tuple[str, ...], base_dir: Path | None
 
 def as_dict(model: BaseModel) -> dict[str, Any]:
     return model.model_dump(mode="python")
+
+
+def check_air_braked_ecus(placed: list[Any], mode: str, wagon: Any) -> None:
+    """ValueError (one line) for an ECU whose commands its vehicle cannot take, on a train with an
+    automatic air brake (``mode``: pneumatic or ecp): the driver's brake valve (``airbrake_apply``)
+    anywhere but on the leading vehicle; a brake force on a wagon (``wagon(vehicle)``, 1-based:
+    an air-braked vehicle without traction or electric brake) from a controller that commands
+    more than the force, or, without ECP, from any controller (with ECP a wagon's ECU turns a
+    force-only controller's demand into its cylinder demand, :class:`canbrake.control.ecp.EcpUnit`).
+    The heavy-haul and the coupled kernel's configurations share it."""
+    from canbrake.control.base import controller_class
+
+    for p in placed:
+        try:
+            cmds = tuple(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
+        except Exception:  # noqa: BLE001 - an unknown controller is reported by its own check
+            continue
+        if "airbrake_apply" in cmds and p.vehicle != 1:
+            raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which works "
+                             "the driver's brake valve (airbrake_apply): the valve is on the leading vehicle "
+                             "(vehicle 1), where the brake pipe is fed; place that ECU on vehicle 1")
+        if not wagon(p.vehicle) or "brake_force_n" not in cmds or "ecp_demand" in cmds:
+            continue
+        if mode == "ecp" and len(cmds) == 1:
+            continue  # wrapped by its ECP brake unit (build_controller)
+        if mode == "ecp":
+            raise ValueError(f"ecus: ECU {p.name} on wagon {p.vehicle} runs {p.controller.name}, which commands a "
+                             f"brake force with {', '.join(c for c in cmds if c != 'brake_force_n')}: a wagon has "
+                             "no traction or electric brake, and its ECP brake unit takes a controller that "
+                             "commands the force alone (e.g. chen2023) or its cylinder demand (ecp_wagon)")
+        raise ValueError(f"ecus: ECU {p.name} on wagon {p.vehicle} runs {p.controller.name}, which commands a "
+                         "brake force (brake_force_n): a wagon has no force equipment (no traction or electric "
+                         "brake), and with train.air_brake.mode: pneumatic no cylinder of its own to drive "
+                         "(use mode: ecp, where its ECU turns the force into its cylinder demand, or a wagon "
+                         "controller such as ecp_wagon)")

@@ -15,7 +15,7 @@ from typing import Any, Literal, Union
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from canbrake.consist.base import _INF_OK, StrictModel  # noqa: F401 - re-exported for the scenario loader
+from canbrake.consist.base import _INF_OK, StrictModel, check_air_braked_ecus  # noqa: F401 - re-exported for the scenario loader
 from canbrake.consist import heavy_haul as hhs
 from canbrake.consist.brakes import BrakeSystemConfig
 
@@ -202,33 +202,13 @@ class TrainConfig(_Model):
                 "friction_coef": float(r.friction_coefficient), "beta_c": float(self.air_brake.service_factor)}
 
     def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
-        """ValueError (one line) for an ECU that works the driver's brake valve (``airbrake_apply``)
-        anywhere but on the leading vehicle, where the brake pipe is fed (trains with air brakes)."""
+        """ValueError (one line) for an ECU whose commands its vehicle cannot take (trains with air
+        brakes: :func:`canbrake.consist.base.check_air_braked_ecus`)."""
         if self.air_brake is None:
             return
-        from canbrake.control.base import controller_class
-
-        for p in placed:
-            try:
-                cmds = tuple(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
-            except Exception:  # noqa: BLE001 - an unknown controller is reported by its own check
-                continue
-            if "airbrake_apply" in cmds and p.vehicle != 1:
-                raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which works "
-                                 "the driver's brake valve (airbrake_apply): the valve is on the leading vehicle "
-                                 "(vehicle 1), where the brake pipe is fed; place that ECU on vehicle 1")
-            wagon = (1 <= p.vehicle <= self.n_cars and self.air_rigging is not None
-                     and self.air_rigging[p.vehicle - 1] is not None
-                     and (self.traction_envelope is None or self.traction_envelope[p.vehicle - 1] is None))
-            if not wagon or "brake_force_n" not in cmds or "ecp_demand" in cmds:
-                continue
-            if self.air_brake.mode == "ecp" and len(cmds) == 1:
-                continue  # wrapped by its ECP brake unit (build_controller)
-            raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which commands a "
-                             "brake force (brake_force_n): an air-braked vehicle without traction (a wagon) has no "
-                             "force equipment; with train.air_brake.mode: ecp its ECU turns a force-only "
-                             "controller's demand (e.g. chen2023) into its cylinder demand, or use a wagon "
-                             "controller such as ecp_wagon")
+        rig, env = self.air_rigging, self.traction_envelope
+        check_air_braked_ecus(placed, self.air_brake.mode, lambda v: 1 <= v <= self.n_cars and rig is not None
+                              and rig[v - 1] is not None and (env is None or env[v - 1] is None))
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
         from canbrake.build import build_coupled_plant

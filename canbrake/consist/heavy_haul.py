@@ -19,7 +19,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
-from canbrake.consist.base import StrictModel, VehicleEntry, expand_vehicles, load_table
+from canbrake.consist.base import StrictModel, VehicleEntry, check_air_braked_ecus, expand_vehicles, load_table
 from canbrake.physics import heavy_haul as hh
 
 
@@ -325,41 +325,11 @@ class HeavyHaulTrain(StrictModel):
                            emergency=ab.emergency.physics() if ab.application == "emergency" else None)
 
     def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
-        """ValueError (one line) for an ECU whose commands its vehicle cannot take: the driver's
-        brake valve (``airbrake_apply``) anywhere but on the leading vehicle; a brake force on a
-        wagon (no traction or electric brake) from a controller that commands more than the force,
-        or, without ECP (``air_brake.mode: pneumatic``), from any controller (with ECP a wagon's
-        ECU turns a force-only controller's demand into its cylinder demand,
-        :class:`canbrake.control.ecp.EcpUnit`)."""
-        from canbrake.control.base import controller_class
-
+        """ValueError (one line) for an ECU whose commands its vehicle cannot take
+        (:func:`canbrake.consist.base.check_air_braked_ecus`; every vehicle without traction is a wagon)."""
         ex = self._expanded()
-        for p in placed:
-            if not 1 <= p.vehicle <= len(ex):
-                continue
-            try:
-                cmds = tuple(getattr(controller_class(p.controller.name), "command_names", ("brake_force_n",)))
-            except Exception:  # noqa: BLE001 - an unknown controller is reported by its own check
-                continue
-            if "airbrake_apply" in cmds and p.vehicle != 1:
-                raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} runs {p.controller.name}, which works "
-                                 "the driver's brake valve (airbrake_apply): the valve is on the leading vehicle "
-                                 "(vehicle 1), where the brake pipe is fed; place that ECU on vehicle 1")
-            if ex[p.vehicle - 1][1].traction is not None or "brake_force_n" not in cmds or "ecp_demand" in cmds:
-                continue
-            if self.air_brake.mode == "ecp" and len(cmds) == 1:
-                continue  # wrapped by its ECP brake unit (build_controller)
-            if self.air_brake.mode == "ecp":
-                raise ValueError(f"ecus: ECU {p.name} on wagon {p.vehicle} runs {p.controller.name}, which commands a "
-                                 f"brake force with {', '.join(c for c in cmds if c != 'brake_force_n')}: a wagon has "
-                                 "no traction or electric brake, and its ECP brake unit takes a controller that "
-                                 "commands the force alone (e.g. chen2023) or its cylinder demand (ecp_wagon)")
-            if "brake_force_n" in cmds:
-                raise ValueError(f"ecus: ECU {p.name} on wagon {p.vehicle} runs {p.controller.name}, which commands a "
-                                 "brake force (brake_force_n): a wagon has no traction or electric brake, and with "
-                                 "train.air_brake.mode: pneumatic no cylinder of its own to drive (use mode: ecp, "
-                                 "where its ECU turns the force into its cylinder demand, or a wagon controller "
-                                 "such as ecp_wagon)")
+        check_air_braked_ecus([p for p in placed if 1 <= p.vehicle <= len(ex)], self.air_brake.mode,
+                              lambda v: ex[v - 1][1].traction is None)
 
     def ecp_unit_params(self, vehicle: int) -> dict[str, float] | None:
         """The air brake data an ECP wagon's brake unit needs to turn a force demand into its
