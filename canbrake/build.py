@@ -269,19 +269,28 @@ def ecu_specs(scn: Scenario) -> list[dbc.EcuSpec]:
     """The placement as the bus sees it: per ECU its sensors, commands, broadcasts and listeners."""
     placed = scn.placement()
     index = {p.name: i for i, p in enumerate(placed, start=1)}
+    # built once: their signal names may depend on their parameters (e.g. cai2014's axles)
+    ctrls = {i: build_controller(scn, i) for i in range(1, len(placed) + 1)}
+    # an ECU that broadcasts nothing sends no STATE frame: nobody can wait for one (lockstep phase 1)
+    silent = {i for i, c in ctrls.items() if not tuple(getattr(c, "broadcast_names", ("speed_mps", "position_m")))}
     listens: dict[int, tuple[int, ...]] = {}
     for i, p in enumerate(placed, start=1):
         if p.listens == "all":
-            listens[i] = tuple(j for j in range(1, len(placed) + 1) if j != i)
+            listens[i] = tuple(j for j in range(1, len(placed) + 1) if j != i and j not in silent)
         elif p.listens == "none":
             listens[i] = ()
         elif p.listens == "neighbours":  # the ECUs on the vehicles coupled to this one
-            listens[i] = tuple(j for j, q in enumerate(placed, start=1) if j != i and abs(q.vehicle - p.vehicle) == 1)
+            listens[i] = tuple(j for j, q in enumerate(placed, start=1)
+                               if j != i and abs(q.vehicle - p.vehicle) == 1 and j not in silent)
         else:
             listens[i] = tuple(sorted(index[x] for x in p.listens if index[x] != i))
+            quiet = [x for x in p.listens if index[x] in silent]
+            if quiet:
+                raise ValueError(f"ECU {p.name} listens to {quiet[0]}, whose controller "
+                                 f"{placed[index[quiet[0]] - 1].controller.name} broadcasts nothing (no STATE frame)")
     specs = []
     for i, p in enumerate(placed, start=1):
-        ctrl = build_controller(scn, i)  # its signal names may depend on its parameters (e.g. cai2014's axles)
+        ctrl = ctrls[i]
         sensors = tuple(getattr(ctrl, "sensor_names", ("speed_mps", "position_m")))
         if scn.plant.coupler_sensors and scn.train.kernel_name == "coupled":
             sensors += tuple(x for x in ("deflection_front_m", "deflection_rear_m") if x not in sensors)
@@ -416,6 +425,11 @@ class CoupledPlant:
         self.mass_kg = plant.mass_kg
         self._meas: dict[str, np.ndarray] | None = None  # of the current state; step() drops it
         self._wagons: np.ndarray | None = None  # air-braked cars without traction: no force equipment
+        # line data for Li's driver rules: the coupled kernel's grade is constant, so a long downgrade
+        # (steeper than 8 permille, heavy_haul.Route.long_downgrade_ahead) is always ahead or never
+        g = plant._grade_force if plant._has_grade else None
+        steep = g is not None and bool(np.all(g > plant.mass_kg * plant.gravity_mps2 * math.sin(math.atan(0.008))))
+        self._downgrade = np.full(plant.n_cars, 1.0 if steep else 0.0)
         if plant.air_brake is not None:
             self.command_names = ("brake_force_n", "wsp_release", "airbrake_apply", "ecp_demand")
             env = plant.traction_envelope
@@ -457,6 +471,9 @@ class CoupledPlant:
             out["brake_cylinder_pressure_pa"] = np.where(on, ab.fill * ab.cylinder_pressure_pa, np.nan)
             if ab.pipe is not None:
                 out["brake_pipe_pressure_pa"] = np.where(on, ab.pipe_pressure_pa, np.nan)
+        if ab is not None or self.plant.draft_gears is not None:  # what Li 2024's controllers read
+            out["passive_force_n"] = self.plant.passive_force_n()
+            out["downgrade_ahead"] = self._downgrade
         return out
 
 

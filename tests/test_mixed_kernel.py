@@ -146,6 +146,44 @@ def test_draft_gears_and_air_brakes_on_the_coupled_kernel_agree_with_the_heavy_h
     assert dv4 < dv1 / 2.5 and df4 < df1 / 2.5
 
 
+def test_the_passive_force_li_s_controllers_read_agrees_with_the_heavy_haul_model_and_newton() -> None:
+    """``passive_force_n`` (Li's nominal F_i: couplers − resistance − grade − air brake) of the
+    coupled plant: per car within 3 % of the peak of the heavy-haul model's over the traction,
+    coasting and air-braked phases (the integrators agree to O(h), above); by Newton's law each
+    coasting car's momentum change over a sub-step is its passive force times the step (no control
+    force; the plant stepped one sub-step at a time); ``downgrade_ahead`` is 0 on a level track."""
+    from canbrake.build import CoupledPlant
+
+    z = np.zeros(3)
+    c = hh.Consist(mass_kg=MASS, length_m=LENGTH, davis_a=z, davis_b=z, davis_c=z, is_loco=np.array([1, 0, 0], bool))
+    ref = hh.HeavyHaulModel(c, hh.Route(np.array([0.0]), np.array([0.0])), [GEAR_D, GEAR_D], _air(),
+                            envelopes=[ENV, None, None], v0_mps=5.0, integration_step_s=1e-3)
+    cp = _loco_two_wagons(1e-3, air_brake=_air())
+    plant = CoupledPlant(cp)
+    diff, peak, newton = 0.0, 0.0, []
+    for k in range(3000):
+        t = 0.01 * k
+        u, ap = (-2.0e5 if t < 10 else 0.0), (1.0 if t >= 15 else 0.0)
+        ref.step(0.01, {"brake_force_n": np.array([u, np.nan, np.nan]), "airbrake_apply": np.array([ap, np.nan, np.nan])})
+        plant.step(0.01, {"brake_force_n": np.array([u, np.nan, np.nan]), "airbrake_apply": np.array([ap, np.nan, np.nan])})
+        m = plant.measurements()
+        diff = max(diff, float(np.abs(m["passive_force_n"] - ref.measurements()["passive_force_n"]).max()))
+        peak = max(peak, float(np.abs(m["passive_force_n"]).max()))
+        assert np.all(m["downgrade_ahead"] == 0.0)
+    assert peak > 5e4 and diff < 0.04 * peak  # as the coupler forces above (measured 3.1 %)
+    # Newton: stepped by single sub-steps, each car's momentum change is h times its passive force
+    # at the sub-step's start (the couplers' force of the state the sub-step starts from)
+    plant = CoupledPlant(_loco_two_wagons(1e-3, air_brake=_air()))
+    for k in range(1500):  # 0.5 s of traction to load the gears, then 1 s of coasting
+        f0, v0 = plant.measurements()["passive_force_n"].copy(), plant.measurements()["speed_mps"].copy()
+        plant.step(1e-3, {"brake_force_n": np.array([-2.0e5 if k < 500 else 0.0, np.nan, np.nan])})
+        if k >= 500:
+            newton.append((MASS * (plant.measurements()["speed_mps"] - v0), 1e-3 * f0))
+    mdv, impulse = (np.array([row[i] for row in newton]) for i in (0, 1))
+    assert np.abs(impulse).max() > 10.0  # the gears work: forces of 10 kN and more
+    np.testing.assert_allclose(mdv, impulse, rtol=1e-9, atol=1e-9 * np.abs(impulse).max())
+
+
 # --------------------------------------------------------------------------------- air brakes
 def test_an_air_braked_wagon_fills_after_the_pipe_delay_to_the_air_brake_force() -> None:
     """Driver's valve at 1 s; the rear wagon's centre is D = 10 + 14 + 7 = 31 m behind the
@@ -357,3 +395,27 @@ def test_mixed_three_papers_runs_in_process_and_on_the_memory_bus_alike(tmp_path
     rows = list(csv.DictReader(outs["inprocess"].splitlines()))
     first = next(float(r["t_s"]) for r in rows if float(r["brake_cylinder_pressure_pa_c5"]) > 0)
     assert first == pytest.approx(1.0 + (35.222 / 2 + 66 + 6) / 200.0, abs=0.011)
+
+
+def test_li_s_controller_runs_the_mixed_trains_locomotive(tmp_path) -> None:
+    """li2024_smc reads passive_force_n, which the coupled plant of a train with draft gears or air
+    brakes now measures, and broadcasts nothing: the EMU cars' ECUs (listening to all) do not wait
+    for a STATE frame it never sends (that stalled the run's first tick), and the run ends ok; an
+    ECU that names such an ECU in its listens is refused in one line."""
+    from canbrake.build import bus_layout
+    from canbrake.run import run_scenario
+
+    path = SCENARIOS / "mixed_three_papers.yaml"
+    scn = load_scenario(path, overrides={"ecus.0.controller.name": "li2024_smc", "duration_s": 2.0})
+    lay = bus_layout(scn)
+    assert all(1 not in e.listens for e in lay.ecus) and lay.ecus[1].listens == (3, 4)
+    s = run_scenario(scn, tmp_path / "run", backend="inprocess", plots=False)
+    assert s["status"] == "ok", s.get("message")
+    head = (tmp_path / "run" / "signals.csv").read_text().splitlines()[0].split(",")
+    assert "passive_force_n_c1" in head and "downgrade_ahead_c1" in head
+    from canbrake.run import check_buildable
+
+    bad = load_scenario(path, overrides={"ecus": [{"name": "loco", "vehicle": 1, "controller": {"name": "li2024_smc"}},
+                                                  {"name": "emu2", "vehicle": 2, "listens": ["loco"]}]})
+    with pytest.raises(ScenarioError, match=r"ECU emu2 listens to loco, whose controller li2024_smc broadcasts nothing"):
+        check_buildable(bad)

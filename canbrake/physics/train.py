@@ -440,6 +440,27 @@ class TrainPlant:
         mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
         return 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
 
+    def passive_force_n(self) -> np.ndarray:
+        """The non-control force per car at the current state (N, + forward): the couplers' forces
+        from the front and the rear, minus the running resistance (Davis, table, curve), the grade
+        force and the air brake's block force, each opposing the motion (Li 2024's nominal F_i,
+        what its controllers call m0·f(x); no disturbance). Shape ``(n,)``."""
+        v = self.speed_mps
+        speed = np.abs(v)
+        f = self._incidence.dot(self.coupler_force_n)
+        r = self._c_static + speed * (self.resistance.c1_n_per_mps + self.resistance.c2_n_per_mps2 * speed)
+        if self._tab is not None:
+            r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], np.ascontiguousarray(speed),
+                                      np.ascontiguousarray(r, dtype=float))
+        if self.air_brake is not None:
+            r = r + self.air_brake.last_force_n  # type: ignore[attr-defined]
+        f = f - np.sign(v) * r
+        if self._grade_fn is not None:
+            f = f - self._grade_force_fn(self.position_m)
+        elif self._has_grade:
+            f = f + self._grade_force
+        return f
+
     def coupler_energy_j(self) -> float:
         """Potential energy stored in the couplers (J), without end stop: Σ κ(Δl²/2 + εΔl⁴/4)."""
         dl = self.deflection_m
