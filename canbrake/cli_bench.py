@@ -1,5 +1,5 @@
 """`canbrake bench`: every performance figure beside its baseline, ratio and target (issue 13);
-writes bench/results.json and prints the table. A failed or diverged case is a row, not a traceback."""
+writes bench/results.json (with ``--only``: bench/results-GROUPS.json) and prints the table. A failed or diverged case is a row, not a traceback."""
 from __future__ import annotations
 
 import argparse
@@ -18,6 +18,10 @@ def _cmd(a: argparse.Namespace) -> int:
         print(f"canbrake bench: --only: unknown group {bad[0]!r} (choose from {', '.join(GROUPS + OPT_IN_GROUPS)})",
               file=sys.stderr)
         return 2
+    if a.only and a.doc:
+        print("canbrake bench: --doc: the generated section is the whole table; run it without --only",
+              file=sys.stderr)
+        return 2
     if a.quick:
         a.duration, a.repeat, a.realtime, a.scale_ticks = min(a.duration, 0.5), 1, min(a.realtime, 2.0), 50
         a.sweep_duration = min(a.sweep_duration, 0.5)
@@ -26,7 +30,8 @@ def _cmd(a: argparse.Namespace) -> int:
     log = (lambda s: print(s, file=sys.stderr, flush=True)) if not a.quiet else (lambda s: None)
     res = run_bench(only=only, duration_s=a.duration, repeat=a.repeat, realtime_s=a.realtime,
                     scale_ticks=a.scale_ticks, heavy=a.heavy, log=log, sweep_s=a.sweep_duration)
-    out = Path(a.out)
+    # a run of some groups does not replace the results of every group (docs/performance.md's)
+    out = Path(a.out or ("bench/results.json" if not a.only else f"bench/results-{'+'.join(only)}.json"))
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(res, indent=1) + "\n")
@@ -79,6 +84,7 @@ def register(sub: Any) -> None:
                         "docs/performance.md; its plots go to figures/ beside it)")
     p.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    p.add_argument("--out", default="bench/results.json", help="where to write the results (JSON)")
+    p.add_argument("--out", default="", help="where to write the results (JSON; default bench/results.json, "
+                   "with --only bench/results-GROUPS.json)")
     p.add_argument("--plot", default="bench/scale.png", help="where to write the scale plot (PNG)")
     p.set_defaults(func=_cmd)

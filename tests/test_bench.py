@@ -119,3 +119,16 @@ def test_whole_run_row_on_a_tiny_run_and_opt_in_group(monkeypatch):
     assert r["status"] == "ok" and r["unit"] == "s" and r["value"] > 0
     assert r["baseline"] and r["baseline"] > 0 and r["ratio"] > 0
     assert r["ticks"] == 50 and r["met"] is None  # not the whole run: the 60 s target is not judged
+
+
+def test_a_bench_of_some_groups_keeps_the_whole_tables_results(tmp_path, monkeypatch, capsys):
+    """``--only`` writes bench/results-GROUPS.json, not bench/results.json (the whole table that
+    docs/performance.md was generated from), and refuses ``--doc``, whose section is the whole table."""
+    from canbrake.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["bench", "--only", "codec", "--doc", str(tmp_path / "p.md")]) == 2
+    assert "--doc: the generated section is the whole table" in capsys.readouterr().err
+    assert not (tmp_path / "p.md").exists()
+    assert main(["bench", "--only", "codec", "--quiet"]) == 0
+    assert (tmp_path / "bench" / "results-codec.json").exists() and not (tmp_path / "bench" / "results.json").exists()
