@@ -300,6 +300,30 @@ def _open_bus(choice: BusChoice, filters: list[dict] | None, role: str = "", loc
                    receive_own_messages=False, **kwargs)
 
 
+def _term(signum: int, frame: Any) -> None:
+    raise SystemExit(143)
+
+
+def _unraisable(u: Any) -> None:
+    """_term's SystemExit raised inside a finalizer (a bus's ``__del__``) cannot propagate, and
+    Python would print it as a traceback and go on: end the process quietly 10 ms later, outside
+    the finalizer (a timer's signal; nodes use no other)."""
+    if isinstance(u.exc_value, SystemExit):
+        signal.signal(signal.SIGALRM, _term)
+        signal.setitimer(signal.ITIMER_REAL, 0.01)
+        return
+    sys.__unraisablehook__(u)
+
+
+def node_signals() -> None:
+    """A node process's signals: SIGINT ignored (the orchestrator decides how a run ends), SIGTERM
+    ends it with status 143 through SystemExit (its ``finally`` blocks run), also when it lands
+    in a finalizer."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _term)
+    sys.unraisablehook = _unraisable
+
+
 def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, choice: BusChoice,
                 barrier: Any, progress: Any, parent_pid: int, env: dict[str, str] | None = None,
                 failure: Any = None) -> None:
@@ -316,12 +340,7 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         os.environ.update(env)
         check_same_package(env)
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the orchestrator decides how a run ends
-
-    def _term(signum: int, frame: Any) -> None:
-        raise SystemExit(143)
-
-    signal.signal(signal.SIGTERM, _term)
+    node_signals()
     names = scenario.get("_ecu_names", {})
     name = role if role != "ecu" else _ecu_process_name([names.get(str(i), f"ecu{i}") for i in range(1, len(names) + 1)], car)
     _set_title(f"canbrake {name} {scenario.get('name', '')}")
