@@ -292,8 +292,11 @@ def test_existing_dask_scheduler_is_used_and_left_running(tmp_path):
 def test_ctrl_c_stops_a_dask_sweep_and_leaves_no_process(tmp_path):
     pytest.importorskip("distributed")
     out = tmp_path / "sw"
+    # the per-point engine, points of 2 s: they end one by one, the first well before the last (the
+    # batch engine ends a batch's points together, and 0.2 s points all ended before the Ctrl-C)
     p = subprocess.Popen([sys.executable, "-m", "canbrake.cli", "sweep", str(CASE1), "--grid", "delay=0:10ms:11",
-                          "--workers", "2", "--duration", "0.2", "--out", str(out), "-q", "--no-plots"],
+                          "--workers", "2", "--duration", "2", "--engine", "points", "--out", str(out), "-q",
+                          "--no-plots"],
                          cwd=ROOT, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                          preexec_fn=default_sigint)
     deadline = time.time() + 60
