@@ -175,40 +175,30 @@ class TrainConfig(_Model):
         if self.air_brake is None or self.air_rigging is None or self.length_m is None:
             return None
         n = self.n_cars
-        rig = self.air_rigging
         z = np.zeros(n)
         consist = hh.Consist(mass_kg=np.asarray(self.mass_kg, dtype=float), length_m=np.asarray(self.length_m, dtype=float),
                              davis_a=z, davis_b=z, davis_c=z, is_loco=np.zeros(n, dtype=bool))
-        ab = self.air_brake
-        return hh.AirBrake(
-            consist, apply_wave_mps=ab.apply_wave_mps, release_wave_mps=ab.release_wave_mps,
-            cylinder_tau_s=ab.cylinder_tau_s, beta_c=ab.service_factor, mode=ab.mode,
-            block_force_kn=np.array([0.0 if r is None else r.block_force_kn() for r in rig]),
-            n_blocks=np.array([0.0 if r is None else r.blocks() for r in rig], dtype=float),
-            friction_coef=np.array([1.0 if r is None else r.friction_coefficient for r in rig]),
-            cylinder_pressure_pa=np.array([1.0 if r is None else 1000.0 * r.cylinder_pressure_kpa for r in rig]),
-            pipe=None if ab.pipe is None else ab.pipe.physics(),
-            emergency=ab.emergency.physics() if ab.application == "emergency" else None)
+        return self.air_brake.physics(consist, self.air_rigging)
+
+    def _wagon(self, vehicle: int) -> bool:
+        """Whether car ``vehicle`` (1-based) is an air-braked car without traction (a wagon)."""
+        rig, env = self.air_rigging, self.traction_envelope
+        return (1 <= vehicle <= self.n_cars and rig is not None and rig[vehicle - 1] is not None
+                and (env is None or env[vehicle - 1] is None))
 
     def ecp_unit_params(self, vehicle: int) -> dict[str, float] | None:
         """An ECP air-braked car's brake data for its ECU's brake unit (:class:`canbrake.control.ecp.EcpUnit`),
         vehicle ``vehicle`` 1-based; None for a car without air brake, with traction, or a pneumatic train."""
-        if self.air_brake is None or self.air_brake.mode != "ecp" or self.air_rigging is None:
+        if self.air_brake is None or not self._wagon(vehicle):
             return None
-        r = self.air_rigging[vehicle - 1]
-        if r is None or (self.traction_envelope is not None and self.traction_envelope[vehicle - 1] is not None):
-            return None
-        return {"k_full_kn": float(r.block_force_kn()), "n_blocks": float(r.blocks()),
-                "friction_coef": float(r.friction_coefficient), "beta_c": float(self.air_brake.service_factor)}
+        return self.air_brake.ecp_unit(self.air_rigging[vehicle - 1])  # type: ignore[index]
 
     def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
         """ValueError (one line) for an ECU whose commands its vehicle cannot take (trains with air
         brakes: :func:`canbrake.consist.base.check_air_braked_ecus`)."""
         if self.air_brake is None:
             return
-        rig, env = self.air_rigging, self.traction_envelope
-        check_air_braked_ecus(placed, self.air_brake.mode, lambda v: 1 <= v <= self.n_cars and rig is not None
-                              and rig[v - 1] is not None and (env is None or env[v - 1] is None))
+        check_air_braked_ecus(placed, self.air_brake.mode, self._wagon)
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
         from canbrake.build import build_coupled_plant

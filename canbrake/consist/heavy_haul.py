@@ -226,6 +226,27 @@ class AirBrake(StrictModel):
                              "(apply_wave_mps, cylinder_tau_s, pressure_factor, brake_factor)")
         return self
 
+    def physics(self, consist: hh.Consist, rigging: list[Any]) -> hh.AirBrake:
+        """The air brake over ``consist``'s vehicles, each with its rigging (a ``BrakeEquipment``,
+        or None: a vehicle without air brake, no blocks); the pipe runs the vehicles' lengths."""
+        return hh.AirBrake(consist, apply_wave_mps=self.apply_wave_mps, release_wave_mps=self.release_wave_mps,
+                           cylinder_tau_s=self.cylinder_tau_s, beta_c=self.service_factor, mode=self.mode,
+                           block_force_kn=np.array([0.0 if r is None else r.block_force_kn() for r in rigging]),
+                           n_blocks=np.array([0.0 if r is None else r.blocks() for r in rigging], dtype=float),
+                           friction_coef=np.array([1.0 if r is None else r.friction_coefficient for r in rigging]),
+                           cylinder_pressure_pa=np.array([1.0 if r is None else 1000.0 * r.cylinder_pressure_kpa
+                                                          for r in rigging]),
+                           pipe=None if self.pipe is None else self.pipe.physics(),
+                           emergency=self.emergency.physics() if self.application == "emergency" else None)
+
+    def ecp_unit(self, rigging: Any) -> dict[str, float] | None:
+        """What an ECP wagon's brake unit needs to turn a force demand into its cylinder demand
+        (:class:`canbrake.control.ecp.EcpUnit`) from its rigging; None in a pneumatic train."""
+        if self.mode != "ecp":
+            return None
+        return {"k_full_kn": float(rigging.block_force_kn()), "n_blocks": float(rigging.blocks()),
+                "friction_coef": float(rigging.friction_coefficient), "beta_c": float(self.service_factor)}
+
 
 class Disturbance(StrictModel):
     """Eq. (40): σ_i = m_i {c0 + c1 sin(t+1) + c2 ∛v [sin(2t+2) + cos(3t+1)]} (N, v in m/s) on ``vehicles``
@@ -314,15 +335,7 @@ class HeavyHaulTrain(StrictModel):
             raise ValueError(f"{self.route.file}: {e}") from None
 
     def build_air_brake(self, consist: hh.Consist) -> hh.AirBrake:
-        vs = [vt for _, vt in self._expanded()]
-        ab = self.air_brake
-        return hh.AirBrake(consist, apply_wave_mps=ab.apply_wave_mps, release_wave_mps=ab.release_wave_mps,
-                           cylinder_tau_s=ab.cylinder_tau_s, beta_c=ab.service_factor, mode=ab.mode, block_force_kn=np.array([v.brake.block_force_kn() for v in vs]),
-                           n_blocks=np.array([v.brake.blocks() for v in vs], dtype=float),
-                           friction_coef=np.array([v.brake.friction_coefficient for v in vs]),
-                           cylinder_pressure_pa=np.array([1000.0 * v.brake.cylinder_pressure_kpa for v in vs]),
-                           pipe=None if ab.pipe is None else ab.pipe.physics(),
-                           emergency=ab.emergency.physics() if ab.application == "emergency" else None)
+        return self.air_brake.physics(consist, [vt.brake for _, vt in self._expanded()])
 
     def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
         """ValueError (one line) for an ECU whose commands its vehicle cannot take
@@ -336,10 +349,7 @@ class HeavyHaulTrain(StrictModel):
         cylinder demand (:class:`canbrake.control.ecp.EcpUnit`) for vehicle ``vehicle`` (1-based);
         None for a locomotive (it takes ``brake_force_n`` itself) or a train braking pneumatically."""
         _, vt = self._expanded()[vehicle - 1]
-        if self.air_brake.mode != "ecp" or vt.traction is not None:
-            return None
-        return {"k_full_kn": float(vt.brake.block_force_kn()), "n_blocks": float(vt.brake.blocks()),
-                "friction_coef": float(vt.brake.friction_coefficient), "beta_c": float(self.air_brake.service_factor)}
+        return None if vt.traction is not None else self.air_brake.ecp_unit(vt.brake)
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> hh.HeavyHaulModel:
         """The plant model; from the scenario ``scn`` it takes ``initial.speed_kmh`` (one value, or one per
