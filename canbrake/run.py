@@ -1080,12 +1080,18 @@ def _check_adapter(choice: BusChoice) -> None:
     bus.shutdown()
 
 
+def _controller_fields(scn: Scenario) -> dict[int, str]:
+    """The scenario field of each ECU entry's own controller (``ecus.2.controller``), by the
+    controller object's id; a placed ECU not in it runs the top-level ``controller``."""
+    return {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
+
+
 def check_controller_params(scn: Scenario) -> None:
     """Every placed controller's parameters against its schema (canbrake.control.base.check_params);
     raises :class:`ScenarioError` naming the field (``controller.params.k``, ``ecus.2.controller...``)."""
     from canbrake.control.base import ControllerError, check_params
 
-    where = {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
+    where = _controller_fields(scn)
     for p in scn.placement():
         field = where.get(id(p.controller), "controller")
         try:
@@ -1132,7 +1138,7 @@ def check_plant_contract(scn: Scenario, model: Any) -> None:
     measured = set(model.measurements())
     takes = set(getattr(model, "command_names", ()))
     kernel = scn.train.kernel_name
-    where = {id(e.controller): f"ecus.{i}.controller" for i, e in enumerate(scn.ecus) if e.controller is not None}
+    where = _controller_fields(scn)
     for p, spec in zip(scn.placement(), bus_layout(scn).ecus):
         field = where.get(id(p.controller), "controller")
         reads = ["deflection_m" if s in ("deflection_front_m", "deflection_rear_m") else s for s in spec.sensors]
