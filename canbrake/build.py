@@ -414,7 +414,9 @@ class CoupledPlant:
     (NaN = no command = no force), ``wsp_release`` (the dump valves of wheel-slide protection, with
     the wheels component) and, with air brakes, ``airbrake_apply`` (the driver's valve, read on the
     leading car) and ``ecp_demand`` (per car), as the heavy-haul plant takes them; an air-braked car
-    without traction (a wagon) ignores ``brake_force_n``, as there."""
+    without traction (a wagon) ignores ``brake_force_n``, as there. A rigidly coupled train with
+    driven axles takes ``axle<j>_torque_nm`` instead and measures what
+    :meth:`~canbrake.physics.train.TrainPlant.rigid_measurements` gives."""
 
     command_names: tuple[str, ...] = ("brake_force_n", "wsp_release")
 
@@ -430,6 +432,8 @@ class CoupledPlant:
         g = plant._grade_force if plant._has_grade else None
         steep = g is not None and bool(np.all(g > plant.mass_kg * plant.gravity_mps2 * math.sin(math.atan(0.008))))
         self._downgrade = np.full(plant.n_cars, 1.0 if steep else 0.0)
+        if plant.rigid:
+            self.command_names = plant.axle_command_names
         if plant.air_brake is not None:
             self.command_names = ("brake_force_n", "wsp_release", "airbrake_apply", "ecp_demand")
             env = plant.traction_envelope
@@ -438,6 +442,9 @@ class CoupledPlant:
 
     def step(self, dt_s: float, commands: Any) -> None:
         self._meas = None
+        if self.plant.rigid:  # driven axles: their torques
+            self.plant.step(dt_s, None, axle_torque_nm=self.plant.axle_torques(commands))
+            return
         f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
         if self._wagons is not None:
             f = np.where(self._wagons, np.nan, f)
@@ -457,6 +464,8 @@ class CoupledPlant:
         return self._meas
 
     def _measure(self) -> dict[str, np.ndarray]:
+        if self.plant.rigid:
+            return self.plant.rigid_measurements()
         s = self.plant.snapshot()
         out = {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
                "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,
