@@ -138,6 +138,21 @@ def _train_plant(scn: Scenario):
                                                  frequency_hz=ev.frequency_hz, start_s=ev.start_s, end_s=end,
                                                  offset_n=per_car(ev.bias_n, n, "bias"), phase_rad=ev.phase_rad))
     c = t.coupler
+    if t.rigid:  # one body (Cai 2014): the front vehicle's speed and position, driven axles, rail schedule
+        x = scn.initial.position_m
+        x0 = 0.0 if x is None else float(np.asarray(x, dtype=float).reshape(-1)[0])
+        return TrainPlant(
+            t.mass_kg, np.full(n, x0), scn.initial_speed_mps(), resistance=resistance,
+            coupler_stiffness_n_per_m=c.stiffness_n_per_m if n > 1 else [],
+            coupler_nonlinearity_per_m2=c.epsilon_per_m2 if n > 1 else [],
+            curve_resistance_n=per_car(t.curve_resistance_n, n, "curve"),
+            max_substep_s=scn.control_period_s / scn.plant.substeps,
+            resistance_table=None if t.resistance_table is None else [
+                None if r is None else (r.speed_mps, r.force_n) for r in t.resistance_table],
+            rigid=True, driven_axles=None if t.driven_axles is None else [
+                None if a is None else a.physics() for a in t.driven_axles],
+            rail_schedule=t.wheel_rail.schedule(), adhesion_curve=t.wheel_rail.curve,
+            adhesion_v_floor_mps=t.wheel_rail.v_floor_mps)
     blending, wheels, valve_lag = _brake_equipment(scn)
     return TrainPlant(
         t.mass_kg, scn.initial_position_m(), scn.initial_speed_mps(),

@@ -1,8 +1,9 @@
 """The coupled plant's rigid coupling with driven axles (TrainPlant, Cai 2014) against the former
-adhesion plant (AdhesionTrain): bit for bit, over the rail schedule's switches.
+adhesion plant (AdhesionTrain, deleted since): bit for bit, over the rail schedule's switches.
 
 ``tests/data/rigid_train_ref.npz`` holds AdhesionTrain's measurements of the two runs below at every
-1000th step, recorded from it (``python tests/test_rigid_train.py``) before it was deleted.
+1000th step, recorded from it before its deletion (commit "TrainPlant: rigid coupling ...", where
+this file's ``__main__`` recorded it and the test compared the two plants live).
 """
 from __future__ import annotations
 
@@ -87,16 +88,3 @@ def test_rigid_train_restarts_from_its_initial_state():
     for name in first:
         np.testing.assert_array_equal(first[name], again[name])
 
-
-if __name__ == "__main__":  # (re)record the reference from canbrake.physics.wheel_adhesion.AdhesionTrain
-    from canbrake.physics.wheel_adhesion import AdhesionTrain
-
-    out: dict[str, np.ndarray] = {}
-    for case, (m, davis, tables, axles, rail, curve, v0, x0, sub, _s, _t) in CASES.items():
-        n = len(m)
-        empty = DrivenAxles(np.zeros(0), np.zeros(0), np.zeros(0))
-        a = AdhesionTrain(np.asarray(m), [empty if x is None else x for x in axles], np.asarray(davis), rail,
-                          variant=curve, speed_mps=v0, position_m=x0, substeps=sub, resistance_table=tables)
-        out.update(_run(case, lambda c: a.step(1e-3, c), a.measurements))
-    np.savez_compressed(REF, **out)
-    print(f"wrote {REF}: {len(out)} arrays")
