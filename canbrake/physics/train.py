@@ -60,9 +60,11 @@ import numpy as np
 from canbrake.physics._train_kernel import CoupledKernel, traction_capped, with_table_resistance
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
 from canbrake.physics._brakes_kernel import EquipmentKernel
+from canbrake.physics import _adhesion_kernel
 from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets
 from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
 from canbrake.physics.resistance import DavisResistance, davis_1926
+from canbrake.physics.wheel_adhesion import WheelSet, _axle_array
 
 GRAVITY_MPS2 = 9.81
 #: relative speed over which the end stop's buffer switches between its loading and unloading curves (m/s)
@@ -738,8 +740,6 @@ class TrainPlant:
         by the trapezoid rule. The train starts at the front vehicle's position and speed (wheels
         rolling without slip). Brake equipment, draft gears, air brake, traction envelopes, grade,
         disturbances, rail events and end stops are not taken by a rigid train yet."""
-        from canbrake.physics.wheel_adhesion import WheelSet
-
         self.rigid = bool(rigid)
         self.driven_axles = None if driven_axles is None else tuple(driven_axles)
         self.rail_schedule = rail_schedule
@@ -827,16 +827,12 @@ class TrainPlant:
     def axle_torques(self, commands: Any) -> np.ndarray:
         """Per driven axle (P,), the torque (N·m, + drives forward) its vehicle's command
         ``axle<j>_torque_nm`` (arrays (n,) by name in ``commands``) asks; NaN or absent: 0."""
-        from canbrake.physics import _adhesion_kernel
-
         return _adhesion_kernel.axle_torques([commands.get(c) for c in self.axle_command_names], self.axle_vehicle,
                                              self.axle_number)
 
     def _step_rigid(self, dt_s: float, torque_nm: np.ndarray | None) -> None:
         """:meth:`step` of a rigid train (:meth:`_rigid_init`) holding the driven axles' torques
         ``torque_nm`` (N·m per axle, (P,); None: none)."""
-        from canbrake.physics.wheel_adhesion import _axle_array
-
         torque = np.zeros(self.axle_vehicle.size) if torque_nm is None else np.asarray(torque_nm, dtype=float)
         self.axle_torque_nm = torque
         self._rigid_meas = None
@@ -860,9 +856,9 @@ class TrainPlant:
         self._body_x, self._body_v = x, v
         self._rigid_accel = (v - v_start) / dt_s
         self._w_start, self._dt_last = w_start, dt_s
-        n = self.n_cars
-        self.position_m, self.speed_mps = np.full(n, x), np.full(n, v)
-        self.accel_mps2 = np.full(n, self._rigid_accel)
+        self.position_m.fill(x)  # the train's own arrays (reset): every vehicle at the body's state
+        self.speed_mps.fill(v)
+        self.accel_mps2.fill(self._rigid_accel)
         if not (math.isfinite(v) and math.isfinite(x) and wheels.finite):
             raise PlantDiverged(f"rigid train: non-finite state at t = {self.time_s:g} s")
 
@@ -884,9 +880,6 @@ class TrainPlant:
         return dict(self._rigid_meas)
 
     def _rigid_measure(self) -> dict[str, np.ndarray]:
-        from canbrake.physics import _adhesion_kernel
-        from canbrake.physics.wheel_adhesion import _axle_array
-
         n, v, w = self.n_cars, self._body_v, self.driven
         cond = self.rail_schedule.at(self.time_s)
         last = w.last_adhesion
