@@ -131,6 +131,12 @@ class TrainConfig(_Model):
                                                "components.TableResistance) added to its Davis terms, or None")
     traction_envelope: list[Any] | None = Field(None, description="per car: a traction envelope (heavy_haul.Envelope, "
                                                 "Li 2024 eq. 1) limiting its traction, or None")
+    rigid: bool = Field(False, description="rigid couplers: the train moves as one body (Cai 2014 eq. 3)")
+    driven_axles: list[VehicleAxles | None] | None = Field(None, description="per car (rigid train): its driven "
+                                                          "axles (Cai 2014) or None")
+    wheel_rail: AdhesionSpec | None = Field(None, description="rigid train: the slip curve and its rail conditions "
+                                            "over time (Cai 2014 eqs. 13-15, 41-42)")
+    vehicle_names: list[str] | None = Field(None, description="per car: its vehicle type (for messages)")
     draft_gears: dict[str, hhs.DraftGear] = Field(default_factory=dict, description="Li's draft gears by name")
     coupler_gear: list[str | None] | None = Field(None, description="per coupler: the name of its draft gear "
                                                   "(Li 2024, eqs. 7-9) or None (Chen's coupler)")
@@ -138,12 +144,6 @@ class TrainConfig(_Model):
     air_rigging: list[hhs.BrakeEquipment | None] | None = Field(None, description="per car: its air brake rigging "
                                                                 "(Li 2024 Table 1) or None")
     length_m: list[float] | None = Field(None, description="per car: length over couplers (m), spaces the brake pipe")
-    rigid: bool = Field(False, description="rigid couplers: the train moves as one body (Cai 2014 eq. 3)")
-    driven_axles: list[VehicleAxles | None] | None = Field(None, description="per car (rigid train): its driven "
-                                                          "axles (Cai 2014) or None")
-    wheel_rail: AdhesionSpec | None = Field(None, description="rigid train: the slip curve and its rail conditions "
-                                            "over time (Cai 2014 eqs. 13-15, 41-42)")
-    vehicle_names: list[str] | None = Field(None, description="per car: its vehicle type (for messages)")
 
     @field_validator("mass_kg")
     @classmethod

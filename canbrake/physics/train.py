@@ -153,6 +153,11 @@ class TrainPlant:
         end_stop_absorption: float | Sequence[float] = 0.6,
         max_substep_s: float = 1e-3,
         gravity_mps2: float = GRAVITY_MPS2,
+        rigid: bool = False,
+        driven_axles: Sequence[Any] | None = None,
+        rail_schedule: Any = None,
+        adhesion_curve: str = "paper",
+        adhesion_v_floor_mps: float = 0.1,
         blending: BrakeBlending | None = None,
         wheels: Wheelsets | None = None,
         wsp_valve_lag_s: float | Sequence[float] = 0.05,
@@ -162,11 +167,6 @@ class TrainPlant:
         draft_gears: Sequence[object | None] | None = None,
         air_brake: object | None = None,
         air_braked: Sequence[bool] | None = None,
-        rigid: bool = False,
-        driven_axles: Sequence[Any] | None = None,
-        rail_schedule: Any = None,
-        adhesion_curve: str = "paper",
-        adhesion_v_floor_mps: float = 0.1,
     ) -> None:
         self.mass_kg = np.asarray(mass_kg, dtype=float).copy()
         n = self.mass_kg.size
@@ -340,6 +340,8 @@ class TrainPlant:
         self._blend = None if self.blending is None else BlendingState(self.blending, self.mass_kg)
         self.wsp_valve = np.zeros(self.n_cars)
         self._vent_s = np.zeros(self.n_cars)
+        if self.rigid:  # the body, its driven axles and their last step
+            self._rigid_reset()
         if self.wheels is not None and self._wheels0 is not None:
             self.wheels.omega = self._wheels0.copy()
         if self._gears is not None:  # every draft gear in its slack, unloaded
@@ -352,8 +354,6 @@ class TrainPlant:
             ab.applied, ab.t_apply, ab.t_release = False, -np.inf, -np.inf
             if pipe is not None:
                 ab.pipe_pressure_pa = pipe.copy()
-        if self.rigid:
-            self._rigid_reset()
 
     @property
     def deflection_m(self) -> np.ndarray:
@@ -942,8 +942,8 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
 
     p0 = plants[0]
     for p in plants:
-        if (not same_wheels(p.wheels, p0.wheels) or p._gears is not None or p.air_brake is not None or p.rigid
-                or p._grade_fn is not None or not _substeps_fixed(p)
+        if (not same_wheels(p.wheels, p0.wheels) or p._gears is not None or p.air_brake is not None
+                or p._grade_fn is not None or p.rigid or not _substeps_fixed(p)
                 or not same(p.wsp_valve_lag_s, p0.wsp_valve_lag_s) or not same(p.wsp_max_vent_s, p0.wsp_max_vent_s)
                 or not same(p._tab, p0._tab) or not same(p._env, p0._env)
                 or repr(p.blending) != repr(p0.blending) or not same(p.end_stop_m, p0.end_stop_m)
