@@ -943,7 +943,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     p0 = plants[0]
     for p in plants:
         if (not same_wheels(p.wheels, p0.wheels) or p._gears is not None or p.air_brake is not None
-                or p._grade_fn is not None or p.rigid or not _substeps_fixed(p)
+                or p._grade_fn is not None or not _substeps_fixed(p)
                 or not same(p.wsp_valve_lag_s, p0.wsp_valve_lag_s) or not same(p.wsp_max_vent_s, p0.wsp_max_vent_s)
                 or not same(p._tab, p0._tab) or not same(p._env, p0._env)
                 or repr(p.blending) != repr(p0.blending) or not same(p.end_stop_m, p0.end_stop_m)
@@ -951,7 +951,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
                 or not same(p.end_stop_absorption, p0.end_stop_absorption)
                 or p.n_cars != p0.n_cars or repr(p.actuator) != repr(p0.actuator) or repr(p.rail) != repr(p0.rail)
                 or repr(p.disturbances) != repr(p0.disturbances) or p.max_substep_s != p0.max_substep_s
-                or p.gravity_mps2 != p0.gravity_mps2 or p.time_s != p0.time_s
+                or p.gravity_mps2 != p0.gravity_mps2 or p.time_s != p0.time_s or p.rigid
                 or p._act.params.kind != "ideal" and np.any(p._act.effort_n != 0.0)):
             return None
     st = copy.copy(p0)
