@@ -739,7 +739,9 @@ class TrainPlant:
         :mod:`canbrake.physics._adhesion_kernel`, rail condition of the sub-step's start) and moves x
         by the trapezoid rule. The train starts at the front vehicle's position and speed (wheels
         rolling without slip). Brake equipment, draft gears, air brake, traction envelopes, grade,
-        disturbances, rail events and end stops are not taken by a rigid train yet."""
+        disturbances, rail events and end stops are not taken by a rigid train yet. Its forces are
+        :meth:`rigid_measurements`' (``snapshot()`` holds its positions, speeds and accelerations;
+        its coupler and applied forces there are not the rigid train's)."""
         self.rigid = bool(rigid)
         self.driven_axles = None if driven_axles is None else tuple(driven_axles)
         self.rail_schedule = rail_schedule
