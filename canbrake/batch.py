@@ -86,6 +86,8 @@ def unsupported(scn: Scenario, base_impairments: int = 0) -> str | None:
         return f"not for {train} trains"
     if getattr(scn.consist, "mixed", False):
         return "not for trains with draft gears or air brakes on the coupled kernel"
+    if getattr(scn.consist, "rigid", False):
+        return "not for rigidly coupled trains with driven axles"
     if scn.mode != "lockstep":
         return f"not in {scn.mode} mode"
     if scn.bus.timing != "ideal":

@@ -138,6 +138,21 @@ def _train_plant(scn: Scenario):
                                                  frequency_hz=ev.frequency_hz, start_s=ev.start_s, end_s=end,
                                                  offset_n=per_car(ev.bias_n, n, "bias"), phase_rad=ev.phase_rad))
     c = t.coupler
+    if t.rigid:  # one body (Cai 2014): the front vehicle's speed and position, driven axles, rail schedule
+        x = scn.initial.position_m
+        x0 = 0.0 if x is None else float(np.asarray(x, dtype=float).reshape(-1)[0])
+        return TrainPlant(
+            t.mass_kg, np.full(n, x0), scn.initial_speed_mps(), resistance=resistance,
+            coupler_stiffness_n_per_m=c.stiffness_n_per_m if n > 1 else [],
+            coupler_nonlinearity_per_m2=c.epsilon_per_m2 if n > 1 else [],
+            curve_resistance_n=per_car(t.curve_resistance_n, n, "curve"),
+            max_substep_s=scn.control_period_s / scn.plant.substeps,
+            resistance_table=None if t.resistance_table is None else [
+                None if r is None else (r.speed_mps, r.force_n) for r in t.resistance_table],
+            rigid=True, driven_axles=None if t.driven_axles is None else [
+                None if a is None else a.physics() for a in t.driven_axles],
+            rail_schedule=t.wheel_rail.schedule(), adhesion_curve=t.wheel_rail.curve,
+            adhesion_v_floor_mps=t.wheel_rail.v_floor_mps)
     blending, wheels, valve_lag = _brake_equipment(scn)
     return TrainPlant(
         t.mass_kg, scn.initial_position_m(), scn.initial_speed_mps(),
@@ -414,7 +429,9 @@ class CoupledPlant:
     (NaN = no command = no force), ``wsp_release`` (the dump valves of wheel-slide protection, with
     the wheels component) and, with air brakes, ``airbrake_apply`` (the driver's valve, read on the
     leading car) and ``ecp_demand`` (per car), as the heavy-haul plant takes them; an air-braked car
-    without traction (a wagon) ignores ``brake_force_n``, as there."""
+    without traction (a wagon) ignores ``brake_force_n``, as there. A rigidly coupled train with
+    driven axles takes ``axle<j>_torque_nm`` instead and measures what
+    :meth:`~canbrake.physics.train.TrainPlant.rigid_measurements` gives."""
 
     command_names: tuple[str, ...] = ("brake_force_n", "wsp_release")
 
@@ -430,6 +447,8 @@ class CoupledPlant:
         g = plant._grade_force if plant._has_grade else None
         steep = g is not None and bool(np.all(g > plant.mass_kg * plant.gravity_mps2 * math.sin(math.atan(0.008))))
         self._downgrade = np.full(plant.n_cars, 1.0 if steep else 0.0)
+        if plant.rigid:
+            self.command_names = plant.axle_command_names
         if plant.air_brake is not None:
             self.command_names = ("brake_force_n", "wsp_release", "airbrake_apply", "ecp_demand")
             env = plant.traction_envelope
@@ -438,6 +457,9 @@ class CoupledPlant:
 
     def step(self, dt_s: float, commands: Any) -> None:
         self._meas = None
+        if self.plant.rigid:  # driven axles: their torques
+            self.plant.step(dt_s, None, axle_torque_nm=self.plant.axle_torques(commands))
+            return
         f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
         if self._wagons is not None:
             f = np.where(self._wagons, np.nan, f)
@@ -457,6 +479,8 @@ class CoupledPlant:
         return self._meas
 
     def _measure(self) -> dict[str, np.ndarray]:
+        if self.plant.rigid:
+            return self.plant.rigid_measurements()
         s = self.plant.snapshot()
         out = {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
                "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,

@@ -253,6 +253,8 @@ def spacing_from_scenario(scn: Any) -> list[float]:
 
     sp = scn.consist.coupler.spacing_m
     n = scn.n_cars
+    if getattr(scn.consist, "rigid", False):  # one body: the vehicles share one coordinate
+        return [0.0] * max(n - 1, 0)
     if sp is not None:
         return [float(v) for v in np.broadcast_to(np.asarray(sp, dtype=float), (max(n - 1, 0),))]
     x = scn.initial_position_m()

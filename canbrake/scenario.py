@@ -434,6 +434,9 @@ class Scenario(_Model):
         if self.initial.position_m is not None:
             checks.append(("initial.position_m", self.initial.position_m, n))
         self._check_easing()
+        if self.consist.rigid and self.events:
+            raise ValueError("@events.0: a rigidly coupled train (coupler: {model: rigid}) takes no events yet (its "
+                             "rail conditions over time are train.wheel_rail.windows)")
         for i, ev in enumerate(self.events):
             for fname in ("brake_factor", "adhesion_mu", "amplitude_n", "bias_n"):
                 if hasattr(ev, fname) and getattr(ev, fname) is not None:

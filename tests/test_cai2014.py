@@ -107,15 +107,57 @@ def _train(variant: str = "paper"):
     return _scenario(1, "physical" if variant == "physical" else None).consist
 
 
+def _fd(v: float) -> float:
+    """The paper's train resistance F_d(v) = 407 + 291.6 v + 6.7 v² N (v > 0)."""
+    return 407.0 + 291.6 * v + 6.7 * v * v
+
+
+class _Rigid:
+    """The paper's train as a run builds it (the coupled plant's rigid coupling with driven axles,
+    behind the plant contract), with the body's state as numbers."""
+
+    def __init__(self, variant: str = "paper", speed_mps: float = 0.0, substeps: int = 1, dt_s: float = 1e-3) -> None:
+        """``dt_s``: the control period, the length of each step (s), in ``substeps`` sub-steps."""
+        from canbrake.build import build_plant_model
+
+        scn = _scenario(1, "physical" if variant == "physical" else None, control_period_s=dt_s,
+                        **{"initial.speed_kmh": speed_mps * 3.6, "plant.substeps": substeps})
+        self.model = build_plant_model(scn)
+        self.plant = self.model.plant  # canbrake.physics.train.TrainPlant
+        self.command_names = self.model.command_names
+        self.wheels = self.plant.driven  # the driven axles' WheelSet
+
+    def step(self, dt_s: float, commands: dict) -> None:
+        self.model.step(dt_s, commands)
+
+    def measurements(self) -> dict:
+        return self.model.measurements()
+
+    @property
+    def speed_mps(self) -> float:
+        return float(self.plant.speed_mps[0])
+
+    @property
+    def position_m(self) -> float:
+        return float(self.plant.position_m[0])
+
+    @property
+    def time_s(self) -> float:
+        return self.plant.time_s
+
+
 def test_consist_describes_the_papers_train():
     cfg = _train()
-    assert cfg.vehicle_count() == 2 and cfg.axle_counts() == [4, 0]
+    assert cfg.vehicle_count() == 2 and cfg.axle_counts() == [4, 0] and cfg.rigid
     np.testing.assert_array_equal(cfg.vehicle_masses_kg(), [48e3, 48e3])
-    plant = cfg.make_plant()
+    plant = _Rigid()
     assert plant.command_names == tuple(f"axle{j}_torque_nm" for j in range(1, 5))
     np.testing.assert_allclose(plant.wheels.normal_load_n, 117.6e3 * (1 + np.array([0.015, -0.015, 0.025, -0.025])))
     # the train's resistance is the paper's 407 + 291.6 v + 6.7 v² N, split over two vehicles
-    assert plant.resistance(10.0)[0] == pytest.approx(407 + 2916 + 670, rel=1e-12)
+    res = plant.measurements()["resistance_n"]
+    assert res.tolist() == [0.0, 0.0]  # at standstill: the constant term opposes motion only
+    plant = _Rigid(speed_mps=10.0)
+    assert plant.measurements()["resistance_n"].sum() == pytest.approx(_fd(10.0), rel=1e-12)
 
 
 def test_scenario_errors_name_the_field(tmp_path):
@@ -153,7 +195,7 @@ def test_four_case_scenarios_differ_only_in_the_case():
 def test_plant_measurements_per_vehicle_and_rigid_coupler_force():
     """Constant torque on the locomotive: the carriage has no axles (NaN), NaN commands are no torque,
     and the rigid coupling carries what the carriage needs, C = −(m₂ a + F_d,2) (tension < 0)."""
-    plant = _train().make_plant(speed_mps=20.0)
+    plant = _Rigid(speed_mps=20.0, dt_s=5e-3)
     dt = 5e-3
     for _ in range(400):
         plant.step(dt, {f"axle{j}_torque_nm": np.array([5000.0, np.nan]) for j in range(1, 5)})
@@ -171,7 +213,7 @@ def test_plant_measurements_per_vehicle_and_rigid_coupler_force():
 
 def test_constant_torque_on_flat_track_matches_analytic_acceleration():
     """Wheels + body: once slip settles, a = (Σ T/R − F_d(v)) / (m + Σ J/R²)."""
-    plant = _train().make_plant()
+    plant = _Rigid(dt_s=5e-3)
     cmd = {f"axle{j}_torque_nm": np.array([6000.0, np.nan]) for j in range(1, 5)}
     dt, vs = 5e-3, []
     for _ in range(2000):  # 10 s
@@ -179,7 +221,7 @@ def test_constant_torque_on_flat_track_matches_analytic_acceleration():
         vs.append(plant.speed_mps)
     v1, v2 = vs[-201], vs[-1]  # the last second
     a_meas = (v2 - v1) / 1.0
-    a_expected = (4 * 6000.0 / R - plant.resistance(0.5 * (v1 + v2))[0]) / (96e3 + 4 * J / R ** 2)
+    a_expected = (4 * 6000.0 / R - _fd(0.5 * (v1 + v2))) / (96e3 + 4 * J / R ** 2)
     assert a_meas == pytest.approx(a_expected, rel=2e-3)
     lam = slip_ratio(plant.wheels.omega_radps, v2, R)
     assert np.all((lam > 0) & (lam < 0.01))  # the wheels roll with a small positive slip
@@ -188,13 +230,13 @@ def test_constant_torque_on_flat_track_matches_analytic_acceleration():
 def test_implicit_step_solves_its_equations_from_standstill():
     """One 5 ms step from rest with a large torque: the new (ω, v) satisfy the backward-Euler equations."""
     for variant in ("paper", "physical"):
-        plant = _train(variant).make_plant()
+        plant = _Rigid(variant, dt_s=5e-3)
         ws, dt = plant.wheels, 5e-3
         plant.step(dt, {f"axle{j}_torque_nm": np.array([8000.0, np.nan]) for j in range(1, 5)})
         v = plant.speed_mps
         fa = ws.adhesion(v, WET)[2]
         res_w = J * ws.omega_radps - dt * (8000.0 - fa * R)
-        res_v = 96e3 * v - dt * (np.sum(fa) - plant.resistance(v)[0])
+        res_v = 96e3 * v - dt * (np.sum(fa) - _fd(v))
         assert np.max(np.abs(res_w)) < 1e-6 * J * np.max(ws.omega_radps)
         assert abs(res_v) < 1e-6 * 96e3 * v
         assert v > 0 and np.all(ws.omega_radps * R > v)
@@ -202,13 +244,13 @@ def test_implicit_step_solves_its_equations_from_standstill():
 
 
 def test_plant_step_count_time_and_substeps():
-    plant = _train().make_plant()
+    plant = _Rigid(dt_s=0.1)
     for _ in range(500):
         plant.step(0.1, {})
     assert plant.time_s == 50.0  # counted, not summed (Σ 0.1 ≠ 50): the rail switch falls on t = 50 s
     assert sum([0.1] * 500) != 50.0
-    fine = _train().make_plant(speed_mps=30.0, substeps=5)
-    coarse = _train().make_plant(speed_mps=30.0)
+    fine = _Rigid(speed_mps=30.0, substeps=5, dt_s=5e-3)
+    coarse = _Rigid(speed_mps=30.0, dt_s=5e-3)
     cmd = {"axle1_torque_nm": np.array([4000.0, np.nan])}
     for _ in range(200):
         fine.step(5e-3, cmd)
@@ -291,7 +333,7 @@ def test_one_ecu_per_powered_vehicle_sums_to_the_centralised_law(case):
     central = make_controller("cai2014", _params(case=case), car_index=0, n_cars=1, mass_kg=48e3, dt_s=dt)
     split = [make_controller("cai2014", _params(case=case, axles=2, share=0.5), car_index=i, n_cars=2,
                              mass_kg=48e3, dt_s=dt) for i in range(2)]
-    plant = _train().make_plant()
+    plant = _Rigid(dt_s=dt)
     for k in range(300):
         m = plant.measurements()
         w = [m[f"axle{j}_speed_radps"][0] for j in range(1, 5)]
@@ -381,7 +423,7 @@ def test_bus_quantisation_is_negligible(short_runs):
     tr = short_runs[4]
     dt, n = 1e-2, len(tr.time_s)
     ctrl = make_controller("cai2014", _params(case=4), car_index=0, n_cars=1, mass_kg=48e3, dt_s=dt)
-    plant = _train().make_plant()
+    plant = _Rigid(dt_s=dt)
     e_direct = []
     for k in range(n):
         m = plant.measurements()

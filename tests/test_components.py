@@ -30,7 +30,8 @@ def test_every_shipped_scenario_loads_with_every_profile(path: Path) -> None:
 def test_kernel_follows_the_components() -> None:
     assert load_scenario("chen2023_case1_fine_rail").train.kernel_name == "coupled"
     assert load_scenario("li2024_pid").train.kernel_name == "heavy_haul"
-    assert load_scenario("cai2014_case1").train.kernel_name == "adhesion"
+    cai = load_scenario("cai2014_case1")
+    assert cai.train.kernel_name == "coupled" and cai.consist.rigid  # TrainPlant's rigid coupling
 
 
 @pytest.mark.parametrize("kind", C.KINDS)
@@ -171,14 +172,32 @@ def test_register_component_in_code() -> None:
 
 def test_a_combination_no_kernel_implements_is_one_line() -> None:
     with pytest.raises(ScenarioError) as e:
-        load_scenario("li2024_pid", overrides={"train.vehicle_types.c80.coupler": {"model": "rigid"}})
+        load_scenario("chen2023_case1_fine_rail",
+                      overrides={"train.every_vehicle.wheels": {"model": "adhesion_limit", "mu": 0.3}})
     msg = str(e.value)
     assert "\n" not in msg
-    assert "train.vehicle_types.c80: no physics kernel implements this train yet: vehicle type c80 has " \
-           "resistance=per_weight, coupler=rigid, brake=air" in msg
-    assert "coupled (TrainPlant) takes coupler chen|draft_gear|linear|none, brake air|electro_pneumatic|ideal|none" in msg
+    assert "train.vehicle_types.metro_car: no physics kernel implements this train yet: vehicle type metro_car has " \
+           "resistance=none, coupler=chen, brake=ideal, traction=none, wheels=adhesion_limit" in msg
+    assert "coupled (TrainPlant) takes coupler chen|draft_gear|linear|none|rigid, brake air|electro_pneumatic|ideal|none" \
+        in msg
     assert "heavy_haul (HeavyHaulModel) takes coupler draft_gear, brake air" in msg
-    assert "adhesion (AdhesionTrain) takes coupler rigid" in msg
+    assert "AdhesionTrain" not in msg  # one plant for the elastic and the rigid trains
+
+
+def test_rigid_and_elastic_couplers_do_not_mix_yet() -> None:
+    with pytest.raises(ScenarioError, match=r"train.vehicle_types.c80.coupler: vehicle type c80 is "
+                                            r"rigidly coupled and hxd1 has a draft_gear coupler: a train mixing rigid "
+                                            r"and elastic couplers is not implemented yet"):
+        load_scenario("li2024_pid", overrides={"train.vehicle_types.c80.coupler": {"model": "rigid"}})
+    with pytest.raises(ScenarioError, match=r"train.vehicle_types.locomotive.wheels: driven axles \(Cai 2014, per-axle "
+                                            r"torque commands\) run on a rigidly coupled train only yet"):
+        load_scenario("cai2014_case1", overrides={"train.every_vehicle.coupler": {"model": "chen"}})
+    with pytest.raises(ScenarioError, match=r"train.vehicle_types.carriage.brake: a rigidly coupled train "
+                                            r"\(coupler: \{model: rigid\}\) takes mass, resistance and driven axles"):
+        load_scenario("cai2014_case1", overrides={"train.vehicle_types.carriage.brake": {"model": "ideal"}})
+    with pytest.raises(ScenarioError, match=r"events.0: a rigidly coupled train \(coupler: \{model: rigid\}\) takes "
+                                            r"no events yet"):
+        load_scenario("cai2014_case1", overrides={"events": [{"type": "rail", "start_s": 1.0, "brake_factor": 0.5}]})
 
 
 def test_brake_pipe_without_a_locomotive() -> None:

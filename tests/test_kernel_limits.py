@@ -221,7 +221,7 @@ def test_kernels_and_components_list_the_new_features() -> None:
                        cwd=ROOT, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "  table: Running resistance from a table" in r.stdout and "speed_mps*, force_n*" in r.stdout
-    assert "speed_mps*, force_n*\n      physics: coupled (TrainPlant), adhesion (AdhesionTrain)\n" in r.stdout
+    assert "speed_mps*, force_n*\n      physics: coupled (TrainPlant)\n" in r.stdout
 
 
 def test_brake_blending_may_differ_per_vehicle_now() -> None:
@@ -380,7 +380,7 @@ def test_vehicle_types_with_different_end_stops_lower_to_one_per_coupler() -> No
 
 
 def test_a_table_on_the_rigid_train_with_driven_axles_runs_as_its_davis_curve() -> None:
-    """Cai 2014 case 1 (rigid train, driven axles: the adhesion kernel) with the carriage's Davis
+    """Cai 2014 case 1 (rigid train, driven axles: the coupled kernel's rigid coupling) with the carriage's Davis
     resistance given as a table sampled every 0.05 m/s: the body's speed and each vehicle's
     measured resistance match the Davis run's (speed 1e-6 relative; resistance to the table's own
     interpolation error c2·Δv²/4 = 2.1 mN); a table 10 % higher is told apart."""
@@ -392,11 +392,11 @@ def test_a_table_on_the_rigid_train_with_driven_axles_runs_as_its_davis_curve() 
     for name, res in (("davis", None), ("table", tab), ("off", {**tab, "force_n": [1.1 * f for f in tab["force_n"]]})):
         over = {} if res is None else {"train.vehicle_types.carriage.resistance": res}
         scn = load_scenario("cai2014_case1", overrides=over)
-        assert scn.train.kernel_name == "adhesion"
+        assert scn.train.kernel_name == "coupled" and scn.consist.rigid
         p = build_plant_model(scn)
         for _ in range(300):
             p.step(0.01, {"axle1_torque_nm": np.full(p.n_vehicles, 3000.0)})
-        runs[name] = (p.speed_mps, p.measurements()["resistance_n"])
+        runs[name] = (p.measurements()["speed_mps"][0], p.measurements()["resistance_n"])
     assert runs["table"][0] == pytest.approx(runs["davis"][0], rel=1e-6)
     np.testing.assert_allclose(runs["table"][1], runs["davis"][1], rtol=0, atol=c[2] * 0.05**2 / 4 + 1e-9)
     assert abs(runs["off"][1][1] - runs["davis"][1][1]) > 0.05 * runs["davis"][1][1]

@@ -344,7 +344,9 @@ def test_a_bad_every_vehicle_value_is_reported_once_where_it_is_written(tmp_path
 def test_a_driven_axle_without_wheel_is_checked_once_in_the_component() -> None:
     from canbrake.consist import adhesion
 
-    assert "_wheels_known" not in vars(adhesion.AdhesionVehicleType)
+    from canbrake.consist import components
+
+    assert "_wheels_known" in vars(adhesion.VehicleAxles) and "_wheels_known" not in vars(components.DrivenAxles)
     with pytest.raises(ValueError, match=r"@axles.0: no wheel \(give the axle's or the component's `wheel`\)"):
         from canbrake.consist.components import parse_component
 

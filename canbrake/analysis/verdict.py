@@ -73,7 +73,8 @@ def coupler_limits_m(scn: Any) -> np.ndarray:
     from canbrake.arrays import per_car
 
     c = getattr(scn.consist, "coupler", None)
-    if c is None or not hasattr(c, "epsilon_per_m2"):  # another train model: its plant judges its couplers
+    if c is None or not hasattr(c, "epsilon_per_m2") or getattr(scn.consist, "rigid", False):
+        # another train model (or rigid couplers, never deflected): its plant judges its couplers
         return np.full(n - 1, np.inf)
     x0 = scn.initial_position_m()
     spacing = np.abs(per_car(c.spacing_m, n - 1, "spacing") if c.spacing_m is not None else x0[:-1] - x0[1:])

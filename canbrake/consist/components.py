@@ -37,12 +37,13 @@ Vehicles: ``vehicles: [{type: NAME, count: N}]``; an entry may give ``mass_kg`` 
 list: one vehicle per value), so Chen's six different cars are one type and one entry.
 
 The assembler (:meth:`TrainSpec.assemble`) builds the plant through the one plant contract
-(:mod:`canbrake.physics.contract`). In this stage it chooses among the three physics kernels by the
-components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes, and trains
-mixing them with Li's draft gears, air brakes and per-weight resistance -> ``TrainPlant``; draft
-gears with air brakes alone -> ``HeavyHaulModel`` (the first vehicle's coupler picks the kernel
-tried first, :data:`_NATIVE_COUPLER`); rigid coupling with driven axles -> ``AdhesionTrain``. A combination no kernel implements yet is refused in one line that names the
-vehicle type, its components and what each kernel takes.
+(:mod:`canbrake.physics.contract`). In this stage it chooses between the two physics kernels by the
+components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes, trains
+mixing them with Li's draft gears, air brakes and per-weight resistance, and rigidly coupled
+trains with driven axles (Cai 2014: one body) -> ``TrainPlant``; draft gears with air brakes alone
+-> ``HeavyHaulModel`` (the first vehicle's coupler picks the kernel tried first,
+:data:`_NATIVE_COUPLER`). A combination no kernel implements yet is refused in one line that names
+the vehicle type, its components and what each kernel takes.
 """
 from __future__ import annotations
 
@@ -53,7 +54,7 @@ import numpy as np
 from pydantic import BaseModel, Field, PrivateAttr, ValidationError, model_validator
 
 from canbrake.consist import heavy_haul as hhs
-from canbrake.consist.adhesion import AdhesionSpec, Axle, Wheel
+from canbrake.consist.adhesion import VehicleAxles
 from canbrake.consist.brakes import BlendingConfig, CarBrakes, EasingConfig, EdBrake, WheelsConfig, WspConfig
 from canbrake.consist.coupled import MAX_VEHICLES, PerCar, _Model
 
@@ -180,7 +181,7 @@ class DavisResistance(_Model):
     c2_n_s2_per_m2: float = Field(0.0, ge=0)
 
     def davis_n(self) -> tuple[float, float, float]:
-        """(c0 N, c1 N s/m, c2 N s²/m²): what the coupled and adhesion kernels take."""
+        """(c0 N, c1 N s/m, c2 N s²/m²): what the coupled kernel takes."""
         return float(self.c0_n), float(self.c1_n_s_per_m), float(self.c2_n_s2_per_m2)
 
 
@@ -322,19 +323,11 @@ class Wheelsets(WheelsConfig):
 
 
 @register_component("wheels", "driven_axles")
-class DrivenAxles(_Model):
-    """Cai 2014's driven axles: their loads, imbalances and wheels (``wheel`` the default)."""
+class DrivenAxles(VehicleAxles):
+    """Cai 2014's driven axles: their loads, imbalances and wheels (``wheel`` the default); per-axle
+    torque commands, on a rigidly coupled train."""
 
     model: Literal["driven_axles"] = "driven_axles"
-    wheel: Wheel | None = None
-    axles: list[Axle] = Field(min_length=1)
-
-    @model_validator(mode="after")
-    def _wheels_known(self) -> "DrivenAxles":
-        for k, a in enumerate(self.axles):
-            if a.wheel is None and self.wheel is None:
-                raise ValueError(f"@axles.{k}: no wheel (give the axle's or the component's `wheel`)")
-        return self
 
 
 @register_component("wheels", "adhesion_limit")
@@ -472,20 +465,18 @@ def _support(kinds: dict[str, set[str | None]]) -> str:
 
 #: what each physics kernel implements, by component kind (None: the component left out)
 KERNELS: dict[str, dict[str, set[str | None]]] = {
-    "coupled": {"coupler": {"chen", "linear", "draft_gear", None},
+    "coupled": {"coupler": {"chen", "linear", "draft_gear", "rigid", None},
                 "brake": {"ideal", "electro_pneumatic", "air", None},
                 "resistance": {"davis", "table", "per_weight", None}, "traction": {"envelope", None},
-                "wheels": {"wheelsets", None}},
+                "wheels": {"wheelsets", "driven_axles", None}},
     "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
                    "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
-    "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", "table", None}, "traction": {None},
-                 "wheels": {"driven_axles", None}},
 }
 #: the kernel a train goes to first, by the coupler of its first vehicle (where every vehicle fits it):
 #: a train of draft gears and air brakes alone stays on the heavy-haul kernel
-_NATIVE_COUPLER: dict[str, set[str | None]] = {"coupled": {"chen", "linear", None}, "heavy_haul": {"draft_gear"},
-                                               "adhesion": {"rigid"}}
-_KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel", "adhesion": "AdhesionTrain"}
+_NATIVE_COUPLER: dict[str, set[str | None]] = {"coupled": {"chen", "linear", "rigid", None},
+                                               "heavy_haul": {"draft_gear"}}
+_KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel"}
 #: what a kernel still takes once for the whole train (everything else may differ per vehicle)
 KERNEL_LIMITS: dict[str, str] = {
     "coupled": "per vehicle: mass, resistance (davis, table or per_weight), coupler (chen/linear: stiffness, ε, "
@@ -493,10 +484,11 @@ KERNEL_LIMITS: dict[str, str] = {
                "ratings, ED brake, blending (or none: friction only), easing, wsp, traction envelope, wheelsets "
                "(axles, radius, inertia, slip curve b1..b3, c1..c3, v_floor_mps, or none) but none under an air "
                "brake; once for the train: the rail conditions (train.wheel_rail), the air brake "
-               "(train.air_brake, fed from a locomotive at the head) and a constant grade (no route)",
+               "(train.air_brake, fed from a locomotive at the head) and a constant grade (no route); rigid "
+               "couplers (Cai 2014: the train is one body) with driven axles (per-axle torque commands) and the "
+               "rail schedule of their slip curve (train.wheel_rail: conditions, base, windows), per vehicle mass, "
+               "resistance (davis, table or per_weight) and driven axles, nothing else yet",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
-    "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
-                "conditions",
 }
 #: train-level fields only the heavy-haul kernel uses
 _HH_ONLY = ("draft_gears", "air_brake", "uncertainty", "disturbance", "start_position_m", "integration_step_s")
@@ -576,6 +568,9 @@ class TrainSpec(_Model):
         if len(ex) > MAX_VEHICLES:
             raise ValueError(f"@vehicles: {len(ex)} vehicles; at most {MAX_VEHICLES}")
         kernel = self._choose_kernel(ex)
+        if kernel == "coupled" and any(isinstance(vt.coupler, RigidCoupler) or isinstance(vt.wheels, DrivenAxles)
+                                       for _, vt, _ in ex):
+            self._check_rigid_couplers(ex)
         if kernel != "heavy_haul":
             used = set()  # what the coupled kernel takes of Li's train-level parts: its draft gears and air brake
             if kernel == "coupled":
@@ -635,7 +630,7 @@ class TrainSpec(_Model):
 
     @property
     def kernel_name(self) -> str:
-        """``coupled``, ``heavy_haul`` or ``adhesion``: the physics kernel the components chose."""
+        """``coupled`` or ``heavy_haul``: the physics kernel the components chose."""
         return self._kernel_name
 
     def assemble(self, scn: Any, base_dir: Any = None) -> Any:
@@ -668,6 +663,8 @@ class TrainSpec(_Model):
         from canbrake.consist.brakes import BrakeSystemConfig
         from canbrake.consist.coupled import ActuatorConfig, TrainConfig
 
+        if any(isinstance(vt.coupler, RigidCoupler) or isinstance(vt.wheels, DrivenAxles) for _, vt, _ in ex):
+            return self._lower_rigid(ex)
         n = len(ex)
         air = [vt.brake if isinstance(vt.brake, AirBrakeRigging) else None for _, vt, _ in ex]
         gears = [vt.coupler.gear if isinstance(vt.coupler, DraftGearCoupler) else None for _, vt, _ in ex[:-1]]
@@ -851,9 +848,41 @@ class TrainSpec(_Model):
                 "start_position_m": self.start_position_m, "integration_step_s": self.integration_step_s}
         return _validated(HeavyHaulTrain, data)
 
-    def _lower_adhesion(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
-        from canbrake.consist.adhesion import AdhesionTrainConfig
+    @staticmethod
+    def _check_rigid_couplers(ex: list[tuple[str, VehicleTypeSpec, float]]) -> None:
+        """One-line errors for a train that mixes rigid and elastic couplers, or has driven axles
+        without rigid couplers (neither is implemented yet)."""
+        couplers = [(name, vt.coupler) for name, vt, _ in (ex[:-1] or ex)]
+        stiff = next(((nm, c) for nm, c in couplers if not isinstance(c, RigidCoupler)), None)
+        if stiff is None:
+            return
+        rigid = next((nm for nm, c in couplers if isinstance(c, RigidCoupler)), None)
+        kind = _name(stiff[1]) if stiff[1] is not None else "chen"
+        if rigid is None:
+            name = next(nm for nm, vt, _ in ex if isinstance(vt.wheels, DrivenAxles))
+            raise ValueError(f"@vehicle_types.{name}.wheels: driven axles (Cai 2014, per-axle torque commands) run "
+                             f"on a rigidly coupled train only yet, and vehicle type {stiff[0]}'s coupler is {kind} "
+                             f"(give every vehicle coupler: {{model: rigid}}, e.g. in train.every_vehicle, or use "
+                             f"wheels: {{model: wheelsets}})")
+        at = stiff[0] if isinstance(couplers[0][1], RigidCoupler) else rigid  # the one unlike the head's
+        raise ValueError(f"@vehicle_types.{at}.coupler: vehicle type {rigid} is rigidly coupled and {stiff[0]} has "
+                         f"a {kind} coupler: a train mixing rigid and elastic couplers is not implemented yet "
+                         f"(rigid on every vehicle, or none)")
 
+    def _lower_rigid(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
+        """A train with rigid couplers or driven axles (Cai 2014) as the coupled kernel's rigidly
+        coupled train (:meth:`canbrake.physics.train.TrainPlant._rigid_init`): every coupler rigid,
+        per vehicle mass, resistance and driven axles, the slip curve's rail schedule."""
+        from canbrake.consist.coupled import TrainConfig
+
+        self._check_rigid_couplers(ex)
+        for name, vt in {n: t for n, t, _ in ex}.items():
+            for kind in ("brake", "traction", "wheels"):
+                c = getattr(vt, kind)
+                if c is not None and not (kind == "wheels" and isinstance(c, DrivenAxles)):
+                    raise ValueError(f"@vehicle_types.{name}.{kind}: a rigidly coupled train (coupler: {{model: "
+                                     f"rigid}}) takes mass, resistance and driven axles (wheels: {{model: "
+                                     f"driven_axles}}) only yet; vehicle type {name} has {kind} {_name(c)}")
         wr = self.wheel_rail
         if wr.conditions is None or wr.base is None:
             raise ValueError("@wheel_rail.conditions: a rigidly coupled train with driven axles needs the rail "
@@ -861,24 +890,24 @@ class TrainSpec(_Model):
         if wr.adhesion_mu != WheelRailSpec().adhesion_mu or wr.adhesion_limited:
             raise ValueError("@wheel_rail.adhesion_mu: a rigidly coupled train's adhesion follows from its slip curve "
                              "(wheel_rail.conditions)")
-        def kernel_type(vt: VehicleTypeSpec, m: float) -> dict[str, Any]:
-            t: dict[str, Any] = {"mass_kg": m}
-            if isinstance(vt.resistance, TableResistance):
-                t["resistance_table"] = [list(vt.resistance.speed_mps), list(vt.resistance.force_n)]
-            elif vt.resistance is not None:
-                c0, c1, c2 = vt.resistance.davis_n()
-                t["davis"] = {"c0_n": c0, "c1_n_s_per_m": c1, "c2_n_s2_per_m2": c2}
-            if vt.wheels is not None:
-                t["wheel"] = None if vt.wheels.wheel is None else vt.wheels.wheel.model_dump()
-                t["axles"] = [a.model_dump() for a in vt.wheels.axles]
-            return t
-
-        types, vehicles = self._kernel_types(kernel_type)
-        spec = {"curve": wr.curve, "v_floor_mps": wr.v_floor_mps, "conditions": wr.conditions, "base": wr.base,
-                "windows": wr.windows}
-        data = {"model": "adhesion", "vehicle_types": types, "vehicles": vehicles, "wheel_rail": spec}
-        return _validated(AdhesionTrainConfig, data)
-
+        if self.track.grade_permille != 0:
+            raise ValueError("@track.grade_permille: a rigidly coupled train takes no grade yet")
+        table = [vt.resistance if isinstance(vt.resistance, TableResistance) else None for _, vt, _ in ex]
+        ds = [vt.resistance.davis_n_for(m) if isinstance(vt.resistance, PerWeightResistance) else
+              vt.resistance.davis_n() if vt.resistance is not None and t is None else (0.0, 0.0, 0.0)
+              for (_, vt, m), t in zip(ex, table)]
+        data: dict[str, Any] = {
+            "model": "coupled", "mass_kg": [m for _, _, m in ex], "rigid": True,
+            "davis": {"c0_n": [d[0] for d in ds], "c1_n_s_per_m": [d[1] for d in ds],
+                      "c2_n_s2_per_m2": [d[2] for d in ds]},
+            "curve_resistance_n": self.track.curve_resistance_n,
+            "driven_axles": [_params(vt.wheels) if isinstance(vt.wheels, DrivenAxles) else None for _, vt, _ in ex],
+            "wheel_rail": {"curve": wr.curve, "v_floor_mps": wr.v_floor_mps, "conditions": wr.conditions,
+                           "base": wr.base, "windows": wr.windows},
+            "vehicle_names": [name for name, _, _ in ex]}
+        if any(t is not None for t in table):
+            data["resistance_table"] = table
+        return _validated(TrainConfig, data)
 
 def _sets(data: Any, path: list[str]) -> bool:
     """Whether the nested mapping ``data`` gives a value at ``path`` (keys; list indices as digits)."""

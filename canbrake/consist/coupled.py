@@ -17,6 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from canbrake.consist.base import _INF_OK, StrictModel, check_air_braked_ecus  # noqa: F401 - re-exported for the scenario loader
 from canbrake.consist import heavy_haul as hhs
+from canbrake.consist.adhesion import AdhesionSpec, VehicleAxles
 from canbrake.consist.brakes import BrakeSystemConfig
 
 #: most vehicles (and ECUs) a scenario may have: the 29-bit identifier plan holds 4095 ECUs; the
@@ -130,6 +131,12 @@ class TrainConfig(_Model):
                                                "components.TableResistance) added to its Davis terms, or None")
     traction_envelope: list[Any] | None = Field(None, description="per car: a traction envelope (heavy_haul.Envelope, "
                                                 "Li 2024 eq. 1) limiting its traction, or None")
+    rigid: bool = Field(False, description="rigid couplers: the train moves as one body (Cai 2014 eq. 3)")
+    driven_axles: list[VehicleAxles | None] | None = Field(None, description="per car (rigid train): its driven "
+                                                          "axles (Cai 2014) or None")
+    wheel_rail: AdhesionSpec | None = Field(None, description="rigid train: the slip curve and its rail conditions "
+                                            "over time (Cai 2014 eqs. 13-15, 41-42)")
+    vehicle_names: list[str] | None = Field(None, description="per car: its vehicle type (for messages)")
     draft_gears: dict[str, hhs.DraftGear] = Field(default_factory=dict, description="Li's draft gears by name")
     coupler_gear: list[str | None] | None = Field(None, description="per coupler: the name of its draft gear "
                                                   "(Li 2024, eqs. 7-9) or None (Chen's coupler)")
@@ -193,12 +200,46 @@ class TrainConfig(_Model):
             return None
         return self.air_brake.ecp_unit(self.air_rigging[vehicle - 1])  # type: ignore[index]
 
+    def axle_counts(self) -> list[int]:
+        """Driven axles per vehicle, front first (rigid trains; 0 elsewhere)."""
+        return [0 if a is None else len(a.axles) for a in (self.driven_axles or [None] * self.n_cars)]
+
     def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
         """ValueError (one line) for an ECU whose commands its vehicle cannot take (trains with air
-        brakes: :func:`canbrake.consist.base.check_air_braked_ecus`)."""
+        brakes: :func:`canbrake.consist.base.check_air_braked_ecus`; rigid trains: :meth:`_check_axle_ecus`)."""
+        if self.rigid:
+            self._check_axle_ecus(placed, 1e-3 if dt_s is None else dt_s)
         if self.air_brake is None:
             return
         check_air_braked_ecus(placed, self.air_brake.mode, self._wagon)
+
+    def _check_axle_ecus(self, placed: list[Any], dt_s: float) -> None:
+        """ValueError (one line) for an ECU whose controller drives or reads more axles than its
+        vehicle has (``axle<j>_torque_nm`` / ``axle<j>_speed_radps`` beyond the vehicle's driven
+        axles, e.g. a traction controller on a trailer): the plant would ignore its torques."""
+        import re
+
+        from canbrake.control.base import make_controller
+
+        counts = self.axle_counts()
+        names = self.vehicle_names or [f"vehicle {i + 1}" for i in range(self.n_cars)]
+        for i, p in enumerate(placed):
+            if not 1 <= p.vehicle <= len(counts):
+                continue  # reported by the placement check
+            try:  # its signal names may depend on its parameters (cai2014's axles)
+                ctrl = make_controller(p.controller.name, p.controller.params, car_index=i, n_cars=len(placed),
+                                       mass_kg=float(self.mass_kg[p.vehicle - 1]), dt_s=dt_s)
+            except Exception:  # noqa: BLE001 - an unknown or mis-parameterised controller is reported on its own
+                continue
+            sigs = tuple(getattr(ctrl, "command_names", ())) + tuple(getattr(ctrl, "sensor_names", ()))
+            need = max((int(m.group(1)) for s in sigs if (m := re.fullmatch(r"axle(\d+)_\w+", s))), default=0)
+            have = counts[p.vehicle - 1]
+            if need > have:
+                what = "no driven axles" if have == 0 else f"{have} driven axle{'s' * (have > 1)}"
+                raise ValueError(f"ecus: ECU {p.name} on vehicle {p.vehicle} ({names[p.vehicle - 1]}) runs "
+                                 f"{p.controller.name} for {need} driven axle{'s' * (need > 1)}, but vehicle "
+                                 f"{p.vehicle} has {what} (train.vehicle_types.{names[p.vehicle - 1]}.wheels): "
+                                 f"place it on a vehicle with axles or give that vehicle type its axles")
 
     def build_plant(self, scn: Any, base_dir: Path | None = None) -> Any:
         from canbrake.build import build_coupled_plant

@@ -175,8 +175,8 @@ def measure(double[:, ::1] vrows, double[:, ::1] crows, double position, double 
             const double[::1] torque, w_start, double dt, const double[::1] J, const double[::1] R,
             const int64_t[::1] vehicle, const int64_t[::1] number, const double[:, :] davis, table_part,
             const double[::1] mass_cumsum):
-    """The adhesion train's measurements of one state into ``vrows`` (7 + 5 M, n) and ``crows``
-    (2, n − 1) (:meth:`canbrake.physics.wheel_adhesion.AdhesionTrain._measure` gives the names):
+    """A rigid train's measurements of one state into ``vrows`` (7 + 5 M, n) and ``crows``
+    (2, n − 1) (:meth:`canbrake.physics.train.TrainPlant._rigid_measure` gives the names):
     per vehicle x, v, v (over ground), ``accel``, −Σ F_a of its axles, F_d,i(v) (``davis`` (n, 3),
     plus sgn(v) ``table_part`` (n,) if not None), Σ J ω̇/R of its axles over the last step
     (``w_start``, the wheel speeds before it, ``dt`` s; None: before the first step, zero); per

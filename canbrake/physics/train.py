@@ -60,9 +60,11 @@ import numpy as np
 from canbrake.physics._train_kernel import CoupledKernel, traction_capped, with_table_resistance
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
 from canbrake.physics._brakes_kernel import EquipmentKernel
+from canbrake.physics import _adhesion_kernel
 from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets
 from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
 from canbrake.physics.resistance import DavisResistance, davis_1926
+from canbrake.physics.wheel_adhesion import WheelSet, _axle_array
 
 GRAVITY_MPS2 = 9.81
 #: relative speed over which the end stop's buffer switches between its loading and unloading curves (m/s)
@@ -127,6 +129,8 @@ class TrainPlant:
         stiffness (1 − a)·k_b; a sequence: per coupler). 0 = a lossless solid stop.
     max_substep_s: longest integration sub-step (s).
     gravity_mps2: g (m/s²).
+    rigid, driven_axles, rail_schedule, adhesion_curve, adhesion_v_floor_mps: rigid coupling with
+        driven axles (Cai 2014), see :meth:`_rigid_init`.
     """
 
     def __init__(
@@ -149,6 +153,11 @@ class TrainPlant:
         end_stop_absorption: float | Sequence[float] = 0.6,
         max_substep_s: float = 1e-3,
         gravity_mps2: float = GRAVITY_MPS2,
+        rigid: bool = False,
+        driven_axles: Sequence[Any] | None = None,
+        rail_schedule: Any = None,
+        adhesion_curve: str = "paper",
+        adhesion_v_floor_mps: float = 0.1,
         blending: BrakeBlending | None = None,
         wheels: Wheelsets | None = None,
         wsp_valve_lag_s: float | Sequence[float] = 0.05,
@@ -257,6 +266,7 @@ class TrainPlant:
         self.stacked = False
         self._kern: CoupledKernel | None = None  # built at the first step
         self._ekern: EquipmentKernel | None = None  # the brake equipment's, likewise
+        self._rigid_init(rigid, driven_axles, rail_schedule, adhesion_curve, adhesion_v_floor_mps)
         self.reset()
 
     def _tables(self, tables: Sequence[tuple[Sequence[float], Sequence[float]] | None] | None
@@ -330,6 +340,8 @@ class TrainPlant:
         self._blend = None if self.blending is None else BlendingState(self.blending, self.mass_kg)
         self.wsp_valve = np.zeros(self.n_cars)
         self._vent_s = np.zeros(self.n_cars)
+        if self.rigid:  # the body, its driven axles and their last step
+            self._rigid_reset()
         if self.wheels is not None and self._wheels0 is not None:
             self.wheels.omega = self._wheels0.copy()
         if self._gears is not None:  # every draft gear in its slack, unloaded
@@ -498,10 +510,13 @@ class TrainPlant:
                 f = f + off + amp * math.sin(w * (time_s - start) + ph)
         return f
 
-    def step(self, dt_s: float, brake_command_n: Sequence[float] | np.ndarray,
-             wsp_release: np.ndarray | None = None) -> None:
+    def step(self, dt_s: float, brake_command_n: Sequence[float] | np.ndarray | None,
+             wsp_release: np.ndarray | None = None, axle_torque_nm: np.ndarray | None = None) -> None:
         """Advance ``dt_s`` seconds holding ``brake_command_n`` (N per car, + = brake, − = traction) and,
-        with wheelsets, the wheel-slide-protection valve command ``wsp_release`` (0..1 per car, NaN = none)."""
+        with wheelsets, the wheel-slide-protection valve command ``wsp_release`` (0..1 per car, NaN = none);
+        a rigid train with driven axles holds ``axle_torque_nm`` instead (:meth:`_step_rigid`)."""
+        if self.rigid:
+            return self._step_rigid(dt_s, axle_torque_nm)
         cmd = np.asarray(brake_command_n, dtype=float)
         if cmd.shape != self.speed_mps.shape:
             raise ValueError(f"brake_command_n must have shape {self.speed_mps.shape}")
@@ -708,6 +723,186 @@ class TrainPlant:
                                                                                              a[..., j])
         return out
 
+    # ------------------------------------------------------------------ rigid coupling, driven axles (Cai 2014)
+    def _rigid_init(self, rigid: bool, driven_axles: Sequence[Any] | None, rail_schedule: Any, curve: str,
+                    v_floor_mps: float) -> None:
+        """Rigid coupling (Cai 2014 eq. 3: the in-train forces cancel in the sum, so the train is one
+        body): one position x and speed v for every vehicle, ``m v̇ = Σ F_a − Σ F_d,i(v)`` with
+        ``m = Σ m_i``, F_d,i the vehicles' Davis terms (c0 plus the curve resistance, c1, c2; c0
+        opposes motion, none at standstill) plus sgn v · T_i(|v|) for their resistance tables. Every
+        driven axle k (``driven_axles``: one :class:`canbrake.physics.wheel_adhesion.DrivenAxles` per
+        vehicle, front first, or None: none) has its own wheel speed, ``J_k ω̇_k = T_k − F_a,k R_k``
+        with ``F_a,k = μ(λ_k, v) N_k`` (eqs. 10–15, ``adhesion_curve`` "paper" or "physical", slip
+        denominator floored at ``adhesion_v_floor_mps``) on the rail condition of the moment
+        (``rail_schedule``, a :class:`~canbrake.physics.wheel_adhesion.RailSchedule`). Each sub-step
+        solves wheels and body jointly by backward Euler (the compiled Newton step of
+        :mod:`canbrake.physics._adhesion_kernel`, rail condition of the sub-step's start) and moves x
+        by the trapezoid rule. The train starts at the front vehicle's position and speed (wheels
+        rolling without slip). Brake equipment, draft gears, air brake, traction envelopes, grade,
+        disturbances, rail events and end stops are not taken by a rigid train yet. Its forces are
+        :meth:`rigid_measurements`' (``snapshot()`` holds its positions, speeds and accelerations;
+        its coupler and applied forces there are not the rigid train's)."""
+        self.rigid = bool(rigid)
+        self.driven_axles = None if driven_axles is None else tuple(driven_axles)
+        self.rail_schedule = rail_schedule
+        #: the commands of the driven axles: axle<j>_torque_nm for j up to the most a vehicle has
+        self.axle_command_names: tuple[str, ...] = ()
+        if not self.rigid:
+            if driven_axles is not None or rail_schedule is not None:
+                raise ValueError("driven_axles and rail_schedule need rigid coupling (rigid=True) on this plant yet")
+            return
+        others = [name for name, on in (
+            ("blending", self.blending is not None), ("wheels", self.wheels is not None),
+            ("draft_gears", self._gears is not None), ("air_brake", self.air_brake is not None),
+            ("traction_envelope", self._env is not None), ("disturbances", bool(self._dist)),
+            ("rail events", bool(self._events)), ("grade_rad", self._has_grade or self._grade_fn is not None),
+            ("end_stop_m", self.end_stop_m is not None)) if on]
+        if others:
+            raise ValueError(f"a rigidly coupled train takes no {others[0]} yet (mass, resistance, driven axles "
+                             "and the rail schedule)")
+        if rail_schedule is None:
+            raise ValueError("a rigidly coupled train needs rail_schedule (its slip curve's rail conditions over time)")
+        n = self.n_cars
+        self._x0 = np.full(n, float(self._x0[0]))
+        self._v0 = np.full(n, float(self._v0[0]))
+        self.coupler_spacing_m = np.zeros(n - 1)
+        axles = list(self.driven_axles) if self.driven_axles is not None else [None] * n
+        if len(axles) != n:
+            raise ValueError(f"driven_axles: {len(axles)} entries for {n} vehicles")
+        #: per vehicle (n, 3): c0 (N, with the curve resistance), c1 (N·s/m), c2 (N·s²/m²); their sum, the body's
+        self._rigid_davis = np.stack([np.asarray(self._c_static, dtype=float),
+                                      np.asarray(self.resistance.c1_n_per_mps, dtype=float),
+                                      np.asarray(self.resistance.c2_n_per_mps2, dtype=float)], axis=1)
+        self._rigid_terms = tuple(float(a) for a in self._rigid_davis.sum(axis=0))
+        #: the vehicles' tables summed on the union of their speeds (the body's: a sum of
+        #: piecewise-linear, flat-ended curves is one, exactly)
+        self._table_sum: tuple[np.ndarray, np.ndarray] | None = None
+        if self._tab is not None and self.resistance_table is not None:
+            have = [t for t in self.resistance_table if t is not None]
+            union = np.unique(self._tab[1])
+            self._table_sum = (union, np.sum([np.interp(union, t[0], t[1]) for t in have], axis=0))
+        self.total_mass_kg = float(self.mass_kg.sum())
+        veh: list[int] = []
+        num: list[int] = []
+        for i, ax in enumerate(axles):
+            k = 0 if ax is None else len(ax.normal_load_n)
+            veh += [i] * k
+            num += list(range(1, k + 1))
+        self.axle_vehicle = np.asarray(veh, dtype=np.int64)  # (P,) vehicle of each axle, 0-based
+        self.axle_number = np.asarray(num, dtype=np.int64)  # (P,) axle number within its vehicle, 1-based
+        self.max_axles = int(self.axle_number.max()) if num else 0
+        self.axle_command_names = tuple(f"axle{j}_torque_nm" for j in range(1, self.max_axles + 1))
+
+        def cat(attr: str) -> np.ndarray:
+            return np.concatenate([np.asarray(getattr(a, attr), dtype=float) for a in axles if a is not None]) \
+                if num else np.zeros(0)
+
+        radius = cat("radius_m")
+        v0 = float(self._v0[0])
+        self._driven_w0 = np.full(len(num), v0 / radius) if num else np.zeros(0)
+        self.driven = WheelSet(cat("normal_load_n"), cat("inertia_kgm2"), radius, self._driven_w0.copy(),
+                               variant=curve, v_floor_mps=v_floor_mps)  # type: ignore[arg-type]
+        self._mass_cumsum = np.cumsum(self.mass_kg)
+        #: the measurements' names in the order of the kernel's rows (canbrake.physics._adhesion_kernel.measure)
+        self._rigid_keys = ["position_m", "speed_mps", "ground_speed_mps", "accel_mps2", "applied_brake_n",
+                            "resistance_n", "wheel_inertia_force_n", "deflection_m", "coupler_force_n"] + [
+            f"axle{j}_{name}" for name in ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")
+            for j in range(1, self.max_axles + 1)]
+
+    def _rigid_reset(self) -> None:
+        """The rigid train's state at t = 0: the body at the front vehicle's position and speed,
+        wheels rolling without slip, no torque."""
+        self._body_x, self._body_v = float(self._x0[0]), float(self._v0[0])
+        w = self.driven
+        w.omega_radps = self._driven_w0.copy()
+        w.last_adhesion = None
+        self.axle_torque_nm = np.zeros(self.axle_vehicle.size)
+        self._t0, self._k, self._h = 0.0, 0, 0.0
+        self._rigid_accel = 0.0
+        self._a_last = 0.0  # the body's acceleration over the last sub-step (m/s²)
+        #: the wheel speeds before the last step and its length (s): the wheels' inertia force
+        self._w_start: np.ndarray | None = None
+        self._dt_last = 1.0
+        self._fa_step: np.ndarray | None = None
+        self._rigid_meas: dict[str, np.ndarray] | None = None
+
+    def axle_torques(self, commands: Any) -> np.ndarray:
+        """Per driven axle (P,), the torque (N·m, + drives forward) its vehicle's command
+        ``axle<j>_torque_nm`` (arrays (n,) by name in ``commands``) asks; NaN or absent: 0."""
+        return _adhesion_kernel.axle_torques([commands.get(c) for c in self.axle_command_names], self.axle_vehicle,
+                                             self.axle_number)
+
+    def _step_rigid(self, dt_s: float, torque_nm: np.ndarray | None) -> None:
+        """:meth:`step` of a rigid train (:meth:`_rigid_init`) holding the driven axles' torques
+        ``torque_nm`` (N·m per axle, (P,); None: none)."""
+        torque = np.zeros(self.axle_vehicle.size) if torque_nm is None else np.asarray(torque_nm, dtype=float)
+        self.axle_torque_nm = torque
+        self._rigid_meas = None
+        n_sub = self._substeps(dt_s)
+        h = dt_s / n_sub
+        if h != self._h:
+            self._t0, self._k, self._h = self.time_s, 0, h
+        wheels, rail = self.driven, self.rail_schedule
+        x, v = self._body_x, self._body_v
+        v_start, w_start = v, _axle_array(wheels.omega_radps, self.axle_vehicle.size)
+        for _ in range(n_sub):
+            cond = rail.at(self.time_s)
+            v_new, fa = wheels.step_coupled(torque, v, cond, h, mass_kg=self.total_mass_kg,
+                                            davis=self._rigid_terms, table=self._table_sum)
+            self._a_last = (v_new - v) / h
+            x += 0.5 * h * (v + v_new)
+            v = v_new
+            self._fa_step = fa
+            self._k += 1
+            self.time_s = self._t0 + self._k * h
+        self._body_x, self._body_v = x, v
+        self._rigid_accel = (v - v_start) / dt_s
+        self._w_start, self._dt_last = w_start, dt_s
+        self.position_m.fill(x)  # the train's own arrays (reset): every vehicle at the body's state
+        self.speed_mps.fill(v)
+        self.accel_mps2.fill(self._rigid_accel)
+        if not (math.isfinite(v) and math.isfinite(x) and wheels.finite):
+            raise PlantDiverged(f"rigid train: non-finite state at t = {self.time_s:g} s")
+
+    def rigid_measurements(self) -> dict[str, np.ndarray]:
+        """A rigid train's measurements of the current state, in one compiled call
+        (:func:`canbrake.physics._adhesion_kernel.measure`; fresh arrays per state, shared by the
+        callers of one state: do not modify them). Per vehicle (n,): ``position_m`` (the train's
+        coordinate x: rigid, no lengths), ``speed_mps`` and ``ground_speed_mps`` (the speed over
+        ground a radar gives, with a finer CAN format), ``accel_mps2`` (over the last control step),
+        ``applied_brake_n`` (−Σ F_a of its axles: traction is negative), ``resistance_n`` (F_d,i),
+        ``wheel_inertia_force_n`` (Σ J_k ω̇_k / R_k of its axles over the last step: with Σ F_d,i Cai's
+        lumped disturbance F_dw, eq. 36), per driven axle j ``axle<j>_speed_radps``, ``axle<j>_slip``,
+        ``axle<j>_mu``, ``axle<j>_adhesion_n`` (N), ``axle<j>_applied_torque_nm`` (NaN where the
+        vehicle has fewer than j driven axles); per coupler (n−1,) ``deflection_m`` (0) and
+        ``coupler_force_n``, the force the rigid coupling carries (+ compression):
+        ``C_j = m_{1..j} a − Σ_{i≤j} (F_a,i − F_d,i)`` with F_a and a of the last sub-step."""
+        if self._rigid_meas is None:
+            self._rigid_meas = self._rigid_measure()
+        return dict(self._rigid_meas)
+
+    def _rigid_measure(self) -> dict[str, np.ndarray]:
+        n, v, w = self.n_cars, self._body_v, self.driven
+        cond = self.rail_schedule.at(self.time_s)
+        last = w.last_adhesion
+        if last is not None and last[0] is cond and last[1] == v and last[2] is w.omega_radps:
+            lam, mu, fa = last[3]  # the step's own evaluation at this state
+        else:
+            lam, mu, fa = (np.ascontiguousarray(x, dtype=float) for x in w.adhesion(v, cond))
+        table = None
+        if self._tab is not None:  # each vehicle's own table (the coupled kernel's interpolation)
+            table = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], np.full(n, abs(v)), np.zeros(n))
+        (J, R, _N), _c = w._kernel_args(cond)
+        p = J.shape[0]
+        rows = np.empty((7 + 5 * self.max_axles, n))
+        couplers = np.empty((2, max(n - 1, 0)))
+        _adhesion_kernel.measure(rows, couplers, self._body_x, v, self._rigid_accel, self._a_last, self._fa_step,
+                                 lam, mu, fa, _axle_array(w.omega_radps, p), self.axle_torque_nm, self._w_start,
+                                 self._dt_last, J, R, self.axle_vehicle, self.axle_number, self._rigid_davis, table,
+                                 self._mass_cumsum)
+        per = list(rows)
+        return dict(zip(self._rigid_keys, per[:7] + list(couplers) + per[7:]))
+
 
 #: per-car arrays of a plant that a stack holds per point (shape (P, n) or (P, n-1))
 _STACKED = ("mass_kg", "_inv_m", "coupler_spacing_m", "coupler_stiffness_n_per_m", "coupler_nonlinearity_per_m2",
@@ -726,8 +921,8 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     stack: they qualify when every point has the same ones (the wheels' state, ω, creep force and
     slip, is per point: (P, n, p)).
 
-    None where the plants do not qualify: draft gears or air brakes (their state is the plant's, not
-    a stack's), an end stop that can refine the sub-step (it would depend on each point's state), a grade function, or plants that differ in anything but their per-car
+    None where the plants do not qualify: draft gears, air brakes or rigid coupling (their state is
+    the plant's, not a stack's), an end stop that can refine the sub-step (it would depend on each point's state), a grade function, or plants that differ in anything but their per-car
     arrays (actuator, blending, end stops, resistance tables, traction envelopes, wheelsets, rail
     conditions, disturbances, sub-step, dump valves, gravity)."""
     import copy
@@ -758,7 +953,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
                 or not same(p.end_stop_absorption, p0.end_stop_absorption)
                 or p.n_cars != p0.n_cars or repr(p.actuator) != repr(p0.actuator) or repr(p.rail) != repr(p0.rail)
                 or repr(p.disturbances) != repr(p0.disturbances) or p.max_substep_s != p0.max_substep_s
-                or p.gravity_mps2 != p0.gravity_mps2 or p.time_s != p0.time_s
+                or p.gravity_mps2 != p0.gravity_mps2 or p.time_s != p0.time_s or p.rigid
                 or p._act.params.kind != "ideal" and np.any(p._act.effort_n != 0.0)):
             return None
     st = copy.copy(p0)

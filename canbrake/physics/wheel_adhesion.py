@@ -15,6 +15,9 @@ Model
 * rail condition (eqs. 41–42): the coefficients of a rail surface (:class:`RailCondition`) change
   over time (:class:`RailSchedule`; the paper: "dry" for 50–100 s, "wet" otherwise). The paper's
   values are data, in ``scenarios/cai2014_case*.yaml``.
+* the plant: a rigidly coupled train with driven axles (:class:`DrivenAxles` per vehicle) is the
+  coupled plant's rigid coupling (:meth:`canbrake.physics.train.TrainPlant._rigid_init`), which
+  steps the axles' :class:`WheelSet` with the train body (compiled: :mod:`canbrake.physics._adhesion_kernel`).
 * adhesion force (eq. 10): ``F_a = μ N`` with ``N`` the axle's normal load (N).
 * wheel (eq. 12): ``J ω̇ = T − F_a R``.
 
@@ -32,16 +35,13 @@ Two curve variants (``variant``):
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
-
-import math
 
 import numpy as np
 
 from canbrake.physics import _adhesion_kernel
-from canbrake.physics.contract import PlantDiverged
 
 G0 = 9.8  # m/s², the paper's g0 (117.6 kN = 12 t · 9.8 m/s²)
 
@@ -220,7 +220,7 @@ class WheelSet:
         return v, fa
 
 
-# ------------------------------------------------------------------------------ the plant model
+# ------------------------------------------------------------------------------ rail schedule, driven axles
 @dataclass(frozen=True)
 class RailWindow:
     """Rail surface ``condition`` for ``start_s ≤ t ≤ stop_s`` (s, both inclusive, as eqs. 41–42)."""
@@ -253,186 +253,3 @@ class DrivenAxles:
     normal_load_n: np.ndarray
     inertia_kgm2: np.ndarray
     radius_m: np.ndarray
-
-
-class AdhesionTrain:
-    """Cai et al. 2014's train as a plant model (:class:`canbrake.physics.contract.PlantModel`).
-
-    Single-coordinate body (eq. 3: the vehicles are rigidly coupled, in-train forces cancel in the
-    sum): one position x and speed v for the whole train, ``m v̇ = Σ F_a − Σ F_d,i(v)`` with
-    ``m = Σ m_i`` and per-vehicle Davis resistance ``F_d,i = c0_i sgn v + c1_i v + c2_i v|v|`` (N),
-    plus ``sgn v · T_i(|v|)`` for a vehicle with a resistance table (linear, flat beyond its ends).
-    Every driven axle k has its own wheel speed, ``J_k ω̇_k = T_k − F_a,k R_k`` (eq. 12) with
-    ``F_a,k = μ(λ_k, v) N_k`` (eqs. 10–15) on the rail condition of the moment (:class:`RailSchedule`).
-
-    Integration, as the paper's reference run needs it: each sub-step (``dt_s / substeps``) solves
-    wheels and body jointly by backward Euler (:meth:`WheelSet.step_coupled`, the rail condition of
-    the sub-step's start) and advances x by the trapezoid rule.
-
-    Commands: ``axle<j>_torque_nm`` (N·m, + drives forward) per vehicle, for its j-th driven axle
-    (1-based); NaN (not commanded) or a missing name is zero torque.
-
-    Measurements (per vehicle, shape (n,)): ``position_m`` (the train's coordinate x, the same for
-    every vehicle: rigid coupling, no lengths), ``speed_mps`` (and the same as ``ground_speed_mps``,
-    the speed over ground a radar gives, which has a finer CAN format), ``accel_mps2`` (over the last control
-    step), ``applied_brake_n`` (−Σ F_a of its axles: traction is negative), ``resistance_n`` (F_d,i),
-    ``wheel_inertia_force_n`` (Σ J_k ω̇_k / R_k of its axles over the last step: with Σ F_d,i the
-    lumped disturbance F_dw of eq. 36), and per driven axle j ``axle<j>_speed_radps``,
-    ``axle<j>_slip``, ``axle<j>_mu``, ``axle<j>_adhesion_n`` (N), ``axle<j>_applied_torque_nm``
-    (NaN where the vehicle has fewer than j driven axles). Per coupler (n−1,): ``deflection_m`` (0:
-    rigid) and ``coupler_force_n`` (the force the rigid coupling carries, + compression:
-    ``C_j = m_{1..j} a − Σ_{i≤j} (F_a,i − F_d,i)`` at the end of the last sub-step).
-    """
-
-    def __init__(self, mass_kg: np.ndarray, axles: list[DrivenAxles], davis_n: np.ndarray, rail: RailSchedule,
-                 *, variant: Variant = "paper", v_floor_mps: float = 0.1, speed_mps: float = 0.0,
-                 position_m: float = 0.0, substeps: int = 1,
-                 resistance_table: Sequence[tuple[Sequence[float], Sequence[float]] | None] | None = None) -> None:
-        """``mass_kg`` (n,) kg; ``axles`` one :class:`DrivenAxles` per vehicle; ``davis_n`` (n, 3):
-        c0 (N), c1 (N·s/m), c2 (N·s²/m²) per vehicle; ``resistance_table``: per vehicle (speeds m/s
-        increasing, forces N) or None, added to its Davis terms; ``speed_mps`` and ``position_m``
-        the initial state (wheels start rolling without slip)."""
-        self.mass_kg = np.asarray(mass_kg, dtype=float)
-        self.n_vehicles = int(self.mass_kg.size)
-        if len(axles) != self.n_vehicles:
-            raise ValueError(f"axles: {len(axles)} entries for {self.n_vehicles} vehicles")
-        self.davis_n = np.asarray(davis_n, dtype=float).reshape(self.n_vehicles, 3)
-        self._davis_sum = self.davis_n.sum(axis=0)
-        self._davis_terms = tuple(float(a) for a in self._davis_sum)  # (a0, a1, a2) of :meth:`resistance`
-        self.total_mass_kg = float(self.mass_kg.sum())
-        #: the vehicles' tables as offsets and flat arrays (measurements), and summed on the union of
-        #: their speeds (the body's F_d: a sum of piecewise-linear, flat-ended curves is one, exactly)
-        self._tab: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        self._table_sum: tuple[np.ndarray, np.ndarray] | None = None
-        if resistance_table is not None and any(t is not None for t in resistance_table):
-            if len(resistance_table) != self.n_vehicles:
-                raise ValueError(f"resistance_table: {len(resistance_table)} entries for {self.n_vehicles} vehicles")
-            tabs = [None if t is None else (np.asarray(t[0], dtype=float), np.asarray(t[1], dtype=float))
-                    for t in resistance_table]
-            have = [t for t in tabs if t is not None]
-            start = np.concatenate([[0], np.cumsum([0 if t is None else t[0].size for t in tabs])]).astype(np.intp)
-            self._tab = (start, np.concatenate([t[0] for t in have]), np.concatenate([t[1] for t in have]))
-            union = np.unique(self._tab[1])
-            self._table_sum = (union, np.sum([np.interp(union, t[0], t[1]) for t in have], axis=0))
-        self.rail = rail
-        self.substeps = int(substeps)
-        veh, num = [], []
-        for i, ax in enumerate(axles):
-            veh += [i] * len(ax.normal_load_n)
-            num += list(range(1, len(ax.normal_load_n) + 1))
-        self.axle_vehicle = np.asarray(veh, dtype=np.int64)      # (P,) vehicle of each axle, 0-based
-        self.axle_number = np.asarray(num, dtype=np.int64)       # (P,) axle number within its vehicle, 1-based
-        self.max_axles = int(self.axle_number.max()) if num else 0
-        self.command_names = tuple(f"axle{j}_torque_nm" for j in range(1, self.max_axles + 1))
-
-        def cat(attr: str) -> np.ndarray:
-            return np.concatenate([np.asarray(getattr(a, attr), dtype=float) for a in axles]) if num else np.zeros(0)
-
-        radius = cat("radius_m")
-        self.wheels = WheelSet(cat("normal_load_n"), cat("inertia_kgm2"), radius, np.full(len(num), speed_mps / radius)
-                               if num else np.zeros(0), variant=variant, v_floor_mps=v_floor_mps)
-        self._sel = {j: np.flatnonzero(self.axle_number == j) for j in range(1, self.max_axles + 1)}
-        self.position_m = float(position_m)
-        self.speed_mps = float(speed_mps)
-        self.torque_nm = np.zeros(len(num))
-        self.time_s = 0.0
-        self._t0, self._k, self._h = 0.0, 0, 0.0
-        self._accel = 0.0
-        self._a_last = 0.0  # the body's acceleration over the last sub-step (m/s²)
-        #: the wheel speeds before the last step and its length (s): the wheels' inertia force
-        self._w_start: np.ndarray | None = None
-        self._dt_last = 1.0
-        self._fa_step: np.ndarray | None = None
-        self._meas: dict[str, np.ndarray] | None = None  # measurements of the current state (cached)
-        self._mass_cumsum = np.cumsum(self.mass_kg)
-        #: the measurements' names in the order of the kernel's rows (canbrake.physics._adhesion_kernel.measure)
-        self._meas_keys = ["position_m", "speed_mps", "ground_speed_mps", "accel_mps2", "applied_brake_n",
-                           "resistance_n", "wheel_inertia_force_n", "deflection_m", "coupler_force_n"] + [
-            f"axle{j}_{name}" for name in ("speed_radps", "slip", "mu", "adhesion_n", "applied_torque_nm")
-            for j in range(1, self.max_axles + 1)]
-
-    # ---------------------------------------------------------------- physics
-    def resistance(self, v_mps: float) -> tuple[float, float]:
-        """Train resistance Σ F_d,i(v) (N) and its slope (N·s/m); the constant term opposes motion."""
-        a0, a1, a2 = self._davis_sum
-        sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
-        fd, dfd = sgn * a0 + a1 * v_mps + a2 * v_mps * abs(v_mps), a1 + 2.0 * a2 * abs(v_mps)
-        if self._table_sum is not None:
-            tv, tf = self._table_sum
-            s = abs(v_mps)
-            k = int(np.clip(np.searchsorted(tv, s, side="right") - 1, 0, max(tv.size - 2, 0)))
-            inside = tv.size > 1 and tv[0] < s < tv[-1]
-            fd += sgn * float(np.interp(s, tv, tf))
-            dfd += float((tf[k + 1] - tf[k]) / (tv[k + 1] - tv[k])) if inside else 0.0
-        return fd, dfd
-
-    def vehicle_resistance_n(self, v_mps: float) -> np.ndarray:
-        """F_d,i(v) per vehicle (N), shape (n,)."""
-        c0, c1, c2 = self.davis_n.T
-        sgn = float(np.sign(v_mps)) if abs(v_mps) > 1e-6 else 0.0
-        fd = sgn * c0 + c1 * v_mps + c2 * v_mps * abs(v_mps)
-        if self._tab is not None:  # each vehicle's own table, compiled (the coupled kernel's interpolation)
-            from canbrake.physics._train_kernel import with_table_resistance
-
-            fd = fd + sgn * with_table_resistance(self._tab[0], self._tab[1], self._tab[2],
-                                                  np.full(self.n_vehicles, abs(v_mps)), np.zeros(self.n_vehicles))
-        return fd
-
-    def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
-        """Advance by ``dt_s`` (s) holding the axle torque commands (see the class docstring)."""
-        torque = _adhesion_kernel.axle_torques([commands.get(c) for c in self.command_names], self.axle_vehicle,
-                                               self.axle_number)  # not commanded (NaN or absent): no torque
-        self.torque_nm = torque
-        self._meas = None
-        h = dt_s / self.substeps
-        if h != self._h:
-            self._t0, self._k, self._h = self.time_s, 0, h
-        wheels = self.wheels
-        v_start, w_start = self.speed_mps, _axle_array(wheels.omega_radps, self.axle_vehicle.size)
-        for _ in range(self.substeps):
-            cond = self.rail.at(self.time_s)
-            v_new, fa = wheels.step_coupled(torque, self.speed_mps, cond, h, mass_kg=self.total_mass_kg,
-                                            davis=self._davis_terms, table=self._table_sum)
-            self._a_last = (v_new - self.speed_mps) / h
-            self.position_m += 0.5 * h * (self.speed_mps + v_new)
-            self.speed_mps = v_new
-            self._fa_step = fa
-            self._k += 1
-            self.time_s = self._t0 + self._k * h
-        self._accel = (self.speed_mps - v_start) / dt_s
-        self._w_start, self._dt_last = w_start, dt_s
-        if not (math.isfinite(self.speed_mps) and math.isfinite(self.position_m) and wheels.finite):
-            raise PlantDiverged(f"adhesion train: non-finite state at t = {self.time_s:g} s")
-
-    # ---------------------------------------------------------------- outputs
-    def measurements(self) -> dict[str, np.ndarray]:
-        """Current state by name (see the class docstring); arrays are shared, do not modify them."""
-        if self._meas is None:
-            self._meas = self._measure()
-        return dict(self._meas)
-
-    def _measure(self) -> dict[str, np.ndarray]:
-        """Every measurement of the current state in one compiled call (fresh arrays per state: a
-        caller may keep them), rows of two blocks (per vehicle, per coupler)."""
-        n, v, w = self.n_vehicles, self.speed_mps, self.wheels
-        cond = self.rail.at(self.time_s)
-        last = getattr(w, "last_adhesion", None)
-        if last is not None and last[0] is cond and last[1] == v and last[2] is w.omega_radps:
-            lam, mu, fa = last[3]  # the step's own evaluation at this state
-        else:
-            lam, mu, fa = (np.ascontiguousarray(x, dtype=float) for x in w.adhesion(v, cond))
-        table = None
-        if self._tab is not None:  # each vehicle's own table, compiled (the coupled kernel's interpolation)
-            from canbrake.physics._train_kernel import with_table_resistance
-
-            table = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], np.full(n, abs(v)), np.zeros(n))
-        (J, R, _N), _c = w._kernel_args(cond)
-        p = J.shape[0]
-        rows = np.empty((7 + 5 * self.max_axles, n))
-        couplers = np.empty((2, max(n - 1, 0)))
-        _adhesion_kernel.measure(rows, couplers, self.position_m, v, self._accel, self._a_last, self._fa_step, lam,
-                                 mu, fa, _axle_array(w.omega_radps, p), self.torque_nm, self._w_start,
-                                 self._dt_last, J, R, self.axle_vehicle, self.axle_number, self.davis_n, table,
-                                 self._mass_cumsum)
-        per = list(rows)
-        return dict(zip(self._meas_keys, per[:7] + list(couplers) + per[7:]))

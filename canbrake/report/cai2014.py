@@ -158,17 +158,16 @@ class CaiSetup:
 
     @classmethod
     def of(cls, scn: Scenario) -> "CaiSetup":
-        tr = scn.consist
-        types = tr.expanded()
-        loco = next(t for t in types if t.axles)
+        tr = scn.consist  # the rigid train as the coupled kernel takes it
+        loco = next(a for a in tr.driven_axles if a is not None)
         wheel = loco.axles[0].wheel or loco.wheel
         params = scn.placement()[0].controller.params
         ref = scn.reference
         a = -ref.decel_kmh_per_s * KMH
-        davis = tuple(float(sum(getattr(t.davis, f) for t in types))
-                      for f in ("c0_n", "c1_n_s_per_m", "c2_n_s2_per_m2"))
+        per = lambda x: x if isinstance(x, list) else [x]  # noqa: E731 - a per-car field: one value or a list
+        davis = tuple(float(sum(per(getattr(tr.davis, f)))) for f in ("c0_n", "c1_n_s_per_m", "c2_n_s2_per_m2"))
         win = tr.wheel_rail.windows[0]
-        return cls(mass_kg=float(sum(t.mass_kg for t in types)), n_vehicles=len(types),
+        return cls(mass_kg=float(sum(tr.mass_kg)), n_vehicles=len(tr.mass_kg),
                    axle_load_n=loco.axles[0].load_n, imbalance=tuple(x.imbalance for x in loco.axles),
                    inertia_kgm2=wheel.inertia_kgm2, radius_m=wheel.radius_m, davis_n=davis,  # type: ignore[arg-type]
                    v0_mps=ref.speed_kmh * KMH, v_final_mps=ref.target_kmh * KMH, accel_mps2=a,
@@ -684,8 +683,9 @@ def _doc(res: dict[str, CaiTrace], specs: Sequence[RunSpec], elapsed: float) -> 
     w("The train body is the paper's single-coordinate model (eq. 3): the two vehicles' in-train forces cancel in "
       "the sum, so the simulation has one body speed and four wheel speeds (the locomotive's axles). Wheel "
       "dynamics J ω̇ = T − F_a R (eq. 12), F_a = μ(λ, v) N (eq. 10), λ = (ωR − v)/max(ωR, v, v_floor) (eq. 11), "
-      "μ from eqs. 13–15. Code: `canbrake/physics/wheel_adhesion.py` (`AdhesionTrain`), "
-      "`canbrake/consist/adhesion.py` (the train as data), `canbrake/control/cai2014.py` (the `cai2014` controller), "
+      "μ from eqs. 13–15. Code: `canbrake/physics/train.py` (`TrainPlant`'s rigid coupling with driven axles), "
+      "`canbrake/physics/wheel_adhesion.py` (adhesion, wheels), `canbrake/consist/adhesion.py` (axles and rail as "
+      "data), `canbrake/control/cai2014.py` (the `cai2014` controller), "
       f"scenarios `scenarios/cai2014_case1.yaml` … `case4.yaml`; the readings are summarised in [models-cai2014.md](../models-cai2014.md). {len(res)} runs, {fmt(sum(tr.time_s[-1] for tr in res.values()))} s simulated.\n")
     w("![adhesion curves](figures/cai2014_adhesion.png)\n")
 
