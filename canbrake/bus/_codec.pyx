@@ -1037,6 +1037,11 @@ DEF _BAD_COUNTER = 3
 DEF _OOS = 4
 DEF _COMPLETE = 8
 DEF E2E_MAX_DELTA = 3
+#: CommandTable.take_batch's events
+TAKE_BATCH_END = 0
+TAKE_BATCH_OTHER = 1
+TAKE_BATCH_RESULT = 2
+TAKE_BATCH_TICK = 3
 
 
 cdef class CommandTable:
@@ -1059,6 +1064,7 @@ cdef class CommandTable:
     cdef uint8_t* _fresh           # the slot's pages of this tick are complete
     cdef object _newest_arr
     cdef int64_t* _newest          # tick of the newest accepted command, per slot
+    cdef Py_ssize_t _nslots
 
     def __cinit__(self):
         self._pg = NULL
@@ -1081,6 +1087,9 @@ cdef class CommandTable:
         self._fresh_pages = &fp[0]
         self._pages = &pp[0]
         self._fresh = &fr[0]
+        self._nslots = fr.shape[0]
+        if fp.shape[0] != self._nslots or pp.shape[0] != self._nslots or nw.shape[0] != self._nslots:
+            raise ValueError("fresh_pages, pages_per_slot, fresh and newest must have one element per slot")
         self.max_lag = max_lag
         self._index = {}
         self._keep = []
@@ -1187,6 +1196,54 @@ cdef class CommandTable:
     def page_origin(self, unsigned int frame_id):
         """Tick of the newest accepted frame of this page (-1: none)."""
         return self._pg[<int>self._index[frame_id]].origin
+
+    def take_batch(self, list msgs, Py_ssize_t start, int64_t k):
+        """:meth:`take` for each frame of ``msgs[start:]`` received at tick ``k`` (the plant's
+        lockstep receive loop when every ECU's commands close its slot), back to the caller
+        only where it has something to do. Returns ``(i, event, result, completed, accepted)``:
+        ``event`` TAKE_BATCH_END (every frame taken, ``i`` = len), TAKE_BATCH_OTHER (``msgs[i]``
+        is not a command page: not taken), TAKE_BATCH_RESULT (``msgs[i]`` taken with ``result``
+        rejected or out of sequence: the caller's accounting), TAKE_BATCH_TICK (``msgs[i]``
+        completed the last slot of tick ``k``); ``completed``: bit s set for each slot s whose
+        pages of tick ``k`` the frames up to ``i`` completed; ``accepted``: frames accepted
+        cleanly before ``i`` (and ``msgs[i]`` itself for TAKE_BATCH_TICK)."""
+        cdef Py_ssize_t i, m = len(msgs), s_
+        cdef int64_t accepted = 0
+        cdef object completed = 0     # a Python int: a train may have more than 64 ECUs
+        cdef int r
+        cdef int64_t o
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        cdef PyObject* p
+        cdef CmdPage* pg
+        cdef bint all_fresh
+        for i in range(start, m):
+            msg = msgs[i]
+            p = PyDict_GetItem(self._index, msg.arbitration_id)
+            if p is NULL:
+                return i, TAKE_BATCH_OTHER, 0, completed, accepted
+            data = msg.data
+            if not _payload(data, &s, &n):
+                data = bytes(data)
+                _payload(data, &s, &n)
+            pg = &self._pg[<int><object>p]
+            o = -1
+            r = self._check(pg, msg.arbitration_id, s, n, k, &o)
+            if not r & 3:
+                r |= self._apply(pg, s, n, o, k)
+            if (r & 3) >= _BAD_CRC or r & _OOS:
+                return i, TAKE_BATCH_RESULT, r, completed, accepted
+            accepted += 1
+            if r & _COMPLETE:
+                completed |= (<object>1) << (<object>pg.slot)  # Python ints: no C overflow
+                all_fresh = True
+                for s_ in range(self._nslots):
+                    if not self._fresh[s_]:
+                        all_fresh = False
+                        break
+                if all_fresh:
+                    return i, TAKE_BATCH_TICK, r, completed, accepted
+        return m, TAKE_BATCH_END, 0, completed, accepted
 
 
 # ---------------------------------------------------------------- the plant's sensor pages

@@ -214,6 +214,11 @@ class CsvTrace:
         # does not write (str, None, ...) take the csv writer.
         self._write(csv_row(row) if type(row) is list else None, row)
 
+    def append_text(self, text: str) -> None:
+        """Append a row already made as csv text (a whole line, ``\\r\\n`` included)."""
+        if self._writer is not None:
+            self._write(text, None)
+
     def append_dict(self, head: list[Any], values: dict[str, Any], names: tuple[str, ...], default: Any,
                     tail: list[Any]) -> None:
         """``append(head + [values.get(n, default) for n in names] + tail)``, the row's text made
