@@ -189,6 +189,12 @@ def buffered_traces() -> Iterator[None]:
         _ROW_BY_ROW.pop()
 
 
+def rows_by_row() -> bool:
+    """True where files opened now hand each period's lines to the OS at once (a node in its
+    own process); False inside :func:`buffered_traces` (the in-process engine)."""
+    return _ROW_BY_ROW[-1]
+
+
 class CsvTrace:
     """A CSV trace written as it goes: the header at once, then every row handed to the OS as it
     is appended (one ``write`` per row through a buffered file: one control period per row), so
