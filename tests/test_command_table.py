@@ -276,3 +276,36 @@ def test_take_batch_completes_a_tick_of_many_slots() -> None:
     i, ev, r, completed, accepted = t.take_batch(msgs[::-1], 0, 0)
     assert (i, ev, accepted, completed) == (n - 1, TAKE_BATCH_TICK, n, (1 << n) - 1)
     assert r & CMD_SLOT_COMPLETE and arrays[2].all() and arrays[4][n - 1] == 100.0 * (n - 1)
+
+
+# ---------------------------------------------------------------- the plant's frames of a period's start
+@given(st.integers(0, 2**32 - 1), st.floats(-1e3, 1e3), st.floats(-50, 50), st.one_of(st.none(), st.floats(-1e5, 1e5)),
+       st.booleans(), st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=3, max_size=3),
+       st.sampled_from([float, int]), st.one_of(st.none(), st.binary(min_size=8, max_size=8)))
+@settings(max_examples=200, deadline=None)
+def test_tick_frames_equal_the_codecs_frames(k, v, a, x, heartbeat, speeds, kind, sync_payload) -> None:
+    """TickFrames.frames == the frames the plant built one by one: SYNC, REFERENCE, [REFERENCE_POS],
+    [heartbeat], the sensor pages (SensorPages.pack of the same arrays, converted to float64)."""
+    from canbrake.bus._codec import TickFrames
+
+    lay = dbc.BusLayout(dbc.default_ecus(3, coupler_sensors=True), ref_position=True)
+    codec = FrameCodec(lay.database())
+    sensors = [m for m in lay.messages if m.kind == "sensor"]
+    pages = SensorPages([(codec[m.name]._c, [(sp.name, 0, m.ecu - 1) for sig, sp in m.signals if sig == "speed_mps"])
+                         for m in sensors])
+    ids = [m.frame_id for m in sensors]
+    whole = kind is int and np.isfinite(speeds).all() and max(map(abs, speeds)) < 1e9
+    meas = {"speed_mps": np.asarray(speeds).astype(int) if whole else np.asarray(speeds), "other": np.zeros(2)}
+    ref_pos = codec["REFERENCE_POS"]._c if x is not None else None
+    tf = TickFrames(codec["SYNC"]._c, lay.sync_id, codec["REFERENCE"]._c, lay.reference_id, ref_pos,
+                    lay.reference_pos_id, codec["HEARTBEAT_PLANT"]._c, lay.plant_heartbeat_id, pages, ids,
+                    ["speed_mps"], data_frame)
+    expect = [(lay.sync_id, sync_payload if sync_payload is not None else codec["SYNC"].encode({"Tick": k})),
+              (lay.reference_id, codec["REFERENCE"].encode({"RefSpeed": v, "RefDecel": a}))]
+    if x is not None:
+        expect.append((lay.reference_pos_id, codec["REFERENCE_POS"].encode({"RefPosition": x})))
+    if heartbeat:
+        expect.append((lay.plant_heartbeat_id, codec["HEARTBEAT_PLANT"].encode({"NodeState": 5})))
+    expect += list(zip(ids, pages.pack([np.ascontiguousarray(meas["speed_mps"], dtype=float)])))
+    got = tf.frames(k, v, a, x, heartbeat, meas, sync_payload)
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(i, bytes(p)) for i, p in expect]

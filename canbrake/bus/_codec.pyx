@@ -1345,6 +1345,59 @@ cdef class SensorPages:
         return out
 
 
+cdef class TickFrames:
+    """The plant's frames of a period's start in one call: SYNC (Tick = k), REFERENCE (v*, a*),
+    REFERENCE_POS (x*, if the layout has it), the plant's heartbeat (NodeState 5, when asked)
+    and every sensor page (:class:`SensorPages` from the period's measurement arrays), in that
+    order, each made by ``make_frame(identifier, payload)``; the same payloads as the codecs'
+    ``encode`` of those values."""
+
+    cdef FieldCodec _sync, _ref, _ref_pos, _hb
+    cdef object _sync_id, _ref_id, _ref_pos_id, _hb_id
+    cdef SensorPages _pages
+    cdef list _sensor_ids
+    cdef tuple _arrays
+    cdef object _make
+    cdef object _ndarray, _f64, _ascontiguous
+
+    def __init__(self, FieldCodec sync, sync_id, FieldCodec ref, ref_id, FieldCodec ref_pos, ref_pos_id,
+                 FieldCodec heartbeat, heartbeat_id, SensorPages pages, list sensor_ids, arrays, make_frame):
+        """``ref_pos`` None: no REFERENCE_POS frame; ``pages``' payloads go out on ``sensor_ids``
+        (in order); ``arrays``: the measurement names the pages read, in their source order."""
+        self._sync, self._sync_id, self._ref, self._ref_id = sync, sync_id, ref, ref_id
+        self._ref_pos, self._ref_pos_id, self._hb, self._hb_id = ref_pos, ref_pos_id, heartbeat, heartbeat_id
+        self._pages, self._sensor_ids, self._arrays = pages, list(sensor_ids), tuple(arrays)
+        self._make = make_frame
+        import numpy as np
+
+        self._ndarray, self._f64, self._ascontiguous = np.ndarray, np.dtype(np.float64), np.ascontiguousarray
+
+    def frames(self, int64_t k, v_ref, a_ref, x_ref, bint heartbeat, measurements, sync_payload=None):
+        """The frames of tick ``k``: ``sync_payload`` (None: the SYNC codec's encoding of k),
+        the reference values ``v_ref``, ``a_ref``, ``x_ref`` (m/s, m/s^2, m), the heartbeat if
+        ``heartbeat``, the sensor pages from ``measurements`` (name -> per-vehicle array)."""
+        make = self._make
+        if sync_payload is None:
+            sync_payload = self._sync.encode({"Tick": k})
+        cdef list out = [make(self._sync_id, sync_payload),
+                         make(self._ref_id, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
+        if self._ref_pos is not None:
+            out.append(make(self._ref_pos_id, self._ref_pos.encode({"RefPosition": x_ref})))
+        if heartbeat:
+            out.append(make(self._hb_id, self._hb.encode({"NodeState": 5})))
+        cdef list sources = []
+        for name in self._arrays:
+            arr = measurements[name]
+            if type(arr) is not self._ndarray or arr.dtype is not self._f64 or not arr.flags.c_contiguous:
+                arr = self._ascontiguous(arr, dtype=float)
+            sources.append(arr)
+        cdef list payloads = self._pages.pack(sources)
+        cdef Py_ssize_t i
+        for i in range(len(payloads)):
+            out.append(make(self._sensor_ids[i], payloads[i]))
+        return out
+
+
 def quantise(values, double scale, double offset, double lo, double hi, bint scaled):
     """``decode(encode(v))`` of one signal for an array of values (the batch engine's
     :class:`canbrake.bus.codec.Quantiser`): a value that is not finite decodes as ``offset``

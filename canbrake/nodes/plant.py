@@ -19,7 +19,8 @@ import numpy as np
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OUT_OF_SEQUENCE, CMD_SLOT_COMPLETE,
-                                  TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_TICK, CommandTable, SensorPages)
+                                  TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_TICK, CommandTable, SensorPages,
+                                  TickFrames)
 from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.nodes._trace import csv_pick_row, csv_row
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
@@ -181,6 +182,11 @@ class PlantNode(Node):
             pages.append((cdc._c, fields))
         self._sensor_pages = SensorPages(pages)
         self._sensor_ids = [fid for fid, *_x in self._sensor_msgs]
+        # the frames of a period's start (SYNC, references, heartbeat, sensor pages) in one compiled call
+        self._tick = TickFrames(self._sync._c, layout.sync_id, self._ref._c, layout.reference_id,
+                                None if self._ref_pos is None else self._ref_pos._c, layout.reference_pos_id,
+                                codec["HEARTBEAT_PLANT"]._c, layout.plant_heartbeat_id, self._sensor_pages,
+                                self._sensor_ids, self._sensor_arrays, frame)
         self._hb = codec["HEARTBEAT_PLANT"]
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
@@ -237,16 +243,9 @@ class PlantNode(Node):
         x_ref = self.reference.position(t) if self._ref_pos is not None else None
         self._ref_of_tick = (k, v_ref, a_ref, x_ref)  # the trace row of tick k reads them again
         self._last_sync_k = k
-        lay = self.layout
-        out = [frame(lay.sync_id, sign_control(self.secoc, lay.sync_id, self._sync.encode({"Tick": k}), k)),
-               frame(lay.reference_id, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
-        if self._ref_pos is not None:
-            out.append(frame(lay.reference_pos_id, self._ref_pos.encode({"RefPosition": x_ref})))
-        if k % self.heartbeat_every == 0:
-            out.append(frame(lay.plant_heartbeat_id, self._hb.encode({"NodeState": 5})))
-        payloads = self._sensor_pages.pack([np.ascontiguousarray(meas[name], dtype=float)
-                                            for name in self._sensor_arrays])
-        out += [frame(fid, p) for fid, p in zip(self._sensor_ids, payloads)]
+        sync = None if self.secoc is None else sign_control(self.secoc, self.layout.sync_id,
+                                                            self._sync.encode({"Tick": k}), k)
+        out = self._tick.frames(k, v_ref, a_ref, x_ref, k % self.heartbeat_every == 0, meas, sync)
         for sp in self.hosted:
             rogue = sp.release(t)
             out += rogue
