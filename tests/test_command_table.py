@@ -235,9 +235,9 @@ def test_take_batch_equals_take_frame_by_frame(calls: list) -> None:
     for dk, frames in calls:
         if dk:
             k += dk
-            for arrs in (got, ref):
-                arrs[0][:] = 0
-                arrs[2][:] = False
+            got_t.new_tick()
+            ref[0][:] = 0
+            ref[2][:] = False
         msgs = []
         for page, counter, how, f in frames:
             if page < 0:
@@ -256,6 +256,7 @@ def test_take_batch_equals_take_frame_by_frame(calls: list) -> None:
             assert res == _expected_batch(ref_t, ref[2], msgs, i, k)
             for a, b in zip(got, ref):
                 np.testing.assert_array_equal(a, b)
+            assert got_t.fresh_total() == ref[0].sum() and got_t.all_fresh() == ref[2].all()
             if res[1] == TAKE_BATCH_END:
                 break
             i = res[0] + 1

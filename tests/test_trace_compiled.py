@@ -120,3 +120,19 @@ def test_pick_row_converts_other_arrays_and_refuses_a_stale_plan():
     assert csv_pick_row("7", [ints, bools, strided], plan, np.array([True, False]), 1) == "7,4,1,0,1,4\r\n"
     assert csv_pick_row("7", [ints, bools], plan, None, 0) is None            # no array 2
     assert csv_pick_row("7", [ints, bools, strided[:2]], plan, None, 0) is None  # element 2 of 2
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2**70), st.one_of(st.floats(0, 1e5), st.floats(0, 1e-6), st.just(0.0))),
+                max_size=20))
+def test_add_bits_equals_add_per_set_bit(calls):
+    from canbrake.nodes._trace import hist_add_bits
+
+    n = 71
+    a, b = [LogHistogram(1.01) for _ in range(n)], [LogHistogram(1.01) for _ in range(n)]
+    for bits, x in calls:
+        for s in range(n):
+            if bits >> s & 1:
+                a[s].add(x)
+        hist_add_bits(b, bits, x)
+    assert [(h.counts, h.n, h.total, h.max) for h in a] == [(h.counts, h.n, h.total, h.max) for h in b]

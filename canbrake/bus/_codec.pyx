@@ -1197,6 +1197,29 @@ cdef class CommandTable:
         """Tick of the newest accepted frame of this page (-1: none)."""
         return self._pg[<int>self._index[frame_id]].origin
 
+    def fresh_total(self):
+        """Command pages of this tick taken so far, every slot (the sum of ``fresh_pages``)."""
+        cdef int64_t t = 0
+        cdef Py_ssize_t i
+        for i in range(self._nslots):
+            t += self._fresh_pages[i]
+        return t
+
+    def all_fresh(self):
+        """True once every slot's pages of this tick are complete (``fresh.all()``)."""
+        cdef Py_ssize_t i
+        for i in range(self._nslots):
+            if not self._fresh[i]:
+                return False
+        return True
+
+    def new_tick(self):
+        """A new tick: no slot's pages seen (``fresh_pages[:] = 0``, ``fresh[:] = False``)."""
+        cdef Py_ssize_t i
+        for i in range(self._nslots):
+            self._fresh_pages[i] = 0
+            self._fresh[i] = 0
+
     def take_batch(self, list msgs, Py_ssize_t start, int64_t k):
         """:meth:`take` for each frame of ``msgs[start:]`` received at tick ``k`` (the plant's
         lockstep receive loop when every ECU's commands close its slot), back to the caller

@@ -22,7 +22,7 @@ from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OU
                                   TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_TICK, CommandTable, SensorPages,
                                   TickFrames)
 from canbrake.bus.guard import FrameGuard, sign_control
-from canbrake.nodes._trace import csv_pick_row, csv_row
+from canbrake.nodes._trace import csv_pick_row, csv_row, hist_add_bits
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
 
 
@@ -363,7 +363,7 @@ class PlantNode(Node):
         :meth:`_commands_close_slots`); else 1."""
         if self.finished or not self._commands_close_slots():
             return 1
-        return max(1, self._n_pages - int(self._fresh_pages.sum()))
+        return max(1, self._n_pages - self._cmd_table.fresh_total())
 
     def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
         """:meth:`handle` for each frame, the command pages (most of what the plant hears) taken
@@ -382,13 +382,8 @@ class PlantNode(Node):
             i, ev, r, completed, accepted = take_batch(msgs, i, self.k)
             self.stats.commands_received += accepted
             if completed:  # slots whose commands are complete: closed (their response time)
-                x = max(now - self._tick_wall, 0.0)
-                done, slot = self._done, 0
-                while completed >> slot:
-                    if completed >> slot & 1:
-                        self._resp[slot].add(x)
-                    slot += 1
-                self._done = done | completed
+                hist_add_bits(self._resp, completed, max(now - self._tick_wall, 0.0))
+                self._done |= completed
             if ev == TAKE_BATCH_END:
                 break
             if ev == TAKE_BATCH_TICK:
@@ -515,7 +510,7 @@ class PlantNode(Node):
 
     def _advance(self, now: float) -> list[can.Message]:
         self._ext_deadline = None
-        if not self._fresh.all():  # (most periods: every ECU's commands came)
+        if not self._cmd_table.all_fresh():  # (most periods: every ECU's commands came)
             missed = np.flatnonzero(~self._fresh)
             self.stats.commands_missed += missed.size
             for i in missed:
@@ -540,8 +535,7 @@ class PlantNode(Node):
         self.stats.ticks = self.k
         if self.progress is not None:
             self.progress.value = self.k
-        self._fresh[:] = False
-        self._fresh_pages[:] = 0
+        self._cmd_table.new_tick()  # fresh[:] = False, fresh_pages[:] = 0
         self._done = 0
         self._sync_wall = now
         if self.k >= self.n_ticks:
