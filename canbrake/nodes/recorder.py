@@ -239,6 +239,7 @@ class RecorderNode(Node):
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
         self._flush_each = True
+        self._text_file: Any = None
         # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
         # modelled wire times for the stamps and, with bus errors, the error frames
         self.wire_model = bus_timing if bus_timing is not None and mode == "lockstep" else None
@@ -275,6 +276,10 @@ class RecorderNode(Node):
                 for seg in self.topo.names:
                     self._seg_writers[seg] = can.Logger(str(self._seg_log(seg)))
                     writers.append(self._seg_writers[seg])
+            # the text log's file, flushed each period (binary formats keep python-can's buffering)
+            w0 = self._writer
+            self._text_file = (getattr(w0, "file", None)
+                               if isinstance(w0, can.io.generic.TextIOMessageWriter) else None)
             for w in writers:
                 if self.mode == "lockstep" and isinstance(w, can.ASCWriter):
                     # ASC stamps are relative to the start of measurement: make that simulated time 0
@@ -653,9 +658,8 @@ class RecorderNode(Node):
         python-can's own buffering."""
         if not self._flush_each:
             return
-        f = getattr(self._writer, "file", None)
-        if f is not None and isinstance(self._writer, can.io.generic.TextIOMessageWriter):
-            f.flush()
+        if self._text_file is not None and self._writer is not None:
+            self._text_file.flush()
         self._series.flush()
         if self._err_file is not None:
             self._err_file.flush()
