@@ -184,3 +184,129 @@ def test_sensor_pages_equal_encode_for_motorola_and_multiplexed_fields(specs: li
             SensorPages([(codec, page)]).pack([src])
         return
     assert SensorPages([(codec, page)]).pack([src]) == [expect]
+
+
+# ---------------------------------------------------------------- the plant's receive loop
+from canbrake.bus._codec import (TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_RESULT,  # noqa: E402
+                                 TAKE_BATCH_TICK)
+from canbrake.bus._ring import data_frame  # noqa: E402
+
+PAGES3 = [CODEC[f"BRAKE_CMD_C{i}"] for i in (1, 2, 3)]
+
+
+def _table3() -> tuple[CommandTable, tuple[np.ndarray, ...]]:
+    arrays = (np.zeros(3, np.int64), np.ones(3, np.int64), np.zeros(3, bool), np.full(3, -1, np.int64),
+              np.full(3, np.nan))
+    t = CommandTable(*arrays[:4], MAX_LAG)
+    for slot, m in enumerate(PAGES3):
+        t.add_page(m.frame_id, slot, m._c, [("BrakeForce", arrays[4], slot)], None)
+    return t, arrays
+
+
+def _expected_batch(table: CommandTable, fresh: np.ndarray, msgs: list, start: int, k: int) -> tuple:
+    """take_batch by take() frame by frame (its documented events)."""
+    ids = {m.frame_id for m in PAGES3}
+    completed = accepted = 0
+    for i in range(start, len(msgs)):
+        if msgs[i].arbitration_id not in ids:
+            return i, TAKE_BATCH_OTHER, 0, completed, accepted
+        r = table.take(msgs[i].arbitration_id, msgs[i].data, k)
+        if r & 3 in (CMD_BAD_CRC, CMD_BAD_COUNTER) or r & CMD_OUT_OF_SEQUENCE:
+            return i, TAKE_BATCH_RESULT, r, completed, accepted
+        accepted += 1
+        if r & CMD_SLOT_COMPLETE:
+            completed |= 1 << [m.frame_id for m in PAGES3].index(msgs[i].arbitration_id)
+            if fresh.all():
+                return i, TAKE_BATCH_TICK, r, completed, accepted
+    return len(msgs), TAKE_BATCH_END, 0, completed, accepted
+
+
+frames3 = st.lists(st.tuples(st.integers(-1, 2),          # page (-1: a frame that is not a command)
+                             st.integers(0, 15), st.sampled_from(["ok", "ok", "crc"]),
+                             st.floats(-4e5, 4e5, allow_nan=False)), max_size=12)
+
+
+@given(st.lists(st.tuples(st.integers(0, 2), frames3), max_size=8))
+@settings(max_examples=300, deadline=None)
+def test_take_batch_equals_take_frame_by_frame(calls: list) -> None:
+    got_t, got = _table3()
+    ref_t, ref = _table3()
+    k = 0
+    for dk, frames in calls:
+        if dk:
+            k += dk
+            got_t.new_tick()
+            ref[0][:] = 0
+            ref[2][:] = False
+        msgs = []
+        for page, counter, how, f in frames:
+            if page < 0:
+                msgs.append(data_frame(0x010, b"\x00\x00\x00\x00"))
+                continue
+            m = PAGES3[page]
+            data = bytearray(m.encode({"BrakeForce": f}, counter=min(counter, 14)))
+            data[1] = (data[1] & 0xF0) | counter
+            data[0] = e2e_crc(m.frame_id, data)
+            if how == "crc":
+                data[3] ^= 0x10
+            msgs.append(data_frame(m.frame_id, bytes(data)))
+        i = 0
+        while True:
+            res = got_t.take_batch(msgs, i, k)
+            assert res == _expected_batch(ref_t, ref[2], msgs, i, k)
+            for a, b in zip(got, ref):
+                np.testing.assert_array_equal(a, b)
+            assert got_t.fresh_total() == ref[0].sum() and got_t.all_fresh() == ref[2].all()
+            if res[1] == TAKE_BATCH_END:
+                break
+            i = res[0] + 1
+
+
+def test_take_batch_completes_a_tick_of_many_slots() -> None:
+    """The completed slots are a Python int: slots past a C int's bits (a 130-ECU train) are bits too."""
+    n = dbc.MAX_CARS
+    db = FrameCodec(dbc.build_database(n))
+    arrays = (np.zeros(n, np.int64), np.ones(n, np.int64), np.zeros(n, bool), np.full(n, -1, np.int64),
+              np.full(n, np.nan))
+    t = CommandTable(*arrays[:4], MAX_LAG)
+    msgs = []
+    for slot in range(n):
+        m = db[f"BRAKE_CMD_C{slot + 1}"]
+        t.add_page(m.frame_id, slot, m._c, [("BrakeForce", arrays[4], slot)], None)
+        msgs.append(data_frame(m.frame_id, m.encode({"BrakeForce": 100.0 * slot}, counter=0)))
+    i, ev, r, completed, accepted = t.take_batch(msgs[::-1], 0, 0)
+    assert (i, ev, accepted, completed) == (n - 1, TAKE_BATCH_TICK, n, (1 << n) - 1)
+    assert r & CMD_SLOT_COMPLETE and arrays[2].all() and arrays[4][n - 1] == 100.0 * (n - 1)
+
+
+# ---------------------------------------------------------------- the plant's frames of a period's start
+@given(st.integers(0, 2**32 - 1), st.floats(-1e3, 1e3), st.floats(-50, 50), st.one_of(st.none(), st.floats(-1e5, 1e5)),
+       st.booleans(), st.lists(st.floats(allow_nan=True, allow_infinity=True, width=32), min_size=3, max_size=3),
+       st.sampled_from([float, int]), st.one_of(st.none(), st.binary(min_size=8, max_size=8)))
+@settings(max_examples=200, deadline=None)
+def test_tick_frames_equal_the_codecs_frames(k, v, a, x, heartbeat, speeds, kind, sync_payload) -> None:
+    """TickFrames.frames == the frames the plant built one by one: SYNC, REFERENCE, [REFERENCE_POS],
+    [heartbeat], the sensor pages (SensorPages.pack of the same arrays, converted to float64)."""
+    from canbrake.bus._codec import TickFrames
+
+    lay = dbc.BusLayout(dbc.default_ecus(3, coupler_sensors=True), ref_position=True)
+    codec = FrameCodec(lay.database())
+    sensors = [m for m in lay.messages if m.kind == "sensor"]
+    pages = SensorPages([(codec[m.name]._c, [(sp.name, 0, m.ecu - 1) for sig, sp in m.signals if sig == "speed_mps"])
+                         for m in sensors])
+    ids = [m.frame_id for m in sensors]
+    whole = kind is int and np.isfinite(speeds).all() and max(map(abs, speeds)) < 1e9
+    meas = {"speed_mps": np.asarray(speeds).astype(int) if whole else np.asarray(speeds), "other": np.zeros(2)}
+    ref_pos = codec["REFERENCE_POS"]._c if x is not None else None
+    tf = TickFrames(codec["SYNC"]._c, lay.sync_id, codec["REFERENCE"]._c, lay.reference_id, ref_pos,
+                    lay.reference_pos_id, codec["HEARTBEAT_PLANT"]._c, lay.plant_heartbeat_id, pages, ids,
+                    ["speed_mps"], data_frame)
+    expect = [(lay.sync_id, sync_payload if sync_payload is not None else codec["SYNC"].encode({"Tick": k})),
+              (lay.reference_id, codec["REFERENCE"].encode({"RefSpeed": v, "RefDecel": a}))]
+    if x is not None:
+        expect.append((lay.reference_pos_id, codec["REFERENCE_POS"].encode({"RefPosition": x})))
+    if heartbeat:
+        expect.append((lay.plant_heartbeat_id, codec["HEARTBEAT_PLANT"].encode({"NodeState": 5})))
+    expect += list(zip(ids, pages.pack([np.ascontiguousarray(meas["speed_mps"], dtype=float)])))
+    got = tf.frames(k, v, a, x, heartbeat, meas, sync_payload)
+    assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(i, bytes(p)) for i, p in expect]

@@ -86,3 +86,53 @@ def test_csv_dict_row_is_csv_row_of_the_values_by_name():
     want = csv_row([7, 1.25, *[diag.get(n, math.nan) for n in names], math.inf, 3])
     assert csv_dict_row([7, 1.25], diag, names, math.nan, [math.inf, 3]) == want
     assert csv_dict_row([7], {"a": "text"}, ("a",), math.nan, []) is None
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.lists(finite_or_not, min_size=0, max_size=8), min_size=1, max_size=6), st.data())
+def test_pick_row_equals_the_row_list(cols, data):
+    """csv_pick_row against the list it replaces: the values picked from one concatenation,
+    made Python floats, the flags as ints, written by csv_row."""
+    from canbrake.nodes._trace import csv_pick_row
+
+    arrays = [np.asarray(c, dtype=float) for c in cols]
+    sizes = [a.size for a in arrays]
+    total = sum(sizes)
+    picks = data.draw(st.lists(st.integers(0, max(total - 1, 0)), max_size=30)) if total else []
+    flags = data.draw(st.one_of(st.none(), st.lists(st.booleans(), max_size=5).map(lambda b: np.asarray(b, bool))))
+    at = data.draw(st.integers(0, len(picks)))
+    head = data.draw(st.lists(st.one_of(st.integers(-10**6, 10**6), finite_or_not), min_size=1, max_size=4))
+    start = np.concatenate([[0], np.cumsum(sizes)])
+    which = np.searchsorted(start, picks, side="right") - 1
+    plan = np.ascontiguousarray(np.column_stack([which, np.asarray(picks) - start[which]]), dtype=np.intp) \
+        if picks else np.zeros((0, 2), dtype=np.intp)
+    values = np.concatenate(arrays).take(np.asarray(picks, dtype=np.intp)).tolist()
+    expected = head + values[:at] + ([int(x) for x in flags] if flags is not None else []) + values[at:]
+    assert csv_pick_row(csv_row(head)[:-2], arrays, plan, flags, at) == csv_row(expected)
+
+
+def test_pick_row_converts_other_arrays_and_refuses_a_stale_plan():
+    from canbrake.nodes._trace import csv_pick_row
+
+    plan = np.array([[0, 1], [1, 0], [2, 2]], dtype=np.intp)
+    ints, bools, strided = np.array([3, 4]), np.array([True]), np.arange(6.0)[::2]
+    assert csv_pick_row("7", [ints, bools, strided], plan, None, 0) == "7,4,1,4\r\n"
+    assert csv_pick_row("7", [ints, bools, strided], plan, np.array([True, False]), 1) == "7,4,1,0,1,4\r\n"
+    assert csv_pick_row("7", [ints, bools], plan, None, 0) is None            # no array 2
+    assert csv_pick_row("7", [ints, bools, strided[:2]], plan, None, 0) is None  # element 2 of 2
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2**70), st.one_of(st.floats(0, 1e5), st.floats(0, 1e-6), st.just(0.0))),
+                max_size=20))
+def test_add_bits_equals_add_per_set_bit(calls):
+    from canbrake.nodes._trace import hist_add_bits
+
+    n = 71
+    a, b = [LogHistogram(1.01) for _ in range(n)], [LogHistogram(1.01) for _ in range(n)]
+    for bits, x in calls:
+        for s in range(n):
+            if bits >> s & 1:
+                a[s].add(x)
+        hist_add_bits(b, bits, x)
+    assert [(h.counts, h.n, h.total, h.max) for h in a] == [(h.counts, h.n, h.total, h.max) for h in b]

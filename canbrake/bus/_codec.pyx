@@ -1037,6 +1037,11 @@ DEF _BAD_COUNTER = 3
 DEF _OOS = 4
 DEF _COMPLETE = 8
 DEF E2E_MAX_DELTA = 3
+#: CommandTable.take_batch's events
+TAKE_BATCH_END = 0
+TAKE_BATCH_OTHER = 1
+TAKE_BATCH_RESULT = 2
+TAKE_BATCH_TICK = 3
 
 
 cdef class CommandTable:
@@ -1059,6 +1064,7 @@ cdef class CommandTable:
     cdef uint8_t* _fresh           # the slot's pages of this tick are complete
     cdef object _newest_arr
     cdef int64_t* _newest          # tick of the newest accepted command, per slot
+    cdef Py_ssize_t _nslots
 
     def __cinit__(self):
         self._pg = NULL
@@ -1081,6 +1087,9 @@ cdef class CommandTable:
         self._fresh_pages = &fp[0]
         self._pages = &pp[0]
         self._fresh = &fr[0]
+        self._nslots = fr.shape[0]
+        if fp.shape[0] != self._nslots or pp.shape[0] != self._nslots or nw.shape[0] != self._nslots:
+            raise ValueError("fresh_pages, pages_per_slot, fresh and newest must have one element per slot")
         self.max_lag = max_lag
         self._index = {}
         self._keep = []
@@ -1188,6 +1197,77 @@ cdef class CommandTable:
         """Tick of the newest accepted frame of this page (-1: none)."""
         return self._pg[<int>self._index[frame_id]].origin
 
+    def fresh_total(self):
+        """Command pages of this tick taken so far, every slot (the sum of ``fresh_pages``)."""
+        cdef int64_t t = 0
+        cdef Py_ssize_t i
+        for i in range(self._nslots):
+            t += self._fresh_pages[i]
+        return t
+
+    def all_fresh(self):
+        """True once every slot's pages of this tick are complete (``fresh.all()``)."""
+        cdef Py_ssize_t i
+        for i in range(self._nslots):
+            if not self._fresh[i]:
+                return False
+        return True
+
+    def new_tick(self):
+        """A new tick: no slot's pages seen (``fresh_pages[:] = 0``, ``fresh[:] = False``)."""
+        cdef Py_ssize_t i
+        for i in range(self._nslots):
+            self._fresh_pages[i] = 0
+            self._fresh[i] = 0
+
+    def take_batch(self, list msgs, Py_ssize_t start, int64_t k):
+        """:meth:`take` for each frame of ``msgs[start:]`` received at tick ``k`` (the plant's
+        lockstep receive loop when every ECU's commands close its slot), back to the caller
+        only where it has something to do. Returns ``(i, event, result, completed, accepted)``:
+        ``event`` TAKE_BATCH_END (every frame taken, ``i`` = len), TAKE_BATCH_OTHER (``msgs[i]``
+        is not a command page: not taken), TAKE_BATCH_RESULT (``msgs[i]`` taken with ``result``
+        rejected or out of sequence: the caller's accounting), TAKE_BATCH_TICK (``msgs[i]``
+        completed the last slot of tick ``k``); ``completed``: bit s set for each slot s whose
+        pages of tick ``k`` the frames up to ``i`` completed; ``accepted``: frames accepted
+        cleanly before ``i`` (and ``msgs[i]`` itself for TAKE_BATCH_TICK)."""
+        cdef Py_ssize_t i, m = len(msgs), s_
+        cdef int64_t accepted = 0
+        cdef object completed = 0     # a Python int: a train may have more than 64 ECUs
+        cdef int r
+        cdef int64_t o
+        cdef const uint8_t* s
+        cdef Py_ssize_t n
+        cdef PyObject* p
+        cdef CmdPage* pg
+        cdef bint all_fresh
+        for i in range(start, m):
+            msg = msgs[i]
+            p = PyDict_GetItem(self._index, msg.arbitration_id)
+            if p is NULL:
+                return i, TAKE_BATCH_OTHER, 0, completed, accepted
+            data = msg.data
+            if not _payload(data, &s, &n):
+                data = bytes(data)
+                _payload(data, &s, &n)
+            pg = &self._pg[<int><object>p]
+            o = -1
+            r = self._check(pg, msg.arbitration_id, s, n, k, &o)
+            if not r & 3:
+                r |= self._apply(pg, s, n, o, k)
+            if (r & 3) >= _BAD_CRC or r & _OOS:
+                return i, TAKE_BATCH_RESULT, r, completed, accepted
+            accepted += 1
+            if r & _COMPLETE:
+                completed |= (<object>1) << (<object>pg.slot)  # Python ints: no C overflow
+                all_fresh = True
+                for s_ in range(self._nslots):
+                    if not self._fresh[s_]:
+                        all_fresh = False
+                        break
+                if all_fresh:
+                    return i, TAKE_BATCH_TICK, r, completed, accepted
+        return m, TAKE_BATCH_END, 0, completed, accepted
+
 
 # ---------------------------------------------------------------- the plant's sensor pages
 DEF SRC_NONE = -2   # the field has no source: it encodes its default (as a missing signal)
@@ -1285,6 +1365,59 @@ cdef class SensorPages:
         finally:
             PyMem_Free(ptr)
             PyMem_Free(length)
+        return out
+
+
+cdef class TickFrames:
+    """The plant's frames of a period's start in one call: SYNC (Tick = k), REFERENCE (v*, a*),
+    REFERENCE_POS (x*, if the layout has it), the plant's heartbeat (NodeState 5, when asked)
+    and every sensor page (:class:`SensorPages` from the period's measurement arrays), in that
+    order, each made by ``make_frame(identifier, payload)``; the same payloads as the codecs'
+    ``encode`` of those values."""
+
+    cdef FieldCodec _sync, _ref, _ref_pos, _hb
+    cdef object _sync_id, _ref_id, _ref_pos_id, _hb_id
+    cdef SensorPages _pages
+    cdef list _sensor_ids
+    cdef tuple _arrays
+    cdef object _make
+    cdef object _ndarray, _f64, _ascontiguous
+
+    def __init__(self, FieldCodec sync, sync_id, FieldCodec ref, ref_id, FieldCodec ref_pos, ref_pos_id,
+                 FieldCodec heartbeat, heartbeat_id, SensorPages pages, list sensor_ids, arrays, make_frame):
+        """``ref_pos`` None: no REFERENCE_POS frame; ``pages``' payloads go out on ``sensor_ids``
+        (in order); ``arrays``: the measurement names the pages read, in their source order."""
+        self._sync, self._sync_id, self._ref, self._ref_id = sync, sync_id, ref, ref_id
+        self._ref_pos, self._ref_pos_id, self._hb, self._hb_id = ref_pos, ref_pos_id, heartbeat, heartbeat_id
+        self._pages, self._sensor_ids, self._arrays = pages, list(sensor_ids), tuple(arrays)
+        self._make = make_frame
+        import numpy as np
+
+        self._ndarray, self._f64, self._ascontiguous = np.ndarray, np.dtype(np.float64), np.ascontiguousarray
+
+    def frames(self, int64_t k, v_ref, a_ref, x_ref, bint heartbeat, measurements, sync_payload=None):
+        """The frames of tick ``k``: ``sync_payload`` (None: the SYNC codec's encoding of k),
+        the reference values ``v_ref``, ``a_ref``, ``x_ref`` (m/s, m/s^2, m), the heartbeat if
+        ``heartbeat``, the sensor pages from ``measurements`` (name -> per-vehicle array)."""
+        make = self._make
+        if sync_payload is None:
+            sync_payload = self._sync.encode({"Tick": k})
+        cdef list out = [make(self._sync_id, sync_payload),
+                         make(self._ref_id, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
+        if self._ref_pos is not None:
+            out.append(make(self._ref_pos_id, self._ref_pos.encode({"RefPosition": x_ref})))
+        if heartbeat:
+            out.append(make(self._hb_id, self._hb.encode({"NodeState": 5})))
+        cdef list sources = []
+        for name in self._arrays:
+            arr = measurements[name]
+            if type(arr) is not self._ndarray or arr.dtype is not self._f64 or not arr.flags.c_contiguous:
+                arr = self._ascontiguous(arr, dtype=float)
+            sources.append(arr)
+        cdef list payloads = self._pages.pack(sources)
+        cdef Py_ssize_t i
+        for i in range(len(payloads)):
+            out.append(make(self._sensor_ids[i], payloads[i]))
         return out
 
 

@@ -15,6 +15,7 @@ from cpython.long cimport PyLong_AsLongLongAndOverflow
 from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
 from libc.stdio cimport snprintf
+from libc.stdint cimport uint8_t
 from libc.string cimport memcpy, strlen
 
 import numpy as np
@@ -27,6 +28,7 @@ cdef type NP_F64 = np.float64
 cdef type NP_I64 = np.int64
 cdef type NP_I32 = np.int32
 cdef type NP_BOOL = np.bool_
+cdef object _F64_DTYPE = np.dtype(np.float64)
 
 
 cdef str _g9(double x):
@@ -182,3 +184,84 @@ def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, 
             return i, TAKE_PHASE, closed
         tick_frames.append((<object>p, aid, bytes(msg.data), msg))
     return m, TAKE_END, closed
+
+
+def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py_ssize_t flags_at):
+    """The plant's trace row (:meth:`canbrake.nodes.plant.PlantNode.after_send`) without a
+    Python float per value: ``head`` (the row's first values as csv text, no line end), then
+    per row ``j`` of ``plan`` the value ``arrays[plan[j, 0]][plan[j, 1]]`` as ``f"{v:.9g}"``,
+    with ``flags`` (a bool array or None) written as 0/1 before plan row ``flags_at``; the line
+    ends with ``\\r\\n`` as :func:`csv_row`'s. ``arrays``: float64 arrays (others are converted
+    as ``np.concatenate(..., dtype=float)`` converts them). None if an element is outside its
+    array (the caller's plan is stale)."""
+    cdef Py_ssize_t na = len(arrays), np_ = plan.shape[0], nf = 0, i, j, a, e, pos, k, cap
+    cdef const double** ptr = <const double**>PyMem_Malloc((na if na > 0 else 1) * sizeof(double*))
+    cdef Py_ssize_t* length = <Py_ssize_t*>PyMem_Malloc((na if na > 0 else 1) * sizeof(Py_ssize_t))
+    cdef const double[::1] view
+    cdef const uint8_t[::1] fl
+    cdef list keep = []
+    cdef bytes hb = head.encode("ascii")
+    cdef char* buf = NULL
+    cdef char* s
+    if ptr is NULL or length is NULL:
+        PyMem_Free(ptr)
+        PyMem_Free(length)
+        raise MemoryError()
+    try:
+        for i in range(na):
+            arr = arrays[i]
+            if type(arr) is not np.ndarray or (<object>arr).dtype is not _F64_DTYPE \
+                    or not (<object>arr).flags.c_contiguous:
+                arr = np.ascontiguousarray(arr, dtype=np.float64)
+            keep.append(arr)
+            view = arr
+            ptr[i] = &view[0] if view.shape[0] > 0 else NULL
+            length[i] = view.shape[0]
+        if flags is not None:
+            fl = np.ascontiguousarray(flags, dtype=np.bool_).view(np.uint8)
+            nf = fl.shape[0]
+        cap = len(hb) + 32 * (np_ + nf) + 2
+        buf = <char*>PyMem_Malloc(cap)
+        if buf is NULL:
+            raise MemoryError()
+        pos = len(hb)
+        memcpy(buf, <char*>hb, pos)
+        for j in range(np_ + 1):
+            if j == flags_at and flags is not None:
+                for k in range(nf):
+                    buf[pos] = b','
+                    buf[pos + 1] = b'1' if fl[k] else b'0'
+                    pos += 2
+            if j == np_:
+                break
+            a = plan[j, 0]
+            e = plan[j, 1]
+            if a < 0 or a >= na or e < 0 or e >= length[a]:
+                return None
+            buf[pos] = b','
+            pos += 1
+            s = PyOS_double_to_string(ptr[a][e], b'g', 9, 0, NULL)
+            k = strlen(s)
+            memcpy(buf + pos, s, k)
+            PyMem_Free(s)
+            pos += k
+        buf[pos] = b'\r'
+        buf[pos + 1] = b'\n'
+        return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
+    finally:
+        PyMem_Free(buf)
+        PyMem_Free(ptr)
+        PyMem_Free(length)
+
+
+def hist_add_bits(list hists, bits, double x):
+    """``hists[s].add(x)`` (LogHistogram, canbrake.nodes.base) for each bit ``s`` set in
+    ``bits`` (a non-negative int), lowest first: the plant's response times of the ECUs whose
+    commands a batch completed, in one call."""
+    cdef Py_ssize_t s_ = 0
+    while bits:
+        if bits & 1:
+            h = hists[s_]
+            h.n, h.total, h.max = hist_add(h.counts, (x,), h.n, h.total, h.max, h.LO_S, h._log_ratio)
+        bits >>= 1
+        s_ += 1

@@ -189,6 +189,12 @@ def buffered_traces() -> Iterator[None]:
         _ROW_BY_ROW.pop()
 
 
+def rows_by_row() -> bool:
+    """True where files opened now hand each period's lines to the OS at once (a node in its
+    own process); False inside :func:`buffered_traces` (the in-process engine)."""
+    return _ROW_BY_ROW[-1]
+
+
 class CsvTrace:
     """A CSV trace written as it goes: the header at once, then every row handed to the OS as it
     is appended (one ``write`` per row through a buffered file: one control period per row), so
@@ -213,6 +219,11 @@ class CsvTrace:
         # (signals.csv of a 106-vehicle train is ~1,100 values per period). Rows with values it
         # does not write (str, None, ...) take the csv writer.
         self._write(csv_row(row) if type(row) is list else None, row)
+
+    def append_text(self, text: str) -> None:
+        """Append a row already made as csv text (a whole line, ``\\r\\n`` included)."""
+        if self._writer is not None:
+            self._write(text, None)
 
     def append_dict(self, head: list[Any], values: dict[str, Any], names: tuple[str, ...], default: Any,
                     tail: list[Any]) -> None:

@@ -19,8 +19,10 @@ import numpy as np
 from canbrake.bus import dbc
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OUT_OF_SEQUENCE, CMD_SLOT_COMPLETE,
-                                  CommandTable, SensorPages)
+                                  TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_TICK, CommandTable, SensorPages,
+                                  TickFrames)
 from canbrake.bus.guard import FrameGuard, sign_control
+from canbrake.nodes._trace import csv_pick_row, csv_row, hist_add_bits
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
 
 
@@ -180,6 +182,11 @@ class PlantNode(Node):
             pages.append((cdc._c, fields))
         self._sensor_pages = SensorPages(pages)
         self._sensor_ids = [fid for fid, *_x in self._sensor_msgs]
+        # the frames of a period's start (SYNC, references, heartbeat, sensor pages) in one compiled call
+        self._tick = TickFrames(self._sync._c, layout.sync_id, self._ref._c, layout.reference_id,
+                                None if self._ref_pos is None else self._ref_pos._c, layout.reference_pos_id,
+                                codec["HEARTBEAT_PLANT"]._c, layout.plant_heartbeat_id, self._sensor_pages,
+                                self._sensor_ids, self._sensor_arrays, frame)
         self._hb = codec["HEARTBEAT_PLANT"]
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
@@ -192,8 +199,8 @@ class PlantNode(Node):
         #: the commands written to the trace (besides brake_force_n), and their ECUs' vehicles
         self._row_cmds = [(name, [e.vehicle - 1 for e in self.ecus if name in e.commands])
                           for name in self.command_names if name != "brake_force_n"]
-        #: where the trace row's floats are in one concatenation of its arrays (:meth:`_plan_row`)
-        self._row_plan: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None
+        #: where the trace row's floats are in its arrays, and where its fail-safe flags go (:meth:`_plan_pairs`)
+        self._row_plan: tuple[np.ndarray, int] | None = None
         # realtime: wall time the current period's SYNC was sent, and per period the time from it
         # to the last command of the period (s; command latency, `canbrake bench`)
         self._sync_wall: float | None = None
@@ -236,16 +243,9 @@ class PlantNode(Node):
         x_ref = self.reference.position(t) if self._ref_pos is not None else None
         self._ref_of_tick = (k, v_ref, a_ref, x_ref)  # the trace row of tick k reads them again
         self._last_sync_k = k
-        lay = self.layout
-        out = [frame(lay.sync_id, sign_control(self.secoc, lay.sync_id, self._sync.encode({"Tick": k}), k)),
-               frame(lay.reference_id, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
-        if self._ref_pos is not None:
-            out.append(frame(lay.reference_pos_id, self._ref_pos.encode({"RefPosition": x_ref})))
-        if k % self.heartbeat_every == 0:
-            out.append(frame(lay.plant_heartbeat_id, self._hb.encode({"NodeState": 5})))
-        payloads = self._sensor_pages.pack([np.ascontiguousarray(meas[name], dtype=float)
-                                            for name in self._sensor_arrays])
-        out += [frame(fid, p) for fid, p in zip(self._sensor_ids, payloads)]
+        sync = None if self.secoc is None else sign_control(self.secoc, self.layout.sync_id,
+                                                            self._sync.encode({"Tick": k}), k)
+        out = self._tick.frames(k, v_ref, a_ref, x_ref, k % self.heartbeat_every == 0, meas, sync)
         for sp in self.hosted:
             rogue = sp.release(t)
             out += rogue
@@ -363,34 +363,44 @@ class PlantNode(Node):
         :meth:`_commands_close_slots`); else 1."""
         if self.finished or not self._commands_close_slots():
             return 1
-        return max(1, self._n_pages - int(self._fresh_pages.sum()))
+        return max(1, self._n_pages - self._cmd_table.fresh_total())
 
     def handle_batch(self, msgs: list[can.Message], now: float) -> list[can.Message]:
         """:meth:`handle` for each frame, the command pages (most of what the plant hears) taken
-        by :meth:`_on_command` without :meth:`handle`'s other branches where nothing but the
-        lockstep rule applies (no SecOC, no external ECU, every ECU's commands close its slot)."""
+        in one compiled loop (:meth:`canbrake.bus._codec.CommandTable.take_batch`) without
+        :meth:`handle`'s other branches where nothing but the lockstep rule applies (no SecOC, no
+        external ECU, every ECU's commands close its slot); back here for any other frame, a
+        rejected or out-of-sequence command and the command that completes the tick."""
         if not self._commands_close_slots():
             return super().handle_batch(msgs, now)
         out: list[can.Message] = []
-        pages, on_command = self._cmd_pages, self._on_command
-        fresh_pages, per_ecu = self._fresh_pages, self._pages_per_ecu
-        for msg in msgs:
-            aid = msg.arbitration_id
-            page = pages.get(aid)
-            if page is None:
-                out += self.handle(msg, now)
-                if self.finished:
-                    break
-                continue
-            r = on_command(aid, msg)
-            if r & 3 == CMD_FRESH:
-                slot = page[0]
-                if r & CMD_SLOT_COMPLETE:
-                    self._resp[slot].add(max(now - self._tick_wall, 0.0))
-                if not self._done >> slot & 1 and fresh_pages[slot] >= per_ecu[slot]:
-                    out += self._slot_done(slot, now)
-                    if self.finished:
-                        break
+        take_batch = self._cmd_table.take_batch
+        i, n = 0, len(msgs)
+        if type(msgs) is not list:
+            msgs = list(msgs)
+        while i < n:
+            i, ev, r, completed, accepted = take_batch(msgs, i, self.k)
+            self.stats.commands_received += accepted
+            if completed:  # slots whose commands are complete: closed (their response time)
+                hist_add_bits(self._resp, completed, max(now - self._tick_wall, 0.0))
+                self._done |= completed
+            if ev == TAKE_BATCH_END:
+                break
+            if ev == TAKE_BATCH_TICK:
+                out += self._advance(now)
+            elif ev == TAKE_BATCH_OTHER:
+                out += self.handle(msgs[i], now)
+            else:  # TAKE_BATCH_RESULT: a command taken with a rejection or a counter jump
+                r = self._taken(r)
+                if r & 3 == CMD_FRESH:
+                    slot = self._cmd_pages[msgs[i].arbitration_id][0]
+                    if r & CMD_SLOT_COMPLETE:
+                        self._resp[slot].add(max(now - self._tick_wall, 0.0))
+                    if not self._done >> slot & 1 and self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
+                        out += self._slot_done(slot, now)
+            if self.finished:
+                break
+            i += 1
         return out
 
     def _on_command(self, aid: int, msg: can.Message) -> int:
@@ -399,9 +409,21 @@ class PlantNode(Node):
         CMD_BAD_COUNTER if rejected (counted here); :class:`canbrake.bus._codec.CommandTable`."""
         table = self._cmd_table
         if self.secoc is None:
-            r = table.take(aid, msg.data, self.k)
-        else:
-            r, origin = table.check(aid, msg.data, self.k)
+            return self._taken(table.take(aid, msg.data, self.k))
+        r, origin = table.check(aid, msg.data, self.k)
+        if r & CMD_OUT_OF_SEQUENCE:
+            self.stats.commands_out_of_sequence += 1
+        res = r & 3
+        if res == CMD_BAD_CRC or res == CMD_BAD_COUNTER:
+            return self._taken(r & 3)
+        # only an authentic frame of exactly its tick (canbrake.bus.guard)
+        if not self.guard.authentic(aid, msg.data, origin):
+            return CMD_BAD_COUNTER  # counted by the guard
+        return self._taken(table.apply(aid, msg.data, origin, self.k))
+
+    def _taken(self, r: int) -> int:
+        """Count a command frame taken with result ``r`` (CommandTable.take/apply): out of
+        sequence, rejected (CRC or counter) or received; returns ``r`` (rejections: the result alone)."""
         if r & CMD_OUT_OF_SEQUENCE:
             self.stats.commands_out_of_sequence += 1
         res = r & 3
@@ -412,10 +434,6 @@ class PlantNode(Node):
         if res == CMD_BAD_COUNTER:
             self.guard.reject("counter")
             return res
-        if self.secoc is not None:  # only an authentic frame of exactly its tick (canbrake.bus.guard)
-            if not self.guard.authentic(aid, msg.data, origin):
-                return CMD_BAD_COUNTER  # counted by the guard
-            r = table.apply(aid, msg.data, origin, self.k)
         self.stats.commands_received += 1
         return r
 
@@ -492,7 +510,7 @@ class PlantNode(Node):
 
     def _advance(self, now: float) -> list[can.Message]:
         self._ext_deadline = None
-        if not self._fresh.all():  # (most periods: every ECU's commands came)
+        if not self._cmd_table.all_fresh():  # (most periods: every ECU's commands came)
             missed = np.flatnonzero(~self._fresh)
             self.stats.commands_missed += missed.size
             for i in missed:
@@ -517,8 +535,7 @@ class PlantNode(Node):
         self.stats.ticks = self.k
         if self.progress is not None:
             self.progress.value = self.k
-        self._fresh[:] = False
-        self._fresh_pages[:] = 0
+        self._cmd_table.new_tick()  # fresh[:] = False, fresh_pages[:] = 0
         self._done = 0
         self._sync_wall = now
         if self.k >= self.n_ticks:
@@ -618,25 +635,41 @@ class PlantNode(Node):
         else:  # the last row (no tick frames after it)
             v_ref, a_ref = self.reference(t)
             x_ref = self.reference.position(t) if self._ref_pos is not None else None
-        row: list[float] = [k, t, v_ref, a_ref]
+        head: list[float] = [k, t, v_ref, a_ref]
         if self._ref_pos is not None:
-            row.append(x_ref)
-        # every float of the row from one concatenation, picked in the row's order (per vehicle
-        # and per coupler interleaved) and made Python floats by one tolist
+            head.append(x_ref)
+        # the row's floats read straight from its arrays, in the row's order (per vehicle and
+        # per coupler interleaved), and its text made in one compiled call (_trace.csv_pick_row)
         parts = [m["position_m"], m["speed_mps"], m["accel_mps2"], m["applied_brake_n"], m["deflection_m"],
                  m["coupler_force_n"], cmds, *[m[name] for name in self._extra_measurements()]]
-        values = np.concatenate(parts, dtype=float)
+        head_text = csv_row(head)
+        if self._trace is None or head_text is None:
+            if self._trace is not None:
+                self._trace.append(self._row_list(head, parts, fs))
+            return
         plan = self._row_plan
-        if plan is None or plan[0] != values.size:
-            plan = self._row_plan = self._plan_row([np.size(a) for a in parts])
+        text = None if plan is None else csv_pick_row(head_text[:-2], parts, plan[0], fs, plan[1])
+        if text is None:  # no plan yet (or the arrays' sizes changed): make it
+            plan = self._row_plan = self._plan_pairs([np.size(a) for a in parts])
+            text = csv_pick_row(head_text[:-2], parts, plan[0], fs, plan[1])
+        self._trace.append_text(text)
+
+    def _plan_pairs(self, sizes: list[int]) -> tuple[np.ndarray, int]:
+        """:meth:`_plan_row` as (array, element) pairs for :func:`csv_pick_row`, and where the
+        fail-safe flags go among them."""
+        _size, first, second, both = self._plan_row(sizes)
+        start = np.concatenate([[0], np.cumsum(sizes)]).astype(np.intp)
+        which = np.searchsorted(start, both, side="right") - 1
+        pairs = np.ascontiguousarray(np.column_stack([which, both - start[which]]), dtype=np.intp)
+        return pairs, int(first.size)
+
+    def _row_list(self, head: list[float], parts: list[Any], fs: np.ndarray | None) -> list[Any]:
+        """The trace row as a list (for a row whose head the compiled writer does not take)."""
+        values = np.concatenate(parts, dtype=float)
+        _size, first, second, both = self._plan_row([np.size(a) for a in parts])
         if fs is None:
-            row += values.take(plan[3]).tolist()
-        else:
-            row += values.take(plan[1]).tolist()
-            row += [int(x) for x in fs]
-            row += values.take(plan[2]).tolist()
-        if self._trace is not None:
-            self._trace.append(row)
+            return head + values.take(both).tolist()
+        return head + values.take(first).tolist() + [int(x) for x in fs] + values.take(second).tolist()
 
     def close(self, status: str = "ok") -> None:
         try:

@@ -63,7 +63,7 @@ from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
 from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames
-from canbrake.nodes.base import LogHistogram, Node, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
+from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
 #: 2 their command phase (frames a sender held back are written with the phase of their kind)
@@ -139,8 +139,8 @@ class LoadSeries:
             self._f = open(self.path, "w", newline="")
             self._w = csv.writer(self._f)
             self._w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
-        if self._w is not None:
-            self._w.writerow([self.n, f"{self.n * self.dt:.9g}", f"{load:.6g}", frames, errors])
+        if self._f is not None:  # the csv writer's line for these values (no quoting needed)
+            self._f.write(f"{self.n},{self.n * self.dt:.9g},{load:.6g},{frames},{errors}\r\n")
         self.n += 1
         self.sum += load
         self.peak = max(self.peak, load)
@@ -238,6 +238,8 @@ class RecorderNode(Node):
         self._latency = LogHistogram()
         self._rt_bits = 0
         self._rt_tick_start: float | None = None
+        self._flush_each = True
+        self._text_file: Any = None
         # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
         # modelled wire times for the stamps and, with bus errors, the error frames
         self.wire_model = bus_timing if bus_timing is not None and mode == "lockstep" else None
@@ -264,6 +266,9 @@ class RecorderNode(Node):
             self._seg_ch = log_channels(fmt, list(self.topo.names))
 
     def start(self, now: float) -> list[can.Message]:
+        #: hand each period's lines to the OS as it ends (a recorder in its own process); the
+        #: in-process engine's files are written through their buffers (canbrake.nodes.base.buffered_traces)
+        self._flush_each = rows_by_row()
         if self.log_path is not None:
             self._writer = can.Logger(str(self.log_path))
             writers = [self._writer]
@@ -271,6 +276,10 @@ class RecorderNode(Node):
                 for seg in self.topo.names:
                     self._seg_writers[seg] = can.Logger(str(self._seg_log(seg)))
                     writers.append(self._seg_writers[seg])
+            # the text log's file, flushed each period (binary formats keep python-can's buffering)
+            w0 = self._writer
+            self._text_file = (getattr(w0, "file", None)
+                               if isinstance(w0, can.io.generic.TextIOMessageWriter) else None)
             for w in writers:
                 if self.mode == "lockstep" and isinstance(w, can.ASCWriter):
                     # ASC stamps are relative to the start of measurement: make that simulated time 0
@@ -647,9 +656,10 @@ class RecorderNode(Node):
         """Hand the tick's lines to the OS (one write per control period), so a killed recorder
         loses at most the current period. Binary formats (.blf: compressed containers) keep
         python-can's own buffering."""
-        f = getattr(self._writer, "file", None)
-        if f is not None and isinstance(self._writer, can.io.generic.TextIOMessageWriter):
-            f.flush()
+        if not self._flush_each:
+            return
+        if self._text_file is not None and self._writer is not None:
+            self._text_file.flush()
         self._series.flush()
         if self._err_file is not None:
             self._err_file.flush()
