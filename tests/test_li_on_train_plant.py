@@ -264,3 +264,82 @@ def test_the_coupled_plant_with_li_s_parts_agrees_with_the_heavy_haul_model_to_f
     sa4, sb4, fa4, fb4, _, _ = _run_pair(2.5e-4)
     dv4, df4 = np.abs(sa4 - sb4).max(), np.abs(fa4 - fb4).max()
     assert dv4 < dv1 / 3 and df4 < df1 / 3
+
+
+# ----------------------------------------------------------------------------- the schema
+def _mixed_on_route(tmp_path, **over: object) -> dict:
+    """test_mixed_kernel's mixed train (loco, draft-gear car, Chen car, air-braked wagon) on a route
+    file with Li's line and disturbance parts."""
+    import copy
+
+    import test_mixed_kernel as M
+
+    (tmp_path / "route.csv").write_text("position_m,grade_permille,curve_radius_m\n0,0,0\n300,-12,0\n400,-12,500\n"
+                                        "600,-12,0\n900,4,0\n5000,4,0\n")
+    data = M._mixed()
+    data["train"].update(copy.deepcopy({
+        "track": {"route": {"file": str(tmp_path / "route.csv"), "lookahead_m": 100, "long_downgrade_permille": 8,
+                            "long_downgrade_min_length_m": 500}},
+        "start_position_m": 150.0, "uncertainty": 0.02,
+        "disturbance": {"enabled": True, "vehicles": [1, 4]}}))
+    data["train"]["vehicle_types"]["loco"]["wheels"] = {"model": "adhesion_limit", "mu": 0.25,
+                                                        "curve": "curtius_kniffler"}
+    for k, v in over.items():
+        node = data
+        *path, last = k.split(".")
+        for part in path:
+            node = node[part]
+        node[last] = v
+    return data
+
+
+def test_a_mixed_train_takes_li_s_route_limits_and_disturbance_on_the_coupled_kernel(tmp_path) -> None:
+    """The route, the start position (the first vehicle's centre; the others behind at their
+    nominal spacings, then moved back by the static stretches), δ, eq. 40 on vehicles 1 and 4, the
+    locomotive's adhesion limit and its envelope's electric brake all reach the coupled plant; its
+    downgrade_ahead follows the route as the train runs onto the downgrade."""
+    from canbrake.build import build_plant_model
+    from canbrake.scenario import resolve
+
+    scn = resolve(_mixed_on_route(tmp_path), "t.yaml")
+    assert scn.train.kernel_name == "coupled"
+    plant = build_plant_model(scn)
+    tp = plant.plant
+    assert tp.route is not None and tp.static_couplers and tp.electric_brake_envelope
+    assert tp.uncertainty == 0.02 and tp._li_dist[0].tolist() == [True, False, False, True]  # type: ignore[index]
+    assert [a is not None for a in tp.loco_adhesion] == [True, False, False, False]  # type: ignore[union-attr]
+    assert tp.position_m[0] == 150.0
+    nominal = 150.0 - np.cumsum([0.0, 21.0, 22.0, 18.0])
+    assert np.all(tp.position_m[1:] <= nominal[1:]) and np.all(tp.position_m[1:] > nominal[1:] - 0.2)
+    assert plant.measurements()["downgrade_ahead"][0] == 0.0  # 300 m is beyond 150 + 100 m of look-ahead
+    for _ in range(700):  # 7 s at about 10 m/s: the front passes 200 m
+        plant.step(0.01, {"brake_force_n": np.zeros(4)})
+    assert plant.measurements()["downgrade_ahead"].tolist() == [1.0] * 4
+
+
+@pytest.mark.parametrize("over, fragment", [
+    ({"train.track.grade_permille": 3.0}, "train.track.grade_permille: a train on a route takes its grade"),
+    ({"train.disturbance": {"enabled": True, "vehicles": [1, 9]}}, "train.disturbance.vehicles: [9] outside 1..4"),
+    ({"initial.position_m": [0.0, -20.0, -40.0, -60.0]},
+     "initial.position_m: a train on a route is placed by train.start_position_m"),
+])
+def test_bad_li_parts_on_the_coupled_kernel_are_one_line(tmp_path, over: dict, fragment: str) -> None:
+    from canbrake.build import build_plant_model
+    from canbrake.scenario import ScenarioError, resolve
+
+    with pytest.raises((ScenarioError, ValueError)) as e:
+        build_plant_model(resolve(_mixed_on_route(tmp_path, **over), "t.yaml"))
+    assert "\n" not in str(e.value)
+    assert fragment in str(e.value), str(e.value)
+
+
+def test_li_s_parts_without_draft_gears_or_air_brakes_are_still_refused() -> None:
+    """δ, eq. 40 and the route go with Li's draft gears or air brakes; a Chen train refuses them."""
+    from canbrake.scenario import ScenarioError, resolve
+
+    from conftest import component_scenario
+
+    car = {"mass_kg": 40000, "length_m": 22.0, "coupler": {"model": "chen"}, "brake": {"model": "ideal"}}
+    data = component_scenario({"car": car}, [{"type": "car", "count": 3}], uncertainty=0.1)
+    with pytest.raises(ScenarioError, match=r"train.uncertainty: used by draft-gear trains"):
+        resolve(data, "t.yaml")

@@ -475,7 +475,7 @@ KERNELS: dict[str, dict[str, set[str | None]]] = {
     "coupled": {"coupler": {"chen", "linear", "draft_gear", None},
                 "brake": {"ideal", "electro_pneumatic", "air", None},
                 "resistance": {"davis", "table", "per_weight", None}, "traction": {"envelope", None},
-                "wheels": {"wheelsets", None}},
+                "wheels": {"wheelsets", "adhesion_limit", None}},
     "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
                    "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
     "adhesion": {"coupler": {"rigid"}, "brake": {None}, "resistance": {"davis", "table", None}, "traction": {None},
@@ -500,6 +500,8 @@ KERNEL_LIMITS: dict[str, str] = {
 }
 #: train-level fields only the heavy-haul kernel uses
 _HH_ONLY = ("draft_gears", "air_brake", "uncertainty", "disturbance", "start_position_m", "integration_step_s")
+#: what the coupled kernel also takes of them with draft gears or air brakes (Li's line and disturbances)
+_LI_COUPLED = ("uncertainty", "disturbance", "start_position_m", "integration_step_s", "track.route")
 
 
 def _hh_defaults() -> dict[str, Any]:
@@ -581,8 +583,10 @@ class TrainSpec(_Model):
             if kernel == "coupled":
                 used = {k for k, kind, m in (("draft_gears", "coupler", "draft_gear"), ("air_brake", "brake", "air"))
                         if any(_name(getattr(vt, kind)) == m for _, vt, _ in ex)}
+                if used:  # Li's line and disturbances go with his draft gears or air brakes
+                    used |= set(_LI_COUPLED)
             given = [k for k in _HH_ONLY if k not in used and getattr(self, k) != _HH_DEFAULTS[k]] + \
-                    (["track.route"] if self.track.route is not None else [])
+                    (["track.route"] if self.track.route is not None and "track.route" not in used else [])
             if given and used:
                 raise ValueError(f"@{given[0]}: used by the heavy-haul kernel (draft gears and air brakes on every "
                                  f"vehicle, per_weight resistance) only; this train mixes them with other components "
@@ -669,6 +673,8 @@ class TrainSpec(_Model):
         from canbrake.consist.coupled import ActuatorConfig, TrainConfig
 
         n = len(ex)
+        li = self._li_coupled(ex)  # Li's line and locomotive limits; the adhesion limits taken out of ex
+        ex = li.pop("_ex")
         air = [vt.brake if isinstance(vt.brake, AirBrakeRigging) else None for _, vt, _ in ex]
         gears = [vt.coupler.gear if isinstance(vt.coupler, DraftGearCoupler) else None for _, vt, _ in ex[:-1]]
         self._check_mixed(ex, air, gears)
@@ -763,7 +769,45 @@ class TrainSpec(_Model):
             if any(b.model == "electro_pneumatic" for b in brakes):  # an ideal brake among them: lag 0, no jerk limit
                 a.update(model="realistic", lag_s=per_vehicle("lag_s", 0.0), jerk_limit_mps3=per_vehicle("jerk_limit_mps3"))
         data["actuator"] = ActuatorConfig(**a)
+        data.update(li)
         return TrainConfig.model_validate(data)
+
+    def _li_coupled(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> dict[str, Any]:
+        """The coupled kernel's fields for Li 2024's line and locomotive (TrainConfig: route,
+        start_position_m, static_couplers, electric_brake_envelope, loco_adhesion, uncertainty,
+        disturbance, max_substep_s), and under ``_ex`` the vehicles with the adhesion limits
+        (wheels: adhesion_limit, a locomotive's, not wheelsets) taken out. A train on a route starts
+        in static equilibrium (as the heavy-haul kernel's); every traction envelope's electric brake
+        caps its vehicle's brake effort. One-line error: an adhesion limit without traction."""
+        out: dict[str, Any] = {}
+        adh = [vt.wheels if isinstance(vt.wheels, AdhesionLimit) else None for _, vt, _ in ex]
+        for (name, vt, _), a in zip(ex, adh):
+            if a is not None and vt.traction is None:
+                raise ValueError(f"@vehicle_types.{name}.wheels: adhesion on vehicle type {name}, which has no "
+                                 "driven axles (no traction: a wagon); give it a traction envelope or leave "
+                                 "wheels out")
+        if any(a is not None for a in adh):
+            out["loco_adhesion"] = [None if a is None else hhs.Adhesion.model_validate(_params(a)) for a in adh]
+            ex = [(nm, vt.model_copy(update={"wheels": None}) if a is not None else vt, m)
+                  for (nm, vt, m), a in zip(ex, adh)]
+        if any(vt.traction is not None for _, vt, _ in ex):
+            out["electric_brake_envelope"] = True
+        if self.track.route is not None:
+            if self.track.grade_permille != 0 or self.track.curve_resistance_n != 0:
+                raise ValueError("@track.grade_permille: a train on a route takes its grade and curves from "
+                                 "train.track.route")
+            out.update(route=self.track.route, start_position_m=self.start_position_m, static_couplers=True)
+        if self.uncertainty != 0.0:
+            out["uncertainty"] = self.uncertainty
+        if self.disturbance.enabled:
+            bad = [v for v in self.disturbance.vehicles if not 1 <= v <= len(ex)]
+            if bad:
+                raise ValueError(f"@disturbance.vehicles: {bad} outside 1..{len(ex)}")
+            out["disturbance"] = self.disturbance
+        if self.integration_step_s != _HH_DEFAULTS["integration_step_s"]:
+            out["max_substep_s"] = self.integration_step_s
+        out["_ex"] = ex
+        return out
 
     def _check_mixed(self, ex: list[tuple[str, VehicleTypeSpec, float]], air: list[Any],
                      gears: list[str | None]) -> None:
