@@ -492,8 +492,9 @@ KERNEL_LIMITS: dict[str, str] = {
                "end stop; or Li's draft_gear), brake model (ideal, electro_pneumatic or air), lag, jerk limit, "
                "ratings, ED brake, blending (or none: friction only), easing, wsp, traction envelope, wheelsets "
                "(axles, radius, inertia, slip curve b1..b3, c1..c3, v_floor_mps, or none) but none under an air "
-               "brake; once for the train: the rail conditions (train.wheel_rail), the air brake "
-               "(train.air_brake, fed from a locomotive at the head) and a constant grade (no route)",
+               "brake, a locomotive's adhesion_limit; once for the train: the rail conditions (train.wheel_rail), "
+               "the air brake (train.air_brake, fed from a locomotive at the head) and a constant grade, or with "
+               "draft gears or air brakes a route (train.track.route), uncertainty and disturbance (eq. 40)",
     "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
     "adhesion": "per vehicle: mass, resistance (davis or table), driven axles; once for the train: the wheel-rail "
                 "conditions",
@@ -777,8 +778,10 @@ class TrainSpec(_Model):
         start_position_m, static_couplers, electric_brake_envelope, loco_adhesion, uncertainty,
         disturbance, max_substep_s), and under ``_ex`` the vehicles with the adhesion limits
         (wheels: adhesion_limit, a locomotive's, not wheelsets) taken out. A train on a route starts
-        in static equilibrium (as the heavy-haul kernel's); every traction envelope's electric brake
-        caps its vehicle's brake effort. One-line error: an adhesion limit without traction."""
+        in static equilibrium (as the heavy-haul kernel's); in a train with draft gears or air brakes
+        every traction envelope's electric brake caps its vehicle's brake effort (elsewhere the
+        compiled coupled step caps traction only, for now). One-line error: an adhesion limit
+        without traction."""
         out: dict[str, Any] = {}
         adh = [vt.wheels if isinstance(vt.wheels, AdhesionLimit) else None for _, vt, _ in ex]
         for (name, vt, _), a in zip(ex, adh):
@@ -790,8 +793,9 @@ class TrainSpec(_Model):
             out["loco_adhesion"] = [None if a is None else hhs.Adhesion.model_validate(_params(a)) for a in adh]
             ex = [(nm, vt.model_copy(update={"wheels": None}) if a is not None else vt, m)
                   for (nm, vt, m), a in zip(ex, adh)]
-        if any(vt.traction is not None for _, vt, _ in ex):
-            out["electric_brake_envelope"] = True
+        li = any(isinstance(vt.brake, AirBrakeRigging) or isinstance(vt.coupler, DraftGearCoupler) for _, vt, _ in ex)
+        if li and any(vt.traction is not None for _, vt, _ in ex):  # (the compiled step caps traction only:
+            out["electric_brake_envelope"] = True                 # a train without Li's parts keeps it, and its stacks)
         if self.track.route is not None:
             if self.track.grade_permille != 0 or self.track.curve_resistance_n != 0:
                 raise ValueError("@track.grade_permille: a train on a route takes its grade and curves from "

@@ -93,5 +93,9 @@ class Route:
 
     def force_n(self, weight_kn: np.ndarray, x_m: np.ndarray) -> np.ndarray:
         """Grade + curve resistance (N, + opposes forward motion / pulls downhill when negative) on
-        vehicles of weight ``weight_kn`` (m g / 1000, kN) at positions ``x_m``."""
-        return self.total_permille_at(x_m) * weight_kn
+        vehicles of weight ``weight_kn`` (m g / 1000, kN) at positions ``x_m``, each (n,) (the
+        table lookup of :meth:`total_permille_at`, compiled)."""
+        from canbrake.physics._heavy_haul_kernel import route_force_n
+
+        return route_force_n(self._brk, self._val, np.ascontiguousarray(weight_kn, dtype=float),
+                             np.ascontiguousarray(x_m, dtype=float))
