@@ -89,6 +89,16 @@ def test_a_car_on_the_route_feels_its_grade_and_curve_where_it_is() -> None:
     assert rest.speed_mps[0] == pytest.approx(0.012 * G * 1.0, rel=1e-9)  # rolls away: an ordinary force
 
 
+def test_the_compiled_route_lookup_is_the_tables() -> None:
+    """Route.force_n (compiled, both plants) equals the table lookup times the weights, breakpoints,
+    before 0 (level) and beyond the end (the last grade) included."""
+    x = np.array([-5.0, 0.0, 299.999, 300.0, 400.0, 599.0, 600.0, 900.0, 4999.0, 5000.0, 9000.0])
+    w = np.linspace(500.0, 1500.0, x.size)
+    np.testing.assert_array_equal(ROUTE.force_n(w, x), ROUTE.total_permille_at(x) * w)
+    assert ROUTE.force_n(w, x)[[0, 3, 4, 7, 10]].tolist() == [0.0, -12.0 * w[3], (-12.0 + 1.2) * w[4], 4.0 * w[7],
+                                                               4.0 * w[10]]
+
+
 def test_downgrade_ahead_is_the_routes_line_data_rule() -> None:
     """1 while a downgrade steeper than 8 ‰ and at least 500 m long lies under the train or within
     the look-ahead of its front (here 100 m): the 600 m of 12 ‰ from 300 m."""
