@@ -353,3 +353,17 @@ def test_li_s_parts_without_draft_gears_or_air_brakes_are_still_refused() -> Non
     data = component_scenario({"car": car}, [{"type": "car", "count": 3}], uncertainty=0.1)
     with pytest.raises(ScenarioError, match=r"train.uncertainty: used by draft-gear trains"):
         resolve(data, "t.yaml")
+
+
+def test_the_integration_step_of_a_mixed_train(tmp_path) -> None:
+    """train.integration_step_s, when given, is the coupled plant's sub-step (also the default's
+    10 ms written out); not given, the control period over plant.substeps."""
+    from canbrake.build import build_plant_model
+    from canbrake.scenario import resolve
+
+    data = _mixed_on_route(tmp_path)
+    data["plant"] = {"substeps": 4}
+    assert build_plant_model(resolve(data, "t.yaml")).plant.max_substep_s == pytest.approx(0.0025)
+    for h in (0.01, 0.002):
+        data["train"]["integration_step_s"] = h
+        assert build_plant_model(resolve(data, "t.yaml")).plant.max_substep_s == h

@@ -507,7 +507,7 @@ _LI_COUPLED = ("uncertainty", "disturbance", "start_position_m", "integration_st
 
 def _hh_defaults() -> dict[str, Any]:
     return {"draft_gears": {}, "air_brake": None, "uncertainty": 0.0, "disturbance": hhs.Disturbance(),
-            "start_position_m": 0.0, "integration_step_s": 0.01}
+            "start_position_m": 0.0, "integration_step_s": None}
 
 
 _HH_DEFAULTS = _hh_defaults()
@@ -541,7 +541,9 @@ class TrainSpec(_Model):
     uncertainty: float = Field(0.0, ge=-0.5, le=0.5, description="δ: non-control forces are (1 + δ) x nominal")
     disturbance: hhs.Disturbance = Field(default_factory=hhs.Disturbance)
     start_position_m: float = Field(0.0, description="draft-gear trains: the first vehicle's centre on the route")
-    integration_step_s: float = Field(0.01, gt=0, description="draft-gear trains: the integration step")
+    integration_step_s: float | None = Field(None, gt=0, description="draft-gear trains: the integration step "
+                                             "(default: 10 ms on the heavy-haul kernel, the control period over "
+                                             "plant.substeps on the coupled one)")
 
     _kernel: Any = PrivateAttr(None)
     _kernel_name: str = PrivateAttr("")
@@ -808,7 +810,7 @@ class TrainSpec(_Model):
             if bad:
                 raise ValueError(f"@disturbance.vehicles: {bad} outside 1..{len(ex)}")
             out["disturbance"] = self.disturbance
-        if self.integration_step_s != _HH_DEFAULTS["integration_step_s"]:
+        if self.integration_step_s is not None:  # as given (else the period over plant.substeps)
             out["max_substep_s"] = self.integration_step_s
         out["_ex"] = ex
         return out
@@ -896,7 +898,8 @@ class TrainSpec(_Model):
                 "draft_gears": {k: g.model_dump() for k, g in self.draft_gears.items()}, "vehicles": vehicles,
                 "route": self.track.route.model_dump(), "air_brake": self.air_brake.model_dump(),
                 "uncertainty": self.uncertainty, "disturbance": self.disturbance.model_dump(),
-                "start_position_m": self.start_position_m, "integration_step_s": self.integration_step_s}
+                "start_position_m": self.start_position_m,
+                "integration_step_s": 0.01 if self.integration_step_s is None else self.integration_step_s}
         return _validated(HeavyHaulTrain, data)
 
     def _lower_adhesion(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
