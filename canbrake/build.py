@@ -154,8 +154,10 @@ def _train_plant(scn: Scenario):
             rail_schedule=t.wheel_rail.schedule(), adhesion_curve=t.wheel_rail.curve,
             adhesion_v_floor_mps=t.wheel_rail.v_floor_mps)
     blending, wheels, valve_lag = _brake_equipment(scn)
+    li = _li_parts(scn)
+    x0 = li.pop("position_m") if "position_m" in li else scn.initial_position_m()
     return TrainPlant(
-        t.mass_kg, scn.initial_position_m(), scn.initial_speed_mps(),
+        t.mass_kg, x0, scn.initial_speed_mps(),
         coupler_stiffness_n_per_m=c.stiffness_n_per_m if n > 1 else [],
         coupler_nonlinearity_per_m2=c.epsilon_per_m2 if n > 1 else [],
         coupler_spacing_m=c.spacing_m, end_stop_m=c.end_stop_m,
@@ -163,7 +165,8 @@ def _train_plant(scn: Scenario):
         resistance=resistance, grade_rad=math.atan(t.grade_permille / 1000.0),
         curve_resistance_n=per_car(t.curve_resistance_n, n, "curve"),
         actuator=actuator, rail=RailConditions(base_adhesion_mu=per_car(a.adhesion_mu, n, "mu"), events=rail_events),
-        disturbances=disturbances, max_substep_s=scn.control_period_s / scn.plant.substeps,
+        disturbances=disturbances,
+        max_substep_s=t.max_substep_s if t.max_substep_s is not None else scn.control_period_s / scn.plant.substeps,
         blending=blending, wheels=wheels, wsp_valve_lag_s=valve_lag,
         wsp_max_vent_s=_per_car_wsp(t.brakes, "max_vent_s", math.inf, n),
         resistance_table=None if t.resistance_table is None else [
@@ -174,7 +177,39 @@ def _train_plant(scn: Scenario):
             None if g is None else t.draft_gears[g].physics(g) for g in t.coupler_gear],
         air_brake=t.air_brake_physics(),
         air_braked=None if t.air_rigging is None else [r is not None for r in t.air_rigging],
+        **li,
     )
+
+
+def _li_parts(scn: Scenario) -> dict[str, Any]:
+    """The coupled plant's arguments for Li 2024's line and locomotive (TrainPlant: route, static
+    couplers, electric brake, adhesion, δ, eq. 40), only those set; with a route also ``position_m``:
+    the first car at ``start_position_m``, the others behind it at their nominal spacings."""
+    t = scn.consist
+    out: dict[str, Any] = {}
+    if t.route is not None:
+        if scn.initial.position_m is not None:
+            raise ValueError("initial.position_m: a train on a route is placed by train.start_position_m (the first "
+                             "vehicle's centre on the route, the others behind it)")
+        out["route"] = t.route.load(scn.data_dir())
+        out["line_rule"] = t.route.line_rule()
+        sp = np.asarray(per_car(10.0 if t.coupler.spacing_m is None else t.coupler.spacing_m, max(t.n_cars - 1, 0),
+                                "spacing"), dtype=float)
+        out["position_m"] = t.start_position_m - np.concatenate([[0.0], np.cumsum(sp)])
+    if t.static_couplers:
+        out["static_couplers"] = True
+    if t.electric_brake_envelope:
+        out["electric_brake_envelope"] = True
+    if t.loco_adhesion is not None:
+        out["loco_adhesion"] = [None if a is None else a.physics() for a in t.loco_adhesion]
+    if t.uncertainty != 0.0:
+        out["uncertainty"] = t.uncertainty
+    d = t.disturbance
+    if d is not None and d.enabled:
+        on = np.zeros(t.n_cars, dtype=bool)
+        on[[v - 1 for v in d.vehicles]] = True
+        out["li_disturbance_on"], out["li_disturbance_coef"] = on, (d.c0_mps2, d.c1_mps2, d.c2)
+    return out
 
 
 def _brake_equipment(scn: Scenario) -> tuple[Any, Any, float]:
@@ -497,7 +532,8 @@ class CoupledPlant:
                 out["brake_pipe_pressure_pa"] = np.where(on, ab.pipe_pressure_pa, np.nan)
         if ab is not None or self.plant.draft_gears is not None:  # what Li 2024's controllers read
             out["passive_force_n"] = self.plant.passive_force_n()
-            out["downgrade_ahead"] = self._downgrade
+            out["downgrade_ahead"] = self._downgrade if getattr(self.plant, "route", None) is None else np.full(
+                self.n_vehicles, float(self.plant.downgrade_ahead()))  # the route's line data
         return out
 
 

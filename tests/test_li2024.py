@@ -172,7 +172,7 @@ def test_passive_forces_sum_to_the_external_forces():
     for _ in range(300):
         m.step(0.01, {})
     me = m.measurements()
-    ext = hh.basic_resistance_n(m.c, m.v) + m.route.force_n(m.c, m.x) + m.ab.last_force_n
+    ext = hh.basic_resistance_n(m.c, m.v) + m.route.force_n(m.c.weight_kn, m.x) + m.ab.last_force_n
     assert me["applied_brake_n"][1] > 0
     assert float(me["passive_force_n"].sum()) == pytest.approx(-float(ext.sum()), rel=1e-9)
 
@@ -305,7 +305,7 @@ def test_disturbance_eq40_only_on_listed_vehicles():
     t = train(disturbance={**train_data()["disturbance"], "enabled": True})
     m = t.build_plant(SCN, SCENARIOS)
     v = np.full(106, 20.0)
-    s = hh.disturbance_n(m.c, 1.5, v, m.dist_on, m.dist_coef)
+    s = hh.disturbance_n(m.c.mass_kg, 1.5, v, m.dist_on, m.dist_coef)
     assert list(np.flatnonzero(s)) == [0] + list(range(10, 101, 10))
     acc = 0.002 + 0.001 * math.sin(2.5) + 0.0003 * 20 ** (1 / 3) * (math.sin(5.0) + math.cos(5.5))
     assert s[0] == pytest.approx(184_000 * acc)

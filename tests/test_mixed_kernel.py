@@ -332,7 +332,8 @@ def test_the_mixed_trains_measurements_and_commands_follow_the_plant_contract() 
      "train.vehicle_types.wagon.wheels: an air-braked vehicle's block force acts on its body"),
     ({"train.vehicle_types.car.coupler": {"model": "draft_gear", "gear": "nope"}},
      "train.vehicle_types.car.coupler.gear: unknown draft gear 'nope'"),
-    ({"train.uncertainty": 0.1}, "train.uncertainty: used by the heavy-haul kernel"),
+    ({"train.vehicle_types.wagon.wheels": {"model": "adhesion_limit", "mu": 0.3}},
+     "train.vehicle_types.wagon.wheels: adhesion on vehicle type wagon, which has no driven axles"),
     ({"train.vehicle_types.chen_car.brake": {"model": "ideal", "wsp": {"enabled": True}}},
      "train.vehicle_types.chen_car.brake.wsp: wheel-slide protection needs axles"),
 ])

@@ -468,7 +468,7 @@ KERNELS: dict[str, dict[str, set[str | None]]] = {
     "coupled": {"coupler": {"chen", "linear", "draft_gear", "rigid", None},
                 "brake": {"ideal", "electro_pneumatic", "air", None},
                 "resistance": {"davis", "table", "per_weight", None}, "traction": {"envelope", None},
-                "wheels": {"wheelsets", "driven_axles", None}},
+                "wheels": {"wheelsets", "driven_axles", "adhesion_limit", None}},
     "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
                    "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
 }
@@ -483,8 +483,9 @@ KERNEL_LIMITS: dict[str, str] = {
                "end stop; or Li's draft_gear), brake model (ideal, electro_pneumatic or air), lag, jerk limit, "
                "ratings, ED brake, blending (or none: friction only), easing, wsp, traction envelope, wheelsets "
                "(axles, radius, inertia, slip curve b1..b3, c1..c3, v_floor_mps, or none) but none under an air "
-               "brake; once for the train: the rail conditions (train.wheel_rail), the air brake "
-               "(train.air_brake, fed from a locomotive at the head) and a constant grade (no route); rigid "
+               "brake, a locomotive's adhesion_limit; once for the train: the rail conditions (train.wheel_rail), "
+               "the air brake (train.air_brake, fed from a locomotive at the head) and a constant grade, or with "
+               "draft gears or air brakes a route (train.track.route), uncertainty and disturbance (eq. 40); rigid "
                "couplers (Cai 2014: the train is one body) with driven axles (per-axle torque commands) and the "
                "rail schedule of their slip curve (train.wheel_rail: conditions, base, windows), per vehicle mass, "
                "resistance (davis, table or per_weight) and driven axles, nothing else yet",
@@ -492,11 +493,13 @@ KERNEL_LIMITS: dict[str, str] = {
 }
 #: train-level fields only the heavy-haul kernel uses
 _HH_ONLY = ("draft_gears", "air_brake", "uncertainty", "disturbance", "start_position_m", "integration_step_s")
+#: what the coupled kernel also takes of them with draft gears or air brakes (Li's line and disturbances)
+_LI_COUPLED = ("uncertainty", "disturbance", "start_position_m", "integration_step_s", "track.route")
 
 
 def _hh_defaults() -> dict[str, Any]:
     return {"draft_gears": {}, "air_brake": None, "uncertainty": 0.0, "disturbance": hhs.Disturbance(),
-            "start_position_m": 0.0, "integration_step_s": 0.01}
+            "start_position_m": 0.0, "integration_step_s": None}
 
 
 _HH_DEFAULTS = _hh_defaults()
@@ -530,7 +533,9 @@ class TrainSpec(_Model):
     uncertainty: float = Field(0.0, ge=-0.5, le=0.5, description="δ: non-control forces are (1 + δ) x nominal")
     disturbance: hhs.Disturbance = Field(default_factory=hhs.Disturbance)
     start_position_m: float = Field(0.0, description="draft-gear trains: the first vehicle's centre on the route")
-    integration_step_s: float = Field(0.01, gt=0, description="draft-gear trains: the integration step")
+    integration_step_s: float | None = Field(None, gt=0, description="draft-gear trains: the integration step "
+                                             "(default: 10 ms on the heavy-haul kernel, the control period over "
+                                             "plant.substeps on the coupled one)")
 
     _kernel: Any = PrivateAttr(None)
     _kernel_name: str = PrivateAttr("")
@@ -576,8 +581,10 @@ class TrainSpec(_Model):
             if kernel == "coupled":
                 used = {k for k, kind, m in (("draft_gears", "coupler", "draft_gear"), ("air_brake", "brake", "air"))
                         if any(_name(getattr(vt, kind)) == m for _, vt, _ in ex)}
+                if used:  # Li's line and disturbances go with his draft gears or air brakes
+                    used |= set(_LI_COUPLED)
             given = [k for k in _HH_ONLY if k not in used and getattr(self, k) != _HH_DEFAULTS[k]] + \
-                    (["track.route"] if self.track.route is not None else [])
+                    (["track.route"] if self.track.route is not None and "track.route" not in used else [])
             if given and used:
                 raise ValueError(f"@{given[0]}: used by the heavy-haul kernel (draft gears and air brakes on every "
                                  f"vehicle, per_weight resistance) only; this train mixes them with other components "
@@ -666,6 +673,8 @@ class TrainSpec(_Model):
         if any(isinstance(vt.coupler, RigidCoupler) or isinstance(vt.wheels, DrivenAxles) for _, vt, _ in ex):
             return self._lower_rigid(ex)
         n = len(ex)
+        li = self._li_coupled(ex)  # Li's line and locomotive limits; the adhesion limits taken out of ex
+        ex = li.pop("_ex")
         air = [vt.brake if isinstance(vt.brake, AirBrakeRigging) else None for _, vt, _ in ex]
         gears = [vt.coupler.gear if isinstance(vt.coupler, DraftGearCoupler) else None for _, vt, _ in ex[:-1]]
         self._check_mixed(ex, air, gears)
@@ -760,7 +769,48 @@ class TrainSpec(_Model):
             if any(b.model == "electro_pneumatic" for b in brakes):  # an ideal brake among them: lag 0, no jerk limit
                 a.update(model="realistic", lag_s=per_vehicle("lag_s", 0.0), jerk_limit_mps3=per_vehicle("jerk_limit_mps3"))
         data["actuator"] = ActuatorConfig(**a)
+        data.update(li)
         return TrainConfig.model_validate(data)
+
+    def _li_coupled(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> dict[str, Any]:
+        """The coupled kernel's fields for Li 2024's line and locomotive (TrainConfig: route,
+        start_position_m, static_couplers, electric_brake_envelope, loco_adhesion, uncertainty,
+        disturbance, max_substep_s), and under ``_ex`` the vehicles with the adhesion limits
+        (wheels: adhesion_limit, a locomotive's, not wheelsets) taken out. A train on a route starts
+        in static equilibrium (as the heavy-haul kernel's); in a train with draft gears or air brakes
+        every traction envelope's electric brake caps its vehicle's brake effort (elsewhere the
+        compiled coupled step caps traction only, for now). One-line error: an adhesion limit
+        without traction."""
+        out: dict[str, Any] = {}
+        adh = [vt.wheels if isinstance(vt.wheels, AdhesionLimit) else None for _, vt, _ in ex]
+        for (name, vt, _), a in zip(ex, adh):
+            if a is not None and vt.traction is None:
+                raise ValueError(f"@vehicle_types.{name}.wheels: adhesion on vehicle type {name}, which has no "
+                                 "driven axles (no traction: a wagon); give it a traction envelope or leave "
+                                 "wheels out")
+        if any(a is not None for a in adh):
+            out["loco_adhesion"] = [None if a is None else hhs.Adhesion.model_validate(_params(a)) for a in adh]
+            ex = [(nm, vt.model_copy(update={"wheels": None}) if a is not None else vt, m)
+                  for (nm, vt, m), a in zip(ex, adh)]
+        li = any(isinstance(vt.brake, AirBrakeRigging) or isinstance(vt.coupler, DraftGearCoupler) for _, vt, _ in ex)
+        if li and any(vt.traction is not None for _, vt, _ in ex):  # (the compiled step caps traction only:
+            out["electric_brake_envelope"] = True                 # a train without Li's parts keeps it, and its stacks)
+        if self.track.route is not None:
+            if self.track.grade_permille != 0 or self.track.curve_resistance_n != 0:
+                raise ValueError("@track.grade_permille: a train on a route takes its grade and curves from "
+                                 "train.track.route")
+            out.update(route=self.track.route, start_position_m=self.start_position_m, static_couplers=True)
+        if self.uncertainty != 0.0:
+            out["uncertainty"] = self.uncertainty
+        if self.disturbance.enabled:
+            bad = [v for v in self.disturbance.vehicles if not 1 <= v <= len(ex)]
+            if bad:
+                raise ValueError(f"@disturbance.vehicles: {bad} outside 1..{len(ex)}")
+            out["disturbance"] = self.disturbance
+        if self.integration_step_s is not None:  # as given (else the period over plant.substeps)
+            out["max_substep_s"] = self.integration_step_s
+        out["_ex"] = ex
+        return out
 
     def _check_mixed(self, ex: list[tuple[str, VehicleTypeSpec, float]], air: list[Any],
                      gears: list[str | None]) -> None:
@@ -845,7 +895,8 @@ class TrainSpec(_Model):
                 "draft_gears": {k: g.model_dump() for k, g in self.draft_gears.items()}, "vehicles": vehicles,
                 "route": self.track.route.model_dump(), "air_brake": self.air_brake.model_dump(),
                 "uncertainty": self.uncertainty, "disturbance": self.disturbance.model_dump(),
-                "start_position_m": self.start_position_m, "integration_step_s": self.integration_step_s}
+                "start_position_m": self.start_position_m,
+                "integration_step_s": 0.01 if self.integration_step_s is None else self.integration_step_s}
         return _validated(HeavyHaulTrain, data)
 
     @staticmethod

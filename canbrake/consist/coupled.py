@@ -144,6 +144,18 @@ class TrainConfig(_Model):
     air_rigging: list[hhs.BrakeEquipment | None] | None = Field(None, description="per car: its air brake rigging "
                                                                 "(Li 2024 Table 1) or None")
     length_m: list[float] | None = Field(None, description="per car: length over couplers (m), spaces the brake pipe")
+    # Li 2024's line and locomotive on the coupled plant (a train with draft gears or air brakes)
+    route: hhs.Route | None = Field(None, description="the route file: grade and curves by position")
+    start_position_m: float = Field(0.0, description="with a route: the first car's centre on it (m)")
+    static_couplers: bool = Field(False, description="start with each coupler carrying the resistance behind it")
+    electric_brake_envelope: bool = Field(False, description="the traction envelopes' electric brake F_B caps "
+                                          "the brake effort of their cars")
+    loco_adhesion: list[hhs.Adhesion | None] | None = Field(None, description="per car: μ(v)·m·g caps its "
+                                                            "traction and electric brake, or None")
+    uncertainty: float = Field(0.0, ge=-0.5, le=0.5, description="δ on the non-control forces")
+    disturbance: hhs.Disturbance | None = Field(None, description="Li 2024 eq. 40 (None: off)")
+    max_substep_s: float | None = Field(None, gt=0, description="the integration step (None: the control "
+                                        "period over plant.substeps)")
 
     @field_validator("mass_kg")
     @classmethod

@@ -151,6 +151,18 @@ class Route(StrictModel):
     long_downgrade_permille: float = Field(8.0, gt=0)
     long_downgrade_min_length_m: float = Field(500.0, ge=0)
 
+    def load(self, base_dir: Path | None) -> hh.Route:
+        """The route of the file (relative to ``base_dir``); ValueError naming the file."""
+        t = load_table(self.file, ("position_m", "grade_permille", "curve_radius_m"), base_dir)
+        try:
+            return hh.Route.from_table(t["position_m"], t["grade_permille"], t["curve_radius_m"])
+        except ValueError as e:
+            raise ValueError(f"{self.file}: {e}") from None
+
+    def line_rule(self) -> tuple[float, float, float]:
+        """(look-ahead m, steepest grade ‰, least length m) of the ``downgrade_ahead`` sensor."""
+        return (self.lookahead_m, self.long_downgrade_permille, self.long_downgrade_min_length_m)
+
 
 class BrakePipe(StrictModel):
     """Brake-pipe pressure along the train (:class:`canbrake.physics.heavy_haul.BrakePipe`): the driver's
@@ -328,11 +340,7 @@ class HeavyHaulTrain(StrictModel):
                           is_loco=np.array([v.traction is not None for v in vs]))
 
     def load_route(self, base_dir: Path | None) -> hh.Route:
-        t = load_table(self.route.file, ("position_m", "grade_permille", "curve_radius_m"), base_dir)
-        try:
-            return hh.Route.from_table(t["position_m"], t["grade_permille"], t["curve_radius_m"])
-        except ValueError as e:
-            raise ValueError(f"{self.route.file}: {e}") from None
+        return self.route.load(base_dir)
 
     def build_air_brake(self, consist: hh.Consist) -> hh.AirBrake:
         return self.air_brake.physics(consist, [vt.brake for _, vt in self._expanded()])

@@ -25,6 +25,32 @@ import numpy as np
 cdef double KMH = 1.0 / 3.6  # m/s per km/h, as canbrake.physics.heavy_haul.KMH
 
 
+cdef inline double _route_n(const double[::1] brk, const double[::1] val, double weight, double x) noexcept nogil:
+    """Eqs. (4)-(5): grade + curve force (N) on a vehicle of ``weight`` (kN) at position x (m), from the
+    route table (breakpoints ``brk``, m; grade + curve ``val``, N/kN: Route._brk, Route._val)."""
+    cdef Py_ssize_t lo = 0, hi = brk.shape[0], mid
+    while lo < hi:  # numpy.searchsorted(brk, x, side="right")
+        mid = (lo + hi) >> 1
+        if not (x < brk[mid]):
+            lo = mid + 1
+        else:
+            hi = mid
+    if lo == 0:
+        return 0.0 * weight
+    return val[lo - 1] * weight
+
+
+def route_force_n(const double[::1] brk, const double[::1] val, const double[::1] weight_kn, const double[::1] x):
+    """The route's grade + curve force (N) per vehicle of weight ``weight_kn`` (kN) at positions
+    ``x`` (m), each (n,): :meth:`canbrake.physics.route.Route.force_n` from its table, compiled."""
+    cdef Py_ssize_t i, n = x.shape[0]
+    out = np.empty(n)
+    cdef double[::1] o = out
+    for i in range(n):
+        o[i] = _route_n(brk, val, weight_kn[i], x[i])
+    return out
+
+
 cdef class GearKernel:
     """Draft gears of every coupler (n-1 of them): loading curves ``cx`` (m), ``cf`` (N), shape
     (n-1, npts); unloading ratio ``ru``, ``slack`` (m), eq. (8) stiffness ``ke`` and solid
@@ -178,16 +204,7 @@ cdef class HeavyHaulKernel:
 
     cdef inline double route(self, Py_ssize_t i, double x) noexcept nogil:
         """Eqs. (4)-(5): grade + curve force (N) on vehicle i at position x (m), from the route table."""
-        cdef Py_ssize_t lo = 0, hi = self.brk.shape[0], mid
-        while lo < hi:  # numpy.searchsorted(brk, x, side="right")
-            mid = (lo + hi) >> 1
-            if not (x < self.brk[mid]):
-                lo = mid + 1
-            else:
-                hi = mid
-        if lo == 0:
-            return 0.0 * self.weight[i]
-        return self.val[lo - 1] * self.weight[i]
+        return _route_n(self.brk, self.val, self.weight[i], x)
 
     cdef void _passive(self, const double* x, const double* v, const double* fc, const double* fa,
                        double* fi) noexcept nogil:

@@ -10,7 +10,7 @@ What is modelled (paper equation numbers in brackets; MODELS.md section 2):
 
 * locomotive traction / electric-brake envelopes (1)-(2): :class:`TractionEnvelope`;
 * basic running resistance per unit weight w = A + B v + C v² N/kN (3), grade i ‰ = i N/kN (4),
-  curve 600/R N/kN (5): :func:`basic_resistance_n`, :class:`Route`;
+  curve 600/R N/kN (5): :func:`basic_resistance_n`, :class:`canbrake.physics.route.Route`;
 * couplers with draft gears (7)-(9): :class:`CouplerBank` — a hysteretic spring with slack. The
   measured drop-hammer curves of Fig. 2 are not given as numbers, so the loading curve ``f_l`` and
   the unloading curve ``f_u = r_u · f_l`` are piecewise-linear (:class:`DraftGear`). Eq. (8)'s trial
@@ -23,7 +23,7 @@ What is modelled (paper equation numbers in brackets; MODELS.md section 2):
   brake pipe (apply and release waves), a first-order cylinder fill after the signal arrives; or ECP
   (each cylinder follows its own demand). The application rules of section 1.2 are the driver's
   (:class:`canbrake.control.li2024.LiDriver`).
-* disturbance (40): :func:`disturbance_n`.
+* disturbance (40): :func:`canbrake.physics.rail.disturbance_n`;
 * the whole as a :class:`canbrake.physics.contract.PlantModel`: :class:`HeavyHaulModel`.
 
 Integration: semi-implicit (symplectic) Euler with a fixed step, default 10 ms
@@ -33,13 +33,15 @@ stiffness, between two 100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.6
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Mapping
 
 import numpy as np
 
 from canbrake.physics._heavy_haul_kernel import AirKernel, GearKernel, HeavyHaulKernel
 from canbrake.physics.contract import PlantDiverged
+from canbrake.physics.rail import disturbance_n  # eq. (40), shared with the coupled plant
+from canbrake.physics.route import Route  # noqa: F401 - the line, shared with the coupled plant
 
 G = 9.81
 KMH = 1.0 / 3.6  # m/s per km/h
@@ -170,90 +172,6 @@ def basic_resistance_n(consist: Consist, v_mps: np.ndarray) -> np.ndarray:
     v = np.abs(np.asarray(v_mps, dtype=float)) / KMH
     w = consist.davis_a + consist.davis_b * v + consist.davis_c * v * v
     return w * consist.weight_kn
-
-
-# ------------------------------------------------------------------------------------ route
-@dataclass(frozen=True)
-class Route:
-    """Piecewise-constant grade and curvature along the line.
-
-    ``grade_start_m`` (ascending, first 0) and ``grade_permille`` (+ uphill) define grade segments;
-    ``curve_start_m``/``curve_end_m``/``curve_radius_m`` the curves. Beyond the last segment the
-    grade stays; before 0 the line is level and straight (the paper's assumption 3).
-    """
-
-    grade_start_m: np.ndarray
-    grade_permille: np.ndarray
-    curve_start_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    curve_end_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    curve_radius_m: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    length_m: float = np.inf
-
-    def __post_init__(self):
-        brk = np.unique(np.concatenate([[0.0], self.grade_start_m, self.curve_start_m, self.curve_end_m]))
-        mid = np.append(0.5 * (brk[1:] + brk[:-1]), brk[-1] + 1.0)
-        object.__setattr__(self, "_brk", brk)
-        object.__setattr__(self, "_val", self.grade_at(mid) + self.curve_permille_at(mid))
-
-    @classmethod
-    def from_table(cls, position_m, grade_permille, curve_radius_m) -> "Route":
-        """A route from a table of breakpoints (ascending ``position_m``, first 0): row r holds the grade
-        (‰, + uphill) and curve radius (m, 0 = straight) from its position to the next row's; the last row
-        marks the end of the route (its grade continues beyond it). Consecutive rows with equal grade
-        (equal radius) form one grade segment (one curve), so splitting a segment changes nothing."""
-        x = np.asarray(position_m, dtype=float)
-        g = np.asarray(grade_permille, dtype=float)
-        r = np.asarray(curve_radius_m, dtype=float)
-        if x.size < 2 or x[0] != 0.0 or np.any(np.diff(x) <= 0):
-            raise ValueError("route table: position_m must start at 0 and increase, with at least two rows")
-        if np.any(r < 0):
-            raise ValueError("route table: curve_radius_m must be >= 0 (0 = straight)")
-        keep = np.concatenate([[True], g[1:] != g[:-1]])
-        gs, gv = x[:-1][keep[:-1]], g[:-1][keep[:-1]]
-        cs, ce, cr = [], [], []
-        for i in range(x.size - 1):
-            if r[i] > 0:
-                if cs and ce[-1] == x[i] and cr[-1] == r[i]:
-                    ce[-1] = x[i + 1]
-                else:
-                    cs.append(x[i]); ce.append(x[i + 1]); cr.append(r[i])  # noqa: E702
-        return cls(grade_start_m=gs, grade_permille=gv, curve_start_m=np.asarray(cs, dtype=float),
-                   curve_end_m=np.asarray(ce, dtype=float), curve_radius_m=np.asarray(cr, dtype=float),
-                   length_m=float(x[-1]))
-
-    def total_permille_at(self, x_m: np.ndarray) -> np.ndarray:
-        """Grade + curve resistance per unit weight (N/kN) at positions ``x_m`` (table lookup)."""
-        idx = np.searchsorted(self._brk, x_m, side="right") - 1
-        return np.where(idx < 0, 0.0, self._val[np.clip(idx, 0, None)])
-
-    def grade_at(self, x_m: np.ndarray) -> np.ndarray:
-        """Grade (‰, + uphill) at positions ``x_m``."""
-        x = np.asarray(x_m, dtype=float)
-        idx = np.searchsorted(self.grade_start_m, x, side="right") - 1
-        g = self.grade_permille[np.clip(idx, 0, None)]
-        return np.where(idx < 0, 0.0, g)
-
-    def curve_permille_at(self, x_m: np.ndarray) -> np.ndarray:
-        """Curve resistance per unit weight 600/R (N/kN) at positions ``x_m``."""
-        x = np.asarray(x_m, dtype=float)
-        out = np.zeros_like(x)
-        for a, b, r in zip(self.curve_start_m, self.curve_end_m, self.curve_radius_m):
-            out = np.where((x >= a) & (x < b), 600.0 / r, out)
-        return out
-
-    def long_downgrade_ahead(self, x_front_m: float, x_rear_m: float, lookahead_m: float = 2500.0,
-                             min_grade_permille: float = 8.0, min_length_m: float = 500.0) -> bool:
-        """Is there a downgrade steeper than ``min_grade`` ‰ and longer than ``min_length`` m
-        overlapping [x_rear, x_front + lookahead]? (the application rule of section 1.2)."""
-        starts = self.grade_start_m
-        ends = np.append(starts[1:], self.length_m)
-        steep = (self.grade_permille < -min_grade_permille) & ((ends - starts) >= min_length_m)
-        overl = (ends > x_rear_m) & (starts < x_front_m + lookahead_m)
-        return bool(np.any(steep & overl))
-
-    def force_n(self, consist: Consist, x_m: np.ndarray) -> np.ndarray:
-        """Grade + curve resistance (N, + opposes forward motion / pulls downhill when negative)."""
-        return self.total_permille_at(x_m) * consist.weight_kn
 
 
 # ------------------------------------------------------------------------------------ couplers
@@ -542,18 +460,6 @@ class AirBrake:
         return self.kernel.step(3, 0.0, np.ascontiguousarray(v_mps, dtype=float), self.fill, z, z, z, z, 0.0, 0.0)
 
 
-# ------------------------------------------------------------------------------------ disturbance
-def disturbance_n(consist: Consist, t_s: float, v_mps: np.ndarray, on: np.ndarray,
-                  coef: tuple[float, float, float]) -> np.ndarray:
-    """Eq. (40), σ_i in N: m_i {c0 + c1 sin(t+1) + c2 ∛v [sin(2t+2) + cos(3t+1)]}, (c0, c1, c2) = ``coef``
-    (paper: 0.002, 0.001, 0.0003), on the vehicles where ``on`` is True (paper: the locomotive and
-    wagons 10, 20, ..., 100), zero elsewhere; v in m/s (SI reading)."""
-    v = np.abs(np.asarray(v_mps, dtype=float))
-    c0, c1, c2 = coef
-    acc = c0 + c1 * np.sin(t_s + 1.0) + c2 * np.cbrt(v) * (np.sin(2 * t_s + 2.0) + np.cos(3 * t_s + 1.0))
-    return np.where(on, consist.mass_kg * acc, 0.0)
-
-
 # ------------------------------------------------------------------------------------ plant model
 class HeavyHaulModel:
     """The heavy-haul consist as a :class:`canbrake.physics.contract.PlantModel` (eq. 16, SI).
@@ -628,7 +534,7 @@ class HeavyHaulModel:
         self.v = np.full(consist.n, float(v0_mps))
         # static initial tensions: each coupler carries the running + grade resistance behind it
         xs = x0_m - consist.distance_from_loco_m
-        res = basic_resistance_n(consist, self.v) + route.force_n(consist, xs)
+        res = basic_resistance_n(consist, self.v) + route.force_n(consist.weight_kn, xs)
         tension = np.cumsum(res[::-1])[::-1][1:]
         stretch = self.cp.set_static(tension)
         self.x = x0_m - np.concatenate([[0.0], np.cumsum(consist.spacing_m + stretch)])
@@ -690,7 +596,7 @@ class HeavyHaulModel:
         ab, cp = self.ab, self.cp
         dist = None
         if self.dist_on is not None:
-            dist = disturbance_n(self.c, self.t, self.v, self.dist_on, self.dist_coef)
+            dist = disturbance_n(self.c.mass_kg, self.t, self.v, self.dist_on, self.dist_coef)
         self._fill_before = ab.fill.copy()
         mode = ab.kernel_mode()
         fill_gain, pipe_gain = ab.gains(self.dt)

@@ -93,3 +93,14 @@ class DisturbanceForce:
         amp = _per_car(self.amplitude_n, n_cars, "amplitude_n")
         off = _per_car(self.offset_n, n_cars, "offset_n")
         return off + amp * math.sin(2.0 * math.pi * self.frequency_hz * (time_s - self.start_s) + self.phase_rad)
+
+
+def disturbance_n(mass_kg: np.ndarray, t_s: float, v_mps: np.ndarray, on: np.ndarray,
+                  coef: tuple[float, float, float]) -> np.ndarray:
+    """Li 2024 eq. (40), σ_i in N: m_i {c0 + c1 sin(t+1) + c2 ∛v [sin(2t+2) + cos(3t+1)]}, (c0, c1, c2) =
+    ``coef`` (paper: 0.002, 0.001, 0.0003), on the vehicles where ``on`` is True (paper: the locomotive
+    and wagons 10, 20, ..., 100), zero elsewhere; masses ``mass_kg`` (kg), v in m/s (SI reading)."""
+    v = np.abs(np.asarray(v_mps, dtype=float))
+    c0, c1, c2 = coef
+    acc = c0 + c1 * np.sin(t_s + 1.0) + c2 * np.cbrt(v) * (np.sin(2 * t_s + 2.0) + np.cos(3 * t_s + 1.0))
+    return np.where(on, mass_kg * acc, 0.0)

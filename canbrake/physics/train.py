@@ -62,7 +62,7 @@ from canbrake.physics.actuator import ActuatorState, BrakeActuator
 from canbrake.physics._brakes_kernel import EquipmentKernel
 from canbrake.physics import _adhesion_kernel
 from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets
-from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
+from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car, disturbance_n
 from canbrake.physics.resistance import DavisResistance, davis_1926
 from canbrake.physics.wheel_adhesion import WheelSet, _axle_array
 
@@ -118,6 +118,22 @@ class TrainPlant:
         the speeds; its block force acts on the car's body as a dissipative force like the running
         resistance (a car with wheelsets takes no air brake); ``air_braked``: which cars have rigging.
     grade_rad: track slope θ (rad), scalar, per car, or a function of the positions returning per-car θ.
+    route: a :class:`canbrake.physics.route.Route` (Li 2024 eqs. 4-5): grade i ‰ and curves 600/R N/kN
+        by position, (i + 600/R)·m g/1000 N on each car at its position every sub-step, an ordinary
+        force like the grade (not dissipative); ``line_rule`` (look-ahead m, steepest grade ‰, least
+        length m) is the line-data rule of :meth:`downgrade_ahead`.
+    static_couplers: at reset, the cars behind the first are placed so that each coupler carries the
+        running and line resistance of the cars behind it at the initial speeds (a draft gear on its
+        loading curve, ``CouplerBank.set_static``; Chen's coupler at Φ(Δl) = that tension), as the
+        heavy-haul model starts; the positions given are the nominal ones (Δl = 0).
+    electric_brake_envelope: cars with a traction envelope also have their brake effort capped at its
+        electric brake F_B(v) (Li 2024 eq. 2), every sub-step; ``loco_adhesion``: per car a
+        :class:`canbrake.physics.heavy_haul.LocoAdhesion` or None: that car's traction and brake
+        effort capped at μ(v)·m·g (the heavy-haul model's locomotive limits, in its order).
+    uncertainty: δ of Li 2024 eq. 16: every non-control force (couplers, resistance, grade, route, air
+        brake) acts as (1 + δ) times its nominal value (``passive_force_n`` stays nominal).
+    li_disturbance_on, li_disturbance_coef: Li 2024 eq. 40's disturbance σ_i(t)
+        (:func:`canbrake.physics.rail.disturbance_n`) on the cars where ``li_disturbance_on`` is True.
     curve_resistance_n: extra dissipative resistance per car (N), e.g. Chen's 0.004·m·D_c.
     actuator: :class:`BrakeActuator` (default ideal).
     rail: :class:`RailConditions` (base μ and events); default μ = 0.3 everywhere, no events.
@@ -167,6 +183,14 @@ class TrainPlant:
         draft_gears: Sequence[object | None] | None = None,
         air_brake: object | None = None,
         air_braked: Sequence[bool] | None = None,
+        route: object | None = None,
+        line_rule: tuple[float, float, float] = (2500.0, 8.0, 500.0),
+        static_couplers: bool = False,
+        electric_brake_envelope: bool = False,
+        loco_adhesion: Sequence[object | None] | None = None,
+        uncertainty: float = 0.0,
+        li_disturbance_on: Sequence[bool] | None = None,
+        li_disturbance_coef: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ) -> None:
         self.mass_kg = np.asarray(mass_kg, dtype=float).copy()
         n = self.mass_kg.size
@@ -262,6 +286,8 @@ class TrainPlant:
         if air_brake is not None:
             self._air0 = (air_brake.fill.copy(), air_brake.ecp_target.copy(), air_brake.last_force_n.copy(),  # type: ignore[attr-defined]
                           None if air_brake.pipe is None else air_brake.pipe_pressure_pa.copy())  # type: ignore[attr-defined]
+        self._li_parts(route, line_rule, static_couplers, electric_brake_envelope, loco_adhesion, uncertainty,
+                       li_disturbance_on, li_disturbance_coef)
         #: a stack of plants (stack_plants): arrays have a leading points axis
         self.stacked = False
         self._kern: CoupledKernel | None = None  # built at the first step
@@ -354,6 +380,8 @@ class TrainPlant:
             ab.applied, ab.t_apply, ab.t_release = False, -np.inf, -np.inf
             if pipe is not None:
                 ab.pipe_pressure_pa = pipe.copy()
+        if self.static_couplers:
+            self._place_static()
 
     @property
     def deflection_m(self) -> np.ndarray:
@@ -471,6 +499,8 @@ class TrainPlant:
             f = f - self._grade_force_fn(self.position_m)
         elif self._has_grade:
             f = f + self._grade_force
+        if self.route is not None:
+            f = f - self._route_force_n(self.position_m)
         return f
 
     def coupler_energy_j(self) -> float:
@@ -521,7 +551,7 @@ class TrainPlant:
         if cmd.shape != self.speed_mps.shape:
             raise ValueError(f"brake_command_n must have shape {self.speed_mps.shape}")
         if self.blending is not None or self.wheels is not None or self._gears is not None \
-                or self.air_brake is not None:
+                or self.air_brake is not None or self._li:
             return self._step_equipped(dt_s, cmd, wsp_release)
         n_sub = self._substeps(dt_s)
         h = dt_s / n_sub
@@ -632,12 +662,15 @@ class TrainPlant:
         dl = np.zeros(0)
         gears, gk = self._gears, self.gear_couplers
         air: Any = self.air_brake
+        held: np.ndarray | None = None  # the limited cars' force of the sub-step before (_loco_limited)
         for _ in range(n_sub):
             t = self.time_s
             self._update_rail(t)
             effort = act.advance(cmd, h)
             if self._env is not None:  # each car's traction within its envelope at its speed
                 effort = traction_capped(self._env, flat(v), flat(effort))
+            if self._limits:  # the locomotives' electric brake and adhesion (Li 2024), from the held force
+                effort = held = self._loco_limited(effort, v, held)
             dl = x[..., :-1] - x[..., 1:] - self.coupler_spacing_m
             rate = v[..., :-1] - v[..., 1:]
             phi = self.coupler_force_from_deflection(dl, rate)
@@ -648,14 +681,22 @@ class TrainPlant:
                 f = f - self.mass_kg * g * np.sin(np.asarray(self._grade_fn(x), dtype=float))
             elif self._has_grade:
                 f = f + self._grade_force
+            if self.route is not None:  # the line's grade and curves at each car's position
+                f = f - self._route_force_n(x)
+            if self.uncertainty != 0.0:  # δ on the non-control forces (Li 2024 eq. 16)
+                f = f * (1.0 + self.uncertainty)
             if self._dist:
                 f = f + self.external_force_n(t)
+            if self._li_dist is not None:  # Li 2024 eq. 40
+                f = f + disturbance_n(self.mass_kg, t, v, self._li_dist[0], self._li_dist[1])
             speed = np.abs(v)
             r = self._c_static + speed * (c1 + c2 * speed)
             if self._tab is not None:
                 r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], flat(speed), flat(r))
             if air is not None:  # the air brake's block force: dissipative on the body, as resistance
                 r = r + air.last_force_n
+            if self.uncertainty != 0.0:
+                r = r * (1.0 + self.uncertainty)
             # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake), compiled
             v_new, rail = kern.substep(h, blend_k, valve_k, flat(effort), flat(v), flat(f), flat(r), mass,
                                        flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve.reshape(-1),
@@ -677,6 +718,126 @@ class TrainPlant:
         self.accel_mps2 = acc
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+
+    # ------------------------------------------------------------------ Li 2024's line and locomotive (opt-in)
+    def _li_parts(self, route: object | None, line_rule: tuple[float, float, float], static_couplers: bool,
+                  electric_brake_envelope: bool, loco_adhesion: Sequence[object | None] | None, uncertainty: float,
+                  dist_on: Sequence[bool] | None, dist_coef: tuple[float, float, float]) -> None:
+        """Check and keep the heavy-haul model's parts (class docstring: route, static_couplers,
+        electric_brake_envelope, loco_adhesion, uncertainty, li_disturbance_*); ``self._li``: any of them."""
+        n = self.n_cars
+        self.route = route
+        self.line_rule = tuple(float(x) for x in line_rule)
+        if len(self.line_rule) != 3:
+            raise ValueError("line_rule must be (look-ahead m, grade permille, length m)")
+        if not -0.5 <= uncertainty <= 0.5:
+            raise ValueError(f"uncertainty must be in [-0.5, 0.5], got {uncertainty}")
+        self.uncertainty = float(uncertainty)
+        self._li_dist: tuple[np.ndarray, tuple[float, float, float]] | None = None
+        if dist_on is not None:
+            on = np.asarray(dist_on, dtype=bool)
+            if on.shape != (n,):
+                raise ValueError(f"li_disturbance_on must have one value per car ({n})")
+            coef = tuple(float(c) for c in dist_coef)
+            if len(coef) != 3:
+                raise ValueError("li_disturbance_coef must be (c0, c1, c2)")
+            self._li_dist = (on, coef)  # type: ignore[assignment]
+        self.static_couplers = bool(static_couplers)
+        if self.static_couplers and n > 1 and not np.all(self.coupler_spacing_m > 0):
+            raise ValueError("static_couplers needs the first car at the front (coupler_spacing_m > 0)")
+        self.electric_brake_envelope = bool(electric_brake_envelope)
+        env = self.traction_envelope
+        if self.electric_brake_envelope and env is None:
+            raise ValueError("electric_brake_envelope needs the cars' traction_envelope")
+        self.loco_adhesion = None if loco_adhesion is None else tuple(loco_adhesion)
+        if self.loco_adhesion is not None and len(self.loco_adhesion) != n:
+            raise ValueError(f"loco_adhesion must have one entry per car ({n}), got {len(self.loco_adhesion)}")
+        #: per limited car: (index, its envelope for the electric brake or None, its adhesion or None)
+        self._limits: list[tuple[int, Any, Any]] = []
+        for i in range(n):
+            e = env[i] if self.electric_brake_envelope and env is not None else None
+            a = None if self.loco_adhesion is None else self.loco_adhesion[i]
+            if e is not None or a is not None:
+                self._limits.append((i, e, a))
+        self._weight_kn = self.mass_kg * self.gravity_mps2 / 1000.0
+        #: any part the compiled coupled step lacks: the step with equipment (Python sub-steps) takes them
+        self._li = route is not None or self.uncertainty != 0.0 or self._li_dist is not None or bool(self._limits)
+
+    def _route_force_n(self, x: np.ndarray) -> np.ndarray:
+        """The route's grade + curve force per car at positions ``x`` (N, + opposes forward motion)."""
+        return self.route.force_n(self._weight_kn, x)  # type: ignore[attr-defined]
+
+    def downgrade_ahead(self) -> bool:
+        """Line data (the route's; a plant without one: False): a long downgrade under the train or
+        within the look-ahead of its front (:meth:`canbrake.physics.route.Route.long_downgrade_ahead`
+        with ``line_rule``); the train's rear is the first car's position less the nominal spacings."""
+        if self.route is None:
+            return False
+        look, g, length = self.line_rule
+        x0 = float(self.position_m[0])
+        return self.route.long_downgrade_ahead(x0, x0 - float(np.sum(self.coupler_spacing_m)), look, g,  # type: ignore[attr-defined]
+                                               length)
+
+    def _loco_limited(self, effort: np.ndarray, v: np.ndarray, held: np.ndarray | None) -> np.ndarray:
+        """``effort`` (N per car, + brakes) with each limited car's force, as traction u = −effort,
+        clipped into [−F_B(v), F_T(v)] of its envelope, then at ±μ(v)·m·g of its adhesion (the
+        heavy-haul model's ``saturate_n`` and ``_adhesion_limit``). As there, the command is clipped
+        at the period's first sub-step and the force so held (``held``: the previous sub-step's
+        result, None at the first) is clipped again at each later sub-step's speed: within a
+        period a limit that falls lowers the force, one that rises does not raise it again (the
+        traction control takes the command once per period)."""
+        out = np.array(effort, dtype=float)
+        for i, env, adh in self._limits:
+            u, vi = -float(out[i] if held is None else held[i]), float(v[i])
+            if env is not None:
+                u = env.saturate_n(u, vi)
+            if adh is not None:
+                cap = adh.mu(vi) * float(self.mass_kg[i]) * self.gravity_mps2
+                u = min(max(u, -cap), cap)
+            out[i] = -u
+        return out
+
+    def _place_static(self) -> None:
+        """Static initial couplers (``static_couplers``): coupler j carries the running, route and
+        grade resistance of the cars behind it at the initial speeds; each car behind the first is
+        moved back by the stretches ahead of it, the draft gears set on their loading curves."""
+        n = self.n_cars
+        if n < 2:
+            return
+        x0, v = self._x0, self._v0
+        speed = np.abs(v)
+        r = self._c_static + speed * (self.resistance.c1_n_per_mps + self.resistance.c2_n_per_mps2 * speed)
+        if self._tab is not None:
+            r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], np.ascontiguousarray(speed),
+                                      np.ascontiguousarray(r, dtype=float))
+        if self.route is not None:
+            r = r + self._route_force_n(x0)
+        if self._grade_fn is not None:
+            r = r + self._grade_force_fn(x0)
+        elif self._has_grade:
+            r = r - self._grade_force
+        tension = np.cumsum(r[::-1])[::-1][1:]
+        stretch = np.zeros(n - 1)
+        k = self.gear_couplers
+        if self._gears is not None:
+            stretch[k] = self._gears.set_static(tension[k])  # type: ignore[attr-defined]
+        chen = np.ones(n - 1, dtype=bool)
+        chen[k] = False
+        for j in np.flatnonzero(chen):  # κ(1 + εΔl²)Δl = T by Newton's method from the linear spring's T/κ
+            kap, eps, t = float(self.coupler_stiffness_n_per_m[j]), float(self.coupler_nonlinearity_per_m2[j]), \
+                float(tension[j])
+            d = t / kap
+            for _ in range(50):
+                step = (kap * (1.0 + eps * d * d) * d - t) / (kap * (1.0 + 3.0 * eps * d * d))
+                d -= step
+                if abs(step) <= 1e-12 * max(abs(d), 1e-9):
+                    break
+            if not abs(kap * (1.0 + eps * d * d) * d - t) <= 1e-6 * max(abs(t), 1.0) or \
+                    (eps < 0 and 3.0 * eps * d * d <= -1.0):
+                raise ValueError(f"static_couplers: coupler {j + 1} cannot carry the {t:.4g} N behind it "
+                                 "(beyond its force peak)")
+            stretch[j] = d
+        self.position_m = x0 - np.concatenate([[0.0], np.cumsum(stretch)])
 
     def _lag_factor(self, what: str, lag: float | tuple[float, ...] | np.ndarray, h: float) -> np.ndarray:
         """1 − exp(−h/lag) of a first-order lag (0 where lag = 0; s): one value, or one per car for
@@ -944,7 +1105,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
 
     p0 = plants[0]
     for p in plants:
-        if (not same_wheels(p.wheels, p0.wheels) or p._gears is not None or p.air_brake is not None
+        if (not same_wheels(p.wheels, p0.wheels) or p._gears is not None or p.air_brake is not None or p._li
                 or p._grade_fn is not None or not _substeps_fixed(p)
                 or not same(p.wsp_valve_lag_s, p0.wsp_valve_lag_s) or not same(p.wsp_max_vent_s, p0.wsp_max_vent_s)
                 or not same(p._tab, p0._tab) or not same(p._env, p0._env)
