@@ -171,17 +171,34 @@ def test_register_component_in_code() -> None:
 
 
 def test_a_combination_no_kernel_implements_is_one_line() -> None:
-    with pytest.raises(ScenarioError) as e:
-        load_scenario("chen2023_case1_fine_rail",
-                      overrides={"train.every_vehicle.wheels": {"model": "adhesion_limit", "mu": 0.3}})
+    from pydantic import BaseModel
+
+    @C.register_component("coupler", "test_spring")
+    class Spring(BaseModel):
+        model: str = "test_spring"
+        stiffness_n_per_m: float = 1e6
+
+    try:
+        with pytest.raises(ScenarioError) as e:
+            load_scenario("chen2023_case1_fine_rail", overrides={"train.every_vehicle.coupler": {"model": "test_spring"}})
+    finally:
+        C._REGISTRY["coupler"].pop("test_spring")
     msg = str(e.value)
     assert "\n" not in msg
     assert "train.vehicle_types.metro_car: no physics kernel implements this train yet: vehicle type metro_car has " \
-           "resistance=none, coupler=chen, brake=ideal, traction=none, wheels=adhesion_limit" in msg
+           "resistance=none, coupler=test_spring, brake=ideal, traction=none, wheels=none" in msg
     assert "coupled (TrainPlant) takes coupler chen|draft_gear|linear|none|rigid, brake air|electro_pneumatic|ideal|none" \
         in msg
     assert "heavy_haul (HeavyHaulModel) takes coupler draft_gear, brake air" in msg
     assert "AdhesionTrain" not in msg  # one plant for the elastic and the rigid trains
+
+
+def test_adhesion_limit_on_a_wagon_is_one_line() -> None:
+    with pytest.raises(ScenarioError) as e:
+        load_scenario("chen2023_case1_fine_rail",
+                      overrides={"train.every_vehicle.wheels": {"model": "adhesion_limit", "mu": 0.3}})
+    assert str(e.value) == ("--set train.every_vehicle.wheels: adhesion on vehicle type metro_car, which has no driven "
+                            "axles (no traction: a wagon); give it a traction envelope or leave wheels out")
 
 
 def test_rigid_and_elastic_couplers_do_not_mix_yet() -> None:
