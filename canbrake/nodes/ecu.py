@@ -238,17 +238,28 @@ class EcuNode(Node):
         the reference, and comes back here for the frames and moments this node acts on."""
         if type(msgs) is not list:
             msgs = list(msgs)
+        return self._take_batch(self._peers.feed, msgs, msgs.__getitem__, now)
+
+    def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
+        """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``), taken
+        by :meth:`~canbrake.bus._codec.PeerTable.feed_raw` without a ``can.Message`` per frame;
+        ``message(frames, i)`` makes one of image i for the frames this node's Python handles."""
+        return self._take_batch(self._peers.feed_raw, frames, lambda i: message(frames, i), now)
+
+    def _take_batch(self, feed: Any, batch: Any, message_at: Any, now: float) -> list[can.Message]:
+        """The frames of ``batch`` through ``feed`` (the peer table's compiled loop), acting where
+        it stops; ``message_at(i)``: frame i as a ``can.Message``."""
         out: list[can.Message] = []
-        feed, i, n = self._peers.feed, 0, len(msgs)
-        while i < n:
-            r = feed(msgs, i, self.k, self.phase)
+        i = 0
+        while True:
+            r = feed(batch, i, self.k, self.phase)
             ev, i = r & 7, r >> 3
             if ev == FEED_END:
                 break
             if ev == FEED_SYNC:  # the next period (the peer table has begun it)
                 self._start_period(self._peers.sync_tick)
             elif ev == FEED_FRAME:
-                out += self._handle_frame(msgs[i], now)
+                out += self._handle_frame(message_at(i), now)
                 if self.finished:
                     break
             elif ev == FEED_PHASE1:  # the last sensor page
@@ -262,7 +273,7 @@ class EcuNode(Node):
                 self.guard.reject("crc" if self._peers.last_code == REJECT_CRC else "counter")
                 self._count_peer_rejection()
             elif ev == FEED_HELD:
-                self._late_rx.append(msgs[i])
+                self._late_rx.append(message_at(i))
             else:  # FEED_ARM
                 self._arm_external(now)
             i += 1
