@@ -391,3 +391,32 @@ def test_recv_raw_slot_images_and_messages():
     finally:
         rx.shutdown()
         tx.shutdown()
+
+
+_LOCK_WAIT = r'''
+import fcntl, sys, threading, time, can
+ch = sys.argv[1]
+bus = can.Bus(interface="canbrake", channel=ch)
+other = open(bus.path, "rb")
+fcntl.flock(other, fcntl.LOCK_EX)  # the writer lock, held elsewhere (as remove_channel does)
+t = threading.Thread(target=lambda: bus.send(can.Message(arbitration_id=1, is_extended_id=False)))
+t.start()
+time.sleep(0.05)
+n = sum(range(200000))  # Python work in this thread while the send waits for the lock
+fcntl.flock(other, fcntl.LOCK_UN)
+t.join(10)
+assert not t.is_alive() and bus.stats().frames_sent == 1
+bus.shutdown()
+print("ok")
+'''
+
+
+def test_a_send_waiting_for_the_writer_lock_lets_other_threads_run():
+    """The compiled send waits for a writer lock held elsewhere without the GIL: the thread that
+    holds the lock (here the main thread, as remove_channel in a run's orchestrator with a
+    rogue sender thread) can go on and release it (a child process: a deadlock would hang)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _LOCK_WAIT, _chan()], capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == "ok", r.stderr

@@ -1000,6 +1000,32 @@ cdef class PeerTable:
             self.x_ref = _field_value(self._ref_pos, w, _swap64(w))
         return -1
 
+    def hold_copy(self, int64_t k, int64_t hold, int own):
+        """The peers' arrays for a controller that must not see lost peers: a copy of each of
+        ``values`` (same order) with NaN for every listened ECU whose newest value is more than
+        ``hold`` periods older than tick ``k`` (ECU index ``own`` counted as of tick k);
+        returns (the copies, whether one was dropped)."""
+        cdef dict out = {}
+        cdef double[::1] c
+        cdef int j, e, nlost = 0
+        cdef int64_t o
+        for j in range(self._nlistened):
+            e = self._listened[j]
+            o = k if e == own else self._origin[e]
+            if k - o > hold:
+                nlost += 1
+        for nm, arr in self.values.items():
+            cp = arr.copy()
+            if nlost:
+                c = cp
+                for j in range(self._nlistened):
+                    e = self._listened[j]
+                    o = k if e == own else self._origin[e]
+                    if k - o > hold:
+                        c[e] = NAN
+            out[nm] = cp
+        return out, nlost > 0
+
     def ages(self, int64_t k, double dt, int own, speed=None):
         """(age, fresh, max_age) at tick ``k``: per ECU the age in s of its newest value (own
         entry 0; inf for an ECU never heard whose speed, in ``speed`` (float64, (n,); None: the

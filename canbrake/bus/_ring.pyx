@@ -54,6 +54,7 @@ cdef extern from *:
 cdef extern from "<sys/file.h>" nogil:
     int flock(int fd, int op)
     int LOCK_EX
+    int LOCK_NB
     int LOCK_UN
 
 cdef extern from "<poll.h>" nogil:
@@ -646,8 +647,18 @@ cdef class Ring:
 
     # ------------------------------------------------------------ the node path: slot images
     cdef int _lock(self) except -1:
+        """The writer lock (``flock``) and the bus's thread lock, as memory.py's ``_lock``; a lock
+        held by another process is waited for without the GIL (its holder may be a thread of
+        this process that needs the GIL to release it)."""
+        cdef int r
         self.tlock.acquire()
-        while flock(self.lock_fd, LOCK_EX) != 0:
+        if flock(self.lock_fd, LOCK_EX | LOCK_NB) == 0:
+            return 0
+        while True:
+            with nogil:
+                r = flock(self.lock_fd, LOCK_EX)
+            if r == 0:
+                break
             if errno != EINTR:
                 self.tlock.release()
                 _os_error()

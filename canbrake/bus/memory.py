@@ -74,6 +74,16 @@ cost is the context switch), so the wake-up stays a FIFO, which any process can 
 
 :meth:`MemoryBus.recv_batch` hands a reader every accepted frame pending in one list (what
 repeated :meth:`MemoryBus.recv_filtered` calls would return, overrun errors at the same place).
+
+The node path (a lockstep ECU, :func:`canbrake.nodes.driver.drive`): :meth:`MemoryBus.recv_raw`
+is ``recv_batch`` done in one compiled call (:meth:`canbrake.bus._ring.Ring.recv_raw`: the
+fetch, the filters, the yield, the sleep under the writer lock, ``poll`` and the FIFO drain)
+that returns the frames as slot images, which the ECU's compiled feed reads without a
+``can.Message`` per frame; the read position and the FIFO state live in the ring for both ways
+of reading. A send that no reader holds back and that finds the reader table unchanged is one
+compiled call too (:meth:`~canbrake.bus._ring.Ring.send_fast`: lock, the backpressure checks,
+write, wake-up marks, FIFO bytes); anything else (a reader in the way, new readers, a FIFO not
+yet open, errors) takes the Python path below.
 """
 from __future__ import annotations
 
@@ -472,8 +482,18 @@ class MemoryBus(BusABC):
         for i in range(0, len(msgs), step):
             self._send_frames(msgs[i : i + step], timeout)
 
+    def send_burst(self, msgs: list[Message]) -> None:
+        """:meth:`send_many` of a node's frames of one phase (a list, possibly empty): the node
+        driver's path, without copying the list."""
+        if msgs:
+            if len(msgs) <= self._ring_n // 2:
+                self._send_frames(msgs, None)
+            else:
+                self.send_many(msgs)
+
     def _send_frames(self, msgs: Sequence[Message], timeout: Optional[float]) -> None:
-        self._check_open()
+        if not self._open or self._forked:
+            self._check_open()
         if self._state is BusState.PASSIVE:
             raise CanOperationError(f"canbrake bus {self._name!r} is passive (listen only)")
         if not msgs:
@@ -811,10 +831,17 @@ class MemoryBus(BusABC):
         read, filtered and waited for in one compiled call (:meth:`canbrake.bus._ring.Ring.recv_raw`).
         Same frames, order, waits, errors and counters as :meth:`recv_batch`. Once used, a bus is
         read this way (frames fetched for it elsewhere are kept as slot images)."""
+        ring = self._ring
         with self._rxlock:
+            if (self._raw_mode and not self._raw_carry and self._open and not self._forked
+                    and self._overrun_pending is None):  # the common case: nothing pending here
+                got = ring.recv_raw(-1.0 if timeout is None else max(0.0, timeout), min_frames)
+                if not ring.status:
+                    self._n_recv += len(got) // SLOT_BYTES
+                    return got
+                return self._raw_result(got, 0)
             self._check_open()
             self._raise_pending_overrun()
-            ring = self._ring
             if not self._raw_mode:
                 self._raw_mode = True
                 if self._rxbuf:  # frames fetched as messages before: the same bytes, first
@@ -834,24 +861,30 @@ class MemoryBus(BusABC):
             if carry:
                 got[:0] = self._raw_carry
                 self._raw_carry.clear()
-            status = ring.status
-            if status == 2:
-                raise self._closed_error()
-            if status == 1:  # frames were lost: those before the loss now, the error next
-                lost, cut = ring.lost, carry + ring.lost_at
-                self._n_lost += lost
-                self._n_overruns += 1
-                e = BusOverrunError(
-                    f"canbrake bus {self._name!r} overrun: this reader fell more than a ring "
-                    f"({self._ring_n} frames) behind and {lost} frame(s) were overwritten unread "
-                    "(read faster, enlarge ring_size, or open the bus with backpressure=True)", lost)
-                self._raw_carry[:] = got[cut:]
-                del got[cut:]
-                if not got:
-                    raise e
-                self._overrun_pending = e
-            self._n_recv += len(got) // SLOT_BYTES
-            return got
+            return self._raw_result(got, carry)
+
+    def _raw_result(self, got: bytearray, carry: int) -> bytearray:
+        """recv_raw's result after the ring's ``recv_raw`` gave ``got`` (after ``carry`` bytes
+        taken before): raises for a closed channel; a loss as recv_batch does."""
+        ring = self._ring
+        status = ring.status
+        if status == 2:
+            raise self._closed_error()
+        if status == 1:  # frames were lost: those before the loss now, the error next
+            lost, cut = ring.lost, carry + ring.lost_at
+            self._n_lost += lost
+            self._n_overruns += 1
+            e = BusOverrunError(
+                f"canbrake bus {self._name!r} overrun: this reader fell more than a ring "
+                f"({self._ring_n} frames) behind and {lost} frame(s) were overwritten unread "
+                "(read faster, enlarge ring_size, or open the bus with backpressure=True)", lost)
+            self._raw_carry[:] = got[cut:]
+            del got[cut:]
+            if not got:
+                raise e
+            self._overrun_pending = e
+        self._n_recv += len(got) // SLOT_BYTES
+        return got
 
     def raw_message(self, frames: bytes | bytearray, i: int) -> Message:
         """Slot image ``i`` of :meth:`recv_raw`'s ``frames`` as the ``can.Message`` that

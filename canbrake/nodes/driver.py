@@ -164,6 +164,7 @@ def _drive_raw(node: Node, bus: can.BusABC, recv_raw: Callable[..., bytearray], 
                next_check: float) -> None:
     """:func:`drive`'s loop for a node that takes the memory bus's slot images (same steps)."""
     message = bus.raw_message  # type: ignore[attr-defined]
+    send = getattr(bus, "send_burst", None) or (lambda msgs: _send_all(bus, msgs))
     while not node.finished:
         deadline = node.next_deadline()
         now = clock()
@@ -180,13 +181,13 @@ def _drive_raw(node: Node, bus: can.BusABC, recv_raw: Callable[..., bytearray], 
             continue
         now = clock()
         if frames:
-            _send_all(bus, handle_raw(frames, now, message))
+            send(handle_raw(frames, now, message))
             node.after_send()
         elif timeout == 0.0 and spin_s > 0.0:
             os.sched_yield()
         deadline = node.next_deadline()
         if deadline is not None and now >= deadline:
-            _send_all(bus, node.on_timer(now))
+            send(node.on_timer(now))
             node.after_send()
         if parent_pid is not None and (not frames or time.monotonic() >= next_check):
             next_check = time.monotonic() + idle_check_s

@@ -559,10 +559,8 @@ class EcuNode(Node):
         for nm in self._own_signals:  # this ECU's own entries
             table[nm][i] = sensors[nm]
         if self.peer_hold_periods is not None:  # lost peers are NaN for the controller: a copy
-            peers = {nm: arr.copy() for nm, arr in table.items()}
-            origin = self._peers.origin.tolist()
-            origin[i] = k
-            self._peer_fallback(origin, peers)
+            peers, dropped = self._peers.hold_copy(k, self.peer_hold_periods, i)  # (compiled)
+            self._count_fallback(dropped)
         else:
             peers = self._peer_views
         speed = peers["speed_mps"]
@@ -629,18 +627,14 @@ class EcuNode(Node):
         self._trace.append_dict([k, force], diag, self._diag_names, math.nan,  # type: ignore[union-attr]
                                 [max_age if max_age > -math.inf else math.inf, fresh])
 
-    def _peer_fallback(self, origin: list[int], peers: dict[str, np.ndarray]) -> None:
-        """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
-        the controller runs on its own sensors for them); counts entries and ticks in fallback."""
-        lost = [j for j in self._listened if self.k - origin[j] > self.peer_hold_periods]
-        if lost:
-            for arr in peers.values():
-                arr[lost] = np.nan
-        now = bool(lost)
-        if now and not self._in_fallback:
+    def _count_fallback(self, dropped: bool) -> None:
+        """Listened ECUs whose newest value is older than ``peer_hold_periods`` were dropped this
+        tick (NaN: the controller runs on its own sensors for them, see
+        :meth:`~canbrake.bus._codec.PeerTable.hold_copy`): count entries and ticks in fallback."""
+        if dropped and not self._in_fallback:
             self.stats.fallback_entries += 1
-        self.stats.fallback_ticks += int(now)
-        self._in_fallback = now
+        self.stats.fallback_ticks += int(dropped)
+        self._in_fallback = dropped
 
     def _last_vehicle(self) -> bool:
         return self.car >= getattr(self.layout, "n_vehicles", 10 ** 9)
