@@ -137,11 +137,23 @@ def _drain_one_by_one(bus):
         out.append(_event(m))
 
 
-def _drain_batches(bus):
+def _batch(bus, timeout, how="batch", min_frames=1):
+    """recv_batch, or recv_raw's slot images made messages (bus.raw_message)."""
+    if how == "batch":
+        return bus.recv_batch(timeout, min_frames)
+    raw = bus.recv_raw(timeout, min_frames)
+    assert len(raw) % shm.SLOT_BYTES == 0
+    return [bus.raw_message(raw, i) for i in range(len(raw) // shm.SLOT_BYTES)]
+
+
+_HOW = pytest.mark.parametrize("how", ["batch", "raw"])
+
+
+def _drain_batches(bus, how="batch"):
     out = []
     while True:
         try:
-            got = bus.recv_batch(0)
+            got = _batch(bus, 0, how)
         except BusOverrunError as e:
             out.append(("overrun", e.frames_lost))
             continue
@@ -150,7 +162,8 @@ def _drain_batches(bus):
         out.extend(_event(m) for m in got)
 
 
-def test_recv_batch_equals_repeated_recv_filtered_with_filters_and_own_frames():
+@_HOW
+def test_recv_batch_equals_repeated_recv_filtered_with_filters_and_own_frames(how):
     ch = _chan()
     filt = [{"can_id": 0x100, "can_mask": 0x700, "extended": False}, {"can_id": 0x5, "can_mask": 0xFF}]
     a = can.Bus(interface="canbrake", channel=ch, can_filters=filt, receive_own_messages=True)
@@ -162,7 +175,7 @@ def test_recv_batch_equals_repeated_recv_filtered_with_filters_and_own_frames():
         tx.send_many(msgs)
         a.send(can.Message(arbitration_id=0x101, data=b"own", is_extended_id=False))
         tx.send_many(msgs[::-1])
-        batches = _drain_batches(a)
+        batches = _drain_batches(a, how)
         single = _drain_one_by_one(b)
         # a receives its own frame (is_rx False) as well, b does not see a's frame as its own
         assert [e for e in batches if e[7] != b"own"] == [e for e in single if e[7] != b"own"]
@@ -177,7 +190,8 @@ def test_recv_batch_equals_repeated_recv_filtered_with_filters_and_own_frames():
             bus.shutdown()
 
 
-def test_recv_batch_overrun_comes_where_recv_filtered_raises_it():
+@_HOW
+def test_recv_batch_overrun_comes_where_recv_filtered_raises_it(how):
     """An overrun reader that fell more than a ring behind: the frames before the loss, then the
     error, then the frames after it, for both ways of reading."""
     ch = _chan()
@@ -194,34 +208,35 @@ def test_recv_batch_overrun_comes_where_recv_filtered_raises_it():
         assert _event(first_a) == _event(first_b)
         burst(4, 40)  # a ring is 16: frames 4..28 are overwritten unread
         ev_a = []
-        got = a.recv_batch(0)
+        got = _batch(a, 0, how)
         ev_a.extend(_event(m) for m in got)
         assert [int.from_bytes(e[7], "little") for e in ev_a] == [1, 2, 3]
         with pytest.raises(BusOverrunError) as err:
-            a.recv_batch(0)
+            _batch(a, 0, how)
         ev_a.append(("overrun", err.value.frames_lost))
-        ev_a += _drain_batches(a)
+        ev_a += _drain_batches(a, how)
         assert ev_a == _drain_one_by_one(b)
         assert ("overrun", 25) in ev_a
         sa, sb = a.stats(), b.stats()
         assert (sa.frames_received, sa.frames_lost, sa.overruns) == (sb.frames_received, sb.frames_lost, sb.overruns)
         # the error is raised once: recv after it goes on with the frames after the loss
         burst(100, 2)
-        assert [int.from_bytes(m.data, "little") for m in a.recv_batch(0)] == [100, 101]
+        assert [int.from_bytes(m.data, "little") for m in _batch(a, 0, how)] == [100, 101]
     finally:
         for bus in (a, b, tx):
             bus.shutdown()
 
 
-def test_recv_batch_waits_for_the_first_frame_and_times_out():
+@_HOW
+def test_recv_batch_waits_for_the_first_frame_and_times_out(how):
     ch = _chan()
     rx = can.Bus(interface="canbrake", channel=ch, can_filters=[{"can_id": 0x20, "can_mask": 0x7FF}])
     tx = can.Bus(interface="canbrake", channel=ch)
     try:
         t0 = time.monotonic()
-        assert rx.recv_batch(0.05) == []
+        assert _batch(rx, 0.05, how) == []
         assert time.monotonic() - t0 >= 0.05
-        assert rx.recv_batch(0) == []
+        assert _batch(rx, 0, how) == []
 
         def later():
             time.sleep(0.1)
@@ -231,9 +246,9 @@ def test_recv_batch_waits_for_the_first_frame_and_times_out():
 
         th = threading.Thread(target=later)
         th.start()
-        got = rx.recv_batch(5.0)
+        got = _batch(rx, 5.0, how)
         th.join()
-        got += rx.recv_batch(0)
+        got += _batch(rx, 0, how)
         assert [bytes(m.data) for m in got] == [b"\0", b"\1", b"\2"]
         assert rx.stats().frames_received == 3
     finally:
@@ -252,7 +267,8 @@ def _child_writer(channel: str, n: int, ready, done) -> None:
         done.set()
 
 
-def test_recv_batch_across_processes_protected_reader_gets_every_accepted_frame():
+@_HOW
+def test_recv_batch_across_processes_protected_reader_gets_every_accepted_frame(how):
     """A lockstep node's bus (backpressure="accepted") reading with recv_batch from another
     process's bursts on a 16-frame ring: every accepted frame in order, the flood on an id it
     filters out passes without an overrun, each recv_batch wakes on the first accepted frame."""
@@ -270,7 +286,7 @@ def test_recv_batch_across_processes_protected_reader_gets_every_accepted_frame(
         ready.set()
         got, batches = [], 0
         while len(got) < n:
-            batch = rx.recv_batch(60.0)
+            batch = _batch(rx, 60.0, how)
             assert batch, "no frame within 60 s"
             batches += 1
             got += [int.from_bytes(m.data, "little") for m in batch]
@@ -313,3 +329,94 @@ def test_merged_exact_filters_accept_exactly_what_the_filters_accept(std, ext, m
     for i in {x + d for x in ext | {0x1FFFFFFF, 0} for d in (-1, 0, 1)} - {-1, 0x20000000}:
         assert a.accepts(i, True) == b.accepts(i, True), hex(i)
     assert len(merged) <= len(c)
+
+
+@_HOW
+def test_recv_batch_min_frames_sleeps_until_that_many_accepted_frames_came(how):
+    """A reader waiting for 3 accepted frames sleeps through a rejected frame and the first two,
+    and is woken once, at the third; the ring wraps around several times meanwhile (16 slots)."""
+    ch = _chan()
+    rx = can.Bus(interface="canbrake", channel=ch, ring_size=16, backpressure="accepted",
+                 can_filters=[{"can_id": 0x40, "can_mask": 0x7FF, "extended": False}])
+    tx = can.Bus(interface="canbrake", channel=ch, ring_size=16)
+    try:
+        for rnd in range(3):
+            def later():
+                for i in range(3):
+                    time.sleep(0.03)
+                    tx.send_many([can.Message(arbitration_id=0x41, data=b"no", is_extended_id=False)] * 5)
+                    tx.send(can.Message(arbitration_id=0x40, data=bytes([rnd, i]), is_extended_id=False))
+
+            w0 = rx.stats().wakeups
+            th = threading.Thread(target=later)
+            th.start()
+            got = _batch(rx, 10.0, how, min_frames=3)
+            th.join()
+            assert [bytes(m.data) for m in got] == [bytes([rnd, i]) for i in range(3)]
+            assert rx.stats().wakeups - w0 == 1
+        st_ = rx.stats()
+        assert st_.frames_received == 9 and st_.frames_lost == 0 and tx.stats().frames_sent > 3 * 16
+    finally:
+        rx.shutdown()
+        tx.shutdown()
+
+
+def test_recv_raw_slot_images_and_messages():
+    """recv_raw's slot images: identifier, flags and data where the layout says, a rejected frame
+    left out, an out-of-range index refused; a bus read raw once gives messages again too."""
+    from canbrake.bus._ring import slot_frame
+
+    ch = _chan()
+    rx = can.Bus(interface="canbrake", channel=ch, can_filters=[{"can_id": 0x1ABCDE, "can_mask": 0x1FFFFFFF,
+                                                                 "extended": True}, {"can_id": 0x7, "can_mask": 0x7FF}])
+    tx = can.Bus(interface="canbrake", channel=ch)
+    try:
+        tx.send_many([can.Message(arbitration_id=0x1ABCDE, data=b"abc", is_extended_id=True),
+                      can.Message(arbitration_id=0x8, data=b"x", is_extended_id=False),
+                      can.Message(arbitration_id=0x7, data=bytes(range(8)), is_extended_id=False)])
+        raw = rx.recv_raw(0)
+        assert len(raw) == 2 * shm.SLOT_BYTES
+        assert slot_frame(raw, 0) == (0x1ABCDE, True, b"abc")
+        assert slot_frame(raw, 1) == (0x7, False, bytes(range(8)))
+        with pytest.raises(IndexError):
+            slot_frame(raw, 2)
+        with pytest.raises(IndexError):
+            rx.raw_message(raw, -1)
+        m = rx.raw_message(raw, 0)
+        assert (m.arbitration_id, m.is_extended_id, bytes(m.data), m.is_rx, m.channel) == (0x1ABCDE, True, b"abc",
+                                                                                          True, ch)
+        tx.send(can.Message(arbitration_id=0x7, data=b"again", is_extended_id=False))
+        assert [bytes(m.data) for m in rx.recv_batch(0)] == [b"again"]
+        assert rx.stats().frames_received == 3
+    finally:
+        rx.shutdown()
+        tx.shutdown()
+
+
+_LOCK_WAIT = r'''
+import fcntl, sys, threading, time, can
+ch = sys.argv[1]
+bus = can.Bus(interface="canbrake", channel=ch)
+other = open(bus.path, "rb")
+fcntl.flock(other, fcntl.LOCK_EX)  # the writer lock, held elsewhere (as remove_channel does)
+t = threading.Thread(target=lambda: bus.send(can.Message(arbitration_id=1, is_extended_id=False)))
+t.start()
+time.sleep(0.05)
+n = sum(range(200000))  # Python work in this thread while the send waits for the lock
+fcntl.flock(other, fcntl.LOCK_UN)
+t.join(10)
+assert not t.is_alive() and bus.stats().frames_sent == 1
+bus.shutdown()
+print("ok")
+'''
+
+
+def test_a_send_waiting_for_the_writer_lock_lets_other_threads_run():
+    """The compiled send waits for a writer lock held elsewhere without the GIL: the thread that
+    holds the lock (here the main thread, as remove_channel in a run's orchestrator with a
+    rogue sender thread) can go on and release it (a child process: a deadlock would hang)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-c", _LOCK_WAIT, _chan()], capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == "ok", r.stderr

@@ -22,7 +22,8 @@ from cpython.float cimport PyFloat_AS_DOUBLE, PyFloat_AsDouble, PyFloat_FromDoub
 from cpython.long cimport PyLong_AsDouble, PyLong_AsLongLongAndOverflow, PyLong_FromLongLong
 from cpython.object cimport PyObject
 from libc.math cimport INFINITY, NAN, isfinite, isinf, isnan, rint
-from libc.stdint cimport int64_t, uint8_t, uint64_t
+from libc.stdint cimport int64_t, uint8_t, uint32_t, uint64_t
+from libc.string cimport memcpy
 from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
 
 from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
@@ -576,6 +577,10 @@ DEF _REJECT = 4
 DEF _HELD = 5
 DEF _ARM = 6
 DEF _SYNC = 7
+# the memory bus's slot image (canbrake.bus.memory_shm, _ring): feed_raw
+DEF _SLOT_BYTES = 96
+DEF _DATA_OFFSET = 24
+DEF _MAX_DATA = 64
 
 
 cdef class PeerTable:
@@ -896,71 +901,130 @@ cdef class PeerTable:
         here, anything else goes to the node); frames of identifiers not routed are ignored."""
         cdef Py_ssize_t i, m = len(msgs)
         cdef PyObject* r
-        cdef long code
-        cdef int kind, idx, res, j, f
+        cdef int ev
         cdef const uint8_t* s
         cdef Py_ssize_t n
-        cdef uint64_t w, wb
-        cdef SensorPage* sp
-        cdef unsigned int aid
-        cdef int64_t t = 0
         for i in range(start, m):
             msg = msgs[i]
             aid_obj = msg.arbitration_id
             r = PyDict_GetItem(self._route, aid_obj)
             if r is NULL:
                 continue
-            code = <long><object>r
-            kind = code >> 24
-            idx = code & 0xFFFFFF
-            if kind == R_PY:
+            if (<long><object>r) >> 24 == R_PY:
                 return i << 3 | _FRAME
-            if kind == R_SYNC and msg.is_extended_id != (<unsigned int>aid_obj > 0x7FF):
-                continue  # not the SYNC: nothing of this node's
             data = msg.data
             if not _payload(data, &s, &n):
                 data = bytes(data)
                 _payload(data, &s, &n)
-            if kind == R_SYNC:
-                if _sync_code(s, n, k, phase == 2 or k < 0, self._lockstep, self._has_final, self._final_tick,
-                              False, &t) != _S_TICK:
-                    return i << 3 | _FRAME  # rejected, or the end: the node's verdict
-                self._new_tick()
-                self.sync_tick = t
-                return i << 3 | _SYNC
-            if kind == R_STATE:
-                j = self._pg[idx].j
-                if self._barrier and self._lockstep and phase != 2 and self._done[j]:
-                    return i << 3 | _HELD
-                aid = aid_obj
-                res = self._take(idx, aid, s, n, k)
-                if res < 0:
-                    self.last_code = res
-                    return i << 3 | _REJECT
-                if res == 2 and (not self._barrier or self._ext[j]):
-                    self._peer_done(j)
-                    if phase == 1:
-                        if self.missing == 0:
-                            return i << 3 | _PHASE2
-                        if self._any_ext:
-                            return i << 3 | _ARM
-            elif kind == R_SENSOR:
-                sp = &self._sp[idx]
-                w = _le_word(s, n)
-                wb = _swap64(w)
-                for f in range(sp.first, sp.first + sp.count):
-                    PyDict_SetItem(self._sensors, <object>self._sf[f].name, _field_value(self._sf[f].field, w, wb))
-                if sp.last:
-                    return i << 3 | _PHASE1
-            elif kind == R_REF:
-                w = _le_word(s, n)
-                wb = _swap64(w)
-                self.v_ref = _field_value(self._ref_speed, w, wb)
-                self.a_ref = _field_value(self._ref_decel, w, wb)
-            else:  # R_REF_POS
-                w = _le_word(s, n)
-                self.x_ref = _field_value(self._ref_pos, w, _swap64(w))
+            ev = self._feed_one(<long><object>r, aid_obj, msg.is_extended_id, s, n, k, phase)
+            if ev >= 0:
+                return i << 3 | ev
         return m << 3 | _END
+
+    def feed_raw(self, frames, Py_ssize_t start, int64_t k, int phase):
+        """:meth:`feed` for slot images (``canbrake.bus._ring``: the memory bus's ``recv_raw``;
+        identifier at byte 8, flags at 16 (bit 0 extended), data length at 18, data at 24 of
+        each 96-byte image): the same work, no ``can.Message``; the index is the image's."""
+        cdef const uint8_t[::1] v = frames
+        cdef Py_ssize_t i, m = v.shape[0] // _SLOT_BYTES
+        cdef const uint8_t* p
+        cdef PyObject* r
+        cdef uint32_t aid
+        cdef int ev
+        cdef Py_ssize_t n
+        if m == 0:
+            return start << 3 | _END
+        for i in range(start, m):
+            p = &v[i * _SLOT_BYTES]
+            memcpy(&aid, p + 8, 4)
+            aid_obj = aid
+            r = PyDict_GetItem(self._route, aid_obj)
+            if r is NULL:
+                continue
+            if (<long><object>r) >> 24 == R_PY:
+                return i << 3 | _FRAME
+            n = p[18] if p[18] <= _MAX_DATA else _MAX_DATA
+            ev = self._feed_one(<long><object>r, aid_obj, p[16] & 1, p + _DATA_OFFSET, n, k, phase)
+            if ev >= 0:
+                return i << 3 | ev
+        return m << 3 | _END
+
+    cdef int _feed_one(self, long code, object aid_obj, bint ext, const uint8_t* s, Py_ssize_t n, int64_t k,
+                       int phase) except -2:
+        """One routed frame (not R_PY) of :meth:`feed`: the event it ends the loop with, or -1."""
+        cdef int kind = code >> 24, idx = code & 0xFFFFFF, res, j, f
+        cdef uint64_t w, wb
+        cdef SensorPage* sp
+        cdef unsigned int aid
+        cdef int64_t t = 0
+        if kind == R_SYNC and ext != (<unsigned int>aid_obj > 0x7FF):
+            return -1  # not the SYNC: nothing of this node's
+        if kind == R_SYNC:
+            if _sync_code(s, n, k, phase == 2 or k < 0, self._lockstep, self._has_final, self._final_tick,
+                          False, &t) != _S_TICK:
+                return _FRAME  # rejected, or the end: the node's verdict
+            self._new_tick()
+            self.sync_tick = t
+            return _SYNC
+        if kind == R_STATE:
+            j = self._pg[idx].j
+            if self._barrier and self._lockstep and phase != 2 and self._done[j]:
+                return _HELD
+            aid = aid_obj
+            res = self._take(idx, aid, s, n, k)
+            if res < 0:
+                self.last_code = res
+                return _REJECT
+            if res == 2 and (not self._barrier or self._ext[j]):
+                self._peer_done(j)
+                if phase == 1:
+                    if self.missing == 0:
+                        return _PHASE2
+                    if self._any_ext:
+                        return _ARM
+        elif kind == R_SENSOR:
+            sp = &self._sp[idx]
+            w = _le_word(s, n)
+            wb = _swap64(w)
+            for f in range(sp.first, sp.first + sp.count):
+                PyDict_SetItem(self._sensors, <object>self._sf[f].name, _field_value(self._sf[f].field, w, wb))
+            if sp.last:
+                return _PHASE1
+        elif kind == R_REF:
+            w = _le_word(s, n)
+            wb = _swap64(w)
+            self.v_ref = _field_value(self._ref_speed, w, wb)
+            self.a_ref = _field_value(self._ref_decel, w, wb)
+        else:  # R_REF_POS
+            w = _le_word(s, n)
+            self.x_ref = _field_value(self._ref_pos, w, _swap64(w))
+        return -1
+
+    def hold_copy(self, int64_t k, int64_t hold, int own):
+        """The peers' arrays for a controller that must not see lost peers: a copy of each of
+        ``values`` (same order) with NaN for every listened ECU whose newest value is more than
+        ``hold`` periods older than tick ``k`` (ECU index ``own`` counted as of tick k);
+        returns (the copies, whether one was dropped)."""
+        cdef dict out = {}
+        cdef double[::1] c
+        cdef int j, e, nlost = 0
+        cdef int64_t o
+        for j in range(self._nlistened):
+            e = self._listened[j]
+            o = k if e == own else self._origin[e]
+            if k - o > hold:
+                nlost += 1
+        for nm, arr in self.values.items():
+            cp = arr.copy()
+            if nlost:
+                c = cp
+                for j in range(self._nlistened):
+                    e = self._listened[j]
+                    o = k if e == own else self._origin[e]
+                    if k - o > hold:
+                        c[e] = NAN
+            out[nm] = cp
+        return out, nlost > 0
 
     def ages(self, int64_t k, double dt, int own, speed=None):
         """(age, fresh, max_age) at tick ``k``: per ECU the age in s of its newest value (own

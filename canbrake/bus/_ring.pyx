@@ -21,14 +21,19 @@ Memory ordering: ``write_seq`` and the slots' sequence numbers are read with acq
 stored with release stores (plain ``mov`` on x86-64, whose total store order the protocol relies
 on; the atomics only stop the compiler from reordering).
 """
-from cpython.bytearray cimport PyByteArray_FromStringAndSize, PyByteArray_AS_STRING, PyByteArray_GET_SIZE
+from cpython.bytearray cimport (PyByteArray_FromStringAndSize, PyByteArray_AS_STRING, PyByteArray_GET_SIZE,
+                                PyByteArray_Resize)
 from cpython.bytes cimport PyBytes_AS_STRING, PyBytes_GET_SIZE, PyBytes_FromStringAndSize
 from cpython.buffer cimport PyObject_GetBuffer, PyBuffer_Release, PyBUF_WRITABLE, PyBUF_SIMPLE
 from cpython.object cimport PyObject
 from cpython.ref cimport Py_INCREF
 from libc.stdint cimport uint8_t, uint32_t, uint64_t, int64_t
 from libc.stdlib cimport malloc, free
-from libc.string cimport memcpy, memset
+from libc.math cimport ceil
+from libc.string cimport memcpy, memset, memmove, strerror
+from libc.errno cimport errno, EINTR, EAGAIN
+from posix.unistd cimport read as c_read, write as c_write
+from posix.time cimport clock_gettime, timespec, CLOCK_MONOTONIC
 
 from can import Message
 from can.exceptions import CanOperationError
@@ -45,6 +50,26 @@ cdef extern from *:
     """
     uint64_t cb_load(const char *p) noexcept nogil
     void cb_store(char *p, uint64_t v) noexcept nogil
+
+cdef extern from "<sys/file.h>" nogil:
+    int flock(int fd, int op)
+    int LOCK_EX
+    int LOCK_NB
+    int LOCK_UN
+
+cdef extern from "<poll.h>" nogil:
+    struct pollfd:
+        int fd
+        short events
+        short revents
+    int poll(pollfd *fds, unsigned long nfds, int timeout)
+    short POLLIN
+
+cdef extern from "<sched.h>" nogil:
+    int sched_yield()
+
+cdef extern from "Python.h":
+    int PyErr_CheckSignals() except -1
 
 cdef extern from "structmember.h":
     int T_OBJECT_EX
@@ -75,6 +100,10 @@ DEF E_WAKEUPS_BYTE = 88
 DEF E_WANT_BYTE = 104          # E_WANT (13): accepted frames a sleeping reader waits for
 DEF E_PENDING_BYTE = 112       # E_PENDING (14): accepted frames published since it slept
 DEF E_WAKE_ON_BYTE = 120       # E_WAKE_ON (15): 0, or 1 << 40 | ext << 31 | id: only that frame wakes it
+DEF READER_GEN_BYTE = 128      # header word H_READER_GEN (16)
+DEF TX_WAITERS_BYTE = 144      # header word H_TX_WAITERS (18)
+DEF CLOSED_BYTE = 152          # header word H_CLOSED (19)
+DEF E_READ_SEQ_BYTE = 64       # E_READ_SEQ (8)
 DEF M_EXT = 1
 DEF M_RTR = 2
 DEF M_ERR = 4
@@ -87,7 +116,8 @@ LAYOUT = {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_
           "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": WRITE_SEQ_BYTE // 8,
           "H_SLEEPERS": SLEEPERS_BYTE // 8, "E_SLEEPING": E_SLEEPING_BYTE // 8,
           "E_WAKE_SEQ": E_WAKE_SEQ_BYTE // 8, "E_WAKEUPS": E_WAKEUPS_BYTE // 8,
-          "E_WANT": E_WANT_BYTE // 8, "E_PENDING": E_PENDING_BYTE // 8, "E_WAKE_ON": E_WAKE_ON_BYTE // 8}
+          "E_WANT": E_WANT_BYTE // 8, "E_PENDING": E_PENDING_BYTE // 8, "E_WAKE_ON": E_WAKE_ON_BYTE // 8,
+          "H_TX_WAITERS": TX_WAITERS_BYTE // 8, "H_READER_GEN": READER_GEN_BYTE // 8, "H_CLOSED": CLOSED_BYTE // 8, "E_READ_SEQ": E_READ_SEQ_BYTE // 8}
 
 # python-can's Message has __slots__ and an __init__ that, given a bytearray and a dlc, only
 # stores its arguments. Setting the slots directly on a new object gives the same object for
@@ -292,6 +322,26 @@ cdef class Ring:
     cdef int64_t n
     cdef uint32_t token
     cdef object channel
+    # ---- the reader (attach): memory.py's receive state lives here, read by both paths
+    #: this bus's read position (the next seq it has not looked at)
+    cdef public int64_t seq
+    #: a wake-up byte of a past sleep may still sit in the reader's FIFO
+    cdef public bint fifo_dirty
+    #: a receive is blocked (or about to block) in this bus
+    cdef public bint in_recv
+    #: the acceptance filters (None: every frame)
+    cdef public Filters filters
+    cdef int64_t e_off         # the reader entry's byte offset (-1: not attached)
+    cdef int lock_fd, rx_fd
+    cdef int rmode             # 0 overrun, 1 backpressure, 2 protected reader
+    cdef bint own, yield_first
+    cdef object tlock, publish
+    #: recv_raw's counters: sleeps, wake-ups that found nothing, (protected) frames passed unseen
+    cdef readonly int64_t n_sleeps, n_spurious, n_passed
+    #: recv_raw's last result: 0 frames (or the timeout), 1 frames were lost (``lost`` of them,
+    #: the frames before byte ``lost_at`` of its result were read before the loss), 2 closed
+    cdef readonly int status
+    cdef readonly int64_t lost, lost_at
 
     def __cinit__(self, buf, Py_ssize_t ring_off, Py_ssize_t ring_size, uint32_t token, channel):
         PyObject_GetBuffer(buf, &self.view, PyBUF_WRITABLE)
@@ -304,9 +354,25 @@ cdef class Ring:
         self.off, self.n, self.mask = ring_off, ring_size, <uint64_t>(ring_size - 1)
         self.token = token
         self.channel = channel
+        self.e_off = -1
+        self.lock_fd = self.rx_fd = -1
+
+    def attach(self, int64_t entry_word, int lock_fd, int rx_fd, tlock, publish, int mode, bint own,
+               bint yield_first):
+        """Make this the receive side of a bus (:meth:`recv_raw`): its reader entry (first word),
+        the channel file's descriptor (the writer lock, ``flock``) and the thread lock taken with
+        it, its wake-up FIFO, ``publish()`` (publishes the read position when senders wait for
+        it), the reader ``mode`` (0 overrun, 1 backpressure, 2 protected), whether it receives
+        its own frames and yields the CPU once before sleeping."""
+        self._check()
+        self.e_off = entry_word * 8
+        self.lock_fd, self.rx_fd = lock_fd, rx_fd
+        self.tlock, self.publish = tlock, publish
+        self.rmode, self.own, self.yield_first = mode, own, yield_first
 
     def release(self) -> None:
         """Give the mapping back (before ``mmap.close``); the ring is unusable afterwards."""
+        self.publish = self.tlock = None  # (a bound method of the bus: no cycle kept)
         if self.held:
             PyBuffer_Release(&self.view)
             self.held = False
@@ -437,6 +503,57 @@ cdef class Ring:
             out.append(tok)
         return out
 
+    def send_fast(self, bytes frames, int64_t peers_gen, list bp, pr_floor, list peers, dict wake_fds):
+        """A burst's way onto the ring when nothing holds it back, in one call (memory.py's
+        ``_send_frames`` does the rest): under the writer lock, if the reader table is still
+        generation ``peers_gen``, no backpressure reader in ``bp`` (entry words) would be
+        overrun and no protected reader could be (``pr_floor``: the lowest position of one, None:
+        there is none), write the slot images ``frames``, skip this reader past its own frames
+        (as ``_send_frames``), mark the sleeping ``peers`` that accept them (:meth:`wake`); then,
+        unlocked, write a wake-up byte to each one's FIFO found in ``wake_fds`` ((token, "rx") ->
+        fd). Returns the tokens still to wake (no FIFO open yet, or a write that failed), or None
+        if it did nothing (the channel closed, the readers changed, or a reader in the way)."""
+        self._check()
+        cdef int64_t k = PyBytes_GET_SIZE(frames) // SLOT_BYTES, w, pos, b
+        cdef char *e
+        cdef list wake
+        cdef list rest = []
+        cdef ssize_t r
+        cdef char one = 1
+        self._lock()
+        try:
+            if cb_load(self.mem + CLOSED_BYTE) or <int64_t>cb_load(self.mem + READER_GEN_BYTE) != peers_gen:
+                return None
+            w = <int64_t>cb_load(self.mem + WRITE_SEQ_BYTE)
+            for bo in bp:
+                b = bo
+                e = self.mem + b * 8
+                if cb_load(e + E_SLEEPING_BYTE):
+                    pos = <int64_t>cb_load(e + E_WAKE_SEQ_BYTE) if cb_load(e + E_PENDING_BYTE) else w
+                else:
+                    pos = max(<int64_t>cb_load(e + E_READ_SEQ_BYTE), <int64_t>cb_load(e + E_WAKE_SEQ_BYTE))
+                if w + k - pos > self.n:
+                    return None
+            if pr_floor is not None and w + k - self.n > <int64_t>pr_floor:
+                return None
+            self.write(frames, w)
+            if not self.own and not self.in_recv and self.seq == w and self.e_off >= 0:
+                # our reader is caught up and never receives its own frames: skip them
+                self.seq = w + k
+                cb_store(self.mem + self.e_off + E_READ_SEQ_BYTE, <uint64_t>(w + k))
+            wake = self.wake(peers, frames, w)
+        finally:
+            self._unlock()
+        for tok in wake:
+            fd = wake_fds.get((tok, "rx"))
+            if fd is None:
+                rest.append(tok)
+                continue
+            r = c_write(<int>fd, &one, 1)
+            if r < 0 and errno != EAGAIN:  # (EAGAIN: the FIFO is full, a wake-up is pending anyway)
+                rest.append(tok)
+        return rest
+
     def protected_hit(self, int64_t start, int64_t end, uint32_t token, bint own, Filters filters) -> bool:
         """True if seqs ``start .. end-1`` hold a frame the reader with ``token`` (receiving its
         own frames if ``own``; ``filters`` None accepts all) would be delivered."""
@@ -527,3 +644,292 @@ cdef class Ring:
                 del out[first : first + cut]
             w = max(w, valid_from)
         return w, lost, passed
+
+    # ------------------------------------------------------------ the node path: slot images
+    cdef int _lock(self) except -1:
+        """The writer lock (``flock``) and the bus's thread lock, as memory.py's ``_lock``; a lock
+        held by another process is waited for without the GIL (its holder may be a thread of
+        this process that needs the GIL to release it)."""
+        cdef int r
+        self.tlock.acquire()
+        if flock(self.lock_fd, LOCK_EX | LOCK_NB) == 0:
+            return 0
+        while True:
+            with nogil:
+                r = flock(self.lock_fd, LOCK_EX)
+            if r == 0:
+                break
+            if errno != EINTR:
+                self.tlock.release()
+                _os_error()
+            try:
+                PyErr_CheckSignals()
+            except BaseException:
+                self.tlock.release()
+                raise
+        return 0
+
+    cdef int _unlock(self) except -1:
+        cdef int r = flock(self.lock_fd, LOCK_UN)
+        self.tlock.release()
+        if r != 0:
+            _os_error()
+        return 0
+
+    cdef bint _drain_fifo(self) except -1:
+        cdef char b[4096]
+        cdef ssize_t r
+        while True:
+            r = c_read(self.rx_fd, b, 4096)
+            if r >= 0:
+                return r > 0
+            if errno == EINTR:
+                PyErr_CheckSignals()
+                continue
+            if errno == EAGAIN:
+                return False
+            _os_error()
+
+    cdef int _fetch_raw(self, bytearray acc) except -1:
+        """Append the slot images of every new frame this reader accepts to ``acc`` (the slot's
+        sequence word holds its seq) and move ``seq``; 0 nothing new, 1 fetched, 2 frames were
+        lost (``lost``, ``lost_at``: where this fetch's frames begin), 3 the channel is closed."""
+        if cb_load(self.mem + CLOSED_BYTE):
+            return 3
+        cdef int64_t s = self.seq
+        cdef int64_t w = <int64_t>cb_load(self.mem + WRITE_SEQ_BYTE)
+        if w == s:
+            return 0
+        cdef bint protect = self.rmode == 2
+        cdef int64_t slack = 0 if self.rmode else 1
+        cdef int64_t start = max(s, w - self.n + slack)
+        cdef Py_ssize_t base = PyByteArray_GET_SIZE(acc), k = 0, cut = 0
+        cdef int64_t seq, valid_from, lost = 0, sq
+        cdef const char *p
+        cdef char *dst
+        cdef uint32_t aid, tok
+        cdef Filters filters = self.filters
+        PyByteArray_Resize(acc, base + (w - start) * SLOT_BYTES)
+        dst = PyByteArray_AS_STRING(acc) + base
+        for seq in range(start, w):
+            p = self._slot(seq)
+            memcpy(&tok, p + 12, 4)
+            if tok == self.token and not self.own:
+                continue
+            if filters is not None:
+                memcpy(&aid, p + 8, 4)
+                if not filters._accepts(aid, (<uint8_t>p[16]) & M_EXT):
+                    continue
+            memcpy(dst + k * SLOT_BYTES, p, SLOT_SEQ_OFFSET)
+            if protect and cb_load(p + SLOT_SEQ_OFFSET) != <uint64_t>seq:
+                continue  # overwritten while we looked: it was a frame we do not accept
+            memcpy(dst + k * SLOT_BYTES + SLOT_SEQ_OFFSET, &seq, 8)
+            k += 1
+        # seqlock-style check: a slot may have been overwritten while we copied it
+        valid_from = <int64_t>cb_load(self.mem + WRITE_SEQ_BYTE) - self.n + slack
+        if protect:
+            if valid_from > s:  # frames it does not accept went by unseen: no loss, as on a CAN filter
+                self.n_passed += valid_from - s
+        elif valid_from > s:
+            lost = valid_from - s
+            while cut < k:
+                memcpy(&sq, dst + cut * SLOT_BYTES + SLOT_SEQ_OFFSET, 8)
+                if sq >= valid_from:
+                    break
+                cut += 1
+            if cut:
+                memmove(dst, dst + cut * SLOT_BYTES, (k - cut) * SLOT_BYTES)
+                k -= cut
+            w = max(w, valid_from)
+        PyByteArray_Resize(acc, base + k * SLOT_BYTES)
+        self.seq = w
+        if self.rmode == 0 or not cb_load(self.mem + TX_WAITERS_BYTE):
+            cb_store(self.mem + self.e_off + E_READ_SEQ_BYTE, <uint64_t>w)  # see memory.py
+        else:
+            self.publish()
+        if lost:
+            self.lost, self.lost_at = lost, base
+            return 2
+        return 1
+
+    cdef int _sleep_raw(self, double deadline) except -1:
+        """memory.py's ``_sleep``: block until a writer wakes this reader or ``deadline``
+        (monotonic s; < 0 never) passes, then position ``seq``."""
+        cdef char *e = self.mem + self.e_off
+        cdef bint got_byte = False, events
+        cdef pollfd pfd
+        cdef int r, ms
+        cdef double left
+        while True:
+            if deadline < 0:
+                ms = -1
+            else:
+                left = deadline - _monotonic()
+                if left <= 0:
+                    break
+                ms = <int>ceil(left * 1000)
+            pfd.fd, pfd.events, pfd.revents = self.rx_fd, POLLIN, 0
+            with nogil:
+                r = poll(&pfd, 1, ms)
+            if r < 0:
+                if errno != EINTR:
+                    _os_error()
+                PyErr_CheckSignals()
+                continue
+            events = r > 0
+            if events:
+                got_byte = self._drain_fifo() or got_byte
+            if not cb_load(e + E_SLEEPING_BYTE):
+                # woken: the writer stored wake_seq before clearing the flag
+                self.seq = max(self.seq, <int64_t>cb_load(e + E_WAKE_SEQ_BYTE))
+                self.fifo_dirty = not got_byte
+                return 0
+            if cb_load(self.mem + CLOSED_BYTE):
+                break
+            if events:
+                self.n_spurious += 1
+        self._lock()
+        try:
+            if cb_load(e + E_SLEEPING_BYTE):  # never woken: nothing, or fewer frames than it waits for
+                cb_store(e + E_SLEEPING_BYTE, 0)
+                cb_store(self.mem + SLEEPERS_BYTE, cb_load(self.mem + SLEEPERS_BYTE) - 1)
+                self.seq = max(self.seq, <int64_t>(cb_load(e + E_WAKE_SEQ_BYTE) if cb_load(e + E_PENDING_BYTE)
+                                                   else cb_load(self.mem + WRITE_SEQ_BYTE)))
+            else:  # woken just now: its byte may still be on its way
+                self.seq = max(self.seq, <int64_t>cb_load(e + E_WAKE_SEQ_BYTE))
+                self.fifo_dirty = True
+        finally:
+            self._unlock()
+        return 0
+
+    cdef int _wait_raw(self, bytearray acc, double deadline, bint poll_only, int64_t want) except -1:
+        """memory.py's ``_recv_locked`` for slot images: fetch, else (unless ``poll_only``) yield
+        once, then sleep until ``want`` accepted frames have come or ``deadline``; the
+        :meth:`_fetch_raw` result (0: the timeout)."""
+        cdef Py_ssize_t before = PyByteArray_GET_SIZE(acc)
+        cdef int r = self._fetch_raw(acc)
+        cdef bint idle
+        cdef char *e = self.mem + self.e_off
+        if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
+            return r
+        if poll_only:
+            return 0
+        self.in_recv = True
+        try:
+            if self.yield_first:  # let runnable peers on this CPU produce first: often no sleep needed
+                sched_yield()
+                r = self._fetch_raw(acc)
+                if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
+                    return r
+            while True:
+                if self.fifo_dirty:  # a wake-up byte may still be on its way from a past sleep
+                    self._drain_fifo()
+                    self.fifo_dirty = False
+                self._lock()
+                try:
+                    idle = <int64_t>cb_load(self.mem + WRITE_SEQ_BYTE) == self.seq
+                    if idle:
+                        cb_store(e + E_WANT_BYTE, <uint64_t>want)
+                        cb_store(e + E_PENDING_BYTE, 0)
+                        cb_store(e + E_SLEEPING_BYTE, 1)
+                        cb_store(self.mem + SLEEPERS_BYTE, cb_load(self.mem + SLEEPERS_BYTE) + 1)
+                finally:
+                    self._unlock()
+                if idle:
+                    self.n_sleeps += 1
+                    try:
+                        self._sleep_raw(deadline)
+                    except BaseException:
+                        self.fifo_dirty = True
+                        self._lock()
+                        try:
+                            if cb_load(e + E_SLEEPING_BYTE):
+                                cb_store(e + E_SLEEPING_BYTE, 0)
+                                cb_store(self.mem + SLEEPERS_BYTE, cb_load(self.mem + SLEEPERS_BYTE) - 1)
+                        finally:
+                            self._unlock()
+                        raise
+                r = self._fetch_raw(acc)
+                if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
+                    return r
+                if deadline >= 0 and _monotonic() >= deadline:
+                    return 0
+        finally:
+            self.in_recv = False
+
+    def recv_raw(self, double timeout, int64_t min_frames=1) -> bytearray:
+        """The node path of ``MemoryBus.recv_batch``: the slot images (``SLOT_BYTES`` each, see
+        :func:`slot_frame`) of every accepted frame pending, oldest first; if fewer than
+        ``min_frames`` (capped at half the ring) are, sleep until they have come (the writers
+        count them) or ``timeout`` s (< 0: forever, 0: poll) have passed. ``status`` says how it
+        ended (see there); the caller raises for a loss or a closed channel."""
+        self._check()
+        if self.e_off < 0:
+            raise ValueError("the ring has no reader attached")
+        cdef bytearray acc = bytearray()
+        cdef double deadline = -1.0 if timeout < 0 else _monotonic() + timeout
+        cdef int64_t want = max(1, min(min_frames, self.n // 2)), got
+        cdef int r = self._fetch_raw(acc)
+        self.status = 0
+        while r < 2:
+            got = PyByteArray_GET_SIZE(acc) // SLOT_BYTES
+            if got >= want:
+                return acc
+            r = self._wait_raw(acc, deadline, timeout == 0, want - got)
+            if r == 0:  # the timeout
+                return acc
+        self.status = r - 1
+        return acc
+
+    def fetch_raw(self, bytearray acc) -> int:
+        """Append the slot images of the new frames this reader accepts to ``acc``, without
+        waiting: 0 nothing new, 1 fetched, 2 frames were lost (``lost``, ``lost_at``), 3 closed."""
+        self._check()
+        if self.e_off < 0:
+            raise ValueError("the ring has no reader attached")
+        return self._fetch_raw(acc)
+
+    def message(self, frames, Py_ssize_t i):
+        """Slot image ``i`` of ``frames`` (:meth:`recv_raw`) as the ``can.Message`` the bus's
+        ``recv`` gives for it."""
+        cdef const uint8_t[::1] v = frames
+        if i < 0 or (i + 1) * SLOT_BYTES > v.shape[0]:
+            raise IndexError(f"slot image {i} of {v.shape[0] // SLOT_BYTES}")
+        cdef const char *p = <const char *>&v[i * SLOT_BYTES]
+        cdef double ts
+        cdef uint32_t aid, tok
+        cdef uint8_t ln = <uint8_t>p[18]
+        memcpy(&ts, p, 8)
+        memcpy(&aid, p + 8, 4)
+        memcpy(&tok, p + 12, 4)
+        if ln > MAX_DATA:
+            ln = MAX_DATA
+        return _message(ts, aid, (<uint8_t>p[16]) & 63, <uint8_t>p[17],
+                        PyByteArray_FromStringAndSize(p + DATA_OFFSET, ln), self.channel, tok != self.token)
+
+    def messages(self, frames) -> list:
+        """Every slot image of ``frames`` as :meth:`message` gives it."""
+        return [self.message(frames, i) for i in range(len(frames) // SLOT_BYTES)]
+
+
+cdef int _os_error() except -1:
+    cdef int e = errno
+    raise OSError(e, strerror(e).decode())
+
+
+cdef inline double _monotonic() noexcept nogil:
+    cdef timespec t
+    clock_gettime(CLOCK_MONOTONIC, &t)
+    return <double>t.tv_sec + <double>t.tv_nsec * 1e-9
+
+
+def slot_frame(frames, Py_ssize_t i):
+    """``(arbitration_id, extended, data)`` of slot image ``i`` of ``frames`` (tests, tools)."""
+    cdef const uint8_t[::1] v = frames
+    if i < 0 or (i + 1) * SLOT_BYTES > v.shape[0]:
+        raise IndexError(f"slot image {i} of {v.shape[0] // SLOT_BYTES}")
+    cdef const char *p = <const char *>&v[i * SLOT_BYTES]
+    cdef uint32_t aid
+    memcpy(&aid, p + 8, 4)
+    cdef uint8_t ln = min(<uint8_t>p[18], MAX_DATA)
+    return aid, bool((<uint8_t>p[16]) & M_EXT), bytes(p[DATA_OFFSET:DATA_OFFSET + ln])

@@ -74,6 +74,16 @@ cost is the context switch), so the wake-up stays a FIFO, which any process can 
 
 :meth:`MemoryBus.recv_batch` hands a reader every accepted frame pending in one list (what
 repeated :meth:`MemoryBus.recv_filtered` calls would return, overrun errors at the same place).
+
+The node path (a lockstep ECU, :func:`canbrake.nodes.driver.drive`): :meth:`MemoryBus.recv_raw`
+is ``recv_batch`` done in one compiled call (:meth:`canbrake.bus._ring.Ring.recv_raw`: the
+fetch, the filters, the yield, the sleep under the writer lock, ``poll`` and the FIFO drain)
+that returns the frames as slot images, which the ECU's compiled feed reads without a
+``can.Message`` per frame; the read position and the FIFO state live in the ring for both ways
+of reading. A send that no reader holds back and that finds the reader table unchanged is one
+compiled call too (:meth:`~canbrake.bus._ring.Ring.send_fast`: lock, the backpressure checks,
+write, wake-up marks, FIFO bytes); anything else (a reader in the way, new readers, a FIFO not
+yet open, errors) takes the Python path below.
 """
 from __future__ import annotations
 
@@ -140,7 +150,9 @@ __all__ = ["MemoryBus", "MemoryBusStats", "remove_channel", "list_channels", "ch
 if _RING_LAYOUT != {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_DATA,
                     "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": H_WRITE_SEQ, "H_SLEEPERS": H_SLEEPERS,
                     "E_SLEEPING": E_SLEEPING, "E_WAKE_SEQ": E_WAKE_SEQ, "E_WAKEUPS": E_WAKEUPS,
-                    "E_WANT": E_WANT, "E_PENDING": E_PENDING, "E_WAKE_ON": E_WAKE_ON}:
+                    "E_WANT": E_WANT, "E_PENDING": E_PENDING, "E_WAKE_ON": E_WAKE_ON,
+                    "H_TX_WAITERS": H_TX_WAITERS, "H_CLOSED": H_CLOSED, "E_READ_SEQ": E_READ_SEQ,
+                    "H_READER_GEN": H_READER_GEN}:
     raise ImportError(f"canbrake.bus._ring was built for another slot layout ({_RING_LAYOUT}): "
                       "rebuild canbrake (pip install .)")
 _WAIT_SLICE_S = 0.1  # a writer blocked by a backpressure reader re-checks that reader's pid this often
@@ -264,8 +276,9 @@ class MemoryBus(BusABC):
         self._n_passed = 0  # protected reader: frames it does not accept, overwritten before it looked
         self._peers_gen = -1
         self._wake_fds: dict[tuple[int, str], int] = {}
-        self._in_recv = False
-        self._fifo_dirty = False  # True when a stale wake-up byte may sit in our rx FIFO
+        #: recv_raw used: frames a waiting send takes in (_drain_own) are kept as slot images
+        self._raw_mode = False
+        self._raw_carry = bytearray()  # slot images taken but not yet returned (recv_raw)
         self._n_sent = self._n_recv = self._n_sleeps = self._n_spurious = 0
         self._n_lost = self._n_overruns = self._n_send_waits = 0
         self._wakeups_seen = 0  # last E_WAKEUPS read, so stats() still works after shutdown
@@ -285,6 +298,10 @@ class MemoryBus(BusABC):
             self._q = self._mv.cast("Q")
             self._register()
             self._ring = Ring(self._mm, self._layout.ring_offset, self._layout.ring_size, self._token, self._name)
+            self._ring.seq = self._seq0
+            self._ring.filters = self._filters_c
+            self._ring.attach(self._eb, self._fd, self._rx_fd, self._tlock, self._publish_read_seq,
+                              2 if self._protect else 1 if self._backpressure else 0, self._own, self._yield)
         except BaseException:
             self._close_local()
             raise
@@ -304,6 +321,36 @@ class MemoryBus(BusABC):
         except BaseException:
             self.shutdown()
             raise
+
+    # ------------------------------------------------------------ receive state (kept by the ring)
+    @property
+    def _seq(self) -> int:
+        """This bus's read position: the next seq it has not looked at."""
+        return self._ring.seq
+
+    @_seq.setter
+    def _seq(self, v: int) -> None:
+        self._ring.seq = v
+
+    @property
+    def _fifo_dirty(self) -> bool:
+        """A stale wake-up byte may sit in our rx FIFO."""
+        ring = getattr(self, "_ring", None)
+        return ring is not None and ring.fifo_dirty
+
+    @_fifo_dirty.setter
+    def _fifo_dirty(self, v: bool) -> None:
+        self._ring.fifo_dirty = v
+
+    @property
+    def _in_recv(self) -> bool:
+        """A receive is blocked in this bus."""
+        ring = getattr(self, "_ring", None)
+        return ring is not None and ring.in_recv
+
+    @_in_recv.setter
+    def _in_recv(self, v: bool) -> None:
+        self._ring.in_recv = v
 
     # ------------------------------------------------------------ registration (lock held)
     def _register(self) -> None:
@@ -355,7 +402,7 @@ class MemoryBus(BusABC):
         q[H_READER_GEN] = q[H_READER_GEN] + 1
         self._eb = b
         self._token = token
-        self._seq = w
+        self._seq0 = w  # the read position: the ring's (_seq)
 
     def _apply_filters(self, filters: Optional[CanFilters]) -> None:
         """Push ``filters`` into this bus's shared entry so writers wake it only for accepted frames."""
@@ -363,6 +410,9 @@ class MemoryBus(BusABC):
         if compiled is not None and not shm.pushable(compiled):
             compiled = shm.merge_exact(compiled)  # the same acceptance in fewer filters
         self._filters_c = None if compiled is None else Filters(compiled)
+        ring = getattr(self, "_ring", None)
+        if ring is not None:
+            ring.filters = self._filters_c
         if not self._open:
             return
         self._lock()
@@ -432,8 +482,18 @@ class MemoryBus(BusABC):
         for i in range(0, len(msgs), step):
             self._send_frames(msgs[i : i + step], timeout)
 
+    def send_burst(self, msgs: list[Message]) -> None:
+        """:meth:`send_many` of a node's frames of one phase (a list, possibly empty): the node
+        driver's path, without copying the list."""
+        if msgs:
+            if len(msgs) <= self._ring_n // 2:
+                self._send_frames(msgs, None)
+            else:
+                self.send_many(msgs)
+
     def _send_frames(self, msgs: Sequence[Message], timeout: Optional[float]) -> None:
-        self._check_open()
+        if not self._open or self._forked:
+            self._check_open()
         if self._state is BusState.PASSIVE:
             raise CanOperationError(f"canbrake bus {self._name!r} is passive (listen only)")
         if not msgs:
@@ -441,6 +501,14 @@ class MemoryBus(BusABC):
         ring = self._ring
         frames = ring.encode(msgs, self._preserve_ts, time.time())  # slot images; raises if malformed
         n = len(msgs)
+        with self._txlock:  # the common case in one compiled call: nothing in the way
+            rest = ring.send_fast(frames, self._peers_gen, self._bp_peers,
+                                  self._pr_floor if self._pr_peers else None, self._peers, self._wake_fds)
+        if rest is not None:
+            for ptok in rest:
+                self._notify(ptok, "rx")  # opens its FIFO, or handles the error of a failed write
+            self._n_sent += n
+            return
         q, eb = self._q, self._eb
         deadline: Optional[float] = None
         waiting = False  # our E_TX_WAITING flag is (or may be) set
@@ -557,7 +625,11 @@ class MemoryBus(BusABC):
         if not self._rxlock.acquire(blocking=False):
             return False
         try:
-            self._fetch()
+            if self._raw_mode:  # kept as slot images for recv_raw (a protected reader loses none)
+                if self._ring.fetch_raw(self._raw_carry) == 3:
+                    raise self._closed_error()
+            else:
+                self._fetch()
         finally:
             self._rxlock.release()
         return True
@@ -634,6 +706,9 @@ class MemoryBus(BusABC):
         """
         if self._q[H_CLOSED]:
             raise self._closed_error()
+        if self._raw_carry:  # slot images a waiting send took in (raw mode): theirs come first
+            self._rxbuf.extend(self._ring.messages(self._raw_carry))
+            self._raw_carry.clear()
         # backpressure and protected readers are safe one seq longer than overrun readers: writers
         # do not start seq x + ring_size before they have read x (protected: x is a frame they
         # accept; the others may be overwritten and are checked by their slot sequence number)
@@ -748,6 +823,73 @@ class MemoryBus(BusABC):
                 buf.clear()
             self._n_recv += len(got)
             return got
+
+    def recv_raw(self, timeout: Optional[float] = None, min_frames: int = 1) -> bytearray:
+        """:meth:`recv_batch` for a node's compiled receive side: the frames as slot images
+        (``SLOT_BYTES`` each: time stamp, identifier, sender token, flags, dlc, length at 0, 8,
+        12, 16, 17, 18, data at ``DATA_OFFSET``; :meth:`raw_message` makes one a ``can.Message``),
+        read, filtered and waited for in one compiled call (:meth:`canbrake.bus._ring.Ring.recv_raw`).
+        Same frames, order, waits, errors and counters as :meth:`recv_batch`. Once used, a bus is
+        read this way (frames fetched for it elsewhere are kept as slot images)."""
+        ring = self._ring
+        with self._rxlock:
+            if (self._raw_mode and not self._raw_carry and self._open and not self._forked
+                    and self._overrun_pending is None):  # the common case: nothing pending here
+                got = ring.recv_raw(-1.0 if timeout is None else max(0.0, timeout), min_frames)
+                if not ring.status:
+                    self._n_recv += len(got) // SLOT_BYTES
+                    return got
+                return self._raw_result(got, 0)
+            self._check_open()
+            self._raise_pending_overrun()
+            if not self._raw_mode:
+                self._raw_mode = True
+                if self._rxbuf:  # frames fetched as messages before: the same bytes, first
+                    msgs = list(self._rxbuf)
+                    images = bytearray(ring.encode(msgs, True, 0.0))  # sender: this bus
+                    for i, m in enumerate(msgs):
+                        if m.is_rx:  # another bus's frame: a token no bus has
+                            images[i * SLOT_BYTES + 12:i * SLOT_BYTES + 16] = bytes(4)
+                    self._raw_carry[:0] = images
+                    self._rxbuf.clear()
+            carry = len(self._raw_carry) // SLOT_BYTES  # pending already: they count
+            if carry >= min_frames:
+                got = ring.recv_raw(0.0, 1)
+            else:
+                got = ring.recv_raw(-1.0 if timeout is None else max(0.0, timeout), min_frames - carry)
+            carry = len(self._raw_carry)  # bytes
+            if carry:
+                got[:0] = self._raw_carry
+                self._raw_carry.clear()
+            return self._raw_result(got, carry)
+
+    def _raw_result(self, got: bytearray, carry: int) -> bytearray:
+        """recv_raw's result after the ring's ``recv_raw`` gave ``got`` (after ``carry`` bytes
+        taken before): raises for a closed channel; a loss as recv_batch does."""
+        ring = self._ring
+        status = ring.status
+        if status == 2:
+            raise self._closed_error()
+        if status == 1:  # frames were lost: those before the loss now, the error next
+            lost, cut = ring.lost, carry + ring.lost_at
+            self._n_lost += lost
+            self._n_overruns += 1
+            e = BusOverrunError(
+                f"canbrake bus {self._name!r} overrun: this reader fell more than a ring "
+                f"({self._ring_n} frames) behind and {lost} frame(s) were overwritten unread "
+                "(read faster, enlarge ring_size, or open the bus with backpressure=True)", lost)
+            self._raw_carry[:] = got[cut:]
+            del got[cut:]
+            if not got:
+                raise e
+            self._overrun_pending = e
+        self._n_recv += len(got) // SLOT_BYTES
+        return got
+
+    def raw_message(self, frames: bytes | bytearray, i: int) -> Message:
+        """Slot image ``i`` of :meth:`recv_raw`'s ``frames`` as the ``can.Message`` that
+        :meth:`recv` gives for that frame."""
+        return self._ring.message(frames, i)
 
     def _raise_pending_overrun(self) -> None:
         e = self._overrun_pending
@@ -884,12 +1026,12 @@ class MemoryBus(BusABC):
             frames_sent=self._n_sent,
             frames_received=self._n_recv,
             wakeups=wakeups,
-            sleeps=self._n_sleeps,
-            spurious_wakeups=self._n_spurious,
+            sleeps=self._n_sleeps + self._ring.n_sleeps,
+            spurious_wakeups=self._n_spurious + self._ring.n_spurious,
             frames_lost=self._n_lost,
             overruns=self._n_overruns,
             send_waits=self._n_send_waits,
-            frames_passed=self._n_passed,
+            frames_passed=self._n_passed + self._ring.n_passed,
         )
 
     remove_channel = staticmethod(remove_channel)

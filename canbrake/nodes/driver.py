@@ -116,6 +116,13 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
     # canbrake's memory bus filters in shared memory and hands over every pending frame at once
     # (MemoryBus.recv_batch); any other python-can bus gives one frame per recv
     recv_batch = getattr(bus, "recv_batch", None)
+    # ... and, to a node that takes them so (an ECU), as slot images read and filtered in one
+    # compiled call (MemoryBus.recv_raw): no can.Message per frame received
+    recv_raw = getattr(bus, "recv_raw", None)
+    handle_raw = getattr(node, "handle_raw", None)
+    if recv_raw is not None and handle_raw is not None:
+        _drive_raw(node, bus, recv_raw, handle_raw, clock, idle_check_s, parent_pid, spin_s, next_check)
+        return
     if recv_batch is None:
         def recv_batch(timeout: float | None, min_frames: int = 1,
                        _recv: Callable[..., can.Message | None] = bus.recv) -> list[can.Message]:
@@ -147,6 +154,42 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
             _send_all(bus, node.on_timer(now))
             node.after_send()
         if parent_pid is not None and (not msgs or time.monotonic() >= next_check):
+            next_check = time.monotonic() + idle_check_s
+            if not _parent_alive(parent_pid):
+                raise NodeFailure(f"{node.name}: parent process went away")
+
+
+def _drive_raw(node: Node, bus: can.BusABC, recv_raw: Callable[..., bytearray], handle_raw: Callable[..., list],
+               clock: Callable[[], float], idle_check_s: float, parent_pid: int | None, spin_s: float,
+               next_check: float) -> None:
+    """:func:`drive`'s loop for a node that takes the memory bus's slot images (same steps)."""
+    message = bus.raw_message  # type: ignore[attr-defined]
+    send = getattr(bus, "send_burst", None) or (lambda msgs: _send_all(bus, msgs))
+    while not node.finished:
+        deadline = node.next_deadline()
+        now = clock()
+        if deadline is None:
+            timeout = idle_check_s
+        elif spin_s > 0.0 and deadline - now <= spin_s:
+            timeout = 0.0  # near the deadline: poll, and yield below if nothing came
+        else:
+            timeout = max(0.0, min(idle_check_s, deadline - now - spin_s))
+        try:
+            frames = recv_raw(timeout, node.frames_wanted())
+        except BusOverrunError as e:
+            node.on_rx_overrun(e.frames_lost)
+            continue
+        now = clock()
+        if frames:
+            send(handle_raw(frames, now, message))
+            node.after_send()
+        elif timeout == 0.0 and spin_s > 0.0:
+            os.sched_yield()
+        deadline = node.next_deadline()
+        if deadline is not None and now >= deadline:
+            send(node.on_timer(now))
+            node.after_send()
+        if parent_pid is not None and (not frames or time.monotonic() >= next_check):
             next_check = time.monotonic() + idle_check_s
             if not _parent_alive(parent_pid):
                 raise NodeFailure(f"{node.name}: parent process went away")

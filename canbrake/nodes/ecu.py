@@ -238,17 +238,28 @@ class EcuNode(Node):
         the reference, and comes back here for the frames and moments this node acts on."""
         if type(msgs) is not list:
             msgs = list(msgs)
+        return self._take_batch(self._peers.feed, msgs, msgs.__getitem__, now)
+
+    def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
+        """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``), taken
+        by :meth:`~canbrake.bus._codec.PeerTable.feed_raw` without a ``can.Message`` per frame;
+        ``message(frames, i)`` makes one of image i for the frames this node's Python handles."""
+        return self._take_batch(self._peers.feed_raw, frames, lambda i: message(frames, i), now)
+
+    def _take_batch(self, feed: Any, batch: Any, message_at: Any, now: float) -> list[can.Message]:
+        """The frames of ``batch`` through ``feed`` (the peer table's compiled loop), acting where
+        it stops; ``message_at(i)``: frame i as a ``can.Message``."""
         out: list[can.Message] = []
-        feed, i, n = self._peers.feed, 0, len(msgs)
-        while i < n:
-            r = feed(msgs, i, self.k, self.phase)
+        i = 0
+        while True:
+            r = feed(batch, i, self.k, self.phase)
             ev, i = r & 7, r >> 3
             if ev == FEED_END:
                 break
             if ev == FEED_SYNC:  # the next period (the peer table has begun it)
                 self._start_period(self._peers.sync_tick)
             elif ev == FEED_FRAME:
-                out += self._handle_frame(msgs[i], now)
+                out += self._handle_frame(message_at(i), now)
                 if self.finished:
                     break
             elif ev == FEED_PHASE1:  # the last sensor page
@@ -262,7 +273,7 @@ class EcuNode(Node):
                 self.guard.reject("crc" if self._peers.last_code == REJECT_CRC else "counter")
                 self._count_peer_rejection()
             elif ev == FEED_HELD:
-                self._late_rx.append(msgs[i])
+                self._late_rx.append(message_at(i))
             else:  # FEED_ARM
                 self._arm_external(now)
             i += 1
@@ -548,10 +559,8 @@ class EcuNode(Node):
         for nm in self._own_signals:  # this ECU's own entries
             table[nm][i] = sensors[nm]
         if self.peer_hold_periods is not None:  # lost peers are NaN for the controller: a copy
-            peers = {nm: arr.copy() for nm, arr in table.items()}
-            origin = self._peers.origin.tolist()
-            origin[i] = k
-            self._peer_fallback(origin, peers)
+            peers, dropped = self._peers.hold_copy(k, self.peer_hold_periods, i)  # (compiled)
+            self._count_fallback(dropped)
         else:
             peers = self._peer_views
         speed = peers["speed_mps"]
@@ -618,18 +627,14 @@ class EcuNode(Node):
         self._trace.append_dict([k, force], diag, self._diag_names, math.nan,  # type: ignore[union-attr]
                                 [max_age if max_age > -math.inf else math.inf, fresh])
 
-    def _peer_fallback(self, origin: list[int], peers: dict[str, np.ndarray]) -> None:
-        """Listened ECUs whose newest value is older than ``peer_hold_periods`` are dropped (NaN:
-        the controller runs on its own sensors for them); counts entries and ticks in fallback."""
-        lost = [j for j in self._listened if self.k - origin[j] > self.peer_hold_periods]
-        if lost:
-            for arr in peers.values():
-                arr[lost] = np.nan
-        now = bool(lost)
-        if now and not self._in_fallback:
+    def _count_fallback(self, dropped: bool) -> None:
+        """Listened ECUs whose newest value is older than ``peer_hold_periods`` were dropped this
+        tick (NaN: the controller runs on its own sensors for them, see
+        :meth:`~canbrake.bus._codec.PeerTable.hold_copy`): count entries and ticks in fallback."""
+        if dropped and not self._in_fallback:
             self.stats.fallback_entries += 1
-        self.stats.fallback_ticks += int(now)
-        self._in_fallback = now
+        self.stats.fallback_ticks += int(dropped)
+        self._in_fallback = dropped
 
     def _last_vehicle(self) -> bool:
         return self.car >= getattr(self.layout, "n_vehicles", 10 ** 9)

@@ -1,0 +1,69 @@
+"""An ECU fed the memory bus's slot images (EcuNode.handle_raw, PeerTable.feed_raw) does what it
+does fed python-can messages (handle_batch, feed): the same frames out, the same peer table,
+sensors and counters, also for a state page with a bad CRC (rejected) and a frame outside the
+ECU's routes (ignored)."""
+from __future__ import annotations
+
+import os
+import uuid
+
+import can
+
+from canbrake.bus import memory_shm as shm
+
+
+def _ecus(car: int, n: int = 6):
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    path = "scenarios/chen2023_case1_fine_rail.yaml"
+    scn = load_scenario(path)
+    plant = build_node(scn, "plant", run_dir=None)
+    twins = []
+    for _ in range(2):
+        e = build_node(scn, "ecu", car=car, run_dir=None)
+        e.start(0.0)
+        twins.append(e)
+    others = []
+    for c in range(1, n + 1):
+        if c != car:
+            e = build_node(scn, "ecu", car=c, run_dir=None)
+            e.start(0.0)
+            others.append(e)
+    return plant, twins, others
+
+
+def _key(msgs):
+    return [(m.arbitration_id, m.is_extended_id, bytes(m.data)) for m in msgs]
+
+
+def test_handle_raw_equals_handle_batch_with_a_rejected_page():
+    ch = f"ecuraw-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    plant, (a, b), others = _ecus(3)
+    bus = can.Bus(interface="canbrake", channel=ch)  # its ring makes the slot images (encode)
+    try:
+        ring = bus._ring
+        tick0 = plant.start(0.0)
+        states = []
+        for e in others:
+            states += e.handle_batch(list(tick0), 0.0)
+        # a peer's state page with a broken CRC, and a frame of an identifier nobody routes
+        bad = next(m for m in states if m.arbitration_id in a._state_pages)
+        broken = can.Message(arbitration_id=bad.arbitration_id, data=bytes([bad.data[0] ^ 0xFF]) + bytes(bad.data[1:]),
+                             is_extended_id=bad.is_extended_id)
+        stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
+        for batch in (list(tick0), [stray, broken, *states]):
+            out_a = a.handle_batch(list(batch), 0.0)
+            images = ring.encode(batch, True, 0.0)
+            assert len(images) == len(batch) * shm.SLOT_BYTES
+            out_b = b.handle_raw(images, 0.0, bus.raw_message)
+            assert _key(out_a) == _key(out_b)
+            assert (a.k, a.phase, a.sensors, a.stats.ticks) == (b.k, b.phase, b.sensors, b.stats.ticks)
+            for nm, arr in a.peer_signals.items():
+                assert arr.tobytes() == b.peer_signals[nm].tobytes()
+            assert a.guard.stats() == b.guard.stats()
+        assert a.stats.ticks == 1 and a.guard.stats()  # it computed tick 0, and counted the rejection
+        assert a.stats.peer_corrupted == b.stats.peer_corrupted == 1
+        assert b._peers.feed_raw(b"", 0, b.k, b.phase) & 7 == 0  # nothing: the end at once
+    finally:
+        bus.shutdown()
