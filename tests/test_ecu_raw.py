@@ -67,3 +67,56 @@ def test_handle_raw_equals_handle_batch_with_a_rejected_page():
         assert b._peers.feed_raw(b"", 0, b.k, b.phase) & 7 == 0  # nothing: the end at once
     finally:
         bus.shutdown()
+
+
+def _plant_key(p):
+    return (p.k, p.finished, p._done, p.stats.commands_received, p.stats.commands_corrupted,
+            p.stats.commands_out_of_sequence, p.guard.stats(), p._fresh_pages.tobytes(), p._fresh.tobytes())
+
+
+def test_plant_handle_raw_equals_handle_batch_with_a_rejected_command():
+    """The plant fed slot images (PlantNode.handle_raw, CommandTable.take_batch_raw) does what it
+    does fed messages: the same frames out (the next tick's), commands and counters, also for a
+    command with a bad CRC (rejected), a frame of an identifier the table does not route and a
+    batch that completes the tick."""
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
+    ch = f"plantraw-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    a, b = (build_node(scn, "plant", run_dir=None) for _ in range(2))
+    ecus = []
+    for c in range(1, 7):
+        e = build_node(scn, "ecu", car=c, run_dir=None)
+        e.start(0.0)
+        ecus.append(e)
+    bus = can.Bus(interface="canbrake", channel=ch)
+    try:
+        ring = bus._ring
+        tick0 = a.start(0.0)
+        assert _key(b.start(0.0)) == _key(tick0)
+        assert a._commands_close_slots() and b._commands_close_slots()
+        # the ECUs' phases until their commands come (their state pages to each other)
+        frames, cmds = list(tick0), []
+        for _ in range(4):
+            nxt = []
+            for e in ecus:
+                nxt += e.handle_batch(list(frames), 0.0)
+            cmds += [m for m in nxt if m.arbitration_id in a._cmd_pages]
+            frames = nxt
+        assert len(cmds) == a._n_pages
+        bad = cmds[0]
+        broken = can.Message(arbitration_id=bad.arbitration_id, is_extended_id=bad.is_extended_id,
+                             data=bytes([bad.data[0] ^ 0xFF]) + bytes(bad.data[1:]))
+        stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
+        for batch in ([stray, broken, *cmds[1:3]], cmds[3:] + cmds[:1]):
+            out_a = a.handle_batch(list(batch), 0.0)
+            out_b = b.handle_raw(ring.encode(batch, True, 0.0), 0.0, bus.raw_message)
+            assert _key(out_a) == _key(out_b)
+            assert _plant_key(a) == _plant_key(b)
+        assert a.k == 1 and a.stats.commands_corrupted == 1  # the tick went on, the bad CRC counted
+        assert b.handle_raw(b"", 0.0, bus.raw_message) == []
+    finally:
+        for p in (a, b):
+            p.close()
+        bus.shutdown()
