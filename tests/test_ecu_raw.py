@@ -120,3 +120,52 @@ def test_plant_handle_raw_equals_handle_batch_with_a_rejected_command():
         for p in (a, b):
             p.close()
         bus.shutdown()
+
+
+def test_recorder_handle_raw_equals_handle_batch(tmp_path):
+    """The recorder fed slot images (RecorderNode.handle_raw) logs and counts what it does fed
+    messages: the same frames.log bytes and counts, a frame outside the database included."""
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
+    ch = f"recraw-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    plant = build_node(scn, "plant", run_dir=None)
+    ecus = []
+    for c in range(1, 7):
+        e = build_node(scn, "ecu", car=c, run_dir=None)
+        e.start(0.0)
+        ecus.append(e)
+    recs = []
+    for name in ("a", "b"):
+        r = build_node(scn, "recorder", run_dir=None)
+        r.log_path = tmp_path / name / "frames.log"
+        r.log_path.parent.mkdir()
+        r.start(0.0)
+        recs.append(r)
+    a, b = recs
+    bus = can.Bus(interface="canbrake", channel=ch)
+    try:
+        frames = plant.start(0.0)
+        stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
+        for _ in range(3):  # tick 0 and 1: the plant's frames, the ECUs' phases, its next tick
+            period = list(frames)
+            for _phase in range(4):
+                nxt = []
+                for e in ecus:
+                    nxt += e.handle_batch(list(frames), 0.0)
+                period += nxt
+                frames = nxt
+            period.append(stray)
+            frames = plant.handle_batch([m for m in period if m.arbitration_id in plant._cmd_pages], 0.0)
+            a.handle_batch(list(period), 0.0)
+            b.handle_raw(bus._ring.encode(period, True, 0.0), 0.0, bus.raw_message)
+            assert a._counts == b._counts and a._phase_of == b._phase_of
+        for r in recs:
+            r.close()
+        assert (tmp_path / "a" / "frames.log").read_bytes() == (tmp_path / "b" / "frames.log").read_bytes()
+        assert (tmp_path / "a" / "frames.log").read_bytes().count(b"\n") > 30
+        assert b.handle_raw(b"", 0.0, bus.raw_message) == []
+    finally:
+        plant.close()
+        bus.shutdown()

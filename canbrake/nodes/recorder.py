@@ -60,6 +60,7 @@ from canbrake.bus import dbc
 from canbrake.bus._candump import write_candump
 from canbrake.bus._wire import ideal_period
 from canbrake.bus.guard import FrameGuard, sync_verdict
+from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
 from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames
@@ -325,6 +326,12 @@ class RecorderNode(Node):
                     0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF) else _PHASE.get(kind, 1))
             resume = True
         return []
+
+    def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
+        """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``: the
+        receive and its wait in one compiled call), each made the ``can.Message`` the bus's
+        ``recv`` gives by ``message(frames, i)``."""
+        return self.handle_batch([message(frames, i) for i in range(len(frames) // SLOT_BYTES)], now)
 
     def _on_sync(self, msg: can.Message) -> bool:
         """A SYNC frame (lockstep): a trusted one ends the period (its frames are written) and
