@@ -169,3 +169,47 @@ def test_recorder_handle_raw_equals_handle_batch(tmp_path):
     finally:
         plant.close()
         bus.shutdown()
+
+
+def _take_all(take, batch, n, key_at):
+    """take_frames' caller (the recorder's loop): a new key gets phase 1, a SYNC is passed."""
+    counts, phase_of, kept, events = {}, {}, [], []
+    i, resume = 0, False
+    while i < n:
+        i, ev, closed = take(batch, i, resume, counts, {0x300}, 0x010, phase_of, kept)
+        events.append((i, ev, closed))
+        if ev == 0:
+            break
+        if ev == 2:
+            phase_of[key_at(i)] = 1
+        resume = True
+    return counts, phase_of, [(p, aid, data, _key([m])) for p, aid, data, m in kept], events
+
+
+def test_take_frames_raw_equals_take_frames():
+    """The recorder's compiled loop over slot images counts, phases and keeps what it does over
+    messages: standard and extended identifiers, a SYNC, a closing frame, an error frame, a
+    remote frame and a frame of no database."""
+    from canbrake.nodes._trace import take_frames, take_frames_raw
+
+    msgs = [can.Message(arbitration_id=0x010, data=b"\x00\x00\x00\x00", is_extended_id=False),
+            can.Message(arbitration_id=0x300, data=b"\x01\x02", is_extended_id=False),
+            can.Message(arbitration_id=0x010, data=b"\x01\x00\x00\x00", is_extended_id=True),
+            can.Message(arbitration_id=0x1ABCDEF0, data=bytes(range(8)), is_extended_id=True),
+            can.Message(arbitration_id=0x2A0, is_remote_frame=True, dlc=4, is_extended_id=False),
+            can.Message(arbitration_id=0x080, is_error_frame=True, data=bytes(8), is_extended_id=False),
+            can.Message(arbitration_id=0x7EE, data=b"", is_extended_id=False),
+            can.Message(arbitration_id=0x300, data=b"\x03", is_extended_id=False),
+            can.Message(arbitration_id=0x010, data=b"\x02\x00\x00\x00", is_extended_id=False)]
+    bus = can.Bus(interface="canbrake", channel=f"takeraw-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+    try:
+        images = bus._ring.encode(msgs, True, 0.0)
+        got = _take_all(lambda b, *a: take_frames_raw(b, bus.raw_message, *a), images, len(msgs),
+                        lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+        ref = _take_all(take_frames, msgs, len(msgs),
+                        lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+        assert got == ref
+        assert sum(e[1] == 1 for e in ref[3]) == 2 and ref[3][-1][1] == 0  # two SYNCs, then the end
+        assert take_frames_raw(b"", bus.raw_message, 0, False, {}, set(), 0x010, {}, []) == (0, 0, 0)
+    finally:
+        bus.shutdown()
