@@ -226,16 +226,32 @@ frames3 = st.lists(st.tuples(st.integers(-1, 2),          # page (-1: a frame th
                              st.floats(-4e5, 4e5, allow_nan=False)), max_size=12)
 
 
+@pytest.fixture(scope="module")
+def ring():
+    """A memory bus's ring: its ``encode`` makes the slot images ``take_batch_raw`` reads."""
+    import os
+    import uuid
+
+    import can
+
+    bus = can.Bus(interface="canbrake", channel=f"cmdraw-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+    yield bus._ring
+    bus.shutdown()
+
+
 @given(st.lists(st.tuples(st.integers(0, 2), frames3), max_size=8))
 @settings(max_examples=300, deadline=None)
-def test_take_batch_equals_take_frame_by_frame(calls: list) -> None:
+def test_take_batch_equals_take_frame_by_frame(ring, calls: list) -> None:
+    """take_batch, and take_batch_raw fed the same frames as slot images, equal take()."""
     got_t, got = _table3()
+    raw_t, raw = _table3()
     ref_t, ref = _table3()
     k = 0
     for dk, frames in calls:
         if dk:
             k += dk
             got_t.new_tick()
+            raw_t.new_tick()
             ref[0][:] = 0
             ref[2][:] = False
         msgs = []
@@ -250,13 +266,17 @@ def test_take_batch_equals_take_frame_by_frame(calls: list) -> None:
             if how == "crc":
                 data[3] ^= 0x10
             msgs.append(data_frame(m.frame_id, bytes(data)))
+        images = ring.encode(msgs, True, 0.0)
         i = 0
         while True:
             res = got_t.take_batch(msgs, i, k)
             assert res == _expected_batch(ref_t, ref[2], msgs, i, k)
-            for a, b in zip(got, ref):
+            assert raw_t.take_batch_raw(images, i, k) == res
+            for a, b, c in zip(got, ref, raw):
                 np.testing.assert_array_equal(a, b)
+                np.testing.assert_array_equal(c, b)
             assert got_t.fresh_total() == ref[0].sum() and got_t.all_fresh() == ref[2].all()
+            assert raw_t.fresh_total() == ref[0].sum()
             if res[1] == TAKE_BATCH_END:
                 break
             i = res[0] + 1

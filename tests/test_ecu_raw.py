@@ -67,3 +67,149 @@ def test_handle_raw_equals_handle_batch_with_a_rejected_page():
         assert b._peers.feed_raw(b"", 0, b.k, b.phase) & 7 == 0  # nothing: the end at once
     finally:
         bus.shutdown()
+
+
+def _plant_key(p):
+    return (p.k, p.finished, p._done, p.stats.commands_received, p.stats.commands_corrupted,
+            p.stats.commands_out_of_sequence, p.guard.stats(), p._fresh_pages.tobytes(), p._fresh.tobytes())
+
+
+def test_plant_handle_raw_equals_handle_batch_with_a_rejected_command():
+    """The plant fed slot images (PlantNode.handle_raw, CommandTable.take_batch_raw) does what it
+    does fed messages: the same frames out (the next tick's), commands and counters, also for a
+    command with a bad CRC (rejected), a frame of an identifier the table does not route and a
+    batch that completes the tick."""
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
+    ch = f"plantraw-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    a, b = (build_node(scn, "plant", run_dir=None) for _ in range(2))
+    ecus = []
+    for c in range(1, 7):
+        e = build_node(scn, "ecu", car=c, run_dir=None)
+        e.start(0.0)
+        ecus.append(e)
+    bus = can.Bus(interface="canbrake", channel=ch)
+    try:
+        ring = bus._ring
+        tick0 = a.start(0.0)
+        assert _key(b.start(0.0)) == _key(tick0)
+        assert a._commands_close_slots() and b._commands_close_slots()
+        # the ECUs' phases until their commands come (their state pages to each other)
+        frames, cmds = list(tick0), []
+        for _ in range(4):
+            nxt = []
+            for e in ecus:
+                nxt += e.handle_batch(list(frames), 0.0)
+            cmds += [m for m in nxt if m.arbitration_id in a._cmd_pages]
+            frames = nxt
+        assert len(cmds) == a._n_pages
+        bad = cmds[0]
+        broken = can.Message(arbitration_id=bad.arbitration_id, is_extended_id=bad.is_extended_id,
+                             data=bytes([bad.data[0] ^ 0xFF]) + bytes(bad.data[1:]))
+        stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
+        for batch in ([stray, broken, *cmds[1:3]], cmds[3:] + cmds[:1]):
+            out_a = a.handle_batch(list(batch), 0.0)
+            out_b = b.handle_raw(ring.encode(batch, True, 0.0), 0.0, bus.raw_message)
+            assert _key(out_a) == _key(out_b)
+            assert _plant_key(a) == _plant_key(b)
+        assert a.k == 1 and a.stats.commands_corrupted == 1  # the tick went on, the bad CRC counted
+        assert b.handle_raw(b"", 0.0, bus.raw_message) == []
+    finally:
+        for p in (a, b):
+            p.close()
+        bus.shutdown()
+
+
+def test_recorder_handle_raw_equals_handle_batch(tmp_path):
+    """The recorder fed slot images (RecorderNode.handle_raw) logs and counts what it does fed
+    messages: the same frames.log bytes and counts, a frame outside the database included."""
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
+    ch = f"recraw-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    plant = build_node(scn, "plant", run_dir=None)
+    ecus = []
+    for c in range(1, 7):
+        e = build_node(scn, "ecu", car=c, run_dir=None)
+        e.start(0.0)
+        ecus.append(e)
+    recs = []
+    for name in ("a", "b"):
+        r = build_node(scn, "recorder", run_dir=None)
+        r.log_path = tmp_path / name / "frames.log"
+        r.log_path.parent.mkdir()
+        r.start(0.0)
+        recs.append(r)
+    a, b = recs
+    bus = can.Bus(interface="canbrake", channel=ch)
+    try:
+        frames = plant.start(0.0)
+        stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
+        for _ in range(3):  # tick 0 and 1: the plant's frames, the ECUs' phases, its next tick
+            period = list(frames)
+            for _phase in range(4):
+                nxt = []
+                for e in ecus:
+                    nxt += e.handle_batch(list(frames), 0.0)
+                period += nxt
+                frames = nxt
+            period.append(stray)
+            frames = plant.handle_batch([m for m in period if m.arbitration_id in plant._cmd_pages], 0.0)
+            a.handle_batch(list(period), 0.0)
+            b.handle_raw(bus._ring.encode(period, True, 0.0), 0.0, bus.raw_message)
+            assert a._counts == b._counts and a._phase_of == b._phase_of
+        for r in recs:
+            r.close()
+        assert (tmp_path / "a" / "frames.log").read_bytes() == (tmp_path / "b" / "frames.log").read_bytes()
+        assert (tmp_path / "a" / "frames.log").read_bytes().count(b"\n") > 30
+        assert b.handle_raw(b"", 0.0, bus.raw_message) == []
+    finally:
+        plant.close()
+        bus.shutdown()
+
+
+def _take_all(take, batch, n, key_at):
+    """take_frames' caller (the recorder's loop): a new key gets phase 1, a SYNC is passed."""
+    counts, phase_of, kept, events = {}, {}, [], []
+    i, resume = 0, False
+    while i < n:
+        i, ev, closed = take(batch, i, resume, counts, {0x300}, 0x010, phase_of, kept)
+        events.append((i, ev, closed))
+        if ev == 0:
+            break
+        if ev == 2:
+            phase_of[key_at(i)] = 1
+        resume = True
+    return counts, phase_of, [(p, aid, data, _key([m])) for p, aid, data, m in kept], events
+
+
+def test_take_frames_raw_equals_take_frames():
+    """The recorder's compiled loop over slot images counts, phases and keeps what it does over
+    messages: standard and extended identifiers, a SYNC, a closing frame, an error frame, a
+    remote frame and a frame of no database."""
+    from canbrake.nodes._trace import take_frames, take_frames_raw
+
+    msgs = [can.Message(arbitration_id=0x010, data=b"\x00\x00\x00\x00", is_extended_id=False),
+            can.Message(arbitration_id=0x300, data=b"\x01\x02", is_extended_id=False),
+            can.Message(arbitration_id=0x010, data=b"\x01\x00\x00\x00", is_extended_id=True),
+            can.Message(arbitration_id=0x1ABCDEF0, data=bytes(range(8)), is_extended_id=True),
+            can.Message(arbitration_id=0x2A0, is_remote_frame=True, dlc=4, is_extended_id=False),
+            can.Message(arbitration_id=0x080, is_error_frame=True, data=bytes(8), is_extended_id=False),
+            can.Message(arbitration_id=0x7EE, data=b"", is_extended_id=False),
+            can.Message(arbitration_id=0x300, data=b"\x03", is_extended_id=False),
+            can.Message(arbitration_id=0x010, data=b"\x02\x00\x00\x00", is_extended_id=False)]
+    bus = can.Bus(interface="canbrake", channel=f"takeraw-{os.getpid()}-{uuid.uuid4().hex[:6]}")
+    try:
+        images = bus._ring.encode(msgs, True, 0.0)
+        got = _take_all(lambda b, *a: take_frames_raw(b, bus.raw_message, *a), images, len(msgs),
+                        lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+        ref = _take_all(take_frames, msgs, len(msgs),
+                        lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+        assert got == ref
+        assert sum(e[1] == 1 for e in ref[3]) == 2 and ref[3][-1][1] == 0  # two SYNCs, then the end
+        assert take_frames_raw(b"", bus.raw_message, 0, False, {}, set(), 0x010, {}, []) == (0, 0, 0)
+    finally:
+        bus.shutdown()

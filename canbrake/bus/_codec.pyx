@@ -1129,6 +1129,7 @@ cdef class CommandTable:
     cdef object _newest_arr
     cdef int64_t* _newest          # tick of the newest accepted command, per slot
     cdef Py_ssize_t _nslots
+    cdef object _completed         # take_batch's slots completed so far (a Python int: > 64 ECUs)
 
     def __cinit__(self):
         self._pg = NULL
@@ -1294,43 +1295,75 @@ cdef class CommandTable:
         completed the last slot of tick ``k``); ``completed``: bit s set for each slot s whose
         pages of tick ``k`` the frames up to ``i`` completed; ``accepted``: frames accepted
         cleanly before ``i`` (and ``msgs[i]`` itself for TAKE_BATCH_TICK)."""
-        cdef Py_ssize_t i, m = len(msgs), s_
+        cdef Py_ssize_t i, m = len(msgs)
         cdef int64_t accepted = 0
-        cdef object completed = 0     # a Python int: a train may have more than 64 ECUs
-        cdef int r
-        cdef int64_t o
+        cdef int r = 0, ev
         cdef const uint8_t* s
         cdef Py_ssize_t n
         cdef PyObject* p
-        cdef CmdPage* pg
-        cdef bint all_fresh
+        self._completed = 0
         for i in range(start, m):
             msg = msgs[i]
-            p = PyDict_GetItem(self._index, msg.arbitration_id)
+            aid_obj = msg.arbitration_id
+            p = PyDict_GetItem(self._index, aid_obj)
             if p is NULL:
-                return i, TAKE_BATCH_OTHER, 0, completed, accepted
+                return i, TAKE_BATCH_OTHER, 0, self._completed, accepted
             data = msg.data
             if not _payload(data, &s, &n):
                 data = bytes(data)
                 _payload(data, &s, &n)
-            pg = &self._pg[<int><object>p]
-            o = -1
-            r = self._check(pg, msg.arbitration_id, s, n, k, &o)
-            if not r & 3:
-                r |= self._apply(pg, s, n, o, k)
-            if (r & 3) >= _BAD_CRC or r & _OOS:
-                return i, TAKE_BATCH_RESULT, r, completed, accepted
-            accepted += 1
-            if r & _COMPLETE:
-                completed |= (<object>1) << (<object>pg.slot)  # Python ints: no C overflow
-                all_fresh = True
-                for s_ in range(self._nslots):
-                    if not self._fresh[s_]:
-                        all_fresh = False
-                        break
-                if all_fresh:
-                    return i, TAKE_BATCH_TICK, r, completed, accepted
-        return m, TAKE_BATCH_END, 0, completed, accepted
+            ev = self._take_one(<int><object>p, aid_obj, s, n, k, &r, &accepted)
+            if ev != TAKE_BATCH_END:
+                return i, ev, r, self._completed, accepted
+        return m, TAKE_BATCH_END, 0, self._completed, accepted
+
+    def take_batch_raw(self, frames, Py_ssize_t start, int64_t k):
+        """:meth:`take_batch` for the memory bus's slot images (``MemoryBus.recv_raw``: identifier
+        at byte 8, data length at 18, data at 24 of each 96-byte image): the same work and
+        result, no ``can.Message``; ``i`` is the image's index."""
+        cdef const uint8_t[::1] v = frames
+        cdef Py_ssize_t i, m = v.shape[0] // _SLOT_BYTES
+        cdef int64_t accepted = 0
+        cdef int r = 0, ev
+        cdef const uint8_t* q
+        cdef Py_ssize_t n
+        cdef uint32_t aid
+        cdef PyObject* p
+        self._completed = 0
+        for i in range(start, m):
+            q = &v[i * _SLOT_BYTES]
+            memcpy(&aid, q + 8, 4)
+            aid_obj = aid
+            p = PyDict_GetItem(self._index, aid_obj)
+            if p is NULL:
+                return i, TAKE_BATCH_OTHER, 0, self._completed, accepted
+            n = q[18] if q[18] <= _MAX_DATA else _MAX_DATA
+            ev = self._take_one(<int><object>p, aid, q + _DATA_OFFSET, n, k, &r, &accepted)
+            if ev != TAKE_BATCH_END:
+                return i, ev, r, self._completed, accepted
+        return m, TAKE_BATCH_END, 0, self._completed, accepted
+
+    cdef int _take_one(self, int page, unsigned int frame_id, const uint8_t* s, Py_ssize_t n, int64_t k, int* r,
+                       int64_t* accepted) except -1:
+        """One command page of :meth:`take_batch` (both variants): taken; the event that ends
+        the loop (TAKE_BATCH_END: none, go on), the result in ``r``, ``accepted`` and the batch's
+        completed slots (``_completed``) updated."""
+        cdef CmdPage* pg = &self._pg[page]
+        cdef int64_t o = -1
+        cdef Py_ssize_t s_
+        r[0] = self._check(pg, frame_id, s, n, k, &o)
+        if not r[0] & 3:
+            r[0] |= self._apply(pg, s, n, o, k)
+        if (r[0] & 3) >= _BAD_CRC or r[0] & _OOS:
+            return TAKE_BATCH_RESULT
+        accepted[0] += 1
+        if r[0] & _COMPLETE:
+            self._completed = self._completed | ((<object>1) << (<object>pg.slot))  # Python ints: no C overflow
+            for s_ in range(self._nslots):
+                if not self._fresh[s_]:
+                    return TAKE_BATCH_END
+            return TAKE_BATCH_TICK
+        return TAKE_BATCH_END
 
 
 # ---------------------------------------------------------------- the plant's sensor pages

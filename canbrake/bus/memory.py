@@ -75,11 +75,13 @@ cost is the context switch), so the wake-up stays a FIFO, which any process can 
 :meth:`MemoryBus.recv_batch` hands a reader every accepted frame pending in one list (what
 repeated :meth:`MemoryBus.recv_filtered` calls would return, overrun errors at the same place).
 
-The node path (a lockstep ECU, :func:`canbrake.nodes.driver.drive`): :meth:`MemoryBus.recv_raw`
+The node path (a lockstep ECU, the plant and the recorder, :func:`canbrake.nodes.driver.drive`
+to any node with ``handle_raw``): :meth:`MemoryBus.recv_raw`
 is ``recv_batch`` done in one compiled call (:meth:`canbrake.bus._ring.Ring.recv_raw`: the
 fetch, the filters, the yield, the sleep under the writer lock, ``poll`` and the FIFO drain)
-that returns the frames as slot images, which the ECU's compiled feed reads without a
-``can.Message`` per frame; the read position and the FIFO state live in the ring for both ways
+that returns the frames as slot images, which the ECU's and the plant's compiled feeds
+(``PeerTable.feed_raw``, ``CommandTable.take_batch_raw``) read without a ``can.Message`` per
+frame (the recorder makes one per frame, :meth:`MemoryBus.raw_message`); the read position and the FIFO state live in the ring for both ways
 of reading. A send that no reader holds back and that finds the reader table unchanged is one
 compiled call too (:meth:`~canbrake.bus._ring.Ring.send_fast`: lock, the backpressure checks,
 write, wake-up marks, FIFO bytes); anything else (a reader in the way, new readers, a FIFO not

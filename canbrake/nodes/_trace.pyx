@@ -170,20 +170,69 @@ def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, 
     for i in range(start, m):
         msg = msgs[i]
         aid = msg.arbitration_id
-        ext = msg.is_extended_id
-        key = (aid, ext, msg.is_error_frame)
-        if not (resume and i == start):
-            p = PyDict_GetItem(counts, key)
-            counts[key] = 1 if p is NULL else <object>p + 1
-            if aid in closing:
-                closed += 1
-            elif aid == sync_id and ext == (aid > 0x7FF):
-                return i, TAKE_SYNC, closed
-        p = PyDict_GetItem(phase_of, key)
+        p = _take_key(aid, msg.is_extended_id, msg.is_error_frame, resume and i == start, counts, closing, sync_id,
+                      phase_of, &closed)
         if p is NULL:
             return i, TAKE_PHASE, closed
+        if p == _SYNC_MARK:
+            return i, TAKE_SYNC, closed
         tick_frames.append((<object>p, aid, bytes(msg.data), msg))
     return m, TAKE_END, closed
+
+
+# the memory bus's slot image (canbrake.bus.memory_shm): identifier at 8, flags at 16 (bit 0
+# extended, bit 1 remote, bit 2 error frame), data length at 18, data at 24 of 96 bytes
+DEF _SLOT_BYTES = 96
+DEF _DATA_OFFSET = 24
+DEF _MAX_DATA = 64
+
+
+def take_frames_raw(frames, object message, Py_ssize_t start, bint resume, dict counts, closing, object sync_id,
+                    dict phase_of, list tick_frames):
+    """:func:`take_frames` for the memory bus's slot images (``MemoryBus.recv_raw``): the same
+    work and result, each key read from the image; the frame kept is ``message(frames, i)``
+    (``MemoryBus.raw_message``: the ``can.Message`` the bus's ``recv`` gives), its payload bytes
+    from the image; ``i`` is the image's index."""
+    cdef const uint8_t[::1] v = frames
+    cdef Py_ssize_t i, m = v.shape[0] // _SLOT_BYTES, n
+    cdef Py_ssize_t closed = 0
+    cdef PyObject* p
+    cdef const uint8_t* q
+    cdef unsigned int aid32
+    for i in range(start, m):
+        q = &v[i * _SLOT_BYTES]
+        memcpy(&aid32, q + 8, 4)
+        aid = aid32
+        p = _take_key(aid, bool(q[16] & 1), bool(q[16] & 4), resume and i == start, counts, closing, sync_id,
+                      phase_of, &closed)
+        if p is NULL:
+            return i, TAKE_PHASE, closed
+        if p == _SYNC_MARK:
+            return i, TAKE_SYNC, closed
+        n = 0 if q[16] & 2 else (q[18] if q[18] <= _MAX_DATA else _MAX_DATA)  # a remote frame: no data
+        tick_frames.append((<object>p, aid, (<const char*>q)[_DATA_OFFSET:_DATA_OFFSET + n], message(frames, i)))
+    return m, TAKE_END, closed
+
+
+cdef object _SYNC_SENTINEL = object()
+cdef PyObject* _SYNC_MARK = <PyObject*>_SYNC_SENTINEL
+
+
+cdef PyObject* _take_key(object aid, object ext, object err, bint counted, dict counts, closing, object sync_id,
+                         dict phase_of, Py_ssize_t* closed) except? <PyObject*>1:
+    """One frame of :func:`take_frames` (both variants), by its key: counted (unless ``counted``
+    already), its closing frame counted in ``closed``; returns its phase (borrowed from
+    ``phase_of``), NULL if its key has none yet, ``_SYNC_MARK`` for a SYNC."""
+    cdef PyObject* p
+    key = (aid, ext, err)
+    if not counted:
+        p = PyDict_GetItem(counts, key)
+        counts[key] = 1 if p is NULL else <object>p + 1
+        if aid in closing:
+            closed[0] += 1
+        elif aid == sync_id and ext == (aid > 0x7FF):
+            return _SYNC_MARK
+    return PyDict_GetItem(phase_of, key)
 
 
 def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py_ssize_t flags_at):

@@ -116,7 +116,7 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
     # canbrake's memory bus filters in shared memory and hands over every pending frame at once
     # (MemoryBus.recv_batch); any other python-can bus gives one frame per recv
     recv_batch = getattr(bus, "recv_batch", None)
-    # ... and, to a node that takes them so (an ECU), as slot images read and filtered in one
+    # ... and, to a node that takes them so (an ECU, the plant, the recorder), as slot images read and filtered in one
     # compiled call (MemoryBus.recv_raw): no can.Message per frame received
     recv_raw = getattr(bus, "recv_raw", None)
     handle_raw = getattr(node, "handle_raw", None)

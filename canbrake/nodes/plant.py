@@ -22,6 +22,7 @@ from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OU
                                   TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_TICK, CommandTable, SensorPages,
                                   TickFrames)
 from canbrake.bus.guard import FrameGuard, sign_control
+from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.nodes._trace import csv_pick_row, csv_row, hist_add_bits
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
 
@@ -373,13 +374,27 @@ class PlantNode(Node):
         rejected or out-of-sequence command and the command that completes the tick."""
         if not self._commands_close_slots():
             return super().handle_batch(msgs, now)
-        out: list[can.Message] = []
-        take_batch = self._cmd_table.take_batch
-        i, n = 0, len(msgs)
         if type(msgs) is not list:
             msgs = list(msgs)
+        return self._take_batch(self._cmd_table.take_batch, msgs, len(msgs), msgs.__getitem__, now)
+
+    def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
+        """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``), the
+        command pages taken by :meth:`~canbrake.bus._codec.CommandTable.take_batch_raw` without a
+        ``can.Message`` per frame; ``message(frames, i)`` makes one of image i for the frames
+        this node's Python handles (all of them where the compiled loop does not apply)."""
+        n = len(frames) // SLOT_BYTES
+        if not self._commands_close_slots():
+            return super().handle_batch([message(frames, i) for i in range(n)], now)
+        return self._take_batch(self._cmd_table.take_batch_raw, frames, n, lambda i: message(frames, i), now)
+
+    def _take_batch(self, take_batch: Any, batch: Any, n: int, message_at: Any, now: float) -> list[can.Message]:
+        """The ``n`` frames of ``batch`` through ``take_batch`` (the command table's compiled
+        loop), acting where it stops; ``message_at(i)``: frame i as a ``can.Message``."""
+        out: list[can.Message] = []
+        i = 0
         while i < n:
-            i, ev, r, completed, accepted = take_batch(msgs, i, self.k)
+            i, ev, r, completed, accepted = take_batch(batch, i, self.k)
             self.stats.commands_received += accepted
             if completed:  # slots whose commands are complete: closed (their response time)
                 hist_add_bits(self._resp, completed, max(now - self._tick_wall, 0.0))
@@ -389,11 +404,11 @@ class PlantNode(Node):
             if ev == TAKE_BATCH_TICK:
                 out += self._advance(now)
             elif ev == TAKE_BATCH_OTHER:
-                out += self.handle(msgs[i], now)
+                out += self.handle(message_at(i), now)
             else:  # TAKE_BATCH_RESULT: a command taken with a rejection or a counter jump
                 r = self._taken(r)
                 if r & 3 == CMD_FRESH:
-                    slot = self._cmd_pages[msgs[i].arbitration_id][0]
+                    slot = self._cmd_pages[message_at(i).arbitration_id][0]
                     if r & CMD_SLOT_COMPLETE:
                         self._resp[slot].add(max(now - self._tick_wall, 0.0))
                     if not self._done >> slot & 1 and self._fresh_pages[slot] >= self._pages_per_ecu[slot]:

@@ -60,9 +60,10 @@ from canbrake.bus import dbc
 from canbrake.bus._candump import write_candump
 from canbrake.bus._wire import ideal_period
 from canbrake.bus.guard import FrameGuard, sync_verdict
+from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames
+from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames, take_frames_raw
 from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
@@ -305,16 +306,33 @@ class RecorderNode(Node):
                 self._realtime(msg, now)
             return []
         # the frames in one compiled loop, back here at a SYNC and at a key not seen before
-        i, n, resume = 0, len(msgs), False
         if type(msgs) is not list:
             msgs = list(msgs)
+        return self._take(take_frames, msgs, len(msgs), msgs.__getitem__)
+
+    def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
+        """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``: the
+        receive and its wait in one compiled call), counted and kept by
+        :func:`~canbrake.nodes._trace.take_frames_raw` (keys and payloads read from the images);
+        ``message(frames, i)`` makes image i the ``can.Message`` the bus's ``recv`` gives (kept
+        for the log; realtime: every frame)."""
+        n = len(frames) // SLOT_BYTES
+        if self.mode == "realtime":
+            return self.handle_batch([message(frames, i) for i in range(n)], now)
+        return self._take(lambda batch, *a: take_frames_raw(batch, message, *a), frames, n,
+                          lambda i: message(frames, i))
+
+    def _take(self, take: Any, batch: Any, n: int, message_at: Any) -> list[can.Message]:
+        """The ``n`` frames of ``batch`` (lockstep) through ``take`` (the compiled loop), back here
+        at a SYNC and at a key not seen before; ``message_at(i)``: frame i as a ``can.Message``."""
+        i, resume = 0, False
         while i < n:
-            i, ev, closed = take_frames(msgs, i, resume, counts, self._closing_ids, self.layout.sync_id,
-                                        self._phase_of, self._tick_frames)
+            i, ev, closed = take(batch, i, resume, self._counts, self._closing_ids, self.layout.sync_id,
+                                 self._phase_of, self._tick_frames)
             self._closing_seen += closed
             if ev == TAKE_END:
                 break
-            msg = msgs[i]
+            msg = message_at(i)
             if ev == TAKE_SYNC:
                 if self._on_sync(msg):
                     return []  # the END: the log is complete
