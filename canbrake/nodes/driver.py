@@ -15,7 +15,7 @@ import multiprocessing as mp
 import os
 import time
 import uuid
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import can
 
@@ -120,14 +120,25 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
     # compiled call (MemoryBus.recv_raw): no can.Message per frame received
     recv_raw = getattr(bus, "recv_raw", None)
     handle_raw = getattr(node, "handle_raw", None)
+    recv: Callable[[float, int], Sequence[Any]]
+    handle: Callable[[Sequence[Any], float], list[can.Message]]
+    send: Callable[[list[can.Message]], None]
     if recv_raw is not None and handle_raw is not None:
-        _drive_raw(node, bus, recv_raw, handle_raw, clock, idle_check_s, parent_pid, spin_s, next_check)
-        return
-    if recv_batch is None:
-        def recv_batch(timeout: float | None, min_frames: int = 1,
-                       _recv: Callable[..., can.Message | None] = bus.recv) -> list[can.Message]:
-            m = _recv(timeout=timeout)
-            return [] if m is None else [m]
+        message = bus.raw_message  # type: ignore[attr-defined]
+        recv = recv_raw
+        def handle(frames: Sequence[Any], now: float) -> list[can.Message]:  # noqa: E306
+            return handle_raw(frames, now, message)
+        send = getattr(bus, "send_burst", None) or (lambda msgs: _send_all(bus, msgs))
+    else:
+        if recv_batch is None:
+            def recv_batch(timeout: float | None, min_frames: int = 1,
+                           _recv: Callable[..., can.Message | None] = bus.recv) -> list[can.Message]:
+                m = _recv(timeout=timeout)
+                return [] if m is None else [m]
+        def recv(timeout: float, n: int) -> Sequence[Any]:  # noqa: E306
+            return recv_batch(timeout=timeout, min_frames=n)
+        handle = node.handle_batch
+        send = lambda msgs: _send_all(bus, msgs)  # noqa: E731
     while not node.finished:
         deadline = node.next_deadline()
         now = clock()
@@ -138,50 +149,14 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         else:
             timeout = max(0.0, min(idle_check_s, deadline - now - spin_s))
         try:
-            msgs = recv_batch(timeout=timeout, min_frames=node.frames_wanted())
+            frames = recv(timeout, node.frames_wanted())
         except BusOverrunError as e:
             # a flood overran this node's receive ring: count what was lost and receive on
             node.on_rx_overrun(e.frames_lost)
             continue
         now = clock()
-        if msgs:
-            _send_all(bus, node.handle_batch(msgs, now))
-            node.after_send()
-        elif timeout == 0.0 and spin_s > 0.0:
-            os.sched_yield()
-        deadline = node.next_deadline()
-        if deadline is not None and now >= deadline:
-            _send_all(bus, node.on_timer(now))
-            node.after_send()
-        if parent_pid is not None and (not msgs or time.monotonic() >= next_check):
-            next_check = time.monotonic() + idle_check_s
-            if not _parent_alive(parent_pid):
-                raise NodeFailure(f"{node.name}: parent process went away")
-
-
-def _drive_raw(node: Node, bus: can.BusABC, recv_raw: Callable[..., bytearray], handle_raw: Callable[..., list],
-               clock: Callable[[], float], idle_check_s: float, parent_pid: int | None, spin_s: float,
-               next_check: float) -> None:
-    """:func:`drive`'s loop for a node that takes the memory bus's slot images (same steps)."""
-    message = bus.raw_message  # type: ignore[attr-defined]
-    send = getattr(bus, "send_burst", None) or (lambda msgs: _send_all(bus, msgs))
-    while not node.finished:
-        deadline = node.next_deadline()
-        now = clock()
-        if deadline is None:
-            timeout = idle_check_s
-        elif spin_s > 0.0 and deadline - now <= spin_s:
-            timeout = 0.0  # near the deadline: poll, and yield below if nothing came
-        else:
-            timeout = max(0.0, min(idle_check_s, deadline - now - spin_s))
-        try:
-            frames = recv_raw(timeout, node.frames_wanted())
-        except BusOverrunError as e:
-            node.on_rx_overrun(e.frames_lost)
-            continue
-        now = clock()
         if frames:
-            send(handle_raw(frames, now, message))
+            send(handle(frames, now))
             node.after_send()
         elif timeout == 0.0 and spin_s > 0.0:
             os.sched_yield()
