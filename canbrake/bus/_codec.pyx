@@ -577,10 +577,8 @@ DEF _REJECT = 4
 DEF _HELD = 5
 DEF _ARM = 6
 DEF _SYNC = 7
-# the memory bus's slot image (canbrake.bus.memory_shm, _ring): feed_raw
-DEF _SLOT_BYTES = 96
-DEF _DATA_OFFSET = 24
-DEF _MAX_DATA = 64
+# the memory bus's slot image (feed_raw, take_batch_raw)
+from canbrake.bus._slot cimport SLOT_BYTES, DATA_OFFSET, SLOT_FLAG_EXTENDED, slot_id, slot_flags, slot_len
 
 
 cdef class PeerTable:
@@ -926,25 +924,22 @@ cdef class PeerTable:
         identifier at byte 8, flags at 16 (bit 0 extended), data length at 18, data at 24 of
         each 96-byte image): the same work, no ``can.Message``; the index is the image's."""
         cdef const uint8_t[::1] v = frames
-        cdef Py_ssize_t i, m = v.shape[0] // _SLOT_BYTES
+        cdef Py_ssize_t i, m = v.shape[0] // SLOT_BYTES
         cdef const uint8_t* p
         cdef PyObject* r
-        cdef uint32_t aid
         cdef int ev
-        cdef Py_ssize_t n
         if m == 0:
             return start << 3 | _END
         for i in range(start, m):
-            p = &v[i * _SLOT_BYTES]
-            memcpy(&aid, p + 8, 4)
-            aid_obj = aid
+            p = &v[i * SLOT_BYTES]
+            aid_obj = slot_id(p)
             r = PyDict_GetItem(self._route, aid_obj)
             if r is NULL:
                 continue
             if (<long><object>r) >> 24 == R_PY:
                 return i << 3 | _FRAME
-            n = p[18] if p[18] <= _MAX_DATA else _MAX_DATA
-            ev = self._feed_one(<long><object>r, aid_obj, p[16] & 1, p + _DATA_OFFSET, n, k, phase)
+            ev = self._feed_one(<long><object>r, aid_obj, slot_flags(p) & SLOT_FLAG_EXTENDED, p + DATA_OFFSET,
+                                slot_len(p), k, phase)
             if ev >= 0:
                 return i << 3 | ev
         return m << 3 | _END
@@ -1322,23 +1317,21 @@ cdef class CommandTable:
         at byte 8, data length at 18, data at 24 of each 96-byte image): the same work and
         result, no ``can.Message``; ``i`` is the image's index."""
         cdef const uint8_t[::1] v = frames
-        cdef Py_ssize_t i, m = v.shape[0] // _SLOT_BYTES
+        cdef Py_ssize_t i, m = v.shape[0] // SLOT_BYTES
         cdef int64_t accepted = 0
         cdef int r = 0, ev
         cdef const uint8_t* q
-        cdef Py_ssize_t n
         cdef uint32_t aid
         cdef PyObject* p
         self._completed = 0
         for i in range(start, m):
-            q = &v[i * _SLOT_BYTES]
-            memcpy(&aid, q + 8, 4)
+            q = &v[i * SLOT_BYTES]
+            aid = slot_id(q)
             aid_obj = aid
             p = PyDict_GetItem(self._index, aid_obj)
             if p is NULL:
                 return i, TAKE_BATCH_OTHER, 0, self._completed, accepted
-            n = q[18] if q[18] <= _MAX_DATA else _MAX_DATA
-            ev = self._take_one(<int><object>p, aid, q + _DATA_OFFSET, n, k, &r, &accepted)
+            ev = self._take_one(<int><object>p, aid, q + DATA_OFFSET, slot_len(q), k, &r, &accepted)
             if ev != TAKE_BATCH_END:
                 return i, ev, r, self._completed, accepted
         return m, TAKE_BATCH_END, 0, self._completed, accepted

@@ -87,10 +87,8 @@ cdef extern from "Python.h":
     PyObject* PyFloat_FromDouble(double v)
     PyObject* PyLong_FromUnsignedLong(unsigned long v)
 
-# ---- the slot format (memory_shm: SLOT_HEAD "<dIIBBBB", data at 24, sequence number at 88)
-DEF SLOT_BYTES = 96
-DEF DATA_OFFSET = 24
-DEF MAX_DATA = 64
+# ---- the slot format (canbrake.bus._slot: memory_shm's SLOT_HEAD "<dIIBBBB", data at 24, sequence number at 88)
+from canbrake.bus._slot cimport SLOT_BYTES, DATA_OFFSET, MAX_DATA
 DEF SLOT_SEQ_OFFSET = 88
 DEF WRITE_SEQ_BYTE = 64        # header word H_WRITE_SEQ (8)
 DEF SLEEPERS_BYTE = 160        # header word H_SLEEPERS (20)

@@ -180,11 +180,9 @@ def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, 
     return m, TAKE_END, closed
 
 
-# the memory bus's slot image (canbrake.bus.memory_shm): identifier at 8, flags at 16 (bit 0
-# extended, bit 1 remote, bit 2 error frame), data length at 18, data at 24 of 96 bytes
-DEF _SLOT_BYTES = 96
-DEF _DATA_OFFSET = 24
-DEF _MAX_DATA = 64
+# the memory bus's slot image (canbrake.bus._slot)
+from canbrake.bus._slot cimport (SLOT_BYTES, DATA_OFFSET, SLOT_FLAG_EXTENDED, SLOT_FLAG_REMOTE, SLOT_FLAG_ERROR,
+                                 slot_id, slot_flags, slot_len)
 
 
 def take_frames_raw(frames, object message, Py_ssize_t start, bint resume, dict counts, closing, object sync_id,
@@ -194,23 +192,21 @@ def take_frames_raw(frames, object message, Py_ssize_t start, bint resume, dict 
     (``MemoryBus.raw_message``: the ``can.Message`` the bus's ``recv`` gives), its payload bytes
     from the image; ``i`` is the image's index."""
     cdef const uint8_t[::1] v = frames
-    cdef Py_ssize_t i, m = v.shape[0] // _SLOT_BYTES, n
+    cdef Py_ssize_t i, m = v.shape[0] // SLOT_BYTES, n
     cdef Py_ssize_t closed = 0
     cdef PyObject* p
     cdef const uint8_t* q
-    cdef unsigned int aid32
     for i in range(start, m):
-        q = &v[i * _SLOT_BYTES]
-        memcpy(&aid32, q + 8, 4)
-        aid = aid32
-        p = _take_key(aid, bool(q[16] & 1), bool(q[16] & 4), resume and i == start, counts, closing, sync_id,
-                      phase_of, &closed)
+        q = &v[i * SLOT_BYTES]
+        aid = slot_id(q)
+        p = _take_key(aid, bool(slot_flags(q) & SLOT_FLAG_EXTENDED), bool(slot_flags(q) & SLOT_FLAG_ERROR),
+                      resume and i == start, counts, closing, sync_id, phase_of, &closed)
         if p is NULL:
             return i, TAKE_PHASE, closed
         if p == _SYNC_MARK:
             return i, TAKE_SYNC, closed
-        n = 0 if q[16] & 2 else (q[18] if q[18] <= _MAX_DATA else _MAX_DATA)  # a remote frame: no data
-        tick_frames.append((<object>p, aid, (<const char*>q)[_DATA_OFFSET:_DATA_OFFSET + n], message(frames, i)))
+        n = 0 if slot_flags(q) & SLOT_FLAG_REMOTE else slot_len(q)  # a remote frame: no data
+        tick_frames.append((<object>p, aid, (<const char*>q)[DATA_OFFSET:DATA_OFFSET + n], message(frames, i)))
     return m, TAKE_END, closed
 
 
