@@ -863,8 +863,9 @@ def blame_overrides(message: str, source: str, overrides: dict[str, Any],
         key = next((k for k in sorted(overrides, key=len, reverse=True)
                     if field == k or field.startswith(k + ".") or k.startswith(field + ".")
                     or (every is not None and (every == k or every.startswith(k + ".")))), None)
-        if key is None:
-            text = line
+        if key is None:  # not a field an override set; one in the same section may still have caused it
+            near = [_label(k, labels) for k in overrides if k.split(".", 1)[0] == field.split(".", 1)[0]]
+            text = f"{line} (with {', '.join(near)})" if near and line.startswith(f"{source}: ") else line
         elif key != field and not (every is not None and every == key):
             text = f"{_label(key, labels)}: {rest}"
         else:

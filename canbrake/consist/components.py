@@ -570,6 +570,11 @@ class TrainSpec(_Model):
     @model_validator(mode="after")
     def _assemble(self) -> "TrainSpec":
         ex = self.expanded()
+        unused = [name for name in self.vehicle_types if name not in {v.type for v in self.vehicles}]
+        if unused:  # most often a misspelt type name given with --set (it would silently change nothing)
+            raise ValueError(f"@vehicle_types.{unused[0]}: no vehicle is of type {unused[0]!r} (train.vehicles use "
+                             f"{', '.join(sorted({v.type for v in self.vehicles}))}); remove it or name it in "
+                             f"train.vehicles")
         if len(ex) > MAX_VEHICLES:
             raise ValueError(f"@vehicles: {len(ex)} vehicles; at most {MAX_VEHICLES}")
         kernel = self._choose_kernel(ex)
