@@ -698,6 +698,23 @@ def _set_dotted(data: dict[str, Any], dotted: str, value: Any, labels: Mapping[s
             raise ScenarioError(f"{label}: {'.'.join(keys[:depth])} is not a mapping or list")
 
 
+def _check_new_vehicle_types(data: dict[str, Any], types_before: Mapping[str, Any], overrides: Mapping[str, Any],
+                             labels: Mapping[str, str] | None) -> None:
+    """A vehicle type an override creates (``--set train.vehicle_types.NAME.…`` with a NAME the
+    scenario lacks) that no vehicle uses: most often a misspelt type name, which would otherwise
+    change nothing at all. (A file may keep unused types; only an override's new one is refused.)"""
+    train = data.get("train")
+    if not isinstance(train, dict) or not isinstance(train.get("vehicles"), list):
+        return
+    used = {v.get("type") for v in train["vehicles"] if isinstance(v, dict)}
+    for k in overrides:
+        m = re.fullmatch(r"train\.vehicle_types\.([^.]+)(\..*)?", k)
+        if m and m[1] not in types_before and m[1] not in used:
+            known = ", ".join(sorted(str(t) for t in types_before)) or "none"
+            raise ScenarioError(f"{_label(k, labels)}: the scenario has no vehicle type {m[1]!r} (its types: {known}) "
+                                f"and no vehicle in train.vehicles is of that type, so it would change nothing")
+
+
 def format_validation_error(source: str, err: ValidationError) -> str:
     """One readable message per problem: ``file: field.path: what is wrong``."""
     lines = []
@@ -817,8 +834,11 @@ def resolve(data: dict[str, Any], source: str = "<scenario>", profile: str | Non
         if m and isinstance(entries, list) and int(m[1]) < len(entries) and isinstance(entries[int(m[1])], dict) \
                 and isinstance(entries[int(m[1])].get("controller"), dict):
             ecus_before[int(m[1])] = entries[int(m[1])]["controller"].get("name")
+    train0 = data.get("train") if isinstance(data.get("train"), dict) else {}
+    types0 = dict(train0["vehicle_types"]) if isinstance(train0.get("vehicle_types"), dict) else {}
     for k, v in overrides.items():
         _set_dotted(data, k, v, labels)
+    _check_new_vehicle_types(data, types0, overrides, labels)
     after = _controller_name(data)
     if after != before and "controller" not in overrides and isinstance(data.get("controller"), dict):
         given = {k: v for k, v in overrides.items() if k == "controller.params" or k.startswith("controller.params.")}

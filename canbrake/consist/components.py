@@ -595,12 +595,6 @@ class TrainSpec(_Model):
                                  f"this train's couplers are {_name(ex[0][1].coupler) if ex[0][1].coupler else 'chen'}")
         self._kernel_name = kernel
         self._kernel = getattr(self, f"_lower_{kernel}")(ex)
-        # last, so that a train's own problems are named first
-        unused = [name for name in self.vehicle_types if name not in {v.type for v in self.vehicles}]
-        if unused:  # most often a misspelt type name given with --set (it would silently change nothing)
-            raise ValueError(f"@vehicle_types.{unused[0]}: no vehicle is of type {unused[0]!r} (train.vehicles use "
-                             f"{', '.join(sorted({v.type for v in self.vehicles}))}); remove it or name it in "
-                             f"train.vehicles")
         return self
 
     # --- the vehicles --------------------------------------------------------------------------
