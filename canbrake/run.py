@@ -605,11 +605,16 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
     signal or exit status), ``wall_time_s``, ``ticks`` (the plant's last progress) and
     ``live_nodes`` (processes that could not be stopped; their files must not be touched)."""
     clean_killed_runs()
+    # decided once, before the nodes start, and before the forkserver: a server just started is
+    # still importing the node code (~0.6 s of CPU), and counted as other work runnable it made
+    # the choice "busy, no yield" whenever the load average was at the CPUs (as between a
+    # bench's cases), though yielding was the faster (`canbrake bench`: 1,658 vs 1,907 periods/s)
+    yield_ = memory_yield()
     with children_skip_main():
         ctx = _mp_context()
     env = {k: v for k, v in os.environ.items() if k.startswith("CANBRAKE_")}
     env.update(PACKAGE_ENV, CANBRAKE_IMPORT=",".join(controller_modules(scn)))
-    env["CANBRAKE_MEMORY_YIELD"] = "1" if memory_yield() else "0"  # decided once, before the nodes start
+    env["CANBRAKE_MEMORY_YIELD"] = "1" if yield_ else "0"
     if start_timeout_s is None:
         start_timeout_s = _start_timeout_s()
     placed = scn.placement()

@@ -34,3 +34,23 @@ def test_the_variable_decides_when_given(monkeypatch):
 def test_runnable_others_reads_the_running_count():
     n = R._runnable_others(samples=2, gap_s=0.0)
     assert n is None or n >= 0
+
+
+def test_a_run_decides_before_it_starts_the_forkserver(monkeypatch, tmp_path):
+    """The forkserver, just started, imports the node code: asked after it, the rule counted that
+    import as other work (a bench between cases: load average at the CPUs, so "no yield")."""
+    calls: list[str] = []
+
+    class Started(Exception):
+        pass
+
+    def ctx() -> None:
+        calls.append("forkserver")
+        raise Started
+
+    monkeypatch.setattr(R, "memory_yield", lambda: calls.append("decide") or True)
+    monkeypatch.setattr(R, "_mp_context", ctx)
+    monkeypatch.setattr(R, "clean_killed_runs", lambda *a, **k: [])
+    with pytest.raises(Started):
+        R.run_processes(None, tmp_path, None)  # type: ignore[arg-type]
+    assert calls == ["decide", "forkserver"]
