@@ -8,6 +8,7 @@ old; older ones are indistinguishable and the peer is reported stale anyway).
 """
 from __future__ import annotations
 
+import functools
 import json
 import math
 import time
@@ -26,6 +27,7 @@ from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
+from canbrake.nodes._ecu import EcuPeriod
 from canbrake.nodes.base import (CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame,
                                  write_text_atomic)
 
@@ -212,6 +214,11 @@ class EcuNode(Node):
         self._has_front = self.car > 1                # a coupler ahead (deflection_front_m)
         self._has_rear = not self._last_vehicle()     # a coupler behind (deflection_rear_m)
         self._diag_names: tuple[str, ...] = tuple(controller.diagnostic_names)
+        # the period's decision, compiled (see _phase2)
+        self._period = EcuPeriod(self._peers, self.sensors, self._own_signals, self.i, self.dt, self._peer_views,
+                                 Observation, self._has_front, self._has_rear, self._cmd_msgs,
+                                 _STATUS, self._control_pending, self._control_time,
+                                 None if secoc is None else functools.partial(sign_protected, secoc))
 
     def filters(self) -> list[dict]:
         ids = [self.layout.sync_id, self.layout.reference_id, *self._sensor_pages, *self._state_pages, *self._auth_of]
@@ -553,58 +560,22 @@ class EcuNode(Node):
         if not self._fast:
             t, horizon = self._times(now, 2)
             self._release_linked(now)
-        sensors = self.sensors
-        table = self.peer_signals
-        i = self.i
-        for nm in self._own_signals:  # this ECU's own entries
-            table[nm][i] = sensors[nm]
-        if self.peer_hold_periods is not None:  # lost peers are NaN for the controller: a copy
-            peers, dropped = self._peers.hold_copy(k, self.peer_hold_periods, i)  # (compiled)
+        # compiled: its own values into the peer table, the peers' ages, the Observation, the
+        # controller's step (timed), the command frames (canbrake.nodes._ecu.EcuPeriod)
+        hold = self.peer_hold_periods
+        result, cmds, max_age, fresh, dropped = self._period.decide(
+            self.controller, k, -1 if hold is None else hold, self._in_fallback)
+        if hold is not None:
             self._count_fallback(dropped)
-        else:
-            peers = self._peer_views
-        speed = peers["speed_mps"]
-        pt = self._peers
-        # per ECU the age of its newest value (compiled: one pass over the train's ECUs), the
-        # ECUs with a value of this tick (own included), the oldest finite age (-inf: none)
-        age, fresh, max_age = pt.ages(k, self.dt, i, None if peers is self._peer_views else speed)
         self.stats.peer_missing += len(self._listened) + 1 - fresh
-        nan = math.nan
-        obs = Observation.of(tick=k, time_s=k * self.dt, speed_mps=sensors.get("speed_mps", nan),
-                             position_m=sensors.get("position_m", nan), ref_speed_mps=pt.v_ref,
-                             ref_decel_mps2=pt.a_ref, peer_speed_mps=speed, peer_position_m=peers["position_m"],
-                             peer_age_s=age,
-                             deflection_front_m=sensors.get("deflection_front_m") if self._has_front else None,
-                             deflection_rear_m=(sensors.get("deflection_rear_m")
-                                                if self._has_rear and "deflection_rear_m" in sensors else None),
-                             ref_position_m=pt.x_ref, sensors=dict(sensors), peer_signals=peers)
-        t0 = _perf_counter()
-        result = self.controller.step(obs)
-        pending = self._control_pending
-        pending.append(_perf_counter() - t0)
-        if len(pending) >= 1024:
-            self._control_time.add_many(pending)
-            pending.clear()
         self._broadcast = result.broadcast
-        out: list[can.Message] = []
         diag = result.diagnostics
-        status = int(diag["status"]) if "status" in diag else 0
-        if self._in_fallback and status == 0:
-            status = 1  # degraded: running without a lost peer
-        # the command frames' values (a value that is not finite is left out of the frame)
-        values = {"brake_force_n": result.brake_force_n, **result.commands} if result.commands else \
-            {"brake_force_n": result.brake_force_n}
-        values[_STATUS] = status
-        counter = k % COUNTER_MODULO
-        for fid, codec, keys in self._cmd_msgs:
-            cmd = codec.encode_from(values, keys, counter, k, True)
-            if self.secoc is not None:
-                cmd = sign_protected(self.secoc, fid, cmd, k)
-            if plain:
-                out.append(frame(fid, cmd))
-            else:
-                self._emit(frame(fid, cmd), t, out)
-        if not plain:
+        if plain:
+            out = cmds
+        else:
+            out = []
+            for m in cmds:
+                self._emit(m, t, out)
             out += self.send_path.release(horizon)
         if self.barrier:
             cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": k & 0xFFFF}), k)

@@ -1,0 +1,142 @@
+"""The ECU's compiled decision (canbrake.nodes._ecu.EcuPeriod.decide) against the Python it
+replaced in EcuNode._phase2: the same Observation field by field (also with peer hold: lost peers
+NaN in a copy), the same command frames byte for byte (Status from the diagnostics and the
+fallback, further commands), the own values written into the peer table."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from canbrake.bus.e2e import COUNTER_MODULO
+from canbrake.control.base import ControlOutput, Observation
+from canbrake.nodes.base import frame
+from canbrake.nodes.ecu import _STATUS
+
+
+class _Stub:
+    """Records what it is given, returns ``out``."""
+
+    def __init__(self, out: ControlOutput) -> None:
+        self.out = out
+        self.seen: list[Observation] = []
+
+    def step(self, obs: Observation) -> ControlOutput:
+        self.seen.append(obs)
+        return self.out
+
+
+def _ecu_after_tick0(car: int = 3):
+    """ECU ``car`` of Chen case 1 that has taken tick 0's sensor and peer frames (not decided)."""
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
+    plant = build_node(scn, "plant", run_dir=None)
+    ecu = build_node(scn, "ecu", car=car, run_dir=None)
+    ecu.start(0.0)
+    tick0 = list(plant.start(0.0))
+    states = []
+    for c in range(1, 7):
+        if c != car:
+            e = build_node(scn, "ecu", car=c, run_dir=None)
+            e.start(0.0)
+            states += e.handle_batch(list(tick0), 0.0)
+    return ecu, tick0, states
+
+
+def _oracle(ecu, k: int, hold: int | None):
+    """EcuNode._phase2's Observation as it was built in Python (own entries written first)."""
+    sensors, table, i = ecu.sensors, ecu.peer_signals, ecu.i
+    for nm in ecu._own_signals:
+        table[nm][i] = sensors[nm]
+    if hold is not None:
+        peers, dropped = ecu._peers.hold_copy(k, hold, i)
+    else:
+        peers, dropped = ecu._peer_views, False
+    speed = peers["speed_mps"]
+    pt = ecu._peers
+    age, fresh, max_age = pt.ages(k, ecu.dt, i, None if peers is ecu._peer_views else speed)
+    nan = math.nan
+    obs = Observation(tick=k, time_s=k * ecu.dt, speed_mps=sensors.get("speed_mps", nan),
+                      position_m=sensors.get("position_m", nan), ref_speed_mps=pt.v_ref,
+                      ref_decel_mps2=pt.a_ref, peer_speed_mps=speed, peer_position_m=peers["position_m"],
+                      peer_age_s=age,
+                      deflection_front_m=sensors.get("deflection_front_m") if ecu._has_front else None,
+                      deflection_rear_m=(sensors.get("deflection_rear_m")
+                                         if ecu._has_rear and "deflection_rear_m" in sensors else None),
+                      ref_position_m=pt.x_ref, sensors=dict(sensors), peer_signals=peers)
+    return obs, fresh, max_age, dropped
+
+
+def _oracle_frames(ecu, k: int, result: ControlOutput, in_fallback: bool):
+    diag = result.diagnostics
+    status = int(diag["status"]) if "status" in diag else 0
+    if in_fallback and status == 0:
+        status = 1
+    values = {"brake_force_n": result.brake_force_n, **result.commands} if result.commands else \
+        {"brake_force_n": result.brake_force_n}
+    values[_STATUS] = status
+    return [frame(fid, codec.encode_from(values, keys, k % COUNTER_MODULO, k, True))
+            for fid, codec, keys in ecu._cmd_msgs]
+
+
+def _same_obs(a: Observation, b: Observation) -> None:
+    assert type(a) is type(b) is Observation
+    assert list(a.__dict__) == list(b.__dict__)
+    for name, x in a.__dict__.items():
+        y = b.__dict__[name]
+        if isinstance(x, np.ndarray):
+            assert type(y) is np.ndarray and x.tobytes() == y.tobytes() and x.flags.writeable == y.flags.writeable
+        elif name == "peer_signals":
+            assert list(x) == list(y) and all(x[n].tobytes() == y[n].tobytes() for n in x)
+        elif isinstance(x, float) and math.isnan(x):
+            assert isinstance(y, float) and math.isnan(y)
+        else:
+            assert x == y and type(x) is type(y), name
+
+
+def _key(msgs):
+    return [(m.arbitration_id, m.is_extended_id, m.dlc, bytes(m.data)) for m in msgs]
+
+
+@pytest.mark.parametrize("car", [1, 3, 6])
+@pytest.mark.parametrize("hold", [None, 0, 5])
+def test_decide_equals_the_python_phase2(car, hold):
+    ecu, tick0, states = _ecu_after_tick0(car)
+    ecu.handle_batch(tick0, 0.0)  # sensors, reference; phase 1 (its state sent); not yet decided
+    ecu._peers.feed(states[:3], 0, ecu.k, ecu.phase)  # some peers' state pages only (others lost)
+    k = ecu.k + 3  # three periods later: peers of tick 0 are 3 periods old
+    out = ControlOutput(12_345.678, {"status": 0.0, "x": 1.5}, {"brake_force_n": 99.0, "extra": 2.0}, {"b": 1.0})
+    stub = _Stub(out)
+    want, fresh_w, max_age_w, dropped_w = _oracle(ecu, k, hold)
+    result, cmds, max_age, fresh, dropped = ecu._period.decide(stub, k, -1 if hold is None else hold, False)
+    assert result is out and len(stub.seen) == 1
+    _same_obs(stub.seen[0], want)
+    assert (fresh, max_age, dropped) == (fresh_w, max_age_w, dropped_w)
+    assert dropped == (hold is not None)  # peers never heard of (the lost pages' senders) are dropped
+    assert _key(cmds) == _key(_oracle_frames(ecu, k, out, dropped_w))
+    assert len(ecu._control_pending) == 1 and ecu._control_pending[0] >= 0.0
+
+
+def test_decide_status_fallback_and_the_step_times():
+    ecu, tick0, _states = _ecu_after_tick0(2)
+    ecu.handle_batch(tick0, 0.0)
+    for diag, fallback in (({}, True), ({"status": 3.7}, True), ({"status": 0}, False), ({}, False)):
+        out = ControlOutput(-500.0, diag)
+        cmds = ecu._period.decide(_Stub(out), 7, -1, fallback)[1]
+        assert _key(cmds) == _key(_oracle_frames(ecu, 7, out, fallback))
+    # the step times go to the histogram 1,024 at a time (the pending list is the node's)
+    ecu._control_pending[:] = [1e-6] * 1023
+    ecu._period.decide(_Stub(ControlOutput(0.0)), 8, -1, False)
+    assert ecu._control_pending == [] and ecu._control_time.n == 1024
+
+
+def test_decide_writes_the_own_values_into_the_table():
+    ecu, tick0, _states = _ecu_after_tick0(4)
+    ecu.handle_batch(tick0, 0.0)
+    ecu.sensors["speed_mps"] = 21.25
+    ecu._period.decide(_Stub(ControlOutput(0.0)), 1, -1, False)
+    assert ecu.peer_signals["speed_mps"][ecu.i] == 21.25
+    assert ecu._own_signals and all(ecu.peer_signals[n][ecu.i] == ecu.sensors[n] for n in ecu._own_signals)
