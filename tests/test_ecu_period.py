@@ -140,3 +140,108 @@ def test_decide_writes_the_own_values_into_the_table():
     ecu._period.decide(_Stub(ControlOutput(0.0)), 1, -1, False)
     assert ecu.peer_signals["speed_mps"][ecu.i] == 21.25
     assert ecu._own_signals and all(ecu.peer_signals[n][ecu.i] == ecu.sensors[n] for n in ecu._own_signals)
+
+
+def _python_take_batch(node, feed, batch, message_at, now):
+    """EcuNode._take_batch as it was in Python (the oracle of the compiled take_batch)."""
+    from canbrake.bus._codec import (FEED_END, FEED_FRAME, FEED_HELD, FEED_PHASE1, FEED_PHASE2, FEED_REJECT,
+                                      FEED_SYNC, REJECT_CRC)
+    out = []
+    i = 0
+    while True:
+        r = feed(batch, i, node.k, node.phase)
+        ev, i = r & 7, r >> 3
+        if ev == FEED_END:
+            break
+        if ev == FEED_SYNC:
+            node._start_period(node._peers.sync_tick)
+        elif ev == FEED_FRAME:
+            out += node._handle_frame(message_at(i), now)
+            if node.finished:
+                break
+        elif ev == FEED_PHASE1:
+            if node.clock is not None and node.phase == 0 and node.k >= 0:
+                node._p1_at = now + node.clock.offset_s(node.k)
+            else:
+                out += node._phase1(now)
+        elif ev == FEED_PHASE2:
+            out += node._phase2(now)
+        elif ev == FEED_REJECT:
+            node.guard.reject("crc" if node._peers.last_code == REJECT_CRC else "counter")
+            node._count_peer_rejection()
+        elif ev == FEED_HELD:
+            node._late_rx.append(message_at(i))
+        else:
+            node._arm_external(now)
+        i += 1
+    return out
+
+
+def _node_key(e):
+    return (e.k, e.phase, e.finished, dict(e.sensors), e.stats.ticks, e.stats.peer_corrupted,
+            e.stats.peer_stale_or_duplicate, e.stats.peer_missing, e.guard.stats(), len(e._late_rx),
+            {n: a.tobytes() for n, a in e.peer_signals.items()})
+
+
+def test_take_batch_equals_the_python_loop_over_periods_with_a_rejected_page():
+    """Two twins of ECU 3 through 4 periods of Chen case 1 with every peer: one by the compiled
+    loop (handle_batch), one by the Python loop it replaced; a corrupted state page and a stray
+    frame in every period."""
+    import can
+
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
+    plant = build_node(scn, "plant", run_dir=None)
+    a, b = (build_node(scn, "ecu", car=3, run_dir=None) for _ in range(2))
+    others = [build_node(scn, "ecu", car=c, run_dir=None) for c in (1, 2, 4, 5, 6)]
+    for e in (a, b, *others):
+        e.start(0.0)
+    gen = list(plant.start(0.0))
+    for _tick in range(4):
+        states = []
+        for e in others:
+            states += e.handle_batch(list(gen), 0.0)
+        bad = next(m for m in states if m.arbitration_id in a._state_pages)
+        broken = can.Message(arbitration_id=bad.arbitration_id, is_extended_id=bad.is_extended_id,
+                             data=bytes([bad.data[0] ^ 0x5A]) + bytes(bad.data[1:]))
+        stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
+        sent = []
+        for batch in (list(gen), [stray, broken, *states]):
+            out_a = a.handle_batch(list(batch), 0.0)
+            out_b = _python_take_batch(b, b._peers.feed, list(batch), batch.__getitem__, 0.0)
+            assert _key(out_a) == _key(out_b)
+            assert _node_key(a) == _node_key(b)
+            sent.append(out_a)
+        cmds = list(sent[1])  # ECU 3's commands (its phase 1's state frames go to its peers)
+        for e in others:
+            cmds += e.handle_batch(states + sent[0], 0.0)
+        gen = list(plant.handle_batch(cmds, 0.0))
+    assert a.stats.ticks == 4 and a.stats.peer_corrupted == 4
+
+
+def test_state_frames_equal_the_python_encoding_with_broadcast_and_authenticators():
+    ecu, tick0, _states = _ecu_after_tick0(2)
+    ecu.handle_batch(tick0, 0.0)
+    k = 17
+    for broadcast in ({}, {"speed_mps": 1.0, "position_m": -3.0, "other": 2.0}):
+        values = {**broadcast, **ecu.sensors} if broadcast else ecu.sensors
+        want = [frame(fid, codec.encode_from(values, keys, k % COUNTER_MODULO, k))
+                for fid, codec, keys, _auth in ecu._state_msgs]
+        assert want and _key(ecu._period.state_frames(k, broadcast)) == _key(want)
+    # with an authenticator (SecOC): each state frame followed by its own
+    from canbrake.nodes._ecu import EcuPeriod
+
+    calls = []
+
+    def auth(auth_id, fid, payload, tick):
+        calls.append((auth_id, fid, bytes(payload), tick))
+        return bytes(8)
+
+    msgs = [(fid, codec, keys, 0x555) for fid, codec, keys, _a in ecu._state_msgs]
+    p = EcuPeriod(ecu._peers, ecu.sensors, ecu._own_signals, ecu.i, ecu.dt, ecu._peer_views, Observation,
+                  False, False, [], _STATUS, [], ecu._control_time, None, msgs, auth)
+    got = p.state_frames(k, {})
+    assert [m.arbitration_id for m in got] == [x for fid, *_ in msgs for x in (fid, 0x555)]
+    assert calls == [(0x555, m.arbitration_id, bytes(m.data), k) for m in got[0::2]]

@@ -19,6 +19,7 @@ from libc.stdint cimport int64_t
 import math
 import time
 
+from canbrake.bus import _codec
 from canbrake.bus._ring import data_frame
 from canbrake.bus.e2e import COUNTER_MODULO
 
@@ -31,6 +32,11 @@ cdef str _FRONT = "deflection_front_m"
 cdef str _REAR = "deflection_rear_m"
 cdef str _STATUS_DIAG = "status"
 cdef str _BRAKE = "brake_force_n"
+# PeerTable.feed's events (canbrake.bus._codec.FEED_*) and its CRC rejection code
+cdef int _EV_END = _codec.FEED_END, _EV_FRAME = _codec.FEED_FRAME, _EV_PHASE1 = _codec.FEED_PHASE1
+cdef int _EV_PHASE2 = _codec.FEED_PHASE2, _EV_REJECT = _codec.FEED_REJECT, _EV_HELD = _codec.FEED_HELD
+cdef int _EV_SYNC = _codec.FEED_SYNC
+cdef int _REJECT_CRC = _codec.REJECT_CRC
 
 
 cdef class EcuPeriod:
@@ -39,7 +45,9 @@ cdef class EcuPeriod:
     names of its own sensor values that it writes into the table's arrays at its index ``i``;
     ``views``: the table's arrays as the controller sees them (read-only views), ``obs_cls``:
     the Observation class; ``cmd_msgs``: [(identifier, FieldCodec, keys)] of its command frames;
-    ``status_key``: the key of their Status field; ``pending``/``hist``: the controller step's
+    ``status_key``: the key of their Status field; ``state_msgs``: [(identifier, FieldCodec, keys,
+    its authenticator's identifier)] of its STATE frames, ``auth(authenticator id, identifier,
+    payload, tick)``: a STATE frame's authenticator (SecOC) or None; ``pending``/``hist``: the controller step's
     wall times (s) not yet added to ``hist`` (:class:`~canbrake.nodes.base.LogHistogram`), added
     1,024 at a time; ``sign(identifier, payload, tick)``: a command frame's signature (SecOC)
     or None."""
@@ -47,7 +55,8 @@ cdef class EcuPeriod:
     cdef object table, obs_cls, hist, sign
     cdef dict sensors, views, arrays
     cdef tuple own
-    cdef list cmd_msgs, pending
+    cdef list cmd_msgs, pending, state_msgs
+    cdef object auth
     cdef object status_key
     cdef int i
     cdef object i_obj
@@ -55,7 +64,8 @@ cdef class EcuPeriod:
     cdef bint has_front, has_rear
 
     def __init__(self, table, dict sensors, tuple own, int i, double dt, dict views, obs_cls, bint has_front,
-                 bint has_rear, list cmd_msgs, status_key, list pending, hist, sign=None):
+                 bint has_rear, list cmd_msgs, status_key, list pending, hist, sign=None, list state_msgs=None,
+                 auth=None):
         self.table = table
         self.sensors = sensors
         self.arrays = table.values
@@ -72,6 +82,8 @@ cdef class EcuPeriod:
         self.pending = pending
         self.hist = hist
         self.sign = sign
+        self.state_msgs = state_msgs or []
+        self.auth = auth
 
     def decide(self, controller, int64_t k, int64_t hold, bint in_fallback):
         """Tick ``k``'s decision: returns (the controller's output, its command frames,
@@ -142,3 +154,60 @@ cdef class EcuPeriod:
                 cmd = sign(fid, cmd, k)
             frames.append(data_frame(fid, cmd))
         return result, frames, max_age, fresh, dropped
+
+    def state_frames(self, int64_t k, broadcast):
+        """Tick ``k``'s STATE frames (phase 1), each followed by its authenticator with SecOC:
+        the sensor values, over the broadcast values of the same name (``broadcast``: the
+        controller's last; a value that is not finite is left out of the frame)."""
+        cdef list frames = []
+        values = {**broadcast, **self.sensors} if broadcast else self.sensors
+        counter = k % COUNTER_MODULO
+        auth = self.auth
+        for fid, codec, keys, auth_id in self.state_msgs:
+            payload = codec.encode_from(values, keys, counter, k)
+            frames.append(data_frame(fid, payload))
+            if auth is not None:  # its authenticator, right after it (canbrake.bus.secoc)
+                frames.append(data_frame(auth_id, auth(auth_id, fid, payload, k)))
+        return frames
+
+
+def take_batch(node, feed, batch, message, bint raw, now):
+    """An ECU's (:class:`~canbrake.nodes.ecu.EcuNode` ``node``) receive loop over ``batch``:
+    the peer table's compiled loop ``feed`` (``PeerTable.feed`` over python-can messages,
+    ``feed_raw`` over slot images, ``raw``: then ``message(batch, i)`` makes frame i a
+    ``can.Message``) takes the frames, and the node's Python is called where it acts (a new
+    period, its phases, a frame it handles, a rejection, a held frame); returns the frames to
+    send, in order."""
+    cdef list out = []
+    cdef Py_ssize_t i = 0
+    cdef long r
+    cdef int ev
+    peers = node._peers
+    while True:
+        r = feed(batch, i, node.k, node.phase)
+        ev = r & 7
+        i = r >> 3
+        if ev == _EV_END:
+            break
+        if ev == _EV_SYNC:  # the next period (the peer table has begun it)
+            node._start_period(peers.sync_tick)
+        elif ev == _EV_FRAME:
+            out += node._handle_frame(message(batch, i) if raw else batch[i], now)
+            if node.finished:
+                break
+        elif ev == _EV_PHASE1:  # the last sensor page
+            if node.clock is not None and node.phase == 0 and node.k >= 0:
+                node._p1_at = now + node.clock.offset_s(node.k)  # realtime: when this ECU's timer fires
+            else:
+                out += node._phase1(now)
+        elif ev == _EV_PHASE2:  # the last peer of this tick is in
+            out += node._phase2(now)
+        elif ev == _EV_REJECT:
+            node.guard.reject("crc" if peers.last_code == _REJECT_CRC else "counter")
+            node._count_peer_rejection()
+        elif ev == _EV_HELD:
+            node._late_rx.append(message(batch, i) if raw else batch[i])
+        else:  # FEED_ARM
+            node._arm_external(now)
+        i += 1
+    return out

@@ -20,14 +20,13 @@ import can
 import numpy as np
 
 from canbrake.bus import dbc
-from canbrake.bus._codec import (FEED_END, FEED_FRAME, FEED_HELD, FEED_PHASE1, FEED_PHASE2, FEED_REJECT,
-                                  FEED_SYNC, REJECT_CRC, PeerTable)
+from canbrake.bus._codec import REJECT_CRC, PeerTable
 from canbrake.bus.codec import FrameCodec
 from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
-from canbrake.nodes._ecu import EcuPeriod
+from canbrake.nodes._ecu import EcuPeriod, take_batch
 from canbrake.nodes.base import (CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame,
                                  write_text_atomic)
 
@@ -218,7 +217,8 @@ class EcuNode(Node):
         self._period = EcuPeriod(self._peers, self.sensors, self._own_signals, self.i, self.dt, self._peer_views,
                                  Observation, self._has_front, self._has_rear, self._cmd_msgs,
                                  _STATUS, self._control_pending, self._control_time,
-                                 None if secoc is None else functools.partial(sign_protected, secoc))
+                                 None if secoc is None else functools.partial(sign_protected, secoc),
+                                 self._state_msgs, None if secoc is None else functools.partial(state_authenticator, secoc))
 
     def filters(self) -> list[dict]:
         ids = [self.layout.sync_id, self.layout.reference_id, *self._sensor_pages, *self._state_pages, *self._auth_of]
@@ -245,46 +245,13 @@ class EcuNode(Node):
         the reference, and comes back here for the frames and moments this node acts on."""
         if type(msgs) is not list:
             msgs = list(msgs)
-        return self._take_batch(self._peers.feed, msgs, msgs.__getitem__, now)
+        return take_batch(self, self._peers.feed, msgs, None, False, now)  # (compiled)
 
     def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
         """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``), taken
         by :meth:`~canbrake.bus._codec.PeerTable.feed_raw` without a ``can.Message`` per frame;
         ``message(frames, i)`` makes one of image i for the frames this node's Python handles."""
-        return self._take_batch(self._peers.feed_raw, frames, lambda i: message(frames, i), now)
-
-    def _take_batch(self, feed: Any, batch: Any, message_at: Any, now: float) -> list[can.Message]:
-        """The frames of ``batch`` through ``feed`` (the peer table's compiled loop), acting where
-        it stops; ``message_at(i)``: frame i as a ``can.Message``."""
-        out: list[can.Message] = []
-        i = 0
-        while True:
-            r = feed(batch, i, self.k, self.phase)
-            ev, i = r & 7, r >> 3
-            if ev == FEED_END:
-                break
-            if ev == FEED_SYNC:  # the next period (the peer table has begun it)
-                self._start_period(self._peers.sync_tick)
-            elif ev == FEED_FRAME:
-                out += self._handle_frame(message_at(i), now)
-                if self.finished:
-                    break
-            elif ev == FEED_PHASE1:  # the last sensor page
-                if self.clock is not None and self.phase == 0 and self.k >= 0:
-                    self._p1_at = now + self.clock.offset_s(self.k)  # realtime: when this ECU's timer fires
-                else:
-                    out += self._phase1(now)
-            elif ev == FEED_PHASE2:  # the last peer of this tick is in
-                out += self._phase2(now)
-            elif ev == FEED_REJECT:
-                self.guard.reject("crc" if self._peers.last_code == REJECT_CRC else "counter")
-                self._count_peer_rejection()
-            elif ev == FEED_HELD:
-                self._late_rx.append(message_at(i))
-            else:  # FEED_ARM
-                self._arm_external(now)
-            i += 1
-        return out
+        return take_batch(self, self._peers.feed_raw, frames, message, True, now)  # (compiled)
 
     def _handle_frame(self, msg: can.Message, now: float) -> list[can.Message]:
         """A frame the peer table hands back: SYNC, a barrier frame, or (SecOC, receive links) a
@@ -520,22 +487,12 @@ class EcuNode(Node):
                 out.append(frame(self._hb_id, self._hb_payload))
             else:
                 self._emit(frame(self._hb_id, self._hb_payload), t, out)
-        if self._state_msgs:
-            # a value that is not finite is left out of the frame; a sensor over a broadcast of its name
-            values = {**self._broadcast, **self.sensors} if self._broadcast else self.sensors
-            counter = k % COUNTER_MODULO
-            for fid, codec, keys, auth_id in self._state_msgs:
-                payload = codec.encode_from(values, keys, counter, k)
-                if plain:
-                    out.append(frame(fid, payload))
-                else:
-                    self._emit(frame(fid, payload), t, out)
-                if self.secoc is not None:  # its authenticator, right after it (canbrake.bus.secoc)
-                    auth = frame(auth_id, state_authenticator(self.secoc, auth_id, fid, payload, k))
-                    if plain:
-                        out.append(auth)
-                    else:
-                        self._emit(auth, t, out)
+        if self._state_msgs:  # (compiled) each with its authenticator after it with SecOC
+            if plain:
+                out += self._period.state_frames(k, self._broadcast)
+            else:
+                for m in self._period.state_frames(k, self._broadcast):
+                    self._emit(m, t, out)
         if not plain:
             out += self.send_path.release(horizon)
         if self.barrier and self._state_msgs:
