@@ -520,6 +520,9 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
                         "overrides": {"bus.timing": "model", "duration_s": 10 * duration_s}},
              "timing_base": {"backend": "inprocess", "profile": "realistic",
                              "overrides": {"duration_s": 10 * duration_s}}}
+    from canbrake.run import memory_yield
+
+    yields_at_start = memory_yield()  # what a run's automatic choice is now (the note of the knob's row)
     vals: dict[str, list[float]] = {k: [] for k in cases}
     compute: list[dict[str, Any]] = []  # the in-process runs' physics and control times
     mem_runs: list[dict[str, Any]] = []  # the one-process-per-ECU runs' memory
@@ -587,9 +590,7 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
     if "virtual" in fail:
         rows.append(_failed("lockstep python-can virtual", fail["virtual"]))
     if "memory_yield" in med:
-        from canbrake.run import memory_yield
-
-        auto = "yields" if memory_yield() else "does not yield (machine busy: load average >= CPUs and other work runnable)"
+        auto = "yields" if yields_at_start else "does not yield (machine busy: load average >= CPUs and other work runnable)"
         rows.append(_row("lockstep processes, CANBRAKE_MEMORY_YIELD=1", med["memory_yield"], "periods/s",
                          "processes (default: auto)", med.get("memory"),
                          med["memory_yield"] / med["memory"] if "memory" in med else None, "(knob)", None,
