@@ -220,7 +220,7 @@ class ChenConsensusController(Controller):
             adj[max(i - 1, 0): i + 2] = True
         adj[i] = False
         self._adj_a = adj
-        self._adj_idx = np.flatnonzero(adj).tolist()
+        self._adj_idx = np.flatnonzero(adj)  # an index array: numpy converts a list on every indexing (~0.7 us)
         self._adj_f = adj.astype(float)
         self._n_adj = int(np.count_nonzero(adj))
         self._spacing_cfg = nominal_spacing_m
@@ -278,9 +278,9 @@ class ChenConsensusController(Controller):
         i, n = self.car_index, self.n_cars
         x = obs.position_m
         if self._latched and self.stale_policy == "hold":  # fast path
-            px = obs.peer_position_m
-            front = px[i - 1] - x - self._spacing_front if i > 0 else None  # type: ignore[operator]
-            rear = x - px[i + 1] - self._spacing_rear if i < n - 1 else None  # type: ignore[operator]
+            px = obs.peer_position_m  # .item: a Python float (numpy scalars' arithmetic is slower, same floats)
+            front = px.item(i - 1) - x - self._spacing_front if i > 0 else None  # type: ignore[operator]
+            rear = x - px.item(i + 1) - self._spacing_rear if i < n - 1 else None  # type: ignore[operator]
             if front is not None:
                 front = float(front) if front == front else None
             if rear is not None:
