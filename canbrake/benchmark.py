@@ -347,8 +347,8 @@ def codec_figures(n: int = 2000) -> list[dict[str, Any]]:
 
 def controller_figures(n: int = 2000) -> list[dict[str, Any]]:
     """Microseconds per controller call, ``Controller.step(Observation)`` with the Observation
-    constructed as :meth:`canbrake.nodes.ecu.EcuNode._phase2` builds it (``Observation.of`` over
-    read-only peer arrays, a copy of the sensor dict), for a trivial user controller and for
+    constructed as the ECU builds it (``Observation.of``, the way of ``canbrake.nodes._ecu.EcuPeriod.decide``,
+    over read-only peer arrays, a copy of the sensor dict), for a trivial user controller and for
     chen2023 (Chen case 1, car 3 of 6, mid-braking state); best of 5."""
     import numpy as np
 
