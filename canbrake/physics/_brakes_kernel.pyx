@@ -5,9 +5,10 @@ blending, the dump valves with their watchdog, and the backward-Euler step of wh
 bodies with Cai's creep force per axle, or without wheelsets the Coulomb brake/resistance update.
 
 One call per sub-step of :meth:`canbrake.physics.train.TrainPlant.step` with brake equipment
-(:meth:`EquipmentKernel.substep`): arrays in (per car), the new speeds and rail forces out, the
-equipment's state arrays updated in place. The coupler, grade and disturbance forces and the
-sub-step policy stay in the caller. Written by hand because the numpy form cost about 150 array
+(:meth:`EquipmentKernel.run_sub`, from the compiled period ``_train_kernel.EquippedKernel``; its
+Python form :meth:`EquipmentKernel.substep`): arrays in (per car), the new speeds and rail forces
+out, the equipment's state arrays updated in place. The coupler, grade and disturbance forces
+are the caller's. Written by hand because the numpy form cost about 150 array
 operations per sub-step on a handful of cars and axles (one 1-ms sub-step of Chen's 6-car metro
 with four wheelsets per car took ~600 us).
 
@@ -93,18 +94,8 @@ cdef class EquipmentKernel:
     car, ``iters`` Newton iterations. A stack of P plants (``stack_plants``) passes P·n cars and P·n·p
     axles to the steps; its points share these rows (car i is row i mod n).
     ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
+    (Attributes: _brakes_kernel.pxd.)
     """
-
-    cdef bint blending, adhesion_limited, has_env
-    cdef double g
-    cdef const double[::1] ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent
-    cdef const double[:, ::1] env
-    cdef Py_ssize_t p, iters, nR, nJ, nsc, nna  # nna: cars (a stack's P·n cars share their rows: i % nna)
-    cdef const double[::1] b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor  # the slip curve: 1 or n values
-    cdef const double[::1] R, J
-    cdef const double[:, ::1] N
-    cdef Py_ssize_t[::1] na
-    cdef bint bare
 
     def __init__(self, *, bint blending, ed_max, ed_power, fade_start, fade_end,
                  friction_lag_s, valve_lag_s, max_vent_s, bint adhesion_limited,
@@ -149,20 +140,35 @@ cdef class EquipmentKernel:
         or one per car as the lags are given).
 
         Returns (v_new, rail): the new speeds (m/s) and the rail force per car (N, + brakes)."""
+        cdef Py_ssize_t nn = max(v.shape[0], effort.shape[0], f.shape[0]), nv = v.shape[0]
+        brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
+        oth_a, tb_a, td_a = np.empty(nv), np.empty(nv * self.p), np.empty(nv * self.p)
+        cdef const double[::1] cmd = np.zeros(0) if wsp is None else wsp
+        self.run_sub(h, blend_k, valve_k, effort, v, f, r, mass, mu, eff, wsp is not None, cmd, friction, ed, valve,
+                     vent, omega, force, slip, brake_a, trac_a, rail_a, vnew_a, oth_a, tb_a, td_a)
+        return vnew_a, rail_a
+
+    cdef int run_sub(self, double h, const double[::1] blend_k, const double[::1] valve_k,
+                     const double[::1] effort, const double[::1] v, const double[::1] f, const double[::1] r,
+                     const double[::1] mass, const double[::1] mu, const double[::1] eff, bint has_wsp,
+                     const double[::1] cmd, double[::1] friction, double[::1] ed, double[::1] valve,
+                     double[::1] vent, double[::1] omega, double[::1] force, double[::1] slip,
+                     double[::1] brake, double[::1] trac, double[::1] rail, double[::1] vnew,
+                     double[::1] oth, double[::1] tb, double[::1] td) except -1:
+        """:meth:`substep` into the caller's buffers: ``cmd`` the dump valves' command (if
+        ``has_wsp``); out: ``rail``, ``vnew`` (N values, N = max of the per-car lengths); work:
+        ``brake``, ``trac`` (N), ``oth`` (cars), ``tb``, ``td`` (cars × axles)."""
         cdef Py_ssize_t nv = v.shape[0], i
         cdef Py_ssize_t ne = effort.shape[0], nm = mass.shape[0], nmu = mu.shape[0], nef = eff.shape[0]
         cdef Py_ssize_t nf = f.shape[0], nr = r.shape[0]
         cdef Py_ssize_t nn = max(nv, ne)
         cdef double s, fade, per_kg, demand, e, share, total, tr, cap, rail_i, ff, rr, sg, vn, want, ed_cap
-        cdef const double[::1] cmd
         cdef Py_ssize_t nw = 0, nea = self.ed_max.shape[0], nep = self.ed_power.shape[0], nen = self.env.shape[0]
         cdef Py_ssize_t ie, nfs = self.fade_start.shape[0], nfe = self.fade_end.shape[0]
         cdef Py_ssize_t nfl = self.friction_lag.shape[0], nbk = blend_k.shape[0], nvk = valve_k.shape[0]
         cdef Py_ssize_t nvl = self.valve_lag.shape[0], nmv = self.max_vent.shape[0]
         if nf > nn:
             nn = nf
-        brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
-        cdef double[::1] brake = brake_a, trac = trac_a, rail = rail_a, vnew = vnew_a
         for i in range(nn):
             e = effort[i % ne]
             if self.blending:
@@ -191,8 +197,7 @@ cdef class EquipmentKernel:
                 total = e
             brake[i] = _max(total, 0.0) * eff[i % nef]
             trac[i] = _min(total, 0.0)
-        if wsp is not None:
-            cmd = wsp
+        if has_wsp:
             nw = cmd.shape[0]
             for i in range(nw):
                 want = cmd[i]
@@ -209,9 +214,8 @@ cdef class EquipmentKernel:
                 brake[i] = brake[i] * (1.0 - valve[i % nw])
         cdef Py_ssize_t p = self.p, k
         if p > 0:  # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
-            oth_a, tb_a, td_a = np.empty(nv), np.empty(nv * p), np.empty(nv * p)
-            self._prep(v, f, r, brake, trac, oth_a, tb_a, td_a)
-            self._wheels(h, v, oth_a, mass, mu, tb_a, td_a, omega, force, slip, vnew)
+            self._prep(v, f, r, brake, trac, oth, tb, td)
+            self._wheels(h, v, oth, mass, mu, tb, td, omega, force, slip, vnew)
             for i in range(nv):
                 if self.na[i % self.nna] == 0:
                     continue  # a car without wheels: below
@@ -219,7 +223,7 @@ cdef class EquipmentKernel:
                 vnew[i] = 0.0 if v[i] != 0.0 and vn * v[i] < 0.0 else vn  # the exact stop
                 rail[i] = -_npsum(&force[i * p], self.na[i % self.nna])
             if not self.bare:
-                return vnew_a, rail_a
+                return 0
         for i in range(nn):
             if p > 0 and self.na[i % self.nna] > 0:
                 continue
@@ -239,7 +243,7 @@ cdef class EquipmentKernel:
                 vnew[i] = s + (h / mass[i % nm]) * (ff - _sign(ff) * rr)
             else:
                 vnew[i] = s + 0.0
-        return vnew_a, rail_a
+        return 0
 
     cdef void _prep(self, const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] brake,
                     const double[::1] trac, double[::1] oth, double[::1] tb,
