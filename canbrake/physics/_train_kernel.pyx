@@ -456,6 +456,9 @@ cdef class EquippedKernel:
     cdef const double[::1] base_mu, ones, ev_start, ev_end
     cdef const double[:, ::1] ev_mu, ev_eff
     cdef const unsigned char[::1] ev_has_mu, ev_has_eff
+    cdef double[::1] w_vb, w_vn, w_dl, w_eff, w_f, w_r, w_phi, w_brake, w_trac, w_oth, w_tb, w_td, w_held
+    cdef double[::1] w_gst, w_grt, w_gfc
+    cdef object w_vb_a, w_dl_a
 
     def __init__(self, EquipmentKernel equip, *, int points, mass, c_static, c1, c2, grade_force_n, brake_max,
                  trac_max, rate_max, spacing, kappa, epsilon, end_stop_m, end_stop_stiffness, end_stop_absorption,
@@ -521,6 +524,12 @@ cdef class EquippedKernel:
         self.ev_has_eff = np.array([e is not None for e in effs], dtype=np.uint8)
         self.ev_mu = c(np.reshape([np.zeros(n) if m is None else m for m in mus], (ne, n)), (ne, n))
         self.ev_eff = c(np.reshape([np.ones(n) if e is None else e for e in effs], (ne, n)), (ne, n))
+        N, ng, w = P * n, self.gear_idx.shape[0], lambda k: np.empty(max(k, 1))  # noqa: E731
+        self.w_vb_a, self.w_dl_a = np.empty(N), np.empty(P * nc)
+        self.w_vb, self.w_dl = self.w_vb_a, (self.w_dl_a if P * nc else w(0))
+        self.w_vn, self.w_eff, self.w_f, self.w_r, self.w_phi = w(N), w(N), w(N), w(N), w(P * nc)
+        self.w_brake, self.w_trac, self.w_oth, self.w_tb, self.w_td = w(N), w(N), w(N), w(N * equip.p), w(N * equip.p)
+        self.w_held, self.w_gst, self.w_grt, self.w_gfc = w(n), w(ng), w(ng), w(ng)
 
     cdef inline double _saturate(self, Py_ssize_t k, double u, double vi) noexcept nogil:
         """:meth:`canbrake.physics.heavy_haul.TractionEnvelope.saturate_n` of the limited car k's
@@ -563,23 +572,21 @@ cdef class EquippedKernel:
         cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, N = P * n, i, j, k, p, s, q, e
         cdef Py_ssize_t ng = self.gear_idx.shape[0], nl = self.lim_idx.shape[0], nev = self.ev_start.shape[0]
         cdef Py_ssize_t pe = self.equip.p
-        xa, va, vba = np.array(x0, dtype=float).reshape(-1), np.array(v0, dtype=float).reshape(-1), np.empty(N)
-        vna, raila, dla = np.empty(N), np.empty(N), np.empty(max(P * nc, 1))
-        effa, fa, ra, phia = np.empty(N), np.empty(N), np.empty(N), np.empty(max(P * nc, 1))
-        cdef double[::1] x = xa, v = va, vb = vba, vn = vna, rail = raila, dl = dla
-        cdef double[::1] eff_b = effa, f = fa, r = ra, phi = phia
+        xa, va, raila = np.array(x0, dtype=float).reshape(-1), np.array(v0, dtype=float).reshape(-1), np.empty(N)
+        cdef double[::1] x = xa, v = va, rail = raila
+        # work arrays, the kernel's own (v_before and dl are returned: the caller reads them at once)
+        cdef double[::1] vb = self.w_vb, vn = self.w_vn, dl = self.w_dl, eff_b = self.w_eff, f = self.w_f
+        cdef double[::1] r = self.w_r, phi = self.w_phi, brake = self.w_brake, trac = self.w_trac
+        cdef double[::1] oth = self.w_oth, tb = self.w_tb, td = self.w_td, held = self.w_held
+        cdef double[::1] gst = self.w_gst, grt = self.w_grt, gfc = self.w_gfc
+        cdef double[::1] cb = self.w_held  # eq. 40's cube roots of |v| replace it before use
         cdef const double[::1] c = np.ascontiguousarray(cmd, dtype=float).reshape(-1)
         cdef bint has_wsp = wsp is not None
         cdef const double[::1] wcmd = np.ascontiguousarray(wsp, dtype=float).reshape(-1) if has_wsp else np.zeros(0)
         cdef bint per_car_lag = lag_per_car is not None
         cdef const double[::1] lagv = np.ascontiguousarray(lag_per_car, dtype=float) if per_car_lag else self.ones
-        cdef double[::1] brake = np.empty(N), trac = np.empty(N), oth = np.empty(N)
-        cdef double[::1] tb = np.empty(max(N * pe, 1)), td = np.empty(max(N * pe, 1))
-        cdef double[::1] held = np.empty(max(n, 1))
-        cdef double[::1] gst = np.empty(max(ng, 1)), grt = np.empty(max(ng, 1)), gfc = np.empty(max(ng, 1))
         cdef const double[::1] gforce
         cdef const double[::1] mu, effv
-        cdef double[::1] cb = np.empty(max(n, 1))
         cdef double t = t0, t_last = t0, d, st, lim, ev, dlj, rate, over, sg, loading, share, ph, fc, ext, acc
         cdef double speed, vi, u, cap, mu_i, unc1 = 1.0 + self.unc, s1 = 0.0, s2 = 0.0, c3 = 0.0, lag_i = lag
         cdef bint finite_phi
@@ -727,4 +734,4 @@ cdef class EquippedKernel:
             if self.air is not None and air_mode >= 0:  # cylinders and pipe to the new time, forces at the new speeds
                 self.air.run(air_mode, t, &v[0], &fill[0], &target[0], &fill_gain[0], &pipe[0], &pipe_gain[0], t_apply,
                              t_release, &air_n[0])
-        return t, t_last, xa, va, vba, raila, dla[:P * nc]
+        return t, t_last, xa, va, self.w_vb_a, raila, self.w_dl_a

@@ -659,7 +659,9 @@ class TrainPlant:
         om, fo, sl = (none, none, none) if wheels is None else (
             wheels.omega.reshape(-1), wheels.force_n.reshape(-1), wheels.slip.reshape(-1))
         lag = 0.0 if act.params.kind == "ideal" else act.lag_factor(h)
-        effort = np.array(np.broadcast_to(act.effort_n, v.shape), dtype=float).reshape(-1)
+        effort = act.effort_n  # the actuator's state, a copy the kernel advances
+        effort = effort.astype(float).reshape(-1) if effort.shape == v.shape else \
+            np.array(np.broadcast_to(effort, v.shape), dtype=float).reshape(-1)
         gears: Any = self._gears
         fs, dp = (none, none) if gears is None else (gears.force_state.copy(), gears.defl_prev.copy())
         air: Any = self.air_brake
