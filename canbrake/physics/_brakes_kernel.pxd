@@ -12,6 +12,8 @@ cdef class EquipmentKernel:
     cdef const double[:, ::1] N
     cdef Py_ssize_t[::1] na
     cdef bint bare
+    cdef object _arg_a, _ex_a, _v_a  # the wheels' work arrays (exponent arguments, exponentials, speeds)
+    cdef Py_ssize_t _q
 
     cdef int run_sub(self, double h, const double[::1] blend_k, const double[::1] valve_k,
                      const double[::1] effort, const double[::1] v, const double[::1] f, const double[::1] r,

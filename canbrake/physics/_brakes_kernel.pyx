@@ -355,8 +355,11 @@ cdef class EquipmentKernel:
         cdef double *fw = buf + 5 * q, *fv = buf + 6 * q, *rw = buf + 7 * q, *a = buf + 8 * q
         cdef double *b = buf + 9 * q, *cc = buf + 10 * q, *tmp = buf + 11 * q
         cdef unsigned char *locked = flags, *over = flags + q
-        cdef double[::1] v = np.array(v0, dtype=float)
-        arg_a, ex_a = np.empty(q), np.empty(q)
+        if self._q != q or self._v_a is None or self._v_a.shape[0] != n:  # work arrays, kept between calls
+            self._arg_a, self._ex_a, self._v_a, self._q = np.empty(q), np.empty(q), np.empty(n), q
+        arg_a, ex_a = self._arg_a, self._ex_a
+        cdef double[::1] v = self._v_a
+        v[:] = v0
         cdef double[::1] arg = arg_a
         try:
             for i in range(q):
