@@ -70,6 +70,16 @@ cdef double _pairwise(const double* a, Py_ssize_t n) noexcept nogil:
     return _pairwise(a, n2) + _pairwise(a + n2, n - n2)
 
 
+cdef inline Py_ssize_t _wrap(Py_ssize_t i, Py_ssize_t n) noexcept nogil:
+    """i mod n for a row index (0 <= i): i itself when i < n, 0 for one shared value, without a
+    division in those common cases."""
+    if i < n:
+        return i
+    if n == 1:
+        return 0
+    return i % n
+
+
 cdef inline double _clip01(double x) noexcept nogil:
     """numpy.clip(x, 0, 1) (NaN stays NaN)."""
     return _min(_max(x, 0.0), 1.0)
@@ -170,10 +180,10 @@ cdef class EquipmentKernel:
         if nf > nn:
             nn = nf
         for i in range(nn):
-            e = effort[i % ne]
+            e = effort[_wrap(i, ne)]
             if self.blending:
-                s = fabs(v[i % nv])
-                ie = i % nen
+                s = fabs(v[_wrap(i, nv)])
+                ie = _wrap(i, nen)
                 if self.has_env and self.env[ie, 0] == self.env[ie, 0]:  # the car's envelope (Li eq. 2)
                     if s <= self.env[ie, 1]:
                         ed_cap = self.env[ie, 0] * s
@@ -182,20 +192,20 @@ cdef class EquipmentKernel:
                     else:
                         ed_cap = self.env[ie, 4] / _max(s, 1e-9)
                 else:
-                    fade = _clip01((s - self.fade_end[i % nfe]) / (self.fade_start[i % nfs] - self.fade_end[i % nfe]))
-                    per_kg = _min(self.ed_max[i % nea], self.ed_power[i % nep] / _max(s, 1e-9))
-                    ed_cap = mass[i % nm] * per_kg * fade
+                    fade = _clip01((s - self.fade_end[_wrap(i, nfe)]) / (self.fade_start[_wrap(i, nfs)] - self.fade_end[_wrap(i, nfe)]))
+                    per_kg = _min(self.ed_max[_wrap(i, nea)], self.ed_power[_wrap(i, nep)] / _max(s, 1e-9))
+                    ed_cap = mass[_wrap(i, nm)] * per_kg * fade
                 demand = _max(e, 0.0)
                 ed[i] = _min(demand, ed_cap)
                 share = demand - ed[i]
-                if self.friction_lag[i % nfl] > 0.0:
-                    friction[i] = friction[i] + (share - friction[i]) * blend_k[i % nbk]
+                if self.friction_lag[_wrap(i, nfl)] > 0.0:
+                    friction[i] = friction[i] + (share - friction[i]) * blend_k[_wrap(i, nbk)]
                 else:
                     friction[i] = share
                 total = ed[i] + friction[i] + _min(e, 0.0)
             else:
                 total = e
-            brake[i] = _max(total, 0.0) * eff[i % nef]
+            brake[i] = _max(total, 0.0) * eff[_wrap(i, nef)]
             trac[i] = _min(total, 0.0)
         if has_wsp:
             nw = cmd.shape[0]
@@ -203,44 +213,44 @@ cdef class EquipmentKernel:
                 want = cmd[i]
                 want = _clip01(0.0 if want != want else want)
                 vent[i] = vent[i] + h if want > 0.5 else 0.0
-                if vent[i] > self.max_vent[i % nmv]:
+                if vent[i] > self.max_vent[_wrap(i, nmv)]:
                     want = 0.0
                 want = _clip01(want)  # the valve's own clip (valve_step)
-                if self.valve_lag[i % nvl] <= 0.0:
+                if self.valve_lag[_wrap(i, nvl)] <= 0.0:
                     valve[i] = want
                 else:
-                    valve[i] = valve[i] + (want - valve[i]) * valve_k[i % nvk]
+                    valve[i] = valve[i] + (want - valve[i]) * valve_k[_wrap(i, nvk)]
             for i in range(nn):
-                brake[i] = brake[i] * (1.0 - valve[i % nw])
+                brake[i] = brake[i] * (1.0 - valve[_wrap(i, nw)])
         cdef Py_ssize_t p = self.p, k
         if p > 0:  # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
             self._prep(v, f, r, brake, trac, oth, tb, td)
             self._wheels(h, v, oth, mass, mu, tb, td, omega, force, slip, vnew)
             for i in range(nv):
-                if self.na[i % self.nna] == 0:
+                if self.na[_wrap(i, self.nna)] == 0:
                     continue  # a car without wheels: below
                 vn = vnew[i]
                 vnew[i] = 0.0 if v[i] != 0.0 and vn * v[i] < 0.0 else vn  # the exact stop
-                rail[i] = -_npsum(&force[i * p], self.na[i % self.nna])
+                rail[i] = -_npsum(&force[i * p], self.na[_wrap(i, self.nna)])
             if not self.bare:
                 return 0
         for i in range(nn):
-            if p > 0 and self.na[i % self.nna] > 0:
+            if p > 0 and self.na[_wrap(i, self.nna)] > 0:
                 continue
             rail_i = brake[i] + trac[i]
             if self.adhesion_limited:
-                cap = mu[i % nmu] * mass[i % nm] * self.g
+                cap = mu[_wrap(i, nmu)] * mass[_wrap(i, nm)] * self.g
                 rail_i = _min(_max(rail_i, -cap), cap)
             rail[i] = rail_i
-            ff = f[i % nf] - _min(rail_i, 0.0)
-            rr = _max(rail_i, 0.0) + r[i % nr]
-            s = v[i % nv]
+            ff = f[_wrap(i, nf)] - _min(rail_i, 0.0)
+            rr = _max(rail_i, 0.0) + r[_wrap(i, nr)]
+            s = v[_wrap(i, nv)]
             if s != 0.0:
                 sg = _sign(s)
-                vn = s + (h / mass[i % nm]) * (ff - sg * rr)
+                vn = s + (h / mass[_wrap(i, nm)]) * (ff - sg * rr)
                 vnew[i] = 0.0 if vn * s < 0.0 else vn
             elif fabs(ff) > rr:
-                vnew[i] = s + (h / mass[i % nm]) * (ff - _sign(ff) * rr)
+                vnew[i] = s + (h / mass[_wrap(i, nm)]) * (ff - _sign(ff) * rr)
             else:
                 vnew[i] = s + 0.0
         return 0
@@ -255,8 +265,8 @@ cdef class EquipmentKernel:
         cdef double b, d, per_axle
         for i in range(v.shape[0]):
             oth[i] = f[i] - _sign(v[i]) * r[i]
-            pi = self.na[i % self.nna]
-            per_axle = self.R[i % self.nR] / pi if pi > 0 else 0.0
+            pi = self.na[_wrap(i, self.nna)]
+            per_axle = self.R[_wrap(i, self.nR)] / pi if pi > 0 else 0.0
             b = brake[i] * per_axle
             d = -trac[i] * per_axle
             for k in range(p):
@@ -274,10 +284,10 @@ cdef class EquipmentKernel:
         cdef const double[::1] exv
         for i in range(n):
             av = fabs(v[i])
-            R = self.R[i % self.nR]
-            ic = i % self.nsc  # the car's slip curve
+            R = self.R[_wrap(i, self.nR)]
+            ic = _wrap(i, self.nsc)  # the car's slip curve
             vf = self.v_floor[ic]
-            pi = self.na[i % self.nna]
+            pi = self.na[_wrap(i, self.nna)]
             for k in range(pi, p):  # inactive axles
                 j = i * p + k
                 lam[j] = 0.0
@@ -307,9 +317,9 @@ cdef class EquipmentKernel:
         exv = ex_a
         for i in range(n):
             av = fabs(v[i])
-            ic = i % self.nsc
-            scale = (self.c1[ic] + self.c2[ic] / (self.c3[ic] + av)) / self.mu0[ic] * (mu[i % nmu] / self.peak_curve[ic])
-            pi = self.na[i % self.nna]
+            ic = _wrap(i, self.nsc)
+            scale = (self.c1[ic] + self.c2[ic] / (self.c3[ic] + av)) / self.mu0[ic] * (mu[_wrap(i, nmu)] / self.peak_curve[ic])
+            pi = self.na[_wrap(i, self.nna)]
             for k in range(pi, p):
                 f[i * p + k] = 0.0
             for k in range(pi):
@@ -317,7 +327,7 @@ cdef class EquipmentKernel:
                 lm = lam[j]
                 a = fabs(lm)
                 ex = exv[j]
-                sn = scale * self.N[i % self.nna, k]
+                sn = scale * self.N[_wrap(i, self.nna), k]
                 f[j] = _sign(lm) * sn * (self.b1[ic] * (1.0 - ex) - a / self.b3[ic])
                 dmu = sn * (self.b1[ic] * self.b2[ic] * ex - 1.0 / self.b3[ic])
                 fw[j] = dmu * fw[j]
@@ -366,8 +376,8 @@ cdef class EquipmentKernel:
                 w0[i] = omega[i]
             self._creep(n, w0, &v0[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
             for i in range(n):
-                R = self.R[i % self.nR]
-                pi = self.na[i % self.nna]
+                R = self.R[_wrap(i, self.nR)]
+                pi = self.na[_wrap(i, self.nna)]
                 for k in range(p):
                     if k >= pi:  # an inactive axle: held at rest
                         locked[i * p + k] = 1
@@ -386,10 +396,10 @@ cdef class EquipmentKernel:
                 for it in range(self.iters):
                     self._creep(n, w, &v[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
                     for i in range(n):
-                        pi = self.na[i % self.nna]
+                        pi = self.na[_wrap(i, self.nna)]
                         if pi == 0:
                             continue  # a car without wheels: the caller's Coulomb step
-                        R, J = self.R[i % self.nR], self.J[i % self.nJ]
+                        R, J = self.R[_wrap(i, self.nR)], self.J[_wrap(i, self.nJ)]
                         hR = h * R
                         vi = v[i]
                         for k in range(pi):

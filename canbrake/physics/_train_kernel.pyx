@@ -603,7 +603,7 @@ cdef class EquippedKernel:
                         effv = self.ev_eff[e]
             # the actuator (ActuatorState.advance), then each car's traction within its envelope
             for q in range(N):
-                i = q % n
+                i = q if q < n else q % n
                 d = c[q]
                 if not self.unrated:
                     d = _min(_max(d, -self.trac_max[q]), self.brake_max[q])
