@@ -566,15 +566,16 @@ cdef class EquippedKernel:
         ``fill``, ``pipe`` and its block force ``air_n`` updated. ``grade_cb``: the plant's
         grade force (N per car) from the positions, called every sub-step when given.
 
-        Returns (t, t_last, x, v, v_before, rail, dl): the time after and at the last sub-step's
-        start, the new positions and speeds, the speeds one sub-step before, the last rail force
-        and the last sub-step's coupler deflections (P·(n−1))."""
+        Returns (t, t_last, x, v, acc, rail, dl): the time after and at the last sub-step's
+        start, the new positions and speeds, the acceleration over the last sub-step, the last
+        rail force and the last sub-step's coupler deflections (P·(n−1); the kernel's own array,
+        overwritten by the next call)."""
         cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, N = P * n, i, j, k, p, s, q, e
         cdef Py_ssize_t ng = self.gear_idx.shape[0], nl = self.lim_idx.shape[0], nev = self.ev_start.shape[0]
         cdef Py_ssize_t pe = self.equip.p
         xa, va, raila = np.array(x0, dtype=float).reshape(-1), np.array(v0, dtype=float).reshape(-1), np.empty(N)
         cdef double[::1] x = xa, v = va, rail = raila
-        # work arrays, the kernel's own (v_before and dl are returned: the caller reads them at once)
+        # work arrays, the kernel's own (dl is returned: the caller reads it at once)
         cdef double[::1] vb = self.w_vb, vn = self.w_vn, dl = self.w_dl, eff_b = self.w_eff, f = self.w_f
         cdef double[::1] r = self.w_r, phi = self.w_phi, brake = self.w_brake, trac = self.w_trac
         cdef double[::1] oth = self.w_oth, tb = self.w_tb, td = self.w_td, held = self.w_held
@@ -734,4 +735,8 @@ cdef class EquippedKernel:
             if self.air is not None and air_mode >= 0:  # cylinders and pipe to the new time, forces at the new speeds
                 self.air.run(air_mode, t, &v[0], &fill[0], &target[0], &fill_gain[0], &pipe[0], &pipe_gain[0], t_apply,
                              t_release, &air_n[0])
-        return t, t_last, xa, va, self.w_vb_a, raila, self.w_dl_a
+        acc_a = np.empty(N)
+        cdef double[::1] acc_v = acc_a
+        for q in range(N):  # the acceleration over the last sub-step
+            acc_v[q] = (v[q] - vb[q]) / h
+        return t, t_last, xa, va, acc_a, raila, self.w_dl_a

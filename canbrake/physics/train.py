@@ -673,7 +673,7 @@ class TrainPlant:
             fill_gain, pipe_gain = air.gains(h)
             pipe = air._no_pipe if air.pipe is None else air.pipe_pressure_pa.copy()
             t_apply, t_release = float(air.t_apply), float(air.t_release)
-        self.time_s, t_last, x, v, v_before, rail, dl = kern.run(
+        self.time_s, t_last, x, v, acc, rail, dl = kern.run(
             x, v, cmd, effort, self.time_s, h, n_sub, lag if isinstance(lag, float) else 0.0,
             None if isinstance(lag, float) else lag, blend_k, valve_k, wsp, fr, ed, self.wsp_valve.reshape(-1),
             self._vent_s.reshape(-1), om, fo, sl, fs, dp, mode, fill, target, fill_gain, pipe, pipe_gain, t_apply,
@@ -686,11 +686,10 @@ class TrainPlant:
             air.last_force_n = air_n
             if air.pipe is not None:
                 air.pipe_pressure_pa = pipe
-        shape = self.speed_mps.shape
-        x, v, v_before, rail = (a.reshape(shape) for a in (x, v, v_before, rail))
-        dl = dl.reshape(shape[:-1] + (self.n_cars - 1,))
-        acc = (v - v_before) / h
         if self.stacked:
+            shape = self.speed_mps.shape
+            x, v, acc, rail = (a.reshape(shape) for a in (x, v, acc, rail))
+            dl = dl.reshape(shape[:-1] + (self.n_cars - 1,))
             bad = ~np.isfinite(v).all(axis=-1)
             dl_max = np.max(np.abs(dl), axis=-1) if dl.shape[-1] else np.zeros(bad.shape)
             x, v, acc, rail = self._park_diverged(x, v, acc, rail, bad, dl_max)
