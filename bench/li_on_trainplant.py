@@ -35,14 +35,14 @@ def run(scenario: str, kernel: str, h: float, duration: float, out: Path) -> dic
     finally:
         C.TrainSpec._choose_kernel = orig  # type: ignore[method-assign]
     assert scn.train.kernel_name == kernel, scn.train.kernel_name
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     s = run_scenario(scn, out, backend="inprocess", plots=False)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     if s["status"] != "ok":
         raise SystemExit(f"{kernel} h={h}: {s['status']}: {s.get('message')}")
     r = reduce_run(out, scn.control_period_s)
     nan = np.array(np.nan)  # a run whose locomotive ECU tracks no speed (a brake test) has no RMSE
-    return {"kernel": kernel, "h_s": h, "wall_s": round(wall, 2), "rmse_kmh": float(r.get("rmse_kmh", nan)),
+    return {"kernel": kernel, "h_s": h, "wall_s": round(wall, 2), "cpu_s": round(cpu, 2), "rmse_kmh": float(r.get("rmse_kmh", nan)),
             "err_min_kmh": float(r.get("err_min_kmh", nan)), "err_max_kmh": float(r.get("err_max_kmh", nan)),
             "max_tension_kn": float(r["max_tension_n"]) / 1e3, "max_compression_kn": float(r["max_compression_n"]) / 1e3,
             "max_tension_where": int(r["max_tension_where"]), "max_compression_where": int(r["max_compression_where"]),

@@ -5,9 +5,10 @@ blending, the dump valves with their watchdog, and the backward-Euler step of wh
 bodies with Cai's creep force per axle, or without wheelsets the Coulomb brake/resistance update.
 
 One call per sub-step of :meth:`canbrake.physics.train.TrainPlant.step` with brake equipment
-(:meth:`EquipmentKernel.substep`): arrays in (per car), the new speeds and rail forces out, the
-equipment's state arrays updated in place. The coupler, grade and disturbance forces and the
-sub-step policy stay in the caller. Written by hand because the numpy form cost about 150 array
+(:meth:`EquipmentKernel.run_sub`, from the compiled period ``_train_kernel.EquippedKernel``; its
+Python form :meth:`EquipmentKernel.substep`): arrays in (per car), the new speeds and rail forces
+out, the equipment's state arrays updated in place. The coupler, grade and disturbance forces
+are the caller's. Written by hand because the numpy form cost about 150 array
 operations per sub-step on a handful of cars and axles (one 1-ms sub-step of Chen's 6-car metro
 with four wheelsets per car took ~600 us).
 
@@ -69,6 +70,16 @@ cdef double _pairwise(const double* a, Py_ssize_t n) noexcept nogil:
     return _pairwise(a, n2) + _pairwise(a + n2, n - n2)
 
 
+cdef inline Py_ssize_t _wrap(Py_ssize_t i, Py_ssize_t n) noexcept nogil:
+    """i mod n for a row index (0 <= i): i itself when i < n, 0 for one shared value, without a
+    division in those common cases."""
+    if i < n:
+        return i
+    if n == 1:
+        return 0
+    return i % n
+
+
 cdef inline double _clip01(double x) noexcept nogil:
     """numpy.clip(x, 0, 1) (NaN stays NaN)."""
     return _min(_max(x, 0.0), 1.0)
@@ -93,18 +104,8 @@ cdef class EquipmentKernel:
     car, ``iters`` Newton iterations. A stack of P plants (``stack_plants``) passes P·n cars and P·n·p
     axles to the steps; its points share these rows (car i is row i mod n).
     ``adhesion_limited``: without wheelsets, the rail force is capped at μ m g (``gravity``).
+    (Attributes: _brakes_kernel.pxd.)
     """
-
-    cdef bint blending, adhesion_limited, has_env
-    cdef double g
-    cdef const double[::1] ed_max, ed_power, fade_start, fade_end, friction_lag, valve_lag, max_vent
-    cdef const double[:, ::1] env
-    cdef Py_ssize_t p, iters, nR, nJ, nsc, nna  # nna: cars (a stack's P·n cars share their rows: i % nna)
-    cdef const double[::1] b1, b2, b3, c1, c2, c3, mu0, peak_curve, v_floor  # the slip curve: 1 or n values
-    cdef const double[::1] R, J
-    cdef const double[:, ::1] N
-    cdef Py_ssize_t[::1] na
-    cdef bint bare
 
     def __init__(self, *, bint blending, ed_max, ed_power, fade_start, fade_end,
                  friction_lag_s, valve_lag_s, max_vent_s, bint adhesion_limited,
@@ -149,25 +150,40 @@ cdef class EquipmentKernel:
         or one per car as the lags are given).
 
         Returns (v_new, rail): the new speeds (m/s) and the rail force per car (N, + brakes)."""
+        cdef Py_ssize_t nn = max(v.shape[0], effort.shape[0], f.shape[0]), nv = v.shape[0]
+        brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
+        oth_a, tb_a, td_a = np.empty(nv), np.empty(nv * self.p), np.empty(nv * self.p)
+        cdef const double[::1] cmd = np.zeros(0) if wsp is None else wsp
+        self.run_sub(h, blend_k, valve_k, effort, v, f, r, mass, mu, eff, wsp is not None, cmd, friction, ed, valve,
+                     vent, omega, force, slip, brake_a, trac_a, rail_a, vnew_a, oth_a, tb_a, td_a)
+        return vnew_a, rail_a
+
+    cdef int run_sub(self, double h, const double[::1] blend_k, const double[::1] valve_k,
+                     const double[::1] effort, const double[::1] v, const double[::1] f, const double[::1] r,
+                     const double[::1] mass, const double[::1] mu, const double[::1] eff, bint has_wsp,
+                     const double[::1] cmd, double[::1] friction, double[::1] ed, double[::1] valve,
+                     double[::1] vent, double[::1] omega, double[::1] force, double[::1] slip,
+                     double[::1] brake, double[::1] trac, double[::1] rail, double[::1] vnew,
+                     double[::1] oth, double[::1] tb, double[::1] td) except -1:
+        """:meth:`substep` into the caller's buffers: ``cmd`` the dump valves' command (if
+        ``has_wsp``); out: ``rail``, ``vnew`` (N values, N = max of the per-car lengths); work:
+        ``brake``, ``trac`` (N), ``oth`` (cars), ``tb``, ``td`` (cars × axles)."""
         cdef Py_ssize_t nv = v.shape[0], i
         cdef Py_ssize_t ne = effort.shape[0], nm = mass.shape[0], nmu = mu.shape[0], nef = eff.shape[0]
         cdef Py_ssize_t nf = f.shape[0], nr = r.shape[0]
         cdef Py_ssize_t nn = max(nv, ne)
         cdef double s, fade, per_kg, demand, e, share, total, tr, cap, rail_i, ff, rr, sg, vn, want, ed_cap
-        cdef const double[::1] cmd
         cdef Py_ssize_t nw = 0, nea = self.ed_max.shape[0], nep = self.ed_power.shape[0], nen = self.env.shape[0]
         cdef Py_ssize_t ie, nfs = self.fade_start.shape[0], nfe = self.fade_end.shape[0]
         cdef Py_ssize_t nfl = self.friction_lag.shape[0], nbk = blend_k.shape[0], nvk = valve_k.shape[0]
         cdef Py_ssize_t nvl = self.valve_lag.shape[0], nmv = self.max_vent.shape[0]
         if nf > nn:
             nn = nf
-        brake_a, trac_a, rail_a, vnew_a = np.empty(nn), np.empty(nn), np.empty(nn), np.empty(nn)
-        cdef double[::1] brake = brake_a, trac = trac_a, rail = rail_a, vnew = vnew_a
         for i in range(nn):
-            e = effort[i % ne]
+            e = effort[_wrap(i, ne)]
             if self.blending:
-                s = fabs(v[i % nv])
-                ie = i % nen
+                s = fabs(v[_wrap(i, nv)])
+                ie = _wrap(i, nen)
                 if self.has_env and self.env[ie, 0] == self.env[ie, 0]:  # the car's envelope (Li eq. 2)
                     if s <= self.env[ie, 1]:
                         ed_cap = self.env[ie, 0] * s
@@ -176,70 +192,68 @@ cdef class EquipmentKernel:
                     else:
                         ed_cap = self.env[ie, 4] / _max(s, 1e-9)
                 else:
-                    fade = _clip01((s - self.fade_end[i % nfe]) / (self.fade_start[i % nfs] - self.fade_end[i % nfe]))
-                    per_kg = _min(self.ed_max[i % nea], self.ed_power[i % nep] / _max(s, 1e-9))
-                    ed_cap = mass[i % nm] * per_kg * fade
+                    fade = _clip01((s - self.fade_end[_wrap(i, nfe)]) / (self.fade_start[_wrap(i, nfs)] - self.fade_end[_wrap(i, nfe)]))
+                    per_kg = _min(self.ed_max[_wrap(i, nea)], self.ed_power[_wrap(i, nep)] / _max(s, 1e-9))
+                    ed_cap = mass[_wrap(i, nm)] * per_kg * fade
                 demand = _max(e, 0.0)
                 ed[i] = _min(demand, ed_cap)
                 share = demand - ed[i]
-                if self.friction_lag[i % nfl] > 0.0:
-                    friction[i] = friction[i] + (share - friction[i]) * blend_k[i % nbk]
+                if self.friction_lag[_wrap(i, nfl)] > 0.0:
+                    friction[i] = friction[i] + (share - friction[i]) * blend_k[_wrap(i, nbk)]
                 else:
                     friction[i] = share
                 total = ed[i] + friction[i] + _min(e, 0.0)
             else:
                 total = e
-            brake[i] = _max(total, 0.0) * eff[i % nef]
+            brake[i] = _max(total, 0.0) * eff[_wrap(i, nef)]
             trac[i] = _min(total, 0.0)
-        if wsp is not None:
-            cmd = wsp
+        if has_wsp:
             nw = cmd.shape[0]
             for i in range(nw):
                 want = cmd[i]
                 want = _clip01(0.0 if want != want else want)
                 vent[i] = vent[i] + h if want > 0.5 else 0.0
-                if vent[i] > self.max_vent[i % nmv]:
+                if vent[i] > self.max_vent[_wrap(i, nmv)]:
                     want = 0.0
                 want = _clip01(want)  # the valve's own clip (valve_step)
-                if self.valve_lag[i % nvl] <= 0.0:
+                if self.valve_lag[_wrap(i, nvl)] <= 0.0:
                     valve[i] = want
                 else:
-                    valve[i] = valve[i] + (want - valve[i]) * valve_k[i % nvk]
+                    valve[i] = valve[i] + (want - valve[i]) * valve_k[_wrap(i, nvk)]
             for i in range(nn):
-                brake[i] = brake[i] * (1.0 - valve[i % nw])
+                brake[i] = brake[i] * (1.0 - valve[_wrap(i, nw)])
         cdef Py_ssize_t p = self.p, k
         if p > 0:  # resistance is Coulomb on the body; the brake acts on the wheels, the rail on the body
-            oth_a, tb_a, td_a = np.empty(nv), np.empty(nv * p), np.empty(nv * p)
-            self._prep(v, f, r, brake, trac, oth_a, tb_a, td_a)
-            self._wheels(h, v, oth_a, mass, mu, tb_a, td_a, omega, force, slip, vnew)
+            self._prep(v, f, r, brake, trac, oth, tb, td)
+            self._wheels(h, v, oth, mass, mu, tb, td, omega, force, slip, vnew)
             for i in range(nv):
-                if self.na[i % self.nna] == 0:
+                if self.na[_wrap(i, self.nna)] == 0:
                     continue  # a car without wheels: below
                 vn = vnew[i]
                 vnew[i] = 0.0 if v[i] != 0.0 and vn * v[i] < 0.0 else vn  # the exact stop
-                rail[i] = -_npsum(&force[i * p], self.na[i % self.nna])
+                rail[i] = -_npsum(&force[i * p], self.na[_wrap(i, self.nna)])
             if not self.bare:
-                return vnew_a, rail_a
+                return 0
         for i in range(nn):
-            if p > 0 and self.na[i % self.nna] > 0:
+            if p > 0 and self.na[_wrap(i, self.nna)] > 0:
                 continue
             rail_i = brake[i] + trac[i]
             if self.adhesion_limited:
-                cap = mu[i % nmu] * mass[i % nm] * self.g
+                cap = mu[_wrap(i, nmu)] * mass[_wrap(i, nm)] * self.g
                 rail_i = _min(_max(rail_i, -cap), cap)
             rail[i] = rail_i
-            ff = f[i % nf] - _min(rail_i, 0.0)
-            rr = _max(rail_i, 0.0) + r[i % nr]
-            s = v[i % nv]
+            ff = f[_wrap(i, nf)] - _min(rail_i, 0.0)
+            rr = _max(rail_i, 0.0) + r[_wrap(i, nr)]
+            s = v[_wrap(i, nv)]
             if s != 0.0:
                 sg = _sign(s)
-                vn = s + (h / mass[i % nm]) * (ff - sg * rr)
+                vn = s + (h / mass[_wrap(i, nm)]) * (ff - sg * rr)
                 vnew[i] = 0.0 if vn * s < 0.0 else vn
             elif fabs(ff) > rr:
-                vnew[i] = s + (h / mass[i % nm]) * (ff - _sign(ff) * rr)
+                vnew[i] = s + (h / mass[_wrap(i, nm)]) * (ff - _sign(ff) * rr)
             else:
                 vnew[i] = s + 0.0
-        return vnew_a, rail_a
+        return 0
 
     cdef void _prep(self, const double[::1] v, const double[::1] f, const double[::1] r, const double[::1] brake,
                     const double[::1] trac, double[::1] oth, double[::1] tb,
@@ -251,8 +265,8 @@ cdef class EquipmentKernel:
         cdef double b, d, per_axle
         for i in range(v.shape[0]):
             oth[i] = f[i] - _sign(v[i]) * r[i]
-            pi = self.na[i % self.nna]
-            per_axle = self.R[i % self.nR] / pi if pi > 0 else 0.0
+            pi = self.na[_wrap(i, self.nna)]
+            per_axle = self.R[_wrap(i, self.nR)] / pi if pi > 0 else 0.0
             b = brake[i] * per_axle
             d = -trac[i] * per_axle
             for k in range(p):
@@ -270,10 +284,10 @@ cdef class EquipmentKernel:
         cdef const double[::1] exv
         for i in range(n):
             av = fabs(v[i])
-            R = self.R[i % self.nR]
-            ic = i % self.nsc  # the car's slip curve
+            R = self.R[_wrap(i, self.nR)]
+            ic = _wrap(i, self.nsc)  # the car's slip curve
             vf = self.v_floor[ic]
-            pi = self.na[i % self.nna]
+            pi = self.na[_wrap(i, self.nna)]
             for k in range(pi, p):  # inactive axles
                 j = i * p + k
                 lam[j] = 0.0
@@ -303,9 +317,9 @@ cdef class EquipmentKernel:
         exv = ex_a
         for i in range(n):
             av = fabs(v[i])
-            ic = i % self.nsc
-            scale = (self.c1[ic] + self.c2[ic] / (self.c3[ic] + av)) / self.mu0[ic] * (mu[i % nmu] / self.peak_curve[ic])
-            pi = self.na[i % self.nna]
+            ic = _wrap(i, self.nsc)
+            scale = (self.c1[ic] + self.c2[ic] / (self.c3[ic] + av)) / self.mu0[ic] * (mu[_wrap(i, nmu)] / self.peak_curve[ic])
+            pi = self.na[_wrap(i, self.nna)]
             for k in range(pi, p):
                 f[i * p + k] = 0.0
             for k in range(pi):
@@ -313,7 +327,7 @@ cdef class EquipmentKernel:
                 lm = lam[j]
                 a = fabs(lm)
                 ex = exv[j]
-                sn = scale * self.N[i % self.nna, k]
+                sn = scale * self.N[_wrap(i, self.nna), k]
                 f[j] = _sign(lm) * sn * (self.b1[ic] * (1.0 - ex) - a / self.b3[ic])
                 dmu = sn * (self.b1[ic] * self.b2[ic] * ex - 1.0 / self.b3[ic])
                 fw[j] = dmu * fw[j]
@@ -351,16 +365,19 @@ cdef class EquipmentKernel:
         cdef double *fw = buf + 5 * q, *fv = buf + 6 * q, *rw = buf + 7 * q, *a = buf + 8 * q
         cdef double *b = buf + 9 * q, *cc = buf + 10 * q, *tmp = buf + 11 * q
         cdef unsigned char *locked = flags, *over = flags + q
-        cdef double[::1] v = np.array(v0, dtype=float)
-        arg_a, ex_a = np.empty(q), np.empty(q)
+        if self._q != q or self._v_a is None or self._v_a.shape[0] != n:  # work arrays, kept between calls
+            self._arg_a, self._ex_a, self._v_a, self._q = np.empty(q), np.empty(q), np.empty(n), q
+        arg_a, ex_a = self._arg_a, self._ex_a
+        cdef double[::1] v = self._v_a
+        v[:] = v0
         cdef double[::1] arg = arg_a
         try:
             for i in range(q):
                 w0[i] = omega[i]
             self._creep(n, w0, &v0[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
             for i in range(n):
-                R = self.R[i % self.nR]
-                pi = self.na[i % self.nna]
+                R = self.R[_wrap(i, self.nR)]
+                pi = self.na[_wrap(i, self.nna)]
                 for k in range(p):
                     if k >= pi:  # an inactive axle: held at rest
                         locked[i * p + k] = 1
@@ -379,10 +396,10 @@ cdef class EquipmentKernel:
                 for it in range(self.iters):
                     self._creep(n, w, &v[0], mu, lam, f, fw, fv, arg, arg_a, ex_a)
                     for i in range(n):
-                        pi = self.na[i % self.nna]
+                        pi = self.na[_wrap(i, self.nna)]
                         if pi == 0:
                             continue  # a car without wheels: the caller's Coulomb step
-                        R, J = self.R[i % self.nR], self.J[i % self.nJ]
+                        R, J = self.R[_wrap(i, self.nR)], self.J[_wrap(i, self.nJ)]
                         hR = h * R
                         vi = v[i]
                         for k in range(pi):

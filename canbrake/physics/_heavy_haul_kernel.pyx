@@ -25,7 +25,7 @@ import numpy as np
 cdef double KMH = 1.0 / 3.6  # m/s per km/h, as canbrake.physics.heavy_haul.KMH
 
 
-cdef inline double _route_n(const double[::1] brk, const double[::1] val, double weight, double x) noexcept nogil:
+cdef double route_n(const double[::1] brk, const double[::1] val, double weight, double x) noexcept nogil:
     """Eqs. (4)-(5): grade + curve force (N) on a vehicle of ``weight`` (kN) at position x (m), from the
     route table (breakpoints ``brk``, m; grade + curve ``val``, N/kN: Route._brk, Route._val)."""
     cdef Py_ssize_t lo = 0, hi = brk.shape[0], mid
@@ -47,18 +47,14 @@ def route_force_n(const double[::1] brk, const double[::1] val, const double[::1
     out = np.empty(n)
     cdef double[::1] o = out
     for i in range(n):
-        o[i] = _route_n(brk, val, weight_kn[i], x[i])
+        o[i] = route_n(brk, val, weight_kn[i], x[i])
     return out
 
 
 cdef class GearKernel:
     """Draft gears of every coupler (n-1 of them): loading curves ``cx`` (m), ``cf`` (N), shape
     (n-1, npts); unloading ratio ``ru``, ``slack`` (m), eq. (8) stiffness ``ke`` and solid
-    stiffness ``ks`` (N/m), viscous ``damping`` (N·s/m), each (n-1,)."""
-
-    cdef readonly Py_ssize_t nc, npts
-    cdef const double[:, ::1] cx, cf
-    cdef const double[::1] ru, slack, ke, ks, damp, stroke, fmax
+    stiffness ``ks`` (N/m), viscous ``damping`` (N·s/m), each (n-1,). (Attributes: the .pxd.)"""
 
     def __init__(self, cx, cf, ru, slack, ke, ks, damping):
         f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
@@ -113,11 +109,7 @@ cdef class AirKernel:
     """Air brake of every vehicle (n,): ``dist_m`` behind the locomotive, ``k_full_kn`` (K per block
     at full pressure), ``n_blocks``, ``friction_coef``, ``cylinder_pressure_pa``; scalars ``beta_c``,
     the apply / release wave speeds (m/s) and the brake pipe's ``p0`` (Pa), ``reduction`` (Pa) and
-    ``ratio``."""
-
-    cdef readonly Py_ssize_t n
-    cdef const double[::1] dist, k_full, n_blocks, coef, cyl_p
-    cdef double beta_c, apply_wave, release_wave, p0, reduction, ratio
+    ``ratio``. (Attributes: the .pxd.)"""
 
     def __init__(self, dist_m, k_full_kn, n_blocks, friction_coef, cylinder_pressure_pa, *, double beta_c,
                  double apply_wave, double release_wave, double p0=0.0, double reduction=0.0, double ratio=0.0):
@@ -156,7 +148,7 @@ cdef class AirKernel:
                 fill[i] = fill[i] + (tg - fill[i]) * fill_gain[i]
             force[i] = self.force(i, fill[i], v[i])
 
-    cdef inline double force(self, Py_ssize_t i, double fill, double v) noexcept nogil:
+    cdef double force(self, Py_ssize_t i, double fill, double v) noexcept nogil:
         """Eq. (10) with eqs. (11)-(12)'s φ at K = the block force at this fill (N)."""
         cdef double k = self.k_full[i] * fill
         cdef double vk = fabs(v / KMH)
@@ -204,7 +196,7 @@ cdef class HeavyHaulKernel:
 
     cdef inline double route(self, Py_ssize_t i, double x) noexcept nogil:
         """Eqs. (4)-(5): grade + curve force (N) on vehicle i at position x (m), from the route table."""
-        return _route_n(self.brk, self.val, self.weight[i], x)
+        return route_n(self.brk, self.val, self.weight[i], x)
 
     cdef void _passive(self, const double* x, const double* v, const double* fc, const double* fa,
                        double* fi) noexcept nogil:

@@ -4,7 +4,10 @@
 
 One call advances a plant, or a stack of P plants (``stack_plants``: arrays with a leading points
 axis), by one control period of ``n_sub`` sub-steps: arrays in, arrays out; the policy (sub-step
-count, rail conditions, divergence reports) stays in Python. Written by hand because numpy's cost
+count, divergence reports) stays in Python. :class:`CoupledKernel` is the plain train's period,
+:class:`EquippedKernel` the period of a train with brake equipment (blending, wheelsets, Li's
+draft gears and air brake, route, limits), which calls the equipment's compiled kernels
+(``_brakes_kernel``, ``_heavy_haul_kernel``) at C level, once per sub-step each. Written by hand because numpy's cost
 per call dominated on arrays of a few cars (about 20 array operations per sub-step on 6 values).
 
 Every value is computed with the floating-point operations of the numpy code it replaces, in the
@@ -18,10 +21,14 @@ Every array is ``(P, n)``, or ``(n,)`` (one row shared by every point), C-contig
 from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBUF_WRITABLE, PyBuffer_Release, PyObject_GetBuffer
 from libc.math cimport fabs, isfinite, sin
 
+from canbrake.physics._brakes_kernel cimport EquipmentKernel  # the brake equipment's sub-step
+from canbrake.physics._heavy_haul_kernel cimport AirKernel, GearKernel, route_n  # Li's gears, air brake, route
 from canbrake.physics._npmath cimport _max, _min, _sign  # numpy's NaN rules, shared
 from canbrake.physics._table cimport table_at  # the speed tables' interpolation, shared
 
 import numpy as np
+
+_np_sin, _np_cos, _np_cbrt = np.sin, np.cos, np.cbrt
 
 
 cdef struct Rows:
@@ -373,31 +380,12 @@ cdef class CoupledKernel:
         return t
 
 
-def traction_capped(const double[:, ::1] envelope, const double[::1] v, const double[::1] force):
-    """``force`` (N per car, + brakes, − traction) with each car's traction limited by its envelope
-    row (``envelope``, shape (n, 6) as :class:`CoupledKernel` takes it; NaN first value: none) at
-    its speed ``v`` (m/s): the step with brake equipment (blending, wheelsets), which caps the
-    actuator's effort before the equipment, as the kernel caps the rail force. A stack's P rows of
-    n cars (``v``, ``force`` of P·n values) share the envelope rows."""
-    cdef Py_ssize_t i, k, n = force.shape[0], ne = envelope.shape[0]
-    out_a = np.empty(n)
-    cdef double[::1] out = out_a
-    if ne == 0 or n % ne:
-        raise ValueError(f"traction_capped: {n} forces for {ne} envelope rows")
-    for i in range(n):
-        k = i % ne
-        out[i] = force[i]
-        if force[i] < 0.0 and envelope[k, 0] == envelope[k, 0]:
-            out[i] = _max(force[i], -_envelope_n(&envelope[k, 0], v[i]))
-    return out_a
-
-
 def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v, const double[::1] table_f,
                           const double[::1] speed, const double[::1] r):
     """``r`` (N per car) plus each car's resistance table (offsets ``start``, n + 1; speeds
     ``table_v`` m/s, forces ``table_f`` N, as :class:`CoupledKernel` takes them) at ``speed``
-    (|v|, m/s): the step with brake equipment. A stack's P rows of n cars (``speed``, ``r`` of P·n
-    values) share the tables."""
+    (|v|, m/s): the plant's passive force and static couplers. A stack's P rows of n cars
+    (``speed``, ``r`` of P·n values) share the tables."""
     cdef Py_ssize_t i, k, n = r.shape[0], nt = start.shape[0] - 1
     out_a = np.empty(n)
     cdef double[::1] out = out_a
@@ -409,3 +397,346 @@ def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v
         if start[k + 1] > start[k]:
             out[i] = r[i] + table_at(&table_v[start[k]], &table_f[start[k]], start[k + 1] - start[k], speed[i], NULL)
     return out_a
+
+
+cdef inline double _pymax(double a, double b) noexcept nogil:
+    """Python's max(a, b) of two floats: b only if b > a (NaN rules of the builtin)."""
+    return b if b > a else a
+
+
+cdef inline double _pymin(double a, double b) noexcept nogil:
+    """Python's min(a, b) of two floats: b only if b < a."""
+    return b if b < a else a
+
+
+cdef class EquippedKernel:
+    """A coupled train with brake equipment (or a stack of P of them, ``stack_plants``): the whole
+    control period of :meth:`canbrake.physics.train.TrainPlant.step` in one call (:meth:`run`).
+
+    Each sub-step: the rail conditions of the moment, the actuator (ratings, first-order lag, jerk
+    limit), the traction envelopes and the locomotives' electric-brake and adhesion limits, the
+    couplers (Chen's Φ with the end stop, Li's draft gears through :class:`GearKernel` on the
+    couplers that have one), the grade (or the plant's grade callback), the route, δ, the
+    disturbances and eq. 40, the running resistance with its tables and the air brake's block
+    force, then the brake equipment's sub-step (:class:`EquipmentKernel`, C level) and the
+    positions, and the air brake (:class:`AirKernel`) at the new speeds. Every value is computed
+    with the floating-point operations of the numpy sub-step loop it replaced, in the same order
+    (``-ffp-contract=off``); the transcendental functions are those the loop used: libm's ``sin``
+    for the disturbances (``math.sin`` there), numpy's ``sin``/``cos``/``cbrt`` for eq. 40 (called
+    on the same values), the caller's lag factors.
+
+    Per car, shape (P, n) or (n,): ``mass``, ``c_static``, ``c1``, ``c2``, ``grade_force_n`` (or
+    None), the actuator's ``brake_max``, ``trac_max``, ``rate_max``; per coupler (P, n-1) or
+    (n-1,): ``spacing``, ``kappa``, ``epsilon``; ``end_stop_m`` (None: none), stiffness and
+    absorption (one value or one per coupler). The others are rows shared by the points: see
+    :meth:`canbrake.physics.train.TrainPlant._equipped_kernel`, which builds it.
+    """
+
+    cdef readonly Py_ssize_t n, nc, points
+    cdef EquipmentKernel equip
+    cdef GearKernel gears
+    cdef AirKernel air
+    cdef const Py_ssize_t[::1] gear_idx
+    cdef const double[::1] mass, c_static, c1, c2, grade, brake_max, trac_max, rate_max, spacing, kappa, eps
+    cdef const double[::1] es_m, es_k, es_a, inst
+    cdef double es_vt, g, unc
+    cdef bint end_stop, has_grade, unrated, jerk_limited, ideal, has_instant, has_env, has_table, has_route
+    cdef bint has_li_dist
+    cdef const double[:, ::1] env
+    cdef const Py_ssize_t[::1] tab_start
+    cdef const double[::1] tab_v, tab_f
+    cdef const double[::1] d_start, d_end, d_w, d_ph
+    cdef const double[:, ::1] d_amp, d_off
+    cdef Py_ssize_t n_dist
+    cdef const double[::1] li_on, brk, val, weight
+    cdef double li_c0, li_c1, li_c2
+    cdef const Py_ssize_t[::1] lim_idx, lim_adh
+    cdef const double[:, ::1] lim_env
+    cdef const double[::1] lim_mu0
+    cdef const double[::1] base_mu, ones, ev_start, ev_end
+    cdef const double[:, ::1] ev_mu, ev_eff
+    cdef const unsigned char[::1] ev_has_mu, ev_has_eff
+    cdef double[::1] w_vb, w_vn, w_dl, w_eff, w_f, w_r, w_phi, w_brake, w_trac, w_oth, w_tb, w_td, w_held
+    cdef double[::1] w_gst, w_grt, w_gfc
+    cdef object w_vb_a, w_dl_a
+
+    def __init__(self, EquipmentKernel equip, *, int points, mass, c_static, c1, c2, grade_force_n, brake_max,
+                 trac_max, rate_max, spacing, kappa, epsilon, end_stop_m, end_stop_stiffness, end_stop_absorption,
+                 double end_stop_transition, double gravity, bint ideal, bint unrated, bint jerk_limited,
+                 instant=None, envelope=None, table_start=None, table_v=None, table_f=None, dist_start=(),
+                 dist_end=(), dist_w=(), dist_phase=(), dist_amp=None, dist_off=None, GearKernel gears=None,
+                 gear_couplers=None, AirKernel air=None, double uncertainty=0.0, li_dist_on=None,
+                 li_dist_coef=(0.0, 0.0, 0.0), route_brk=None, route_val=None, weight_kn=None, limit_cars=(),
+                 limit_envelope=None, limit_adhesion=(), limit_mu0=(), base_mu=None, event_start=(),
+                 event_end=(), event_mu=None, event_eff=None):
+        c = lambda a, shape: np.ascontiguousarray(np.broadcast_to(np.asarray(a, dtype=float), shape))  # noqa: E731
+        P = points
+        n = int(np.shape(mass)[len(np.shape(mass)) - 1])
+        nc = max(n - 1, 0)
+        self.n, self.nc, self.points = n, nc, P
+        self.equip, self.gears, self.air = equip, gears, air
+        self.gear_idx = np.ascontiguousarray(np.zeros(0) if gear_couplers is None else gear_couplers, dtype=np.intp)
+        self.mass, self.c_static = c(mass, (P, n)).reshape(-1), c(c_static, (P, n)).reshape(-1)
+        self.c1, self.c2 = c(c1, (P, n)).reshape(-1), c(c2, (P, n)).reshape(-1)
+        self.has_grade = grade_force_n is not None
+        self.grade = c(0.0 if grade_force_n is None else grade_force_n, (P, n)).reshape(-1)
+        self.brake_max, self.trac_max = c(brake_max, (P, n)).reshape(-1), c(trac_max, (P, n)).reshape(-1)
+        self.rate_max = c(rate_max, (P, n)).reshape(-1)
+        self.spacing, self.kappa = c(spacing, (P, nc)).reshape(-1), c(kappa, (P, nc)).reshape(-1)
+        self.eps = c(epsilon, (P, nc)).reshape(-1)
+        self.end_stop = end_stop_m is not None
+        self.es_m = c(0.0 if end_stop_m is None else end_stop_m, (nc,))
+        self.es_k, self.es_a = c(end_stop_stiffness, (nc,)), c(end_stop_absorption, (nc,))
+        self.es_vt, self.g = end_stop_transition, gravity
+        self.ideal, self.unrated, self.jerk_limited = ideal, unrated, jerk_limited
+        self.has_instant = instant is not None
+        self.inst = c(0.0 if instant is None else instant, (n,))
+        self.has_env = envelope is not None
+        self.env = c(np.full((n, 6), np.nan) if envelope is None else envelope, (n, 6))
+        self.has_table = table_start is not None
+        self.tab_start = np.ascontiguousarray(np.zeros(n + 1) if table_start is None else table_start, dtype=np.intp)
+        flat = lambda a: np.ascontiguousarray(np.zeros(1) if a is None or len(a) == 0 else a, dtype=float)  # noqa: E731
+        self.tab_v, self.tab_f = flat(table_v), flat(table_f)
+        self.d_start, self.d_end = np.ascontiguousarray(dist_start, dtype=float), np.ascontiguousarray(dist_end, dtype=float)
+        self.d_w, self.d_ph = np.ascontiguousarray(dist_w, dtype=float), np.ascontiguousarray(dist_phase, dtype=float)
+        self.n_dist = self.d_start.shape[0]
+        self.d_amp = c(np.zeros((0, n)) if dist_amp is None else np.reshape(dist_amp, (self.n_dist, n)), (self.n_dist, n))
+        self.d_off = c(np.zeros((0, n)) if dist_off is None else np.reshape(dist_off, (self.n_dist, n)), (self.n_dist, n))
+        self.unc = uncertainty
+        self.has_li_dist = li_dist_on is not None
+        self.li_on = c(0.0 if li_dist_on is None else np.asarray(li_dist_on, dtype=float), (n,))
+        self.li_c0, self.li_c1, self.li_c2 = (float(x) for x in li_dist_coef)
+        self.has_route = route_brk is not None
+        self.brk, self.val = flat(route_brk), flat(route_val)
+        self.weight = c(0.0 if weight_kn is None else weight_kn, (n,))
+        nl = len(limit_cars)
+        self.lim_idx = np.ascontiguousarray(limit_cars, dtype=np.intp)
+        self.lim_env = c(np.full((nl, 10), np.nan) if limit_envelope is None else limit_envelope, (nl, 10))
+        self.lim_adh = np.ascontiguousarray(limit_adhesion, dtype=np.intp)
+        self.lim_mu0 = np.ascontiguousarray(limit_mu0, dtype=float)
+        self.base_mu = c(0.3 if base_mu is None else base_mu, (n,))
+        self.ones = np.ones(n)
+        ne = len(event_start)
+        self.ev_start, self.ev_end = np.ascontiguousarray(event_start, dtype=float), np.ascontiguousarray(event_end, dtype=float)
+        mus = [None] * ne if event_mu is None else list(event_mu)
+        effs = [None] * ne if event_eff is None else list(event_eff)
+        self.ev_has_mu = np.array([m is not None for m in mus], dtype=np.uint8)
+        self.ev_has_eff = np.array([e is not None for e in effs], dtype=np.uint8)
+        self.ev_mu = c(np.reshape([np.zeros(n) if m is None else m for m in mus], (ne, n)), (ne, n))
+        self.ev_eff = c(np.reshape([np.ones(n) if e is None else e for e in effs], (ne, n)), (ne, n))
+        N, ng, w = P * n, self.gear_idx.shape[0], lambda k: np.empty(max(k, 1))  # noqa: E731
+        self.w_vb_a, self.w_dl_a = np.empty(N), np.empty(P * nc)
+        self.w_vb, self.w_dl = self.w_vb_a, (self.w_dl_a if P * nc else w(0))
+        self.w_vn, self.w_eff, self.w_f, self.w_r, self.w_phi = w(N), w(N), w(N), w(N), w(P * nc)
+        self.w_brake, self.w_trac, self.w_oth, self.w_tb, self.w_td = w(N), w(N), w(N), w(N * equip.p), w(N * equip.p)
+        self.w_held, self.w_gst, self.w_grt, self.w_gfc = w(n), w(ng), w(ng), w(ng)
+
+    cdef inline double _saturate(self, Py_ssize_t k, double u, double vi) noexcept nogil:
+        """:meth:`canbrake.physics.heavy_haul.TractionEnvelope.saturate_n` of the limited car k's
+        envelope row (traction fields, then the brake's: linear slope, until, max, constant until)."""
+        cdef const double* e = &self.lim_env[k, 0]
+        cdef double v = fabs(vi) / (1.0 / 3.6), hi, lo
+        if v <= e[1]:
+            hi = e[0]
+        elif v <= e[4]:
+            hi = e[2] - e[3] * v
+        else:
+            hi = e[5] / v
+        if v <= e[7]:
+            lo = e[6] * v
+        elif v <= e[9]:
+            lo = e[8]
+        else:
+            lo = e[5] / v
+        return _pymin(_pymax(u, -1000.0 * lo), 1000.0 * hi)
+
+    def run(self, x0, v0, cmd, double[::1] act, double t0, double h, int n_sub, double lag, lag_per_car,
+            const double[::1] blend_k, const double[::1] valve_k, wsp, double[::1] friction, double[::1] ed,
+            double[::1] valve, double[::1] vent, double[::1] omega, double[::1] force, double[::1] slip,
+            double[::1] gear_fs, double[::1] gear_dp, int air_mode, double[::1] fill, const double[::1] target,
+            const double[::1] fill_gain, double[::1] pipe, const double[::1] pipe_gain, double t_apply,
+            double t_release, double[::1] air_n, grade_cb=None):
+        """Advance ``n_sub`` sub-steps of ``h`` s from ``t0``: positions ``x0`` (m), speeds ``v0``
+        (m/s) and the brake command ``cmd`` (N, + brakes), P·n values each; ``act`` the actuator's
+        effort (N, P·n, updated in place; ``lag`` = 1 − e^(−h/τ), or ``lag_per_car`` (n,)).
+        Brake equipment (:meth:`EquipmentKernel.substep`): ``blend_k``, ``valve_k``, ``wsp`` (None
+        or P·n), its state ``friction``, ``ed``, ``valve``, ``vent``, ``omega``, ``force``,
+        ``slip`` (updated in place). Draft gears: their force state and deflections ``gear_fs``,
+        ``gear_dp`` (updated). Air brake (``air_mode`` as :meth:`AirKernel.run`, −1: untouched):
+        ``fill``, ``pipe`` and its block force ``air_n`` updated. ``grade_cb``: the plant's
+        grade force (N per car) from the positions, called every sub-step when given.
+
+        Returns (t, t_last, x, v, acc, rail, dl): the time after and at the last sub-step's
+        start, the new positions and speeds, the acceleration over the last sub-step, the last
+        rail force and the last sub-step's coupler deflections (P·(n−1); the kernel's own array,
+        overwritten by the next call)."""
+        cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, N = P * n, i, j, k, p, s, q, e
+        cdef Py_ssize_t ng = self.gear_idx.shape[0], nl = self.lim_idx.shape[0], nev = self.ev_start.shape[0]
+        cdef Py_ssize_t pe = self.equip.p
+        xa, va, raila = np.array(x0, dtype=float).reshape(-1), np.array(v0, dtype=float).reshape(-1), np.empty(N)
+        cdef double[::1] x = xa, v = va, rail = raila
+        # work arrays, the kernel's own (dl is returned: the caller reads it at once)
+        cdef double[::1] vb = self.w_vb, vn = self.w_vn, dl = self.w_dl, eff_b = self.w_eff, f = self.w_f
+        cdef double[::1] r = self.w_r, phi = self.w_phi, brake = self.w_brake, trac = self.w_trac
+        cdef double[::1] oth = self.w_oth, tb = self.w_tb, td = self.w_td, held = self.w_held
+        cdef double[::1] gst = self.w_gst, grt = self.w_grt, gfc = self.w_gfc
+        cdef double[::1] cb = self.w_held  # eq. 40's cube roots of |v| replace it before use
+        cdef const double[::1] c = np.ascontiguousarray(cmd, dtype=float).reshape(-1)
+        cdef bint has_wsp = wsp is not None
+        cdef const double[::1] wcmd = np.ascontiguousarray(wsp, dtype=float).reshape(-1) if has_wsp else np.zeros(0)
+        cdef bint per_car_lag = lag_per_car is not None
+        cdef const double[::1] lagv = np.ascontiguousarray(lag_per_car, dtype=float) if per_car_lag else self.ones
+        cdef const double[::1] gforce
+        cdef const double[::1] mu, effv
+        cdef double t = t0, t_last = t0, d, st, lim, ev, dlj, rate, over, sg, loading, share, ph, fc, ext, acc
+        cdef double speed, vi, u, cap, mu_i, unc1 = 1.0 + self.unc, s1 = 0.0, s2 = 0.0, c3 = 0.0, lag_i = lag
+        cdef bint finite_phi
+        cdef double bad_phi = 0.0
+        for s in range(n_sub):
+            t_last = t
+            # the rail conditions of the moment (TrainPlant._update_rail: a later event overrides)
+            mu, effv = self.base_mu, self.ones
+            for e in range(nev):
+                if self.ev_start[e] <= t < self.ev_end[e]:
+                    if self.ev_has_mu[e]:
+                        mu = self.ev_mu[e]
+                    if self.ev_has_eff[e]:
+                        effv = self.ev_eff[e]
+            # the actuator (ActuatorState.advance), then each car's traction within its envelope
+            for q in range(N):
+                i = q if q < n else q % n
+                d = c[q]
+                if not self.unrated:
+                    d = _min(_max(d, -self.trac_max[q]), self.brake_max[q])
+                if self.ideal:
+                    ev = d
+                else:
+                    if per_car_lag:
+                        lag_i = lagv[i]
+                    st = (d - act[q]) * lag_i
+                    if self.jerk_limited:
+                        lim = self.rate_max[q] * h
+                        st = _min(_max(st, -lim), lim)
+                    ev = act[q] + st
+                    if self.has_instant and self.inst[i] != 0.0:
+                        ev = d
+                act[q] = ev
+                if self.has_env and ev < 0.0 and self.env[i, 0] == self.env[i, 0]:
+                    ev = _max(ev, -_envelope_n(&self.env[i, 0], v[q]))
+                eff_b[q] = ev
+            # the locomotives' electric brake and adhesion (a single plant): each limited car's force,
+            # as traction u = −effort, clipped into [−F_B(v), F_T(v)] of its envelope, then at ±μ(v)·m·g
+            # of its adhesion (the heavy-haul model's saturate_n and _adhesion_limit, Python's min/max).
+            # As there, the command is clipped at the period's first sub-step and the force so held is
+            # clipped again at each later sub-step's speed: within a period a limit that falls lowers
+            # the force, one that rises does not raise it again (the traction control takes the
+            # command once per period)
+            for k in range(nl):
+                i = self.lim_idx[k]
+                u = -(eff_b[i] if s == 0 else held[i])
+                vi = v[i]
+                if self.lim_env[k, 0] == self.lim_env[k, 0]:
+                    u = self._saturate(k, u, vi)
+                if self.lim_adh[k] > 0:
+                    mu_i = self.lim_mu0[k]
+                    if self.lim_adh[k] == 2:  # Curtius-Kniffler
+                        mu_i = self.lim_mu0[k] * (0.161 + 7.5 / (fabs(vi) / (1.0 / 3.6) + 44.0)) / (0.161 + 7.5 / 44.0)
+                    cap = mu_i * self.mass[i] * self.g
+                    u = _pymin(_pymax(u, -cap), cap)
+                eff_b[i] = -u
+                held[i] = eff_b[i]
+            # couplers: Φ(Δl) (+ the end stop's buffer), Li's draft gears where fitted
+            if self.has_li_dist:  # eq. 40's time functions, numpy's as the loop had them
+                s1 = _np_sin(t + 1.0)
+                s2 = _np_sin(2 * t + 2.0)
+                c3 = _np_cos(3 * t + 1.0)
+                cb = _np_cbrt(np.abs(va))
+            if grade_cb is not None:
+                gforce = np.ascontiguousarray(grade_cb(xa.reshape(np.shape(x0)).copy()), dtype=float).reshape(-1)
+            for p in range(P):
+                finite_phi = True
+                for j in range(nc):
+                    q = p * nc + j
+                    dlj = x[p * n + j] - x[p * n + j + 1] - self.spacing[q]
+                    dl[q] = dlj
+                    ph = self.kappa[q] * (1.0 + self.eps[q] * dlj * dlj) * dlj
+                    if self.end_stop:
+                        over = fabs(dlj) - self.es_m[j]
+                        sg = _sign(dlj)
+                        rate = v[p * n + j] - v[p * n + j + 1]
+                        loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
+                        share = 1.0 - self.es_a[j] * (1.0 - loading)
+                        ph = ph + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
+                    phi[q] = ph
+                if ng:  # (a single plant)
+                    for k in range(ng):
+                        j = self.gear_idx[k]
+                        gst[k] = dl[j]
+                        grt[k] = v[j] - v[j + 1]
+                    self.gears.run(&gst[0], &grt[0], &gear_fs[0], &gear_dp[0], &gfc[0], &gear_fs[0], &gear_dp[0])
+                    for k in range(ng):
+                        phi[self.gear_idx[k]] = gfc[k]
+                for j in range(nc):
+                    if finite_phi and not isfinite(phi[p * nc + j]):
+                        finite_phi = False
+                        bad_phi = phi[p * nc + j]
+                for i in range(n):
+                    q = p * n + i
+                    # f_i = Φ_{i-1} − Φ_i: the loop's incidence product (exact; NaN on every car of a
+                    # row with a non-finite Φ, as its 0 · Φ_j terms gave)
+                    fc = 0.0
+                    if i > 0:
+                        fc = fc + phi[p * nc + i - 1]
+                    if i < nc:
+                        fc = fc - phi[p * nc + i]
+                    if not finite_phi:
+                        fc = 0.0 * bad_phi
+                    if grade_cb is not None:
+                        fc = fc - gforce[q]
+                    elif self.has_grade:
+                        fc = fc + self.grade[q]
+                    if self.has_route:
+                        fc = fc - route_n(self.brk, self.val, self.weight[i], x[q])
+                    if self.unc != 0.0:
+                        fc = fc * unc1
+                    if self.n_dist:
+                        ext = 0.0
+                        for k in range(self.n_dist):
+                            if self.d_start[k] <= t < self.d_end[k]:
+                                ext = ext + self.d_off[k, i] + self.d_amp[k, i] * sin(
+                                    self.d_w[k] * (t - self.d_start[k]) + self.d_ph[k])
+                        fc = fc + ext
+                    if self.has_li_dist:
+                        if self.li_on[i] != 0.0:
+                            acc = self.li_c0 + self.li_c1 * s1 + self.li_c2 * cb[i] * (s2 + c3)
+                            fc = fc + self.mass[q] * acc
+                        else:
+                            fc = fc + 0.0
+                    f[q] = fc
+                    # the running resistance (Davis, table), the air brake's block force, δ
+                    speed = fabs(v[q])
+                    ev = self.c_static[q] + speed * (self.c1[q] + self.c2[q] * speed)
+                    if self.has_table and self.tab_start[i + 1] > self.tab_start[i]:
+                        ev = ev + table_at(&self.tab_v[self.tab_start[i]], &self.tab_f[self.tab_start[i]],
+                                           self.tab_start[i + 1] - self.tab_start[i], speed, NULL)
+                    if self.air is not None:
+                        ev = ev + air_n[i]
+                    if self.unc != 0.0:
+                        ev = ev * unc1
+                    r[q] = ev
+            # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake)
+            self.equip.run_sub(h, blend_k, valve_k, eff_b, v, f, r, self.mass, mu, effv, has_wsp, wcmd, friction, ed,
+                               valve, vent, omega, force, slip, brake, trac, rail, vn, oth, tb, td)
+            for q in range(N):
+                x[q] = x[q] + h * vn[q]
+                vb[q] = v[q]
+                v[q] = vn[q]
+            t = t + h
+            if self.air is not None and air_mode >= 0:  # cylinders and pipe to the new time, forces at the new speeds
+                self.air.run(air_mode, t, &v[0], &fill[0], &target[0], &fill_gain[0], &pipe[0], &pipe_gain[0], t_apply,
+                             t_release, &air_n[0])
+        acc_a = np.empty(N)
+        cdef double[::1] acc_v = acc_a
+        for q in range(N):  # the acceleration over the last sub-step
+            acc_v[q] = (v[q] - vb[q]) / h
+        return t, t_last, xa, va, acc_a, raila, self.w_dl_a

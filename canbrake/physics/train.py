@@ -57,12 +57,12 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from canbrake.physics._train_kernel import CoupledKernel, traction_capped, with_table_resistance
+from canbrake.physics._train_kernel import CoupledKernel, EquippedKernel, with_table_resistance
 from canbrake.physics.actuator import ActuatorState, BrakeActuator
 from canbrake.physics._brakes_kernel import EquipmentKernel
 from canbrake.physics import _adhesion_kernel
 from canbrake.physics.brakes import BlendingState, BrakeBlending, Wheelsets
-from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car, disturbance_n
+from canbrake.physics.rail import DisturbanceForce, RailConditions, _per_car
 from canbrake.physics.resistance import DavisResistance, davis_1926
 from canbrake.physics.wheel_adhesion import WheelSet, _axle_array
 
@@ -292,6 +292,7 @@ class TrainPlant:
         self.stacked = False
         self._kern: CoupledKernel | None = None  # built at the first step
         self._ekern: EquipmentKernel | None = None  # the brake equipment's, likewise
+        self._qkern: EquippedKernel | None = None  # the period with brake equipment, likewise
         self._rigid_init(rigid, driven_axles, rail_schedule, adhesion_curve, adhesion_v_floor_mps)
         self.reset()
 
@@ -633,16 +634,16 @@ class TrainPlant:
 
     # ------------------------------------------------------------------ brake equipment (opt-in)
     def _step_equipped(self, dt_s: float, cmd: np.ndarray, wsp_release: np.ndarray | None) -> None:
-        """:meth:`step` with blending and/or wheelsets (:mod:`canbrake.physics.brakes`): the same
-        forces, sub-steps and Coulomb treatment of brake and resistance, plus the brake equipment."""
+        """:meth:`step` with brake equipment (blending, wheelsets, draft gears, air brake, Li 2024's
+        parts): the same forces, sub-steps and Coulomb treatment of brake and resistance, plus the
+        equipment, the whole period in one compiled call (:class:`EquippedKernel`); the grade
+        function, when given, is called back every sub-step."""
         n_sub = self._substeps(dt_s)
         h = dt_s / n_sub
         wsp = None if wsp_release is None else np.ascontiguousarray(wsp_release, dtype=float).reshape(-1)
-        act, wheels, g = self._act, self.wheels, self.gravity_mps2
+        act, wheels = self._act, self.wheels
         x, v = self.position_m, self.speed_mps
-        v_before = v
-        c1, c2 = self.resistance.c1_n_per_mps, self.resistance.c2_n_per_mps2
-        kern = self._equip_kernel()
+        kern = self._equipped_kernel()
         blend = self._blend
         blend_k = self._lag_factor("friction", 0.0 if blend is None else blend.params.friction_lag_s, h)
         valve_k = self._lag_factor("valve", self.wsp_valve_lag_s, h)
@@ -657,59 +658,38 @@ class TrainPlant:
         ed = none if blend is None else blend.ed_n.reshape(-1)
         om, fo, sl = (none, none, none) if wheels is None else (
             wheels.omega.reshape(-1), wheels.force_n.reshape(-1), wheels.slip.reshape(-1))
-        flat = lambda a: np.ascontiguousarray(a, dtype=float).reshape(-1)  # noqa: E731
-        mass = flat(self.mass_kg)
-        dl = np.zeros(0)
-        gears, gk = self._gears, self.gear_couplers
+        lag = 0.0 if act.params.kind == "ideal" else act.lag_factor(h)
+        effort = act.effort_n  # the actuator's state, a copy the kernel advances
+        effort = effort.astype(float).reshape(-1) if effort.shape == v.shape else \
+            np.array(np.broadcast_to(effort, v.shape), dtype=float).reshape(-1)
+        gears: Any = self._gears
+        fs, dp = (none, none) if gears is None else (gears.force_state.copy(), gears.defl_prev.copy())
         air: Any = self.air_brake
-        held: np.ndarray | None = None  # the limited cars' force of the sub-step before (_loco_limited)
-        for _ in range(n_sub):
-            t = self.time_s
-            self._update_rail(t)
-            effort = act.advance(cmd, h)
-            if self._env is not None:  # each car's traction within its envelope at its speed
-                effort = traction_capped(self._env, flat(v), flat(effort))
-            if self._limits:  # the locomotives' electric brake and adhesion (Li 2024), from the held force
-                effort = held = self._loco_limited(effort, v, held)
-            dl = x[..., :-1] - x[..., 1:] - self.coupler_spacing_m
-            rate = v[..., :-1] - v[..., 1:]
-            phi = self.coupler_force_from_deflection(dl, rate)
-            if gears is not None:  # Li's draft gears (compiled GearKernel), their history advanced
-                phi[gk] = gears.step(dl[gk], rate[gk])  # type: ignore[attr-defined]
-            f = self._incidence.dot(phi) if phi.ndim == 1 else phi @ self._incidence.T
-            if self._grade_fn is not None:
-                f = f - self.mass_kg * g * np.sin(np.asarray(self._grade_fn(x), dtype=float))
-            elif self._has_grade:
-                f = f + self._grade_force
-            if self.route is not None:  # the line's grade and curves at each car's position
-                f = f - self._route_force_n(x)
-            if self.uncertainty != 0.0:  # δ on the non-control forces (Li 2024 eq. 16)
-                f = f * (1.0 + self.uncertainty)
-            if self._dist:
-                f = f + self.external_force_n(t)
-            if self._li_dist is not None:  # Li 2024 eq. 40
-                f = f + disturbance_n(self.mass_kg, t, v, self._li_dist[0], self._li_dist[1])
-            speed = np.abs(v)
-            r = self._c_static + speed * (c1 + c2 * speed)
-            if self._tab is not None:
-                r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], flat(speed), flat(r))
-            if air is not None:  # the air brake's block force: dissipative on the body, as resistance
-                r = r + air.last_force_n
-            if self.uncertainty != 0.0:
-                r = r * (1.0 + self.uncertainty)
-            # the brake equipment (blending, dump valves, wheelsets or the Coulomb brake), compiled
-            v_new, rail = kern.substep(h, blend_k, valve_k, flat(effort), flat(v), flat(f), flat(r), mass,
-                                       flat(self._mu), flat(self._eff), wsp, fr, ed, self.wsp_valve.reshape(-1),
-                                       self._vent_s.reshape(-1),
-                                       om, fo, sl)
-            v_new, rail = v_new.reshape(v.shape), rail.reshape(v.shape)
-            x = x + h * v_new
-            v_before, v = v, v_new
-            self.time_s = t + h
-            if air is not None:  # cylinders and pipe to the new time, forces at the new speeds (AirKernel)
-                air.step(self.time_s, h, v_new)
-        acc = (v - v_before) / h
+        mode, fill, target, fill_gain, pipe, pipe_gain, t_apply, t_release, air_n = \
+            -1, none, none, none, none, none, 0.0, 0.0, none
+        if air is not None:
+            mode = air.kernel_mode()
+            fill, target, air_n = air.fill, np.ascontiguousarray(air.ecp_target, dtype=float), air.last_force_n.copy()
+            fill_gain, pipe_gain = air.gains(h)
+            pipe = air._no_pipe if air.pipe is None else air.pipe_pressure_pa.copy()
+            t_apply, t_release = float(air.t_apply), float(air.t_release)
+        self.time_s, t_last, x, v, acc, rail, dl = kern.run(
+            x, v, cmd, effort, self.time_s, h, n_sub, lag if isinstance(lag, float) else 0.0,
+            None if isinstance(lag, float) else lag, blend_k, valve_k, wsp, fr, ed, self.wsp_valve.reshape(-1),
+            self._vent_s.reshape(-1), om, fo, sl, fs, dp, mode, fill, target, fill_gain, pipe, pipe_gain, t_apply,
+            t_release, air_n, None if self._grade_fn is None else self._grade_force_fn)
+        act.effort_n = effort.reshape(self.speed_mps.shape)
+        self._update_rail(t_last)
+        if gears is not None:
+            gears.force_state, gears.defl_prev = fs, dp
+        if air is not None and mode >= 0:
+            air.last_force_n = air_n
+            if air.pipe is not None:
+                air.pipe_pressure_pa = pipe
         if self.stacked:
+            shape = self.speed_mps.shape
+            x, v, acc, rail = (a.reshape(shape) for a in (x, v, acc, rail))
+            dl = dl.reshape(shape[:-1] + (self.n_cars - 1,))
             bad = ~np.isfinite(v).all(axis=-1)
             dl_max = np.max(np.abs(dl), axis=-1) if dl.shape[-1] else np.zeros(bad.shape)
             x, v, acc, rail = self._park_diverged(x, v, acc, rail, bad, dl_max)
@@ -760,7 +740,7 @@ class TrainPlant:
             if e is not None or a is not None:
                 self._limits.append((i, e, a))
         self._weight_kn = self.mass_kg * self.gravity_mps2 / 1000.0
-        #: any part the compiled coupled step lacks: the step with equipment (Python sub-steps) takes them
+        #: any part the plain compiled step (CoupledKernel) lacks: the step with equipment (EquippedKernel) takes them
         self._li = route is not None or self.uncertainty != 0.0 or self._li_dist is not None or bool(self._limits)
 
     def _route_force_n(self, x: np.ndarray) -> np.ndarray:
@@ -777,25 +757,6 @@ class TrainPlant:
         x0 = float(self.position_m[0])
         return self.route.long_downgrade_ahead(x0, x0 - float(np.sum(self.coupler_spacing_m)), look, g,  # type: ignore[attr-defined]
                                                length)
-
-    def _loco_limited(self, effort: np.ndarray, v: np.ndarray, held: np.ndarray | None) -> np.ndarray:
-        """``effort`` (N per car, + brakes) with each limited car's force, as traction u = −effort,
-        clipped into [−F_B(v), F_T(v)] of its envelope, then at ±μ(v)·m·g of its adhesion (the
-        heavy-haul model's ``saturate_n`` and ``_adhesion_limit``). As there, the command is clipped
-        at the period's first sub-step and the force so held (``held``: the previous sub-step's
-        result, None at the first) is clipped again at each later sub-step's speed: within a
-        period a limit that falls lowers the force, one that rises does not raise it again (the
-        traction control takes the command once per period)."""
-        out = np.array(effort, dtype=float)
-        for i, env, adh in self._limits:
-            u, vi = -float(out[i] if held is None else held[i]), float(v[i])
-            if env is not None:
-                u = env.saturate_n(u, vi)
-            if adh is not None:
-                cap = adh.mu(vi) * float(self.mass_kg[i]) * self.gravity_mps2
-                u = min(max(u, -cap), cap)
-            out[i] = -u
-        return out
 
     def _place_static(self) -> None:
         """Static initial couplers (``static_couplers``): coupler j carries the running, route and
@@ -864,6 +825,49 @@ class TrainPlant:
                 valve_lag_s=self.wsp_valve_lag_s, max_vent_s=self.wsp_max_vent_s,
                 adhesion_limited=self.actuator.adhesion_limited, gravity=self.gravity_mps2, **kw)
         return self._ekern
+
+    def _equipped_kernel(self) -> EquippedKernel:
+        """The compiled period with brake equipment with this plant's (or stack's) constants (built once)."""
+        if self._qkern is None:
+            act, d, n = self._act, self._dist, self.n_cars
+            gears: Any = self._gears
+            air: Any = self.air_brake
+            lim = self._limits
+            envf = ("traction_start_kn", "traction_start_until_kmh", "traction_intercept_kn",
+                    "traction_slope_kn_per_kmh", "traction_linear_until_kmh", "power_kn_kmh", "brake_slope_kn_per_kmh",
+                    "brake_linear_until_kmh", "brake_max_kn", "brake_constant_until_kmh")
+            self._qkern = EquippedKernel(
+                self._equip_kernel(), points=self.speed_mps.shape[0] if self.stacked else 1, mass=self.mass_kg,
+                c_static=self._c_static, c1=self.resistance.c1_n_per_mps, c2=self.resistance.c2_n_per_mps2,
+                grade_force_n=self._grade_force if self._has_grade else None,
+                brake_max=np.broadcast_to(act._brake_max, self.mass_kg.shape),
+                trac_max=np.broadcast_to(act._trac_max, self.mass_kg.shape),
+                rate_max=np.broadcast_to(act._rate_max, self.mass_kg.shape), spacing=self.coupler_spacing_m,
+                kappa=self.coupler_stiffness_n_per_m, epsilon=self.coupler_nonlinearity_per_m2,
+                end_stop_m=self.end_stop_m, end_stop_stiffness=self.end_stop_stiffness_n_per_m,
+                end_stop_absorption=self.end_stop_absorption, end_stop_transition=END_STOP_TRANSITION_MPS,
+                gravity=self.gravity_mps2, ideal=act.params.kind == "ideal", unrated=act._unrated,
+                jerk_limited=act._jerk_limited,
+                instant=None if act.params.kind == "ideal" or act._instant is None else act._instant,
+                envelope=self._env, table_start=None if self._tab is None else self._tab[0],
+                table_v=None if self._tab is None else self._tab[1], table_f=None if self._tab is None else self._tab[2],
+                dist_start=[e[0] for e in d], dist_end=[e[1] for e in d], dist_w=[e[4] for e in d],
+                dist_phase=[e[5] for e in d], dist_amp=np.reshape([e[2] for e in d], (len(d), n)),
+                dist_off=np.reshape([e[3] for e in d], (len(d), n)),
+                gears=None if gears is None else gears.kernel, gear_couplers=self.gear_couplers,
+                air=None if air is None else air.kernel, uncertainty=self.uncertainty,
+                li_dist_on=None if self._li_dist is None else self._li_dist[0],
+                li_dist_coef=(0.0, 0.0, 0.0) if self._li_dist is None else self._li_dist[1],
+                route_brk=None if self.route is None else self.route._brk,  # type: ignore[attr-defined]
+                route_val=None if self.route is None else self.route._val,  # type: ignore[attr-defined]
+                weight_kn=self._weight_kn, limit_cars=[i for i, _, _ in lim],
+                limit_envelope=np.reshape([[math.nan] * 10 if e is None else [float(getattr(e, k)) for k in envf]
+                                           for _, e, _ in lim], (len(lim), 10)),
+                limit_adhesion=[0 if a is None else (2 if a.curve == "curtius_kniffler" else 1) for _, _, a in lim],
+                limit_mu0=[0.0 if a is None else float(a.mu0) for _, _, a in lim], base_mu=self._base_mu,
+                event_start=[e[0] for e in self._events], event_end=[e[1] for e in self._events],
+                event_mu=[e[2] for e in self._events], event_eff=[e[3] for e in self._events])
+        return self._qkern
 
     def equipment_measurements(self) -> dict[str, np.ndarray]:
         """Per-car quantities of the brake equipment (empty without it): ``ed_brake_n`` and
@@ -1121,6 +1125,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     st.stacked = True
     st._kern = None
     st._ekern = None
+    st._qkern = None
     for name in _STACKED:
         setattr(st, name, np.stack([np.broadcast_to(np.asarray(getattr(p, name), dtype=float),
                                                     np.shape(getattr(p0, name))) for p in plants]))
