@@ -1,8 +1,8 @@
 """The coupled plant (TrainPlant) with the heavy-haul model's remaining parts (issue 27): Li 2024's
 route (grade and curvature by position) and the line data it gives, the static initial coupler
 tensions, the locomotive's electric-brake envelope and adhesion limit, the model uncertainty δ and
-eq. 40's disturbance: each by hand-derived physics, then all of them against HeavyHaulModel on the
-same train, to first order in the step."""
+eq. 40's disturbance: each by hand-derived physics, then all of them with the air brake's commands
+against HeavyHaulModel on the same train, to rounding."""
 from __future__ import annotations
 
 import math
@@ -211,69 +211,79 @@ def test_uncertainty_scales_every_non_control_force_and_eq40_is_added() -> None:
 
 
 # ------------------------------------------------------- all of them against the heavy-haul model
-def _pair(h: float) -> tuple[hh.HeavyHaulModel, TrainPlant]:
-    """The same train on both plants: locomotive + 2 wagons with draft gears and air brakes on the
-    route from 250 m at 15 m/s, static couplers, the locomotive's envelopes and adhesion (μ = 0.25),
-    δ = 0.02 and eq. 40's disturbance on the locomotive and the last wagon; step ``h`` both."""
+def _pair(h: float, mode: str = "pneumatic") -> tuple[hh.HeavyHaulModel, TrainPlant]:
+    """The same train on both plants: locomotive + 2 wagons with draft gears and air brakes
+    (``mode`` pneumatic or ecp) on the route from 250 m at 15 m/s, static couplers, the
+    locomotive's envelopes and adhesion (μ = 0.25), δ = 0.02 and eq. 40's disturbance on the
+    locomotive and the last wagon; step ``h`` both."""
     on = np.array([True, False, True])
     coef = (0.002, 0.001, 0.0003)
     adh = [hh.LocoAdhesion(mu0=0.25, curve="curtius_kniffler"), None, None]
-    ref = hh.HeavyHaulModel(_consist(), ROUTE, [GEAR, GEAR], _air(), envelopes=[ENV, None, None], v0_mps=15.0,
+    ref = hh.HeavyHaulModel(_consist(), ROUTE, [GEAR, GEAR], _air(mode), envelopes=[ENV, None, None], v0_mps=15.0,
                             x0_m=250.0, uncertainty=0.02, disturbance_on=on, disturbance_coef=coef,
                             integration_step_s=h, adhesion=adh)
     x = 250.0 - np.concatenate([[0.0], np.cumsum(SPACING)])
     tp = TrainPlant(MASS, x, 15.0, resistance=_davis(), draft_gears=[GEAR, GEAR], coupler_stiffness_n_per_m=1.0,
-                    coupler_nonlinearity_per_m2=0.0, traction_envelope=[ENV, None, None], air_brake=_air(),
+                    coupler_nonlinearity_per_m2=0.0, traction_envelope=[ENV, None, None], air_brake=_air(mode),
                     route=ROUTE, static_couplers=True, electric_brake_envelope=True, loco_adhesion=adh,
                     uncertainty=0.02, li_disturbance_on=on, li_disturbance_coef=coef, max_substep_s=h)
     return ref, tp
 
 
-def _run_pair(h: float) -> tuple[np.ndarray, ...]:
-    """40 s: 400 kN traction (capped by the envelope and adhesion) for 10 s, 300 kN electric brake
-    (capped at F_B) to 20 s, coasting with the air brake applied from 25 s; speeds and coupler
-    forces every 10 ms, and the passive forces."""
+def _commands(t: float, mode: str) -> dict[str, np.ndarray]:
+    """400 kN traction (capped by the envelope and adhesion) for 10 s, 300 kN electric brake (capped
+    at F_B) to 20 s, then coasting; the air brake applied at 25 s, released at 31 s and applied
+    again at 34.005 s (pneumatic: the driver's valve; ECP: each car's demand, changed in steps, the
+    last wagon's left unchanged (NaN) at one of them)."""
+    u = -4.0e5 if t < 10 else 3.0e5 if t < 20 else 0.0
+    cmd = {"brake_force_n": np.array([u, np.nan, np.nan])}
+    on = 25.0 <= t < 31.0 or t >= 34.005
+    if mode == "pneumatic":
+        cmd["airbrake_apply"] = np.array([1.0 if on else 0.0, np.nan, np.nan])
+    else:
+        level = 0.0 if not on else 0.6 if t < 28.0 or t >= 34.005 else 0.9
+        cmd["ecp_demand"] = np.array([level, level, np.nan if 28.0 <= t < 29.0 else level])
+    return cmd
+
+
+def _run_pair(h: float, mode: str = "pneumatic") -> tuple[np.ndarray, ...]:
+    """40 s of :func:`_commands` on both plants; speeds, coupler forces, passive forces and brake
+    cylinder pressures every 10 ms."""
     from canbrake.build import CoupledPlant
 
-    ref, tp = _pair(h)
+    ref, tp = _pair(h, mode)
     plant = CoupledPlant(tp)
-    out: list[list[np.ndarray]] = [[], [], [], [], [], []]
+    out: list[list[np.ndarray]] = [[] for _ in range(8)]
     for k in range(4000):
-        t = 0.01 * k
-        u = -4.0e5 if t < 10 else 3.0e5 if t < 20 else 0.0
-        cmd = {"brake_force_n": np.array([u, np.nan, np.nan]),
-               "airbrake_apply": np.array([1.0 if t >= 25 else 0.0, np.nan, np.nan])}
+        cmd = _commands(0.01 * k, mode)
         ref.step(0.01, cmd)
         plant.step(0.01, cmd)
         a, b = ref.measurements(), plant.measurements()
-        for lst, val in zip(out, (a["speed_mps"], b["speed_mps"], a["coupler_force_n"], b["coupler_force_n"],
-                                  a["passive_force_n"], b["passive_force_n"])):
-            lst.append(np.array(val, dtype=float))
+        for i, key in enumerate(("speed_mps", "coupler_force_n", "passive_force_n", "brake_cylinder_pressure_pa")):
+            out[2 * i].append(np.array(a[key], dtype=float))
+            out[2 * i + 1].append(np.array(b[key], dtype=float))
         assert a["downgrade_ahead"][0] == b["downgrade_ahead"][0]
     return tuple(np.array(x) for x in out)
 
 
-def test_the_coupled_plant_with_li_s_parts_agrees_with_the_heavy_haul_model_to_first_order() -> None:
-    """Route, static couplers, envelopes and adhesion, δ and σ together. Until the air brake is
-    applied the two plants integrate alike (semi-implicit Euler, couplers from the positions, the
-    locomotive's limits applied to the held force as the heavy-haul model does): speeds within
-    1e-9 m/s over 25 s of traction, electric braking (F_B binding, above 60 km/h rising as the
-    train slows) and coasting on the route. The air brake's command acts one sub-step apart (the
-    heavy-haul model redoes the fill update that reached the command's instant): at h = 1 ms within
-    1 mm/s and 4 % of the peak coupler force, and a quarter of the step brings the differences
-    down about four-fold (measured 7.5e-4 -> 1.9e-4 m/s, 2.3 -> 0.54 kN)."""
-    sa, sb, fa, fb, pa, pb = _run_pair(1e-3)
-    assert sa[999, 0] * 3.6 > 70.0 and sa[1999, 0] * 3.6 > 60.0 and sa[-1, 0] * 3.6 < 45.0  # the phases
-    before = slice(0, 2500)
-    assert np.abs(sa[before] - sb[before]).max() < 1e-9
-    assert np.abs(fa[before] - fb[before]).max() < 1e-2
+@pytest.mark.parametrize("mode", ["pneumatic", "ecp"])
+def test_the_coupled_plant_with_li_s_parts_agrees_with_the_heavy_haul_model_to_rounding(mode: str) -> None:
+    """Route, static couplers, envelopes and adhesion, δ and σ, and the air brake's commands
+    together: the two plants integrate alike (semi-implicit Euler, couplers from the positions, the
+    locomotive's limits applied to the held force as the heavy-haul model does, a brake command
+    acting from its instant: the fill update that reached it redone) through traction, electric
+    braking, coasting on the route and the air brake applied, released and applied again. The
+    remaining differences are the order of the floating-point operations (the two sum the forces
+    differently), within 1e-9 m/s and 1e-7 of the peak coupler force (the gears' 2e8 N/m turns
+    1e-13 m of position into 2e-5 N); the cylinder pressures are the same to 1e-6 Pa."""
+    sa, sb, fa, fb, pa, pb, ca, cb = _run_pair(1e-3, mode)
+    assert sa[999, 0] * 3.6 > 70.0 and sa[1999, 0] * 3.6 > 60.0 and sa[-1, 0] < sa[2499, 0] - 1.0  # the phases
     peak = np.abs(fa).max()
-    assert peak > 5e4
-    dv1, df1, dp1 = np.abs(sa - sb).max(), np.abs(fa - fb).max(), np.abs(pa - pb).max()
-    assert dv1 < 1e-3 and df1 < 0.04 * peak and dp1 < 0.04 * np.abs(pa).max()
-    sa4, sb4, fa4, fb4, _, _ = _run_pair(2.5e-4)
-    dv4, df4 = np.abs(sa4 - sb4).max(), np.abs(fa4 - fb4).max()
-    assert dv4 < dv1 / 3 and df4 < df1 / 3
+    assert peak > 5e4 and ca.max() > 1e5  # the brake was applied
+    assert np.abs(sa - sb).max() < 1e-9
+    assert np.abs(fa - fb).max() < 1e-7 * peak
+    assert np.abs(pa - pb).max() < 1e-7 * np.abs(pa).max()
+    assert np.abs(ca - cb).max() < 1e-6
 
 
 # ----------------------------------------------------------------------------- the schema

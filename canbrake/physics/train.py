@@ -380,6 +380,7 @@ class TrainPlant:
             ab.applied, ab.t_apply, ab.t_release = False, -np.inf, -np.inf
             if pipe is not None:
                 ab.pipe_pressure_pa = pipe.copy()
+            self._fill_before, self._air_h = ab.fill.copy(), self.max_substep_s  # what command_air redoes
         if self.static_couplers:
             self._place_static()
 
@@ -408,18 +409,26 @@ class TrainPlant:
         """The air brake's commands, as :class:`canbrake.physics.heavy_haul.HeavyHaulModel` takes them:
         ``apply`` the driver's valve on the leading car (≥ 0.5 apply, < 0.5 release, None/NaN unchanged;
         pneumatic mode), ``ecp_demand`` each car's cylinder target (fraction 0..1, NaN unchanged; ECP
-        mode). The command acts from the next sub-step (the heavy-haul plant also redoes the fill update
-        that reached this instant)."""
+        mode). A command that changes the brake acts from now: the cylinder fill update of the last
+        sub-step (the one that reached this instant) is redone with it, and the block forces follow at
+        the current speeds (the ECU's ``passive_force_n`` of this tick showed the brake before it)."""
         ab: Any = self.air_brake
         if ab is None:
             return
+        changed = False
         if ab.mode == "pneumatic":
             if apply is not None and math.isfinite(apply) and (apply >= 0.5) != ab.applied:
                 ab.command(self.time_s, bool(apply >= 0.5))
+                changed = True
         elif ecp_demand is not None:
             dm = np.asarray(ecp_demand, dtype=float)
             ok = np.isfinite(dm)
-            ab.ecp_target = np.where(ok, np.clip(np.where(ok, dm, 0.0), 0.0, 1.0), ab.ecp_target)
+            new = np.where(ok, np.clip(np.where(ok, dm, 0.0), 0.0, 1.0), ab.ecp_target)
+            changed = bool(np.any(new != ab.ecp_target))
+            ab.ecp_target = new
+        if changed:  # the command acts from now: redo the fill update that reached this instant
+            ab.fill = self._fill_before.copy()
+            ab.step(self.time_s, self._air_h, self.speed_mps)
 
     @property
     def brake_effort_n(self) -> np.ndarray:
@@ -707,7 +716,10 @@ class TrainPlant:
             v_before, v = v, v_new
             self.time_s = t + h
             if air is not None:  # cylinders and pipe to the new time, forces at the new speeds (AirKernel)
+                self._fill_before = air.fill.copy()  # (command_air redoes the last one)
                 air.step(self.time_s, h, v_new)
+        if air is not None:
+            self._air_h = h
         acc = (v - v_before) / h
         if self.stacked:
             bad = ~np.isfinite(v).all(axis=-1)
