@@ -6,6 +6,8 @@ against HeavyHaulModel on the same train, to rounding."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -211,23 +213,32 @@ def test_uncertainty_scales_every_non_control_force_and_eq40_is_added() -> None:
 
 
 # ------------------------------------------------------- all of them against the heavy-haul model
-def _pair(h: float, mode: str = "pneumatic") -> tuple[hh.HeavyHaulModel, TrainPlant]:
-    """The same train on both plants: locomotive + 2 wagons with draft gears and air brakes
-    (``mode`` pneumatic or ecp) on the route from 250 m at 15 m/s, static couplers, the
-    locomotive's envelopes and adhesion (μ = 0.25), δ = 0.02 and eq. 40's disturbance on the
-    locomotive and the last wagon; step ``h`` both."""
+#: HeavyHaulModel's measurements of :func:`_run_plant` on :func:`_pair`'s train, recorded before its
+#: deletion (this file's ``__main__``, at the commit that aligned the air command's timing)
+PAIR_REF = Path(__file__).parent / "data" / "li_pair_ref.npz"
+PAIR_KEYS = ("speed_mps", "coupler_force_n", "passive_force_n", "brake_cylinder_pressure_pa")
+
+
+def _pair(h: float, mode: str = "pneumatic", heavy_haul: bool = False) -> object:
+    """Locomotive + 2 wagons with draft gears and air brakes (``mode`` pneumatic or ecp) on the
+    route from 250 m at 15 m/s, static couplers, the locomotive's envelopes and adhesion (μ = 0.25),
+    δ = 0.02 and eq. 40's disturbance on the locomotive and the last wagon, sub-step ``h``: the
+    coupled plant behind the plant contract (``heavy_haul``: the former heavy-haul model)."""
+    from canbrake.build import CoupledPlant
+
     on = np.array([True, False, True])
     coef = (0.002, 0.001, 0.0003)
     adh = [hh.LocoAdhesion(mu0=0.25, curve="curtius_kniffler"), None, None]
-    ref = hh.HeavyHaulModel(_consist(), ROUTE, [GEAR, GEAR], _air(mode), envelopes=[ENV, None, None], v0_mps=15.0,
-                            x0_m=250.0, uncertainty=0.02, disturbance_on=on, disturbance_coef=coef,
-                            integration_step_s=h, adhesion=adh)
+    if heavy_haul:
+        return hh.HeavyHaulModel(_consist(), ROUTE, [GEAR, GEAR], _air(mode), envelopes=[ENV, None, None],
+                                 v0_mps=15.0, x0_m=250.0, uncertainty=0.02, disturbance_on=on, disturbance_coef=coef,
+                                 integration_step_s=h, adhesion=adh)
     x = 250.0 - np.concatenate([[0.0], np.cumsum(SPACING)])
-    tp = TrainPlant(MASS, x, 15.0, resistance=_davis(), draft_gears=[GEAR, GEAR], coupler_stiffness_n_per_m=1.0,
-                    coupler_nonlinearity_per_m2=0.0, traction_envelope=[ENV, None, None], air_brake=_air(mode),
-                    route=ROUTE, static_couplers=True, electric_brake_envelope=True, loco_adhesion=adh,
-                    uncertainty=0.02, li_disturbance_on=on, li_disturbance_coef=coef, max_substep_s=h)
-    return ref, tp
+    return CoupledPlant(TrainPlant(MASS, x, 15.0, resistance=_davis(), draft_gears=[GEAR, GEAR],
+                                   coupler_stiffness_n_per_m=1.0, coupler_nonlinearity_per_m2=0.0,
+                                   traction_envelope=[ENV, None, None], air_brake=_air(mode), route=ROUTE,
+                                   static_couplers=True, electric_brake_envelope=True, loco_adhesion=adh,
+                                   uncertainty=0.02, li_disturbance_on=on, li_disturbance_coef=coef, max_substep_s=h))
 
 
 def _commands(t: float, mode: str) -> dict[str, np.ndarray]:
@@ -246,38 +257,35 @@ def _commands(t: float, mode: str) -> dict[str, np.ndarray]:
     return cmd
 
 
-def _run_pair(h: float, mode: str = "pneumatic") -> tuple[np.ndarray, ...]:
-    """40 s of :func:`_commands` on both plants; speeds, coupler forces, passive forces and brake
-    cylinder pressures every 10 ms."""
-    from canbrake.build import CoupledPlant
-
-    ref, tp = _pair(h, mode)
-    plant = CoupledPlant(tp)
-    out: list[list[np.ndarray]] = [[] for _ in range(8)]
+def _run_plant(mode: str, heavy_haul: bool = False) -> dict[str, np.ndarray]:
+    """40 s of :func:`_commands` at a 1 ms sub-step; :data:`PAIR_KEYS` every 200 ms, (200, n)."""
+    plant: Any = _pair(1e-3, mode, heavy_haul)
+    out: dict[str, list[np.ndarray]] = {k: [] for k in PAIR_KEYS}
     for k in range(4000):
-        cmd = _commands(0.01 * k, mode)
-        ref.step(0.01, cmd)
-        plant.step(0.01, cmd)
-        a, b = ref.measurements(), plant.measurements()
-        for i, key in enumerate(("speed_mps", "coupler_force_n", "passive_force_n", "brake_cylinder_pressure_pa")):
-            out[2 * i].append(np.array(a[key], dtype=float))
-            out[2 * i + 1].append(np.array(b[key], dtype=float))
-        assert a["downgrade_ahead"][0] == b["downgrade_ahead"][0]
-    return tuple(np.array(x) for x in out)
+        plant.step(0.01, _commands(0.01 * k, mode))
+        if k % 20 == 19:
+            m = plant.measurements()
+            for key in PAIR_KEYS:
+                out[key].append(np.array(m[key], dtype=float))
+    return {f"{mode}:{k}": np.array(v) for k, v in out.items()}
 
 
 @pytest.mark.parametrize("mode", ["pneumatic", "ecp"])
 def test_the_coupled_plant_with_li_s_parts_agrees_with_the_heavy_haul_model_to_rounding(mode: str) -> None:
     """Route, static couplers, envelopes and adhesion, δ and σ, and the air brake's commands
-    together: the two plants integrate alike (semi-implicit Euler, couplers from the positions, the
-    locomotive's limits applied to the held force as the heavy-haul model does, a brake command
-    acting from its instant: the fill update that reached it redone) through traction, electric
-    braking, coasting on the route and the air brake applied, released and applied again. The
-    remaining differences are the order of the floating-point operations (the two sum the forces
-    differently), within 1e-9 m/s and 1e-7 of the peak coupler force (the gears' 2e8 N/m turns
-    1e-13 m of position into 2e-5 N); the cylinder pressures are the same to 1e-6 Pa."""
-    sa, sb, fa, fb, pa, pb, ca, cb = _run_pair(1e-3, mode)
-    assert sa[999, 0] * 3.6 > 70.0 and sa[1999, 0] * 3.6 > 60.0 and sa[-1, 0] < sa[2499, 0] - 1.0  # the phases
+    together, against the heavy-haul model's recorded run (:data:`PAIR_REF`): the two integrate
+    alike (semi-implicit Euler, couplers from the positions, the locomotive's limits applied to the
+    held force as the heavy-haul model did, a brake command acting from its instant: the fill update
+    that reached it redone) through traction, electric braking, coasting on the route and the air
+    brake applied, released and applied again. The remaining differences are the order of the
+    floating-point operations (the two sum the forces differently): measured 2.8e-10 m/s and 1e-3 N
+    of 1.7e5 N; tolerances 1e-9 m/s, 1e-7 of the peak coupler and passive force (the gears' 2e8 N/m
+    turn 1e-13 m of position into 2e-5 N), 1e-6 Pa of cylinder pressure."""
+    ref = np.load(PAIR_REF)
+    got = _run_plant(mode)
+    sa, fa, pa, ca = (ref[f"{mode}:{k}"] for k in PAIR_KEYS)
+    sb, fb, pb, cb = (got[f"{mode}:{k}"] for k in PAIR_KEYS)
+    assert sa[49, 0] * 3.6 > 70.0 and sa[99, 0] * 3.6 > 60.0 and sa[-1, 0] < sa[124, 0] - 1.0  # the phases
     peak = np.abs(fa).max()
     assert peak > 5e4 and ca.max() > 1e5  # the brake was applied
     assert np.abs(sa - sb).max() < 1e-9
@@ -377,3 +385,7 @@ def test_the_integration_step_of_a_mixed_train(tmp_path) -> None:
     for h in (0.01, 0.002):
         data["train"]["integration_step_s"] = h
         assert build_plant_model(resolve(data, "t.yaml")).plant.max_substep_s == h
+
+
+if __name__ == "__main__":  # record PAIR_REF from the heavy-haul model (before its deletion)
+    np.savez_compressed(PAIR_REF, **_run_plant("pneumatic", True), **_run_plant("ecp", True))
