@@ -1,5 +1,6 @@
-"""Issue 27: a Li 2024 scenario run by this tree and by a reference tree (default /work/main, whose
-Li trains ran on the heavy-haul model), compared column by column: the largest |difference| of
+"""Issue 27: a Li 2024 scenario run by this tree (on TrainPlant) and by a reference tree (default
+/work/main, whose Li trains ran on the heavy-haul model; ``--coupled`` forces this tree's run onto
+the coupled kernel, for a tree that still had the other), compared column by column: the largest |difference| of
 every signals.csv column (per-vehicle and per-coupler columns grouped under their name), and
 the locomotive speed RMSE and coupler-force peaks of canbrake.report.li2024.reduce_run.
 

@@ -2,7 +2,7 @@
 route (grade and curvature by position) and the line data it gives, the static initial coupler
 tensions, the locomotive's electric-brake envelope and adhesion limit, the model uncertainty δ and
 eq. 40's disturbance: each by hand-derived physics, then all of them with the air brake's commands
-against HeavyHaulModel on the same train, to rounding."""
+against the former HeavyHaulModel's recorded run of the same train, to rounding."""
 from __future__ import annotations
 
 import math
@@ -114,12 +114,12 @@ def test_downgrade_ahead_is_the_routes_line_data_rule() -> None:
 
 
 # ----------------------------------------------------------------------------- (b) static couplers
-def test_static_couplers_carry_the_resistance_behind_them_as_the_heavy_haul_model_starts() -> None:
+def test_static_couplers_carry_the_resistance_behind_them() -> None:
     """At 20 m/s on the route's downgrade: coupler j carries the running + line resistance of the
-    cars behind it (on the draft gear's loading curve), the positions are the heavy-haul model's,
-    and with the locomotive's force balancing the train's resistance the train starts in
-    equilibrium: no car accelerates over the first step (a = 0 is the equilibrium these tensions
-    describe: the heavy-haul model's start at a held speed)."""
+    cars behind it (on the draft gear's loading curve: stretched by its slack plus the curve's
+    deflection at that force), and with the locomotive's force balancing the train's resistance the
+    train starts in equilibrium: no car accelerates over the first step (a = 0 is the equilibrium
+    these tensions describe: a start at a held speed, as the former heavy-haul model's)."""
     v0, x0 = 20.0, 700.0
     x = x0 - np.concatenate([[0.0], np.cumsum(SPACING)])
     p = TrainPlant(MASS, x, v0, resistance=_davis(), draft_gears=[GEAR, GEAR], coupler_stiffness_n_per_m=1.0,
@@ -128,15 +128,15 @@ def test_static_couplers_carry_the_resistance_behind_them_as_the_heavy_haul_mode
     vk = v0 * 3.6
     r = (DAVIS_A + DAVIS_B * vk + DAVIS_C * vk * vk - 12.0) * w  # N/kN x kN, on the 12 permille downgrade
     assert p.coupler_force_n == pytest.approx([r[1] + r[2], r[2]], rel=1e-7)  # (k_e = 2e8 N/m times rounding)
-    ref = hh.HeavyHaulModel(_consist(), ROUTE, [GEAR, GEAR], _air(), envelopes=[ENV, None, None], v0_mps=v0,
-                            x0_m=x0, integration_step_s=1e-3)
-    np.testing.assert_allclose(p.position_m, ref.x, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(p.coupler_force_n, ref.measurements()["coupler_force_n"], rtol=1e-12)
+    tension = np.array([r[1] + r[2], r[2]])  # < 0 here: the cars behind push (compression)
+    stretch = np.sign(tension) * (GEAR.slack_m + np.interp(np.abs(tension), GEAR.curve_n, GEAR.curve_m))
+    ref_x = x0 - np.concatenate([[0.0], np.cumsum(SPACING + stretch)])
+    np.testing.assert_allclose(p.position_m, ref_x, rtol=0, atol=1e-9)
     v_before = p.speed_mps.copy()
     p.step(0.01, np.array([-r.sum(), 0.0, 0.0]))  # the locomotive holds the train (brakes: r < 0 downhill)
     assert np.abs(p.speed_mps - v_before).max() < 1e-9  # no car moves relative to another: no surge
     p.reset()  # back to the static state
-    np.testing.assert_allclose(p.position_m, ref.x, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(p.position_m, ref_x, rtol=0, atol=1e-9)
     chen = TrainPlant(MASS, x, v0, resistance=_davis(), coupler_stiffness_n_per_m=2.0e6,
                       coupler_nonlinearity_per_m2=-0.5, route=ROUTE, static_couplers=True)
     assert chen.coupler_force_n == pytest.approx([r[1] + r[2], r[2]], rel=1e-7)  # Chen's coupler solved for it
@@ -213,26 +213,25 @@ def test_uncertainty_scales_every_non_control_force_and_eq40_is_added() -> None:
 
 
 # ------------------------------------------------------- all of them against the heavy-haul model
-#: HeavyHaulModel's measurements of :func:`_run_plant` on :func:`_pair`'s train, recorded before its
-#: deletion (this file's ``__main__``, at the commit that aligned the air command's timing)
+#: the former HeavyHaulModel's measurements of :func:`_run_plant` on :func:`_pair`'s train, recorded
+#: before its deletion (issue 27; by this file's ``__main__`` at commit 50d85fe, ``_pair(heavy_haul=True)``
+#: then built ``hh.HeavyHaulModel(_consist(), ROUTE, [GEAR, GEAR], _air(mode), envelopes=[ENV, None,
+#: None], v0_mps=15.0, x0_m=250.0, uncertainty=0.02, disturbance_on=on, disturbance_coef=coef,
+#: integration_step_s=h, adhesion=adh)``)
 PAIR_REF = Path(__file__).parent / "data" / "li_pair_ref.npz"
 PAIR_KEYS = ("speed_mps", "coupler_force_n", "passive_force_n", "brake_cylinder_pressure_pa")
 
 
-def _pair(h: float, mode: str = "pneumatic", heavy_haul: bool = False) -> object:
+def _pair(h: float, mode: str = "pneumatic") -> object:
     """Locomotive + 2 wagons with draft gears and air brakes (``mode`` pneumatic or ecp) on the
     route from 250 m at 15 m/s, static couplers, the locomotive's envelopes and adhesion (μ = 0.25),
     δ = 0.02 and eq. 40's disturbance on the locomotive and the last wagon, sub-step ``h``: the
-    coupled plant behind the plant contract (``heavy_haul``: the former heavy-haul model)."""
+    coupled plant behind the plant contract."""
     from canbrake.build import CoupledPlant
 
     on = np.array([True, False, True])
     coef = (0.002, 0.001, 0.0003)
     adh = [hh.LocoAdhesion(mu0=0.25, curve="curtius_kniffler"), None, None]
-    if heavy_haul:
-        return hh.HeavyHaulModel(_consist(), ROUTE, [GEAR, GEAR], _air(mode), envelopes=[ENV, None, None],
-                                 v0_mps=15.0, x0_m=250.0, uncertainty=0.02, disturbance_on=on, disturbance_coef=coef,
-                                 integration_step_s=h, adhesion=adh)
     x = 250.0 - np.concatenate([[0.0], np.cumsum(SPACING)])
     return CoupledPlant(TrainPlant(MASS, x, 15.0, resistance=_davis(), draft_gears=[GEAR, GEAR],
                                    coupler_stiffness_n_per_m=1.0, coupler_nonlinearity_per_m2=0.0,
@@ -257,9 +256,9 @@ def _commands(t: float, mode: str) -> dict[str, np.ndarray]:
     return cmd
 
 
-def _run_plant(mode: str, heavy_haul: bool = False) -> dict[str, np.ndarray]:
+def _run_plant(mode: str) -> dict[str, np.ndarray]:
     """40 s of :func:`_commands` at a 1 ms sub-step; :data:`PAIR_KEYS` every 200 ms, (200, n)."""
-    plant: Any = _pair(1e-3, mode, heavy_haul)
+    plant: Any = _pair(1e-3, mode)
     out: dict[str, list[np.ndarray]] = {k: [] for k in PAIR_KEYS}
     for k in range(4000):
         plant.step(0.01, _commands(0.01 * k, mode))
@@ -386,6 +385,3 @@ def test_the_integration_step_of_a_mixed_train(tmp_path) -> None:
         data["train"]["integration_step_s"] = h
         assert build_plant_model(resolve(data, "t.yaml")).plant.max_substep_s == h
 
-
-if __name__ == "__main__":  # record PAIR_REF from the heavy-haul model (before its deletion)
-    np.savez_compressed(PAIR_REF, **_run_plant("pneumatic", True), **_run_plant("ecp", True))

@@ -406,7 +406,7 @@ class TrainPlant:
         return None if self.air_brake is None else self.air_brake.last_force_n  # type: ignore[attr-defined]
 
     def command_air(self, apply: float | None, ecp_demand: np.ndarray | None) -> None:
-        """The air brake's commands, as :class:`canbrake.physics.heavy_haul.HeavyHaulModel` takes them:
+        """The air brake's commands (as the former heavy-haul model took them):
         ``apply`` the driver's valve on the leading car (≥ 0.5 apply, < 0.5 release, None/NaN unchanged;
         pneumatic mode), ``ecp_demand`` each car's cylinder target (fraction 0..1, NaN unchanged; ECP
         mode). A command that changes the brake acts from now: the cylinder fill update of the last
