@@ -22,10 +22,11 @@ def refused(name: str, overrides: dict, match: str) -> None:
 
 def test_a_brake_pipe_without_a_locomotive_to_feed_it():
     refused("li2024_pid", {"train.vehicles": [{"type": "c80", "count": 10}], **NO_DIST},
-            r"--set train.vehicles: train.vehicles.0.type: the leading vehicle \(c80\) is not a locomotive")
+            r"--set train.vehicles: train.vehicles.0.type: vehicle type c80 has an air brake, but nothing feeds the "
+            r"brake pipe: the leading vehicle \(c80\) is not a locomotive")
     # with ECP too: the head-end unit and the pipe's air come from the locomotive
     refused("li2024_ecp_over_can", {"train.vehicles": [{"type": "c80", "count": 5}, {"type": "hxd1"}], **NO_DIST},
-            r"leading vehicle \(c80\) is not a locomotive .*\(ecp\)")
+            r"leading vehicle \(c80\) is not a locomotive .*with ECP: the head-end unit")
 
 
 def test_adhesion_on_a_wagon_without_driven_axles():

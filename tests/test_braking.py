@@ -329,14 +329,16 @@ def test_locomotive_traction_and_dynamic_brake_are_limited_by_adhesion():
     scn = load_scenario(ROOT / "scenarios" / "li2024_driver.yaml",
                         overrides={"train.vehicle_types.hxd1.wheels": {"model": "adhesion_limit", "mu": 0.1}})
     model = scn.train.assemble(scn, scn.data_dir())
+    p = model.plant  # TrainPlant
     nan = np.full(model.n_vehicles, np.nan)
     m_loco = float(model.mass_kg[0])
     for demand in (-5e6, 5e6):  # traction, electric brake: far beyond the envelope and the rail
         cmd = nan.copy()
         cmd[0] = demand
-        model.step(model.dt, {"brake_force_n": cmd})
-        envelope = abs(model.envelopes[0].saturate_n(-demand, float(model.v[0])))
-        assert abs(model.u[0]) == pytest.approx(min(envelope, 0.1 * m_loco * hh.G))
+        v0 = float(p.speed_mps[0])
+        model.step(p.max_substep_s, {"brake_force_n": cmd})
+        envelope = abs(p.traction_envelope[0].saturate_n(-demand, v0))
+        assert abs(p.applied_force_n[0]) == pytest.approx(min(envelope, 0.1 * m_loco * hh.G))
     ck = hh.LocoAdhesion(mu0=0.33, curve="curtius_kniffler")
     assert ck.mu(0.0) == pytest.approx(0.33) and ck.mu(80 / 3.6) == pytest.approx(0.33 * (0.161 + 7.5 / 124) / 0.33146,
                                                                                   rel=1e-3)

@@ -29,7 +29,7 @@ def test_every_shipped_scenario_loads_with_every_profile(path: Path) -> None:
 
 def test_kernel_follows_the_components() -> None:
     assert load_scenario("chen2023_case1_fine_rail").train.kernel_name == "coupled"
-    assert load_scenario("li2024_pid").train.kernel_name == "heavy_haul"
+    assert load_scenario("li2024_pid").train.kernel_name == "coupled"  # one plant for every train (issue 27)
     cai = load_scenario("cai2014_case1")
     assert cai.train.kernel_name == "coupled" and cai.consist.rigid  # TrainPlant's rigid coupling
 
@@ -189,7 +189,7 @@ def test_a_combination_no_kernel_implements_is_one_line() -> None:
            "resistance=none, coupler=test_spring, brake=ideal, traction=none, wheels=none" in msg
     assert "coupled (TrainPlant) takes coupler chen|draft_gear|linear|none|rigid, brake air|electro_pneumatic|ideal|none" \
         in msg
-    assert "heavy_haul (HeavyHaulModel) takes coupler draft_gear, brake air" in msg
+    assert "heavy_haul" not in msg and "HeavyHaulModel" not in msg  # one plant for every train (issue 27)
     assert "AdhesionTrain" not in msg  # one plant for the elastic and the rigid trains
 
 
@@ -218,11 +218,13 @@ def test_rigid_and_elastic_couplers_do_not_mix_yet() -> None:
 
 
 def test_brake_pipe_without_a_locomotive() -> None:
-    with pytest.raises(ScenarioError, match=r"train.vehicles.0.type: the leading vehicle \(c80\) is not a locomotive "
-                                            r"\(no traction\): the air brake's pipe is charged"):
+    with pytest.raises(ScenarioError, match=r"train.vehicles.0.type: vehicle type c80 has an air brake, but nothing "
+                                            r"feeds the brake pipe: the leading vehicle \(c80\) is not a locomotive "
+                                            r"\(no traction\)"):
         load_scenario("li2024_pid", overrides={"train.vehicles": [{"type": "c80", "count": 10}],
                                                "train.disturbance.enabled": False})
-    with pytest.raises(ScenarioError, match=r"train.air_brake: vehicles with air brakes need the train's brake pipe"):
+    with pytest.raises(ScenarioError, match=r"train.air_brake: vehicle type hxd1 has an air brake, which needs the "
+                                            r"train's brake pipe"):
         load_scenario("li2024_pid", overrides={"train.air_brake": None})
 
 

@@ -100,11 +100,11 @@ def test_an_emergency_vents_the_brake_pipe_to_zero_with_its_own_lag():
 def test_the_scenario_parameter_is_validated_and_its_default_changes_nothing():
     base = load_scenario(ECP)
     assert base.consist.air_brake.application == "service"
-    ab = base.consist.build_air_brake(base.consist.consist())
+    ab = base.consist.air_brake_physics()
     assert ab.emergency is None and ab.tau == 2.0 and ab.apply_wave == 200.0 and ab.beta_c == 0.8
     assert np.all(ab.cylinder_pressure_pa[1:] == 430e3)
     em = load_scenario(ECP, overrides={"train.air_brake.application": "emergency"})
-    ab = em.consist.build_air_brake(em.consist.consist())
+    ab = em.consist.air_brake_physics()
     assert ab.emergency is not None and ab.tau == 1.0 and ab.apply_wave == 250.0 and ab.beta_c == 1.0
     assert ab.cylinder_pressure_pa[1:] == pytest.approx(1.2 * 430e3)
     with pytest.raises(ScenarioError, match="emergency"):

@@ -15,42 +15,60 @@ import pytest
 import yaml
 
 from canbrake.consist.base import DataFileError
-from canbrake.consist.heavy_haul import HeavyHaulTrain
+from canbrake.consist.components import TrainSpec
 from canbrake.control.base import Observation, make_controller
 from canbrake.control.li2024 import (LiDriver, LiSlidingMode, Obs, electric_brake_envelope_kn, saturate_control_n,
                                      tansig, traction_envelope_kn, traction_envelope_n)
 from canbrake.control.li2024 import make_controller as make_law
 from canbrake.physics import heavy_haul as hh
 from canbrake.physics.contract import PlantModel
+from canbrake.physics.rail import disturbance_n
 
 KMH = hh.KMH
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 SCENARIO = SCENARIOS / "li2024_smc.yaml"
 
 
-#: what build_plant takes from the scenario
-SCN = SimpleNamespace(initial=SimpleNamespace(speed_kmh=50.0, position_m=None))
-
-
 def train_data() -> dict:
     return yaml.safe_load(SCENARIO.read_text())["train"]
 
 
-def train(**over) -> HeavyHaulTrain:
-    """The scenario's train assembled onto the heavy-haul kernel (``route``: train.track.route)."""
-    from canbrake.consist.components import TrainSpec
-
+def train(**over) -> TrainSpec:
+    """The scenario's train as written (components; ``route``: train.track.route); ``.kernel`` is
+    its lowering onto the coupled plant (:class:`canbrake.consist.coupled.TrainConfig`)."""
     d = train_data()
     if "route" in over:
         d["track"] = {"route": over.pop("route")}
     d.update(over)
-    return TrainSpec.model_validate(d).kernel
+    return TrainSpec.model_validate(d)
 
 
-def short_train(n_wagons: int, **over) -> HeavyHaulTrain:
+def _short(n_wagons: int | None) -> dict:
+    if n_wagons is None:
+        return {}
     dist = train_data()["disturbance"]
     dist["vehicles"] = [v for v in dist["vehicles"] if v <= n_wagons + 1]
-    return train(vehicles=[{"type": "hxd1"}, {"type": "c80", "count": n_wagons}], disturbance=dist, **over)
+    return {"vehicles": [{"type": "hxd1"}, {"type": "c80", "count": n_wagons}], "disturbance": dist}
+
+
+def short_train(n_wagons: int, **over) -> TrainSpec:
+    return train(**_short(n_wagons), **over)
+
+
+def plant(n_wagons: int | None = None, speed_kmh: float = 50.0, **over):
+    """The scenario's plant (:class:`canbrake.build.CoupledPlant` over TrainPlant) with ``n_wagons``
+    C80 (None: 105), starting at ``speed_kmh``, ``over``: train fields replaced."""
+    from canbrake.scenario import load_scenario
+
+    ov = {"initial.speed_kmh": speed_kmh, **{f"train.{k}": v for k, v in {**_short(n_wagons), **over}.items()}}
+    scn = load_scenario(SCENARIO, overrides=ov)
+    return scn.train.assemble(scn, scn.data_dir())
+
+
+def resistance_n(p, v: np.ndarray) -> np.ndarray:
+    """Eq. (3)'s basic running resistance magnitude (N) per vehicle of TrainPlant ``p`` at speeds ``v``."""
+    speed = np.abs(v)
+    return p._c_static + speed * (p.resistance.c1_n_per_mps + p.resistance.c2_n_per_mps2 * speed)
 
 
 # ------------------------------------------------------------------------------ envelopes
@@ -75,23 +93,23 @@ def test_saturation_uses_the_envelope():
 
 def test_scenario_envelope_is_the_controllers_eqs_1_2():
     from canbrake.control.li2024 import HXD1_ENVELOPE
-    assert train().vehicle_types["hxd1"].traction.physics() == HXD1_ENVELOPE  # type: ignore[union-attr]
+    assert train().kernel.traction_envelope[0].physics() == HXD1_ENVELOPE  # type: ignore[union-attr]
 
 
 def test_the_plant_clips_the_locomotive_force_to_its_envelope():
-    m = short_train(2).build_plant(SCN, SCENARIOS)
-    v0 = float(m.v[0])
+    m = plant(2)
+    v0 = float(m.plant.speed_mps[0])
     m.step(0.01, {"brake_force_n": np.array([-1e9, np.nan, np.nan])})
-    assert m.u[0] == pytest.approx(1000 * float(traction_envelope_kn(v0 / KMH)))
-    assert m.measurements()["applied_brake_n"][0] == pytest.approx(-m.u[0])
+    assert -m.plant.applied_force_n[0] == pytest.approx(1000 * float(traction_envelope_kn(v0 / KMH)))
+    assert m.measurements()["applied_brake_n"][0] == pytest.approx(m.plant.applied_force_n[0])
     m.step(0.01, {"brake_force_n": np.array([np.nan, 5e5, 5e5])})  # NaN: no force; wagons have none
-    assert np.all(m.u == 0.0)
+    assert np.all(m.plant.applied_force_n == 0.0)
 
 
 # ------------------------------------------------------------------------------ resistance, route
 def test_basic_resistance_matches_hand_calculation():
-    c = short_train(3).consist()
-    r = hh.basic_resistance_n(c, np.full(c.n, 60 * KMH))
+    p = plant(3).plant
+    r = resistance_n(p, np.full(p.n_cars, 60 * KMH))
     loco = (1.20 + 0.0065 * 60 + 0.000279 * 3600) * 184_000 * 9.81 / 1000
     wagon = (0.92 + 0.0048 * 60 + 0.000125 * 3600) * 100_000 * 9.81 / 1000
     assert r[0] == pytest.approx(loco, rel=1e-12)
@@ -99,15 +117,14 @@ def test_basic_resistance_matches_hand_calculation():
 
 
 def test_consist_of_the_paper():
-    t = train()
-    c = t.consist()
-    assert t.vehicle_count() == 106 and c.is_loco.sum() == 1
-    assert c.total_mass_kg == pytest.approx(184_000 + 105 * 100_000)
-    assert c.train_length_m == pytest.approx(35.222 + 105 * 12)
+    c = train().kernel
+    assert c.n_cars == 106 and sum(e is not None for e in c.traction_envelope) == 1
+    assert sum(c.mass_kg) == pytest.approx(184_000 + 105 * 100_000)
+    assert sum(c.length_m) == pytest.approx(35.222 + 105 * 12)
 
 
 def test_route_grade_and_curve():
-    route = train().load_route(SCENARIOS)
+    route = train().kernel.load_route(SCENARIOS)
     assert route.grade_at(np.array([-5.0, 1000.0, 20_000.0, 33_000.0])) == pytest.approx([0, 0, -10, -11])
     assert route.curve_permille_at(np.array([26_500.0]))[0] == pytest.approx(600 / 800)
     assert route.total_permille_at(np.array([26_500.0]))[0] == pytest.approx(-3 + 0.75)
@@ -121,89 +138,83 @@ def test_route_grade_and_curve():
 def test_route_table_errors_name_the_file(tmp_path):
     (tmp_path / "r.csv").write_text("position_m,grade_permille,curve_radius_m\n5,0,0\n10,1,0\n")
     with pytest.raises(ValueError, match="r.csv: route table: position_m must start at 0"):
-        train(route={"file": "r.csv"}).load_route(tmp_path)
+        train(route={"file": "r.csv"}).kernel.load_route(tmp_path)
     with pytest.raises(DataFileError, match="no such data file"):
-        train(route={"file": "missing.csv"}).load_route(tmp_path)
+        train(route={"file": "missing.csv"}).kernel.load_route(tmp_path)
 
 
 def test_unknown_draft_gear_is_named():
-    from canbrake.consist.components import TrainSpec
-
     d = train_data()
     d["vehicle_types"]["c80"]["coupler"]["gear"] = "MT-3"
     with pytest.raises(ValueError, match="vehicle_types.c80.coupler.gear: unknown draft gear 'MT-3'"):
         TrainSpec.model_validate(d)
 
 
-def _model_on(route: hh.Route, t: HeavyHaulTrain, v0: float, x0: float, **kw) -> hh.HeavyHaulModel:
-    c = t.consist()
-    ex = t._expanded()
-    gears = [t.draft_gears[vt.draft_gear].physics(vt.draft_gear) for _, vt in ex[:-1]]
-    env = [vt.traction.physics() if vt.traction else None for _, vt in ex]
-    return hh.HeavyHaulModel(c, route, gears, t.build_air_brake(c), envelopes=env, v0_mps=v0, x0_m=x0, **kw)
+def _plant_on(tmp_path: Path, grade_permille: float, n_wagons: int, v0_kmh: float, x0: float, **over):
+    """``plant(n_wagons)`` on a constant grade (a route file in ``tmp_path``) from ``x0`` (m), no δ."""
+    (tmp_path / "grade.csv").write_text(f"position_m,grade_permille,curve_radius_m\n0,{grade_permille},0\n"
+                                        f"100000,{grade_permille},0\n")
+    return plant(n_wagons, v0_kmh, track={"route": {"file": str(tmp_path / "grade.csv")}}, start_position_m=x0,
+                 uncertainty=0.0, **over)
 
 
-def test_steady_state_needs_exactly_resistance_plus_grade():
+def test_steady_state_needs_exactly_resistance_plus_grade(tmp_path):
     """On a constant 5 ‰ grade at 60 km/h the train holds its speed iff the locomotive pulls with
     Σ(basic + grade) (N), the static initial state is in equilibrium."""
-    route = hh.Route(grade_start_m=np.array([-10_000.0]), grade_permille=np.array([5.0]))
-    t = short_train(20)
-    c = t.consist()
     v0 = 60 * KMH
-    need = float(np.sum(hh.basic_resistance_n(c, np.full(c.n, v0)) + 5.0 * c.weight_kn))
-    plant = _model_on(route, t, v0, 5000.0)
-    acc = plant.measurements()["passive_force_n"].copy()
+    m = _plant_on(tmp_path, 5.0, 20, 60.0, 5000.0)
+    p = m.plant
+    need = float(np.sum(resistance_n(p, np.full(p.n_cars, v0)) + 5.0 * p.mass_kg * 9.81 / 1000.0))
+    acc = m.measurements()["passive_force_n"].copy()
     acc[0] += need
-    assert np.max(np.abs(acc / c.mass_kg)) < 1e-9  # every vehicle in equilibrium at t = 0
-    cmd = {"brake_force_n": np.r_[-need, np.full(c.n - 1, np.nan)]}
+    # every vehicle in equilibrium at t = 0 (to the draft gears' 2e8 N/m times the positions' rounding)
+    assert np.max(np.abs(acc / p.mass_kg)) < 1e-8
+    cmd = {"brake_force_n": np.r_[-need, np.full(p.n_cars - 1, np.nan)]}
     for _ in range(500):
-        plant.step(0.01, cmd)
-    assert np.max(np.abs(plant.v - v0)) / KMH < 0.01
-    plant2 = _model_on(route, t, v0, 5000.0)
+        m.step(0.01, cmd)
+    assert np.max(np.abs(p.speed_mps - v0)) / KMH < 0.01
+    m2 = _plant_on(tmp_path, 5.0, 20, 60.0, 5000.0)
     for _ in range(500):
-        plant2.step(0.01, {"brake_force_n": 1.01 * cmd["brake_force_n"]})
-    assert plant2.v[0] > v0 + 0.001
+        m2.step(0.01, {"brake_force_n": 1.01 * cmd["brake_force_n"]})
+    assert m2.plant.speed_mps[0] > v0 + 0.001
 
 
 def test_passive_forces_sum_to_the_external_forces():
     """Couplers are internal: Σ passive_force_n = −Σ(basic resistance + grade/curve + air brake)."""
-    m = train().build_plant(SCN, SCENARIOS)
+    m = plant()
     m.step(0.01, {"airbrake_apply": np.r_[1.0, np.full(105, np.nan)]})
     for _ in range(300):
         m.step(0.01, {})
     me = m.measurements()
-    ext = hh.basic_resistance_n(m.c, m.v) + m.route.force_n(m.c.weight_kn, m.x) + m.ab.last_force_n
+    p = m.plant
+    ext = resistance_n(p, p.speed_mps) + p._route_force_n(p.position_m) + p.air_brake.last_force_n
     assert me["applied_brake_n"][1] > 0
     assert float(me["passive_force_n"].sum()) == pytest.approx(-float(ext.sum()), rel=1e-9)
 
 
 def test_plant_model_follows_the_contract():
-    m = short_train(4).build_plant(SCN, SCENARIOS)
+    m = plant(4)
     assert isinstance(m, PlantModel)
     me = m.measurements()
     for k in ("position_m", "speed_mps", "accel_mps2", "applied_brake_n", "passive_force_n",
               "brake_cylinder_pressure_pa", "downgrade_ahead"):
         assert me[k].shape == (5,), k
     assert me["deflection_m"].shape == me["coupler_force_n"].shape == (4,)
-    with pytest.raises(ValueError, match="whole number of integration steps"):
-        m.step(0.015, {})
-    m.step(0.05, {})  # five sub-steps
-    assert m.t == pytest.approx(0.05)
+    m.step(0.05, {})  # five sub-steps of the scenario's 10 ms
+    assert m.plant.time_s == pytest.approx(0.05) and m.plant.max_substep_s == 0.01
 
 
 def test_downgrade_ahead_is_line_data():
-    m = train(start_position_m=10_000.0).build_plant(SCN, SCENARIOS)
+    m = plant(start_position_m=10_000.0)
     assert m.measurements()["downgrade_ahead"][0] == 0.0
-    m2 = train(start_position_m=16_000.0).build_plant(SCN, SCENARIOS)
+    m2 = plant(start_position_m=16_000.0)
     assert np.all(m2.measurements()["downgrade_ahead"] == 1.0)
 
 
 # ------------------------------------------------------------------------------ air brake
 def test_air_brake_signal_reaches_wagon_k_at_distance_over_200():
-    t = train()
-    c = t.consist()
-    ab = t.build_air_brake(c)
-    dist = c.distance_from_loco_m
+    ab = train().kernel.air_brake_physics()
+    dist = ab.dist
     assert dist[1] == pytest.approx((35.222 + 12) / 2)
     assert dist[-1] == pytest.approx(35.222 / 2 + 12 * 104 + 6)
     ab.command(10.0, True)
@@ -223,29 +234,32 @@ def test_air_brake_signal_reaches_wagon_k_at_distance_over_200():
 
 def test_valve_command_fills_the_cylinders_with_the_lag():
     t = short_train(3)
-    m = t.build_plant(SCN, SCENARIOS)
+    m = plant(3)
+    ab = m.plant.air_brake
     dt, tau = 0.01, t.air_brake.cylinder_tau_s
     m.step(dt, {"airbrake_apply": np.array([1.0, np.nan, np.nan, np.nan])})
-    p_full = m.ab.cylinder_pressure_pa
+    p_full = ab.cylinder_pressure_pa
     # the command acts from t = 0: two fill updates on the locomotive (at 0 and 10 ms)
     a = 1.0 - math.exp(-dt / tau)
-    assert m.ab.fill[0] == pytest.approx(1 - (1 - a) ** 2)
-    assert m.measurements()["brake_cylinder_pressure_pa"][0] == pytest.approx(p_full[0] * m.ab.fill[0])
-    assert np.all(m.ab.fill[1:] == 0.0)  # the signal needs 0.118 s to reach wagon 1
+    assert ab.fill[0] == pytest.approx(1 - (1 - a) ** 2)
+    assert m.measurements()["brake_cylinder_pressure_pa"][0] == pytest.approx(p_full[0] * ab.fill[0])
+    assert np.all(ab.fill[1:] == 0.0)  # the signal needs 0.118 s to reach wagon 1
     m.step(dt, {"airbrake_apply": np.array([np.nan] * 4)})  # NaN: unchanged (still applied)
-    assert m.ab.applied
+    assert ab.applied
 
 
 def test_ecp_each_wagon_follows_its_own_demand_without_a_wave():
-    t = short_train(3, air_brake={**train_data()["air_brake"], "mode": "ecp"})
-    m = t.build_plant(SCN, SCENARIOS)
+    ecp = {**train_data()["air_brake"], "mode": "ecp"}
+    t = short_train(3, air_brake=ecp)
+    m = plant(3, air_brake=ecp)
+    ab = m.plant.air_brake
     dt, tau = 0.01, t.air_brake.cylinder_tau_s
     a = 1.0 - math.exp(-dt / tau)
     m.step(dt, {"ecp_demand": np.array([np.nan, 1.0, 0.5, 2.0]), "airbrake_apply": np.array([1.0, np.nan, np.nan, np.nan])})
     want = np.array([0.0, 1.0, 0.5, 1.0])  # clipped to 1; the valve is ignored in ECP mode
-    assert m.ab.fill == pytest.approx(want * (1 - (1 - a) ** 2))
+    assert ab.fill == pytest.approx(want * (1 - (1 - a) ** 2))
     m.step(dt, {"ecp_demand": np.array([np.nan, np.nan, 0.0, np.nan])})
-    assert m.ab.ecp_target == pytest.approx([0.0, 1.0, 0.0, 1.0])
+    assert ab.ecp_target == pytest.approx([0.0, 1.0, 0.0, 1.0])
 
 
 def test_shoe_force_and_friction_hand_calculation():
@@ -256,10 +270,9 @@ def test_shoe_force_and_friction_hand_calculation():
     assert t.vehicle_types["hxd1"].brake.block_force_kn() == pytest.approx(k_h)
     phi = 0.481 * (k + 200) / (4 * k + 200) * (2 * 60 + 150) / (3 * 60 + 150)
     assert float(hh.friction_coefficient(k, 60.0, 0.481)) == pytest.approx(phi)
-    c = t.consist()
-    ab = t.build_air_brake(c)
+    ab = t.kernel.air_brake_physics()
     ab.fill[:] = 1.0
-    f = ab.force_n(np.full(c.n, 60 * KMH))
+    f = ab.force_n(np.full(ab.dist.size, 60 * KMH))
     assert f[1] == pytest.approx(1000 * t.air_brake.service_factor * 8 * phi * k)
 
 
@@ -297,15 +310,14 @@ def test_coupler_compression_is_symmetric():
 
 
 def test_first_coupler_takes_the_locomotive_gear():
-    m = short_train(3).build_plant(SCN, SCENARIOS)
-    assert m.cp.fmax == pytest.approx([2.5e6, 2.27e6, 2.27e6])  # QKX100 behind the HXD1, then MT-2
+    m = plant(3)
+    assert m.plant._gears.fmax == pytest.approx([2.5e6, 2.27e6, 2.27e6])  # QKX100 behind the HXD1, then MT-2
 
 
 def test_disturbance_eq40_only_on_listed_vehicles():
-    t = train(disturbance={**train_data()["disturbance"], "enabled": True})
-    m = t.build_plant(SCN, SCENARIOS)
+    m = plant(disturbance={**train_data()["disturbance"], "enabled": True}).plant
     v = np.full(106, 20.0)
-    s = hh.disturbance_n(m.c.mass_kg, 1.5, v, m.dist_on, m.dist_coef)
+    s = disturbance_n(m.mass_kg, 1.5, v, *m._li_dist)
     assert list(np.flatnonzero(s)) == [0] + list(range(10, 101, 10))
     acc = 0.002 + 0.001 * math.sin(2.5) + 0.0003 * 20 ** (1 / 3) * (math.sin(5.0) + math.cos(5.5))
     assert s[0] == pytest.approx(184_000 * acc)
@@ -465,28 +477,27 @@ def test_brake_test_demands_from_its_start_time():
     assert out.broadcast == {"ecp_demand": 0.8} and out.commands == {"airbrake_apply": 1.0, "ecp_demand": 0.8}
 
 
-def test_a_braked_train_stops_and_stays_at_rest():
+def test_a_braked_train_stops_and_stays_at_rest(tmp_path):
     """ECP full service on level track: the train stops, no vehicle rolls backwards, and it stays at
     rest (brake and running resistance hold it; Karnopp stick-slip), and the distance run equals the
     work of the dissipative forces: ½ M v0² = Σ ∫ (brake + resistance) v dt (couplers are internal;
     their hysteresis dissipates too, so ≥)."""
-    route = hh.Route(grade_start_m=np.array([-10_000.0]), grade_permille=np.array([0.0]))
-    t = short_train(5, air_brake={**train_data()["air_brake"], "mode": "ecp", "service_factor": 0.8})
-    c = t.consist()
     v0 = 20 * KMH
-    m = _model_on(route, t, v0, 5000.0)
-    demand = {"ecp_demand": np.ones(c.n)}  # the locomotive brakes too: a released one is pushed back by the gears
-    e0 = 0.5 * float(np.sum(c.mass_kg)) * v0 ** 2
+    cp = _plant_on(tmp_path, 0.0, 5, 20.0, 5000.0,
+                   air_brake={**train_data()["air_brake"], "mode": "ecp", "service_factor": 0.8})
+    m = cp.plant
+    demand = {"ecp_demand": np.ones(m.n_cars)}  # the locomotive brakes too: a released one is pushed back by the gears
+    e0 = 0.5 * float(np.sum(m.mass_kg)) * v0 ** 2
     work = 0.0
     stopped_at = None
     for k in range(6000):
-        v_before = m.v.copy()
-        m.step(0.01, demand if k == 0 else {})
-        vm = 0.5 * (v_before + m.v)
-        work += 0.01 * float(np.sum((hh.basic_resistance_n(c, vm) + m.ab.last_force_n) * vm))
-        assert np.all(m.v >= 0.0), f"a vehicle rolls backwards at t = {m.t:.2f} s"
-        if stopped_at is None and np.all(m.v == 0.0):
-            stopped_at = m.t
+        v_before = m.speed_mps.copy()
+        cp.step(0.01, demand if k == 0 else {})
+        vm = 0.5 * (v_before + m.speed_mps)
+        work += 0.01 * float(np.sum((resistance_n(m, vm) + m.air_brake.last_force_n) * vm))
+        assert np.all(m.speed_mps >= 0.0), f"a vehicle rolls backwards at t = {m.time_s:.2f} s"
+        if stopped_at is None and np.all(m.speed_mps == 0.0):
+            stopped_at = m.time_s
     assert stopped_at is not None and stopped_at < 40.0
-    assert np.all(m.v == 0.0) and np.all(m.measurements()["accel_mps2"] == 0.0)
+    assert np.all(m.speed_mps == 0.0) and np.all(cp.measurements()["accel_mps2"] == 0.0)
     assert work == pytest.approx(e0, rel=0.05)

@@ -37,13 +37,12 @@ Vehicles: ``vehicles: [{type: NAME, count: N}]``; an entry may give ``mass_kg`` 
 list: one vehicle per value), so Chen's six different cars are one type and one entry.
 
 The assembler (:meth:`TrainSpec.assemble`) builds the plant through the one plant contract
-(:mod:`canbrake.physics.contract`). In this stage it chooses between the two physics kernels by the
-components present (:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes, trains
-mixing them with Li's draft gears, air brakes and per-weight resistance, and rigidly coupled
-trains with driven axles (Cai 2014: one body) -> ``TrainPlant``; draft gears with air brakes alone
--> ``HeavyHaulModel`` (the first vehicle's coupler picks the kernel tried first,
-:data:`_NATIVE_COUPLER`). A combination no kernel implements yet is refused in one line that names
-the vehicle type, its components and what each kernel takes.
+(:mod:`canbrake.physics.contract`): every train runs on the coupled kernel, ``TrainPlant``
+(:data:`KERNELS`): Chen couplers with ideal/electro-pneumatic brakes, Li's draft gears, air brakes
+and per-weight resistance (alone, as Li's heavy-haul trains, or mixed with Chen's parts), and
+rigidly coupled trains with driven axles (Cai 2014: one body). A combination it does not
+implement yet is refused in one line that names the vehicle type, its components and what the
+kernel takes.
 """
 from __future__ import annotations
 
@@ -138,7 +137,7 @@ def describe_components(kind: str | None = None) -> list[str]:
             if params:
                 lines.append("      " + ", ".join(params))
             runs = [kn for kn, sup in KERNELS.items() if name in sup[k] or (  # a user's davis_n() resistance too
-                k == "resistance" and kn != "heavy_haul" and callable(getattr(cls, "davis_n", None)))]
+                k == "resistance" and callable(getattr(cls, "davis_n", None)))]
             lines.append(f"      physics: {', '.join(f'{kn} ({_KERNEL_PLANT[kn]})' for kn in runs) or 'none yet'}")
     if kind is None:
         lines.append("physics kernels (chosen by the components; a vehicle type's components must all fit one):")
@@ -469,14 +468,8 @@ KERNELS: dict[str, dict[str, set[str | None]]] = {
                 "brake": {"ideal", "electro_pneumatic", "air", None},
                 "resistance": {"davis", "table", "per_weight", None}, "traction": {"envelope", None},
                 "wheels": {"wheelsets", "driven_axles", "adhesion_limit", None}},
-    "heavy_haul": {"coupler": {"draft_gear"}, "brake": {"air"}, "resistance": {"per_weight"},
-                   "traction": {"envelope", None}, "wheels": {"adhesion_limit", None}},
 }
-#: the kernel a train goes to first, by the coupler of its first vehicle (where every vehicle fits it):
-#: a train of draft gears and air brakes alone stays on the heavy-haul kernel
-_NATIVE_COUPLER: dict[str, set[str | None]] = {"coupled": {"chen", "linear", "rigid", None},
-                                               "heavy_haul": {"draft_gear"}}
-_KERNEL_PLANT = {"coupled": "TrainPlant", "heavy_haul": "HeavyHaulModel"}
+_KERNEL_PLANT = {"coupled": "TrainPlant"}
 #: what a kernel still takes once for the whole train (everything else may differ per vehicle)
 KERNEL_LIMITS: dict[str, str] = {
     "coupled": "per vehicle: mass, resistance (davis, table or per_weight), coupler (chen/linear: stiffness, ε, "
@@ -489,9 +482,8 @@ KERNEL_LIMITS: dict[str, str] = {
                "couplers (Cai 2014: the train is one body) with driven axles (per-axle torque commands) and the "
                "rail schedule of their slip curve (train.wheel_rail: conditions, base, windows), per vehicle mass, "
                "resistance (davis, table or per_weight) and driven axles, nothing else yet",
-    "heavy_haul": "per vehicle: every component; once for the train: the air brake (train.air_brake) and the route",
 }
-#: train-level fields only the heavy-haul kernel uses
+#: train-level fields only trains with Li's draft gears or air brakes use
 _HH_ONLY = ("draft_gears", "air_brake", "uncertainty", "disturbance", "start_position_m", "integration_step_s")
 #: what the coupled kernel also takes of them with draft gears or air brakes (Li's line and disturbances)
 _LI_COUPLED = ("uncertainty", "disturbance", "start_position_m", "integration_step_s", "track.route")
@@ -509,8 +501,7 @@ def _fits(vt: VehicleTypeSpec, kernel: str) -> bool:
     for kind, ok in KERNELS[kernel].items():
         c = getattr(vt, kind)
         name = None if c is None else getattr(c, "model", None)
-        if kind == "resistance" and c is not None and name not in ok and kernel != "heavy_haul" \
-                and callable(getattr(c, "davis_n", None)):
+        if kind == "resistance" and c is not None and name not in ok and callable(getattr(c, "davis_n", None)):
             continue  # a user's resistance model that gives Davis coefficients
         if name not in ok:
             return False
@@ -534,8 +525,7 @@ class TrainSpec(_Model):
     disturbance: hhs.Disturbance = Field(default_factory=hhs.Disturbance)
     start_position_m: float = Field(0.0, description="draft-gear trains: the first vehicle's centre on the route")
     integration_step_s: float | None = Field(None, gt=0, description="draft-gear trains: the integration step "
-                                             "(default: 10 ms on the heavy-haul kernel, the control period over "
-                                             "plant.substeps on the coupled one)")
+                                             "(default: the control period over plant.substeps)")
 
     _kernel: Any = PrivateAttr(None)
     _kernel_name: str = PrivateAttr("")
@@ -576,23 +566,21 @@ class TrainSpec(_Model):
         if kernel == "coupled" and any(isinstance(vt.coupler, RigidCoupler) or isinstance(vt.wheels, DrivenAxles)
                                        for _, vt, _ in ex):
             self._check_rigid_couplers(ex)
-        if kernel != "heavy_haul":
-            used = set()  # what the coupled kernel takes of Li's train-level parts: its draft gears and air brake
-            if kernel == "coupled":
-                used = {k for k, kind, m in (("draft_gears", "coupler", "draft_gear"), ("air_brake", "brake", "air"))
-                        if any(_name(getattr(vt, kind)) == m for _, vt, _ in ex)}
-                if used:  # Li's line and disturbances go with his draft gears or air brakes
-                    used |= set(_LI_COUPLED)
-            given = [k for k in _HH_ONLY if k not in used and getattr(self, k) != _HH_DEFAULTS[k]] + \
-                    (["track.route"] if self.track.route is not None and "track.route" not in used else [])
-            if given and used:
-                raise ValueError(f"@{given[0]}: used by the heavy-haul kernel (draft gears and air brakes on every "
-                                 f"vehicle, per_weight resistance) only; this train mixes them with other components "
-                                 f"and runs on the coupled kernel, which takes train.draft_gears and train.air_brake "
-                                 f"(and a constant grade: train.track.grade_permille)")
-            if given:
-                raise ValueError(f"@{given[0]}: used by draft-gear trains (coupler: {{model: draft_gear}}) only; "
-                                 f"this train's couplers are {_name(ex[0][1].coupler) if ex[0][1].coupler else 'chen'}")
+        # what the train takes of Li's train-level parts: its draft gears and air brake
+        used = {k for k, kind, m in (("draft_gears", "coupler", "draft_gear"), ("air_brake", "brake", "air"))
+                if any(_name(getattr(vt, kind)) == m for _, vt, _ in ex)}
+        if used:  # Li's line and disturbances go with his draft gears or air brakes
+            used |= set(_LI_COUPLED)
+        given = [k for k in _HH_ONLY if k not in used and getattr(self, k) != _HH_DEFAULTS[k]] + \
+                (["track.route"] if self.track.route is not None and "track.route" not in used else [])
+        if given and used:
+            what = {"draft_gears": "a draft gear (coupler: {model: draft_gear, gear: NAME})",
+                    "air_brake": "an air brake (brake: {model: air})"}[given[0]]
+            raise ValueError(f"@{given[0]}: no vehicle type of this train has {what}, the only user of "
+                             f"train.{given[0]}; remove it or give a vehicle type one")
+        if given:
+            raise ValueError(f"@{given[0]}: used by draft-gear trains (coupler: {{model: draft_gear}}) only; "
+                             f"this train's couplers are {_name(ex[0][1].coupler) if ex[0][1].coupler else 'chen'}")
         self._kernel_name = kernel
         self._kernel = getattr(self, f"_lower_{kernel}")(ex)
         return self
@@ -617,7 +605,7 @@ class TrainSpec(_Model):
     def _choose_kernel(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> str:
         first = ex[0][1]
         cname = _name(first.coupler) if first.coupler is not None else None
-        guess = next((k for k, sup in _NATIVE_COUPLER.items() if cname in sup), "coupled")
+        guess = "coupled"
         for name, vt, _ in ex:
             if not _fits(vt, guess):
                 alt = [k for k in KERNELS if all(_fits(t, k) for _, t, _ in ex)]
@@ -637,7 +625,7 @@ class TrainSpec(_Model):
 
     @property
     def kernel_name(self) -> str:
-        """``coupled`` or ``heavy_haul``: the physics kernel the components chose."""
+        """``coupled``: the physics kernel the components chose (the one there is)."""
         return self._kernel_name
 
     def assemble(self, scn: Any, base_dir: Any = None) -> Any:
@@ -859,45 +847,6 @@ class TrainSpec(_Model):
                     types[tname] = make(vt, float(vt.mass_kg if m is None else m))  # type: ignore[arg-type]
                 vehicles.append({"type": tname, "count": 1 if listed else v.n()})
         return types, vehicles
-
-    def _lower_heavy_haul(self, ex: list[tuple[str, VehicleTypeSpec, float]]) -> Any:
-        from canbrake.consist.heavy_haul import HeavyHaulTrain
-
-        if self.air_brake is None:
-            raise ValueError("@air_brake: vehicles with air brakes need the train's brake pipe and its rules "
-                             "(train.air_brake: mode, apply_wave_mps, release_wave_mps, cylinder_tau_s, service_factor)")
-        if self.track.route is None:
-            raise ValueError("@track.route: a draft-gear train runs on a route file (train.track.route: {file: ...})")
-        if self.track.grade_permille != 0 or self.track.curve_resistance_n != 0:
-            raise ValueError("@track.grade_permille: a draft-gear train takes its grade and curves from "
-                             "train.track.route")
-        if self.wheel_rail.model_dump() != WheelRailSpec().model_dump():
-            raise ValueError("@wheel_rail: a draft-gear train's adhesion is each locomotive's wheels component "
-                             "(wheels: {model: adhesion_limit, mu, curve})")
-        for name, vt in self.vehicle_types.items():
-            if not any(v.type == name for v in self.vehicles):
-                continue
-            if vt.length_m is None:
-                raise ValueError(f"@vehicle_types.{name}.length_m: a draft-gear train needs each vehicle's length")
-            if vt.wheels is not None and vt.traction is None:
-                raise ValueError(f"@vehicle_types.{name}.wheels: adhesion on vehicle type {name}, which has no "
-                                 "driven axles (no traction: a wagon); give it a traction envelope or leave "
-                                 "wheels out")
-            if vt.coupler.gear not in self.draft_gears:
-                raise ValueError(f"@vehicle_types.{name}.coupler.gear: unknown draft gear {vt.coupler.gear!r} "
-                                 f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
-        types, vehicles = self._kernel_types(lambda vt, m: {
-            "mass_kg": m, "length_m": vt.length_m, "resistance": _params(vt.resistance),
-            "draft_gear": vt.coupler.gear, "brake": _params(vt.brake),
-            "traction": _params(vt.traction) if vt.traction is not None else None,
-            "adhesion": _params(vt.wheels) if vt.wheels is not None else None})
-        data = {"model": "heavy_haul", "vehicle_types": types,
-                "draft_gears": {k: g.model_dump() for k, g in self.draft_gears.items()}, "vehicles": vehicles,
-                "route": self.track.route.model_dump(), "air_brake": self.air_brake.model_dump(),
-                "uncertainty": self.uncertainty, "disturbance": self.disturbance.model_dump(),
-                "start_position_m": self.start_position_m,
-                "integration_step_s": 0.01 if self.integration_step_s is None else self.integration_step_s}
-        return _validated(HeavyHaulTrain, data)
 
     @staticmethod
     def _check_rigid_couplers(ex: list[tuple[str, VehicleTypeSpec, float]]) -> None:

@@ -199,6 +199,10 @@ class TrainConfig(_Model):
                              davis_a=z, davis_b=z, davis_c=z, is_loco=np.zeros(n, dtype=bool))
         return self.air_brake.physics(consist, self.air_rigging)
 
+    def load_route(self, base_dir: Path | None) -> Any:
+        """The :class:`canbrake.physics.route.Route` of ``route`` (file relative to ``base_dir``), or None."""
+        return None if self.route is None else self.route.load(base_dir)
+
     def _wagon(self, vehicle: int) -> bool:
         """Whether car ``vehicle`` (1-based) is an air-braked car without traction (a wagon)."""
         rig, env = self.air_rigging, self.traction_envelope

@@ -1,15 +1,14 @@
-"""The heavy-haul kernel's configuration (Li, Zeng & Yu 2024). Internal: the user writes ``train:``
-as components (:mod:`canbrake.consist.components`); a train with draft-gear couplers and air brakes
-is assembled into a :class:`HeavyHaulTrain`, and the component models ``per_weight``, ``air``,
-``envelope``, ``adhesion_limit`` and ``train.draft_gears``/``air_brake``/``track.route`` reuse the
-schemas below.
+"""Li, Zeng & Yu 2024's train parts as configuration. Internal: the user writes ``train:`` as
+components (:mod:`canbrake.consist.components`); the component models ``per_weight``, ``air``,
+``envelope``, ``adhesion_limit`` and ``train.draft_gears``/``air_brake``/``track.route``/``disturbance``
+reuse the schemas below, and the coupled kernel's configuration
+(:class:`canbrake.consist.coupled.TrainConfig`) holds them for :class:`canbrake.physics.train.TrainPlant`.
 
-One locomotive and many wagons, each a point mass (eq. 16) joined by couplers with hysteretic draft
-gears, running resistance per unit weight (eq. 3), a route from a CSV table (grade ‰ and curve radius
-by position), the automatic air brake with its brake-pipe waves or ECP, the locomotive's traction and
-electric-brake envelopes (eqs. 1-2), model uncertainty δ and the disturbance of eq. (40). Units are in
-the field names; the paper's N/kN, km/h, mm and kPa appear only where the paper gives them so.
-The physics is :class:`canbrake.physics.heavy_haul.HeavyHaulModel`.
+Running resistance per unit weight (eq. 3), hysteretic draft gears (eqs. 7-9), a route from a CSV
+table (grade ‰ and curve radius by position), the automatic air brake with its brake-pipe waves or
+ECP (eqs. 10-15), the locomotive's traction and electric-brake envelopes (eqs. 1-2) and adhesion,
+the disturbance of eq. (40). Units are in the field names; the paper's N/kN, km/h, mm and kPa
+appear only where the paper gives them so.
 """
 from __future__ import annotations
 
@@ -17,9 +16,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
-from canbrake.consist.base import StrictModel, VehicleEntry, check_air_braked_ecus, expand_vehicles, load_table
+from canbrake.consist.base import StrictModel, load_table
 from canbrake.physics import heavy_haul as hh
 
 
@@ -124,19 +123,6 @@ class Adhesion(StrictModel):
 
     def physics(self) -> hh.LocoAdhesion:
         return hh.LocoAdhesion(mu0=self.mu, curve=self.curve)
-
-
-class VehicleType(StrictModel):
-    """One kind of vehicle; ``traction`` makes it a locomotive (it takes ``brake_force_n``);
-    ``adhesion`` limits its traction and dynamic brake (none by default)."""
-
-    mass_kg: float = Field(gt=0)
-    length_m: float = Field(gt=0)
-    resistance: Resistance
-    draft_gear: str
-    brake: BrakeEquipment
-    traction: Envelope | None = None
-    adhesion: Adhesion | None = None
 
 
 class Route(StrictModel):
@@ -269,123 +255,3 @@ class Disturbance(StrictModel):
     c0_mps2: float = 0.002
     c1_mps2: float = 0.001
     c2: float = 0.0003
-
-
-class HeavyHaulTrain(StrictModel):
-    """``train:`` of a heavy-haul scenario (Li 2024)."""
-
-    model: Literal["heavy_haul"] = "heavy_haul"
-    vehicle_types: dict[str, VehicleType]
-    draft_gears: dict[str, DraftGear]
-    vehicles: list[VehicleEntry] = Field(min_length=1)
-    route: Route
-    air_brake: AirBrake
-    #: δ: every vehicle's non-control force is (1 + δ) times the nominal one the controllers know
-    uncertainty: float = Field(0.0, ge=-0.5, le=0.5)
-    disturbance: Disturbance = Field(default_factory=Disturbance)
-    #: position of the first vehicle's centre at t = 0 (m along the route). The train starts at the
-    #: scenario's ``initial.speed_kmh`` (one value) in static equilibrium: each coupler carries the
-    #: running and line resistance behind it
-    start_position_m: float = 0.0
-    integration_step_s: float = Field(0.01, gt=0)
-
-    @field_validator("vehicle_types")
-    @classmethod
-    def _types(cls, v: dict[str, VehicleType]) -> dict[str, VehicleType]:
-        if not v:
-            raise ValueError("at least one vehicle type")
-        return v
-
-    @model_validator(mode="after")
-    def _refs(self) -> "HeavyHaulTrain":
-        for name, vt in self.vehicle_types.items():
-            if vt.draft_gear not in self.draft_gears:
-                raise ValueError(f"vehicle_types.{name}.draft_gear: unknown draft gear {vt.draft_gear!r} "
-                                 f"(draft_gears: {', '.join(sorted(self.draft_gears)) or 'none'})")
-        for name, vt in self.vehicle_types.items():
-            if vt.adhesion is not None and vt.traction is None:
-                raise ValueError(f"@vehicle_types.{name}.adhesion: a vehicle without traction (a wagon) has no "
-                                 "driven axles whose adhesion limits anything: give it a traction envelope "
-                                 "(traction) or leave adhesion out")
-        ex = self._expanded()
-        n = len(ex)
-        if n < 2:
-            raise ValueError("vehicles: a heavy-haul train needs at least two vehicles")
-        if ex[0][1].traction is None:
-            raise ValueError(f"@vehicles.0.type: the leading vehicle ({ex[0][0]}) is not a locomotive (no traction): "
-                             "the air brake's pipe is charged and its driver's valve (with ECP: the head-end unit) "
-                             f"worked from a locomotive at the head of the train ({self.air_brake.mode}); put a "
-                             "vehicle type with traction first")
-        bad = [v for v in self.disturbance.vehicles if not 1 <= v <= n]
-        if bad:
-            raise ValueError(f"disturbance.vehicles: {bad} outside 1..{n}")
-        return self
-
-    def _expanded(self) -> list[tuple[str, VehicleType]]:
-        return expand_vehicles(self.vehicle_types, self.vehicles)
-
-    def vehicle_count(self) -> int:
-        return len(self._expanded())
-
-    def vehicle_masses_kg(self) -> np.ndarray:
-        return np.array([vt.mass_kg for _, vt in self._expanded()], dtype=float)
-
-    def consist(self) -> hh.Consist:
-        """Vehicle arrays of the physics (front first)."""
-        vs = [vt for _, vt in self._expanded()]
-        arr = lambda f: np.array([f(v) for v in vs], dtype=float)  # noqa: E731
-        return hh.Consist(mass_kg=arr(lambda v: v.mass_kg), length_m=arr(lambda v: v.length_m),
-                          davis_a=arr(lambda v: v.resistance.a_n_per_kn), davis_b=arr(lambda v: v.resistance.b_n_per_kn_per_kmh),
-                          davis_c=arr(lambda v: v.resistance.c_n_per_kn_per_kmh2),
-                          is_loco=np.array([v.traction is not None for v in vs]))
-
-    def load_route(self, base_dir: Path | None) -> hh.Route:
-        return self.route.load(base_dir)
-
-    def build_air_brake(self, consist: hh.Consist) -> hh.AirBrake:
-        return self.air_brake.physics(consist, [vt.brake for _, vt in self._expanded()])
-
-    def check_ecus(self, placed: list[Any], dt_s: float | None = None) -> None:
-        """ValueError (one line) for an ECU whose commands its vehicle cannot take
-        (:func:`canbrake.consist.base.check_air_braked_ecus`; every vehicle without traction is a wagon)."""
-        ex = self._expanded()
-        check_air_braked_ecus([p for p in placed if 1 <= p.vehicle <= len(ex)], self.air_brake.mode,
-                              lambda v: ex[v - 1][1].traction is None)
-
-    def ecp_unit_params(self, vehicle: int) -> dict[str, float] | None:
-        """The air brake data an ECP wagon's brake unit needs to turn a force demand into its
-        cylinder demand (:class:`canbrake.control.ecp.EcpUnit`) for vehicle ``vehicle`` (1-based);
-        None for a locomotive (it takes ``brake_force_n`` itself) or a train braking pneumatically."""
-        _, vt = self._expanded()[vehicle - 1]
-        return None if vt.traction is not None else self.air_brake.ecp_unit(vt.brake)
-
-    def build_plant(self, scn: Any, base_dir: Path | None = None) -> hh.HeavyHaulModel:
-        """The plant model; from the scenario ``scn`` it takes ``initial.speed_kmh`` (one value, or one per
-        vehicle all equal: the train starts in static equilibrium)."""
-        v0 = scn.initial.speed_kmh
-        if isinstance(v0, (list, tuple)):
-            if len(set(float(x) for x in v0)) != 1:
-                raise ValueError("initial.speed_kmh: a heavy-haul train starts with one speed for every vehicle")
-            v0 = v0[0]
-        if getattr(scn.initial, "position_m", None) is not None:
-            raise ValueError("initial.position_m: a heavy-haul train is placed by train.start_position_m "
-                             "(the couplers start in static equilibrium)")
-        ex = self._expanded()
-        c = self.consist()
-        gears = {name: g.physics(name) for name, g in self.draft_gears.items()}
-        # coupler j (behind vehicle j) takes vehicle j's draft gear
-        cgears = [gears[vt.draft_gear] for _, vt in ex[:-1]]
-        on = None
-        if self.disturbance.enabled:
-            on = np.zeros(c.n, bool)
-            on[[v - 1 for v in self.disturbance.vehicles]] = True
-        d = self.disturbance
-        return hh.HeavyHaulModel(
-            c, self.load_route(base_dir), cgears, self.build_air_brake(c),
-            envelopes=[vt.traction.physics() if vt.traction is not None else None for _, vt in ex],
-            v0_mps=float(v0) * hh.KMH, x0_m=self.start_position_m, uncertainty=self.uncertainty,
-            disturbance_on=on, disturbance_coef=(d.c0_mps2, d.c1_mps2, d.c2),
-            integration_step_s=self.integration_step_s, line_lookahead_m=self.route.lookahead_m,
-            line_min_grade_permille=self.route.long_downgrade_permille,
-            line_min_length_m=self.route.long_downgrade_min_length_m,
-            adhesion=[vt.adhesion.physics() if vt.adhesion is not None else None for _, vt in ex])

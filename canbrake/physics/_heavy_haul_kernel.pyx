@@ -1,21 +1,20 @@
 # cython: language_level=3
 # distutils: extra_compile_args = -ffp-contract=off
-"""The heavy-haul train's integration step (:mod:`canbrake.physics.heavy_haul`), compiled.
+"""Li 2024's draft gears and air brake (:mod:`canbrake.physics.heavy_haul`), compiled; the coupled
+plant (:class:`canbrake.physics.train.TrainPlant`) steps them once per sub-step.
 
 Pieces, each one call with arrays in and arrays out: the draft gears' hysteresis
 (:class:`GearKernel`, eqs. 7-9, behind ``CouplerBank.step``), the air brake's cylinder fill and
 block force (:class:`AirKernel`, eqs. 10-12, brake-pipe signal and pipe pressure, or ECP, behind
-``AirBrake.step``), the non-control forces (:meth:`HeavyHaulKernel.passive`, eqs. 3-5) and the
-semi-implicit Euler sub-step of the whole train that chains them (:meth:`HeavyHaulKernel.substep`). Written by hand
-because numpy's per-call cost dominated the 1 + 105 train's step (about 60 array operations per
-sub-step on 106 values). Policy (commands, traction envelopes, divergence messages) stays in Python.
+``AirBrake.step``) and the route's grade and curve force (:func:`route_force_n`, eqs. 4-5, behind
+``Route.force_n``). Written by hand because numpy's per-call cost dominated the 1 + 105 train's
+step. Policy (commands, envelopes, divergence messages) stays in Python.
 
 Every value is computed with the floating-point operations of the numpy code it replaced, in the
-same order (``-ffp-contract=off``); transcendental functions (exp, sin, cos, cbrt) are evaluated by
-numpy in the caller and passed in, so the results are bit for bit those of the former numpy step.
-All arrays are C-contiguous float64: per vehicle (n,), per coupler (n-1,).
+same order (``-ffp-contract=off``). All arrays are C-contiguous float64: per vehicle (n,), per
+coupler (n-1,).
 """
-from libc.math cimport INFINITY, fabs, isfinite
+from libc.math cimport fabs
 
 from canbrake.physics._npmath cimport _max, _min, _sign  # numpy's NaN rules, shared
 
@@ -165,110 +164,3 @@ cdef class AirKernel:
         self.run(mode, t, &v[0], &fill[0], &target[0], &fill_gain[0], &pipe[0], &pipe_gain[0], t_apply, t_release,
                  &o[0])
         return out
-
-
-cdef class HeavyHaulKernel:
-    """The whole consist: per vehicle (n,) ``mass_kg``, ``weight_kn`` (m g / 1000), ``davis_a``,
-    ``davis_b``, ``davis_c`` (N/kN, per km/h, per (km/h)²); per coupler ``spacing_m`` (n-1,); the
-    route table ``brk`` (breakpoints, m) and ``val`` (grade + curve, N/kN); its gears and air brake."""
-
-    cdef readonly Py_ssize_t n, nc
-    cdef const double[::1] mass, weight, da, db, dc, spacing, brk, val
-    cdef GearKernel gears
-    cdef AirKernel air
-    cdef double[::1] fi, stretch, rate
-
-    def __init__(self, mass_kg, weight_kn, davis_a, davis_b, davis_c, spacing_m, brk, val, GearKernel gears,
-                 AirKernel air):
-        f = lambda a: np.ascontiguousarray(a, dtype=float)  # noqa: E731
-        self.mass, self.weight, self.da, self.db, self.dc = f(mass_kg), f(weight_kn), f(davis_a), f(davis_b), f(davis_c)
-        self.n = self.mass.shape[0]
-        self.nc = max(self.n - 1, 0)
-        self.spacing, self.brk, self.val = f(spacing_m), f(brk), f(val)
-        self.gears, self.air = gears, air
-        self.fi = np.empty(self.n)
-        self.stretch, self.rate = np.empty(max(self.nc, 1)), np.empty(max(self.nc, 1))
-
-    cdef inline double resistance(self, Py_ssize_t i, double v) noexcept nogil:
-        """Eq. (3): basic running resistance magnitude (N) of vehicle i at speed v (m/s)."""
-        cdef double vk = fabs(v) / KMH
-        return (self.da[i] + self.db[i] * vk + self.dc[i] * vk * vk) * self.weight[i]
-
-    cdef inline double route(self, Py_ssize_t i, double x) noexcept nogil:
-        """Eqs. (4)-(5): grade + curve force (N) on vehicle i at position x (m), from the route table."""
-        return route_n(self.brk, self.val, self.weight[i], x)
-
-    cdef void _passive(self, const double* x, const double* v, const double* fc, const double* fa,
-                       double* fi) noexcept nogil:
-        cdef Py_ssize_t i
-        cdef double sgn, front, rear
-        for i in range(self.n):
-            sgn = _sign(v[i])
-            front = fc[i - 1] if i > 0 else 0.0
-            rear = fc[i] if i < self.nc else 0.0
-            fi[i] = front - rear - self.resistance(i, v[i]) * sgn - self.route(i, x[i]) - fa[i] * sgn
-
-    def passive(self, const double[::1] x, const double[::1] v, const double[::1] fc, const double[::1] air_n):
-        """F_i = F_C,i−1 − F_C,i − F_W,i − F_f,i − F_a,i (N), (n,): the nominal non-control forces
-        from the state, the coupler forces ``fc`` and the air-brake force ``air_n``."""
-        out = np.empty(self.n)
-        cdef double[::1] o = out
-        cdef double zero = 0.0
-        self._passive(&x[0], &v[0], &fc[0] if self.nc else &zero, &air_n[0], &o[0])
-        return out
-
-    def substep(self, const double[::1] x0, const double[::1] v0, const double[::1] fc0, const double[::1] air0,
-                const double[::1] u, double unc, double dt, const double[::1] dist_n, bint has_dist,
-                const double[::1] force_state, const double[::1] defl_prev, int ab_mode, double t_new,
-                double[::1] fill, const double[::1] target, const double[::1] fill_gain, double[::1] pipe,
-                const double[::1] pipe_gain, double t_apply, double t_release):
-        """One semi-implicit Euler sub-step of ``dt`` s (speeds, then positions, then couplers, then
-        the air brake at ``t_new``), from positions ``x0``, speeds ``v0``, coupler forces ``fc0``
-        and air-brake force ``air0``, with traction ``u`` (N), model uncertainty δ = ``unc``, the
-        disturbance ``dist_n`` (N, used if ``has_dist``). ``ab_mode`` (:meth:`AirKernel.run`; −1:
-        the brake is untouched, never applied); ``fill`` and ``pipe`` are updated in place.
-
-        Returns (x, v, acc, fc, force_state, defl_prev, air_n, finite)."""
-        cdef Py_ssize_t n = self.n, nc = self.nc, i
-        x_out, v_out, a_out, air_out = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
-        fc_out, fs_out, dp_out = np.empty(nc), np.empty(nc), np.empty(nc)
-        cdef double[::1] x = x_out, v = v_out, a = a_out, air = air_out
-        cdef double[::1] fc = fc_out, fs = fs_out, dp = dp_out
-        cdef double[::1] fi = self.fi, st = self.stretch, rt = self.rate
-        cdef double zero = 0.0, total, hold, acc, vn
-        cdef bint finite = True, any_rest = False
-        self._passive(&x0[0], &v0[0], &fc0[0] if nc else &zero, &air0[0], &fi[0])
-        for i in range(n):
-            if v0[i] == 0.0:
-                any_rest = True
-        for i in range(n):
-            total = fi[i] * (1.0 + unc)
-            total = total + u[i]
-            if has_dist:
-                total = total + dist_n[i]
-            # standstill: resistance and brake hold a vehicle at rest (Karnopp), never reverse it
-            if any_rest and v0[i] == 0.0:
-                hold = (self.resistance(i, v0[i]) + air0[i]) * (1.0 + unc)
-                total = _sign(total) * _max(fabs(total) - hold, 0.0)
-            acc = total / self.mass[i]
-            vn = v0[i] + acc * dt
-            if v0[i] * vn < 0.0:
-                vn = 0.0
-                acc = -v0[i] / dt
-            a[i] = acc
-            v[i] = vn
-            x[i] = x0[i] + vn * dt
-        if nc:
-            for i in range(nc):
-                st[i] = x[i] - x[i + 1] - self.spacing[i]
-                rt[i] = v[i] - v[i + 1]
-            self.gears.run(&st[0], &rt[0], &force_state[0], &defl_prev[0], &fc[0], &fs[0], &dp[0])
-        if ab_mode >= 0:
-            self.air.run(ab_mode, t_new, &v[0], &fill[0], &target[0], &fill_gain[0], &pipe[0], &pipe_gain[0],
-                         t_apply, t_release, &air[0])
-        else:
-            air[:] = air0
-        for i in range(n):
-            if not (isfinite(v[i]) and isfinite(x[i])):
-                finite = False
-        return x_out, v_out, a_out, fc_out, fs_out, dp_out, air_out, finite

@@ -555,7 +555,7 @@ cdef class EquippedKernel:
             double[::1] valve, double[::1] vent, double[::1] omega, double[::1] force, double[::1] slip,
             double[::1] gear_fs, double[::1] gear_dp, int air_mode, double[::1] fill, const double[::1] target,
             const double[::1] fill_gain, double[::1] pipe, const double[::1] pipe_gain, double t_apply,
-            double t_release, double[::1] air_n, grade_cb=None):
+            double t_release, double[::1] air_n, grade_cb=None, double[::1] fill_before=None):
         """Advance ``n_sub`` sub-steps of ``h`` s from ``t0``: positions ``x0`` (m), speeds ``v0``
         (m/s) and the brake command ``cmd`` (N, + brakes), P·n values each; ``act`` the actuator's
         effort (N, P·n, updated in place; ``lag`` = 1 − e^(−h/τ), or ``lag_per_car`` (n,)).
@@ -563,7 +563,8 @@ cdef class EquippedKernel:
         or P·n), its state ``friction``, ``ed``, ``valve``, ``vent``, ``omega``, ``force``,
         ``slip`` (updated in place). Draft gears: their force state and deflections ``gear_fs``,
         ``gear_dp`` (updated). Air brake (``air_mode`` as :meth:`AirKernel.run`, −1: untouched):
-        ``fill``, ``pipe`` and its block force ``air_n`` updated. ``grade_cb``: the plant's
+        ``fill``, ``pipe`` and its block force ``air_n`` updated; ``fill_before`` (optional): the
+        fill before the last sub-step's update (what a command arriving now redoes). ``grade_cb``: the plant's
         grade force (N per car) from the positions, called every sub-step when given.
 
         Returns (t, t_last, x, v, acc, rail, dl): the time after and at the last sub-step's
@@ -733,6 +734,9 @@ cdef class EquippedKernel:
                 v[q] = vn[q]
             t = t + h
             if self.air is not None and air_mode >= 0:  # cylinders and pipe to the new time, forces at the new speeds
+                if fill_before is not None:
+                    for q in range(fill.shape[0]):
+                        fill_before[q] = fill[q]
                 self.air.run(air_mode, t, &v[0], &fill[0], &target[0], &fill_gain[0], &pipe[0], &pipe_gain[0], t_apply,
                              t_release, &air_n[0])
         acc_a = np.empty(N)

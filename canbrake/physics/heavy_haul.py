@@ -8,9 +8,11 @@ kg, N); the paper's kN, km/h, N/kN and ‰ appear only where its formulas use th
 
 What is modelled (paper equation numbers in brackets; MODELS.md section 2):
 
-* locomotive traction / electric-brake envelopes (1)-(2): :class:`TractionEnvelope`;
-* basic running resistance per unit weight w = A + B v + C v² N/kN (3), grade i ‰ = i N/kN (4),
-  curve 600/R N/kN (5): :func:`basic_resistance_n`, :class:`canbrake.physics.route.Route`;
+* locomotive traction / electric-brake envelopes (1)-(2): :class:`TractionEnvelope`, and the
+  locomotive's adhesion limit: :class:`LocoAdhesion`;
+* basic running resistance per unit weight w = A + B v + C v² N/kN (3): the coupled plant's Davis
+  terms (:meth:`canbrake.consist.components.PerWeightResistance.davis_n_for`); grade i ‰ = i N/kN (4),
+  curve 600/R N/kN (5): :class:`canbrake.physics.route.Route`;
 * couplers with draft gears (7)-(9): :class:`CouplerBank` — a hysteretic spring with slack. The
   measured drop-hammer curves of Fig. 2 are not given as numbers, so the loading curve ``f_l`` and
   the unloading curve ``f_u = r_u · f_l`` are piecewise-linear (:class:`DraftGear`). Eq. (8)'s trial
@@ -23,29 +25,26 @@ What is modelled (paper equation numbers in brackets; MODELS.md section 2):
   brake pipe (apply and release waves), a first-order cylinder fill after the signal arrives; or ECP
   (each cylinder follows its own demand). The application rules of section 1.2 are the driver's
   (:class:`canbrake.control.li2024.LiDriver`).
-* disturbance (40): :func:`canbrake.physics.rail.disturbance_n`;
-* the whole as a :class:`canbrake.physics.contract.PlantModel`: :class:`HeavyHaulModel`.
+* disturbance (40): :func:`canbrake.physics.rail.disturbance_n`.
 
-Integration: semi-implicit (symplectic) Euler with a fixed step, default 10 ms
-(:data:`DEFAULT_DT_S`). The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8)
-stiffness, between two 100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·dt ≈ 0.63 < 2), so the step is stable.
+The train itself is :class:`canbrake.physics.train.TrainPlant` (the coupled plant; issue 27 deleted
+the heavy-haul model that stepped these parts on its own): it steps the draft gears
+(:class:`CouplerBank`'s compiled ``GearKernel``) and the air brake (``AirKernel``) once per sub-step,
+by semi-implicit Euler. The stiffest element is a coupler gear gone solid (2e8 N/m, also the eq. (8)
+stiffness, between two 100 t wagons, ω = √(2k/m) ≈ 63 rad/s, ω·h ≈ 0.63 < 2 at the scenarios'
+10 ms), so that step is stable.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Mapping
-
 import numpy as np
 
-from canbrake.physics._heavy_haul_kernel import AirKernel, GearKernel, HeavyHaulKernel
-from canbrake.physics.contract import PlantDiverged
-from canbrake.physics.rail import disturbance_n  # eq. (40), shared with the coupled plant
+from canbrake.physics._heavy_haul_kernel import AirKernel, GearKernel
 from canbrake.physics.route import Route  # noqa: F401 - the line, shared with the coupled plant
 
 G = 9.81
 KMH = 1.0 / 3.6  # m/s per km/h
-DEFAULT_DT_S = 0.01
 
 
 
@@ -162,16 +161,6 @@ class Consist:
     @property
     def train_length_m(self) -> float:
         return float(self.length_m.sum())
-
-
-def basic_resistance_n(consist: Consist, v_mps: np.ndarray) -> np.ndarray:
-    """Eq. (3): basic running resistance magnitude (N) of every vehicle, ``w · weight``.
-
-    ``w = A + B v + C v²`` N/kN with v in km/h, times the vehicle's weight in kN.
-    """
-    v = np.abs(np.asarray(v_mps, dtype=float)) / KMH
-    w = consist.davis_a + consist.davis_b * v + consist.davis_c * v * v
-    return w * consist.weight_kn
 
 
 # ------------------------------------------------------------------------------------ couplers
@@ -458,210 +447,3 @@ class AirBrake:
         """Eq. (10): F_a = β_c Σ φ K over the blocks of each vehicle, at the current fills (N)."""
         z = self._no_pipe
         return self.kernel.step(3, 0.0, np.ascontiguousarray(v_mps, dtype=float), self.fill, z, z, z, z, 0.0, 0.0)
-
-
-# ------------------------------------------------------------------------------------ plant model
-class HeavyHaulModel:
-    """The heavy-haul consist as a :class:`canbrake.physics.contract.PlantModel` (eq. 16, SI).
-
-    ``m_i a_i = (1 + δ) F_i + u_i + σ_i(t)`` with F_i the non-control force (front coupler − rear
-    coupler − basic resistance − grade/curve − air brake), δ the model uncertainty, u the locomotive's
-    traction (= −``brake_force_n``, clipped to its envelope) and σ the eq. (40) disturbance; fixed-step
-    semi-implicit Euler (speeds, then positions, then couplers), ``integration_step_s`` per sub-step.
-
-    Commands (arrays (n,), NaN = not commanded):
-
-    * ``brake_force_n`` — on vehicles with a traction envelope (the locomotive): + electric brake,
-      − traction (N); NaN = 0. Ignored elsewhere (wagons have no force equipment).
-    * ``airbrake_apply`` — driver's valve, read on the first vehicle: ≥ 0.5 apply, < 0.5 release,
-      NaN = unchanged. Pneumatic mode only: the signal runs along the brake pipe (apply/release wave).
-    * ``ecp_demand`` — ECP mode only: each vehicle's cylinder target, fraction 0..1 of full service
-      (clipped), NaN = unchanged (a vehicle never commanded stays released). No brake-pipe wave.
-
-    Measurements: the contract's ``position_m, speed_mps, accel_mps2, applied_brake_n`` per vehicle
-    (applied = air brake + the locomotive's electric brake − traction, N), ``deflection_m`` (coupler
-    stretch x_j − x_{j+1} − spacing, + tension, m) and ``coupler_force_n`` (+ tension, N) per coupler, and
-    per vehicle:
-
-    * ``passive_force_n`` — the nominal non-control force F_i = F_C,i−1 − F_C,i − F_W,i − F_f,i − F_a,i (N),
-      without δ and σ: what Li's controller calls m0·f(x). On the locomotive it is a virtual sensor: the
-      coupler force measured by a load cell at the draft gear plus the onboard model's running
-      resistance, line resistance at the measured position and the known air-brake force.
-    * ``brake_cylinder_pressure_pa`` — brake cylinder pressure (fill × the type's full pressure).
-    * ``downgrade_ahead`` — line data (the onboard line database, e.g. LKJ): 1 when a long downgrade
-      (see :meth:`Route.long_downgrade_ahead`) lies under the train or within the look-ahead of its
-      front, else 0; the same value on every vehicle.
-
-    Timing of the air brake: the cylinder fill at t_k is computed at the end of the step that reaches
-    t_k with the commands then held; a new driver's-valve or ECP command issued at t_k (it arrives at
-    the start of the next step) recomputes that fill update with the new target, so a command acts on
-    the brake from t_k, as the old closed loop did (the ECU's ``passive_force_n`` of tick k shows the
-    brake before its own command of tick k).
-    """
-
-    command_names = ("brake_force_n", "airbrake_apply", "ecp_demand")
-
-    def __init__(self, consist: Consist, route: Route, gears: list[DraftGear], airbrake: AirBrake, *,
-                 envelopes: list[TractionEnvelope | None], v0_mps: float, x0_m: float = 0.0,
-                 uncertainty: float = 0.0, disturbance_on: np.ndarray | None = None,
-                 disturbance_coef: tuple[float, float, float] = (0.0, 0.0, 0.0),
-                 integration_step_s: float = DEFAULT_DT_S, line_lookahead_m: float = 2500.0,
-                 line_min_grade_permille: float = 8.0, line_min_length_m: float = 500.0,
-                 adhesion: list[LocoAdhesion | None] | None = None):
-        if len(gears) != consist.n - 1 or len(envelopes) != consist.n:
-            raise ValueError("one draft gear per coupler and one envelope (or None) per vehicle")
-        self.c = consist
-        self.n_vehicles = consist.n
-        self.mass_kg = consist.mass_kg
-        self.route = route
-        self.dt = float(integration_step_s)
-        self.unc = float(uncertainty)
-        self.dist_on = None if disturbance_on is None else np.asarray(disturbance_on, dtype=bool)
-        self.dist_coef = tuple(disturbance_coef)
-        self.envelopes = list(envelopes)
-        self.powered = np.array([e is not None for e in envelopes])
-        self.line = (line_lookahead_m, line_min_grade_permille, line_min_length_m)
-        self.adhesion = list(adhesion) if adhesion is not None else [None] * consist.n
-        self._adh = [(i, a) for i, a in enumerate(self.adhesion) if a is not None]
-        self.cp = CouplerBank(gears)
-        self.ab = airbrake
-        #: the compiled sub-step (canbrake.physics._heavy_haul_kernel)
-        self.kernel = HeavyHaulKernel(consist.mass_kg, consist.weight_kn, consist.davis_a, consist.davis_b,
-                                      consist.davis_c, consist.spacing_m, route._brk, route._val, self.cp.kernel,
-                                      self.ab.kernel)
-        self._powered = np.flatnonzero(self.powered).tolist()
-        self.t = 0.0
-        self.v = np.full(consist.n, float(v0_mps))
-        # static initial tensions: each coupler carries the running + grade resistance behind it
-        xs = x0_m - consist.distance_from_loco_m
-        res = basic_resistance_n(consist, self.v) + route.force_n(consist.weight_kn, xs)
-        tension = np.cumsum(res[::-1])[::-1][1:]
-        stretch = self.cp.set_static(tension)
-        self.x = x0_m - np.concatenate([[0.0], np.cumsum(consist.spacing_m + stretch)])
-        self.fc = self._coupler_forces()
-        self.acc = np.zeros(consist.n)
-        self.u = np.zeros(consist.n)  # applied traction (N, + forward) per vehicle
-        self._fi: np.ndarray | None = None
-        self._meas: dict[str, np.ndarray] | None = None
-        self._fill_before = self.ab.fill.copy()
-
-    # -- state -----------------------------------------------------------------------------------
-    def _coupler_forces(self) -> np.ndarray:
-        stretch = self.x[:-1] - self.x[1:] - self.c.spacing_m
-        rate = self.v[:-1] - self.v[1:]
-        return self.cp.step(stretch, rate)
-
-    def passive_forces(self) -> np.ndarray:
-        """Non-control force per vehicle F_i (N) at the current state (nominal: no δ, no σ)."""
-        if self._fi is None:  # front coupler − rear coupler − resistance − grade/curve − air brake (compiled)
-            self._fi = self.kernel.passive(self.x, self.v, self.fc, self.ab.last_force_n)
-        return self._fi
-
-    # -- contract --------------------------------------------------------------------------------
-    def _take_commands(self, commands: Mapping[str, np.ndarray]) -> None:
-        bf = commands.get("brake_force_n")
-        u = np.zeros(self.n_vehicles)
-        if bf is not None:
-            bf = np.asarray(bf, dtype=float)
-            for i in np.flatnonzero(self.powered & np.isfinite(bf)):
-                u[i] = self.envelopes[i].saturate_n(-float(bf[i]), float(self.v[i]))  # type: ignore[union-attr]
-        self.u = self._adhesion_limit(u)
-        changed = False
-        if self.ab.mode == "pneumatic":
-            ap = commands.get("airbrake_apply")
-            if ap is not None and np.isfinite(ap[0]):
-                want = bool(ap[0] >= 0.5)
-                if want != self.ab.applied:
-                    self.ab.command(self.t, want)
-                    changed = True
-        else:
-            dm = commands.get("ecp_demand")
-            if dm is not None:
-                dm = np.asarray(dm, dtype=float)
-                ok = np.isfinite(dm)
-                new = np.where(ok, np.clip(np.where(ok, dm, 0.0), 0.0, 1.0), self.ab.ecp_target)
-                if np.any(new != self.ab.ecp_target):
-                    self.ab.ecp_target = new
-                    changed = True
-        if changed:  # the command acts from now: redo the fill update that reached this instant
-            self.ab.fill = self._fill_before.copy()
-            self.ab.step(self.t, self.dt, self.v)
-            self._fi = None
-
-    def _substep(self) -> None:
-        """One integration step (compiled: HeavyHaulKernel.substep). Standstill: running resistance
-        and the brake only resist motion, they never reverse it: a vehicle at rest stays at rest
-        while the other forces do not exceed what its brake and resistance can hold; a moving vehicle
-        whose speed would cross zero within the step stops at zero (Karnopp's stick-slip model)."""
-        ab, cp = self.ab, self.cp
-        dist = None
-        if self.dist_on is not None:
-            dist = disturbance_n(self.c.mass_kg, self.t, self.v, self.dist_on, self.dist_coef)
-        self._fill_before = ab.fill.copy()
-        mode = ab.kernel_mode()
-        fill_gain, pipe_gain = ab.gains(self.dt)
-        pipe = ab._no_pipe if ab.pipe is None else ab.pipe_pressure_pa.copy()
-        t_new = self.t + self.dt
-        x, v, acc, fc, fs, dp, air, finite = self.kernel.substep(
-            self.x, self.v, self.fc, ab.last_force_n, self.u, self.unc, self.dt,
-            ab._no_pipe if dist is None else dist, dist is not None, cp.force_state, cp.defl_prev, mode, t_new,
-            ab.fill, ab.ecp_target, fill_gain, pipe, pipe_gain, ab.t_apply, ab.t_release)
-        self.acc, self.v, self.x, self.t = acc, v, x, t_new
-        self.fc, cp.force_state, cp.defl_prev = fc, fs, dp
-        if mode >= 0:
-            ab.last_force_n = air
-            if ab.pipe is not None:
-                ab.pipe_pressure_pa = pipe
-        self._fi = None
-        if not finite:
-            raise PlantDiverged(f"heavy-haul state became non-finite at t = {self.t:.3f} s")
-
-    def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
-        """Advance by ``dt_s`` (a whole number of integration steps) holding ``commands``."""
-        n = int(round(dt_s / self.dt))
-        if n < 1 or abs(n * self.dt - dt_s) > 1e-9 * max(1.0, dt_s):
-            raise ValueError(f"step {dt_s} s is not a whole number of integration steps of {self.dt} s")
-        self._meas = None
-        self._take_commands(commands)
-        for k in range(n):
-            if self._powered and k > 0:  # the envelopes at the new speeds (0 on unpowered vehicles)
-                u = np.zeros(self.n_vehicles)
-                for i in self._powered:
-                    u[i] = self.envelopes[i].saturate_n(float(self.u[i]), float(self.v[i]))  # type: ignore[union-attr]
-                self.u = self._adhesion_limit(u)
-            self._substep()
-
-    def _adhesion_limit(self, u: np.ndarray) -> np.ndarray:
-        """Clip traction and dynamic-brake forces (N) at the wheel–rail adhesion μ(v)·m·g of the
-        vehicles that have an adhesion limit."""
-        for i, a in self._adh:
-            cap = a.mu(float(self.v[i])) * float(self.c.mass_kg[i]) * G
-            u[i] = min(max(u[i], -cap), cap)
-        return u
-
-    def downgrade_ahead(self) -> bool:
-        """Line data: a long downgrade under the train or within the look-ahead of its front."""
-        look, g, length = self.line
-        x0 = float(self.x[0])
-        return self.route.long_downgrade_ahead(x0, x0 - float(self.c.distance_from_loco_m[-1]), look, g, length)
-
-    def measurements(self) -> dict[str, np.ndarray]:
-        """The contract's measurements (computed once per state; do not modify the arrays)."""
-        if self._meas is not None:
-            return self._meas
-        fa = self.ab.last_force_n
-        applied = fa - self.u
-        self._meas = {
-            "position_m": self.x.copy(),
-            "speed_mps": self.v.copy(),
-            "accel_mps2": self.acc.copy(),
-            "applied_brake_n": applied,
-            "deflection_m": self.x[:-1] - self.x[1:] - self.c.spacing_m,
-            "coupler_force_n": self.fc.copy(),
-            "passive_force_n": self.passive_forces().copy(),
-            "brake_cylinder_pressure_pa": self.ab.fill * self.ab.cylinder_pressure_pa,
-            "downgrade_ahead": np.full(self.n_vehicles, float(self.downgrade_ahead())),
-        }
-        if self.ab.pipe is not None:
-            self._meas["brake_pipe_pressure_pa"] = self.ab.pipe_pressure_pa.copy()
-        return self._meas

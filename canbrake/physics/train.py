@@ -381,6 +381,7 @@ class TrainPlant:
             ab.applied, ab.t_apply, ab.t_release = False, -np.inf, -np.inf
             if pipe is not None:
                 ab.pipe_pressure_pa = pipe.copy()
+            self._fill_before, self._air_h = ab.fill.copy(), self.max_substep_s  # what command_air redoes
         if self.static_couplers:
             self._place_static()
 
@@ -406,21 +407,29 @@ class TrainPlant:
         return None if self.air_brake is None else self.air_brake.last_force_n  # type: ignore[attr-defined]
 
     def command_air(self, apply: float | None, ecp_demand: np.ndarray | None) -> None:
-        """The air brake's commands, as :class:`canbrake.physics.heavy_haul.HeavyHaulModel` takes them:
+        """The air brake's commands (as the former heavy-haul model took them):
         ``apply`` the driver's valve on the leading car (≥ 0.5 apply, < 0.5 release, None/NaN unchanged;
         pneumatic mode), ``ecp_demand`` each car's cylinder target (fraction 0..1, NaN unchanged; ECP
-        mode). The command acts from the next sub-step (the heavy-haul plant also redoes the fill update
-        that reached this instant)."""
+        mode). A command that changes the brake acts from now: the cylinder fill update of the last
+        sub-step (the one that reached this instant) is redone with it, and the block forces follow at
+        the current speeds (the ECU's ``passive_force_n`` of this tick showed the brake before it)."""
         ab: Any = self.air_brake
         if ab is None:
             return
+        changed = False
         if ab.mode == "pneumatic":
             if apply is not None and math.isfinite(apply) and (apply >= 0.5) != ab.applied:
                 ab.command(self.time_s, bool(apply >= 0.5))
+                changed = True
         elif ecp_demand is not None:
             dm = np.asarray(ecp_demand, dtype=float)
             ok = np.isfinite(dm)
-            ab.ecp_target = np.where(ok, np.clip(np.where(ok, dm, 0.0), 0.0, 1.0), ab.ecp_target)
+            new = np.where(ok, np.clip(np.where(ok, dm, 0.0), 0.0, 1.0), ab.ecp_target)
+            changed = bool(np.any(new != ab.ecp_target))
+            ab.ecp_target = new
+        if changed:  # the command acts from now: redo the fill update that reached this instant
+            ab.fill = self._fill_before.copy()
+            ab.step(self.time_s, self._air_h, self.speed_mps)
 
     @property
     def brake_effort_n(self) -> np.ndarray:
@@ -673,15 +682,19 @@ class TrainPlant:
             fill_gain, pipe_gain = air.gains(h)
             pipe = air._no_pipe if air.pipe is None else air.pipe_pressure_pa.copy()
             t_apply, t_release = float(air.t_apply), float(air.t_release)
+            self._fill_before = fill.copy()  # the kernel overwrites it before each sub-step's fill update
         self.time_s, t_last, x, v, acc, rail, dl = kern.run(
             x, v, cmd, effort, self.time_s, h, n_sub, lag if isinstance(lag, float) else 0.0,
             None if isinstance(lag, float) else lag, blend_k, valve_k, wsp, fr, ed, self.wsp_valve.reshape(-1),
             self._vent_s.reshape(-1), om, fo, sl, fs, dp, mode, fill, target, fill_gain, pipe, pipe_gain, t_apply,
-            t_release, air_n, None if self._grade_fn is None else self._grade_force_fn)
+            t_release, air_n, None if self._grade_fn is None else self._grade_force_fn,
+            None if air is None else self._fill_before)
         act.effort_n = effort.reshape(self.speed_mps.shape)
         self._update_rail(t_last)
         if gears is not None:
             gears.force_state, gears.defl_prev = fs, dp
+        if air is not None:
+            self._air_h = h  # (command_air redoes the last sub-step's fill update from _fill_before)
         if air is not None and mode >= 0:
             air.last_force_n = air_n
             if air.pipe is not None:

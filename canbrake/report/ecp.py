@@ -218,7 +218,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
     out_dir, runs_dir = Path(out_dir), Path(runs_dir)
     sd = Path(scen_dir) if scen_dir else scenario_dir()
     runs_dir.mkdir(parents=True, exist_ok=True)
-    h0 = float(_load(specs[0], duration_s, sd).consist.integration_step_s)
+    h0 = float(_load(specs[0], duration_s, sd).consist.max_substep_s)
     checks = step_specs(h0, specs) if step_check else []
     tasks = [(sp, duration_s, str(runs_dir), force, str(sd)) for sp in (*specs, *checks)]
     outs = map_tasks(_star, tasks, jobs)

@@ -158,7 +158,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-e
     for c in cases:
         for sp in c.specs():
             runs.setdefault(sp.key, (sp, c.duration_s))
-    h0 = {k: float(E._load(sp, d, sd).consist.integration_step_s) for k, (sp, d) in runs.items()}
+    h0 = {k: float(E._load(sp, d, sd).consist.max_substep_s) for k, (sp, d) in runs.items()}
     fine = {k: (step_spec(sp, h0[k]), d) for k, (sp, d) in runs.items()} if step_check else {}
     tasks = [(sp, d, str(runs_dir), force, str(sd)) for sp, d in (*runs.values(), *fine.values())]
     outs = map_tasks(E._star, tasks, jobs)

@@ -196,7 +196,7 @@ def generate(out_dir: str | Path = "docs", runs_dir: str | Path = "runs/report-h
     sd = Path(scen_dir) if scen_dir else None
     runs_dir.mkdir(parents=True, exist_ok=True)
     base = _load(Case("as-written", "", None), sd)
-    h0, p0 = float(base.consist.integration_step_s), float(base.control_period_s)
+    h0, p0 = float(base.consist.max_substep_s), float(base.control_period_s)
     fine = {c.key: half_step(c, h0) for c in cases} if step_check else {}
     # The control period is not halved here: twice the frames would need twice the bit rate, beyond
     # classic CAN's 1 Mbit/s, and at this rate the bus would be at ~90 % load (see the section's text).

@@ -604,23 +604,31 @@ def _step_section(res: dict) -> str:
     return "\n".join(L)
 
 
+def _c80_resistance_n(vt, v_mps: float) -> float:
+    """Eq. (3)'s basic running resistance (N) of one vehicle of type ``vt`` at ``v_mps`` (m/s)."""
+    c0, c1, c2 = vt.resistance.davis_n_for(float(vt.mass_kg))
+    return c0 + c1 * v_mps + c2 * v_mps * v_mps
+
+
 def train_of(scen_dir: Path):
-    """The heavy-haul train of the Li scenarios (validated :class:`canbrake.consist.heavy_haul.HeavyHaulTrain`)."""
+    """The Li scenarios' train as the coupled plant takes it (:class:`canbrake.consist.coupled.TrainConfig`:
+    its route, air brake and draft gears)."""
     return _load(DRIVER_SCENARIO, None, {}, scen_dir).consist
 
 
 def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s: float, elapsed_s: float,
                    cmds: dict[str, str], scen_dir: Path) -> Path:
     tr = train_of(scen_dir)
+    spec = _load(DRIVER_SCENARIO, None, {}, scen_dir).train  # the vehicle types as written (components)
     unc = _load(SCENARIO_OF["smc"], None, {}, scen_dir).consist.uncertainty
     dscn = _load(DRIVER_SCENARIO, None, {}, scen_dir)
     drv = dscn.ecus[0].controller.params
     v0_kmh = float(np.atleast_1d(dscn.initial.speed_kmh)[0])
     vs_ref = smooth_reference(refd["v_full_mps"], float(refd["dt_s"]))
-    c = tr.consist()
-    ab = tr.build_air_brake(c)
+    ab = tr.air_brake_physics()
+    n_veh, total_kg, length_m = tr.n_cars, float(np.sum(tr.mass_kg)), float(np.sum(tr.length_m))
     route = tr.load_route(scen_dir)
-    vt = tr.vehicle_types
+    vt = spec.vehicle_types
     hxd1, c80 = vt["hxd1"], vt["c80"]
     mt2, qkx = tr.draft_gears["MT-2"], tr.draft_gears["QKX100"]
     k_c80, k_hxd1 = c80.brake.block_force_kn(), hxd1.brake.block_force_kn()
@@ -640,8 +648,9 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
       "unchanged; a 1300 s run of the 1+105 train is 130 000 engine ticks). Every run below is a scenario run through the node engine — the locomotive ECU's "
       "controller receives its sensor frames and sends its command frames as CAN frames, here with the in-process "
       "engine — and the section *Runs* lists the `canbrake run` command that repeats it. The train is data "
-      "(`scenarios/li2024_*.yaml`, `scenarios/data/li2024_route.csv`, read by `canbrake/consist/heavy_haul.py`); "
-      "code: `canbrake/physics/heavy_haul.py` (plant), `canbrake/control/li2024.py` (controllers and the "
+      "(`scenarios/li2024_*.yaml`, `scenarios/data/li2024_route.csv`, assembled by `canbrake/consist/components.py`); "
+      "code: `canbrake/physics/train.py` (the coupled plant, with Li's draft gears and air brake from "
+      "`canbrake/physics/heavy_haul.py`), `canbrake/control/li2024.py` (controllers and the "
       "synthetic driver), `canbrake/report/li2024.py`.")
     w("")
     # headline
@@ -760,14 +769,14 @@ def write_markdown(res: dict, refd: dict, out_dir: Path, figs: dict, duration_s:
         w("")
     w("## Model and parameters")
     w("")
-    w(f"- Consist: HXD1 {hxd1.mass_kg / 1e3:.0f} t, {hxd1.length_m} m + {c.n - 1} × C80 {c80.mass_kg / 1e3:.0f} t, "
-      f"{c80.length_m:.0f} m; total {c.total_mass_kg / 1e3:.0f} t, {c.train_length_m:.0f} m. One mass per vehicle "
+    w(f"- Consist: HXD1 {hxd1.mass_kg / 1e3:.0f} t, {hxd1.length_m} m + {n_veh - 1} × C80 {c80.mass_kg / 1e3:.0f} t, "
+      f"{c80.length_m:.0f} m; total {total_kg / 1e3:.0f} t, {length_m:.0f} m. One mass per vehicle "
       "(eq. 16), force only on the locomotive.")
     w("- Envelopes eqs. (1)–(2) (kN, km/h), applied as a saturation of every controller's command: "
       + ", ".join(f"F_T({v}) = {float(ctl_li.traction_envelope_kn(v)):.1f}" for v in (5, 65, 100)) + "; "
       + ", ".join(f"F_B({v}) = {float(ctl_li.electric_brake_envelope_kn(v)):.1f}" for v in (2, 5, 75, 100)) + " kN.")
-    w(f"- Basic resistance eq. (3), N/kN: HXD1 {tuple(hxd1.resistance.model_dump().values())}, C80 {tuple(c80.resistance.model_dump().values())} (A, B, C with v in km/h); "
-      f"e.g. one C80 at 60 km/h: {float(hh.basic_resistance_n(c, np.full(c.n, 60 * KMH))[1]):.0f} N. Grade i ‰ → i N/kN, "
+    w(f"- Basic resistance eq. (3), N/kN: HXD1 {tuple(hxd1.resistance.model_dump(exclude={'model'}).values())}, C80 {tuple(c80.resistance.model_dump(exclude={'model'}).values())} (A, B, C with v in km/h); "
+      f"e.g. one C80 at 60 km/h: {_c80_resistance_n(c80, 60 * KMH):.0f} N. Grade i ‰ → i N/kN, "
       "curve 600/R N/kN, each vehicle at its own position.")
     w("- Couplers (eqs. 7–9): hysteretic spring with slack ±5 mm; loading curve f_l piecewise linear "
       f"(MT-2 points {list(zip([round(x) for x in mt2.curve_mm], [round(f) for f in mt2.curve_kn]))} mm/kN, "
