@@ -1,6 +1,7 @@
 """Plants with brake equipment that exercise every part of TrainPlant's equipped step (issue 27),
 and their recorded runs: tests/data/equipped_ref.npz holds what main's Python sub-step loop gave
-(recorded before the loop was compiled), tests/test_equipped_kernel.py compares bit for bit.
+(recorded before the loop was compiled; re-recorded from the Python loop of branch lionplant, 8d75abc,
+whose air command acts from its instant), tests/test_equipped_kernel.py compares bit for bit.
 
     python tests/equipped_cases.py   # rewrites tests/data/equipped_ref.npz (only on purpose)
 """
