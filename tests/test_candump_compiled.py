@@ -3,6 +3,7 @@ every line must be what the library writes for the same message (frames.log is i
 from __future__ import annotations
 
 import io
+import struct
 
 import can
 from hypothesis import given, settings
@@ -68,3 +69,20 @@ def test_known_lines():
     text, _ = compiled([[(0.000098, m), (0.0005, e), (0.0004, r)]], "can0")
     assert text == ("(0.000098) can0 0C1#DCBA037A765F00 R\n(0.000500) can0 20000080#0000000000000000\n"
                     "(0.000400) can0 01ABCDEF#R R\n")
+
+
+def image(m):
+    """The memory bus's slot image of ``m`` (canbrake.bus._slot), as the ring writes it."""
+    flags = int(m.is_extended_id) | 2 * int(m.is_remote_frame) | 4 * int(m.is_error_frame)
+    data = b"" if m.is_remote_frame else bytes(m.data)
+    return (struct.pack("<dIIBBBxxxxx", 0.0, m.arbitration_id, 7, flags, m.dlc, len(data)) + data
+            + bytes(64 - len(data)) + bytes(8))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(stamps, frames()), max_size=30), channels, st.one_of(st.none(), stamps))
+def test_slot_images_write_the_messages_lines(pairs, channel, first):
+    """A frame given as its slot image (the recorder on the memory bus) writes python-can's line
+    for its message."""
+    mixed = [(ts, image(m) if i % 3 else m) for i, (ts, m) in enumerate(pairs)]
+    assert compiled([mixed], channel, first=first) == library(pairs, channel, first=first)

@@ -4,6 +4,8 @@ interpreted oracle of the rules it implements: E2E profile 1's CRC and counter c
 the page into the per-vehicle command arrays (FieldCodec.decode)."""
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -189,7 +191,8 @@ def test_sensor_pages_equal_encode_for_motorola_and_multiplexed_fields(specs: li
 # ---------------------------------------------------------------- the plant's receive loop
 from canbrake.bus._codec import (TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_RESULT,  # noqa: E402
                                  TAKE_BATCH_TICK)
-from canbrake.bus._ring import data_frame  # noqa: E402
+from canbrake.bus._ring import data_frame, messages_of  # noqa: E402
+from canbrake.bus.memory_shm import SLOT_BYTES  # noqa: E402
 
 PAGES3 = [CODEC[f"BRAKE_CMD_C{i}"] for i in (1, 2, 3)]
 
@@ -320,7 +323,7 @@ def test_tick_frames_equal_the_codecs_frames(k, v, a, x, heartbeat, speeds, kind
     ref_pos = codec["REFERENCE_POS"]._c if x is not None else None
     tf = TickFrames(codec["SYNC"]._c, lay.sync_id, codec["REFERENCE"]._c, lay.reference_id, ref_pos,
                     lay.reference_pos_id, codec["HEARTBEAT_PLANT"]._c, lay.plant_heartbeat_id, pages, ids,
-                    ["speed_mps"], data_frame)
+                    ["speed_mps"], messages_of)
     expect = [(lay.sync_id, sync_payload if sync_payload is not None else codec["SYNC"].encode({"Tick": k})),
               (lay.reference_id, codec["REFERENCE"].encode({"RefSpeed": v, "RefDecel": a}))]
     if x is not None:
@@ -330,3 +333,35 @@ def test_tick_frames_equal_the_codecs_frames(k, v, a, x, heartbeat, speeds, kind
     expect += list(zip(ids, pages.pack([np.ascontiguousarray(meas["speed_mps"], dtype=float)])))
     got = tf.frames(k, v, a, x, heartbeat, meas, sync_payload)
     assert [(m.arbitration_id, bytes(m.data)) for m in got] == [(i, bytes(p)) for i, p in expect]
+    # the messages are the ones the plant made one by one (data_frame), every field
+    for m, (i, p) in zip(got, expect):
+        want = data_frame(i, p)
+        assert [(getattr(m, f), type(getattr(m, f))) for f in _MSG_FIELDS] == \
+            [(getattr(want, f), type(getattr(want, f))) for f in _MSG_FIELDS]
+    # the slot images hold the same frames: identifier, flags, length, data, nothing else set
+    images = tf.images(k, v, a, x, heartbeat, meas, sync_payload)
+    assert type(images) is bytes and len(images) == len(expect) * SLOT_BYTES
+    for n, (i, p) in enumerate(expect):
+        ts, aid, token, flags, dlc, ln = struct.unpack_from("<dIIBBB", images, n * SLOT_BYTES)
+        assert (ts, aid, token, flags, dlc, ln) == (0.0, i, 0, int(i > 0x7FF), len(p), len(p))
+        img = images[n * SLOT_BYTES:(n + 1) * SLOT_BYTES]
+        assert img[24:24 + ln] == bytes(p) and img[19:24] == bytes(5) and img[24 + ln:] == bytes(SLOT_BYTES - 24 - ln)
+
+
+_MSG_FIELDS = ("timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "channel",
+               "dlc", "data", "is_fd", "is_rx", "bitrate_switch", "error_state_indicator")
+
+
+@given(st.lists(st.tuples(st.integers(0, 0x1FFFFFFF), st.binary(max_size=8)), max_size=6))
+@settings(max_examples=100, deadline=None)
+def test_messages_of_images_are_data_frames(frames) -> None:
+    """messages_of(slot images as slot_put writes them: memory_shm's layout, time stamp and token
+    0) == data_frame(identifier, data) for each frame, every field."""
+    images = b"".join(struct.pack("<dIIBBBxxxxx", 0.0, aid, 0, int(aid > 0x7FF), len(d), len(d)) + d
+                      + bytes(64 - len(d)) + bytes(8) for aid, d in frames)
+    got = messages_of(images)
+    assert len(got) == len(frames)
+    for m, (aid, d) in zip(got, frames):
+        want = data_frame(aid, d)
+        assert [(getattr(m, f), type(getattr(m, f))) for f in _MSG_FIELDS] == \
+            [(getattr(want, f), type(getattr(want, f))) for f in _MSG_FIELDS]

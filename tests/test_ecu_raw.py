@@ -10,6 +10,7 @@ import uuid
 import can
 
 from canbrake.bus import memory_shm as shm
+from canbrake.bus._ring import messages_of
 
 
 def _ecus(car: int, n: int = 6):
@@ -76,7 +77,7 @@ def _plant_key(p):
 
 def test_plant_handle_raw_equals_handle_batch_with_a_rejected_command():
     """The plant fed slot images (PlantNode.handle_raw, CommandTable.take_batch_raw) does what it
-    does fed messages: the same frames out (the next tick's), commands and counters, also for a
+    does fed messages: the same frames out (the next tick's, as slot images), commands and counters, also for a
     command with a bad CRC (rejected), a frame of an identifier the table does not route and a
     batch that completes the tick."""
     from canbrake.build import build_node
@@ -112,7 +113,9 @@ def test_plant_handle_raw_equals_handle_batch_with_a_rejected_command():
         for batch in ([stray, broken, *cmds[1:3]], cmds[3:] + cmds[:1]):
             out_a = a.handle_batch(list(batch), 0.0)
             out_b = b.handle_raw(ring.encode(batch, True, 0.0), 0.0, bus.raw_message)
-            assert _key(out_a) == _key(out_b)
+            # the next tick's frames as slot images (TickFrames.images), the messages' frames
+            assert type(out_b) is (bytes if out_a else list)
+            assert _key(out_a) == _key(messages_of(out_b) if type(out_b) is bytes else out_b)
             assert _plant_key(a) == _plant_key(b)
         assert a.k == 1 and a.stats.commands_corrupted == 1  # the tick went on, the bad CRC counted
         assert b.handle_raw(b"", 0.0, bus.raw_message) == []
@@ -209,6 +212,13 @@ def test_take_frames_raw_equals_take_frames():
         ref = _take_all(take_frames, msgs, len(msgs),
                         lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
         assert got == ref
+        # message None: each frame kept as its slot image (the recorder's candump path), the same frames
+        kept = []
+        imgs = _take_all(lambda b, *a: take_frames_raw(b, None, *a[:-1], kept), images, len(msgs),
+                         lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+        assert imgs[:2] == ref[:2] and imgs[3] == ref[3]
+        assert all(type(m) is bytes and len(m) == shm.SLOT_BYTES for *_x, m in kept)
+        assert [(p, aid, data, _key([bus.raw_message(m, 0)])) for p, aid, data, m in kept] == ref[2]
         assert sum(e[1] == 1 for e in ref[3]) == 2 and ref[3][-1][1] == 0  # two SYNCs, then the end
         assert take_frames_raw(b"", bus.raw_message, 0, False, {}, set(), 0x010, {}, []) == (0, 0, 0)
     finally:

@@ -7,6 +7,7 @@ recv_filtered on a twin reader of the same channel (frames, order, overrun error
 from __future__ import annotations
 
 import os
+import struct
 import threading
 import time
 import uuid
@@ -420,3 +421,36 @@ def test_a_send_waiting_for_the_writer_lock_lets_other_threads_run():
 
     r = subprocess.run([sys.executable, "-c", _LOCK_WAIT, _chan()], capture_output=True, text=True, timeout=60)
     assert r.stdout.strip() == "ok", r.stderr
+
+
+@settings(max_examples=100, deadline=None)
+@given(frames=st.lists(st.tuples(st.integers(0, 0x1FFFFFFF), st.binary(max_size=8)), max_size=6),
+       preserve=st.booleans(), now=st.floats(0, 2e9))
+def test_stamped_images_are_the_encoded_messages(pair, frames, preserve, now):
+    """Ring.stamp of slot images (a node's compiled encoder's, canbrake.bus._codec.TickFrames) ==
+    Ring.encode of the messages made of them (messages_of), byte for byte; MemoryBus.send_burst
+    of the images delivers those messages."""
+    from canbrake.bus._ring import messages_of
+
+    tx, rx = pair
+    images = b"".join(struct.pack("<dIIBBBxxxxx", 0.0, aid, 0, int(aid > 0x7FF), len(d), len(d)) + d
+                      + bytes(64 - len(d)) + bytes(8) for aid, d in frames)
+    msgs = messages_of(images)
+    assert tx._ring.stamp(images, preserve, now) == tx._ring.encode(msgs, preserve, now)
+    tx.send_burst(images)
+    got = rx.recv_batch(0) if frames else []
+    tx.send_burst(msgs)
+    want = rx.recv_batch(0) if frames else []
+    assert [_event(m) for m in got] == [_event(m) for m in want] and len(got) == len(frames)
+
+
+def test_stamp_rejects_malformed_images_as_encode(pair):
+    tx, _ = pair
+    img = struct.pack("<dIIBBBxxxxx", 0.0, 0x12, 0, 0, 9, 9) + bytes(72)
+    with pytest.raises(can.CanOperationError, match="classic CAN frame 0x12 has 9 data bytes"):
+        tx._ring.stamp(img, False, 0.0)
+    img = struct.pack("<dIIBBBxxxxx", 0.0, 0x2FFFFFFF, 0, 1, 0, 0) + bytes(72)
+    with pytest.raises(can.CanOperationError, match="out of range"):
+        tx._ring.stamp(img, False, 0.0)
+    with pytest.raises(ValueError, match="not whole slot images"):
+        tx._ring.stamp(bytes(95), False, 0.0)

@@ -3,6 +3,8 @@ canbrake.bus.timing (frame_bitstream + stuff_bit_count) and against the recorder
 written out in Python."""
 from __future__ import annotations
 
+import struct
+
 import can
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -66,3 +68,21 @@ def test_ideal_period_is_bit_identical_to_the_python_accounting(frames, k, dt, b
     want = _reference_period(ordered, u, s, t_k + carry, t_k, dt, bitrate, epoch)
     assert got[:4] == want[:4]
     assert [(ts, id(m)) for ts, m in got[4]] == [(ts, id(m)) for ts, m in want[4]]
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(frame_args(), max_size=40), st.integers(0, 10**6), st.sampled_from([1e-3, 1e-2]),
+       st.sampled_from([250e3, 1e6]), st.floats(0, 1e-3), st.sets(st.integers(0, 0x7FF), max_size=20))
+def test_ideal_period_of_slot_images_equals_messages(frames, k, dt, bitrate, carry, untimed):
+    """Frames kept as memory-bus slot images (identifier at 8, flags at 16, DLC at 17) are
+    accounted as their messages, and handed back as they came."""
+    msgs = [(i % 3, aid, data, can.Message(arbitration_id=aid, is_extended_id=ext, dlc=dlc, data=data))
+            for i, (aid, ext, dlc, data, _r) in enumerate(frames)]
+    imgs = [(p, aid, data, struct.pack("<dIIBBBxxxxx", 0.0, aid, 0, int(m.is_extended_id), m.dlc, len(data))
+             + data + bytes(72 - len(data))) for p, aid, data, m in msgs]
+    u = {a: True for a in untimed}
+    t_k = k * dt
+    want = ideal_period(msgs, u, {}, t_k + carry, t_k, dt, bitrate, 0.0)
+    got = ideal_period(imgs, u, {}, t_k + carry, t_k, dt, bitrate, 0.0)
+    assert got[:4] == want[:4]
+    assert [(ts, m) for ts, m in got[4]] == [(ts, f[3]) for (ts, _m), f in zip(want[4], imgs)]

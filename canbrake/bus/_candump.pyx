@@ -78,7 +78,8 @@ def channel_name(channel, default):
 def write_candump(writer, list stamped, channel) -> None:
     """Write ``stamped`` — (timestamp s, frame) pairs, each line as for
     ``can.Message(timestamp=timestamp, arbitration_id, is_extended_id, is_remote_frame,
-    is_error_frame, dlc, data=frame.data, channel=channel, is_rx=True)`` — through
+    is_error_frame, dlc, data=frame.data, channel=channel, is_rx=True)`` (a frame: a
+    ``can.Message``, or its memory-bus slot image, bytes of ``canbrake.bus._slot``) — through
     ``writer`` (a ``can.CanutilsLogWriter``) in one write, its state kept as it keeps it."""
     cdef Py_ssize_t i, k, n = len(stamped)
     cdef Buf b
@@ -89,7 +90,10 @@ def write_candump(writer, list stamped, channel) -> None:
     cdef const unsigned char* d
     cdef Py_ssize_t nd, chn
     cdef object pair, m, data
-    cdef bint err
+    cdef bint err, ext, rtr
+    cdef const unsigned char* img
+    cdef unsigned int aid32
+    cdef object aid
     if n == 0:
         return
     ch = str(channel_name(channel, writer.channel)).encode("utf-8")
@@ -121,25 +125,39 @@ def write_candump(writer, list stamped, channel) -> None:
             b.n += chn
             b.p[b.n] = b' '
             b.n += 1
-            err = m.is_error_frame
+            if type(m) is bytes:  # a memory-bus slot image (canbrake.bus._slot)
+                img = <const unsigned char*>(<char*>(<bytes>m))
+                err = img[16] & 4
+                ext = img[16] & 1
+                rtr = img[16] & 2
+                memcpy(&aid32, img + 8, 4)
+                aid = aid32
+                d = img + 24
+                nd = img[18] if img[18] <= 64 else 64
+            else:
+                err = m.is_error_frame
+                ext = m.is_extended_id
+                rtr = m.is_remote_frame
+                aid = m.arbitration_id if not err else 0
+                if not rtr:
+                    data = m.data
+                    if not isinstance(data, bytes):
+                        data = bytes(data)
+                    d = <const unsigned char*>(<char*>(<bytes>data))
+                    nd = len(<bytes>data)
             if err:
                 _hex_id(&b, ERR_ID, 8)
-            elif m.is_extended_id:
-                _hex_id(&b, m.arbitration_id, 8)
+            elif ext:
+                _hex_id(&b, aid, 8)
             else:
-                _hex_id(&b, m.arbitration_id, 3)
+                _hex_id(&b, aid, 3)
             _reserve(&b, 4)
             b.p[b.n] = b'#'
             b.n += 1
-            if m.is_remote_frame:
+            if rtr:
                 b.p[b.n] = b'R'
                 b.n += 1
             else:
-                data = m.data
-                if not isinstance(data, bytes):
-                    data = bytes(data)
-                d = <const unsigned char*>(<char*>(<bytes>data))
-                nd = len(<bytes>data)
                 _reserve(&b, 2 * nd + 4)
                 for k in range(nd):
                     b.p[b.n] = HEX[d[k] >> 4]

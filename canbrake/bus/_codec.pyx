@@ -23,7 +23,7 @@ from cpython.long cimport PyLong_AsDouble, PyLong_AsLongLongAndOverflow, PyLong_
 from cpython.object cimport PyObject
 from libc.math cimport INFINITY, NAN, isfinite, isinf, isnan, rint
 from libc.stdint cimport int64_t, uint8_t, uint32_t, uint64_t
-from libc.string cimport memcpy
+from libc.string cimport memcpy, memset
 from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
 
 from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
@@ -322,6 +322,11 @@ cdef class FieldCodec:
         """The payload bytes of the little-endian fields' word ``w`` and the big-endian fields'
         word ``wb``, with the E2E CRC if protected."""
         cdef uint8_t b[8]
+        self._payload_into(w, wb, b)
+        return PyBytes_FromStringAndSize(<char*>b, self.length)
+
+    cdef void _payload_into(self, uint64_t w, uint64_t wb, uint8_t* b) noexcept:
+        """:meth:`_payload_of` written to ``b`` (``length`` bytes)."""
         cdef uint8_t crc
         cdef int i
         for i in range(self.length):
@@ -331,7 +336,6 @@ cdef class FieldCodec:
             for i in range(1, self.length):
                 crc = CRC_TABLE[crc ^ b[i]]
             b[0] |= <uint8_t>(crc ^ 0xFF)
-        return PyBytes_FromStringAndSize(<char*>b, self.length)
 
     cdef uint64_t _word(self, object data) except? 0xFFFFFFFFFFFFFFFF:
         """The payload's first 8 bytes as a little-endian word (bytes past them set bits no
@@ -578,7 +582,8 @@ DEF _HELD = 5
 DEF _ARM = 6
 DEF _SYNC = 7
 # the memory bus's slot image (feed_raw, take_batch_raw)
-from canbrake.bus._slot cimport SLOT_BYTES, DATA_OFFSET, SLOT_FLAG_EXTENDED, slot_id, slot_flags, slot_len
+from canbrake.bus._slot cimport (SLOT_BYTES, DATA_OFFSET, MAX_DATA, SLOT_FLAG_EXTENDED, slot_id, slot_flags, slot_len,
+                                slot_put)
 
 
 cdef class PeerTable:
@@ -1399,6 +1404,43 @@ cdef class SensorPages:
 
     def pack(self, list sources):
         """The pages' payloads (list of bytes, in the order given) from ``sources``."""
+        cdef list out = []
+        cdef FieldCodec codec
+        cdef int p
+        cdef uint64_t* w = <uint64_t*>PyMem_Malloc(2 * (self._npg if self._npg > 0 else 1) * sizeof(uint64_t))
+        if w is NULL:
+            raise MemoryError()
+        try:
+            self._words(sources, w)
+            for p in range(self._npg):
+                codec = self._codecs[p]
+                out.append(codec._payload_of(w[2 * p], w[2 * p + 1]))
+        finally:
+            PyMem_Free(w)
+        return out
+
+    cdef int _images(self, list sources, uint8_t* images, list ids) except -1:
+        """The pages as slot images (``_slot.slot_put``) at ``images``, one per ``SLOT_BYTES``
+        (zeroed), page i on identifier ``ids[i]``: :meth:`pack`'s payloads."""
+        cdef FieldCodec codec
+        cdef int p
+        cdef uint8_t b[8]
+        cdef uint64_t* w = <uint64_t*>PyMem_Malloc(2 * (self._npg if self._npg > 0 else 1) * sizeof(uint64_t))
+        if w is NULL:
+            raise MemoryError()
+        try:
+            self._words(sources, w)
+            for p in range(self._npg):
+                codec = self._codecs[p]
+                codec._payload_into(w[2 * p], w[2 * p + 1], b)
+                slot_put(images + p * SLOT_BYTES, <uint32_t>ids[p], b, <uint8_t>codec.length)
+        finally:
+            PyMem_Free(w)
+        return 0
+
+    cdef int _words(self, list sources, uint64_t* words) except -1:
+        """Per page its little-endian and big-endian fields' words (``words[2p]``, ``words[2p+1]``)
+        from ``sources``: the one encoding behind :meth:`pack` and :meth:`_images`."""
         cdef Py_ssize_t ns = len(sources)
         cdef double** ptr = <double**>PyMem_Malloc((ns if ns > 0 else 1) * sizeof(double*))
         cdef Py_ssize_t* length = <Py_ssize_t*>PyMem_Malloc((ns if ns > 0 else 1) * sizeof(Py_ssize_t))
@@ -1407,7 +1449,6 @@ cdef class SensorPages:
             PyMem_Free(length)
             raise MemoryError()
         cdef double[::1] view
-        cdef list out = []
         cdef FieldCodec codec
         cdef int p, i, s_
         cdef int64_t e
@@ -1451,64 +1492,104 @@ cdef class SensorPages:
                         wb |= wb_or_w
                     else:
                         w |= wb_or_w
-                out.append(codec._payload_of(w, wb))
+                words[2 * p] = w
+                words[2 * p + 1] = wb
         finally:
             PyMem_Free(ptr)
             PyMem_Free(length)
-        return out
+        return 0
 
 
 cdef class TickFrames:
     """The plant's frames of a period's start in one call: SYNC (Tick = k), REFERENCE (v*, a*),
     REFERENCE_POS (x*, if the layout has it), the plant's heartbeat (NodeState 5, when asked)
     and every sensor page (:class:`SensorPages` from the period's measurement arrays), in that
-    order, each made by ``make_frame(identifier, payload)``; the same payloads as the codecs'
-    ``encode`` of those values."""
+    order; the same payloads as the codecs' ``encode`` of those values. :meth:`images` encodes
+    them as the memory bus's slot images (``canbrake.bus._slot``), :meth:`frames` makes
+    ``can.Message`` objects of those images (``messages(images)``): one encoding for both."""
 
     cdef FieldCodec _sync, _ref, _ref_pos, _hb
-    cdef object _sync_id, _ref_id, _ref_pos_id, _hb_id
+    cdef uint32_t _sync_id, _ref_id, _ref_pos_id, _hb_id
     cdef SensorPages _pages
     cdef list _sensor_ids
     cdef tuple _arrays
-    cdef object _make
+    cdef object _messages
     cdef object _ndarray, _f64, _ascontiguous
+    cdef dict _tick_values, _ref_values, _pos_values, _hb_values
 
     def __init__(self, FieldCodec sync, sync_id, FieldCodec ref, ref_id, FieldCodec ref_pos, ref_pos_id,
-                 FieldCodec heartbeat, heartbeat_id, SensorPages pages, list sensor_ids, arrays, make_frame):
+                 FieldCodec heartbeat, heartbeat_id, SensorPages pages, list sensor_ids, arrays, messages):
         """``ref_pos`` None: no REFERENCE_POS frame; ``pages``' payloads go out on ``sensor_ids``
-        (in order); ``arrays``: the measurement names the pages read, in their source order."""
+        (in order); ``arrays``: the measurement names the pages read, in their source order;
+        ``messages(images)``: the ``can.Message`` list of slot images
+        (``canbrake.bus._ring.messages_of``)."""
+        if len(sensor_ids) != pages._npg:
+            raise ValueError(f"{len(sensor_ids)} identifiers for {pages._npg} sensor pages")
         self._sync, self._sync_id, self._ref, self._ref_id = sync, sync_id, ref, ref_id
-        self._ref_pos, self._ref_pos_id, self._hb, self._hb_id = ref_pos, ref_pos_id, heartbeat, heartbeat_id
+        self._ref_pos, self._hb, self._hb_id = ref_pos, heartbeat, heartbeat_id
+        self._ref_pos_id = 0 if ref_pos is None else ref_pos_id
         self._pages, self._sensor_ids, self._arrays = pages, list(sensor_ids), tuple(arrays)
-        self._make = make_frame
+        self._messages = messages
+        self._tick_values, self._ref_values, self._pos_values = {}, {}, {}
+        self._hb_values = {"NodeState": 5}
         import numpy as np
 
         self._ndarray, self._f64, self._ascontiguous = np.ndarray, np.dtype(np.float64), np.ascontiguousarray
 
     def frames(self, int64_t k, v_ref, a_ref, x_ref, bint heartbeat, measurements, sync_payload=None):
-        """The frames of tick ``k``: ``sync_payload`` (None: the SYNC codec's encoding of k),
-        the reference values ``v_ref``, ``a_ref``, ``x_ref`` (m/s, m/s^2, m), the heartbeat if
-        ``heartbeat``, the sensor pages from ``measurements`` (name -> per-vehicle array)."""
-        make = self._make
-        if sync_payload is None:
-            sync_payload = self._sync.encode({"Tick": k})
-        cdef list out = [make(self._sync_id, sync_payload),
-                         make(self._ref_id, self._ref.encode({"RefSpeed": v_ref, "RefDecel": a_ref}))]
-        if self._ref_pos is not None:
-            out.append(make(self._ref_pos_id, self._ref_pos.encode({"RefPosition": x_ref})))
-        if heartbeat:
-            out.append(make(self._hb_id, self._hb.encode({"NodeState": 5})))
+        """The frames of tick ``k`` as ``can.Message`` objects (:meth:`images`' arguments)."""
+        return self._messages(self.images(k, v_ref, a_ref, x_ref, heartbeat, measurements, sync_payload))
+
+    def images(self, int64_t k, v_ref, a_ref, x_ref, bint heartbeat, measurements, sync_payload=None):
+        """The frames of tick ``k`` as slot images (bytes, ``SLOT_BYTES`` each, time stamp and
+        sender token 0): ``sync_payload`` (None: the SYNC codec's encoding of k), the reference
+        values ``v_ref``, ``a_ref``, ``x_ref`` (m/s, m/s^2, m), the heartbeat if ``heartbeat``,
+        the sensor pages from ``measurements`` (name -> per-vehicle array)."""
         cdef list sources = []
         for name in self._arrays:
             arr = measurements[name]
             if type(arr) is not self._ndarray or arr.dtype is not self._f64 or not arr.flags.c_contiguous:
                 arr = self._ascontiguous(arr, dtype=float)
             sources.append(arr)
-        cdef list payloads = self._pages.pack(sources)
-        cdef Py_ssize_t i
-        for i in range(len(payloads)):
-            out.append(make(self._sensor_ids[i], payloads[i]))
+        if sync_payload is None:
+            self._tick_values["Tick"] = k
+            sync_payload = self._sync.encode(self._tick_values)
+        self._ref_values["RefSpeed"] = v_ref
+        self._ref_values["RefDecel"] = a_ref
+        cdef bytes ref = self._ref.encode(self._ref_values)
+        cdef bytes pos = None
+        if self._ref_pos is not None:
+            self._pos_values["RefPosition"] = x_ref
+            pos = self._ref_pos.encode(self._pos_values)
+        cdef bytes hb = self._hb.encode(self._hb_values) if heartbeat else None
+        cdef Py_ssize_t head = 2 + (pos is not None) + (hb is not None)
+        cdef Py_ssize_t count = head + self._pages._npg
+        cdef bytes out = PyBytes_FromStringAndSize(NULL, count * SLOT_BYTES)
+        cdef uint8_t* p = <uint8_t*>PyBytes_AS_STRING(out)
+        memset(p, 0, count * SLOT_BYTES)
+        _put_payload(p, self._sync_id, sync_payload)
+        _put_payload(p + SLOT_BYTES, self._ref_id, ref)
+        cdef Py_ssize_t at = 2
+        if pos is not None:
+            _put_payload(p + at * SLOT_BYTES, self._ref_pos_id, pos)
+            at += 1
+        if hb is not None:
+            _put_payload(p + at * SLOT_BYTES, self._hb_id, hb)
+        self._pages._images(sources, p + head * SLOT_BYTES, self._sensor_ids)
         return out
+
+
+cdef int _put_payload(uint8_t* p, uint32_t aid, object payload) except -1:
+    """``slot_put`` of a payload (bytes-like, at most 8 bytes: a classic frame)."""
+    cdef const uint8_t* s
+    cdef Py_ssize_t n
+    if not _payload(payload, &s, &n):
+        payload = bytes(payload)
+        _payload(payload, &s, &n)
+    if n > MAX_DATA:  # (more than 8: refused by the ring when sent, as a Message would be)
+        raise ValueError(f"frame 0x{aid:X}: {n} data bytes (a slot holds at most {MAX_DATA})")
+    slot_put(p, aid, s, <uint8_t>n)
+    return 0
 
 
 def quantise(values, double scale, double offset, double lo, double hi, bint scaled):

@@ -183,6 +183,29 @@ def data_frame(uint32_t arbitration_id, data) -> Message:
     return _message(0.0, arbitration_id, M_EXT if arbitration_id > 0x7FF else 0, <uint8_t>len(d), d, None, True)
 
 
+def messages_of(images) -> list:
+    """The ``can.Message`` of each slot image in ``images`` (bytes-like, ``SLOT_BYTES`` each) as
+    a node's send path makes it: its time stamp, identifier, flags, DLC and data, received, no
+    channel. Images of ``canbrake.bus._slot.slot_put`` give ``data_frame(identifier, data)``'s
+    messages: the nodes that encode their frames as images (``canbrake.bus._codec.TickFrames``)
+    hand these to buses other than the memory bus."""
+    cdef const uint8_t[::1] v = images
+    cdef Py_ssize_t k = v.shape[0] // SLOT_BYTES, i
+    cdef const uint8_t* p
+    cdef double ts
+    cdef uint32_t aid
+    cdef uint8_t ln
+    cdef list out = []
+    for i in range(k):
+        p = &v[i * SLOT_BYTES]
+        memcpy(&ts, p, 8)
+        memcpy(&aid, p + 8, 4)
+        ln = p[18] if p[18] <= MAX_DATA else MAX_DATA
+        out.append(_message(ts, aid, p[16] & 63, p[17],
+                            PyByteArray_FromStringAndSize(<const char*>p + DATA_OFFSET, ln), None, True))
+    return out
+
+
 cdef object _message(double ts, uint32_t aid, uint8_t flags, uint8_t dlc, bytearray data,
                      object channel, bint is_rx):
     """``can.Message(ts, aid, ext, rtr, err, channel, dlc, data, fd, is_rx, brs, esi)``."""
@@ -438,6 +461,41 @@ cdef class Ring:
             if ln:
                 memcpy(s + DATA_OFFSET, src, ln)
             i += 1
+        return out
+
+    def stamp(self, images, bint preserve_ts, double now) -> bytes:
+        """:meth:`encode` for frames already encoded as slot images (``canbrake.bus._slot``:
+        ``images``, bytes-like, ``SLOT_BYTES`` each): a copy with this bus's sender token, stamped
+        ``now`` (s, ``time.time()``) unless ``preserve_ts``.
+
+        :raises can.CanOperationError: too many data bytes, id out of range (as :meth:`encode`).
+        """
+        cdef const uint8_t[::1] v = images
+        cdef Py_ssize_t k = v.shape[0] // SLOT_BYTES, i
+        if v.shape[0] != k * SLOT_BYTES:
+            raise ValueError(f"{v.shape[0]} bytes are not whole slot images of {SLOT_BYTES}")
+        cdef bytes out = PyBytes_FromStringAndSize(NULL, k * SLOT_BYTES)
+        cdef char *p = PyBytes_AS_STRING(out)
+        cdef char *s
+        cdef uint32_t aid
+        cdef uint8_t ln, flags
+        if k:
+            memcpy(p, &v[0], k * SLOT_BYTES)
+        for i in range(k):
+            s = p + i * SLOT_BYTES
+            memcpy(&aid, s + 8, 4)
+            flags = <uint8_t>s[16]
+            ln = <uint8_t>s[18]
+            if ln > (MAX_DATA if flags & M_FD else 8):
+                raise CanOperationError(
+                    f"{'CAN FD' if flags & M_FD else 'classic CAN'} frame 0x{aid:X} "
+                    f"has {ln} data bytes (at most {MAX_DATA if flags & M_FD else 8})"
+                )
+            if aid > 0x1FFFFFFF:
+                raise CanOperationError(f"frame id 0x{aid:X} / dlc {<uint8_t>s[17]} out of range")
+            if not preserve_ts:
+                memcpy(s, &now, 8)
+            memcpy(s + 12, &self.token, 4)
         return out
 
     def write(self, bytes frames, int64_t w) -> int:

@@ -31,3 +31,15 @@ cdef inline uint8_t slot_flags(const uint8_t* p) noexcept nogil:
 cdef inline Py_ssize_t slot_len(const uint8_t* p) noexcept nogil:
     """The image's data length, at most ``MAX_DATA`` bytes (from ``DATA_OFFSET``)."""
     return p[18] if p[18] <= MAX_DATA else MAX_DATA
+
+
+cdef inline void slot_put(uint8_t* p, uint32_t aid, const uint8_t* data, uint8_t n) noexcept nogil:
+    """Write a classic data frame's image into the zeroed slot ``p``: identifier ``aid``
+    (extended if above 0x7FF, as ``canbrake.nodes.base.frame``), data length and DLC ``n``
+    (at most ``MAX_DATA``), its ``n`` bytes of ``data``; time stamp 0 and sender token 0 (the ring's
+    ``Ring.stamp`` sets them when it is sent)."""
+    memcpy(p + 8, &aid, 4)
+    p[16] = SLOT_FLAG_EXTENDED if aid > 0x7FF else 0
+    p[17] = n
+    p[18] = n
+    memcpy(p + DATA_OFFSET, data, n)

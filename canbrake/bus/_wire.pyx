@@ -137,14 +137,15 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
     """The recorder's accounting of one control period under ``bus.timing: ideal``.
 
     ``ordered``: the period's frames in bus order, tuples whose [1] is the identifier, [2] the
-    payload (bytes) and [3] the ``can.Message``; ``untimed`` / ``sim_control``: identifier ->
+    payload (bytes) and [3] the ``can.Message`` or its memory-bus slot image (bytes,
+    ``canbrake.bus._slot``: identifier at 8, flags at 16, DLC at 17, data at 24); ``untimed`` / ``sim_control``: identifier ->
     bool (absent = False). The frames run back to back from ``t`` (s; the bus carries over from
     the last period) with actual stuffing at ``bitrate`` (bit/s); stamps are scaled into
     ``[t_k, t_k + dt]`` when the period's wire time exceeds ``dt``.
 
     Returns ``(t_end, busy_s, n_timed, latencies, stamped)``: the bus free time, the busy time,
     the frames that take bus time, each one's latency from ``t_k`` (s, list) and
-    ``(epoch + stamp, message)`` for every frame the log holds (no barrier frames).
+    ``(epoch + stamp, message or image)`` for every frame the log holds (no barrier frames).
     """
     cdef Py_ssize_t i, n = len(ordered)
     cdef list durs = [0.0] * n
@@ -153,6 +154,7 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
     cdef bytes data
     cdef double dur, wire, scale, busy = 0.0, in_period = 0.0
     cdef bint ext, is_untimed
+    cdef Py_ssize_t dlc
     cdef int n_timed = 0
     cdef object f, msg, aid, u
     cdef list flags = [False] * n
@@ -165,12 +167,17 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
             continue
         msg = f[3]
         data = f[2]
-        ext = msg.is_extended_id
-        if len(data) != msg.dlc or not 0 <= aid <= (0x1FFFFFFF if ext else 0x7FF):
+        if type(msg) is bytes:  # a slot image (canbrake.bus._slot): flags at 16, DLC at 17
+            ext = (<const uint8_t*>(<char*>(<bytes>msg)))[16] & 1
+            dlc = (<const uint8_t*>(<char*>(<bytes>msg)))[17]
+        else:
+            ext = msg.is_extended_id
+            dlc = msg.dlc
+        if len(data) != dlc or not 0 <= aid <= (0x1FFFFFFF if ext else 0x7FF):
             # a frame frame_bits refuses: the checked path raises what it says
             from canbrake.bus.timing import frame_bits
 
-            durs[i] = frame_bits(aid, ext, msg.dlc, data, stuffing="actual") / bitrate
+            durs[i] = frame_bits(aid, ext, dlc, data, stuffing="actual") / bitrate
             continue
         durs[i] = (_plain_bits(ext, len(data)) + _stuff_bits(aid, ext, len(data), <const uint8_t*>(<char*>data),
                                                              len(data), False)) / bitrate

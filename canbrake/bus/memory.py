@@ -484,25 +484,41 @@ class MemoryBus(BusABC):
         for i in range(0, len(msgs), step):
             self._send_frames(msgs[i : i + step], timeout)
 
-    def send_burst(self, msgs: list[Message]) -> None:
+    def send_burst(self, msgs: list[Message] | bytes) -> None:
         """:meth:`send_many` of a node's frames of one phase (a list, possibly empty): the node
-        driver's path, without copying the list."""
-        if msgs:
+        driver's path, without copying the list. ``msgs`` may also be the frames as slot images
+        (bytes, ``SLOT_BYTES`` each, from a node's compiled encoder, e.g.
+        ``canbrake.bus._codec.TickFrames.images``): sent as they are, no ``Message`` made."""
+        if type(msgs) is bytes:
+            self._send_images(msgs)
+        elif msgs:
             if len(msgs) <= self._ring_n // 2:
                 self._send_frames(msgs, None)
             else:
                 self.send_many(msgs)
 
-    def _send_frames(self, msgs: Sequence[Message], timeout: Optional[float]) -> None:
+    def _send_images(self, images: bytes) -> None:
+        """Send the frames of the slot images ``images`` as one burst (split as :meth:`send_many`)."""
+        step = max(1, self._ring_n // 2) * SLOT_BYTES
+        for i in range(0, len(images), step):
+            self._send_frames((), None, images[i : i + step])
+
+    def _send_frames(self, msgs: Sequence[Message], timeout: Optional[float], images: bytes | None = None) -> None:
         if not self._open or self._forked:
             self._check_open()
         if self._state is BusState.PASSIVE:
             raise CanOperationError(f"canbrake bus {self._name!r} is passive (listen only)")
-        if not msgs:
-            return
         ring = self._ring
-        frames = ring.encode(msgs, self._preserve_ts, time.time())  # slot images; raises if malformed
-        n = len(msgs)
+        if images is not None:  # frames already encoded: this bus's token and time stamp
+            frames = ring.stamp(images, self._preserve_ts, time.time())
+            n = len(frames) // SLOT_BYTES
+            if not n:
+                return
+        else:
+            if not msgs:
+                return
+            frames = ring.encode(msgs, self._preserve_ts, time.time())  # slot images; raises if malformed
+            n = len(msgs)
         with self._txlock:  # the common case in one compiled call: nothing in the way
             rest = ring.send_fast(frames, self._peers_gen, self._bp_peers,
                                   self._pr_floor if self._pr_peers else None, self._peers, self._wake_fds)

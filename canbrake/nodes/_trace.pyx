@@ -189,8 +189,10 @@ def take_frames_raw(frames, object message, Py_ssize_t start, bint resume, dict 
                     dict phase_of, list tick_frames):
     """:func:`take_frames` for the memory bus's slot images (``MemoryBus.recv_raw``): the same
     work and result, each key read from the image; the frame kept is ``message(frames, i)``
-    (``MemoryBus.raw_message``: the ``can.Message`` the bus's ``recv`` gives), its payload bytes
-    from the image; ``i`` is the image's index."""
+    (``MemoryBus.raw_message``: the ``can.Message`` the bus's ``recv`` gives), or, ``message``
+    None, the slot image itself (bytes, ``SLOT_BYTES``: what ``_wire.ideal_period`` and
+    ``_candump.write_candump`` read as they read that message), its payload bytes from the
+    image; ``i`` is the image's index."""
     cdef const uint8_t[::1] v = frames
     cdef Py_ssize_t i, m = v.shape[0] // SLOT_BYTES, n
     cdef Py_ssize_t closed = 0
@@ -206,7 +208,8 @@ def take_frames_raw(frames, object message, Py_ssize_t start, bint resume, dict 
         if p == _SYNC_MARK:
             return i, TAKE_SYNC, closed
         n = 0 if slot_flags(q) & SLOT_FLAG_REMOTE else slot_len(q)  # a remote frame: no data
-        tick_frames.append((<object>p, aid, (<const char*>q)[DATA_OFFSET:DATA_OFFSET + n], message(frames, i)))
+        tick_frames.append((<object>p, aid, (<const char*>q)[DATA_OFFSET:DATA_OFFSET + n],
+                            (<const char*>q)[:SLOT_BYTES] if message is None else message(frames, i)))
     return m, TAKE_END, closed
 
 

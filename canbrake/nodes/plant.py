@@ -21,6 +21,7 @@ from canbrake.bus.codec import FrameCodec
 from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OUT_OF_SEQUENCE, CMD_SLOT_COMPLETE,
                                   TAKE_BATCH_END, TAKE_BATCH_OTHER, TAKE_BATCH_TICK, CommandTable, SensorPages,
                                   TickFrames)
+from canbrake.bus._ring import messages_of
 from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.nodes._trace import csv_pick_row, csv_row, hist_add_bits
@@ -28,6 +29,19 @@ from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, fram
 
 
 from canbrake.physics.contract import PlantModel  # noqa: E402  (the contract every model implements)
+
+
+def _joined(a: list[can.Message] | bytes, b: list[can.Message] | bytes) -> list[can.Message] | bytes:
+    """Frames ``a`` then ``b`` (each a list of messages or slot images): images if both are,
+    else messages (the images' made by :func:`canbrake.bus._ring.messages_of`)."""
+    if not b:
+        return a
+    if not a:
+        return b
+    if type(a) is bytes and type(b) is bytes:
+        return a + b
+    return ((messages_of(a) if type(a) is bytes else list(a))
+            + (messages_of(b) if type(b) is bytes else list(b)))
 
 
 Reference = Callable[[float], tuple[float, float]]  # t_s -> (v* m/s, a* m/s^2); may have .position(t_s) -> x* m
@@ -187,7 +201,7 @@ class PlantNode(Node):
         self._tick = TickFrames(self._sync._c, layout.sync_id, self._ref._c, layout.reference_id,
                                 None if self._ref_pos is None else self._ref_pos._c, layout.reference_pos_id,
                                 codec["HEARTBEAT_PLANT"]._c, layout.plant_heartbeat_id, self._sensor_pages,
-                                self._sensor_ids, self._sensor_arrays, frame)
+                                self._sensor_ids, self._sensor_arrays, messages_of)
         self._hb = codec["HEARTBEAT_PLANT"]
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
@@ -236,7 +250,9 @@ class PlantNode(Node):
         ids += [i for i in self._hb_of_ext if i not in ids]
         return [exact_filter(i) for i in ids]
 
-    def _tick_frames(self) -> list[can.Message]:
+    def _tick_frames(self, images: bool = False) -> list[can.Message] | bytes:
+        """The frames of tick k's start; ``images``: as the memory bus's slot images (bytes,
+        :meth:`canbrake.bus._codec.TickFrames.images`) unless a hosted source adds its frames."""
         k = self.k
         t = k * self.dt
         meas = self.model.measurements()
@@ -246,6 +262,8 @@ class PlantNode(Node):
         self._last_sync_k = k
         sync = None if self.secoc is None else sign_control(self.secoc, self.layout.sync_id,
                                                             self._sync.encode({"Tick": k}), k)
+        if images and not self.hosted:
+            return self._tick.images(k, v_ref, a_ref, x_ref, k % self.heartbeat_every == 0, meas, sync)
         out = self._tick.frames(k, v_ref, a_ref, x_ref, k % self.heartbeat_every == 0, meas, sync)
         for sp in self.hosted:
             rogue = sp.release(t)
@@ -386,12 +404,16 @@ class PlantNode(Node):
         n = len(frames) // SLOT_BYTES
         if not self._commands_close_slots():
             return super().handle_batch([message(frames, i) for i in range(n)], now)
-        return self._take_batch(self._cmd_table.take_batch_raw, frames, n, lambda i: message(frames, i), now)
+        return self._take_batch(self._cmd_table.take_batch_raw, frames, n, lambda i: message(frames, i), now,
+                                images=True)
 
-    def _take_batch(self, take_batch: Any, batch: Any, n: int, message_at: Any, now: float) -> list[can.Message]:
+    def _take_batch(self, take_batch: Any, batch: Any, n: int, message_at: Any, now: float,
+                    images: bool = False) -> list[can.Message] | bytes:
         """The ``n`` frames of ``batch`` through ``take_batch`` (the command table's compiled
-        loop), acting where it stops; ``message_at(i)``: frame i as a ``can.Message``."""
-        out: list[can.Message] = []
+        loop), acting where it stops; ``message_at(i)``: frame i as a ``can.Message``. ``images``
+        (the memory bus): the next tick's frames as slot images, no ``Message`` made (the frames
+        to send are then bytes, or a list of messages if other frames join them)."""
+        out: list[can.Message] | bytes = []
         i = 0
         while i < n:
             i, ev, r, completed, accepted = take_batch(batch, i, self.k)
@@ -402,9 +424,9 @@ class PlantNode(Node):
             if ev == TAKE_BATCH_END:
                 break
             if ev == TAKE_BATCH_TICK:
-                out += self._advance(now)
+                out = _joined(out, self._advance(now, images))
             elif ev == TAKE_BATCH_OTHER:
-                out += self.handle(message_at(i), now)
+                out = _joined(out, self.handle(message_at(i), now))
             else:  # TAKE_BATCH_RESULT: a command taken with a rejection or a counter jump
                 r = self._taken(r)
                 if r & 3 == CMD_FRESH:
@@ -412,7 +434,7 @@ class PlantNode(Node):
                     if r & CMD_SLOT_COMPLETE:
                         self._resp[slot].add(max(now - self._tick_wall, 0.0))
                     if not self._done >> slot & 1 and self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
-                        out += self._slot_done(slot, now)
+                        out = _joined(out, self._slot_done(slot, now))
             if self.finished:
                 break
             i += 1
@@ -523,7 +545,9 @@ class PlantNode(Node):
             cmds.setdefault(name, np.full(self.n, np.nan))[veh] = value
         return cmds
 
-    def _advance(self, now: float) -> list[can.Message]:
+    def _advance(self, now: float, images: bool = False) -> list[can.Message] | bytes:
+        """End the tick: apply the commands, step the model, and return the next tick's frames
+        (``images``: as slot images, :meth:`_tick_frames`) or the END frame."""
         self._ext_deadline = None
         if not self._cmd_table.all_fresh():  # (most periods: every ECU's commands came)
             missed = np.flatnonzero(~self._fresh)
@@ -561,7 +585,7 @@ class PlantNode(Node):
                 self.stats.wall_time_s = now - self._t_start_wall
             return self._end_frames()
         self._tick_wall = now
-        out = self._tick_frames()
+        out = self._tick_frames(images)
         self._arm_external(now)
         return out
 

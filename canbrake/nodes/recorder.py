@@ -319,8 +319,17 @@ class RecorderNode(Node):
         n = len(frames) // SLOT_BYTES
         if self.mode == "realtime":
             return self.handle_batch([message(frames, i) for i in range(n)], now)
-        return self._take(lambda batch, *a: take_frames_raw(batch, message, *a), frames, n,
+        # the period's frames kept as their slot images (no Message each) where only the ideal
+        # accounting and the candump text read them (_wire.ideal_period, _candump.write_candump)
+        keep = None if self._images_kept() else message
+        return self._take(lambda batch, *a: take_frames_raw(batch, keep, *a), frames, n,
                           lambda i: message(frames, i))
+
+    def _images_kept(self) -> bool:
+        """Whether a period's frames may be kept as slot images: no segments, timing model or
+        error frames (which read messages), and the log candump -L or none."""
+        return (self.net is None and self.wire_model is None and self.timing is None
+                and (self._writer is None or type(self._writer) is can.CanutilsLogWriter))
 
     def _take(self, take: Any, batch: Any, n: int, message_at: Any) -> list[can.Message]:
         """The ``n`` frames of ``batch`` (lockstep) through ``take`` (the compiled loop), back here
