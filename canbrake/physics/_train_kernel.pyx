@@ -66,6 +66,20 @@ cdef inline double _envelope_n(const double* e, double v_mps) noexcept nogil:
     return 1000.0 * (e[5] / v)
 
 
+cdef inline double _disturbance(const double[::1] start, const double[::1] end, const double[::1] w,
+                                const double[::1] ph, const double[:, ::1] off, const double[:, ::1] amp,
+                                Py_ssize_t i, double t) noexcept nogil:
+    """The disturbance events' force on car ``i`` at ``t`` (N): the sum over the events active at
+    ``t`` (``start`` <= t < ``end``) of off + amp·sin(w (t − start) + ph) (libm ``sin``, as
+    ``math.sin``); shared by both kernels' loops."""
+    cdef double ext = 0.0
+    cdef Py_ssize_t k
+    for k in range(start.shape[0]):
+        if start[k] <= t < end[k]:
+            ext = ext + off[k, i] + amp[k, i] * sin(w[k] * (t - start[k]) + ph[k])
+    return ext
+
+
 cdef class CoupledKernel:
     """The constant parameters of a coupled train (or a stack of P of them) in C, and its step.
 
@@ -338,12 +352,8 @@ cdef class CoupledKernel:
                     elif self.has_grade:
                         f = f + self.grade.p[p * self.grade.step + i]
                     if self.n_dist:
-                        ext = 0.0
-                        for k in range(self.n_dist):
-                            if self.d_start[k] <= t < self.d_end[k]:
-                                ext = ext + self.d_off[k, i] + self.d_amp[k, i] * sin(
-                                    self.d_w[k] * (t - self.d_start[k]) + self.d_ph[k])
-                        f = f + ext
+                        f = f + _disturbance(self.d_start, self.d_end, self.d_w, self.d_ph, self.d_off, self.d_amp,
+                                             i, t)
                     # dissipative forces: brake + resistance, Coulomb-like
                     vi = v[i]
                     speed = fabs(vi)
@@ -701,12 +711,8 @@ cdef class EquippedKernel:
                     if self.unc != 0.0:
                         fc = fc * unc1
                     if self.n_dist:
-                        ext = 0.0
-                        for k in range(self.n_dist):
-                            if self.d_start[k] <= t < self.d_end[k]:
-                                ext = ext + self.d_off[k, i] + self.d_amp[k, i] * sin(
-                                    self.d_w[k] * (t - self.d_start[k]) + self.d_ph[k])
-                        fc = fc + ext
+                        fc = fc + _disturbance(self.d_start, self.d_end, self.d_w, self.d_ph, self.d_off, self.d_amp,
+                                               i, t)
                     if self.has_li_dist:
                         if self.li_on[i] != 0.0:
                             acc = self.li_c0 + self.li_c1 * s1 + self.li_c2 * cb[i] * (s2 + c3)
