@@ -454,3 +454,23 @@ def test_stamp_rejects_malformed_images_as_encode(pair):
         tx._ring.stamp(img, False, 0.0)
     with pytest.raises(ValueError, match="not whole slot images"):
         tx._ring.stamp(bytes(95), False, 0.0)
+
+
+def test_recv_raw_sleeps_to_its_deadline_not_to_the_next_whole_millisecond():
+    """A node's timed wait (a realtime plant's period timer, an ECU's compute deadline) ends at
+    the deadline itself: a 0.2 ms wait on a quiet bus never lasts a whole millisecond, as poll's
+    millisecond timeout made it (a 1 ms period missed by the rounding alone). The shortest of
+    several waits is compared, so a loaded machine (which only lengthens waits) cannot fail it
+    unless it lengthens every one."""
+    import time
+
+    bus = can.Bus(interface="canbrake", channel=_chan(), yield_before_sleep=False)
+    try:
+        waits = []
+        for _ in range(25):
+            t0 = time.perf_counter()
+            assert bus.recv_raw(0.0002) == b""
+            waits.append(time.perf_counter() - t0)
+        assert 0.0002 <= min(waits) < 0.0009, waits
+    finally:
+        bus.shutdown()

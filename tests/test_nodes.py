@@ -373,3 +373,22 @@ def test_frame_is_the_message_python_can_would_make():
                 assert type(got.data) is bytearray and (got.data is data) == (want.data is data)
     finally:
         _ring.fast_messages(before)
+
+
+@pytest.mark.parametrize("mode", ["lockstep", "realtime"])
+def test_nodes_ask_the_bus_to_wake_them_once_a_phase_in_both_modes(mode):
+    """The plant sleeps until every ECU's command pages have come, an ECU in phase 1 until each
+    listened peer's state has come (in realtime too, where the period's timer or the compute
+    deadline ends a wait for frames that do not come), instead of being woken at each frame."""
+    from canbrake.build import build_node
+
+    scn = load_scenario(CASE1, overrides={"mode": mode, "duration_s": 0.1})
+    plant = build_node(scn, "plant", run_dir=None)
+    first = plant.start(0.0)
+    assert plant.frames_wanted() == scn.n_ecus  # one command page per ECU in Chen case 1
+    ecu = build_node(scn, "ecu", car=1, run_dir=None)
+    ecu.start(0.0)
+    assert ecu.frames_wanted() == 1  # waiting for SYNC
+    ecu.handle_batch(first, 0.0)
+    assert ecu.phase == 1 and len(ecu._listened) >= 1
+    assert ecu.frames_wanted() == len(ecu._listened)

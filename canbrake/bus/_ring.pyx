@@ -29,7 +29,6 @@ from cpython.object cimport PyObject
 from cpython.ref cimport Py_INCREF
 from libc.stdint cimport uint8_t, uint32_t, uint64_t, int64_t
 from libc.stdlib cimport malloc, free
-from libc.math cimport ceil
 from libc.string cimport memcpy, memset, memmove, strerror
 from libc.errno cimport errno, EINTR, EAGAIN
 from posix.unistd cimport read as c_read, write as c_write
@@ -63,6 +62,8 @@ cdef extern from "<poll.h>" nogil:
         short events
         short revents
     int poll(pollfd *fds, unsigned long nfds, int timeout)
+    # (Linux, _GNU_SOURCE as Python.h sets it): a timeout in ns, where poll's is whole ms
+    int ppoll(pollfd *fds, unsigned long nfds, const timespec *tmo_p, const void *sigmask)
     short POLLIN
 
 cdef extern from "<sched.h>" nogil:
@@ -814,19 +815,28 @@ cdef class Ring:
         cdef char *e = self.mem + self.e_off
         cdef bint got_byte = False, events
         cdef pollfd pfd
-        cdef int r, ms
+        cdef int r
         cdef double left
+        cdef timespec tmo
+        cdef timespec *tp
         while True:
             if deadline < 0:
-                ms = -1
+                tp = NULL
             else:
                 left = deadline - _monotonic()
                 if left <= 0:
                     break
-                ms = <int>ceil(left * 1000)
+                # to the deadline itself: poll's whole milliseconds would wake a realtime node up
+                # to 1 ms late (a 0.3 ms wait rounded up to 1 ms: a missed 1 ms period)
+                tmo.tv_sec = <long>left
+                tmo.tv_nsec = <long>((left - <double>tmo.tv_sec) * 1e9) + 1
+                if tmo.tv_nsec >= 1000000000:
+                    tmo.tv_sec += 1
+                    tmo.tv_nsec -= 1000000000
+                tp = &tmo
             pfd.fd, pfd.events, pfd.revents = self.rx_fd, POLLIN, 0
             with nogil:
-                r = poll(&pfd, 1, ms)
+                r = ppoll(&pfd, 1, tp, NULL)
             if r < 0:
                 if errno != EINTR:
                     _os_error()

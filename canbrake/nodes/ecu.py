@@ -304,10 +304,11 @@ class EcuNode(Node):
             self._expire_candidates()
 
     def frames_wanted(self) -> int:
-        """Lockstep, waiting for peers whose state frames are sure to come (no barrier frames, no
-        receive links, no SecOC, no external peer): one frame at least from each listened ECU not
-        complete yet; else 1."""
-        if (self.phase != 1 or self.mode != "lockstep" or self.barrier or self.rx_path is not None
+        """Waiting for peers' state frames (phase 1) with nothing but those frames completing a
+        peer (no barrier frames, no receive links, no SecOC, no external peer): one frame at least
+        from each listened ECU not complete yet (realtime too: there the compute deadline ends the
+        wait for frames that do not come), so the ECU is woken once, not at each peer; else 1."""
+        if (self.phase != 1 or self.barrier or self.rx_path is not None
                 or self.secoc is not None or self._has_ext):
             return 1
         return max(1, self._peers.not_done())

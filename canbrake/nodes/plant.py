@@ -378,9 +378,12 @@ class PlantNode(Node):
                 and not self._unheard and self._start_deadline is None)
 
     def frames_wanted(self) -> int:
-        """The command pages still missing this tick, when they are sure to come (see
-        :meth:`_commands_close_slots`); else 1."""
-        if self.finished or not self._commands_close_slots():
+        """The command pages still missing this tick, when nothing but the commands closes an
+        ECU's slot (see :meth:`_commands_close_slots`; in realtime too: there the period's
+        timer ends the wait for pages that do not come), so the plant is woken once a period,
+        not at each ECU's command; else 1."""
+        if (self.finished or self.secoc is not None or self.barrier or self._ext_mask or self._unheard
+                or self._start_deadline is not None):
             return 1
         return max(1, self._n_pages - self._cmd_table.fresh_total())
 
