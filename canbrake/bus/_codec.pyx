@@ -26,6 +26,8 @@ from libc.stdint cimport int64_t, uint8_t, uint32_t, uint64_t
 from libc.string cimport memcpy, memset
 from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
 
+import numpy as np
+
 from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
 
 cdef extern from "Python.h":
@@ -663,8 +665,6 @@ cdef class PeerTable:
     def __init__(self, int n, signal_names, listened, int64_t max_lag, external=()):
         """``listened``: the ECU indices (0-based) this ECU listens to, ``external`` those of
         them that are external ECUs."""
-        import numpy as np
-
         self.n = n
         self.values = {nm: np.full(n, np.nan) for nm in signal_names}
         cdef double[::1] speed
@@ -1031,8 +1031,6 @@ cdef class PeerTable:
         entry 0; inf for an ECU never heard whose speed, in ``speed`` (float64, (n,); None: the
         table's ``speed_mps``), is unknown), the ECUs with a value of this tick (own included) and
         the oldest finite age (-inf: none)."""
-        import numpy as np
-
         cdef const double[::1] sv
         cdef const double* sp = self._speed
         if speed is not None or sp is NULL:
@@ -1383,8 +1381,6 @@ cdef class SensorPages:
 
     def __init__(self, pages):
         """``pages``: per page (FieldCodec, [(signal name, source index or -1 for 0.0, element)])."""
-        import numpy as np
-
         self._codecs = []
         src = np.full((max(len(pages), 1), MAX_FIELDS), SRC_NONE, dtype=np.intc)
         elem = np.zeros((max(len(pages), 1), MAX_FIELDS), dtype=np.int64)
@@ -1532,8 +1528,6 @@ cdef class TickFrames:
         self._messages = messages
         self._tick_values, self._ref_values, self._pos_values = {}, {}, {}
         self._hb_values = {"NodeState": 5}
-        import numpy as np
-
         self._ndarray, self._f64, self._ascontiguous = np.ndarray, np.dtype(np.float64), np.ascontiguousarray
 
     def frames(self, int64_t k, v_ref, a_ref, x_ref, bint heartbeat, measurements, sync_payload=None):
@@ -1599,8 +1593,6 @@ def quantise(values, double scale, double offset, double lo, double hi, bint sca
     the offset is 0, ``rint(v)`` unscaled) saturated to [lo, hi], decoded as raw * scale + offset
     (raw unscaled). A raw value that overflows to infinity raises OverflowError, as the codec
     does. Returns a new float array of the shape of ``values``."""
-    import numpy as np
-
     src = np.ascontiguousarray(values, dtype=np.float64)
     out = np.empty_like(src)
     cdef double[::1] a = src.reshape(-1)
