@@ -378,7 +378,14 @@ class BatchEngine:
         else:
             w = i = j = k = np.zeros(0, dtype=np.int64)
             r = np.zeros(0)
-        order = np.lexsort((k, r, j, i, w))  # by window, point, sender, release time, origin
+        # by window, point, sender, release time, origin: the parts come point by point, sender by
+        # sender, origin by origin, so a stable sort by release time and then a stable sort by
+        # (window, point, sender) as one integer give lexsort((k, r, j, i, w))'s order (two keys
+        # sorted instead of five)
+        order = np.argsort(r, kind="stable")
+        n_pt, n_snd = (int(i.max()) + 1, int(j.max()) + 1) if w.size else (1, 1)
+        key = (w[order].astype(np.int64) * n_pt + i[order]) * n_snd + j[order]
+        order = order[np.argsort(key, kind="stable")]
         w, i, j, k = w[order], i[order], j[order], k[order]
         new = np.ones(w.size, dtype=bool)
         new[1:] = (w[1:] != w[:-1]) | (i[1:] != i[:-1]) | (j[1:] != j[:-1])
@@ -729,12 +736,15 @@ def _write_csv(path: Path, header: list[str], rows: np.ndarray, last_int: bool =
     """Rows written as canbrake.nodes.base.CsvTrace writes them: the tick (first column; with
     ``last_int`` also the last) as an integer, floats with 9 significant digits."""
     import csv
+    import io
 
-    from canbrake.nodes._trace import csv_block
+    from canbrake._batch import csv_bytes
 
-    with open(path, "w", newline="") as f:
-        csv.writer(f).writerow(header)
-        f.write(csv_block(np.ascontiguousarray(rows, dtype=float), last_int))
+    head = io.StringIO(newline="")
+    csv.writer(head).writerow(header)
+    with open(path, "wb") as f:
+        f.write(head.getvalue().encode())
+        f.write(csv_bytes(np.ascontiguousarray(rows, dtype=float), last_int))
 
 
 def run_batch(scns: Sequence[Scenario], run_dirs: Sequence[str | Path | None]) -> list[dict[str, Any]]:
