@@ -1,6 +1,6 @@
-"""canbrake._batch.csv_bytes (the batch engine's traces, compiled) against the text it replaces,
-canbrake.nodes._trace.csv_block, and against csv.writer with "%.9g" floats; its fast "%.9g"
-(canbrake._batch.g9) against Python's, also on near-ties and powers of ten."""
+"""canbrake._batch.csv_bytes (the batch engine's traces, compiled) against Python's "%d" / "%.9g"
+text and csv.writer with "%.9g" floats; its fast "%.9g" (canbrake._batch.g9) against Python's,
+also on near-ties and powers of ten."""
 from __future__ import annotations
 
 import csv
@@ -10,7 +10,17 @@ import numpy as np
 import pytest
 
 from canbrake._batch import csv_bytes, g9
-from canbrake.nodes._trace import csv_block
+
+
+def csv_block(rows: np.ndarray, last_int: bool = False) -> str:
+    """The reference: the first column (and with ``last_int`` the last) as ``"%d" % int(v)``,
+    the others as ``"%.9g" % v``, csv lines ending ``\\r\\n``."""
+    lines = []
+    for r in rows.tolist():
+        cells = [("%d" % int(v)) if j == 0 or (last_int and j == len(r) - 1) else "%.9g" % v
+                 for j, v in enumerate(r)]
+        lines.append(",".join(cells) + "\r\n")
+    return "".join(lines)
 
 
 def _rows(seed: int, n: int, m: int) -> np.ndarray:

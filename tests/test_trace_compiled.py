@@ -60,8 +60,9 @@ finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.flo
 @settings(max_examples=300, deadline=None)
 @given(st.integers(0, 6), st.integers(2, 8), st.booleans(), st.data())
 def test_block_equals_percent_formatting(n, m, last_int, data):
-    """csv_block (the batch engine's traces) against the "%d" / "%.9g" formatting it replaced."""
-    from canbrake.nodes._trace import csv_block
+    """csv_bytes (the batch engine's traces, canbrake._batch) against the "%d" / "%.9g" formatting
+    it replaced."""
+    from canbrake._batch import csv_bytes
 
     rows = np.array([[float(data.draw(st.integers(0, 10**9)))]
                      + [data.draw(finite_or_not) for _ in range(m - 2)]
@@ -71,7 +72,7 @@ def test_block_equals_percent_formatting(n, m, last_int, data):
     if last_int:
         cells[-1] = "%d"
     fmt = ",".join(cells) + "\r\n"
-    assert csv_block(rows, last_int) == "".join(fmt % tuple(r) for r in rows.tolist())
+    assert csv_bytes(rows, last_int).decode("ascii") == "".join(fmt % tuple(r) for r in rows.tolist())
 
 
 def test_csv_dict_row_is_csv_row_of_the_values_by_name():

@@ -31,14 +31,6 @@ cdef type NP_BOOL = np.bool_
 cdef object _F64_DTYPE = np.dtype(np.float64)
 
 
-cdef str _g9(double x):
-    cdef char* s = PyOS_double_to_string(x, b'g', 9, 0, NULL)
-    try:
-        return s.decode("ascii")
-    finally:
-        PyMem_Free(s)
-
-
 def csv_dict_row(list head, dict values, tuple names, object default, list tail):
     """``csv_row(head + [values.get(n, default) for n in names] + tail)`` without the list."""
     cdef list row = list(head)
@@ -103,27 +95,6 @@ def csv_row(list row):
         return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
     finally:
         PyMem_Free(buf)
-
-
-def csv_block(double[:, :] rows, bint last_int=False):
-    """The rows of a float array as csv lines (``\r\n``): the first column (and with
-    ``last_int`` also the last) as ``"%d" % v``, the others as ``"%.9g" % v`` (the batch engine's
-    traces, canbrake.batch; the same text as CsvTrace's rows)."""
-    cdef Py_ssize_t i, j, n = rows.shape[0], m = rows.shape[1]
-    cdef list lines = [None] * n
-    cdef list parts = [None] * m
-    cdef double x
-    for i in range(n):
-        for j in range(m):
-            x = rows[i, j]
-            if j == 0 or (last_int and j == m - 1):
-                if x != x:
-                    raise ValueError("cannot convert float NaN to integer")
-                parts[j] = int.__repr__(int(x))
-            else:
-                parts[j] = _g9(x)
-        lines[i] = ",".join(parts)
-    return "\r\n".join(lines) + ("\r\n" if n else "")
 
 
 def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo, double log_ratio):
