@@ -81,10 +81,13 @@ def _children() -> set[int]:
         return set()
 
 
-def test_floor_runs_plant_and_ecu_processes_over_the_memory_bus_and_reaps_them():
+def test_floor_runs_plant_and_ecu_processes_over_the_memory_bus_and_reaps_them(monkeypatch):
     from canbrake.bus.memory_shm import list_channels
     from canbrake.floor import run_floor
 
+    # no yield before a blocking wait: with it, four processes kept runnable by a busy machine can
+    # find every frame there after their yield for all 0.2 s and never block (0 sleeps, seen once)
+    monkeypatch.setenv("CANBRAKE_MEMORY_YIELD", "0")
     before = set(list_channels())
     res = run_floor(3, 0.2)
     assert res["status"] == "ok", res
