@@ -371,19 +371,22 @@ class PlantNode(Node):
                 return self._slot_done(slot, now)
         return []
 
-    def _commands_close_slots(self) -> bool:
-        """Lockstep where nothing but the commands themselves closes an ECU's slot (no SecOC, no
-        barrier frames, no external ECU, started): every page of every ECU comes each tick."""
-        return (self.secoc is None and self.mode == "lockstep" and not self.barrier and not self._ext_mask
+    def _only_commands_close(self) -> bool:
+        """Nothing but the commands themselves closes an ECU's slot (no SecOC, no barrier frames, no
+        external ECU, started): every page of every ECU is due each tick."""
+        return (self.secoc is None and not self.barrier and not self._ext_mask
                 and not self._unheard and self._start_deadline is None)
+
+    def _commands_close_slots(self) -> bool:
+        """:meth:`_only_commands_close` in lockstep (the compiled command loop's case)."""
+        return self.mode == "lockstep" and self._only_commands_close()
 
     def frames_wanted(self) -> int:
         """The command pages still missing this tick, when nothing but the commands closes an
-        ECU's slot (see :meth:`_commands_close_slots`; in realtime too: there the period's
-        timer ends the wait for pages that do not come), so the plant is woken once a period,
-        not at each ECU's command; else 1."""
-        if (self.finished or self.secoc is not None or self.barrier or self._ext_mask or self._unheard
-                or self._start_deadline is not None):
+        ECU's slot (:meth:`_only_commands_close`; in realtime too: there the period's timer ends
+        the wait for pages that do not come), so the plant is woken once a period, not at each
+        ECU's command; else 1."""
+        if self.finished or not self._only_commands_close():
             return 1
         return max(1, self._n_pages - self._cmd_table.fresh_total())
 
