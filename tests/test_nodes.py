@@ -392,3 +392,25 @@ def test_nodes_ask_the_bus_to_wake_them_once_a_phase_in_both_modes(mode):
     ecu.handle_batch(first, 0.0)
     assert ecu.phase == 1 and len(ecu._listened) >= 1
     assert ecu.frames_wanted() == len(ecu._listened)
+
+
+def test_realtime_plant_sends_its_period_as_slot_images_where_the_driver_takes_them():
+    """On the memory bus (``sends_images``, set by the node driver) the realtime plant's timer returns
+    the next period's frames as slot images, no ``can.Message`` each: the same frames, in the same
+    order, as the list it returns elsewhere."""
+    from canbrake.build import build_node
+    from canbrake.bus._ring import messages_of
+    from canbrake.bus.memory_shm import SLOT_BYTES
+
+    scn = load_scenario(CASE1, overrides={"mode": "realtime", "duration_s": 0.1})
+    got = {}
+    for images in (False, True):
+        plant = build_node(scn, "plant", run_dir=None)
+        plant.sends_images = images
+        plant.start(100.0)
+        got[images] = plant.on_timer(plant.next_deadline())
+        assert plant.k == 1
+    assert type(got[False]) is list and type(got[True]) is bytes
+    assert len(got[True]) == len(got[False]) * SLOT_BYTES
+    assert [(m.arbitration_id, bytes(m.data)) for m in messages_of(got[True])] == \
+           [(m.arbitration_id, bytes(m.data)) for m in got[False]]

@@ -117,6 +117,10 @@ class Node(ABC):
     #: the node whose end is the end of the run (the plant): once it has finished, a driver ends
     #: the others that are still waiting (e.g. for an END frame they would not trust)
     time_master: bool = False
+    #: set by the memory bus's node driver (:func:`canbrake.nodes.driver.drive`), whose send
+    #: takes a burst as slot images (bytes) too: a node may then return its frames that way
+    #: from :meth:`on_timer` as well as from ``handle_raw`` (no ``can.Message`` made for them)
+    sends_images: bool = False
 
     def filters(self) -> list[dict[str, Any]] | None:
         """python-can filters for the frames this node needs (None = all)."""

@@ -128,7 +128,9 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
         recv = recv_raw
         def handle(frames: Sequence[Any], now: float) -> list[can.Message]:  # noqa: E306
             return handle_raw(frames, now, message)
-        send = getattr(bus, "send_burst", None) or (lambda msgs: _send_all(bus, msgs))
+        send_burst = getattr(bus, "send_burst", None)
+        send = send_burst or (lambda msgs: _send_all(bus, msgs))
+        node.sends_images = send_burst is not None
     else:
         if recv_batch is None:
             def recv_batch(timeout: float | None, min_frames: int = 1,

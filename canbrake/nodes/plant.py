@@ -492,7 +492,7 @@ class PlantNode(Node):
             return None
         return self._t0_wall + (self.k + 1) * self.dt / self.time_scale
 
-    def on_timer(self, now: float) -> list[can.Message]:
+    def on_timer(self, now: float) -> list[can.Message] | bytes:
         if self.finished:
             return []
         if self._start_deadline is not None:
@@ -526,7 +526,7 @@ class PlantNode(Node):
             # gets its full length and simulated time falls behind the wall clock by `slipped_s`
             self._t0_wall += lateness
             self.stats.slipped_s += lateness
-        return self._advance(now)
+        return self._advance(now, self.sends_images)  # (the SYNC burst as slot images on the memory bus)
 
     def _applied_commands(self) -> dict[str, np.ndarray]:
         """The commands each vehicle's equipment applies this tick: the newest command, or the
