@@ -127,7 +127,8 @@ def test_plant_handle_raw_equals_handle_batch_with_a_rejected_command():
 
 def test_recorder_handle_raw_equals_handle_batch(tmp_path):
     """The recorder fed slot images (RecorderNode.handle_raw) logs and counts what it does fed
-    messages: the same frames.log bytes and counts, a frame outside the database included."""
+    messages: the same frames.log bytes and counts, a frame outside the database and a remote
+    frame included."""
     from canbrake.build import build_node
     from canbrake.scenario import load_scenario
 
@@ -151,6 +152,8 @@ def test_recorder_handle_raw_equals_handle_batch(tmp_path):
     try:
         frames = plant.start(0.0)
         stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
+        # a remote frame asks for 2 bytes and carries none: its bits without a data field
+        remote = can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, is_remote_frame=True, dlc=2)
         for _ in range(3):  # tick 0 and 1: the plant's frames, the ECUs' phases, its next tick
             period = list(frames)
             for _phase in range(4):
@@ -159,7 +162,7 @@ def test_recorder_handle_raw_equals_handle_batch(tmp_path):
                     nxt += e.handle_batch(list(frames), 0.0)
                 period += nxt
                 frames = nxt
-            period.append(stray)
+            period += [stray, remote]
             frames = plant.handle_batch([m for m in period if m.arbitration_id in plant._cmd_pages], 0.0)
             a.handle_batch(list(period), 0.0)
             b.handle_raw(bus._ring.encode(period, True, 0.0), 0.0, bus.raw_message)
@@ -222,4 +225,70 @@ def test_take_frames_raw_equals_take_frames():
         assert sum(e[1] == 1 for e in ref[3]) == 2 and ref[3][-1][1] == 0  # two SYNCs, then the end
         assert take_frames_raw(b"", bus.raw_message, 0, False, {}, set(), 0x010, {}, []) == (0, 0, 0)
     finally:
+        bus.shutdown()
+
+
+def test_realtime_recorder_handle_raw_equals_handle_batch(tmp_path):
+    """The realtime recorder fed slot images (RecorderNode.handle_raw: the frames between SYNCs in
+    compiled loops) logs, counts and loads the bus as it does fed messages: the same frames.log
+    bytes (the senders' time stamps, ``now`` for a frame without one), counts, error frames and
+    per-period bits, with a frame outside the database, a remote frame and error frames among them."""
+    from canbrake.build import build_node
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
+    rt = load_scenario("scenarios/chen2023_case1_fine_rail.yaml", overrides={"mode": "realtime"})
+    ch = f"recrt-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    plant = build_node(scn, "plant", run_dir=None)
+    ecus = []
+    for c in range(1, 7):
+        e = build_node(scn, "ecu", car=c, run_dir=None)
+        e.start(0.0)
+        ecus.append(e)
+    recs = []
+    for name in ("a", "b"):
+        r = build_node(rt, "recorder", run_dir=None)
+        assert r.mode == "realtime"
+        r.log_path = tmp_path / name / "frames.log"
+        r.log_path.parent.mkdir()
+        r.start(0.0)
+        recs.append(r)
+    a, b = recs
+    bus = can.Bus(interface="canbrake", channel=ch)
+    loads = []
+    try:
+        frames = plant.start(0.0)
+        t = 1000.0
+        for tick in range(4):
+            period = list(frames)
+            for _phase in range(4):
+                nxt = []
+                for e in ecus:
+                    nxt += e.handle_batch(list(frames), 0.0)
+                period += nxt
+                frames = nxt
+            period += [can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False),
+                       can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, is_remote_frame=True, dlc=2),
+                       can.Message(arbitration_id=0x0, is_error_frame=True, data=bytes(8))]
+            for i, m in enumerate(period):
+                m.timestamp = 0.0 if i % 7 == 3 else t + i * 1e-5  # some without a time stamp
+            t += 0.001
+            frames = plant.handle_batch([m for m in period if m.arbitration_id in plant._cmd_pages], 0.0)
+            half = len(period) // 2  # two receives a period, a SYNC in the first
+            now = 2000.0 + tick
+            for part in (period[:half], period[half:]):
+                a.handle_batch([can.Message(**{s: getattr(m, s) for s in (
+                    "timestamp", "arbitration_id", "is_extended_id", "is_remote_frame", "is_error_frame", "dlc",
+                    "data")}) for m in part], now)
+                b.handle_raw(bus._ring.encode(part, True, 0.0), now, bus.raw_message)
+            assert a._counts == b._counts and a.error_frames == b.error_frames and a._rt_bits == b._rt_bits
+            loads.append(b._series.n)
+        assert loads[-1] >= 3 and a._series.sum == b._series.sum and a._series.peak == b._series.peak
+        for r in recs:
+            r.close()
+        log_a = (tmp_path / "a" / "frames.log").read_bytes()
+        assert log_a == (tmp_path / "b" / "frames.log").read_bytes()
+        assert log_a.count(b"\n") > 40 and b"(2001.000000)" in log_a and b"R\n" in log_a
+    finally:
+        plant.close()
         bus.shutdown()

@@ -13,6 +13,9 @@ multiply-add), so stamps and bus loads are bit-identical to the interpreter's ar
 """
 from libc.stdint cimport uint8_t, uint16_t, uint32_t
 
+from canbrake.bus._slot cimport (SLOT_BYTES, DATA_OFFSET, SLOT_FLAG_EXTENDED, SLOT_FLAG_REMOTE, SLOT_FLAG_ERROR, slot_id,
+                                 slot_flags, slot_len)
+
 cdef uint16_t CRC_TABLE[256]     # byte-wise MSB-first CRC-15 (poly 0x4599)
 cdef uint8_t STUFF_N[16][256]    # stuff bits a byte adds from state (last level * 8 + run)
 cdef uint8_t STUFF_NEXT[16][256]  # ... and the state after it
@@ -132,6 +135,42 @@ cdef int _plain_bits(bint ext, int n_data) noexcept nogil:
     return (54 if ext else 34) + 8 * n_data + 13
 
 
+def timed_bits_raw(frames, Py_ssize_t start, Py_ssize_t stop, dict untimed):
+    """Bits on the wire, actual stuffing, of the memory bus's slot images ``start .. stop-1`` of
+    ``frames`` (``canbrake.bus._slot``), leaving out error frames and the identifiers ``untimed``
+    marks (identifier -> bool, absent = False): the realtime recorder's bus load, what
+    ``timing.frame_bits(..., stuffing="actual")`` gives summed over those frames' messages."""
+    cdef const uint8_t[::1] v = frames
+    cdef Py_ssize_t i, ln
+    cdef const uint8_t* q
+    cdef uint32_t aid32
+    cdef bint ext, rtr
+    cdef int dlc
+    cdef object u
+    total = 0
+    for i in range(start, stop):
+        q = &v[i * SLOT_BYTES]
+        if slot_flags(q) & SLOT_FLAG_ERROR:  # an error frame: no frame on the wire
+            continue
+        aid32 = slot_id(q)
+        u = untimed.get(aid32)
+        if u is not None and u:
+            continue
+        ext = slot_flags(q) & SLOT_FLAG_EXTENDED
+        dlc = q[17]
+        ln = slot_len(q)
+        rtr = slot_flags(q) & SLOT_FLAG_REMOTE
+        if rtr or ln != dlc or aid32 > (0x1FFFFFFF if ext else 0x7FF):
+            # a remote frame, or a frame the compiled count does not cover: the checked path
+            from canbrake.bus.timing import frame_bits
+
+            total += frame_bits(aid32, ext, dlc, b"" if rtr else bytes((<const char*>q)[DATA_OFFSET:DATA_OFFSET + ln]),
+                                stuffing="actual", is_remote=rtr)
+            continue
+        total += _plain_bits(ext, ln) + _stuff_bits(aid32, ext, ln, q + DATA_OFFSET, ln, False)
+    return total
+
+
 def ideal_period(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
                  double bitrate, double epoch):
     """The recorder's accounting of one control period under ``bus.timing: ideal``.
@@ -153,7 +192,7 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
     cdef list out = []
     cdef bytes data
     cdef double dur, wire, scale, busy = 0.0, in_period = 0.0
-    cdef bint ext, is_untimed
+    cdef bint ext, rtr, is_untimed
     cdef Py_ssize_t dlc
     cdef int n_timed = 0
     cdef object f, msg, aid, u
@@ -168,16 +207,18 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
         msg = f[3]
         data = f[2]
         if type(msg) is bytes:  # a slot image (canbrake.bus._slot): flags at 16, DLC at 17
-            ext = (<const uint8_t*>(<char*>(<bytes>msg)))[16] & 1
+            ext = slot_flags(<const uint8_t*>(<char*>(<bytes>msg))) & SLOT_FLAG_EXTENDED
+            rtr = slot_flags(<const uint8_t*>(<char*>(<bytes>msg))) & SLOT_FLAG_REMOTE
             dlc = (<const uint8_t*>(<char*>(<bytes>msg)))[17]
         else:
             ext = msg.is_extended_id
+            rtr = msg.is_remote_frame
             dlc = msg.dlc
-        if len(data) != dlc or not 0 <= aid <= (0x1FFFFFFF if ext else 0x7FF):
-            # a frame frame_bits refuses: the checked path raises what it says
+        if rtr or len(data) != dlc or not 0 <= aid <= (0x1FFFFFFF if ext else 0x7FF):
+            # a remote frame (no data field), or a frame frame_bits refuses: the checked path
             from canbrake.bus.timing import frame_bits
 
-            durs[i] = frame_bits(aid, ext, dlc, data, stuffing="actual") / bitrate
+            durs[i] = frame_bits(aid, ext, dlc, b"" if rtr else data, stuffing="actual", is_remote=rtr) / bitrate
             continue
         durs[i] = (_plain_bits(ext, len(data)) + _stuff_bits(aid, ext, len(data), <const uint8_t*>(<char*>data),
                                                              len(data), False)) / bitrate

@@ -15,7 +15,7 @@ from cpython.long cimport PyLong_AsLongLongAndOverflow
 from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
 from libc.stdio cimport snprintf
-from libc.stdint cimport uint8_t
+from libc.stdint cimport uint8_t, uint32_t
 from libc.string cimport memcpy, strlen
 
 import numpy as np
@@ -182,6 +182,41 @@ def take_frames_raw(frames, object message, Py_ssize_t start, bint resume, dict 
         tick_frames.append((<object>p, aid, (<const char*>q)[DATA_OFFSET:DATA_OFFSET + n],
                             (<const char*>q)[:SLOT_BYTES] if message is None else message(frames, i)))
     return m, TAKE_END, closed
+
+
+def take_realtime_raw(frames, Py_ssize_t start, double now, dict counts, dict sim_control, long long sync_id,
+                      list stamped):
+    """The realtime recorder's receive loop over the memory bus's slot images
+    (:meth:`~canbrake.nodes.recorder.RecorderNode.handle_raw`): from image ``start`` up to the next
+    frame with identifier ``sync_id`` (its SYNC, which the caller takes as a ``can.Message``) or the
+    end, each frame counted by (identifier, extended, error frame) in ``counts`` and, unless
+    ``sim_control`` (identifier -> bool, absent = False) marks it a barrier frame, appended to
+    ``stamped`` for the log as (its sender's time stamp, or ``now`` (s) if it has none, its slot
+    image). Returns (the index where it stopped, the error frames among them)."""
+    cdef const uint8_t[::1] v = frames
+    cdef Py_ssize_t i, m = v.shape[0] // SLOT_BYTES, errors = 0
+    cdef const uint8_t* q
+    cdef uint32_t aid32
+    cdef uint8_t fl
+    cdef double ts
+    cdef PyObject* p
+    for i in range(start, m):
+        q = &v[i * SLOT_BYTES]
+        aid32 = slot_id(q)
+        if <long long>aid32 == sync_id:
+            return i, errors
+        fl = slot_flags(q)
+        aid = aid32
+        key = (aid, bool(fl & SLOT_FLAG_EXTENDED), bool(fl & SLOT_FLAG_ERROR))
+        p = PyDict_GetItem(counts, key)
+        counts[key] = 1 if p is NULL else <object>p + 1
+        if fl & SLOT_FLAG_ERROR:
+            errors += 1
+        p = PyDict_GetItem(sim_control, aid)
+        if p is NULL or not <object>p:
+            memcpy(&ts, q, 8)
+            stamped.append((ts if ts != 0.0 else now, (<const char*>q)[:SLOT_BYTES]))
+    return m, errors
 
 
 cdef object _SYNC_SENTINEL = object()

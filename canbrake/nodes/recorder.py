@@ -58,12 +58,12 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus._candump import write_candump
-from canbrake.bus._wire import ideal_period
+from canbrake.bus._wire import ideal_period, timed_bits_raw
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames, take_frames_raw
+from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames, take_frames_raw, take_realtime_raw
 from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
@@ -318,12 +318,35 @@ class RecorderNode(Node):
         for the log; realtime: every frame)."""
         n = len(frames) // SLOT_BYTES
         if self.mode == "realtime":
-            return self.handle_batch([message(frames, i) for i in range(n)], now)
+            return self._realtime_raw(frames, n, now, message)
         # the period's frames kept as their slot images (no Message each) where only the ideal
         # accounting and the candump text read them (_wire.ideal_period, _candump.write_candump)
         keep = None if self._images_kept() else message
         return self._take(lambda batch, *a: take_frames_raw(batch, keep, *a), frames, n,
                           lambda i: message(frames, i))
+
+    def _realtime_raw(self, frames: bytes | bytearray, n: int, now: float, message: Any) -> list[can.Message]:
+        """Realtime :meth:`handle_batch` over the ``n`` slot images ``frames``: the frames between
+        SYNCs counted, logged and their bits added in compiled loops
+        (:func:`~canbrake.nodes._trace.take_realtime_raw`, :func:`~canbrake.bus._wire.timed_bits_raw`,
+        candump lines by :meth:`_write_stamped`), no ``can.Message`` each; each SYNC, which ends a
+        period's load, as a ``Message`` through :meth:`_realtime`. Other log formats take the
+        ``Message`` path."""
+        if not (self._writer is None or type(self._writer) is can.CanutilsLogWriter):
+            return self.handle_batch([message(frames, i) for i in range(n)], now)
+        i = 0
+        while i < n:
+            stamped: list[tuple[float, bytes]] = []
+            j, errors = take_realtime_raw(frames, i, now, self._counts, self._sim_control_memo,
+                                          self.layout.sync_id, stamped)
+            self._write_stamped(stamped)  # type: ignore[arg-type]
+            self.error_frames += errors
+            self._rt_bits += timed_bits_raw(frames, i, j, self._untimed_memo)
+            if j >= n:
+                break
+            self.handle_batch([message(frames, j)], now)  # the SYNC: counted, logged, the period's load
+            i = j + 1
+        return []
 
     def _images_kept(self) -> bool:
         """Whether a period's frames may be kept as slot images: no segments, timing model or
@@ -640,7 +663,8 @@ class RecorderNode(Node):
         if msg.is_error_frame:  # realtime bus errors (canbrake.bus.rt_errors): logged, counted, no wire model
             self.error_frames += 1
         elif not self._untimed(aid):
-            self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual")
+            self._rt_bits += frame_bits(aid, msg.is_extended_id, msg.dlc, bytes(msg.data), stuffing="actual",
+                                        is_remote=msg.is_remote_frame)
 
     def _sim_control(self, aid: int) -> bool:
         """:func:`is_sim_control` of the layout, memoised per identifier."""
