@@ -868,6 +868,15 @@ cdef class Ring:
             self._unlock()
         return 0
 
+    def sleep(self, deadline) -> None:
+        """memory.py's ``_sleep`` (the reader marked sleeping under the writer lock): block until
+        a writer wakes this reader or ``deadline`` (``time.monotonic`` s, None: never) passes,
+        then position ``seq`` (:meth:`_sleep_raw`)."""
+        self._check()
+        if self.e_off < 0:
+            raise ValueError("the ring has no reader attached")
+        self._sleep_raw(-1.0 if deadline is None else <double>deadline)
+
     cdef int _wait_raw(self, bytearray acc, double deadline, bint poll_only, int64_t want) except -1:
         """memory.py's ``_recv_locked`` for slot images: fetch, else (unless ``poll_only``) yield
         once, then sleep until ``want`` accepted frames have come or ``deadline``; the

@@ -14,7 +14,7 @@ Design
     order, so runs are reproducible.
   * Each bus registers a reader entry with its filters (pushed down by ``_apply_filters``).
     A reader with nothing to read marks itself *sleeping* under the writer lock (after
-    re-checking ``write_seq`` under that lock) and blocks in ``poll`` on its own FIFO. A writer,
+    re-checking ``write_seq`` under that lock) and blocks in ``ppoll`` on its own FIFO. A writer,
     under the same lock, clears the flag of each sleeping reader whose filters accept one of its
     frames, records where that frame is (``wake_seq``) and, after unlocking, writes one byte to
     that reader's FIFO. Check-and-sleep and publish-and-wake are both done under the one lock and
@@ -78,7 +78,7 @@ repeated :meth:`MemoryBus.recv_filtered` calls would return, overrun errors at t
 The node path (a lockstep ECU, the plant and the recorder, :func:`canbrake.nodes.driver.drive`
 to any node with ``handle_raw``): :meth:`MemoryBus.recv_raw`
 is ``recv_batch`` done in one compiled call (:meth:`canbrake.bus._ring.Ring.recv_raw`: the
-fetch, the filters, the yield, the sleep under the writer lock, ``poll`` and the FIFO drain)
+fetch, the filters, the yield, the sleep under the writer lock, ``ppoll`` and the FIFO drain)
 that returns the frames as slot images, which the ECU's and the plant's compiled feeds
 (``PeerTable.feed_raw``, ``CommandTable.take_batch_raw``) read without a ``can.Message`` per
 frame (the recorder makes one per frame, :meth:`MemoryBus.raw_message`); the read position and the FIFO state live in the ring for both ways
@@ -311,8 +311,6 @@ class MemoryBus(BusABC):
             if self._fd >= 0:
                 fcntl.flock(self._fd, fcntl.LOCK_UN)
         self._ring_n = self._layout.ring_size
-        self._poll = select.poll()
-        self._poll.register(self._rx_fd, select.POLLIN)
         self._tx_poll = select.poll()
         self._tx_poll.register(self._tx_fd, select.POLLIN)
         self._open = True
@@ -979,40 +977,11 @@ class MemoryBus(BusABC):
             self._in_recv = False
 
     def _sleep(self, deadline: Optional[float]) -> None:
-        """Block until a writer wakes us or ``deadline`` passes; then position ``self._seq``."""
-        q, b = self._q, self._eb
-        got_byte = False
-        while True:
-            if deadline is None:
-                ms = -1
-            else:
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    break
-                ms = math.ceil(left * 1000)
-            events = self._poll.poll(ms)
-            if events:
-                got_byte = self._drain(self._rx_fd) or got_byte
-            if not q[b + E_SLEEPING]:
-                # woken: the writer stored wake_seq before clearing the flag
-                self._seq = max(self._seq, q[b + E_WAKE_SEQ])
-                self._fifo_dirty = not got_byte
-                return
-            if q[H_CLOSED]:
-                break
-            if events:
-                self._n_spurious += 1
-        self._lock()
-        try:
-            if q[b + E_SLEEPING]:  # never woken: nothing, or fewer frames than it waits for, came
-                q[b + E_SLEEPING] = 0
-                q[H_SLEEPERS] = q[H_SLEEPERS] - 1
-                self._seq = max(self._seq, q[b + E_WAKE_SEQ] if q[b + E_PENDING] else q[H_WRITE_SEQ])
-            else:  # woken just now: its byte may still be on its way
-                self._seq = max(self._seq, q[b + E_WAKE_SEQ])
-                self._fifo_dirty = True
-        finally:
-            self._unlock()
+        """Block until a writer wakes us or ``deadline`` (``time.monotonic`` s; None: never)
+        passes; then position ``self._seq``: the ring's compiled wait (``Ring.sleep``: ``ppoll``
+        to the nanosecond and the FIFO drain, as the node path's receive), so a ``recv(timeout)``
+        of a fraction of a millisecond ends on time."""
+        self._ring.sleep(deadline)
 
     # ------------------------------------------------------------ state, stats
     @property
