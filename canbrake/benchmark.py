@@ -10,7 +10,9 @@ Figures (``FIGURES``; ``--only`` picks groups):
 - the floor (:mod:`canbrake.floor`, measured whenever lockstep, realtime or scale runs): a plant
   and N ECU processes exchanging one word each per period over canbrake's memory bus, no model,
   no codec; every lockstep, scale and realtime figure is also given as a ratio to it
-  (:func:`apply_floor`).
+  (:func:`apply_floor`). With ``lockstep``, also the floor of the lockstep protocol's two
+  exchanges (``phases=2``: the ECUs' state words, then their words to the plant), shown beside
+  the one-process-per-ECU rate (not a target's baseline).
 - ``lockstep``: control periods per wall second of Chen case 1 (6 ECUs) in-process, on the
   in-memory bus with one process per ECU, on python-can ``virtual`` and with the CAN timing model;
   the memory of an ECU process (PSS).
@@ -211,7 +213,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
         from canbrake.floor import run_floor
 
         with _MemorySampler() as mem:
-            res = run_floor(int(case.get("ecus", 6)), float(case.get("duration_s", 1.0)))
+            res = run_floor(int(case.get("ecus", 6)), float(case.get("duration_s", 1.0)),
+                            phases=int(case.get("phases", 1)))
         return {**res, **mem.figures()}
     ov = dict(case.get("overrides") or {})
     if case.get("cars"):
@@ -438,26 +441,50 @@ def whole_figures(log: Callable[[str], None], duration_s: float = 200.0,
 FLOOR_ECUS = 6
 
 
+#: the key of the two-phase floor (canbrake.floor, phases=2) in floor_figures' result
+PROTOCOL_FLOOR = "two phases"
+
+
 def floor_figures(duration_s: float, repeat: int, log: Callable[[str], None],
-                  ecus: tuple[int, ...] = (FLOOR_ECUS,)) -> tuple[list[dict[str, Any]], dict[int, dict[str, Any]]]:
+                  ecus: tuple[int, ...] = (FLOOR_ECUS,),
+                  phases: int = 1) -> tuple[list[dict[str, Any]], dict[int | str, dict[str, Any]]]:
     """The floor (:mod:`canbrake.floor`): plant + N ECU processes exchanging one word each per
     period over canbrake's memory bus, no model, no codec; median of ``repeat`` runs of
-    ``duration_s`` wall seconds for each N of ``ecus``. Returns its rows and {N: the median run}."""
-    rows, floors = [], {}
+    ``duration_s`` wall seconds for each N of ``ecus``. Returns its rows and {N: the median run}
+    (``phases=2``, the lockstep protocol's two exchanges: {PROTOCOL_FLOOR: the median run})."""
+    rows: list[dict[str, Any]] = []
+    floors: dict[int | str, dict[str, Any]] = {}
     for n in ecus:
         runs, fail = [], None
         for r in range(repeat):
-            res = run_case_subprocess({"kind": "floor", "ecus": n, "duration_s": duration_s}, timeout_s=300.0)
-            log(f"  floor {n} ECUs round {r + 1}: {res.get('status')} {res.get('periods_per_s') or res.get('message')}")
+            res = run_case_subprocess({"kind": "floor", "ecus": n, "duration_s": duration_s, "phases": phases},
+                                      timeout_s=300.0)
+            log(f"  floor {n} ECUs{', two phases' if phases == 2 else ''} round {r + 1}: {res.get('status')} "
+                f"{res.get('periods_per_s') or res.get('message')}")
             if res.get("status") != "ok" or not res.get("periods_per_s"):
                 fail = res
                 break
             runs.append(res)
         label = f"floor: plant + {n} ECU processes, memory bus, no model"
+        if phases == 2:
+            label = f"floor: plant + {n} ECU processes, two phases (the lockstep protocol), no model"
         if fail is not None:
             rows.append(_failed(label, fail))
             continue
         med = sorted(runs, key=lambda x: x["periods_per_s"])[len(runs) // 2]
+        if phases == 2:
+            floors[PROTOCOL_FLOOR] = med
+            rows.append(_row(label, med["periods_per_s"], "periods/s", target="(reference)", floor_ecus=n,
+                             round_trip_p99_ms=1e3 * med["round_trip_p99_s"],
+                             note=f"the lockstep protocol's own exchanges with no work in them (canbrake.floor, "
+                                  f"phases=2): each ECU answers the tick with a state word, waits until all its "
+                                  f"{n - 1} peers' state words of the tick have come (woken once, as an ECU node in "
+                                  f"phase 1), then sends its word to the plant; {duration_s:g} s per run, median of "
+                                  f"{len(runs)}; round trip mean {1e6 * med['round_trip_mean_s']:.0f} us, p99 "
+                                  f"{1e6 * med['round_trip_p99_s']:.0f} us; {med['sleeps_per_period']:.1f} blocking "
+                                  f"waits per period. The targets are ratios to the one-exchange floor above; the "
+                                  f"lockstep row also gives its ratio to this one"))
+            continue
         floors[n] = med
         rows.append(_row(label, med["periods_per_s"], "periods/s", target="(reference)", floor_ecus=n,
                          round_trip_p99_ms=1e3 * med["round_trip_p99_s"], ecu_pss_mb=med.get("ecu_pss_mb"),
@@ -475,7 +502,7 @@ def floor_figures(duration_s: float, repeat: int, log: Callable[[str], None],
     return rows, floors
 
 
-def apply_floor(rows: list[dict[str, Any]], floors: dict[int, dict[str, Any]]) -> None:
+def apply_floor(rows: list[dict[str, Any]], floors: dict[int | str, dict[str, Any]]) -> None:
     """Put the floor beside every lockstep, scale and realtime figure of ``rows`` (in place):
     ``floor`` (the floor's figure in the row's unit) and ``floor_ratio`` (the row's value / it).
     Rates (periods/s) use the floor of the same number of ECUs (six for Chen case 1); the p99
@@ -504,6 +531,12 @@ def apply_floor(rows: list[dict[str, Any]], floors: dict[int, dict[str, Any]]) -
             continue
         r["floor"], r["floor_of"] = fl, n
         r["floor_ratio"] = r["value"] / fl if fl else None
+        pf = floors.get(PROTOCOL_FLOOR)
+        if fig.startswith("lockstep one process per ECU") and pf and pf.get("periods_per_s"):
+            r["protocol_floor"] = pf["periods_per_s"]
+            r["protocol_floor_ratio"] = r["value"] / pf["periods_per_s"]
+            r["note"] = (f"{r.get('note') or ''}; {r['protocol_floor_ratio']:.2f}x of the two-phase floor "
+                         f"({pf['periods_per_s']:,.0f}/s: the protocol's two exchanges with no work)").lstrip("; ")
         if r.get("floor_share_target") is not None and r["floor_ratio"] is not None:
             r["met"] = r["floor_ratio"] >= r["floor_share_target"]
 
@@ -860,7 +893,7 @@ def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat
             rows.append(_row(group, None, "", status="failed", note=f"{type(e).__name__}: {e}"))
 
     guarded("codec", lambda: codec_figures() + controller_figures())
-    floors: dict[int, dict[str, Any]] = {}
+    floors: dict[int | str, dict[str, Any]] = {}
     if {"lockstep", "realtime", "scale"} & set(only):
         # the floor of the same run: six ECUs for Chen case 1, and each train size that the scale
         # group runs with one process per ECU (Chen trains; the ECP train is not all-to-all)
@@ -874,6 +907,10 @@ def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat
                 # the six-ECU floor divides every lockstep and realtime figure: at least three
                 # rounds (a second each at most) even with --quick, so one stalled round cannot set it
                 r, f = floor_figures(floor_s, max(repeat, 3) if n == FLOOR_ECUS else 1, log, (n,))
+                out += r
+                floors.update(f)
+            if "lockstep" in only:  # the protocol's own floor beside it (not a target's baseline)
+                r, f = floor_figures(floor_s, max(repeat, 3), log, (FLOOR_ECUS,), phases=2)
                 out += r
                 floors.update(f)
             return out

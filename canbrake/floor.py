@@ -15,6 +15,12 @@ channel. Per period:
 That is every frame and wake-up of a lockstep period and nothing else: what canbrake's engine
 does beyond it (codec, E2E, model, controllers, recorder, bookkeeping) is what the bench's ratios
 to this floor measure. Nothing here is a second bus: the frames go through ``MemoryBus``.
+
+``phases=2`` is the floor of the lockstep protocol itself (docs/architecture.md): an ECU answers
+the tick with its state word (``STATE_ID + i``), waits until every peer's state word of the tick
+has come (woken once, as an ECU node in phase 1), and only then sends its word to the plant: the
+two exchanges a consensus controller's period needs, with no work in them. Issue 26's targets
+are ratios to the one-exchange floor; the bench shows this one beside it.
 """
 from __future__ import annotations
 
@@ -27,6 +33,8 @@ from typing import Any
 #: identifiers of the floor's frames: the plant's tick, ECU i's word at WORD_ID + i
 TICK_ID = 0x010
 WORD_ID = 0x100
+#: ECU i's state word (``phases=2``)
+STATE_ID = 0x200
 _END = (1 << 64) - 1
 _Q = struct.Struct("<Q")
 _II = struct.Struct("<II")
@@ -42,15 +50,18 @@ def _open(channel: str, ids: list[int], yield_before_sleep: bool) -> Any:
                    backpressure="accepted", yield_before_sleep=yield_before_sleep)
 
 
-def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any, yield_: bool = True) -> None:
-    """ECU ``i`` (0-based) of the floor: answers every tick with its word; ``out[i]``: its bus's
-    sleeps (blocking waits) over the run."""
+def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any, yield_: bool = True, phases: int = 1) -> None:
+    """ECU ``i`` (0-based) of the floor: answers every tick with its word (``phases=2``: after
+    its state word and its peers' of the tick); ``out[i]``: its bus's sleeps (blocking waits)
+    over the run."""
     import can
 
     from canbrake.run import _set_title
 
     _set_title(f"canbrake ecu{i + 1} floor")  # as a node's, so that `canbrake bench` sees its role
-    bus = _open(channel, [TICK_ID] + [WORD_ID + j for j in range(n) if j != i], yield_)
+    peers = [j for j in range(n) if j != i]
+    base = STATE_ID if phases == 2 else WORD_ID
+    bus = _open(channel, [TICK_ID] + [base + j for j in peers], yield_)
     try:
         words = [0] * n
         my_id = WORD_ID + i
@@ -60,12 +71,25 @@ def _ecu_main(i: int, n: int, channel: str, barrier: Any, out: Any, yield_: bool
             m = recv(30.0)
             if m is None:
                 raise TimeoutError(f"floor ECU {i}: no frame for 30 s")
-            if m.arbitration_id != TICK_ID:
-                words[m.arbitration_id - WORD_ID] = _II.unpack_from(m.data)[1]
+            if m.arbitration_id != TICK_ID:  # (one exchange: a peer's word of the last period)
+                words[m.arbitration_id - base] = _II.unpack_from(m.data)[1]
                 continue
             tick = _Q.unpack_from(m.data)[0]
             if tick == _END:
                 break
+            if phases == 2:  # the state exchange: every peer's word of this tick before ours goes out
+                bus.send(can.Message(arbitration_id=STATE_ID + i, data=_II.pack(tick & 0xFFFFFFFF, words[i]),
+                                     is_extended_id=False))
+                got = 0
+                while got < len(peers):
+                    ms = bus.recv_batch(30.0, len(peers) - got)
+                    if not ms:
+                        raise TimeoutError(f"floor ECU {i}: tick {tick}: {got} of {len(peers)} states after 30 s")
+                    for p in ms:
+                        t_p, words[p.arbitration_id - base] = _II.unpack_from(p.data)
+                        if t_p != tick & 0xFFFFFFFF:  # a peer's state of another tick: the protocol broken
+                            raise RuntimeError(f"floor ECU {i}: tick {tick}: state word of tick {t_p}")
+                    got += len(ms)
             words[i] = (sum(words) + tick) & 0xFFFFFFFF
             bus.send(can.Message(arbitration_id=my_id, data=_II.pack(tick & 0xFFFFFFFF, words[i]),
                                  is_extended_id=False))
@@ -115,8 +139,9 @@ def _plant_main(n: int, channel: str, duration_s: float, barrier: Any, out: Any,
         bus.shutdown()
 
 
-def run_floor(n: int = 6, duration_s: float = 2.0, timeout_s: float = 120.0) -> dict[str, Any]:
-    """Run the floor with ``n`` ECU processes for ``duration_s`` of wall time.
+def run_floor(n: int = 6, duration_s: float = 2.0, timeout_s: float = 120.0, phases: int = 1) -> dict[str, Any]:
+    """Run the floor with ``n`` ECU processes for ``duration_s`` of wall time (``phases``: 1, the
+    one exchange; 2, the lockstep protocol's state exchange and commands, module docstring).
 
     Returns ``status`` ("ok" or "failed" with ``message``), ``periods_per_s``, ``periods``,
     ``round_trip_mean_s`` / ``_p99_s`` / ``_max_s`` (tick sent -> last word in), ``over_1ms_pct`` /
@@ -127,6 +152,8 @@ def run_floor(n: int = 6, duration_s: float = 2.0, timeout_s: float = 120.0) -> 
     from canbrake.run import _mp_context, memory_yield
     from canbrake.startup import children_skip_main
 
+    if phases not in (1, 2):
+        raise ValueError(f"phases must be 1 or 2, not {phases!r}")
     yield_ = memory_yield()  # decided once, here (as a run's orchestrator does), for every process
 
     with children_skip_main():
@@ -134,11 +161,12 @@ def run_floor(n: int = 6, duration_s: float = 2.0, timeout_s: float = 120.0) -> 
     channel = f"floor-{os.getpid()}-{uuid.uuid4().hex[:8]}"
     barrier = ctx.Barrier(n + 1)
     out = ctx.Array("d", n + 8, lock=False)
-    procs = [ctx.Process(target=_ecu_main, args=(i, n, channel, barrier, out, yield_),
+    procs = [ctx.Process(target=_ecu_main, args=(i, n, channel, barrier, out, yield_, phases),
                          name=f"canbrake-floor-ecu{i + 1}") for i in range(n)]
     procs.append(ctx.Process(target=_plant_main, args=(n, channel, duration_s, barrier, out, yield_),
                              name="canbrake-floor-plant"))
-    res: dict[str, Any] = {"status": "ok", "message": "", "ecus": n, "start_method": ctx.get_start_method()}
+    res: dict[str, Any] = {"status": "ok", "message": "", "ecus": n, "phases": phases,
+                           "start_method": ctx.get_start_method()}
     try:
         for p in procs:
             with children_skip_main():
@@ -180,11 +208,12 @@ def run_floor(n: int = 6, duration_s: float = 2.0, timeout_s: float = 120.0) -> 
     return res
 
 
-if __name__ == "__main__":  # python -m canbrake.floor [N] [SECONDS]
+if __name__ == "__main__":  # python -m canbrake.floor [N] [SECONDS] [PHASES]
     import json
     import sys
 
     from canbrake.floor import run_floor as _run  # the nodes' target functions must come from the module
 
     print(json.dumps(_run(int(sys.argv[1]) if len(sys.argv) > 1 else 6,
-                               float(sys.argv[2]) if len(sys.argv) > 2 else 2.0)))
+                          float(sys.argv[2]) if len(sys.argv) > 2 else 2.0,
+                          phases=int(sys.argv[3]) if len(sys.argv) > 3 else 1)))

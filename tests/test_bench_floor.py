@@ -100,6 +100,23 @@ def test_floor_runs_plant_and_ecu_processes_over_the_memory_bus_and_reaps_them(m
     assert not [p for p in active_children() if p.name.startswith("canbrake-floor")]
 
 
+def test_two_phase_floor_waits_for_every_peer_state_before_the_word_to_the_plant(monkeypatch):
+    """phases=2: each ECU answers the tick with its state word and sends its word to the plant
+    only once every peer's state word of that tick is in (an ECU that finds one of another tick
+    fails the run); the processes are reaped as with one exchange."""
+    from multiprocessing import active_children
+
+    from canbrake.floor import run_floor
+
+    monkeypatch.setenv("CANBRAKE_MEMORY_YIELD", "0")
+    two = run_floor(3, 0.3, phases=2)
+    assert two["status"] == "ok", two
+    assert two["phases"] == 2 and two["periods"] > 0 and two["sleeps_per_period"] > 0
+    assert not [p for p in active_children() if p.name.startswith("canbrake-floor")]
+    with pytest.raises(ValueError, match="phases"):
+        run_floor(3, 0.1, phases=3)
+
+
 def test_bench_puts_the_floor_of_the_same_run_beside_the_lockstep_and_realtime_figures(monkeypatch):
     """run_bench measures the floor and every lockstep / realtime row carries value / that floor
     (the lockstep figures are stand-ins here: what is checked is where the ratios come from)."""
@@ -112,12 +129,15 @@ def test_bench_puts_the_floor_of_the_same_run_beside_the_lockstep_and_realtime_f
     monkeypatch.setattr(benchmark, "realtime_figures", lambda *a: [
         _row("realtime 1 ms p99 command latency", 0.4, "ms"), _row("realtime 10 ms deadline misses", 0.0, "%")])
     res = run_bench(only=("lockstep", "realtime"), duration_s=0.2, repeat=1)
-    rows = {r["figure"].split(":")[0] if r["figure"].startswith("floor") else r["figure"]: r for r in res["figures"]}
-    floor = rows["floor"]
+    rows = {("floor2" if "two phases" in r["figure"] else "floor") if r["figure"].startswith("floor") else r["figure"]: r
+            for r in res["figures"]}
+    floor, floor2 = rows["floor"], rows["floor2"]
     assert floor["status"] == "ok" and floor["value"] > 0 and floor["floor_ecus"] == 6
+    assert floor2["status"] == "ok" and floor2["value"] > 0 and floor2["floor_ecus"] == 6
     lock = rows["lockstep one process per ECU (memory bus)"]
     assert lock["floor"] == floor["value"] and lock["floor_ratio"] == pytest.approx(500.0 / floor["value"])
-    assert lock["met"] == (500.0 / floor["value"] >= 0.25)
+    assert lock["met"] == (500.0 / floor["value"] >= 0.25)  # judged against the one-exchange floor
+    assert lock["protocol_floor"] == floor2["value"] and "of the two-phase floor" in lock["note"]
     lat = rows["realtime 1 ms p99 command latency"]
     assert lat["floor"] == pytest.approx(floor["round_trip_p99_ms"])
     assert lat["floor_ratio"] == pytest.approx(0.4 / lat["floor"])
