@@ -242,7 +242,8 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
     out["ecu_deadline_misses"] = dm.get("ecus")
     out["late_periods"] = dm.get("late_periods")
     out["max_lateness_s"] = dm.get("max_lateness_s")
-    for k in ("cmd_latency_p50_s", "cmd_latency_p99_s", "cmd_latency_max_s", "cmd_latency_missing", "scheduling"):
+    for k in ("cmd_latency_p50_s", "cmd_latency_p99_s", "cmd_latency_max_s", "cmd_latency_missing", "scheduling",
+              "sync_delay_p50_s", "sync_delay_p99_s"):
         if k in plant.get("extra", {}):
             out[k] = plant["extra"][k]
     comp = s.get("compute") or {}  # canbrake.analysis.summary.compute_figures
@@ -681,7 +682,9 @@ def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict
                              note=f"SYNC sent -> last command of the period in (a period whose commands "
                                   f"missed the deadline counts as late: {res.get('cmd_latency_missing')} of "
                                   f"{periods}); p50 {ms(res.get('cmd_latency_p50_s'))}, "
-                                  f"max {ms(res.get('cmd_latency_max_s'))}"))
+                                  f"max {ms(res.get('cmd_latency_max_s'))}; before it, the plant's timer -> SYNC "
+                                  f"sent (its step, measurements and send): p50 {ms(res.get('sync_delay_p50_s'))}, "
+                                  f"p99 {ms(res.get('sync_delay_p99_s'))}"))
     return rows
 
 

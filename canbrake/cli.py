@@ -175,8 +175,10 @@ def _print_summary(s: dict[str, Any], out: Path) -> None:
                      + (f"; ECU periods skipped (the next began first): {skipped}" if skipped else ""))
         if rt:  # canbrake.analysis.summary.realtime_figures
             ms = (lambda x: "late" if x is None else f"{x * 1e3:.3f} ms")
-            lines.append(f"command latency (SYNC -> last command): p50 {ms(rt.get('cmd_latency_p50_s'))}, "
-                         f"p99 {ms(rt.get('cmd_latency_p99_s'))}; late periods {rt.get('late_periods', 0)} "
+            lines.append(f"command latency (SYNC sent -> last command): p50 {ms(rt.get('cmd_latency_p50_s'))}, "
+                         f"p99 {ms(rt.get('cmd_latency_p99_s'))}; the plant's timer -> SYNC sent: p50 "
+                         f"{ms(rt.get('sync_delay_p50_s'))}, p99 {ms(rt.get('sync_delay_p99_s'))}; "
+                         f"late periods {rt.get('late_periods', 0)} "
                          f"(grid moved on {rt.get('slipped_s', 0.0) * 1e3:.1f} ms); "
                          f"plant scheduling: {(rt.get('scheduling') or {}).get('plant') or '?'}")
     if s.get("finalize_error"):

@@ -414,3 +414,39 @@ def test_realtime_plant_sends_its_period_as_slot_images_where_the_driver_takes_t
     assert len(got[True]) == len(got[False]) * SLOT_BYTES
     assert [(m.arbitration_id, bytes(m.data)) for m in messages_of(got[True])] == \
            [(m.arbitration_id, bytes(m.data)) for m in got[False]]
+
+
+def test_realtime_command_latency_counts_from_the_sync_on_the_bus_not_from_the_timer():
+    """The realtime plant's command latency is what it says (SYNC sent -> last command in): it
+    counts from the moment its driver has put the period's SYNC on the bus (after_send), and the
+    plant's own time before that (its timer -> SYNC sent: step, measurements, send) is reported
+    apart (sync_delay_*), not hidden in it nor in the ECUs' share."""
+    import time
+
+    from canbrake.build import build_node
+
+    rt = load_scenario(CASE1, overrides={"mode": "realtime", "duration_s": 0.1})
+    ls = load_scenario(CASE1, overrides={"duration_s": 0.1})
+    plant = build_node(rt, "plant", run_dir=None)
+    t0 = time.time()
+    first = plant.start(t0)  # the period's timer fired at t0
+    time.sleep(0.003)  # the plant's own work before its SYNC is on the bus
+    plant.after_send()
+    sent = plant._sync_wall
+    assert sent >= t0 + 0.003 and plant._sync_delay.n == 1 and plant._sync_delay.max >= 0.003
+    plant.after_send()  # once a period: a later call does not move it
+    assert plant._sync_wall == sent and plant._sync_delay.n == 1
+    ecus = [build_node(ls, "ecu", car=c, run_dir=None) for c in range(1, 7)]
+    for e in ecus:
+        e.start(0.0)
+    frames, period = list(first), []
+    for _phase in range(4):  # the ECUs' answer to tick 0 (the lockstep nodes make the same frames)
+        nxt = []
+        for e in ecus:
+            nxt += e.handle_batch(list(frames), 0.0)
+        period += nxt
+        frames = nxt
+    cmds = [m for m in period if m.arbitration_id in plant._cmd_pages]
+    assert len(cmds) == 6
+    plant.handle_batch(cmds, sent + 0.0004)
+    assert plant._cmd_latency == [pytest.approx(0.0004, abs=1e-6)]  # (wall-clock seconds near 1.8e9: ulp 2.4e-7)

@@ -359,7 +359,8 @@ def realtime_figures(plant: dict[str, Any], ecus: list[dict[str, Any]], busst: d
     return {"periods": periods, "plant_deadline_misses": misses,
             "plant_deadline_miss_pct": round(100.0 * misses / periods, 4) if periods else None,
             **{k: ex.get(k) for k in ("cmd_latency_p50_s", "cmd_latency_p99_s", "cmd_latency_max_s",
-                                      "cmd_latency_missing")},
+                                      "cmd_latency_missing", "sync_delay_p50_s", "sync_delay_p99_s",
+                                      "sync_delay_max_s")},
             "late_periods": plant.get("late_periods", 0), "max_lateness_s": plant.get("max_lateness_s", 0.0),
             "slipped_s": plant.get("slipped_s", 0.0),
             # periods an ECU never commanded because the next one began first (its process paused)

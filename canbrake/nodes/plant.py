@@ -219,6 +219,10 @@ class PlantNode(Node):
         # realtime: wall time the current period's SYNC was sent, and per period the time from it
         # to the last command of the period (s; command latency, `canbrake bench`)
         self._sync_wall: float | None = None
+        # realtime: the period's SYNC not yet on the bus (after_send stamps it); the wall time
+        # from the period's timer to that moment (the plant's own step, measurements and send)
+        self._sync_unsent = False
+        self._sync_delay = LogHistogram(1.01)  # 1 % bins
         self._cmd_latency: list[float] = []
         # external ECUs (indices 1-based): the first tick waits for each one's heartbeat; in lockstep a
         # period waits at most external_timeout_s (wall) for their commands once every other ECU's are
@@ -297,6 +301,7 @@ class PlantNode(Node):
         self._t_start_wall = now
         self._tick_wall = now
         self._sync_wall = now
+        self._sync_unsent = self.mode == "realtime"
         out = self._tick_frames()
         self._arm_external(now)
         return out
@@ -583,6 +588,7 @@ class PlantNode(Node):
         self._cmd_table.new_tick()  # fresh[:] = False, fresh_pages[:] = 0
         self._done = 0
         self._sync_wall = now
+        self._sync_unsent = self.mode == "realtime"
         if self.k >= self.n_ticks:
             self._record(final=True)
             self.finished = True
@@ -667,7 +673,15 @@ class PlantNode(Node):
 
     def after_send(self) -> None:
         """Write the trace row taken by :meth:`_record`, if one is pending (the drivers call this
-        once a node's frames are sent)."""
+        once a node's frames are sent); in realtime, first, the time the period's SYNC went out:
+        its commands' latency counts from there (``cmd_latency_*``), the time from the period's
+        timer to it is the plant's own delay (``sync_delay_*``)."""
+        if self._sync_unsent:
+            self._sync_unsent = False
+            if self._sync_wall is not None:
+                t = time.time()  # (the node driver's clock)
+                self._sync_delay.add(t - self._sync_wall)
+                self._sync_wall = t
         pending = self._pending_row
         if pending is None:
             return
@@ -733,6 +747,10 @@ class PlantNode(Node):
                 self.stats.extra[f"cmd_latency_{key}_s"] = float(val) if math.isfinite(val) else None  # type: ignore[assignment]
             self.stats.extra["cmd_latency_periods"] = int(lat.size)
             self.stats.extra["cmd_latency_missing"] = int(np.isinf(lat).sum())
+        if self._sync_delay.n:
+            h = self._sync_delay
+            for key, val in (("p50", h.quantile(0.5)), ("p99", h.quantile(0.99)), ("max", h.max)):
+                self.stats.extra[f"sync_delay_{key}_s"] = float(val)  # type: ignore[assignment]
         for e, h in zip(self.ecus, self._resp):
             if h.n:
                 self.stats.response_s[e.name] = {"n": h.n, "p50_s": h.quantile(0.5), "p99_s": h.quantile(0.99),
