@@ -449,4 +449,34 @@ def test_realtime_command_latency_counts_from_the_sync_on_the_bus_not_from_the_t
     cmds = [m for m in period if m.arbitration_id in plant._cmd_pages]
     assert len(cmds) == 6
     plant.handle_batch(cmds, sent + 0.0004)
-    assert plant._cmd_latency == [pytest.approx(0.0004, abs=1e-6)]  # (wall-clock seconds near 1.8e9: ulp 2.4e-7)
+    assert plant._cmd_latency.n == 1 and plant._cmd_latency.max == pytest.approx(0.0004, abs=1e-6)  # (ulp of 1.8e9 s: 2.4e-7)
+
+
+@pytest.mark.parametrize("late", [0, 1, 2])
+def test_realtime_command_latency_quantiles_in_bounded_memory_with_late_periods_ranked_last(late):
+    """The plant keeps each period's command latency in a histogram (bounded memory, however long
+    the run): p50/p99 are the nearest-rank values of every period within the bins' 0.1 %, a period
+    whose commands came too late ranks last as infinitely late, and a quantile or maximum that
+    falls on one is null."""
+    from canbrake.build import build_node
+
+    rt = load_scenario(CASE1, overrides={"mode": "realtime", "duration_s": 0.1})
+    plant = build_node(rt, "plant", run_dir=None)
+    rng = np.random.default_rng(3)
+    lat = rng.uniform(2e-4, 9e-4, 98)
+    for x in lat:
+        plant._cmd_latency.add(float(x))
+    plant._cmd_late = late
+    plant.close()
+    ex = plant.stats.extra
+    ranked = np.sort(np.concatenate([lat, np.full(late, np.inf)]))
+    n = ranked.size
+    assert ex["cmd_latency_periods"] == n and ex["cmd_latency_missing"] == late
+    for key, q in (("p50", 0.5), ("p99", 0.99)):
+        want = ranked[int(np.ceil(q * n)) - 1]
+        if np.isinf(want):
+            assert ex[f"cmd_latency_{key}_s"] is None
+        else:
+            assert ex[f"cmd_latency_{key}_s"] == pytest.approx(want, rel=1e-3)
+    assert (ex["cmd_latency_max_s"] is None) == (late > 0)
+    assert (ex["cmd_latency_p99_s"] is None) == (late >= 1)  # 1 of 99: the 99th percentile's rank is 99

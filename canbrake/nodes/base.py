@@ -75,7 +75,11 @@ class LogHistogram:
         """The ``q`` quantile (0..1), as the geometric middle of its bin (0 when empty)."""
         if not self.n:
             return 0.0
-        k = int(np.searchsorted(np.cumsum(np.asarray(self.counts, dtype=np.int64)), max(1, int(np.ceil(q * self.n)))))
+        return self.ranked(max(1, int(np.ceil(q * self.n))))
+
+    def ranked(self, r: int) -> float:
+        """The ``r``-th smallest duration (1 .. n), as the geometric middle of its bin."""
+        k = int(np.searchsorted(np.cumsum(np.asarray(self.counts, dtype=np.int64)), r))
         if k == 0:
             return min(self.LO_S, self.max)
         return float(min(self.max, self.LO_S * self.RATIO ** (k - 0.5)))

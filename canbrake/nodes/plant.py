@@ -223,7 +223,10 @@ class PlantNode(Node):
         # from the period's timer to that moment (the plant's own step, measurements and send)
         self._sync_unsent = False
         self._sync_delay = LogHistogram(1.01)  # 1 % bins
-        self._cmd_latency: list[float] = []
+        # realtime: each period's command latency (s) in bounded memory, and the periods whose
+        # commands did not all come in time (infinitely late)
+        self._cmd_latency = LogHistogram()
+        self._cmd_late = 0
         # external ECUs (indices 1-based): the first tick waits for each one's heartbeat; in lockstep a
         # period waits at most external_timeout_s (wall) for their commands once every other ECU's are
         # in, then goes on and treats them as silent (not waited for) until their frames are on time
@@ -353,7 +356,7 @@ class PlantNode(Node):
                 if r & CMD_SLOT_COMPLETE:
                     self._resp[slot].add(max(now - self._tick_wall, 0.0))
                 if self.mode == "realtime" and self._sync_wall is not None and self._fresh.all():
-                    self._cmd_latency.append(now - self._sync_wall)
+                    self._cmd_latency.add(now - self._sync_wall)
                     self._sync_wall = None  # one latency per period
                 if (not self.barrier or ext) and self.mode == "lockstep" and not self._done >> slot & 1:
                     if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
@@ -521,7 +524,7 @@ class PlantNode(Node):
             return self._advance(now)
         if not self._fresh.all():
             self.stats.deadline_misses += 1
-            self._cmd_latency.append(math.inf)  # the period's commands did not all arrive in time
+            self._cmd_late += 1  # the period's commands did not all arrive in time
         lateness = now - self.next_deadline()  # type: ignore[operator]
         self.stats.max_lateness_s = max(self.stats.max_lateness_s, lateness)
         if lateness > self.dt / self.time_scale:
@@ -740,13 +743,17 @@ class PlantNode(Node):
             self.stats.status = status
         self.stats.guard = self.guard.stats()
         self.stats.model_step_s = self._model_time.figures()
-        if self._cmd_latency:
-            # missed periods count as infinitely late: a percentile among them is null (JSON)
-            lat = np.asarray(self._cmd_latency)
-            for key, val in (("p50", np.percentile(lat, 50)), ("p99", np.percentile(lat, 99)), ("max", lat.max())):
-                self.stats.extra[f"cmd_latency_{key}_s"] = float(val) if math.isfinite(val) else None  # type: ignore[assignment]
-            self.stats.extra["cmd_latency_periods"] = int(lat.size)
-            self.stats.extra["cmd_latency_missing"] = int(np.isinf(lat).sum())
+        h, late = self._cmd_latency, self._cmd_late
+        if h.n or late:
+            # the late periods count as infinitely late, ranked last: a quantile (nearest rank)
+            # that falls among them is null (JSON), as is the maximum then
+            n = h.n + late
+            for key, q in (("p50", 0.5), ("p99", 0.99)):
+                r = max(1, math.ceil(q * n))
+                self.stats.extra[f"cmd_latency_{key}_s"] = h.ranked(r) if r <= h.n else None  # type: ignore[assignment]
+            self.stats.extra["cmd_latency_max_s"] = None if late else h.max  # type: ignore[assignment]
+            self.stats.extra["cmd_latency_periods"] = n
+            self.stats.extra["cmd_latency_missing"] = late
         if self._sync_delay.n:
             h = self._sync_delay
             for key, val in (("p50", h.quantile(0.5)), ("p99", h.quantile(0.99)), ("max", h.max)):
