@@ -125,15 +125,15 @@ def test_plant_handle_raw_equals_handle_batch_with_a_rejected_command():
         bus.shutdown()
 
 
-def test_recorder_handle_raw_equals_handle_batch(tmp_path):
-    """The recorder fed slot images (RecorderNode.handle_raw) logs and counts what it does fed
-    messages: the same frames.log bytes and counts, a frame outside the database and a remote
-    frame included."""
+def _recorder_rig(tmp_path, mode: str):
+    """Chen case 1's lockstep plant and six ECUs (they make a period's frames) and two recorders in
+    ``mode``, logging to tmp_path/a and tmp_path/b: one to be fed messages, one slot images."""
     from canbrake.build import build_node
     from canbrake.scenario import load_scenario
 
     scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
-    ch = f"recraw-{os.getpid()}-{uuid.uuid4().hex[:6]}"
+    rec_scn = scn if mode == "lockstep" else load_scenario("scenarios/chen2023_case1_fine_rail.yaml",
+                                                          overrides={"mode": mode})
     plant = build_node(scn, "plant", run_dir=None)
     ecus = []
     for c in range(1, 7):
@@ -142,26 +142,40 @@ def test_recorder_handle_raw_equals_handle_batch(tmp_path):
         ecus.append(e)
     recs = []
     for name in ("a", "b"):
-        r = build_node(scn, "recorder", run_dir=None)
+        r = build_node(rec_scn, "recorder", run_dir=None)
         r.log_path = tmp_path / name / "frames.log"
         r.log_path.parent.mkdir()
         r.start(0.0)
         recs.append(r)
-    a, b = recs
-    bus = can.Bus(interface="canbrake", channel=ch)
+    return plant, ecus, recs
+
+
+def _answers(ecus, frames) -> list:
+    """Every frame the lockstep ``ecus`` send, phase after phase, in answer to a period's opening ``frames``."""
+    out = []
+    for _phase in range(4):
+        nxt = []
+        for e in ecus:
+            nxt += e.handle_batch(list(frames), 0.0)
+        out += nxt
+        frames = nxt
+    return out
+
+
+def test_recorder_handle_raw_equals_handle_batch(tmp_path):
+    """The recorder fed slot images (RecorderNode.handle_raw) logs and counts what it does fed
+    messages: the same frames.log bytes and counts, a frame outside the database and a remote
+    frame included."""
+    plant, ecus, (a, b) = _recorder_rig(tmp_path, "lockstep")
+    recs = [a, b]
+    bus = can.Bus(interface="canbrake", channel=f"recraw-{os.getpid()}-{uuid.uuid4().hex[:6]}")
     try:
         frames = plant.start(0.0)
         stray = can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False)
         # a remote frame asks for 2 bytes and carries none: its bits without a data field
         remote = can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, is_remote_frame=True, dlc=2)
         for _ in range(3):  # tick 0 and 1: the plant's frames, the ECUs' phases, its next tick
-            period = list(frames)
-            for _phase in range(4):
-                nxt = []
-                for e in ecus:
-                    nxt += e.handle_batch(list(frames), 0.0)
-                period += nxt
-                frames = nxt
+            period = list(frames) + _answers(ecus, frames)
             period += [stray, remote]
             frames = plant.handle_batch([m for m in period if m.arbitration_id in plant._cmd_pages], 0.0)
             a.handle_batch(list(period), 0.0)
@@ -233,40 +247,16 @@ def test_realtime_recorder_handle_raw_equals_handle_batch(tmp_path):
     compiled loops) logs, counts and loads the bus as it does fed messages: the same frames.log
     bytes (the senders' time stamps, ``now`` for a frame without one), counts, error frames and
     per-period bits, with a frame outside the database, a remote frame and error frames among them."""
-    from canbrake.build import build_node
-    from canbrake.scenario import load_scenario
-
-    scn = load_scenario("scenarios/chen2023_case1_fine_rail.yaml")
-    rt = load_scenario("scenarios/chen2023_case1_fine_rail.yaml", overrides={"mode": "realtime"})
-    ch = f"recrt-{os.getpid()}-{uuid.uuid4().hex[:6]}"
-    plant = build_node(scn, "plant", run_dir=None)
-    ecus = []
-    for c in range(1, 7):
-        e = build_node(scn, "ecu", car=c, run_dir=None)
-        e.start(0.0)
-        ecus.append(e)
-    recs = []
-    for name in ("a", "b"):
-        r = build_node(rt, "recorder", run_dir=None)
-        assert r.mode == "realtime"
-        r.log_path = tmp_path / name / "frames.log"
-        r.log_path.parent.mkdir()
-        r.start(0.0)
-        recs.append(r)
-    a, b = recs
-    bus = can.Bus(interface="canbrake", channel=ch)
+    plant, ecus, (a, b) = _recorder_rig(tmp_path, "realtime")
+    recs = [a, b]
+    assert a.mode == b.mode == "realtime"
+    bus = can.Bus(interface="canbrake", channel=f"recrt-{os.getpid()}-{uuid.uuid4().hex[:6]}")
     loads = []
     try:
         frames = plant.start(0.0)
         t = 1000.0
         for tick in range(4):
-            period = list(frames)
-            for _phase in range(4):
-                nxt = []
-                for e in ecus:
-                    nxt += e.handle_batch(list(frames), 0.0)
-                period += nxt
-                frames = nxt
+            period = list(frames) + _answers(ecus, frames)
             period += [can.Message(arbitration_id=0x7EE, data=b"\x01", is_extended_id=False),
                        can.Message(arbitration_id=0x1ABCDE, is_extended_id=True, is_remote_frame=True, dlc=2),
                        can.Message(arbitration_id=0x0, is_error_frame=True, data=bytes(8))]
