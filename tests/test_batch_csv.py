@@ -1,5 +1,5 @@
 """canbrake._batch.csv_bytes (the batch engine's traces, compiled) against Python's "%d" / "%.9g"
-text and csv.writer with "%.9g" floats; its fast "%.9g" (canbrake._batch.g9) against Python's,
+text and csv.writer with "%.9g" floats; its fast "%.9g" (canbrake._g9.g9) against Python's,
 also on near-ties and powers of ten."""
 from __future__ import annotations
 
@@ -9,7 +9,8 @@ import io
 import numpy as np
 import pytest
 
-from canbrake._batch import csv_bytes, g9
+from canbrake._batch import csv_bytes
+from canbrake._g9 import g9
 
 
 def csv_block(rows: np.ndarray, last_int: bool = False) -> str:

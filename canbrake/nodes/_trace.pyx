@@ -21,8 +21,9 @@ from libc.string cimport memcpy, strlen
 import numpy as np
 
 cdef extern from "Python.h":
-    char* PyOS_double_to_string(double val, char format_code, int precision, int flags, int* ptype) except NULL
     object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
+
+from canbrake._g9 cimport g9_into
 
 cdef type NP_F64 = np.float64
 cdef type NP_I64 = np.int64
@@ -65,11 +66,7 @@ def csv_row(list row):
             v = row[i]
             t = type(v)
             if t is float or t is NP_F64:
-                s = PyOS_double_to_string(PyFloat_AS_DOUBLE(v), b'g', 9, 0, NULL)
-                k = strlen(s)
-                memcpy(buf + pos, s, k)
-                PyMem_Free(s)
-                pos += k
+                pos += g9_into(PyFloat_AS_DOUBLE(v), buf + pos)
             elif t is int or t is NP_I64 or t is NP_I32:
                 iv = PyLong_AsLongLongAndOverflow(v if t is int else int(v), &ovf)
                 if ovf:  # beyond 64 bits: Python's own text
@@ -256,7 +253,6 @@ def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py
     cdef list keep = []
     cdef bytes hb = head.encode("ascii")
     cdef char* buf = NULL
-    cdef char* s
     if ptr is NULL or length is NULL:
         PyMem_Free(ptr)
         PyMem_Free(length)
@@ -294,11 +290,7 @@ def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py
                 return None
             buf[pos] = b','
             pos += 1
-            s = PyOS_double_to_string(ptr[a][e], b'g', 9, 0, NULL)
-            k = strlen(s)
-            memcpy(buf + pos, s, k)
-            PyMem_Free(s)
-            pos += k
+            pos += g9_into(ptr[a][e], buf + pos)
         buf[pos] = b'\r'
         buf[pos + 1] = b'\n'
         return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
