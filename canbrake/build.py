@@ -516,16 +516,16 @@ class CoupledPlant:
     def _measure(self) -> dict[str, np.ndarray]:
         if self.plant.rigid:
             return self.plant.rigid_measurements()
-        s = self.plant.snapshot()
-        out = {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
-               "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,
-               "coupler_force_n": s.coupler_force_n}
+        p = self.plant  # its state arrays as they are: a step replaces them, never writes into them
+        dl, phi = p.couplers()
+        out = {"position_m": p.position_m, "speed_mps": p.speed_mps, "accel_mps2": p.accel_mps2,
+               "applied_brake_n": p.applied_force_n, "deflection_m": dl, "coupler_force_n": phi}
         if self.plant.blending is not None or self.plant.wheels is not None:
             out.update(self.plant.equipment_measurements())
         ab = self.plant.air_brake
         if ab is not None:  # the air-braked cars' brake (NaN on the others)
             on = self.plant.air_braked
-            out["applied_brake_n"] = s.applied_force_n + ab.last_force_n
+            out["applied_brake_n"] = p.applied_force_n + ab.last_force_n
             out["air_brake_n"] = np.where(on, ab.last_force_n, np.nan)
             out["brake_cylinder_pressure_pa"] = np.where(on, ab.fill * ab.cylinder_pressure_pa, np.nan)
             if ab.pipe is not None:

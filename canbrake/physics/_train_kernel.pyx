@@ -243,6 +243,55 @@ cdef class CoupledKernel:
             n_bad += bad[p]
         return t, x_out, v_out, a_out, rail_out, n_bad
 
+    def couplers(self, x, v):
+        """The couplers at positions ``x`` (m) and speeds ``v`` (m/s), shape ``(n,)`` or ``(P, n)``:
+        (Δl, Φ), new arrays of shape ``(..., n − 1)``. Δl_j = x_j − x_{j+1} − s_j (m) and
+        Φ_j = κ_j(1 + ε_jΔl_j²)Δl_j (N) plus, with an end stop, its buffer (module docstring of
+        :mod:`canbrake.physics.train`: its loading or unloading curve by the rate v_j − v_{j+1}),
+        with the operations and order of the plant's former numpy properties (these are not the
+        step's: it groups κ + κε·Δl² instead). Draft gears are not included (the plant adds them)."""
+        cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, p, j, q
+        shape = np.shape(x)
+        if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or shape[0] != (P if len(shape) == 2 else n) \
+                or np.shape(v) != shape or (len(shape) == 1 and P > 1):
+            raise ValueError(f"the plant kernel needs positions and speeds of shape ({n},) or ({P}, {n}), "
+                             f"got {shape} and {np.shape(v)}")
+        out_shape = tuple(shape[:len(shape) - 1]) + (nc,)
+        dl_a, phi_a = np.empty(out_shape), np.empty(out_shape)
+        if nc == 0:
+            return dl_a, phi_a
+        cdef double[::1] dl = dl_a.reshape(-1), phi = phi_a.reshape(-1)
+        cdef Py_buffer bx, bv
+        cdef Rows rx = _rows(&bx, x, n, P, False)
+        cdef Rows rv
+        try:
+            rv = _rows(&bv, v, n, P, False)
+        except BaseException:
+            PyBuffer_Release(&bx)
+            raise
+        cdef const double* xp
+        cdef const double* vp
+        cdef double d, f, over, sg, rate, loading, share
+        for p in range(P):
+            xp = rx.p + p * rx.step
+            vp = rv.p + p * rv.step
+            for j in range(nc):
+                q = p * nc + j
+                d = xp[j] - xp[j + 1] - self.spacing.p[p * self.spacing.step + j]
+                f = self.kappa.p[p * self.kappa.step + j] * (1.0 + self.eps.p[p * self.eps.step + j] * d * d) * d
+                if self.end_stop:
+                    over = fabs(d) - self.es_m[j]
+                    sg = _sign(d)
+                    rate = vp[j] - vp[j + 1]
+                    loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
+                    share = 1.0 - self.es_a[j] * (1.0 - loading)
+                    f = f + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
+                dl[q] = d
+                phi[q] = f
+        PyBuffer_Release(&bv)
+        PyBuffer_Release(&bx)
+        return dl_a, phi_a
+
     cdef double _run(self, Rows rx0, Rows rv0, Rows rc, Rows rr0, Rows re, Rows rmu, Rows ref, Rows rx, Rows rv,
                      Rows ra, Rows rr, Py_ssize_t P, double t0, double h, int n_sub, bint ideal, bint plain_rail,
                      double lag, object grade_fn, object x_arr, object lag_per_car) except? -1.0:

@@ -385,21 +385,30 @@ class TrainPlant:
         if self.static_couplers:
             self._place_static()
 
+    def couplers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The couplers at the current state, in one compiled call (:meth:`CoupledKernel.couplers`):
+        (deflections Δl_i = x_i − x_{i+1} − s_i (m), forces Φ_i (N; acts as −Φ_i on car i and +Φ_i
+        on car i+1)), new arrays of shape ``(n-1,)``: Φ(Δl) = κ(1 + εΔl²)Δl, plus the end stop's
+        buffer if configured (module docstring; its loading or unloading curve by dΔl/dt), and on
+        couplers with draft gears the gears' force at this state (their history kept)."""
+        kern = self._kern if self._kern is not None else self._kernel()
+        dl, phi = kern.couplers(self.position_m, self.speed_mps)
+        if self._gears is not None:  # the draft gears' force at this state, their history kept
+            g, k = self._gears, self.gear_couplers
+            rate = self.speed_mps[..., :-1] - self.speed_mps[..., 1:]
+            phi[k] = g.kernel.step(np.ascontiguousarray(dl[k]), np.ascontiguousarray(rate[k]), g.force_state,
+                                   g.defl_prev)[0]
+        return dl, phi
+
     @property
     def deflection_m(self) -> np.ndarray:
-        """Coupler deflections Δl_i = x_i − x_{i+1} − s_i (m), shape ``(n-1,)``."""
-        return self.position_m[..., :-1] - self.position_m[..., 1:] - self.coupler_spacing_m
+        """Coupler deflections Δl_i = x_i − x_{i+1} − s_i (m), shape ``(n-1,)`` (:meth:`couplers`)."""
+        return self.couplers()[0]
 
     @property
     def coupler_force_n(self) -> np.ndarray:
-        """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1."""
-        dl, rate = self.deflection_m, self.speed_mps[..., :-1] - self.speed_mps[..., 1:]
-        phi = self.coupler_force_from_deflection(dl, rate)
-        if self._gears is not None:  # the draft gears' force at this state, their history kept
-            g, k = self._gears, self.gear_couplers
-            phi[k] = g.kernel.step(np.ascontiguousarray(dl[k]), np.ascontiguousarray(rate[k]), g.force_state,
-                                   g.defl_prev)[0]
-        return phi
+        """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1 (:meth:`couplers`)."""
+        return self.couplers()[1]
 
     @property
     def air_brake_n(self) -> np.ndarray | None:
@@ -445,28 +454,6 @@ class TrainPlant:
     def brake_effectiveness(self) -> np.ndarray:
         """Brake effectiveness per car in force for the current step."""
         return self._eff
-
-    def coupler_force_from_deflection(self, dl: np.ndarray, rate_mps: np.ndarray | None = None) -> np.ndarray:
-        """Φ(Δl) = κ(1 + εΔl²)Δl (N), plus the end stop's buffer if configured (module docstring);
-        ``rate_mps`` = dΔl/dt (m/s) picks its loading or unloading curve (None: loading)."""
-        phi = self.coupler_stiffness_n_per_m * (1.0 + self.coupler_nonlinearity_per_m2 * dl * dl) * dl
-        if self.end_stop_m is not None:
-            phi = phi + self.end_stop_force_n(dl, rate_mps)
-        return phi
-
-    def end_stop_force_n(self, dl: np.ndarray, rate_mps: np.ndarray | None = None) -> np.ndarray:
-        """The buffer's force beyond the end stop (N, same sign as Δl; 0 within the travel)."""
-        if self.end_stop_m is None:
-            return np.zeros_like(dl)
-        over = np.abs(dl) - self.end_stop_m
-        sgn = np.sign(dl)
-        if rate_mps is None:
-            share = 1.0
-        else:  # 1 loading (moving into the stop), 1 - a unloading, linear across ±v_t
-            loading = np.clip(0.5 + sgn * rate_mps / (2.0 * END_STOP_TRANSITION_MPS), 0.0, 1.0)
-            share = 1.0 - self.end_stop_absorption * (1.0 - loading)
-        with np.errstate(invalid="ignore"):  # a coupler without a stop (inf): 0 · inf where np.where drops it
-            return np.where(over > 0.0, sgn * over * self.end_stop_stiffness_n_per_m * share, 0.0)
 
     def _substeps(self, dt_s: float) -> int:
         """Sub-steps for a control period of ``dt_s``: ``max_substep_s``, and at most 0.05/ω_b while a
@@ -520,9 +507,10 @@ class TrainPlant:
 
     def snapshot(self) -> PlantState:
         """An immutable copy of the current state."""
+        dl, phi = self.couplers()
         return PlantState(
             self.time_s, self.position_m.copy(), self.speed_mps.copy(), self.accel_mps2.copy(),
-            self.deflection_m, self.coupler_force_n, self.applied_force_n.copy(), self._act.effort_n.copy(),
+            dl, phi, self.applied_force_n.copy(), self._act.effort_n.copy(),
         )
 
     # ------------------------------------------------------------------ dynamics
