@@ -471,7 +471,10 @@ class CoupledPlant:
     command_names: tuple[str, ...] = ("brake_force_n", "wsp_release")
 
     def __init__(self, plant: Any) -> None:
+        from canbrake.physics._train_kernel import nan_as_zero
+
         self.plant = plant
+        self._nan_as_zero = nan_as_zero  # NaN (not commanded) = no force, in one compiled call
         self.n_vehicles = plant.n_cars
         self.n_cars = plant.n_cars
         self.mass_kg = plant.mass_kg
@@ -495,16 +498,17 @@ class CoupledPlant:
         if self.plant.rigid:  # driven axles: their torques
             self.plant.step(dt_s, None, axle_torque_nm=self.plant.axle_torques(commands))
             return
-        f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
+        f = commands.get("brake_force_n")
+        f = np.zeros(self.n_vehicles) if f is None else np.asarray(f, dtype=float)
         if self._wagons is not None:
             f = np.where(self._wagons, np.nan, f)
             ap = commands.get("airbrake_apply")
             self.plant.command_air(None if ap is None else float(ap[0]), commands.get("ecp_demand"))
         wsp = commands.get("wsp_release")
         if wsp is None:
-            self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f))
+            self.plant.step(dt_s, self._nan_as_zero(f))
         else:
-            self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f), wsp_release=np.asarray(wsp, dtype=float))
+            self.plant.step(dt_s, self._nan_as_zero(f), wsp_release=np.asarray(wsp, dtype=float))
 
     def measurements(self) -> dict[str, np.ndarray]:
         """The contract's measurements, computed once per state (the plant node reads them for

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from canbrake.physics import heavy_haul as hh
-from canbrake.physics._train_kernel import CoupledKernel
+from canbrake.physics._train_kernel import CoupledKernel, nan_as_zero
 from canbrake.physics.actuator import BrakeActuator
 from canbrake.physics.rail import DisturbanceForce, RailConditions, RailEvent
 from canbrake.physics.train import END_STOP_TRANSITION_MPS, TrainPlant, stack_plants
@@ -169,6 +169,18 @@ def test_the_coupled_plants_measurements_of_a_state_outlive_the_next_step():
             cp.step(0.001, {"brake_force_n": M * 0.5})
         assert all(np.array_equal(m[k], kept[k]) for k in kept)
         assert not np.array_equal(cp.measurements()["position_m"], kept["position_m"])
+
+
+def test_nan_as_zero_is_numpys_where_bit_for_bit():
+    rng = np.random.default_rng(5)
+    a = rng.normal(0.0, 1e4, (3, 6))
+    a[0, 1], a[1, 2], a[2, 3], a[2, 4], a[0, 5] = np.nan, -0.0, np.inf, -np.inf, -np.nan
+    for x in (a, a[1], a[:, 2], a.T, a[:0]):  # rows, a strided column, a transpose, nothing
+        got = nan_as_zero(x)
+        assert got is not x and got.shape == x.shape
+        assert _same_bits(got, np.where(np.isnan(x), 0.0, x))
+    with pytest.raises(TypeError, match="float64"):
+        nan_as_zero(a.astype(np.float32))
 
 
 # ------------------------------------------------------------------ heavy haul

@@ -117,6 +117,8 @@ cdef class CoupledKernel:
     cdef double[::1] phi
     #: after a step: 1 for each point whose speeds are not all finite, and its last max |Δl| (m)
     cdef readonly object bad, dl_max
+    cdef unsigned char[::1] bad_v  # their views, made once (a view made per call costs more than a small step)
+    cdef double[::1] dl_max_v
 
     def __init__(self, mass, inv_m, c_static, c1, c2, grade_force_n, brake_max, trac_max, rate_max,
                  spacing, kappa, epsilon, kappa_eps, dist_start, dist_end, dist_w, dist_phase, dist_amp,
@@ -188,6 +190,7 @@ cdef class CoupledKernel:
         self.phi = np.zeros(max(self.nc, 1))
         self.bad = np.zeros(points, dtype=np.uint8)
         self.dl_max = np.zeros(points)
+        self.bad_v, self.dl_max_v = self.bad, self.dl_max
 
     def step(self, x0, v0, cmd, rail0, effort, mu, eff, double t0, double h, int n_sub, bint ideal,
              bint plain_rail, double lag, grade_fn=None, lag_per_car=None):
@@ -215,8 +218,7 @@ cdef class CoupledKernel:
         cdef Py_buffer bufs[11]
         cdef int held = 0
         cdef Rows rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro
-        cdef unsigned char[::1] bad = self.bad
-        cdef double[::1] dl_max = self.dl_max
+        cdef unsigned char[::1] bad = self.bad_v
         cdef Py_ssize_t n_bad, p
         try:
             rx = _rows(&bufs[0], x0, n, P, False); held = 1
@@ -250,7 +252,7 @@ cdef class CoupledKernel:
         :mod:`canbrake.physics.train`: its loading or unloading curve by the rate v_j − v_{j+1}),
         with the operations and order of the plant's former numpy properties (these are not the
         step's: it groups κ + κε·Δl² instead). Draft gears are not included (the plant adds them)."""
-        cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, p, j, q
+        cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, p, j
         shape = np.shape(x)
         if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or shape[0] != (P if len(shape) == 2 else n) \
                 or np.shape(v) != shape or (len(shape) == 1 and P > 1):
@@ -260,36 +262,36 @@ cdef class CoupledKernel:
         dl_a, phi_a = np.empty(out_shape), np.empty(out_shape)
         if nc == 0:
             return dl_a, phi_a
-        cdef double[::1] dl = dl_a.reshape(-1), phi = phi_a.reshape(-1)
-        cdef Py_buffer bx, bv
-        cdef Rows rx = _rows(&bx, x, n, P, False)
-        cdef Rows rv
-        try:
-            rv = _rows(&bv, v, n, P, False)
-        except BaseException:
-            PyBuffer_Release(&bx)
-            raise
+        cdef Py_buffer bufs[4]
+        cdef int held = 0
+        cdef Rows rx, rv, rd, rf
         cdef const double* xp
         cdef const double* vp
         cdef double d, f, over, sg, rate, loading, share
-        for p in range(P):
-            xp = rx.p + p * rx.step
-            vp = rv.p + p * rv.step
-            for j in range(nc):
-                q = p * nc + j
-                d = xp[j] - xp[j + 1] - self.spacing.p[p * self.spacing.step + j]
-                f = self.kappa.p[p * self.kappa.step + j] * (1.0 + self.eps.p[p * self.eps.step + j] * d * d) * d
-                if self.end_stop:
-                    over = fabs(d) - self.es_m[j]
-                    sg = _sign(d)
-                    rate = vp[j] - vp[j + 1]
-                    loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
-                    share = 1.0 - self.es_a[j] * (1.0 - loading)
-                    f = f + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
-                dl[q] = d
-                phi[q] = f
-        PyBuffer_Release(&bv)
-        PyBuffer_Release(&bx)
+        try:
+            rx = _rows(&bufs[0], x, n, P, False); held = 1
+            rv = _rows(&bufs[1], v, n, P, False); held = 2
+            rd = _rows(&bufs[2], dl_a, nc, P, True); held = 3
+            rf = _rows(&bufs[3], phi_a, nc, P, True); held = 4
+            for p in range(P):
+                xp = rx.p + p * rx.step
+                vp = rv.p + p * rv.step
+                for j in range(nc):
+                    d = xp[j] - xp[j + 1] - self.spacing.p[p * self.spacing.step + j]
+                    f = self.kappa.p[p * self.kappa.step + j] * (1.0 + self.eps.p[p * self.eps.step + j] * d * d) * d
+                    if self.end_stop:
+                        over = fabs(d) - self.es_m[j]
+                        sg = _sign(d)
+                        rate = vp[j] - vp[j + 1]
+                        loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
+                        share = 1.0 - self.es_a[j] * (1.0 - loading)
+                        f = f + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
+                    rd.p[p * rd.step + j] = d
+                    rf.p[p * rf.step + j] = f
+        finally:
+            while held > 0:
+                held -= 1
+                PyBuffer_Release(&bufs[held])
         return dl_a, phi_a
 
     cdef double _run(self, Rows rx0, Rows rv0, Rows rc, Rows rr0, Rows re, Rows rmu, Rows ref, Rows rx, Rows rv,
@@ -309,8 +311,8 @@ cdef class CoupledKernel:
         cdef double* effv
         cdef bint all_moving, moving, finite
         cdef const double[::1] gforce
-        cdef unsigned char[::1] bad = self.bad
-        cdef double[::1] dl_max = self.dl_max
+        cdef unsigned char[::1] bad = self.bad_v
+        cdef double[::1] dl_max = self.dl_max_v
         cdef double* mass = self.mass.p
         cdef bint per_car_lag = lag_per_car is not None
         cdef const double[::1] lagv = lag_per_car if per_car_lag else self.inst
@@ -437,6 +439,32 @@ cdef class CoupledKernel:
             bad[p] = not finite
             dl_max[p] = dmax
         return t
+
+
+def nan_as_zero(a):
+    """``a`` (float64) with every NaN made +0.0, a new array of its shape: numpy's
+    ``np.where(np.isnan(a), 0.0, a)`` in one call (the coupled plant's commands, NaN = not
+    commanded = no force)."""
+    cdef Py_buffer src, dst
+    cdef Py_ssize_t i, m
+    cdef const double* s
+    cdef double* d
+    out = np.empty(np.shape(a))
+    try:
+        PyObject_GetBuffer(a, &src, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
+    except (BufferError, ValueError):  # a strided view (numpy: ValueError): its values in order
+        PyObject_GetBuffer(np.ascontiguousarray(a), &src, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
+    try:
+        if src.itemsize != 8 or src.format == NULL or src.format[0] != b"d" or src.format[1] != 0:
+            raise TypeError("nan_as_zero needs a float64 array")
+        PyObject_GetBuffer(out, &dst, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE)
+        s, d, m = <const double*>src.buf, <double*>dst.buf, src.len // 8
+        for i in range(m):
+            d[i] = 0.0 if s[i] != s[i] else s[i]
+        PyBuffer_Release(&dst)
+    finally:
+        PyBuffer_Release(&src)
+    return out
 
 
 def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v, const double[::1] table_f,

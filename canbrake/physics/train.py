@@ -515,6 +515,8 @@ class TrainPlant:
 
     # ------------------------------------------------------------------ dynamics
     def _update_rail(self, t: float) -> None:
+        if not self._events and self._rail_key is not None:  # no rail events: set once after reset
+            return
         key = tuple(s <= t < e for s, e, _, _ in self._events)
         if key == self._rail_key:
             return
