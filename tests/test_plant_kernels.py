@@ -171,6 +171,35 @@ def test_the_coupled_plants_measurements_of_a_state_outlive_the_next_step():
         assert not np.array_equal(cp.measurements()["position_m"], kept["position_m"])
 
 
+@pytest.mark.parametrize("name", ["chen2023_case1_fine_rail", "emu8_low_adhesion", "li2024_ecp_over_can",
+                                  "cai2014_case1"])
+def test_the_plant_models_keep_no_reference_to_the_commands(name):
+    # the plant node passes its own command arrays (no copies) and updates them in place as frames
+    # arrive: a model stepped with arrays scribbled over after each step must run as one stepped with copies
+    from pathlib import Path
+
+    from canbrake.build import build_plant_model
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / f"{name}.yaml")
+    a, b = build_plant_model(scn), build_plant_model(scn)
+    rng = np.random.default_rng(2)
+    n = a.n_vehicles
+    for k in range(30):
+        cmds = {c: rng.uniform(0.0, 1.0, n) * (2e4 if c == "brake_force_n" else 1e3 if "torque" in c else 1.0)
+                for c in a.command_names}
+        if "brake_force_n" in cmds:
+            cmds["brake_force_n"][k % n] = np.nan
+        a.step(scn.control_period_s, cmds)
+        b.step(scn.control_period_s, {c: x.copy() for c, x in cmds.items()})
+        ma = a.measurements()
+        for x in cmds.values():
+            x.fill(-7.0e6)  # the next frames, written into the node's arrays
+        mb = b.measurements()
+        assert set(ma) == set(mb)
+        assert all(_same_bits(np.asarray(ma[m], dtype=float), np.asarray(mb[m], dtype=float)) for m in ma), k
+
+
 def test_nan_as_zero_is_numpys_where_bit_for_bit():
     rng = np.random.default_rng(5)
     a = rng.normal(0.0, 1e4, (3, 6))

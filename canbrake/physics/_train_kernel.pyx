@@ -207,7 +207,7 @@ cdef class CoupledKernel:
         sub-step, the last rail force (``rail0`` itself when ideal) and the number of points whose
         speeds are not all finite (flagged in :attr:`bad`, their last max |Δl| in :attr:`dl_max`)."""
         cdef Py_ssize_t P = self.points, n = self.n
-        shape = np.shape(x0)
+        shape = x0.shape if type(x0) is np.ndarray else np.shape(x0)
         if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or (len(shape) == 2 and shape[0] != P):
             raise ValueError(f"the plant kernel needs positions of shape ({n},) or ({P}, {n}), got {shape}")  # (n,) or (P, n), a stack of one point included
         x_out = np.empty(shape)
@@ -253,9 +253,9 @@ cdef class CoupledKernel:
         with the operations and order of the plant's former numpy properties (these are not the
         step's: it groups κ + κε·Δl² instead). Draft gears are not included (the plant adds them)."""
         cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, p, j
-        shape = np.shape(x)
+        shape = x.shape if type(x) is np.ndarray else np.shape(x)
         if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or shape[0] != (P if len(shape) == 2 else n) \
-                or np.shape(v) != shape or (len(shape) == 1 and P > 1):
+                or (v.shape if type(v) is np.ndarray else np.shape(v)) != shape or (len(shape) == 1 and P > 1):
             raise ValueError(f"the plant kernel needs positions and speeds of shape ({n},) or ({P}, {n}), "
                              f"got {shape} and {np.shape(v)}")
         out_shape = tuple(shape[:len(shape) - 1]) + (nc,)
@@ -315,7 +315,9 @@ cdef class CoupledKernel:
         cdef double[::1] dl_max = self.dl_max_v
         cdef double* mass = self.mass.p
         cdef bint per_car_lag = lag_per_car is not None
-        cdef const double[::1] lagv = lag_per_car if per_car_lag else self.inst
+        cdef const double[::1] lagv = self.inst  # (a conditional expression would make a view per call)
+        if per_car_lag:
+            lagv = lag_per_car
         cdef double lag_i = lag
         for p in range(P):
             x = rx.p + p * rx.step
@@ -449,7 +451,7 @@ def nan_as_zero(a):
     cdef Py_ssize_t i, m
     cdef const double* s
     cdef double* d
-    out = np.empty(np.shape(a))
+    out = np.empty(a.shape if type(a) is np.ndarray else np.shape(a))
     try:
         PyObject_GetBuffer(a, &src, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
     except (BufferError, ValueError):  # a strided view (numpy: ValueError): its values in order
