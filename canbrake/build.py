@@ -535,7 +535,7 @@ class CoupledPlant:
             if ab.pipe is not None:
                 out["brake_pipe_pressure_pa"] = np.where(on, ab.pipe_pressure_pa, np.nan)
         if ab is not None or self.plant.draft_gears is not None:  # what Li 2024's controllers read
-            out["passive_force_n"] = self.plant.passive_force_n()
+            out["passive_force_n"] = self.plant.passive_force_n(phi)
             out["downgrade_ahead"] = self._downgrade if getattr(self.plant, "route", None) is None else np.full(
                 self.n_vehicles, float(self.plant.downgrade_ahead()))  # the route's line data
         return out

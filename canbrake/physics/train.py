@@ -477,14 +477,15 @@ class TrainPlant:
         mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
         return 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
 
-    def passive_force_n(self) -> np.ndarray:
+    def passive_force_n(self, coupler_force_n: np.ndarray | None = None) -> np.ndarray:
         """The non-control force per car at the current state (N, + forward): the couplers' forces
         from the front and the rear, minus the running resistance (Davis, table, curve), the grade
         force and the air brake's block force, each opposing the motion (Li 2024's nominal F_i,
-        what its controllers call m0·f(x); no disturbance). Shape ``(n,)``."""
+        what its controllers call m0·f(x); no disturbance). Shape ``(n,)``. ``coupler_force_n``:
+        the couplers' forces at this state if the caller has them (:meth:`couplers`), else computed."""
         v = self.speed_mps
         speed = np.abs(v)
-        f = self._incidence.dot(self.coupler_force_n)
+        f = self._incidence.dot(self.coupler_force_n if coupler_force_n is None else coupler_force_n)
         r = self._c_static + speed * (self.resistance.c1_n_per_mps + self.resistance.c2_n_per_mps2 * speed)
         if self._tab is not None:
             r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], np.ascontiguousarray(speed),
