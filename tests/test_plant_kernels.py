@@ -139,6 +139,36 @@ def test_the_kernels_couplers_are_the_numpy_formulas_bit_for_bit(stops):
     assert _same_bits(p.snapshot().coupler_force_n, ref_phi)
 
 
+@pytest.mark.parametrize("stops", [None, (0.08, 5e6, 0.5)], ids=["no-stop", "stop"])
+def test_the_steps_couplers_are_the_numpy_formulas_of_the_new_state(stops):
+    # the compiled step returns the couplers of the state it reaches; couplers() serves them for that state
+    kw = {} if stops is None else dict(end_stop_m=stops[0], end_stop_stiffness_n_per_m=stops[1],
+                                       end_stop_absorption=stops[2])
+    singles = [TrainPlant(M, X0, np.array([20.0, 20.3, 19.6, 20.1, 20.4, 19.8]) * (1 + 0.1 * i),
+                          coupler_stiffness_n_per_m=8e4 * (1 + i), actuator=BrakeActuator.realistic(), **kw)
+               for i in range(2)]
+    stack = stack_plants([TrainPlant(M, X0, np.array([20.0, 20.3, 19.6, 20.1, 20.4, 19.8]) * (1 + 0.1 * i),
+                                     coupler_stiffness_n_per_m=8e4 * (1 + i), **kw) for i in range(2)]) \
+        if stops is None else None
+    rng = np.random.default_rng(4)
+    for k in range(300):
+        for p in singles:
+            p.step(0.001, rng.normal(0.5, 1.0, 6) * M)
+            dl, phi = p.couplers()
+            assert p.couplers()[1] is phi  # the step's own arrays
+            ref_dl, ref_phi = _numpy_couplers(p, p.position_m, p.speed_mps)
+            assert _same_bits(dl, ref_dl) and _same_bits(phi, ref_phi), k
+        if stack is not None:
+            stack.step(0.001, np.stack([rng.normal(0.5, 1.0, 6) * M] * 2))
+            ref_dl, ref_phi = _numpy_couplers(stack, stack.position_m, stack.speed_mps)
+            assert _same_bits(stack.couplers()[0], ref_dl) and _same_bits(stack.couplers()[1], ref_phi), k
+    p = singles[0]
+    p.position_m = p.position_m + 0.01  # a state the step did not reach: computed afresh
+    assert _same_bits(p.couplers()[1], _numpy_couplers(p, p.position_m, p.speed_mps)[1])
+    p.reset()
+    assert _same_bits(p.couplers()[0], np.zeros(5))
+
+
 def test_a_stacks_couplers_are_its_plants_and_one_car_has_none():
     plants = [_plant(i) for i in range(3)]
     for i, p in enumerate(plants):

@@ -203,9 +203,10 @@ cdef class CoupledKernel:
         positions, evaluated every sub-step. ``lag_per_car``: 1 − e^(−h/τ_i) per car (``(n,)``),
         used instead of ``lag`` (vehicles with different brake lags).
 
-        Returns (time_s, x, v, accel, rail, n_bad): the new state, the acceleration over the last
-        sub-step, the last rail force (``rail0`` itself when ideal) and the number of points whose
-        speeds are not all finite (flagged in :attr:`bad`, their last max |Δl| in :attr:`dl_max`)."""
+        Returns (time_s, x, v, accel, rail, n_bad, dl, phi): the new state, the acceleration over
+        the last sub-step, the last rail force (``rail0`` itself when ideal), the number of points
+        whose speeds are not all finite (flagged in :attr:`bad`, their last max |Δl| in
+        :attr:`dl_max`) and the couplers of the new state as :meth:`couplers` gives them."""
         cdef Py_ssize_t P = self.points, n = self.n
         shape = x0.shape if type(x0) is np.ndarray else np.shape(x0)
         if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or (len(shape) == 2 and shape[0] != P):
@@ -214,10 +215,12 @@ cdef class CoupledKernel:
         v_out = np.empty(shape)
         a_out = np.empty(shape)
         rail_out = rail0 if ideal else np.empty(shape)
-        # the 11 arrays' buffers, released in one place whatever happens (held: how many were taken)
-        cdef Py_buffer bufs[11]
+        cshape = tuple(shape[:len(shape) - 1]) + (self.nc,)
+        dl_out, phi_out = np.empty(cshape), np.empty(cshape)
+        # the 13 arrays' buffers, released in one place whatever happens (held: how many were taken)
+        cdef Py_buffer bufs[13]
         cdef int held = 0
-        cdef Rows rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro
+        cdef Rows rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro, rdo, rpo
         cdef unsigned char[::1] bad = self.bad_v
         cdef Py_ssize_t n_bad, p
         try:
@@ -236,6 +239,10 @@ cdef class CoupledKernel:
                 np.broadcast_to(np.asarray(lag_per_car, dtype=float), (n,)))
             t = self._run(rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro, P, t0, h, n_sub,
                           ideal, plain_rail, lag, grade_fn, x_out, lagv)
+            if self.nc:
+                rdo = _rows(&bufs[11], dl_out, self.nc, P, True); held = 12
+                rpo = _rows(&bufs[12], phi_out, self.nc, P, True); held = 13
+                self._couplers(rxo, rvo, rdo, rpo, P)
         finally:
             while held > 0:
                 held -= 1
@@ -243,7 +250,7 @@ cdef class CoupledKernel:
         n_bad = 0
         for p in range(P):
             n_bad += bad[p]
-        return t, x_out, v_out, a_out, rail_out, n_bad
+        return t, x_out, v_out, a_out, rail_out, n_bad, dl_out, phi_out
 
     def couplers(self, x, v):
         """The couplers at positions ``x`` (m) and speeds ``v`` (m/s), shape ``(n,)`` or ``(P, n)``:
@@ -265,34 +272,39 @@ cdef class CoupledKernel:
         cdef Py_buffer bufs[4]
         cdef int held = 0
         cdef Rows rx, rv, rd, rf
-        cdef const double* xp
-        cdef const double* vp
-        cdef double d, f, over, sg, rate, loading, share
         try:
             rx = _rows(&bufs[0], x, n, P, False); held = 1
             rv = _rows(&bufs[1], v, n, P, False); held = 2
             rd = _rows(&bufs[2], dl_a, nc, P, True); held = 3
             rf = _rows(&bufs[3], phi_a, nc, P, True); held = 4
-            for p in range(P):
-                xp = rx.p + p * rx.step
-                vp = rv.p + p * rv.step
-                for j in range(nc):
-                    d = xp[j] - xp[j + 1] - self.spacing.p[p * self.spacing.step + j]
-                    f = self.kappa.p[p * self.kappa.step + j] * (1.0 + self.eps.p[p * self.eps.step + j] * d * d) * d
-                    if self.end_stop:
-                        over = fabs(d) - self.es_m[j]
-                        sg = _sign(d)
-                        rate = vp[j] - vp[j + 1]
-                        loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
-                        share = 1.0 - self.es_a[j] * (1.0 - loading)
-                        f = f + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
-                    rd.p[p * rd.step + j] = d
-                    rf.p[p * rf.step + j] = f
+            self._couplers(rx, rv, rd, rf, P)
         finally:
             while held > 0:
                 held -= 1
                 PyBuffer_Release(&bufs[held])
         return dl_a, phi_a
+
+    cdef void _couplers(self, Rows rx, Rows rv, Rows rd, Rows rf, Py_ssize_t P) noexcept:
+        """:meth:`couplers` of P rows of positions ``rx`` and speeds ``rv`` into ``rd``, ``rf``."""
+        cdef Py_ssize_t p, j, nc = self.nc
+        cdef const double* xp
+        cdef const double* vp
+        cdef double d, f, over, sg, rate, loading, share
+        for p in range(P):
+            xp = rx.p + p * rx.step
+            vp = rv.p + p * rv.step
+            for j in range(nc):
+                d = xp[j] - xp[j + 1] - self.spacing.p[p * self.spacing.step + j]
+                f = self.kappa.p[p * self.kappa.step + j] * (1.0 + self.eps.p[p * self.eps.step + j] * d * d) * d
+                if self.end_stop:
+                    over = fabs(d) - self.es_m[j]
+                    sg = _sign(d)
+                    rate = vp[j] - vp[j + 1]
+                    loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
+                    share = 1.0 - self.es_a[j] * (1.0 - loading)
+                    f = f + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
+                rd.p[p * rd.step + j] = d
+                rf.p[p * rf.step + j] = f
 
     cdef double _run(self, Rows rx0, Rows rv0, Rows rc, Rows rr0, Rows re, Rows rmu, Rows ref, Rows rx, Rows rv,
                      Rows ra, Rows rr, Py_ssize_t P, double t0, double h, int n_sub, bint ideal, bint plain_rail,

@@ -355,6 +355,8 @@ class TrainPlant:
     def reset(self) -> None:
         """Back to the initial positions and speeds, actuator at rest, t = 0."""
         self.time_s = 0.0
+        #: (x, v, Δl, Φ) of the last plain compiled step's new state (couplers() while x and v are the plant's)
+        self._step_couplers: tuple[np.ndarray, ...] | None = None
         self.position_m = self._x0.copy()
         self.speed_mps = self._v0.copy()
         self.accel_mps2 = np.zeros(self.n_cars)
@@ -386,11 +388,16 @@ class TrainPlant:
             self._place_static()
 
     def couplers(self) -> tuple[np.ndarray, np.ndarray]:
-        """The couplers at the current state, in one compiled call (:meth:`CoupledKernel.couplers`):
-        (deflections Δl_i = x_i − x_{i+1} − s_i (m), forces Φ_i (N; acts as −Φ_i on car i and +Φ_i
-        on car i+1)), new arrays of shape ``(n-1,)``: Φ(Δl) = κ(1 + εΔl²)Δl, plus the end stop's
-        buffer if configured (module docstring; its loading or unloading curve by dΔl/dt), and on
-        couplers with draft gears the gears' force at this state (their history kept)."""
+        """The couplers at the current state (:meth:`CoupledKernel.couplers`): (deflections
+        Δl_i = x_i − x_{i+1} − s_i (m), forces Φ_i (N; acts as −Φ_i on car i and +Φ_i on car i+1)),
+        shape ``(n-1,)``: Φ(Δl) = κ(1 + εΔl²)Δl, plus the end stop's buffer if configured (module
+        docstring; its loading or unloading curve by dΔl/dt), and on couplers with draft gears the
+        gears' force at this state (their history kept). After a step of the plain compiled
+        kernel, the arrays its step computed for the new state (shared by the callers of that
+        state: do not modify them); otherwise new arrays from one compiled call."""
+        c = self._step_couplers
+        if c is not None and c[0] is self.position_m and c[1] is self.speed_mps:  # the last step's state
+            return c[2], c[3]
         kern = self._kern if self._kern is not None else self._kernel()
         dl, phi = kern.couplers(self.position_m, self.speed_mps)
         if self._gears is not None:  # the draft gears' force at this state, their history kept
@@ -563,14 +570,14 @@ class TrainPlant:
         if act.params.kind == "ideal" and self._env is None:  # the rail force is held over the period
             effort = act.advance(cmd, h)
             rail = effort if self._plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
-            self.time_s, x, v, acc, rail, n_bad = kernel.step(
+            self.time_s, x, v, acc, rail, n_bad, dl, phi = kernel.step(
                 self.position_m, self.speed_mps, cmd, rail, self._mu, self._mu, self._eff, self.time_s, h, n_sub,
                 True, self._plain_rail, 0.0, gcb)  # (the effort argument is not used when ideal)
         else:  # the actuator (and the traction envelopes) every sub-step
             effort = np.array(np.broadcast_to(act.effort_n, cmd.shape), dtype=float)
             lag = 0.0 if act.params.kind == "ideal" else act.lag_factor(h)
             per_car = None if isinstance(lag, float) else lag
-            self.time_s, x, v, acc, rail, n_bad = kernel.step(
+            self.time_s, x, v, acc, rail, n_bad, dl, phi = kernel.step(
                 self.position_m, self.speed_mps, cmd, self.applied_force_n, effort, self._mu, self._eff,
                 self.time_s, h, n_sub, False, self._plain_rail, 0.0 if per_car is not None else lag, gcb, per_car)
             act.effort_n = effort
@@ -581,6 +588,7 @@ class TrainPlant:
         self.accel_mps2 = acc
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+        self._step_couplers = (x, v, dl, phi)  # couplers() of this state (parked rows: other arrays, not used)
 
     def _grade_force_fn(self, x: np.ndarray) -> np.ndarray:
         """m g sin θ per car (N) at positions ``x`` (m), with a grade function (the kernel calls it)."""
@@ -1128,6 +1136,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     st = copy.copy(p0)
     st.stacked = True
     st._kern = None
+    st._step_couplers = None
     st._ekern = None
     st._qkern = None
     for name in _STACKED:
