@@ -471,7 +471,10 @@ class CoupledPlant:
     command_names: tuple[str, ...] = ("brake_force_n", "wsp_release")
 
     def __init__(self, plant: Any) -> None:
+        from canbrake.physics._train_kernel import nan_as_zero
+
         self.plant = plant
+        self._nan_as_zero = nan_as_zero  # NaN (not commanded) = no force, in one compiled call
         self.n_vehicles = plant.n_cars
         self.n_cars = plant.n_cars
         self.mass_kg = plant.mass_kg
@@ -495,16 +498,17 @@ class CoupledPlant:
         if self.plant.rigid:  # driven axles: their torques
             self.plant.step(dt_s, None, axle_torque_nm=self.plant.axle_torques(commands))
             return
-        f = np.asarray(commands.get("brake_force_n", np.zeros(self.n_vehicles)), dtype=float)
+        f = commands.get("brake_force_n")
+        f = np.zeros(self.n_vehicles) if f is None else np.asarray(f, dtype=float)
         if self._wagons is not None:
             f = np.where(self._wagons, np.nan, f)
             ap = commands.get("airbrake_apply")
             self.plant.command_air(None if ap is None else float(ap[0]), commands.get("ecp_demand"))
         wsp = commands.get("wsp_release")
         if wsp is None:
-            self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f))
+            self.plant.step(dt_s, self._nan_as_zero(f))
         else:
-            self.plant.step(dt_s, np.where(np.isnan(f), 0.0, f), wsp_release=np.asarray(wsp, dtype=float))
+            self.plant.step(dt_s, self._nan_as_zero(f), wsp_release=np.asarray(wsp, dtype=float))
 
     def measurements(self) -> dict[str, np.ndarray]:
         """The contract's measurements, computed once per state (the plant node reads them for
@@ -516,22 +520,22 @@ class CoupledPlant:
     def _measure(self) -> dict[str, np.ndarray]:
         if self.plant.rigid:
             return self.plant.rigid_measurements()
-        s = self.plant.snapshot()
-        out = {"position_m": s.position_m, "speed_mps": s.speed_mps, "accel_mps2": s.accel_mps2,
-               "applied_brake_n": s.applied_force_n, "deflection_m": s.deflection_m,
-               "coupler_force_n": s.coupler_force_n}
+        p = self.plant  # its state arrays as they are: a step replaces them, never writes into them
+        dl, phi = p.couplers()
+        out = {"position_m": p.position_m, "speed_mps": p.speed_mps, "accel_mps2": p.accel_mps2,
+               "applied_brake_n": p.applied_force_n, "deflection_m": dl, "coupler_force_n": phi}
         if self.plant.blending is not None or self.plant.wheels is not None:
             out.update(self.plant.equipment_measurements())
         ab = self.plant.air_brake
         if ab is not None:  # the air-braked cars' brake (NaN on the others)
             on = self.plant.air_braked
-            out["applied_brake_n"] = s.applied_force_n + ab.last_force_n
+            out["applied_brake_n"] = p.applied_force_n + ab.last_force_n
             out["air_brake_n"] = np.where(on, ab.last_force_n, np.nan)
             out["brake_cylinder_pressure_pa"] = np.where(on, ab.fill * ab.cylinder_pressure_pa, np.nan)
             if ab.pipe is not None:
                 out["brake_pipe_pressure_pa"] = np.where(on, ab.pipe_pressure_pa, np.nan)
         if ab is not None or self.plant.draft_gears is not None:  # what Li 2024's controllers read
-            out["passive_force_n"] = self.plant.passive_force_n()
+            out["passive_force_n"] = self.plant.passive_force_n(phi)
             out["downgrade_ahead"] = self._downgrade if getattr(self.plant, "route", None) is None else np.full(
                 self.n_vehicles, float(self.plant.downgrade_ahead()))  # the route's line data
         return out

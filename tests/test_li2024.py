@@ -116,6 +116,25 @@ def test_basic_resistance_matches_hand_calculation():
     assert r[1:] == pytest.approx([wagon] * 3, rel=1e-12)
 
 
+def test_long_downgrade_ahead_is_the_former_rule_everywhere_on_the_line():
+    # its long downgrades are found once per rule; the answer is the former per-call numpy rule's
+    route = train().kernel.load_route(SCENARIOS)
+    starts = route.grade_start_m
+    ends = np.append(starts[1:], route.length_m)
+    rules = [(2500.0, 8.0, 500.0), (100.0, 10.5, 5000.0), (0.0, 2.0, 0.0), (1000.0, 30.0, 500.0)]
+    seen = set()
+    for look, g, length in rules:
+        steep = (route.grade_permille < -g) & ((ends - starts) >= length)
+        edges = np.concatenate([starts, ends, starts - look, ends + 1.5e3])
+        for front in np.concatenate([np.linspace(-3e3, 5e4, 1201), edges, np.nextafter(edges, np.inf),
+                                     np.nextafter(edges, -np.inf)]):
+            rear = front - 1500.0
+            old = bool(np.any(steep & (ends > rear) & (starts < front + look)))
+            assert route.long_downgrade_ahead(float(front), float(rear), look, g, length) == old, (front, look, g)
+            seen.add(old)
+    assert seen == {True, False}
+
+
 def test_consist_of_the_paper():
     c = train().kernel
     assert c.n_cars == 106 and sum(e is not None for e in c.traction_envelope) == 1

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from canbrake.physics import heavy_haul as hh
-from canbrake.physics._train_kernel import CoupledKernel
+from canbrake.physics._train_kernel import CoupledKernel, nan_as_zero
 from canbrake.physics.actuator import BrakeActuator
 from canbrake.physics.rail import DisturbanceForce, RailConditions, RailEvent
-from canbrake.physics.train import TrainPlant, stack_plants
+from canbrake.physics.train import END_STOP_TRANSITION_MPS, TrainPlant, stack_plants
 from canbrake.physics.wheel_adhesion import RailCondition, WheelSet
 
 M = np.array([18000, 21000, 19500, 20000, 19700, 22000.0])
@@ -89,6 +89,157 @@ def test_kernel_refuses_arrays_it_cannot_read():
         k.step(p.position_m.astype(np.float32), *args[1:])
     with pytest.raises(ValueError, match=r"shape \(6,\)"):
         k.step(np.zeros(5), *args[1:])
+
+
+def _numpy_couplers(p: TrainPlant, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The plant's former numpy deflection_m / coupler_force_n (without draft gears): the oracle of
+    CoupledKernel.couplers, same operations in the same order."""
+    dl = x[..., :-1] - x[..., 1:] - p.coupler_spacing_m
+    phi = p.coupler_stiffness_n_per_m * (1.0 + p.coupler_nonlinearity_per_m2 * dl * dl) * dl
+    if p.end_stop_m is not None:
+        rate = v[..., :-1] - v[..., 1:]
+        over = np.abs(dl) - p.end_stop_m
+        sgn = np.sign(dl)
+        loading = np.clip(0.5 + sgn * rate / (2.0 * END_STOP_TRANSITION_MPS), 0.0, 1.0)
+        share = 1.0 - p.end_stop_absorption * (1.0 - loading)
+        with np.errstate(invalid="ignore"):
+            phi = phi + np.where(over > 0.0, sgn * over * p.end_stop_stiffness_n_per_m * share, 0.0)
+    return dl, phi
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    """Equal to the bit (signed zeros told apart), NaN where the other is NaN."""
+    nan = np.isnan(a)
+    return a.shape == b.shape and bool(np.array_equal(nan, np.isnan(b))) and bool(
+        np.array_equal(a[~nan].view(np.int64), b[~nan].view(np.int64)))
+
+
+@pytest.mark.parametrize("stops", [None, (0.08, 5e6, 0.5), ([0.08, None, 0.05, 0.1, None], [5e6, 2e7, 1e7, 5e6, 2e7],
+                                                          [0.5, 0.0, 0.6, 0.3, 0.2])],
+                         ids=["no-stop", "stop", "per-coupler"])
+def test_the_kernels_couplers_are_the_numpy_formulas_bit_for_bit(stops):
+    kw = {} if stops is None else dict(end_stop_m=stops[0], end_stop_stiffness_n_per_m=stops[1],
+                                       end_stop_absorption=stops[2])
+    p = TrainPlant(M, X0, np.full(6, 20.0), coupler_nonlinearity_per_m2=[-0.5, -0.3, 0.2, -0.5, 0.0],
+                   coupler_stiffness_n_per_m=[8e4, 9e4, 7e4, 8.5e4, 6e4], **kw)
+    rng = np.random.default_rng(11)
+    kern = p._kernel()
+    for k in range(400):  # deflections inside and beyond the stops, rates on both curves and across ±v_t
+        x = X0 + rng.normal(0.0, 0.06, 6) * (10.0 ** rng.integers(-6, 1))
+        v = 20.0 + rng.normal(0.0, 0.02, 6) * (10.0 ** rng.integers(-3, 2))
+        if k % 50 == 0:  # exact zeros, a NaN and an infinity
+            x = X0.copy()
+            x[3] = [np.nan, np.inf, X0[3]][k // 50 % 3]
+            v[2] = v[3]
+        dl, phi = kern.couplers(x, v)
+        ref_dl, ref_phi = _numpy_couplers(p, x, v)
+        assert _same_bits(dl, ref_dl) and _same_bits(phi, ref_phi), k
+    p.position_m, p.speed_mps = x, v
+    assert _same_bits(p.coupler_force_n, ref_phi) and _same_bits(p.deflection_m, ref_dl)
+    assert _same_bits(p.snapshot().coupler_force_n, ref_phi)
+
+
+@pytest.mark.parametrize("stops", [None, (0.08, 5e6, 0.5)], ids=["no-stop", "stop"])
+def test_the_steps_couplers_are_the_numpy_formulas_of_the_new_state(stops):
+    # the compiled step returns the couplers of the state it reaches; couplers() serves them for that state
+    kw = {} if stops is None else dict(end_stop_m=stops[0], end_stop_stiffness_n_per_m=stops[1],
+                                       end_stop_absorption=stops[2])
+    singles = [TrainPlant(M, X0, np.array([20.0, 20.3, 19.6, 20.1, 20.4, 19.8]) * (1 + 0.1 * i),
+                          coupler_stiffness_n_per_m=8e4 * (1 + i), actuator=BrakeActuator.realistic(), **kw)
+               for i in range(2)]
+    stack = stack_plants([TrainPlant(M, X0, np.array([20.0, 20.3, 19.6, 20.1, 20.4, 19.8]) * (1 + 0.1 * i),
+                                     coupler_stiffness_n_per_m=8e4 * (1 + i), **kw) for i in range(2)]) \
+        if stops is None else None
+    rng = np.random.default_rng(4)
+    for k in range(300):
+        for p in singles:
+            p.step(0.001, rng.normal(0.5, 1.0, 6) * M)
+            dl, phi = p.couplers()
+            assert p.couplers()[1] is phi  # the step's own arrays
+            ref_dl, ref_phi = _numpy_couplers(p, p.position_m, p.speed_mps)
+            assert _same_bits(dl, ref_dl) and _same_bits(phi, ref_phi), k
+        if stack is not None:
+            stack.step(0.001, np.stack([rng.normal(0.5, 1.0, 6) * M] * 2))
+            ref_dl, ref_phi = _numpy_couplers(stack, stack.position_m, stack.speed_mps)
+            assert _same_bits(stack.couplers()[0], ref_dl) and _same_bits(stack.couplers()[1], ref_phi), k
+    p = singles[0]
+    p.position_m = p.position_m + 0.01  # a state the step did not reach: computed afresh
+    assert _same_bits(p.couplers()[1], _numpy_couplers(p, p.position_m, p.speed_mps)[1])
+    p.reset()
+    assert _same_bits(p.couplers()[0], np.zeros(5))
+
+
+def test_a_stacks_couplers_are_its_plants_and_one_car_has_none():
+    plants = [_plant(i) for i in range(3)]
+    for i, p in enumerate(plants):
+        p.position_m = X0 + 0.01 * (i + 1) * np.arange(6)
+        p.speed_mps = np.full(6, 10.0) - 0.1 * i * np.arange(6)
+    stack = stack_plants(plants)
+    dl, phi = stack.couplers()
+    assert dl.shape == phi.shape == (3, 5)
+    for i, p in enumerate(plants):
+        assert _same_bits(dl[i], p.couplers()[0]) and _same_bits(phi[i], p.couplers()[1])
+    with pytest.raises(ValueError, match="shape"):  # one row for a stack of three
+        stack._kernel().couplers(X0, np.zeros(6))
+    one = TrainPlant([20000.0], [0.0], [1.0])
+    assert one.couplers()[0].shape == one.couplers()[1].shape == (0,)
+
+
+def test_the_coupled_plants_measurements_of_a_state_outlive_the_next_step():
+    # the measurements hold the plant's own state arrays (no copies): a step must replace them
+    from canbrake.build import CoupledPlant
+
+    for plant in (TrainPlant(M, X0, np.full(6, 20.0)),
+                  TrainPlant(M, X0, np.full(6, 20.0), actuator=BrakeActuator.realistic(), end_stop_m=0.08)):
+        cp = CoupledPlant(plant)
+        cp.step(0.001, {"brake_force_n": M * 0.8})
+        m = cp.measurements()
+        kept = {k: a.copy() for k, a in m.items()}
+        for _ in range(3):
+            cp.step(0.001, {"brake_force_n": M * 0.5})
+        assert all(np.array_equal(m[k], kept[k]) for k in kept)
+        assert not np.array_equal(cp.measurements()["position_m"], kept["position_m"])
+
+
+@pytest.mark.parametrize("name", ["chen2023_case1_fine_rail", "emu8_low_adhesion", "li2024_ecp_over_can",
+                                  "cai2014_case1"])
+def test_the_plant_models_keep_no_reference_to_the_commands(name):
+    # the plant node passes its own command arrays (no copies) and updates them in place as frames
+    # arrive: a model stepped with arrays scribbled over after each step must run as one stepped with copies
+    from pathlib import Path
+
+    from canbrake.build import build_plant_model
+    from canbrake.scenario import load_scenario
+
+    scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / f"{name}.yaml")
+    a, b = build_plant_model(scn), build_plant_model(scn)
+    rng = np.random.default_rng(2)
+    n = a.n_vehicles
+    for k in range(30):
+        cmds = {c: rng.uniform(0.0, 1.0, n) * (2e4 if c == "brake_force_n" else 1e3 if "torque" in c else 1.0)
+                for c in a.command_names}
+        if "brake_force_n" in cmds:
+            cmds["brake_force_n"][k % n] = np.nan
+        a.step(scn.control_period_s, cmds)
+        b.step(scn.control_period_s, {c: x.copy() for c, x in cmds.items()})
+        ma = a.measurements()
+        for x in cmds.values():
+            x.fill(-7.0e6)  # the next frames, written into the node's arrays
+        mb = b.measurements()
+        assert set(ma) == set(mb)
+        assert all(_same_bits(np.asarray(ma[m], dtype=float), np.asarray(mb[m], dtype=float)) for m in ma), k
+
+
+def test_nan_as_zero_is_numpys_where_bit_for_bit():
+    rng = np.random.default_rng(5)
+    a = rng.normal(0.0, 1e4, (3, 6))
+    a[0, 1], a[1, 2], a[2, 3], a[2, 4], a[0, 5] = np.nan, -0.0, np.inf, -np.inf, -np.nan
+    for x in (a, a[1], a[:, 2], a.T, a[:0]):  # rows, a strided column, a transpose, nothing
+        got = nan_as_zero(x)
+        assert got is not x and got.shape == x.shape
+        assert _same_bits(got, np.where(np.isnan(x), 0.0, x))
+    with pytest.raises(TypeError, match="float64"):
+        nan_as_zero(a.astype(np.float32))
 
 
 # ------------------------------------------------------------------ heavy haul

@@ -538,11 +538,12 @@ class PlantNode(Node):
 
     def _applied_commands(self) -> dict[str, np.ndarray]:
         """The commands each vehicle's equipment applies this tick: the newest command, or the
-        fail-safe brake force for vehicles whose ECU's commands have stopped."""
+        fail-safe brake force for vehicles whose ECU's commands have stopped (without a fail-safe:
+        the node's own arrays, which a model only reads during its step, see the plant contract)."""
         fs = self.failsafe
-        cmds = {c: a.copy() for c, a in self.commands.items()}
         if fs is None:
-            return cmds
+            return self.commands
+        cmds = {c: a.copy() for c, a in self.commands.items()}
         age = self.k - self._last_counter  # ticks since the newest valid command, per ECU
         if not fs.latch:
             self._in_failsafe &= ~self._fresh

@@ -117,6 +117,8 @@ cdef class CoupledKernel:
     cdef double[::1] phi
     #: after a step: 1 for each point whose speeds are not all finite, and its last max |Δl| (m)
     cdef readonly object bad, dl_max
+    cdef unsigned char[::1] bad_v  # their views, made once (a view made per call costs more than a small step)
+    cdef double[::1] dl_max_v
 
     def __init__(self, mass, inv_m, c_static, c1, c2, grade_force_n, brake_max, trac_max, rate_max,
                  spacing, kappa, epsilon, kappa_eps, dist_start, dist_end, dist_w, dist_phase, dist_amp,
@@ -188,6 +190,7 @@ cdef class CoupledKernel:
         self.phi = np.zeros(max(self.nc, 1))
         self.bad = np.zeros(points, dtype=np.uint8)
         self.dl_max = np.zeros(points)
+        self.bad_v, self.dl_max_v = self.bad, self.dl_max
 
     def step(self, x0, v0, cmd, rail0, effort, mu, eff, double t0, double h, int n_sub, bint ideal,
              bint plain_rail, double lag, grade_fn=None, lag_per_car=None):
@@ -200,23 +203,25 @@ cdef class CoupledKernel:
         positions, evaluated every sub-step. ``lag_per_car``: 1 − e^(−h/τ_i) per car (``(n,)``),
         used instead of ``lag`` (vehicles with different brake lags).
 
-        Returns (time_s, x, v, accel, rail, n_bad): the new state, the acceleration over the last
-        sub-step, the last rail force (``rail0`` itself when ideal) and the number of points whose
-        speeds are not all finite (flagged in :attr:`bad`, their last max |Δl| in :attr:`dl_max`)."""
+        Returns (time_s, x, v, accel, rail, n_bad, dl, phi): the new state, the acceleration over
+        the last sub-step, the last rail force (``rail0`` itself when ideal), the number of points
+        whose speeds are not all finite (flagged in :attr:`bad`, their last max |Δl| in
+        :attr:`dl_max`) and the couplers of the new state as :meth:`couplers` gives them."""
         cdef Py_ssize_t P = self.points, n = self.n
-        shape = np.shape(x0)
+        shape = x0.shape if type(x0) is np.ndarray else np.shape(x0)
         if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or (len(shape) == 2 and shape[0] != P):
             raise ValueError(f"the plant kernel needs positions of shape ({n},) or ({P}, {n}), got {shape}")  # (n,) or (P, n), a stack of one point included
         x_out = np.empty(shape)
         v_out = np.empty(shape)
         a_out = np.empty(shape)
         rail_out = rail0 if ideal else np.empty(shape)
-        # the 11 arrays' buffers, released in one place whatever happens (held: how many were taken)
-        cdef Py_buffer bufs[11]
+        cshape = tuple(shape[:len(shape) - 1]) + (self.nc,)
+        dl_out, phi_out = np.empty(cshape), np.empty(cshape)
+        # the 13 arrays' buffers, released in one place whatever happens (held: how many were taken)
+        cdef Py_buffer bufs[13]
         cdef int held = 0
-        cdef Rows rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro
-        cdef unsigned char[::1] bad = self.bad
-        cdef double[::1] dl_max = self.dl_max
+        cdef Rows rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro, rdo, rpo
+        cdef unsigned char[::1] bad = self.bad_v
         cdef Py_ssize_t n_bad, p
         try:
             rx = _rows(&bufs[0], x0, n, P, False); held = 1
@@ -234,6 +239,10 @@ cdef class CoupledKernel:
                 np.broadcast_to(np.asarray(lag_per_car, dtype=float), (n,)))
             t = self._run(rx, rv, rc, rr, re, rm, rf, rxo, rvo, rao, rro, P, t0, h, n_sub,
                           ideal, plain_rail, lag, grade_fn, x_out, lagv)
+            if self.nc:
+                rdo = _rows(&bufs[11], dl_out, self.nc, P, True); held = 12
+                rpo = _rows(&bufs[12], phi_out, self.nc, P, True); held = 13
+                self._couplers(rxo, rvo, rdo, rpo, P)
         finally:
             while held > 0:
                 held -= 1
@@ -241,7 +250,61 @@ cdef class CoupledKernel:
         n_bad = 0
         for p in range(P):
             n_bad += bad[p]
-        return t, x_out, v_out, a_out, rail_out, n_bad
+        return t, x_out, v_out, a_out, rail_out, n_bad, dl_out, phi_out
+
+    def couplers(self, x, v):
+        """The couplers at positions ``x`` (m) and speeds ``v`` (m/s), shape ``(n,)`` or ``(P, n)``:
+        (Δl, Φ), new arrays of shape ``(..., n − 1)``. Δl_j = x_j − x_{j+1} − s_j (m) and
+        Φ_j = κ_j(1 + ε_jΔl_j²)Δl_j (N) plus, with an end stop, its buffer (module docstring of
+        :mod:`canbrake.physics.train`: its loading or unloading curve by the rate v_j − v_{j+1}),
+        with the operations and order of the plant's former numpy properties (these are not the
+        step's: it groups κ + κε·Δl² instead). Draft gears are not included (the plant adds them)."""
+        cdef Py_ssize_t P = self.points, n = self.n, nc = self.nc, p, j
+        shape = x.shape if type(x) is np.ndarray else np.shape(x)
+        if len(shape) not in (1, 2) or shape[len(shape) - 1] != n or shape[0] != (P if len(shape) == 2 else n) \
+                or (v.shape if type(v) is np.ndarray else np.shape(v)) != shape or (len(shape) == 1 and P > 1):
+            raise ValueError(f"the plant kernel needs positions and speeds of shape ({n},) or ({P}, {n}), "
+                             f"got {shape} and {np.shape(v)}")
+        out_shape = tuple(shape[:len(shape) - 1]) + (nc,)
+        dl_a, phi_a = np.empty(out_shape), np.empty(out_shape)
+        if nc == 0:
+            return dl_a, phi_a
+        cdef Py_buffer bufs[4]
+        cdef int held = 0
+        cdef Rows rx, rv, rd, rf
+        try:
+            rx = _rows(&bufs[0], x, n, P, False); held = 1
+            rv = _rows(&bufs[1], v, n, P, False); held = 2
+            rd = _rows(&bufs[2], dl_a, nc, P, True); held = 3
+            rf = _rows(&bufs[3], phi_a, nc, P, True); held = 4
+            self._couplers(rx, rv, rd, rf, P)
+        finally:
+            while held > 0:
+                held -= 1
+                PyBuffer_Release(&bufs[held])
+        return dl_a, phi_a
+
+    cdef void _couplers(self, Rows rx, Rows rv, Rows rd, Rows rf, Py_ssize_t P) noexcept:
+        """:meth:`couplers` of P rows of positions ``rx`` and speeds ``rv`` into ``rd``, ``rf``."""
+        cdef Py_ssize_t p, j, nc = self.nc
+        cdef const double* xp
+        cdef const double* vp
+        cdef double d, f, over, sg, rate, loading, share
+        for p in range(P):
+            xp = rx.p + p * rx.step
+            vp = rv.p + p * rv.step
+            for j in range(nc):
+                d = xp[j] - xp[j + 1] - self.spacing.p[p * self.spacing.step + j]
+                f = self.kappa.p[p * self.kappa.step + j] * (1.0 + self.eps.p[p * self.eps.step + j] * d * d) * d
+                if self.end_stop:
+                    over = fabs(d) - self.es_m[j]
+                    sg = _sign(d)
+                    rate = vp[j] - vp[j + 1]
+                    loading = _min(_max(0.5 + sg * rate / (2.0 * self.es_vt), 0.0), 1.0)
+                    share = 1.0 - self.es_a[j] * (1.0 - loading)
+                    f = f + (sg * over * self.es_k[j] * share if over > 0.0 else 0.0)
+                rd.p[p * rd.step + j] = d
+                rf.p[p * rf.step + j] = f
 
     cdef double _run(self, Rows rx0, Rows rv0, Rows rc, Rows rr0, Rows re, Rows rmu, Rows ref, Rows rx, Rows rv,
                      Rows ra, Rows rr, Py_ssize_t P, double t0, double h, int n_sub, bint ideal, bint plain_rail,
@@ -260,11 +323,13 @@ cdef class CoupledKernel:
         cdef double* effv
         cdef bint all_moving, moving, finite
         cdef const double[::1] gforce
-        cdef unsigned char[::1] bad = self.bad
-        cdef double[::1] dl_max = self.dl_max
+        cdef unsigned char[::1] bad = self.bad_v
+        cdef double[::1] dl_max = self.dl_max_v
         cdef double* mass = self.mass.p
         cdef bint per_car_lag = lag_per_car is not None
-        cdef const double[::1] lagv = lag_per_car if per_car_lag else self.inst
+        cdef const double[::1] lagv = self.inst  # (a conditional expression would make a view per call)
+        if per_car_lag:
+            lagv = lag_per_car
         cdef double lag_i = lag
         for p in range(P):
             x = rx.p + p * rx.step
@@ -388,6 +453,32 @@ cdef class CoupledKernel:
             bad[p] = not finite
             dl_max[p] = dmax
         return t
+
+
+def nan_as_zero(a):
+    """``a`` (float64) with every NaN made +0.0, a new array of its shape: numpy's
+    ``np.where(np.isnan(a), 0.0, a)`` in one call (the coupled plant's commands, NaN = not
+    commanded = no force)."""
+    cdef Py_buffer src, dst
+    cdef Py_ssize_t i, m
+    cdef const double* s
+    cdef double* d
+    out = np.empty(a.shape if type(a) is np.ndarray else np.shape(a))
+    try:
+        PyObject_GetBuffer(a, &src, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
+    except (BufferError, ValueError):  # a strided view (numpy: ValueError): its values in order
+        PyObject_GetBuffer(np.ascontiguousarray(a), &src, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
+    try:
+        if src.itemsize != 8 or src.format == NULL or src.format[0] != b"d" or src.format[1] != 0:
+            raise TypeError("nan_as_zero needs a float64 array")
+        PyObject_GetBuffer(out, &dst, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE)
+        s, d, m = <const double*>src.buf, <double*>dst.buf, src.len // 8
+        for i in range(m):
+            d[i] = 0.0 if s[i] != s[i] else s[i]
+        PyBuffer_Release(&dst)
+    finally:
+        PyBuffer_Release(&src)
+    return out
 
 
 def with_table_resistance(const Py_ssize_t[::1] start, const double[::1] table_v, const double[::1] table_f,

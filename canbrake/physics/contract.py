@@ -63,7 +63,9 @@ class PlantModel(Protocol):
     command_names: tuple[str, ...]
 
     def step(self, dt_s: float, commands: Mapping[str, np.ndarray]) -> None:
-        """Advance by ``dt_s`` holding ``commands`` (arrays of shape (n,), NaN = not commanded)."""
+        """Advance by ``dt_s`` holding ``commands`` (arrays of shape (n,), NaN = not commanded).
+        The arrays are the plant node's own, updated in place as command frames arrive: a model
+        reads them during the step and keeps no reference to them (nor to views of them)."""
 
     def measurements(self) -> dict[str, np.ndarray]:
         """Current state by name: (n,) per vehicle, (n-1,) per coupler (see the module docstring)."""

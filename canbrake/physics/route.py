@@ -34,6 +34,8 @@ class Route:
         mid = np.append(0.5 * (brk[1:] + brk[:-1]), brk[-1] + 1.0)
         object.__setattr__(self, "_brk", brk)
         object.__setattr__(self, "_val", self.grade_at(mid) + self.curve_permille_at(mid))
+        #: per (min grade, min length) rule of long_downgrade_ahead: its long downgrades' (start, end) (m)
+        object.__setattr__(self, "_steep", {})
 
     @classmethod
     def from_table(cls, position_m, grade_permille, curve_radius_m) -> "Route":
@@ -85,11 +87,15 @@ class Route:
                              min_grade_permille: float = 8.0, min_length_m: float = 500.0) -> bool:
         """Is there a downgrade steeper than ``min_grade`` ‰ and longer than ``min_length`` m
         overlapping [x_rear, x_front + lookahead]? (the application rule of section 1.2)."""
-        starts = self.grade_start_m
-        ends = np.append(starts[1:], self.length_m)
-        steep = (self.grade_permille < -min_grade_permille) & ((ends - starts) >= min_length_m)
-        overl = (ends > x_rear_m) & (starts < x_front_m + lookahead_m)
-        return bool(np.any(steep & overl))
+        seg = self._steep.get((min_grade_permille, min_length_m))  # type: ignore[attr-defined]
+        if seg is None:  # the rule's long downgrades, found once (the line does not change)
+            starts = self.grade_start_m
+            ends = np.append(starts[1:], self.length_m)
+            steep = (self.grade_permille < -min_grade_permille) & ((ends - starts) >= min_length_m)
+            seg = tuple(zip(starts[steep].tolist(), ends[steep].tolist()))
+            self._steep[(min_grade_permille, min_length_m)] = seg  # type: ignore[attr-defined]
+        ahead = x_front_m + lookahead_m
+        return any(end > x_rear_m and start < ahead for start, end in seg)
 
     def force_n(self, weight_kn: np.ndarray, x_m: np.ndarray) -> np.ndarray:
         """Grade + curve resistance (N, + opposes forward motion / pulls downhill when negative) on

@@ -355,6 +355,8 @@ class TrainPlant:
     def reset(self) -> None:
         """Back to the initial positions and speeds, actuator at rest, t = 0."""
         self.time_s = 0.0
+        #: (x, v, Δl, Φ) of the last plain compiled step's new state (couplers() while x and v are the plant's)
+        self._step_couplers: tuple[np.ndarray, ...] | None = None
         self.position_m = self._x0.copy()
         self.speed_mps = self._v0.copy()
         self.accel_mps2 = np.zeros(self.n_cars)
@@ -385,21 +387,35 @@ class TrainPlant:
         if self.static_couplers:
             self._place_static()
 
+    def couplers(self) -> tuple[np.ndarray, np.ndarray]:
+        """The couplers at the current state (:meth:`CoupledKernel.couplers`): (deflections
+        Δl_i = x_i − x_{i+1} − s_i (m), forces Φ_i (N; acts as −Φ_i on car i and +Φ_i on car i+1)),
+        shape ``(n-1,)``: Φ(Δl) = κ(1 + εΔl²)Δl, plus the end stop's buffer if configured (module
+        docstring; its loading or unloading curve by dΔl/dt), and on couplers with draft gears the
+        gears' force at this state (their history kept). After a step of the plain compiled
+        kernel, the arrays its step computed for the new state (shared by the callers of that
+        state: do not modify them); otherwise new arrays from one compiled call."""
+        c = self._step_couplers
+        if c is not None and c[0] is self.position_m and c[1] is self.speed_mps:  # the last step's state
+            return c[2], c[3]
+        kern = self._kern if self._kern is not None else self._kernel()
+        dl, phi = kern.couplers(self.position_m, self.speed_mps)
+        if self._gears is not None:  # the draft gears' force at this state, their history kept
+            g, k = self._gears, self.gear_couplers
+            rate = self.speed_mps[..., :-1] - self.speed_mps[..., 1:]
+            phi[k] = g.kernel.step(np.ascontiguousarray(dl[k]), np.ascontiguousarray(rate[k]), g.force_state,
+                                   g.defl_prev)[0]
+        return dl, phi
+
     @property
     def deflection_m(self) -> np.ndarray:
-        """Coupler deflections Δl_i = x_i − x_{i+1} − s_i (m), shape ``(n-1,)``."""
-        return self.position_m[..., :-1] - self.position_m[..., 1:] - self.coupler_spacing_m
+        """Coupler deflections Δl_i = x_i − x_{i+1} − s_i (m), shape ``(n-1,)`` (:meth:`couplers`)."""
+        return self.couplers()[0]
 
     @property
     def coupler_force_n(self) -> np.ndarray:
-        """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1."""
-        dl, rate = self.deflection_m, self.speed_mps[..., :-1] - self.speed_mps[..., 1:]
-        phi = self.coupler_force_from_deflection(dl, rate)
-        if self._gears is not None:  # the draft gears' force at this state, their history kept
-            g, k = self._gears, self.gear_couplers
-            phi[k] = g.kernel.step(np.ascontiguousarray(dl[k]), np.ascontiguousarray(rate[k]), g.force_state,
-                                   g.defl_prev)[0]
-        return phi
+        """Coupler forces Φ_i (N), shape ``(n-1,)``; acts as −Φ_i on car i and +Φ_i on car i+1 (:meth:`couplers`)."""
+        return self.couplers()[1]
 
     @property
     def air_brake_n(self) -> np.ndarray | None:
@@ -446,28 +462,6 @@ class TrainPlant:
         """Brake effectiveness per car in force for the current step."""
         return self._eff
 
-    def coupler_force_from_deflection(self, dl: np.ndarray, rate_mps: np.ndarray | None = None) -> np.ndarray:
-        """Φ(Δl) = κ(1 + εΔl²)Δl (N), plus the end stop's buffer if configured (module docstring);
-        ``rate_mps`` = dΔl/dt (m/s) picks its loading or unloading curve (None: loading)."""
-        phi = self.coupler_stiffness_n_per_m * (1.0 + self.coupler_nonlinearity_per_m2 * dl * dl) * dl
-        if self.end_stop_m is not None:
-            phi = phi + self.end_stop_force_n(dl, rate_mps)
-        return phi
-
-    def end_stop_force_n(self, dl: np.ndarray, rate_mps: np.ndarray | None = None) -> np.ndarray:
-        """The buffer's force beyond the end stop (N, same sign as Δl; 0 within the travel)."""
-        if self.end_stop_m is None:
-            return np.zeros_like(dl)
-        over = np.abs(dl) - self.end_stop_m
-        sgn = np.sign(dl)
-        if rate_mps is None:
-            share = 1.0
-        else:  # 1 loading (moving into the stop), 1 - a unloading, linear across ±v_t
-            loading = np.clip(0.5 + sgn * rate_mps / (2.0 * END_STOP_TRANSITION_MPS), 0.0, 1.0)
-            share = 1.0 - self.end_stop_absorption * (1.0 - loading)
-        with np.errstate(invalid="ignore"):  # a coupler without a stop (inf): 0 · inf where np.where drops it
-            return np.where(over > 0.0, sgn * over * self.end_stop_stiffness_n_per_m * share, 0.0)
-
     def _substeps(self, dt_s: float) -> int:
         """Sub-steps for a control period of ``dt_s``: ``max_substep_s``, and at most 0.05/ω_b while a
         coupler can reach its end stop within the period (module docstring)."""
@@ -490,14 +484,15 @@ class TrainPlant:
         mu = float(np.min(m[:-1] * m[1:] / (m[:-1] + m[1:])))
         return 0.05 / math.sqrt(self.end_stop_stiffness_n_per_m / mu)
 
-    def passive_force_n(self) -> np.ndarray:
+    def passive_force_n(self, coupler_force_n: np.ndarray | None = None) -> np.ndarray:
         """The non-control force per car at the current state (N, + forward): the couplers' forces
         from the front and the rear, minus the running resistance (Davis, table, curve), the grade
         force and the air brake's block force, each opposing the motion (Li 2024's nominal F_i,
-        what its controllers call m0·f(x); no disturbance). Shape ``(n,)``."""
+        what its controllers call m0·f(x); no disturbance). Shape ``(n,)``. ``coupler_force_n``:
+        the couplers' forces at this state if the caller has them (:meth:`couplers`), else computed."""
         v = self.speed_mps
         speed = np.abs(v)
-        f = self._incidence.dot(self.coupler_force_n)
+        f = self._incidence.dot(self.coupler_force_n if coupler_force_n is None else coupler_force_n)
         r = self._c_static + speed * (self.resistance.c1_n_per_mps + self.resistance.c2_n_per_mps2 * speed)
         if self._tab is not None:
             r = with_table_resistance(self._tab[0], self._tab[1], self._tab[2], np.ascontiguousarray(speed),
@@ -520,13 +515,16 @@ class TrainPlant:
 
     def snapshot(self) -> PlantState:
         """An immutable copy of the current state."""
+        dl, phi = self.couplers()
         return PlantState(
             self.time_s, self.position_m.copy(), self.speed_mps.copy(), self.accel_mps2.copy(),
-            self.deflection_m, self.coupler_force_n, self.applied_force_n.copy(), self._act.effort_n.copy(),
+            dl, phi, self.applied_force_n.copy(), self._act.effort_n.copy(),
         )
 
     # ------------------------------------------------------------------ dynamics
     def _update_rail(self, t: float) -> None:
+        if not self._events and self._rail_key is not None:  # no rail events: set once after reset
+            return
         key = tuple(s <= t < e for s, e, _, _ in self._events)
         if key == self._rail_key:
             return
@@ -572,14 +570,14 @@ class TrainPlant:
         if act.params.kind == "ideal" and self._env is None:  # the rail force is held over the period
             effort = act.advance(cmd, h)
             rail = effort if self._plain_rail else act.rail_force_n(effort, self._mu, self._eff, self.gravity_mps2)
-            self.time_s, x, v, acc, rail, n_bad = kernel.step(
+            self.time_s, x, v, acc, rail, n_bad, dl, phi = kernel.step(
                 self.position_m, self.speed_mps, cmd, rail, self._mu, self._mu, self._eff, self.time_s, h, n_sub,
                 True, self._plain_rail, 0.0, gcb)  # (the effort argument is not used when ideal)
         else:  # the actuator (and the traction envelopes) every sub-step
             effort = np.array(np.broadcast_to(act.effort_n, cmd.shape), dtype=float)
             lag = 0.0 if act.params.kind == "ideal" else act.lag_factor(h)
             per_car = None if isinstance(lag, float) else lag
-            self.time_s, x, v, acc, rail, n_bad = kernel.step(
+            self.time_s, x, v, acc, rail, n_bad, dl, phi = kernel.step(
                 self.position_m, self.speed_mps, cmd, self.applied_force_n, effort, self._mu, self._eff,
                 self.time_s, h, n_sub, False, self._plain_rail, 0.0 if per_car is not None else lag, gcb, per_car)
             act.effort_n = effort
@@ -590,6 +588,7 @@ class TrainPlant:
         self.accel_mps2 = acc
         self.position_m, self.speed_mps = x, v
         self.applied_force_n = rail
+        self._step_couplers = (x, v, dl, phi)  # couplers() of this state (parked rows: other arrays, not used)
 
     def _grade_force_fn(self, x: np.ndarray) -> np.ndarray:
         """m g sin θ per car (N) at positions ``x`` (m), with a grade function (the kernel calls it)."""
@@ -1137,6 +1136,7 @@ def stack_plants(plants: Sequence[TrainPlant]) -> TrainPlant | None:
     st = copy.copy(p0)
     st.stacked = True
     st._kern = None
+    st._step_couplers = None
     st._ekern = None
     st._qkern = None
     for name in _STACKED:
