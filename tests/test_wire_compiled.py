@@ -3,13 +3,14 @@ canbrake.bus.timing (frame_bitstream + stuff_bit_count) and against the recorder
 written out in Python."""
 from __future__ import annotations
 
+import io
 import struct
 
 import can
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from canbrake.bus._wire import ideal_period, stuff_bits
+from canbrake.bus._wire import ideal_period, ideal_tick, stuff_bits
 from canbrake.bus.timing import IFS_BITS, frame_bits, frame_bitstream, stuff_bit_count
 
 
@@ -86,3 +87,55 @@ def test_ideal_period_of_slot_images_equals_messages(frames, k, dt, bitrate, car
     got = ideal_period(imgs, u, {}, t_k + carry, t_k, dt, bitrate, 0.0)
     assert got[:4] == want[:4]
     assert [(ts, m) for ts, m in got[4]] == [(ts, f[3]) for (ts, _m), f in zip(want[4], imgs)]
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2), frame_args(), st.booleans()), max_size=40), st.integers(0, 10**6),
+       st.sampled_from([1e-3, 1e-2]), st.sampled_from([125e3, 500e3, 1e6]), st.floats(0, 1e-3),
+       st.sampled_from([0.0, 1.7e9]), st.sets(st.integers(0, 0x7FF), max_size=20),
+       st.sets(st.integers(0, 0x7FF), max_size=20), st.one_of(st.none(), st.floats(0, 2e9)), st.integers(1, 4))
+def test_ideal_tick_is_sort_ideal_period_and_write_candump(frames, k, dt, bitrate, carry, epoch, untimed, simctl,
+                                                             first, reps):
+    """ideal_tick (the recorder's common case) = sorted by (phase, identifier, payload) with
+    arrival order among equal keys + ideal_period + write_candump, frames as messages or slot
+    images; repeated frames (equal keys) must come out in arrival order (the images differ in
+    their sequence number, so a swap changes nothing but identity: checked by id)."""
+    from canbrake.bus._candump import write_candump
+
+    kept = []
+    for n, (phase, (aid, ext, dlc, data, _r), as_image) in enumerate(frames * reps):
+        m = can.Message(arbitration_id=aid, is_extended_id=ext, dlc=dlc, data=data)
+        if as_image:
+            m = struct.pack("<dIIBBBxxxxx", 0.0, aid, 0, int(ext), dlc, len(data)) + data + bytes(64 - len(data)) \
+                + struct.pack("<Q", n)
+        kept.append((phase, aid, data, m))
+    u = {a: True for a in untimed}
+    u.update({a: False for a in range(0, 0x800, 7) if a not in untimed})
+    s = {a: True for a in simctl}
+    t_k = k * dt
+    want_w = can.CanutilsLogWriter(io.StringIO(), channel="vcan0")
+    got_w = can.CanutilsLogWriter(io.StringIO(), channel="vcan0")
+    want_w.last_timestamp = got_w.last_timestamp = first
+    ordered = sorted(kept, key=lambda f: f[:3])
+    want = ideal_period(ordered, u, s, t_k + carry, t_k, dt, bitrate, epoch)
+    write_candump(want_w, want[4], "can0")
+    got = ideal_tick(list(kept), u, s, t_k + carry, t_k, dt, bitrate, epoch, got_w, "can0")
+    assert got == want[:4]
+    assert got_w.file.getvalue() == want_w.file.getvalue()
+    assert got_w.last_timestamp == want_w.last_timestamp or (first is None and not want[4])
+    assert ideal_tick(list(kept), u, s, t_k + carry, t_k, dt, bitrate, epoch, None, "can0") == want[:4]
+
+
+def test_ideal_tick_keeps_arrival_order_of_equal_keys():
+    """Equal (phase, identifier, payload): the frames stay in arrival order (the sort key is the
+    three fields, never the whole entry), seen in the candump lines by their channel-free ids."""
+    import io as _io
+
+    a = can.Message(arbitration_id=0x10, data=b"\x01", is_extended_id=False)
+    b = can.Message(arbitration_id=0x10, data=b"\x01", is_extended_id=True)  # same key, other line
+    c = can.Message(arbitration_id=0x08, data=b"\x02", is_extended_id=False)
+    for kept, lines in ([(1, 0x10, b"\x01", a), (1, 0x10, b"\x01", b), (1, 0x08, b"\x02", c)], "008 010 00000010"), \
+                       ([(1, 0x10, b"\x01", b), (1, 0x10, b"\x01", a), (0, 0x08, b"\x02", c)], "008 00000010 010"):
+        w = can.CanutilsLogWriter(_io.StringIO(), channel="vcan0")
+        ideal_tick(kept, {}, {}, 0.0, 0.0, 1e-3, 500e3, 0.0, w, "can0")
+        assert " ".join(line.split()[2].split("#")[0] for line in w.file.getvalue().splitlines()) == lines

@@ -11,7 +11,19 @@ the specification the tests check this against (``tests/test_wire_compiled.py``)
 Floating point: ``-ffp-contract=off`` keeps ``a + b * c`` two roundings as in Python (no fused
 multiply-add), so stamps and bus loads are bit-identical to the interpreter's arithmetic.
 """
+from cpython.list cimport PyList_New, PyList_SET_ITEM
+from cpython.long cimport PyLong_AsLongLongAndOverflow
+from cpython.mem cimport PyMem_Free, PyMem_Malloc
+from cpython.ref cimport Py_INCREF
 from libc.stdint cimport uint8_t, uint16_t, uint32_t
+from libc.stdlib cimport free, qsort
+from libc.string cimport memcmp
+
+from canbrake.bus._candump cimport Buf, candump_line
+
+from operator import itemgetter
+
+from canbrake.bus._candump import channel_name
 
 cdef uint16_t CRC_TABLE[256]     # byte-wise MSB-first CRC-15 (poly 0x4599)
 cdef uint8_t STUFF_N[16][256]    # stuff bits a byte adds from state (last level * 8 + run)
@@ -132,25 +144,14 @@ cdef int _plain_bits(bint ext, int n_data) noexcept nogil:
     return (54 if ext else 34) + 8 * n_data + 13
 
 
-def ideal_period(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
-                 double bitrate, double epoch):
-    """The recorder's accounting of one control period under ``bus.timing: ideal``.
-
-    ``ordered``: the period's frames in bus order, tuples whose [1] is the identifier, [2] the
-    payload (bytes) and [3] the ``can.Message`` or its memory-bus slot image (bytes,
-    ``canbrake.bus._slot``: identifier at 8, flags at 16, DLC at 17, data at 24); ``untimed`` / ``sim_control``: identifier ->
-    bool (absent = False). The frames run back to back from ``t`` (s; the bus carries over from
-    the last period) with actual stuffing at ``bitrate`` (bit/s); stamps are scaled into
-    ``[t_k, t_k + dt]`` when the period's wire time exceeds ``dt``.
-
-    Returns ``(t_end, busy_s, n_timed, latencies, stamped)``: the bus free time, the busy time,
-    the frames that take bus time, each one's latency from ``t_k`` (s, list) and
-    ``(epoch + stamp, message or image)`` for every frame the log holds (no barrier frames).
-    """
+cdef tuple _account(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
+                    double bitrate, double epoch, double* stamps, char* logged):
+    """:func:`ideal_period`'s accounting, its stamps in ``stamps`` (``epoch`` + s) and whether the
+    log holds each frame in ``logged`` (both ``len(ordered)`` long); returns ``(t_end, busy_s,
+    n_timed, latencies)``."""
     cdef Py_ssize_t i, n = len(ordered)
     cdef list durs = [0.0] * n
     cdef list lats = []
-    cdef list out = []
     cdef bytes data
     cdef double dur, wire, scale, busy = 0.0, in_period = 0.0
     cdef bint ext, is_untimed
@@ -192,8 +193,158 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
             n_timed += 1
             lats.append(t - t_k)
         in_period += dur
-        f = ordered[i]
-        u = sim_control.get(f[1])
-        if u is None or not u:
-            out.append((epoch + (t_k + in_period * scale), f[3]))
-    return t, busy, n_timed, lats, out
+        stamps[i] = epoch + (t_k + in_period * scale)
+        u = sim_control.get(ordered[i][1])
+        logged[i] = u is None or not u
+    return t, busy, n_timed, lats
+
+
+def ideal_period(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
+                 double bitrate, double epoch):
+    """The recorder's accounting of one control period under ``bus.timing: ideal``.
+
+    ``ordered``: the period's frames in bus order, tuples whose [1] is the identifier, [2] the
+    payload (bytes) and [3] the ``can.Message`` or its memory-bus slot image (bytes,
+    ``canbrake.bus._slot``: identifier at 8, flags at 16, DLC at 17, data at 24); ``untimed`` / ``sim_control``: identifier ->
+    bool (absent = False). The frames run back to back from ``t`` (s; the bus carries over from
+    the last period) with actual stuffing at ``bitrate`` (bit/s); stamps are scaled into
+    ``[t_k, t_k + dt]`` when the period's wire time exceeds ``dt``.
+
+    Returns ``(t_end, busy_s, n_timed, latencies, stamped)``: the bus free time, the busy time,
+    the frames that take bus time, each one's latency from ``t_k`` (s, list) and
+    ``(epoch + stamp, message or image)`` for every frame the log holds (no barrier frames).
+    """
+    cdef Py_ssize_t i, n = len(ordered)
+    cdef double* stamps = <double*>PyMem_Malloc((n + 1) * sizeof(double))
+    cdef char* logged = <char*>PyMem_Malloc(n + 1)
+    cdef list out = []
+    if stamps is NULL or logged is NULL:
+        PyMem_Free(stamps)
+        PyMem_Free(logged)
+        raise MemoryError()
+    try:
+        t_end, busy, n_timed, lats = _account(ordered, untimed, sim_control, t, t_k, dt, bitrate, epoch, stamps,
+                                              logged)
+        for i in range(n):
+            if logged[i]:
+                out.append((stamps[i], ordered[i][3]))
+        return t_end, busy, n_timed, lats, out
+    finally:
+        PyMem_Free(stamps)
+        PyMem_Free(logged)
+
+
+#: bus order of a period's frames: phase, then identifier (arbitration), then payload
+_BUS_ORDER = itemgetter(0, 1, 2)
+
+
+cdef struct Entry:
+    long long phase
+    long long aid
+    const unsigned char* data
+    Py_ssize_t n
+    Py_ssize_t i
+
+
+cdef int _entry_cmp(const void* pa, const void* pb) noexcept nogil:
+    """Bus order (phase, identifier, payload as bytes compare), then arrival: a stable sort."""
+    cdef const Entry* a = <const Entry*>pa
+    cdef const Entry* b = <const Entry*>pb
+    cdef int c
+    if a.phase != b.phase:
+        return -1 if a.phase < b.phase else 1
+    if a.aid != b.aid:
+        return -1 if a.aid < b.aid else 1
+    c = memcmp(a.data, b.data, a.n if a.n < b.n else b.n)
+    if c:
+        return c
+    if a.n != b.n:
+        return -1 if a.n < b.n else 1
+    return -1 if a.i < b.i else (1 if a.i > b.i else 0)
+
+
+cdef list _bus_order(list frames):
+    """``sorted(frames, key=itemgetter(0, 1, 2))`` (phase, identifier, payload; equal keys keep
+    their order) in C for int phases and identifiers and bytes payloads; anything else through
+    ``sorted``."""
+    cdef Py_ssize_t i, n = len(frames)
+    cdef Entry* e = <Entry*>PyMem_Malloc((n + 1) * sizeof(Entry))
+    cdef list out
+    cdef object f, p, a, d
+    cdef int ovf = 0
+    if e is NULL:
+        raise MemoryError()
+    try:
+        for i in range(n):
+            f = frames[i]
+            p, a, d = f[0], f[1], f[2]
+            if type(p) is not int or type(a) is not int or type(d) is not bytes:
+                return sorted(frames, key=_BUS_ORDER)
+            e[i].phase = PyLong_AsLongLongAndOverflow(p, &ovf)
+            if ovf:
+                return sorted(frames, key=_BUS_ORDER)
+            e[i].aid = PyLong_AsLongLongAndOverflow(a, &ovf)
+            if ovf:
+                return sorted(frames, key=_BUS_ORDER)
+            e[i].data = <const unsigned char*>(<char*>(<bytes>d))
+            e[i].n = len(<bytes>d)
+            e[i].i = i
+        qsort(e, n, sizeof(Entry), _entry_cmp)
+        out = PyList_New(n)
+        for i in range(n):
+            f = frames[e[i].i]
+            Py_INCREF(f)
+            PyList_SET_ITEM(out, i, f)
+        return out
+    finally:
+        PyMem_Free(e)
+
+
+def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k, double dt, double bitrate,
+               double epoch, writer, channel):
+    """A control period of the recorder's common case in one call: its frames (as kept by
+    ``nodes._trace.take_frames``/``take_frames_raw``: (phase, identifier, payload, message or
+    slot image), in arrival order) put in bus order (phase, identifier, payload; arrival order
+    among equal keys), accounted as :func:`ideal_period` accounts them, and the lines of the ones
+    the log holds written as :func:`canbrake.bus._candump.write_candump` writes them into
+    ``writer`` (a ``can.CanutilsLogWriter`` or None: no log) on ``channel``, in one write.
+
+    Returns ``(t_end, busy_s, n_timed, latencies)`` as :func:`ideal_period`."""
+    cdef Py_ssize_t i, n = len(frames)
+    cdef double* stamps = <double*>PyMem_Malloc((n + 1) * sizeof(double))
+    cdef char* logged = <char*>PyMem_Malloc(n + 1)
+    cdef list ordered
+    cdef Buf b
+    cdef bytes ch
+    cdef double last, ts
+    cdef object first
+    if stamps is NULL or logged is NULL:
+        PyMem_Free(stamps)
+        PyMem_Free(logged)
+        raise MemoryError()
+    b.p, b.n, b.cap = NULL, 0, 0
+    try:
+        ordered = _bus_order(frames)
+        res = _account(ordered, untimed, sim_control, t, t_k, dt, bitrate, epoch, stamps, logged)
+        if writer is None:
+            return res
+        for i in range(n):
+            if logged[i]:
+                break
+        else:
+            return res
+        ch = str(channel_name(channel, writer.channel)).encode("utf-8")
+        if writer.last_timestamp is None:  # the very first message
+            first = stamps[i]
+            writer.last_timestamp = first or 0.0
+        last = writer.last_timestamp
+        for i in range(i, n):
+            if logged[i]:
+                ts = stamps[i]
+                candump_line(&b, last if ts < last else ts, ch, len(ch), ordered[i][3])
+        writer.file.write(b.p[:b.n].decode("utf-8"))
+        return res
+    finally:
+        free(b.p)
+        PyMem_Free(stamps)
+        PyMem_Free(logged)

@@ -58,7 +58,7 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus._candump import write_candump
-from canbrake.bus._wire import ideal_period
+from canbrake.bus._wire import ideal_period, ideal_tick
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
@@ -423,6 +423,16 @@ class RecorderNode(Node):
         t_k = self._k * self.dt
         # the accounting (compiled, one call per period): a busy bus carries over into this
         # period; frames back to back in bus order, actual stuffing; stamps kept in [t_k, t_k + T]
+        if self._images_kept():  # the common case: order, accounting and candump lines in one call
+            t, busy, n_timed, latencies = ideal_tick(
+                self._tick_frames, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k,
+                self.dt, self.bitrate, self.epoch, self._writer, self._log_ch)
+            self._latency.add_many(latencies)
+            self._bus_free_s = t
+            self._series.add(busy / self.dt, n_timed, 0)
+            self._flush_file()
+            self._tick_frames = []
+            return
         ordered = sorted(self._tick_frames, key=_BUS_ORDER)
         t, busy, n_timed, latencies, out = ideal_period(
             ordered, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k, self.dt,
