@@ -1,7 +1,8 @@
 # cython: language_level=3
 # distutils: extra_compile_args = -O2 -ffp-contract=off
 """Per-frame wire bookkeeping of classic CAN, compiled: actual bit stuffing with the CRC-15, and
-the recorder's accounting of one control period (:func:`ideal_period`).
+the recorder's accounting of one control period (:func:`ideal_period`; its common case's whole
+period flush, :func:`ideal_tick`, and the bus load series, :class:`LoadSeries`).
 
 Written by hand because no library models the CAN wire (python-can and cantools stop at frames;
 see :mod:`canbrake.bus.timing`) and this runs for every frame of every period. The bit-level
@@ -17,9 +18,14 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from cpython.ref cimport Py_INCREF
 from libc.stdint cimport uint8_t, uint16_t, uint32_t
 from libc.stdlib cimport free, qsort
-from libc.string cimport memcmp
+from libc.stdio cimport snprintf
+from libc.string cimport memcmp, memcpy, strlen
 
-from canbrake.bus._candump cimport Buf, candump_line
+from canbrake.bus._candump cimport Buf, PyOS_double_to_string, candump_line
+
+
+cdef extern from "Python.h":
+    object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
 
 from operator import itemgetter
 
@@ -301,13 +307,14 @@ cdef list _bus_order(list frames):
 
 
 def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k, double dt, double bitrate,
-               double epoch, writer, channel):
+               double epoch, writer, channel, LoadSeries series):
     """A control period of the recorder's common case in one call: its frames (as kept by
     ``nodes._trace.take_frames``/``take_frames_raw``: (phase, identifier, payload, message or
     slot image), in arrival order) put in bus order (phase, identifier, payload; arrival order
     among equal keys), accounted as :func:`ideal_period` accounts them, and the lines of the ones
     the log holds written as :func:`canbrake.bus._candump.write_candump` writes them into
-    ``writer`` (a ``can.CanutilsLogWriter`` or None: no log) on ``channel``, in one write.
+    ``writer`` (a ``can.CanutilsLogWriter`` or None: no log) on ``channel``, in one write; the
+    period's bus load (busy time / ``dt``, its timed frames, no error frames) added to ``series``.
 
     Returns ``(t_end, busy_s, n_timed, latencies)`` as :func:`ideal_period`."""
     cdef Py_ssize_t i, n = len(frames)
@@ -326,6 +333,7 @@ def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k
     try:
         ordered = _bus_order(frames)
         res = _account(ordered, untimed, sim_control, t, t_k, dt, bitrate, epoch, stamps, logged)
+        series.add_counts(<double>res[1] / dt, res[2], 0)
         if writer is None:
             return res
         for i in range(n):
@@ -348,3 +356,125 @@ def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k
         free(b.p)
         PyMem_Free(stamps)
         PyMem_Free(logged)
+
+
+cdef class LoadSeries:
+    """Per-period bus load in constant memory: each period is written to ``bus_load.csv`` as it
+    ends (handed to the OS with the frames of that period) and only running aggregates stay in
+    memory — mean, peak, the peak ``window_s`` window, and at most ``max_windows`` window means
+    (pairs are merged and the window doubles when there would be more), so a run of any length
+    keeps the recorder's memory bounded. Compiled so that :func:`ideal_tick` adds a period
+    without a Python call; the recorder's other paths call :meth:`add`."""
+
+    cdef public double dt, sum, peak, window_s, _base_window_s, _acc, peak_window, _pend
+    cdef public object path, _f
+    cdef public long long n, errors, per_window, _acc_n, _merge, _pend_n, max_windows
+    cdef public list windows
+
+    def __init__(self, path, double dt_s, double window_s=0.1, long long max_windows=4096):
+        self.dt = dt_s
+        self.path = path
+        self._f = None
+        self.n = 0
+        self.sum = 0.0
+        self.peak = 0.0
+        self.errors = 0
+        self.per_window = max(1, int(round(window_s / dt_s)))
+        self.window_s = self.per_window * dt_s
+        self._base_window_s = self.window_s
+        self._acc, self._acc_n = 0.0, 0
+        self.peak_window = 0.0
+        self.windows = []
+        self._merge = 1          # base windows per stored window
+        self._pend, self._pend_n = 0.0, 0
+        self.max_windows = max_windows
+
+    def add(self, double load, frames, long long errors) -> None:
+        """One period: its bus load (fraction), frames (a count, or "" when not counted) and error frames."""
+        cdef bytes txt = str(frames).encode("ascii")
+        self._add(load, txt, len(txt), errors)
+
+    cdef int add_counts(self, double load, long long frames, long long errors) except -1:
+        """:meth:`add` with a count of frames (no Python call)."""
+        cdef char txt[24]
+        cdef int k = snprintf(txt, 24, "%lld", frames)
+        return self._add(load, txt, k, errors)
+
+    cdef int _add(self, double load, const char* frames, Py_ssize_t nf, long long errors) except -1:
+        cdef char buf[160]
+        cdef Py_ssize_t pos
+        cdef char* s
+        cdef Py_ssize_t k
+        if self._f is None and self.path is not None:
+            import csv
+
+            self._f = open(self.path, "w", newline="")
+            csv.writer(self._f).writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
+        if self._f is not None:  # the csv writer's line for these values (no quoting needed)
+            if nf > 24:
+                raise ValueError("LoadSeries.add: frames text longer than 24 characters")
+            pos = snprintf(buf, 24, "%lld,", self.n)
+            s = PyOS_double_to_string(<double>self.n * self.dt, b'g', 9, 0, NULL)
+            k = strlen(s)
+            memcpy(buf + pos, s, k)
+            PyMem_Free(s)
+            pos += k
+            buf[pos] = b','
+            pos += 1
+            s = PyOS_double_to_string(load, b'g', 6, 0, NULL)
+            k = strlen(s)
+            memcpy(buf + pos, s, k)
+            PyMem_Free(s)
+            pos += k
+            buf[pos] = b','
+            memcpy(buf + pos + 1, frames, nf)
+            pos += nf + 1
+            pos += snprintf(buf + pos, 26, ",%lld\r\n", errors)
+            self._f.write(PyUnicode_DecodeASCII(buf, pos, NULL))
+        self.n += 1
+        self.sum += load
+        if load > self.peak:
+            self.peak = load
+        self.errors += errors
+        self._acc += load
+        self._acc_n += 1
+        if self._acc_n == self.per_window:
+            self._window(self._acc / self._acc_n)
+            self._acc, self._acc_n = 0.0, 0
+        return 0
+
+    def _window(self, double mean) -> None:
+        cdef object last
+        if mean > self.peak_window:
+            self.peak_window = mean
+        self._pend += mean          # sum of base-window means not stored yet
+        self._pend_n += 1           # ... and how many base windows that is
+        if self._pend_n < self._merge:
+            return
+        self.windows.append(self._pend / self._pend_n)
+        self._pend, self._pend_n = 0.0, 0
+        if len(self.windows) > self.max_windows:  # halve the resolution: bounded memory
+            last = self.windows.pop() if len(self.windows) % 2 else None
+            self.windows = [(a + b) / 2 for a, b in zip(self.windows[0::2], self.windows[1::2])]
+            if last is not None:  # an odd one out waits, as base windows, for its partner
+                self._pend, self._pend_n = last * self._merge, self._merge
+            self._merge *= 2
+            self.window_s = self._base_window_s * self._merge
+
+    def flush(self) -> None:
+        if self._f is not None:
+            self._f.flush()
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+    @property
+    def mean(self) -> float:
+        return self.sum / self.n if self.n else 0.0
+
+    def window_list(self) -> list:
+        if self.windows:
+            return list(self.windows)
+        return [self._acc / self._acc_n] if self._acc_n else [self.mean]

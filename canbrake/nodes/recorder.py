@@ -58,7 +58,7 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus._candump import write_candump
-from canbrake.bus._wire import ideal_period, ideal_tick
+from canbrake.bus._wire import LoadSeries, ideal_period, ideal_tick
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
@@ -107,84 +107,6 @@ def is_sim_control(aid: int, layout: Any = None) -> bool:
         m = layout.by_id.get(aid)
         return m is not None and m.kind in ("state_done", "cmd_done")
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
-
-
-class LoadSeries:
-    """Per-period bus load in constant memory: each period is written to ``bus_load.csv`` as it
-    ends (handed to the OS with the frames of that period) and only running aggregates stay in
-    memory — mean, peak, the peak ``window_s`` window, and at most ``max_windows`` window means
-    (pairs are merged and the window doubles when there would be more), so a run of any length
-    keeps the recorder's memory bounded."""
-
-    def __init__(self, path: Path | None, dt_s: float, window_s: float = 0.1, max_windows: int = 4096) -> None:
-        self.dt = dt_s
-        self.path = path
-        self._f: Any = None
-        self._w: Any = None
-        self.n = 0
-        self.sum = 0.0
-        self.peak = 0.0
-        self.errors = 0
-        self.per_window = max(1, int(round(window_s / dt_s)))
-        self.window_s = self.per_window * dt_s
-        self._base_window_s = self.window_s
-        self._acc, self._acc_n = 0.0, 0
-        self.peak_window = 0.0
-        self.windows: list[float] = []
-        self._merge = 1          # base windows per stored window
-        self._pend, self._pend_n = 0.0, 0
-        self.max_windows = max_windows
-
-    def add(self, load: float, frames: int | str, errors: int) -> None:
-        if self._w is None and self.path is not None:
-            self._f = open(self.path, "w", newline="")
-            self._w = csv.writer(self._f)
-            self._w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
-        if self._f is not None:  # the csv writer's line for these values (no quoting needed)
-            self._f.write(f"{self.n},{self.n * self.dt:.9g},{load:.6g},{frames},{errors}\r\n")
-        self.n += 1
-        self.sum += load
-        self.peak = max(self.peak, load)
-        self.errors += errors
-        self._acc += load
-        self._acc_n += 1
-        if self._acc_n == self.per_window:
-            self._window(self._acc / self._acc_n)
-            self._acc, self._acc_n = 0.0, 0
-
-    def _window(self, mean: float) -> None:
-        self.peak_window = max(self.peak_window, mean)
-        self._pend += mean          # sum of base-window means not stored yet
-        self._pend_n += 1           # ... and how many base windows that is
-        if self._pend_n < self._merge:
-            return
-        self.windows.append(self._pend / self._pend_n)
-        self._pend, self._pend_n = 0.0, 0
-        if len(self.windows) > self.max_windows:  # halve the resolution: bounded memory
-            last = self.windows.pop() if len(self.windows) % 2 else None
-            self.windows = [(a + b) / 2 for a, b in zip(self.windows[0::2], self.windows[1::2])]
-            if last is not None:  # an odd one out waits, as base windows, for its partner
-                self._pend, self._pend_n = last * self._merge, self._merge
-            self._merge *= 2
-            self.window_s = self._base_window_s * self._merge
-
-    def flush(self) -> None:
-        if self._f is not None:
-            self._f.flush()
-
-    def close(self) -> None:
-        if self._f is not None:
-            self._f.close()
-            self._f = None
-
-    @property
-    def mean(self) -> float:
-        return self.sum / self.n if self.n else 0.0
-
-    def window_list(self) -> list[float]:
-        if self.windows:
-            return list(self.windows)
-        return [self._acc / self._acc_n] if self._acc_n else [self.mean]
 
 
 class RecorderNode(Node):
@@ -426,10 +348,9 @@ class RecorderNode(Node):
         if self._images_kept():  # the common case: order, accounting and candump lines in one call
             t, busy, n_timed, latencies = ideal_tick(
                 self._tick_frames, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k,
-                self.dt, self.bitrate, self.epoch, self._writer, self._log_ch)
+                self.dt, self.bitrate, self.epoch, self._writer, self._log_ch, self._series)
             self._latency.add_many(latencies)
             self._bus_free_s = t
-            self._series.add(busy / self.dt, n_timed, 0)
             self._flush_file()
             self._tick_frames = []
             return
