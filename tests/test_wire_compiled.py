@@ -238,3 +238,30 @@ def test_load_series_without_file_and_counts():
         b.add(x, 3, 1)
     assert (a.n, a.sum, a.peak, a.errors, a.windows, a.peak_window) == (b.n, b.sum, b.peak, b.errors, b.windows,
                                                                         b.peak_window)
+
+
+def test_ideal_tick_to_the_descriptor_and_load_series_flush_hand_each_period_to_the_os(tmp_path):
+    """ideal_tick with ``fd`` (the recorder in its own process) writes into the file at once the
+    bytes it writes through the writer otherwise; LoadSeries.flush hands the lines to the OS (a
+    killed recorder loses at most its current period)."""
+    kept = [(p, 0x100 + i, bytes([i, 7]), can.Message(arbitration_id=0x100 + i, data=bytes([i, 7])))
+            for i, p in enumerate([2, 0, 1, 1, 0])]
+    ref = can.CanutilsLogWriter(io.StringIO(), channel="vcan0")
+    w = can.Logger(str(tmp_path / "frames.log"))
+    series = LoadSeries(tmp_path / "bus_load.csv", 1e-3)
+    ref_series = _ReferenceLoadSeries(None, 1e-3)
+    for k in range(3):
+        want = ideal_tick(list(kept), {}, {}, k * 1e-3, k * 1e-3, 1e-3, 250e3, 0.0, ref, "can0",
+                          LoadSeries(None, 1e-3))
+        got = ideal_tick(list(kept), {}, {}, k * 1e-3, k * 1e-3, 1e-3, 250e3, 0.0, w, "can0", series,
+                         w.file.fileno())
+        assert got == want
+        ref_series.add(got[1] / 1e-3, got[2], 0)
+        assert (tmp_path / "frames.log").read_text() == ref.file.getvalue()  # no flush: written already
+        series.flush()
+        lines = (tmp_path / "bus_load.csv").read_bytes().split(b"\r\n")
+        assert len(lines) == k + 3 and lines[-2].startswith(b"%d," % k)
+    assert (series.n, series.sum, series.peak) == (ref_series.n, ref_series.sum, ref_series.peak)
+    w.stop()
+    series.close()
+    assert (tmp_path / "frames.log").read_text() == ref.file.getvalue()

@@ -18,14 +18,13 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from cpython.ref cimport Py_INCREF
 from libc.stdint cimport uint8_t, uint16_t, uint32_t
 from libc.stdlib cimport free, qsort
+from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
+from libc.errno cimport EINTR, errno
 from libc.stdio cimport snprintf
+from posix.unistd cimport close as c_close, write as c_write
 from libc.string cimport memcmp, memcpy, strlen
 
-from canbrake.bus._candump cimport Buf, PyOS_double_to_string, candump_line
-
-
-cdef extern from "Python.h":
-    object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
+from canbrake.bus._candump cimport Buf, PyOS_double_to_string, buf_reserve, candump_line
 
 from operator import itemgetter
 
@@ -240,6 +239,22 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
         PyMem_Free(logged)
 
 
+cdef int _write_all(int fd, const char* p, Py_ssize_t n) except -1:
+    """``n`` bytes at ``p`` to the file descriptor ``fd`` (``write(2)`` until all are written)."""
+    cdef Py_ssize_t k
+    while n > 0:
+        k = c_write(fd, p, n)
+        if k < 0:
+            if errno == EINTR:
+                PyErr_CheckSignals()
+                continue
+            PyErr_SetFromErrno(OSError)
+            return -1
+        p += k
+        n -= k
+    return 0
+
+
 #: bus order of a period's frames: phase, then identifier (arbitration), then payload
 _BUS_ORDER = itemgetter(0, 1, 2)
 
@@ -307,14 +322,16 @@ cdef list _bus_order(list frames):
 
 
 def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k, double dt, double bitrate,
-               double epoch, writer, channel, LoadSeries series):
+               double epoch, writer, channel, LoadSeries series, int fd=-1):
     """A control period of the recorder's common case in one call: its frames (as kept by
     ``nodes._trace.take_frames``/``take_frames_raw``: (phase, identifier, payload, message or
     slot image), in arrival order) put in bus order (phase, identifier, payload; arrival order
     among equal keys), accounted as :func:`ideal_period` accounts them, and the lines of the ones
     the log holds written as :func:`canbrake.bus._candump.write_candump` writes them into
-    ``writer`` (a ``can.CanutilsLogWriter`` or None: no log) on ``channel``, in one write; the
-    period's bus load (busy time / ``dt``, its timed frames, no error frames) added to ``series``.
+    ``writer`` (a ``can.CanutilsLogWriter`` or None: no log) on ``channel``, in one write (``fd``
+    >= 0: the writer file's descriptor, its Python buffers empty: straight to it with
+    ``write(2)``, handed to the OS now); the period's bus load (busy time / ``dt``, its timed
+    frames, no error frames) added to ``series``.
 
     Returns ``(t_end, busy_s, n_timed, latencies)`` as :func:`ideal_period`."""
     cdef Py_ssize_t i, n = len(frames)
@@ -350,7 +367,10 @@ def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k
             if logged[i]:
                 ts = stamps[i]
                 candump_line(&b, last if ts < last else ts, ch, len(ch), ordered[i][3])
-        writer.file.write(b.p[:b.n].decode("utf-8"))
+        if fd >= 0:
+            _write_all(fd, b.p, b.n)
+        else:
+            writer.file.write(b.p[:b.n].decode("utf-8"))
         return res
     finally:
         free(b.p)
@@ -364,17 +384,20 @@ cdef class LoadSeries:
     memory — mean, peak, the peak ``window_s`` window, and at most ``max_windows`` window means
     (pairs are merged and the window doubles when there would be more), so a run of any length
     keeps the recorder's memory bounded. Compiled so that :func:`ideal_tick` adds a period
-    without a Python call; the recorder's other paths call :meth:`add`."""
+    without a Python call; the recorder's other paths call :meth:`add`. The file's lines are
+    kept here until :meth:`flush` (one ``write(2)``; the recorder calls it every period in its own
+    process) or until 64 KiB are pending (the in-process engine)."""
 
     cdef public double dt, sum, peak, window_s, _base_window_s, _acc, peak_window, _pend
-    cdef public object path, _f
+    cdef public object path
+    cdef int _fd
+    cdef Buf _out
     cdef public long long n, errors, per_window, _acc_n, _merge, _pend_n, max_windows
     cdef public list windows
 
     def __init__(self, path, double dt_s, double window_s=0.1, long long max_windows=4096):
         self.dt = dt_s
         self.path = path
-        self._f = None
         self.n = 0
         self.sum = 0.0
         self.peak = 0.0
@@ -388,6 +411,17 @@ cdef class LoadSeries:
         self._merge = 1          # base windows per stored window
         self._pend, self._pend_n = 0.0, 0
         self.max_windows = max_windows
+
+    def __cinit__(self):
+        self._fd = -1
+        self._out.p, self._out.n, self._out.cap = NULL, 0, 0
+
+    def __dealloc__(self):
+        if self._fd >= 0:  # what a Python file dropped unclosed does: its lines written, then closed
+            if self._out.n:
+                c_write(self._fd, self._out.p, self._out.n)
+            c_close(self._fd)
+        free(self._out.p)
 
     def add(self, double load, frames, long long errors) -> None:
         """One period: its bus load (fraction), frames (a count, or "" when not counted) and error frames."""
@@ -405,12 +439,16 @@ cdef class LoadSeries:
         cdef Py_ssize_t pos
         cdef char* s
         cdef Py_ssize_t k
-        if self._f is None and self.path is not None:
-            import csv
+        cdef bytes head
+        if self._fd < 0 and self.path is not None:  # as open(path, "w"): created or truncated
+            import os
 
-            self._f = open(self.path, "w", newline="")
-            csv.writer(self._f).writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
-        if self._f is not None:  # the csv writer's line for these values (no quoting needed)
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o666)
+            head = b"period,t_s,bus_load,frames,error_frames\r\n"  # csv.writer's header line
+            buf_reserve(&self._out, len(head))
+            memcpy(self._out.p + self._out.n, <const char*>head, len(head))
+            self._out.n += len(head)
+        if self._fd >= 0:  # the csv writer's line for these values (no quoting needed)
             if nf > 24:
                 raise ValueError("LoadSeries.add: frames text longer than 24 characters")
             pos = snprintf(buf, 24, "%lld,", self.n)
@@ -430,7 +468,11 @@ cdef class LoadSeries:
             memcpy(buf + pos + 1, frames, nf)
             pos += nf + 1
             pos += snprintf(buf + pos, 26, ",%lld\r\n", errors)
-            self._f.write(PyUnicode_DecodeASCII(buf, pos, NULL))
+            buf_reserve(&self._out, pos)
+            memcpy(self._out.p + self._out.n, buf, pos)
+            self._out.n += pos
+            if self._out.n >= 65536:
+                self._write_out()
         self.n += 1
         self.sum += load
         if load > self.peak:
@@ -461,14 +503,24 @@ cdef class LoadSeries:
             self._merge *= 2
             self.window_s = self._base_window_s * self._merge
 
+    cdef int _write_out(self) except -1:
+        cdef Py_ssize_t n = self._out.n
+        self._out.n = 0  # a failed write loses these lines rather than repeating part of them
+        return _write_all(self._fd, self._out.p, n)
+
     def flush(self) -> None:
-        if self._f is not None:
-            self._f.flush()
+        """Hand the pending lines to the OS (one ``write(2)``)."""
+        if self._fd >= 0 and self._out.n:
+            self._write_out()
 
     def close(self) -> None:
-        if self._f is not None:
-            self._f.close()
-            self._f = None
+        cdef int fd = self._fd
+        if fd >= 0:
+            try:
+                self.flush()
+            finally:
+                self._fd = -1
+                c_close(fd)
 
     @property
     def mean(self) -> float:

@@ -163,6 +163,7 @@ class RecorderNode(Node):
         self._rt_tick_start: float | None = None
         self._flush_each = True
         self._text_file: Any = None
+        self._text_fd = -1  # frames.log's descriptor when ideal_tick writes its lines straight to it
         # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
         # modelled wire times for the stamps and, with bus errors, the error frames
         self.wire_model = bus_timing if bus_timing is not None and mode == "lockstep" else None
@@ -203,6 +204,11 @@ class RecorderNode(Node):
             w0 = self._writer
             self._text_file = (getattr(w0, "file", None)
                                if isinstance(w0, can.io.generic.TextIOMessageWriter) else None)
+            if self._flush_each and type(w0) is can.CanutilsLogWriter and self._images_kept():
+                # each period's lines go straight to the file (one write(2), no Python buffer): the
+                # writer's buffers stay empty, every other line (the END) is written after the last period
+                self._text_file.flush()
+                self._text_fd = self._text_file.fileno()
             for w in writers:
                 if self.mode == "lockstep" and isinstance(w, can.ASCWriter):
                     # ASC stamps are relative to the start of measurement: make that simulated time 0
@@ -348,10 +354,11 @@ class RecorderNode(Node):
         if self._images_kept():  # the common case: order, accounting and candump lines in one call
             t, busy, n_timed, latencies = ideal_tick(
                 self._tick_frames, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k,
-                self.dt, self.bitrate, self.epoch, self._writer, self._log_ch, self._series)
+                self.dt, self.bitrate, self.epoch, self._writer, self._log_ch, self._series, self._text_fd)
             self._latency.add_many(latencies)
             self._bus_free_s = t
-            self._flush_file()
+            if self._flush_each:  # frames.log's lines are written already (_text_fd), or there is no log
+                self._series.flush()
             self._tick_frames = []
             return
         ordered = sorted(self._tick_frames, key=_BUS_ORDER)
@@ -669,6 +676,7 @@ class RecorderNode(Node):
                 w.stop()
         finally:
             self._writer = None
+            self._text_fd = -1
             if self.net is not None:
                 self._seg_writers = {}
                 if self.log_path is not None and self.log_path.suffix == ".log":
