@@ -49,7 +49,8 @@ from __future__ import annotations
 import csv
 import json
 import math
-from operator import itemgetter
+from functools import partial
+from operator import getitem, itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -163,6 +164,7 @@ class RecorderNode(Node):
         self._rt_tick_start: float | None = None
         self._flush_each = True
         self._text_file: Any = None
+        self._raw_take: Any = None  # take_frames_raw with handle_raw's message maker (or None) bound
         self._text_fd = -1  # frames.log's descriptor when ideal_tick writes its lines straight to it
         # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
         # modelled wire times for the stamps and, with bus errors, the error frames
@@ -236,7 +238,7 @@ class RecorderNode(Node):
         # the frames in one compiled loop, back here at a SYNC and at a key not seen before
         if type(msgs) is not list:
             msgs = list(msgs)
-        return self._take(take_frames, msgs, len(msgs), msgs.__getitem__)
+        return self._take(take_frames, msgs, len(msgs), getitem)
 
     def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
         """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``: the
@@ -250,8 +252,10 @@ class RecorderNode(Node):
         # the period's frames kept as their slot images (no Message each) where only the ideal
         # accounting and the candump text read them (_wire.ideal_period, _candump.write_candump)
         keep = None if self._images_kept() else message
-        return self._take(lambda batch, *a: take_frames_raw(batch, keep, *a), frames, n,
-                          lambda i: message(frames, i))
+        take = self._raw_take
+        if take is None or take.args[0] is not keep:  # the compiled loop with its message maker bound
+            take = self._raw_take = partial(take_frames_raw, keep)
+        return self._take(take, frames, n, message)
 
     def _images_kept(self) -> bool:
         """Whether a period's frames may be kept as slot images: no segments, timing model or
@@ -259,9 +263,9 @@ class RecorderNode(Node):
         return (self.net is None and self.wire_model is None and self.timing is None
                 and (self._writer is None or type(self._writer) is can.CanutilsLogWriter))
 
-    def _take(self, take: Any, batch: Any, n: int, message_at: Any) -> list[can.Message]:
+    def _take(self, take: Any, batch: Any, n: int, message: Any) -> list[can.Message]:
         """The ``n`` frames of ``batch`` (lockstep) through ``take`` (the compiled loop), back here
-        at a SYNC and at a key not seen before; ``message_at(i)``: frame i as a ``can.Message``."""
+        at a SYNC and at a key not seen before; ``message(batch, i)``: frame i as a ``can.Message``."""
         i, resume = 0, False
         while i < n:
             i, ev, closed = take(batch, i, resume, self._counts, self._closing_ids, self.layout.sync_id,
@@ -269,7 +273,7 @@ class RecorderNode(Node):
             self._closing_seen += closed
             if ev == TAKE_END:
                 break
-            msg = message_at(i)
+            msg = message(batch, i)
             if ev == TAKE_SYNC:
                 if self._on_sync(msg):
                     return []  # the END: the log is complete
