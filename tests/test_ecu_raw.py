@@ -224,20 +224,20 @@ def test_take_frames_raw_equals_take_frames():
     bus = can.Bus(interface="canbrake", channel=f"takeraw-{os.getpid()}-{uuid.uuid4().hex[:6]}")
     try:
         images = bus._ring.encode(msgs, True, 0.0)
-        got = _take_all(lambda b, *a: take_frames_raw(b, bus.raw_message, *a), images, len(msgs),
+        got = _take_all(lambda b, *a: take_frames_raw(bus.raw_message, b, *a), images, len(msgs),
                         lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
         ref = _take_all(take_frames, msgs, len(msgs),
                         lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
         assert got == ref
         # message None: each frame kept as its slot image (the recorder's candump path), the same frames
         kept = []
-        imgs = _take_all(lambda b, *a: take_frames_raw(b, None, *a[:-1], kept), images, len(msgs),
+        imgs = _take_all(lambda b, *a: take_frames_raw(None, b, *a[:-1], kept), images, len(msgs),
                          lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
         assert imgs[:2] == ref[:2] and imgs[3] == ref[3]
         assert all(type(m) is bytes and len(m) == shm.SLOT_BYTES for *_x, m in kept)
         assert [(p, aid, data, _key([bus.raw_message(m, 0)])) for p, aid, data, m in kept] == ref[2]
         assert sum(e[1] == 1 for e in ref[3]) == 2 and ref[3][-1][1] == 0  # two SYNCs, then the end
-        assert take_frames_raw(b"", bus.raw_message, 0, False, {}, set(), 0x010, {}, []) == (0, 0, 0)
+        assert take_frames_raw(bus.raw_message, b"", 0, False, {}, set(), 0x010, {}, []) == (0, 0, 0)
     finally:
         bus.shutdown()
 

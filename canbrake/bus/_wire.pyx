@@ -1,7 +1,8 @@
 # cython: language_level=3
 # distutils: extra_compile_args = -O2 -ffp-contract=off
 """Per-frame wire bookkeeping of classic CAN, compiled: actual bit stuffing with the CRC-15, and
-the recorder's accounting of one control period (:func:`ideal_period`).
+the recorder's accounting of one control period (:func:`ideal_period`; its common case's whole
+period flush, :func:`ideal_tick`, and the bus load series, :class:`LoadSeries`).
 
 Written by hand because no library models the CAN wire (python-can and cantools stop at frames;
 see :mod:`canbrake.bus.timing`) and this runs for every frame of every period. The bit-level
@@ -11,7 +12,23 @@ the specification the tests check this against (``tests/test_wire_compiled.py``)
 Floating point: ``-ffp-contract=off`` keeps ``a + b * c`` two roundings as in Python (no fused
 multiply-add), so stamps and bus loads are bit-identical to the interpreter's arithmetic.
 """
+from cpython.list cimport PyList_New, PyList_SET_ITEM
+from cpython.long cimport PyLong_AsLongLongAndOverflow
+from cpython.mem cimport PyMem_Free, PyMem_Malloc
+from cpython.ref cimport Py_INCREF
 from libc.stdint cimport uint8_t, uint16_t, uint32_t
+from libc.stdlib cimport free, qsort
+from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
+from libc.errno cimport EINTR, errno
+from libc.stdio cimport snprintf
+from posix.unistd cimport close as c_close, write as c_write
+from libc.string cimport memcmp, memcpy, strlen
+
+from canbrake.bus._candump cimport Buf, PyOS_double_to_string, buf_reserve, candump_line
+
+from operator import itemgetter
+
+from canbrake.bus._candump import channel_name
 
 from canbrake.bus._slot cimport (SLOT_BYTES, DATA_OFFSET, SLOT_FLAG_EXTENDED, SLOT_FLAG_REMOTE, SLOT_FLAG_ERROR, slot_id,
                                  slot_flags, slot_len)
@@ -171,25 +188,14 @@ def timed_bits_raw(frames, Py_ssize_t start, Py_ssize_t stop, dict untimed):
     return total
 
 
-def ideal_period(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
-                 double bitrate, double epoch):
-    """The recorder's accounting of one control period under ``bus.timing: ideal``.
-
-    ``ordered``: the period's frames in bus order, tuples whose [1] is the identifier, [2] the
-    payload (bytes) and [3] the ``can.Message`` or its memory-bus slot image (bytes,
-    ``canbrake.bus._slot``: identifier at 8, flags at 16, DLC at 17, data at 24); ``untimed`` / ``sim_control``: identifier ->
-    bool (absent = False). The frames run back to back from ``t`` (s; the bus carries over from
-    the last period) with actual stuffing at ``bitrate`` (bit/s); stamps are scaled into
-    ``[t_k, t_k + dt]`` when the period's wire time exceeds ``dt``.
-
-    Returns ``(t_end, busy_s, n_timed, latencies, stamped)``: the bus free time, the busy time,
-    the frames that take bus time, each one's latency from ``t_k`` (s, list) and
-    ``(epoch + stamp, message or image)`` for every frame the log holds (no barrier frames).
-    """
+cdef tuple _account(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
+                    double bitrate, double epoch, double* stamps, char* logged):
+    """:func:`ideal_period`'s accounting, its stamps in ``stamps`` (``epoch`` + s) and whether the
+    log holds each frame in ``logged`` (both ``len(ordered)`` long); returns ``(t_end, busy_s,
+    n_timed, latencies)``."""
     cdef Py_ssize_t i, n = len(ordered)
     cdef list durs = [0.0] * n
     cdef list lats = []
-    cdef list out = []
     cdef bytes data
     cdef double dur, wire, scale, busy = 0.0, in_period = 0.0
     cdef bint ext, rtr, is_untimed
@@ -233,8 +239,335 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
             n_timed += 1
             lats.append(t - t_k)
         in_period += dur
-        f = ordered[i]
-        u = sim_control.get(f[1])
-        if u is None or not u:
-            out.append((epoch + (t_k + in_period * scale), f[3]))
-    return t, busy, n_timed, lats, out
+        stamps[i] = epoch + (t_k + in_period * scale)
+        u = sim_control.get(ordered[i][1])
+        logged[i] = u is None or not u
+    return t, busy, n_timed, lats
+
+
+def ideal_period(list ordered, dict untimed, dict sim_control, double t, double t_k, double dt,
+                 double bitrate, double epoch):
+    """The recorder's accounting of one control period under ``bus.timing: ideal``.
+
+    ``ordered``: the period's frames in bus order, tuples whose [1] is the identifier, [2] the
+    payload (bytes) and [3] the ``can.Message`` or its memory-bus slot image (bytes,
+    ``canbrake.bus._slot``: identifier at 8, flags at 16, DLC at 17, data at 24); ``untimed`` / ``sim_control``: identifier ->
+    bool (absent = False). The frames run back to back from ``t`` (s; the bus carries over from
+    the last period) with actual stuffing at ``bitrate`` (bit/s); stamps are scaled into
+    ``[t_k, t_k + dt]`` when the period's wire time exceeds ``dt``.
+
+    Returns ``(t_end, busy_s, n_timed, latencies, stamped)``: the bus free time, the busy time,
+    the frames that take bus time, each one's latency from ``t_k`` (s, list) and
+    ``(epoch + stamp, message or image)`` for every frame the log holds (no barrier frames).
+    """
+    cdef Py_ssize_t i, n = len(ordered)
+    cdef double* stamps = <double*>PyMem_Malloc((n + 1) * sizeof(double))
+    cdef char* logged = <char*>PyMem_Malloc(n + 1)
+    cdef list out = []
+    if stamps is NULL or logged is NULL:
+        PyMem_Free(stamps)
+        PyMem_Free(logged)
+        raise MemoryError()
+    try:
+        t_end, busy, n_timed, lats = _account(ordered, untimed, sim_control, t, t_k, dt, bitrate, epoch, stamps,
+                                              logged)
+        for i in range(n):
+            if logged[i]:
+                out.append((stamps[i], ordered[i][3]))
+        return t_end, busy, n_timed, lats, out
+    finally:
+        PyMem_Free(stamps)
+        PyMem_Free(logged)
+
+
+cdef int _write_all(int fd, const char* p, Py_ssize_t n) except -1:
+    """``n`` bytes at ``p`` to the file descriptor ``fd`` (``write(2)`` until all are written)."""
+    cdef Py_ssize_t k
+    while n > 0:
+        k = c_write(fd, p, n)
+        if k < 0:
+            if errno == EINTR:
+                PyErr_CheckSignals()
+                continue
+            PyErr_SetFromErrno(OSError)
+            return -1
+        p += k
+        n -= k
+    return 0
+
+
+#: bus order of a period's frames: phase, then identifier (arbitration), then payload
+_BUS_ORDER = itemgetter(0, 1, 2)
+
+
+cdef struct Entry:
+    long long phase
+    long long aid
+    const unsigned char* data
+    Py_ssize_t n
+    Py_ssize_t i
+
+
+cdef int _entry_cmp(const void* pa, const void* pb) noexcept nogil:
+    """Bus order (phase, identifier, payload as bytes compare), then arrival: a stable sort."""
+    cdef const Entry* a = <const Entry*>pa
+    cdef const Entry* b = <const Entry*>pb
+    cdef int c
+    if a.phase != b.phase:
+        return -1 if a.phase < b.phase else 1
+    if a.aid != b.aid:
+        return -1 if a.aid < b.aid else 1
+    c = memcmp(a.data, b.data, a.n if a.n < b.n else b.n)
+    if c:
+        return c
+    if a.n != b.n:
+        return -1 if a.n < b.n else 1
+    return -1 if a.i < b.i else (1 if a.i > b.i else 0)
+
+
+cdef list _bus_order(list frames):
+    """``sorted(frames, key=itemgetter(0, 1, 2))`` (phase, identifier, payload; equal keys keep
+    their order) in C for int phases and identifiers and bytes payloads; anything else through
+    ``sorted``."""
+    cdef Py_ssize_t i, n = len(frames)
+    cdef Entry* e = <Entry*>PyMem_Malloc((n + 1) * sizeof(Entry))
+    cdef list out
+    cdef object f, p, a, d
+    cdef int ovf = 0
+    if e is NULL:
+        raise MemoryError()
+    try:
+        for i in range(n):
+            f = frames[i]
+            p, a, d = f[0], f[1], f[2]
+            if type(p) is not int or type(a) is not int or type(d) is not bytes:
+                return sorted(frames, key=_BUS_ORDER)
+            e[i].phase = PyLong_AsLongLongAndOverflow(p, &ovf)
+            if ovf:
+                return sorted(frames, key=_BUS_ORDER)
+            e[i].aid = PyLong_AsLongLongAndOverflow(a, &ovf)
+            if ovf:
+                return sorted(frames, key=_BUS_ORDER)
+            e[i].data = <const unsigned char*>(<char*>(<bytes>d))
+            e[i].n = len(<bytes>d)
+            e[i].i = i
+        qsort(e, n, sizeof(Entry), _entry_cmp)
+        out = PyList_New(n)
+        for i in range(n):
+            f = frames[e[i].i]
+            Py_INCREF(f)
+            PyList_SET_ITEM(out, i, f)
+        return out
+    finally:
+        PyMem_Free(e)
+
+
+def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k, double dt, double bitrate,
+               double epoch, writer, channel, LoadSeries series, int fd=-1):
+    """A control period of the recorder's common case in one call: its frames (as kept by
+    ``nodes._trace.take_frames``/``take_frames_raw``: (phase, identifier, payload, message or
+    slot image), in arrival order) put in bus order (phase, identifier, payload; arrival order
+    among equal keys), accounted as :func:`ideal_period` accounts them, and the lines of the ones
+    the log holds written as :func:`canbrake.bus._candump.write_candump` writes them into
+    ``writer`` (a ``can.CanutilsLogWriter`` or None: no log) on ``channel``, in one write (``fd``
+    >= 0: the writer file's descriptor, its Python buffers empty: straight to it with
+    ``write(2)``, handed to the OS now); the period's bus load (busy time / ``dt``, its timed
+    frames, no error frames) added to ``series``.
+
+    Returns ``(t_end, busy_s, n_timed, latencies)`` as :func:`ideal_period`."""
+    cdef Py_ssize_t i, n = len(frames)
+    cdef double* stamps = <double*>PyMem_Malloc((n + 1) * sizeof(double))
+    cdef char* logged = <char*>PyMem_Malloc(n + 1)
+    cdef list ordered
+    cdef Buf b
+    cdef bytes ch
+    cdef double last, ts
+    cdef object first
+    if stamps is NULL or logged is NULL:
+        PyMem_Free(stamps)
+        PyMem_Free(logged)
+        raise MemoryError()
+    b.p, b.n, b.cap = NULL, 0, 0
+    try:
+        ordered = _bus_order(frames)
+        res = _account(ordered, untimed, sim_control, t, t_k, dt, bitrate, epoch, stamps, logged)
+        series.add_counts(<double>res[1] / dt, res[2], 0)
+        if writer is None:
+            return res
+        for i in range(n):
+            if logged[i]:
+                break
+        else:
+            return res
+        ch = str(channel_name(channel, writer.channel)).encode("utf-8")
+        if writer.last_timestamp is None:  # the very first message
+            first = stamps[i]
+            writer.last_timestamp = first or 0.0
+        last = writer.last_timestamp
+        for i in range(i, n):
+            if logged[i]:
+                ts = stamps[i]
+                candump_line(&b, last if ts < last else ts, ch, len(ch), ordered[i][3])
+        if fd >= 0:
+            _write_all(fd, b.p, b.n)
+        else:
+            writer.file.write(b.p[:b.n].decode("utf-8"))
+        return res
+    finally:
+        free(b.p)
+        PyMem_Free(stamps)
+        PyMem_Free(logged)
+
+
+cdef class LoadSeries:
+    """Per-period bus load in constant memory: each period is written to ``bus_load.csv`` as it
+    ends (handed to the OS with the frames of that period) and only running aggregates stay in
+    memory — mean, peak, the peak ``window_s`` window, and at most ``max_windows`` window means
+    (pairs are merged and the window doubles when there would be more), so a run of any length
+    keeps the recorder's memory bounded. Compiled so that :func:`ideal_tick` adds a period
+    without a Python call; the recorder's other paths call :meth:`add`. The file's lines are
+    kept here until :meth:`flush` (one ``write(2)``; the recorder calls it every period in its own
+    process) or until 64 KiB are pending (the in-process engine)."""
+
+    cdef public double dt, sum, peak, window_s, _base_window_s, _acc, peak_window, _pend
+    cdef public object path
+    cdef int _fd
+    cdef Buf _out
+    cdef public long long n, errors, per_window, _acc_n, _merge, _pend_n, max_windows
+    cdef public list windows
+
+    def __init__(self, path, double dt_s, double window_s=0.1, long long max_windows=4096):
+        self.dt = dt_s
+        self.path = path
+        self.n = 0
+        self.sum = 0.0
+        self.peak = 0.0
+        self.errors = 0
+        self.per_window = max(1, int(round(window_s / dt_s)))
+        self.window_s = self.per_window * dt_s
+        self._base_window_s = self.window_s
+        self._acc, self._acc_n = 0.0, 0
+        self.peak_window = 0.0
+        self.windows = []
+        self._merge = 1          # base windows per stored window
+        self._pend, self._pend_n = 0.0, 0
+        self.max_windows = max_windows
+
+    def __cinit__(self):
+        self._fd = -1
+        self._out.p, self._out.n, self._out.cap = NULL, 0, 0
+
+    def __dealloc__(self):
+        if self._fd >= 0:  # what a Python file dropped unclosed does: its lines written, then closed
+            if self._out.n:
+                c_write(self._fd, self._out.p, self._out.n)
+            c_close(self._fd)
+        free(self._out.p)
+
+    def add(self, double load, frames, long long errors) -> None:
+        """One period: its bus load (fraction), frames (a count, or "" when not counted) and error frames."""
+        cdef bytes txt = str(frames).encode("ascii")
+        self._add(load, txt, len(txt), errors)
+
+    cdef int add_counts(self, double load, long long frames, long long errors) except -1:
+        """:meth:`add` with a count of frames (no Python call)."""
+        cdef char txt[24]
+        cdef int k = snprintf(txt, 24, "%lld", frames)
+        return self._add(load, txt, k, errors)
+
+    cdef int _add(self, double load, const char* frames, Py_ssize_t nf, long long errors) except -1:
+        cdef char buf[160]
+        cdef Py_ssize_t pos
+        cdef char* s
+        cdef Py_ssize_t k
+        cdef bytes head
+        if self._fd < 0 and self.path is not None:  # as open(path, "w"): created or truncated
+            import os
+
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | getattr(os, "O_CLOEXEC", 0), 0o666)
+            head = b"period,t_s,bus_load,frames,error_frames\r\n"  # csv.writer's header line
+            buf_reserve(&self._out, len(head))
+            memcpy(self._out.p + self._out.n, <const char*>head, len(head))
+            self._out.n += len(head)
+        if self._fd >= 0:  # the csv writer's line for these values (no quoting needed)
+            if nf > 24:
+                raise ValueError("LoadSeries.add: frames text longer than 24 characters")
+            pos = snprintf(buf, 24, "%lld,", self.n)
+            s = PyOS_double_to_string(<double>self.n * self.dt, b'g', 9, 0, NULL)
+            k = strlen(s)
+            memcpy(buf + pos, s, k)
+            PyMem_Free(s)
+            pos += k
+            buf[pos] = b','
+            pos += 1
+            s = PyOS_double_to_string(load, b'g', 6, 0, NULL)
+            k = strlen(s)
+            memcpy(buf + pos, s, k)
+            PyMem_Free(s)
+            pos += k
+            buf[pos] = b','
+            memcpy(buf + pos + 1, frames, nf)
+            pos += nf + 1
+            pos += snprintf(buf + pos, 26, ",%lld\r\n", errors)
+            buf_reserve(&self._out, pos)
+            memcpy(self._out.p + self._out.n, buf, pos)
+            self._out.n += pos
+            if self._out.n >= 65536:
+                self._write_out()
+        self.n += 1
+        self.sum += load
+        if load > self.peak:
+            self.peak = load
+        self.errors += errors
+        self._acc += load
+        self._acc_n += 1
+        if self._acc_n == self.per_window:
+            self._window(self._acc / self._acc_n)
+            self._acc, self._acc_n = 0.0, 0
+        return 0
+
+    def _window(self, double mean) -> None:
+        cdef object last
+        if mean > self.peak_window:
+            self.peak_window = mean
+        self._pend += mean          # sum of base-window means not stored yet
+        self._pend_n += 1           # ... and how many base windows that is
+        if self._pend_n < self._merge:
+            return
+        self.windows.append(self._pend / self._pend_n)
+        self._pend, self._pend_n = 0.0, 0
+        if len(self.windows) > self.max_windows:  # halve the resolution: bounded memory
+            last = self.windows.pop() if len(self.windows) % 2 else None
+            self.windows = [(a + b) / 2 for a, b in zip(self.windows[0::2], self.windows[1::2])]
+            if last is not None:  # an odd one out waits, as base windows, for its partner
+                self._pend, self._pend_n = last * self._merge, self._merge
+            self._merge *= 2
+            self.window_s = self._base_window_s * self._merge
+
+    cdef int _write_out(self) except -1:
+        cdef Py_ssize_t n = self._out.n
+        self._out.n = 0  # a failed write loses these lines rather than repeating part of them
+        return _write_all(self._fd, self._out.p, n)
+
+    def flush(self) -> None:
+        """Hand the pending lines to the OS (one ``write(2)``)."""
+        if self._fd >= 0 and self._out.n:
+            self._write_out()
+
+    def close(self) -> None:
+        cdef int fd = self._fd
+        if fd >= 0:
+            try:
+                self.flush()
+            finally:
+                self._fd = -1
+                c_close(fd)
+
+    @property
+    def mean(self) -> float:
+        return self.sum / self.n if self.n else 0.0
+
+    def window_list(self) -> list:
+        if self.windows:
+            return list(self.windows)
+        return [self._acc / self._acc_n] if self._acc_n else [self.mean]

@@ -153,7 +153,7 @@ from canbrake.bus._slot cimport (SLOT_BYTES, DATA_OFFSET, SLOT_FLAG_EXTENDED, SL
                                  slot_id, slot_flags, slot_len)
 
 
-def take_frames_raw(frames, object message, Py_ssize_t start, bint resume, dict counts, closing, object sync_id,
+def take_frames_raw(object message, frames, Py_ssize_t start, bint resume, dict counts, closing, object sync_id,
                     dict phase_of, list tick_frames):
     """:func:`take_frames` for the memory bus's slot images (``MemoryBus.recv_raw``): the same
     work and result, each key read from the image; the frame kept is ``message(frames, i)``

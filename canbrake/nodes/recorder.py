@@ -49,7 +49,8 @@ from __future__ import annotations
 import csv
 import json
 import math
-from operator import itemgetter
+from functools import partial
+from operator import getitem, itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -58,7 +59,7 @@ import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus._candump import write_candump
-from canbrake.bus._wire import ideal_period, timed_bits_raw
+from canbrake.bus._wire import LoadSeries, ideal_period, ideal_tick, timed_bits_raw
 from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
@@ -107,84 +108,6 @@ def is_sim_control(aid: int, layout: Any = None) -> bool:
         m = layout.by_id.get(aid)
         return m is not None and m.kind in ("state_done", "cmd_done")
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
-
-
-class LoadSeries:
-    """Per-period bus load in constant memory: each period is written to ``bus_load.csv`` as it
-    ends (handed to the OS with the frames of that period) and only running aggregates stay in
-    memory — mean, peak, the peak ``window_s`` window, and at most ``max_windows`` window means
-    (pairs are merged and the window doubles when there would be more), so a run of any length
-    keeps the recorder's memory bounded."""
-
-    def __init__(self, path: Path | None, dt_s: float, window_s: float = 0.1, max_windows: int = 4096) -> None:
-        self.dt = dt_s
-        self.path = path
-        self._f: Any = None
-        self._w: Any = None
-        self.n = 0
-        self.sum = 0.0
-        self.peak = 0.0
-        self.errors = 0
-        self.per_window = max(1, int(round(window_s / dt_s)))
-        self.window_s = self.per_window * dt_s
-        self._base_window_s = self.window_s
-        self._acc, self._acc_n = 0.0, 0
-        self.peak_window = 0.0
-        self.windows: list[float] = []
-        self._merge = 1          # base windows per stored window
-        self._pend, self._pend_n = 0.0, 0
-        self.max_windows = max_windows
-
-    def add(self, load: float, frames: int | str, errors: int) -> None:
-        if self._w is None and self.path is not None:
-            self._f = open(self.path, "w", newline="")
-            self._w = csv.writer(self._f)
-            self._w.writerow(["period", "t_s", "bus_load", "frames", "error_frames"])
-        if self._f is not None:  # the csv writer's line for these values (no quoting needed)
-            self._f.write(f"{self.n},{self.n * self.dt:.9g},{load:.6g},{frames},{errors}\r\n")
-        self.n += 1
-        self.sum += load
-        self.peak = max(self.peak, load)
-        self.errors += errors
-        self._acc += load
-        self._acc_n += 1
-        if self._acc_n == self.per_window:
-            self._window(self._acc / self._acc_n)
-            self._acc, self._acc_n = 0.0, 0
-
-    def _window(self, mean: float) -> None:
-        self.peak_window = max(self.peak_window, mean)
-        self._pend += mean          # sum of base-window means not stored yet
-        self._pend_n += 1           # ... and how many base windows that is
-        if self._pend_n < self._merge:
-            return
-        self.windows.append(self._pend / self._pend_n)
-        self._pend, self._pend_n = 0.0, 0
-        if len(self.windows) > self.max_windows:  # halve the resolution: bounded memory
-            last = self.windows.pop() if len(self.windows) % 2 else None
-            self.windows = [(a + b) / 2 for a, b in zip(self.windows[0::2], self.windows[1::2])]
-            if last is not None:  # an odd one out waits, as base windows, for its partner
-                self._pend, self._pend_n = last * self._merge, self._merge
-            self._merge *= 2
-            self.window_s = self._base_window_s * self._merge
-
-    def flush(self) -> None:
-        if self._f is not None:
-            self._f.flush()
-
-    def close(self) -> None:
-        if self._f is not None:
-            self._f.close()
-            self._f = None
-
-    @property
-    def mean(self) -> float:
-        return self.sum / self.n if self.n else 0.0
-
-    def window_list(self) -> list[float]:
-        if self.windows:
-            return list(self.windows)
-        return [self._acc / self._acc_n] if self._acc_n else [self.mean]
 
 
 class RecorderNode(Node):
@@ -241,6 +164,8 @@ class RecorderNode(Node):
         self._rt_tick_start: float | None = None
         self._flush_each = True
         self._text_file: Any = None
+        self._raw_take: Any = None  # take_frames_raw with handle_raw's message maker (or None) bound
+        self._text_fd = -1  # frames.log's descriptor when ideal_tick writes its lines straight to it
         # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
         # modelled wire times for the stamps and, with bus errors, the error frames
         self.wire_model = bus_timing if bus_timing is not None and mode == "lockstep" else None
@@ -281,6 +206,11 @@ class RecorderNode(Node):
             w0 = self._writer
             self._text_file = (getattr(w0, "file", None)
                                if isinstance(w0, can.io.generic.TextIOMessageWriter) else None)
+            if self._flush_each and type(w0) is can.CanutilsLogWriter and self._images_kept():
+                # each period's lines go straight to the file (one write(2), no Python buffer): the
+                # writer's buffers stay empty, every other line (the END) is written after the last period
+                self._text_file.flush()
+                self._text_fd = self._text_file.fileno()
             for w in writers:
                 if self.mode == "lockstep" and isinstance(w, can.ASCWriter):
                     # ASC stamps are relative to the start of measurement: make that simulated time 0
@@ -308,7 +238,7 @@ class RecorderNode(Node):
         # the frames in one compiled loop, back here at a SYNC and at a key not seen before
         if type(msgs) is not list:
             msgs = list(msgs)
-        return self._take(take_frames, msgs, len(msgs), msgs.__getitem__)
+        return self._take(take_frames, msgs, len(msgs), getitem)
 
     def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
         """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``: the
@@ -322,8 +252,10 @@ class RecorderNode(Node):
         # the period's frames kept as their slot images (no Message each) where only the ideal
         # accounting and the candump text read them (_wire.ideal_period, _candump.write_candump)
         keep = None if self._images_kept() else message
-        return self._take(lambda batch, *a: take_frames_raw(batch, keep, *a), frames, n,
-                          lambda i: message(frames, i))
+        take = self._raw_take
+        if take is None or take.args[0] is not keep:  # the compiled loop with its message maker bound
+            take = self._raw_take = partial(take_frames_raw, keep)
+        return self._take(take, frames, n, message)
 
     def _realtime_raw(self, frames: bytes | bytearray, n: int, now: float, message: Any) -> list[can.Message]:
         """Realtime :meth:`handle_batch` over the ``n`` slot images ``frames``: the frames between
@@ -354,9 +286,9 @@ class RecorderNode(Node):
         return (self.net is None and self.wire_model is None and self.timing is None
                 and (self._writer is None or type(self._writer) is can.CanutilsLogWriter))
 
-    def _take(self, take: Any, batch: Any, n: int, message_at: Any) -> list[can.Message]:
+    def _take(self, take: Any, batch: Any, n: int, message: Any) -> list[can.Message]:
         """The ``n`` frames of ``batch`` (lockstep) through ``take`` (the compiled loop), back here
-        at a SYNC and at a key not seen before; ``message_at(i)``: frame i as a ``can.Message``."""
+        at a SYNC and at a key not seen before; ``message(batch, i)``: frame i as a ``can.Message``."""
         i, resume = 0, False
         while i < n:
             i, ev, closed = take(batch, i, resume, self._counts, self._closing_ids, self.layout.sync_id,
@@ -364,7 +296,7 @@ class RecorderNode(Node):
             self._closing_seen += closed
             if ev == TAKE_END:
                 break
-            msg = message_at(i)
+            msg = message(batch, i)
             if ev == TAKE_SYNC:
                 if self._on_sync(msg):
                     return []  # the END: the log is complete
@@ -446,6 +378,16 @@ class RecorderNode(Node):
         t_k = self._k * self.dt
         # the accounting (compiled, one call per period): a busy bus carries over into this
         # period; frames back to back in bus order, actual stuffing; stamps kept in [t_k, t_k + T]
+        if self._images_kept():  # the common case: order, accounting and candump lines in one call
+            t, busy, n_timed, latencies = ideal_tick(
+                self._tick_frames, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k,
+                self.dt, self.bitrate, self.epoch, self._writer, self._log_ch, self._series, self._text_fd)
+            self._latency.add_many(latencies)
+            self._bus_free_s = t
+            if self._flush_each:  # frames.log's lines are written already (_text_fd), or there is no log
+                self._series.flush()
+            self._tick_frames = []
+            return
         ordered = sorted(self._tick_frames, key=_BUS_ORDER)
         t, busy, n_timed, latencies, out = ideal_period(
             ordered, self._untimed_memo, self._sim_control_memo, max(t_k, self._bus_free_s), t_k, self.dt,
@@ -762,6 +704,7 @@ class RecorderNode(Node):
                 w.stop()
         finally:
             self._writer = None
+            self._text_fd = -1
             if self.net is not None:
                 self._seg_writers = {}
                 if self.log_path is not None and self.log_path.suffix == ".log":
