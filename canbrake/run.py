@@ -719,9 +719,35 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
             outcome["status"] = "failed"
     outcome["ticks"] = max(int(progress.value), 0)
     outcome["wall_time_s"] = time.time() - t_start
+    if not live:
+        drop_temp_files(run_dir, [p.pid for p in procs.values() if p.pid])
     if record is not None and not live:
         record.unlink(missing_ok=True)
     return outcome
+
+
+def drop_temp_files(run_dir: Path, pids: list[int]) -> list[str]:
+    """Remove the temporary files a node process killed while it wrote a file atomically left in
+    the run directory (``.NAME.tmpPID`` of :func:`canbrake.nodes.base.write_text_atomic`, in the
+    run directory, ``logs/`` and ``processes/``): once every process of the run is reaped none will
+    rename them, and a run directory holds only whole files. Returns the names removed."""
+    ends = tuple(f".tmp{pid}" for pid in pids)
+    gone: list[str] = []
+    if not ends:
+        return gone
+    for d in (run_dir, run_dir / "logs", run_dir / "processes"):
+        try:
+            entries = list(d.iterdir())
+        except OSError:
+            continue
+        for f in entries:
+            if f.name.startswith(".") and f.name.endswith(ends):
+                try:
+                    f.unlink()
+                    gone.append(str(f.relative_to(run_dir)))
+                except OSError:
+                    pass
+    return gone
 
 
 # ----------------------------------------------------------------------------- leftovers of killed runs

@@ -87,6 +87,26 @@ def test_a_disk_that_fills_during_a_run_gives_one_line_and_valid_files(tmp_path,
     assert _valid_files(keep) == []
 
 
+def test_temporary_files_of_killed_node_processes_are_removed_once_they_are_reaped(tmp_path):
+    """A node process killed while it wrote a file atomically (write_text_atomic: its log, its
+    statistics) leaves ``.NAME.tmpPID``; once the run's processes are reaped the orchestrator
+    removes those of its own children (seen under load: a full disk, the plant killed while it
+    wrote logs/plant.log), and nothing else."""
+    from canbrake.run import drop_temp_files
+
+    (tmp_path / "logs").mkdir()
+    (tmp_path / "processes").mkdir()
+    left = [tmp_path / "logs" / ".plant.log.tmp123", tmp_path / ".plant_stats.json.tmp123",
+            tmp_path / "processes" / ".ecu3.json.tmp456"]
+    kept = [tmp_path / ".summary.json.tmp999", tmp_path / "signals.csv", tmp_path / "logs" / "plant.log",
+            tmp_path / "plant.tmp123"]
+    for f in left + kept:
+        f.write_text("x")
+    assert sorted(drop_temp_files(tmp_path, [123, 456])) == sorted(str(f.relative_to(tmp_path)) for f in left)
+    assert not any(f.exists() for f in left) and all(f.exists() for f in kept)
+    assert drop_temp_files(tmp_path, []) == [] and drop_temp_files(tmp_path / "none", [1]) == []
+
+
 # ----------------------------------------------------------------------------- control period bound
 def test_a_control_period_no_can_bus_can_carry_is_refused():
     """Every period begins with the 4-byte SYNC frame (95 bit times with worst-case stuffing and
