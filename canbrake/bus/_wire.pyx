@@ -152,17 +152,30 @@ cdef int _plain_bits(bint ext, int n_data) noexcept nogil:
     return (54 if ext else 34) + 8 * n_data + 13
 
 
+cdef long long _actual_bits(object aid, bint ext, Py_ssize_t dlc, bint rtr, const uint8_t* data,
+                            Py_ssize_t n) except -1:
+    """Bits a classic frame takes on the wire, actual stuffing, IFS included (what
+    ``timing.frame_bits(aid, ext, dlc, data, stuffing="actual", is_remote=rtr)`` gives): compiled
+    for a data frame whose ``n`` payload bytes at ``data`` match its DLC and whose identifier
+    fits; a remote frame (no data field) and anything else through that checked function, which
+    says what is wrong with it."""
+    if rtr or n != dlc or not 0 <= aid <= (0x1FFFFFFF if ext else 0x7FF):
+        from canbrake.bus.timing import frame_bits
+
+        return frame_bits(aid, ext, dlc, b"" if rtr else (<const char*>data)[:n], stuffing="actual",
+                          is_remote=rtr)
+    return _plain_bits(ext, n) + _stuff_bits(<uint32_t>aid, ext, n, data, n, False)
+
+
 def timed_bits_raw(frames, Py_ssize_t start, Py_ssize_t stop, dict untimed):
     """Bits on the wire, actual stuffing, of the memory bus's slot images ``start .. stop-1`` of
     ``frames`` (``canbrake.bus._slot``), leaving out error frames and the identifiers ``untimed``
     marks (identifier -> bool, absent = False): the realtime recorder's bus load, what
     ``timing.frame_bits(..., stuffing="actual")`` gives summed over those frames' messages."""
     cdef const uint8_t[::1] v = frames
-    cdef Py_ssize_t i, ln
+    cdef Py_ssize_t i
     cdef const uint8_t* q
     cdef uint32_t aid32
-    cdef bint ext, rtr
-    cdef int dlc
     cdef object u
     total = 0
     for i in range(start, stop):
@@ -173,18 +186,8 @@ def timed_bits_raw(frames, Py_ssize_t start, Py_ssize_t stop, dict untimed):
         u = untimed.get(aid32)
         if u is not None and u:
             continue
-        ext = slot_flags(q) & SLOT_FLAG_EXTENDED
-        dlc = q[17]
-        ln = slot_len(q)
-        rtr = slot_flags(q) & SLOT_FLAG_REMOTE
-        if rtr or ln != dlc or aid32 > (0x1FFFFFFF if ext else 0x7FF):
-            # a remote frame, or a frame the compiled count does not cover: the checked path
-            from canbrake.bus.timing import frame_bits
-
-            total += frame_bits(aid32, ext, dlc, b"" if rtr else bytes((<const char*>q)[DATA_OFFSET:DATA_OFFSET + ln]),
-                                stuffing="actual", is_remote=rtr)
-            continue
-        total += _plain_bits(ext, ln) + _stuff_bits(aid32, ext, ln, q + DATA_OFFSET, ln, False)
+        total += _actual_bits(aid32, slot_flags(q) & SLOT_FLAG_EXTENDED, q[17], slot_flags(q) & SLOT_FLAG_REMOTE,
+                              q + DATA_OFFSET, slot_len(q))
     return total
 
 
@@ -220,14 +223,7 @@ cdef tuple _account(list ordered, dict untimed, dict sim_control, double t, doub
             ext = msg.is_extended_id
             rtr = msg.is_remote_frame
             dlc = msg.dlc
-        if rtr or len(data) != dlc or not 0 <= aid <= (0x1FFFFFFF if ext else 0x7FF):
-            # a remote frame (no data field), or a frame frame_bits refuses: the checked path
-            from canbrake.bus.timing import frame_bits
-
-            durs[i] = frame_bits(aid, ext, dlc, b"" if rtr else data, stuffing="actual", is_remote=rtr) / bitrate
-            continue
-        durs[i] = (_plain_bits(ext, len(data)) + _stuff_bits(aid, ext, len(data), <const uint8_t*>(<char*>data),
-                                                             len(data), False)) / bitrate
+        durs[i] = _actual_bits(aid, ext, dlc, rtr, <const uint8_t*>(<char*>data), len(data)) / bitrate
     wire = sum(durs)  # Python's own sum (its rounding, whatever the Python release)
     scale = min(1.0, dt / wire) if wire > 0 else 1.0
     for i in range(n):
