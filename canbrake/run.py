@@ -23,6 +23,7 @@ from typing import Any, Callable
 
 import can
 
+from canbrake.atomic import is_temp_of
 from canbrake.scenario import Scenario, ScenarioError
 from canbrake.startup import (PACKAGE_ENV, check_same_package, server_imports_this_canbrake,
                               children_skip_main, controller_modules, make_module_callable)
@@ -415,7 +416,7 @@ def _write_process_stats(run_dir: Path, name: str, role: str, cpu_s: float, bus:
     """``processes/<name>.json``: this node process's CPU time over the run (s, user + system,
     from the start barrier to its end) and, on the memory bus, how often it slept and was woken
     (:meth:`canbrake.bus.memory.MemoryBus.stats`); the summary's ``compute.processes``."""
-    from canbrake.nodes.base import write_text_atomic
+    from canbrake.atomic import write_text_atomic
 
     rec: dict[str, Any] = {"name": name, "role": role, "cpu_s": round(cpu_s, 6)}
     st = getattr(bus, "stats", None)
@@ -434,7 +435,7 @@ def _leave_failure(log: Path, text: str, failure: Any) -> None:
     """Write a failed node's traceback to ``log``; when that fails too (the full disk that made
     the node fail), put its last line in the shared ``failure`` string for the orchestrator, so
     that nothing reaches the console but the orchestrator's one line."""
-    from canbrake.nodes.base import write_text_atomic
+    from canbrake.atomic import write_text_atomic
 
     try:
         log.parent.mkdir(exist_ok=True)
@@ -728,12 +729,11 @@ def run_processes(scn: Scenario, run_dir: Path, choice: BusChoice, *, stall_time
 
 def drop_temp_files(run_dir: Path, pids: list[int]) -> list[str]:
     """Remove the temporary files a node process killed while it wrote a file atomically left in
-    the run directory (``.NAME.tmpPID`` of :func:`canbrake.nodes.base.write_text_atomic`, in the
+    the run directory (``.NAME.tmpPID`` of :func:`canbrake.atomic.write_text_atomic`, in the
     run directory, ``logs/`` and ``processes/``): once every process of the run is reaped none will
     rename them, and a run directory holds only whole files. Returns the names removed."""
-    ends = tuple(f".tmp{pid}" for pid in pids)
     gone: list[str] = []
-    if not ends:
+    if not pids:
         return gone
     for d in (run_dir, run_dir / "logs", run_dir / "processes"):
         try:
@@ -741,7 +741,7 @@ def drop_temp_files(run_dir: Path, pids: list[int]) -> list[str]:
         except OSError:
             continue
         for f in entries:
-            if f.name.startswith(".") and f.name.endswith(ends):
+            if is_temp_of(f.name, pids):
                 try:
                     f.unlink()
                     gone.append(str(f.relative_to(run_dir)))
@@ -926,7 +926,7 @@ def run_in_process(scn: Scenario, run_dir: Path | None, choice: BusChoice) -> di
             logs = run_dir / "logs"
             try:
                 logs.mkdir(exist_ok=True)
-                from canbrake.nodes.base import write_text_atomic
+                from canbrake.atomic import write_text_atomic
 
                 write_text_atomic(logs / f"{e.node}.log", "".join(traceback.format_exception(e.__cause__)))
                 msg += f" (traceback in {logs / f'{e.node}.log'})"

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -105,6 +106,12 @@ def test_temporary_files_of_killed_node_processes_are_removed_once_they_are_reap
     assert sorted(drop_temp_files(tmp_path, [123, 456])) == sorted(str(f.relative_to(tmp_path)) for f in left)
     assert not any(f.exists() for f in left) and all(f.exists() for f in kept)
     assert drop_temp_files(tmp_path, []) == [] and drop_temp_files(tmp_path / "none", [1]) == []
+    # the writers' own temporary name (one definition: canbrake.atomic) is what it removes
+    from canbrake.atomic import temp_path
+
+    mine = temp_path(tmp_path / "logs" / "ecu1.log")
+    mine.write_text("x")
+    assert drop_temp_files(tmp_path, [os.getpid()]) == [str(mine.relative_to(tmp_path))]
 
 
 # ----------------------------------------------------------------------------- control period bound

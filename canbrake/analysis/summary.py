@@ -12,6 +12,7 @@ from typing import Any, Callable, Iterator
 import numpy as np
 
 from canbrake.analysis.metrics import Trace, compute_metrics
+from canbrake.atomic import write_text_atomic
 from canbrake.scenario import Scenario
 
 
@@ -259,19 +260,8 @@ def write_json_atomic(path: Path, data: Any) -> None:
     """Write ``data`` as JSON to a temporary file next to ``path``, fsync it and rename it over
     ``path``: a reader sees the old file or the new one, never a partial one (a full disk raises
     OSError and leaves the old file)."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "w") as f:
-            f.write(json.dumps(data, indent=1, allow_nan=False, default=_json_default))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            tmp.unlink()
-        except OSError:
-            pass
-        raise
+    write_text_atomic(path, json.dumps(data, indent=1, allow_nan=False, default=_json_default),
+                      fsync=True)
 
 
 def _json_default(o: Any) -> Any:

@@ -25,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import math
-import os
 from abc import ABC, abstractmethod
 from pathlib import Path
 from typing import Any, Iterator, Protocol
@@ -283,21 +282,6 @@ def trim_partial_line(path: str | Path) -> None:
             f.truncate(size - back + cut + 1 if cut >= 0 else (0 if back == size else size))
     except OSError:
         pass
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to a temporary file beside ``path`` and rename it over ``path``: a reader
-    (and a full disk) leaves the old file or the whole new one, never an empty or partial one.
-    Raises OSError (the temporary file removed)."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    try:
-        with open(tmp, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            tmp.unlink()
-        raise
 
 
 #: frame(arbitration_id, data) -> can.Message: a classic data frame; identifiers above 0x7FF are

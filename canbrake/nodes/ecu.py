@@ -27,8 +27,8 @@ from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_ve
 from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
 from canbrake.nodes._ecu import EcuPeriod, take_batch
-from canbrake.nodes.base import (CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame,
-                                 write_text_atomic)
+from canbrake.atomic import write_text_atomic
+from canbrake.nodes.base import CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame
 
 #: the key of a command frame's Status field among the period's command values (not a name a
 #: controller's command can have)

@@ -25,7 +25,8 @@ from canbrake.bus._ring import messages_of
 from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.nodes._trace import csv_pick_row, csv_row, hist_add_bits
-from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame, write_text_atomic
+from canbrake.atomic import write_text_atomic
+from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame
 
 
 from canbrake.physics.contract import PlantModel  # noqa: E402  (the contract every model implements)

@@ -65,7 +65,8 @@ from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
 from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames, take_frames_raw, take_realtime_raw
-from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line, write_text_atomic  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
+from canbrake.atomic import write_text_atomic
+from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
 #: lockstep phase of each message kind: 0 the plant's tick frames, 1 the ECUs' state phase,
 #: 2 their command phase (frames a sender held back are written with the phase of their kind)
