@@ -12,7 +12,10 @@ Figures (``FIGURES``; ``--only`` picks groups):
   no codec; every lockstep, scale and realtime figure is also given as a ratio to it
   (:func:`apply_floor`). With ``lockstep``, also the floor of the lockstep protocol's two
   exchanges (``phases=2``: the ECUs' state words, then their words to the plant), shown beside
-  the one-process-per-ECU rate (not a target's baseline).
+  the one-process-per-ECU rate (not a target's baseline). With ``realtime``, the floor of each
+  realtime run (``phases=2`` paced at its period with a realtime node's scheduling,
+  :func:`realtime_floor_figures`): its deadline misses and p99 round trip are what the run's
+  misses and p99 command latency are compared with.
 - ``lockstep``: control periods per wall second of Chen case 1 (6 ECUs) in-process, on the
   in-memory bus with one process per ECU, on python-can ``virtual`` and with the CAN timing model;
   the memory of an ECU process (PSS).
@@ -214,7 +217,7 @@ def run_case(case: dict[str, Any]) -> dict[str, Any]:
 
         with _MemorySampler() as mem:
             res = run_floor(int(case.get("ecus", 6)), float(case.get("duration_s", 1.0)),
-                            phases=int(case.get("phases", 1)))
+                            phases=int(case.get("phases", 1)), period_s=float(case.get("period_s", 0.0)))
         return {**res, **mem.figures()}
     ov = dict(case.get("overrides") or {})
     if case.get("cars"):
@@ -503,12 +506,58 @@ def floor_figures(duration_s: float, repeat: int, log: Callable[[str], None],
     return rows, floors
 
 
+def realtime_floor_key(period_ms: float) -> str:
+    """The key of the realtime floor of a period (ms) in the bench's floors."""
+    return f"realtime {period_ms:g} ms"
+
+
+#: the realtime runs of the bench: (period s, profile, deadline-miss target %), issue 26's targets
+REALTIME_CASES = ((0.001, None, 0.1), (0.01, "realistic", 0.01))
+
+
+def realtime_floor_figures(duration_s: float, log: Callable[[str], None]) -> tuple[list[dict[str, Any]],
+                                                                                      dict[int | str, dict[str, Any]]]:
+    """The floor of each realtime run (:mod:`canbrake.floor` with ``phases=2`` and ``period_s``):
+    the plant and six ECU processes with a realtime node's scheduling, the tick on the period's
+    wall-clock grid, the lockstep protocol's two exchanges and nothing else, for as long as the
+    realtime run of that period. Its round trip is what the run reports as its command latency;
+    its deadline misses are counted as the plant node counts them."""
+    rows: list[dict[str, Any]] = []
+    floors: dict[int | str, dict[str, Any]] = {}
+    for period, _profile, _target in REALTIME_CASES:
+        ms = period * 1e3
+        label = f"floor: realtime {ms:g} ms, plant + {FLOOR_ECUS} ECU processes, two phases, no model"
+        secs = duration_s if period < 0.005 else 2 * duration_s
+        res = run_case_subprocess({"kind": "floor", "ecus": FLOOR_ECUS, "duration_s": secs, "phases": 2,
+                                   "period_s": period}, timeout_s=300.0)
+        log(f"  floor realtime {ms:g} ms: {res.get('status')} {res.get('deadline_miss_pct')} % missed, "
+            f"p99 {res.get('round_trip_p99_s')} {res.get('message', '')}")
+        if res.get("status") != "ok" or not res.get("periods"):
+            rows.append(_failed(label, res))
+            continue
+        floors[realtime_floor_key(ms)] = res
+        p99, p50 = res["round_trip_p99_s"], res["round_trip_p50_s"]
+        show = (lambda x: "late" if x == math.inf else f"{1e3 * x:.3f} ms")
+        rows.append(_row(label, None if p99 == math.inf else 1e3 * p99, "ms p99 round trip", target="(reference)",
+                         floor_ecus=FLOOR_ECUS, deadline_miss_pct=res["deadline_miss_pct"],
+                         note=f"the floor of a realtime run (canbrake.floor, phases=2, period {ms:g} ms): the "
+                              f"processes scheduled as realtime nodes ({res.get('scheduling')}), the plant's tick "
+                              f"on the period's grid, each ECU's state word to its peers, then its word to the "
+                              f"plant, no work; {secs:g} s, {res['periods']} periods: "
+                              f"{res['deadline_miss_pct']:.2f} % of periods missed the deadline "
+                              f"({res['deadline_misses']}; {res['late_periods']} late starts), round trip p50 "
+                              f"{show(p50)}, p99 {show(p99)}. The realtime rows of this period are compared with "
+                              f"it (column 'vs floor'): their command latency with its round trip, their misses "
+                              f"with its misses"))
+    return rows, floors
+
+
 def apply_floor(rows: list[dict[str, Any]], floors: dict[int | str, dict[str, Any]]) -> None:
     """Put the floor beside every lockstep, scale and realtime figure of ``rows`` (in place):
     ``floor`` (the floor's figure in the row's unit) and ``floor_ratio`` (the row's value / it).
-    Rates (periods/s) use the floor of the same number of ECUs (six for Chen case 1); the p99
-    command latency the floor's p99 round trip; deadline misses the share of the floor's round
-    trips longer than the period. Rows without a comparable floor are left alone."""
+    Rates (periods/s) use the floor of the same number of ECUs (six for Chen case 1); a realtime
+    run's p99 command latency and deadline misses the realtime floor of its period (its p99
+    round trip, its misses). Rows without a comparable floor are left alone."""
     f6 = floors.get(FLOOR_ECUS)
     for r in rows:
         if r.get("value") is None or r["figure"].startswith("floor:"):
@@ -519,13 +568,13 @@ def apply_floor(rows: list[dict[str, Any]], floors: dict[int | str, dict[str, An
             n = FLOOR_ECUS
         elif fig.startswith("scale") and r.get("cars") in floors and r.get("cars") != 106:
             fl, n = floors[r["cars"]]["periods_per_s"], r["cars"]
-        elif fig.startswith("realtime") and f6:
+        elif fig.startswith("realtime") and realtime_floor_key(float(fig.split()[1])) in floors:
             n = FLOOR_ECUS
-            period_ms = float(fig.split()[1])
-            if "latency" in fig:
-                fl = 1e3 * f6["round_trip_p99_s"]
+            rf = floors[realtime_floor_key(float(fig.split()[1]))]
+            if "latency" in fig and rf["round_trip_p99_s"] != math.inf:
+                fl = 1e3 * rf["round_trip_p99_s"]
             elif "deadline misses" in fig:
-                fl = f6["over_1ms_pct"] if period_ms < 5 else f6["over_10ms_pct"]
+                fl = rf["deadline_miss_pct"]
         elif fig.startswith("memory") and f6 and f6.get("ecu_pss_mb"):
             fl, n = f6["ecu_pss_mb"], FLOOR_ECUS
         if fl is None:
@@ -645,7 +694,7 @@ def lockstep_figures(duration_s: float, repeat: int, log: Callable[[str], None])
 def realtime_figures(duration_s: float, log: Callable[[str], None]) -> list[dict[str, Any]]:
     """Chen case 1 in realtime with one process per ECU: 1 ms (paper gains) and 10 ms (realistic)."""
     rows = []
-    for period, profile, target in ((0.001, None, 0.1), (0.01, "realistic", 0.01)):  # issue 26's targets
+    for period, profile, target in REALTIME_CASES:
         name = f"realtime {period * 1e3:g} ms deadline misses"
         res = run_case_subprocess({"scenario": CASE1, "backend": "memory", "profile": profile,
                                    "overrides": {"duration_s": duration_s if period < 0.005 else 2 * duration_s,
@@ -914,6 +963,10 @@ def run_bench(*, only: tuple[str, ...] = GROUPS, duration_s: float = 1.0, repeat
                 floors.update(f)
             if "lockstep" in only:  # the protocol's own floor beside it (not a target's baseline)
                 r, f = floor_figures(floor_s, max(repeat, 3), log, (FLOOR_ECUS,), phases=2)
+                out += r
+                floors.update(f)
+            if "realtime" in only:  # each realtime run's own floor: paced, realtime scheduling
+                r, f = realtime_floor_figures(realtime_s, log)
                 out += r
                 floors.update(f)
             return out

@@ -372,13 +372,14 @@ def _child_main(role: str, car: int, scenario: dict[str, Any], run_dir: str, cho
         frozen = freeze_heap()  # what is set up: the run's full collections skip it (canbrake.nodes.driver)
         if scn.mode == "realtime":  # SCHED_FIFO / affinity where permitted (canbrake.nodes.rt)
             from canbrake.nodes.rt import setup_realtime
+            from canbrake.nodes.rt import spin_s as rt_spin_s
 
             sched = setup_realtime(role) + (f", gc: {frozen:,} objects frozen" if frozen else "")
             if role == "plant" and hasattr(node, "stats"):
                 node.stats.extra["scheduling"] = sched
             for m in getattr(node, "members", [node]):  # every node's own stats say what it obtained
                 m.scheduling = sched
-            spin_s = min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * scn.control_period_s)
+            spin_s = rt_spin_s(scn.control_period_s)
         barrier.wait(timeout=_start_timeout_s())
         cpu0 = time.process_time()  # this process's CPU time from the start of the run
         prof_dir = os.environ.get("CANBRAKE_PROFILE_DIR")

@@ -3,6 +3,7 @@ assertions, only that the figures are what they say and come from the same run."
 from __future__ import annotations
 
 import multiprocessing as mp
+import math
 import os
 
 import pytest
@@ -117,6 +118,31 @@ def test_two_phase_floor_waits_for_every_peer_state_before_the_word_to_the_plant
         run_floor(3, 0.1, phases=3)
 
 
+def test_realtime_floor_paces_the_ticks_and_counts_the_periods_whose_words_come_late(monkeypatch):
+    """period_s > 0: ticks on the period's wall-clock grid (so the periods are duration / period),
+    realtime scheduling where permitted (said either way), a round trip and a deadline miss as a
+    realtime run counts them; a period no process layout can answer in (20 us) misses nearly
+    always, and an ECU that gets the next tick before its peers' states drops the tick it was in
+    (not a failure), as a realtime ECU does."""
+    from multiprocessing import active_children
+
+    from canbrake.floor import run_floor
+
+    monkeypatch.setenv("CANBRAKE_MEMORY_YIELD", "0")
+    ok = run_floor(3, 0.4, phases=2, period_s=0.004)
+    assert ok["status"] == "ok", ok
+    assert 90 <= ok["periods"] <= 101 and ok["period_s"] == 0.004
+    assert "plant " in ok["scheduling"] and "ECUs " in ok["scheduling"]  # SCHED_FIFO or the fallback, said
+    assert 0 < ok["round_trip_p50_s"] <= ok["round_trip_p99_s"] <= ok["round_trip_max_s"]
+    assert ok["deadline_misses"] <= ok["periods"] and ok["deadline_miss_pct"] < 50  # 4 ms: most answered
+    short = run_floor(3, 0.2, phases=2, period_s=2e-5)
+    assert short["status"] == "ok", short
+    assert short["deadline_miss_pct"] > 50 and short["round_trip_p50_s"] == math.inf
+    assert not [p for p in active_children() if p.name.startswith("canbrake-floor")]
+    with pytest.raises(ValueError, match="period_s"):
+        run_floor(3, 0.1, phases=2, period_s=float("nan"))
+
+
 def test_bench_puts_the_floor_of_the_same_run_beside_the_lockstep_and_realtime_figures(monkeypatch):
     """run_bench measures the floor and every lockstep / realtime row carries value / that floor
     (the lockstep figures are stand-ins here: what is checked is where the ratios come from)."""
@@ -129,8 +155,13 @@ def test_bench_puts_the_floor_of_the_same_run_beside_the_lockstep_and_realtime_f
     monkeypatch.setattr(benchmark, "realtime_figures", lambda *a: [
         _row("realtime 1 ms p99 command latency", 0.4, "ms"), _row("realtime 10 ms deadline misses", 0.0, "%")])
     res = run_bench(only=("lockstep", "realtime"), duration_s=0.2, repeat=1)
-    rows = {("floor2" if "two phases" in r["figure"] else "floor") if r["figure"].startswith("floor") else r["figure"]: r
-            for r in res["figures"]}
+    def key(fig: str) -> str:
+        if not fig.startswith("floor"):
+            return fig
+        return "rt1" if "realtime 1 ms" in fig else "rt10" if "realtime 10 ms" in fig else \
+            "floor2" if "two phases" in fig else "floor"
+
+    rows = {key(r["figure"]): r for r in res["figures"]}
     floor, floor2 = rows["floor"], rows["floor2"]
     assert floor["status"] == "ok" and floor["value"] > 0 and floor["floor_ecus"] == 6
     assert floor2["status"] == "ok" and floor2["value"] > 0 and floor2["floor_ecus"] == 6
@@ -138,9 +169,15 @@ def test_bench_puts_the_floor_of_the_same_run_beside_the_lockstep_and_realtime_f
     assert lock["floor"] == floor["value"] and lock["floor_ratio"] == pytest.approx(500.0 / floor["value"])
     assert lock["met"] == (500.0 / floor["value"] >= 0.25)  # judged against the one-exchange floor
     assert lock["protocol_floor"] == floor2["value"] and "of the two-phase floor" in lock["note"]
+    # each realtime row is compared with the realtime floor of its period (paced, realtime scheduling)
+    rt1, rt10 = rows["rt1"], rows["rt10"]
+    assert rt1["status"] == "ok" and rt10["status"] == "ok" and "scheduled as realtime nodes" in rt1["note"]
     lat = rows["realtime 1 ms p99 command latency"]
-    assert lat["floor"] == pytest.approx(floor["round_trip_p99_ms"])
-    assert lat["floor_ratio"] == pytest.approx(0.4 / lat["floor"])
+    if rt1["value"] is not None:  # (a floor whose p99 fell on a missed period has no latency to compare)
+        assert lat["floor"] == pytest.approx(rt1["value"])
+        assert lat["floor_ratio"] == pytest.approx(0.4 / lat["floor"])
+    miss10 = rows["realtime 10 ms deadline misses"]
+    assert miss10["floor"] == pytest.approx(rt10["deadline_miss_pct"])
     assert rows["memory per ECU process (PSS), one process per ECU"]["floor"] == pytest.approx(floor["ecu_pss_mb"])
     assert "vs floor" in benchmark.table(res).splitlines()[0]
 
@@ -150,6 +187,8 @@ def test_apply_floor_compares_rates_latency_misses_and_memory_with_the_floor_of_
 
     floors = {6: {"periods_per_s": 2000.0, "round_trip_p99_s": 0.0005, "over_1ms_pct": 2.0, "over_10ms_pct": 0.0,
                   "ecu_pss_mb": 20.0},
+              "realtime 1 ms": {"round_trip_p99_s": math.inf, "deadline_miss_pct": 2.0},
+              "realtime 10 ms": {"round_trip_p99_s": 0.0006, "deadline_miss_pct": 0.0},
               12: {"periods_per_s": 400.0, "round_trip_p99_s": 0.002, "over_1ms_pct": 50.0, "over_10ms_pct": 1.0}}
     rows = [_row("floor: plant + 6 ECU processes, memory bus, no model", 2000.0, "periods/s", floor_ecus=6),
             _row("lockstep in-process engine", 500.0, "periods/s"),

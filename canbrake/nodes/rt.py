@@ -27,6 +27,12 @@ import os
 PRIORITY = {"plant": 60, "ecu": 50, "recorder": 40}
 
 
+def spin_s(period_s: float) -> float:
+    """How long before a deadline a realtime node polls and yields instead of sleeping (s):
+    ``CANBRAKE_RT_SPIN_US`` (default 100 us), at most 20 % of the period ``period_s`` (s)."""
+    return min(float(os.environ.get("CANBRAKE_RT_SPIN_US", "100")) * 1e-6, 0.2 * period_s)
+
+
 def setup_realtime(role: str) -> str:
     """Apply realtime scheduling and affinity to this process (a node of ``role``: plant, ecu,
     recorder, ...); returns what was obtained, e.g. ``"SCHED_FIFO 60, CPUs [1]"``."""
