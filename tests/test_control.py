@@ -139,6 +139,25 @@ def test_ablation_flags_remove_their_terms():
     assert out.brake_force_n == pytest.approx(M * A_REF)
 
 
+def test_a_peer_position_one_period_old_drives_the_barrier_to_its_clip_unless_extrapolated():
+    """Why Chen's controller diverges in realtime runs at 1 ms (docs/performance.md, session 21):
+    it takes a coupler's deflection as the difference of the two cars' broadcast positions, so a
+    neighbour's state one period late (its frame missed the ECU's compute deadline) is off by
+    v * T = 25 m/s * 1 ms = 2.5 cm, 2.5x the +-1 cm bound: with ``hold`` the barrier gradient is
+    taken at its clip and the command is ~1e11 N; ``extrapolate`` moves the position on by its
+    age and the potential term stays that of the true deflection (zero here)."""
+    v = np.full(4, V_REF)
+    x = X_NOM.copy()
+    x[0] -= V_REF * 1e-3 - 0.5 * A_REF * 1e-6  # car 0's position as sent one period ago (it decelerates)
+    age = np.array([1e-3, 0.0, 0.0, 0.0])
+    hold = chen(stale_policy="hold").step(obs(1, v, x, age))
+    assert abs(hold.diagnostics["deflection_front_m"]) > 0.02  # 2.5 cm seen where there is none
+    assert abs(hold.diagnostics["u_potential_n"]) > 1e10
+    ext = chen(stale_policy="extrapolate").step(obs(1, v, x, age))
+    assert abs(ext.diagnostics["deflection_front_m"]) < 1e-9
+    assert abs(ext.diagnostics["u_potential_n"]) < 1e-3
+
+
 def test_stale_policies():
     v = np.full(4, V_REF)
     v[3] += 1.0
