@@ -120,27 +120,32 @@ def csv_row(list row):
         PyMem_Free(buf)
 
 
+cdef Py_ssize_t _bin(double x, Py_ssize_t bins, double lo, double log_ratio) except -1:
+    """The bin of duration ``x`` (s) as ``LogHistogram.add`` finds it (its errors for NaN, inf)."""
+    cdef double y
+    cdef Py_ssize_t i
+    if x <= lo:
+        return 0
+    y = log(x / lo) / log_ratio
+    if not y < 1e18:  # what int() says of a NaN or an infinite duration
+        raise ValueError("cannot convert float NaN to integer") if y != y else OverflowError(
+            "cannot convert float infinity to integer")
+    i = 1 + <Py_ssize_t>y
+    return bins - 1 if i >= bins else i
+
+
 def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo, double log_ratio):
     """Add the durations ``xs`` (s) to a LogHistogram's ``counts`` as ``LogHistogram.add`` does,
     one by one; returns its new ``(n, total, max)``."""
     cdef Py_ssize_t bins = len(counts), i
-    cdef double x, y
+    cdef double x
     for v in xs:
         x = v
         n += 1
         total += x
         if x > vmax:
             vmax = x
-        if x <= lo:
-            i = 0
-        else:
-            y = log(x / lo) / log_ratio
-            if not y < 1e18:  # what int() says of a NaN or an infinite duration
-                raise ValueError("cannot convert float NaN to integer") if y != y else OverflowError(
-                    "cannot convert float infinity to integer")
-            i = 1 + <Py_ssize_t>y
-            if i >= bins:
-                i = bins - 1
+        i = _bin(x, bins, lo, log_ratio)
         counts[i] += 1
     return n, total, vmax
 
@@ -329,11 +334,26 @@ def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py
 def hist_add_bits(list hists, bits, double x):
     """``hists[s].add(x)`` (LogHistogram, canbrake.nodes.base) for each bit ``s`` set in
     ``bits`` (a non-negative int), lowest first: the plant's response times of the ECUs whose
-    commands a batch completed, in one call."""
-    cdef Py_ssize_t s_ = 0
-    while bits:
-        if bits & 1:
-            h = hists[s_]
-            h.n, h.total, h.max = hist_add(h.counts, (x,), h.n, h.total, h.max, h.LO_S, h._log_ratio)
-        bits >>= 1
-        s_ += 1
+    commands a batch completed, in one call (the bits read from the int's bytes, each add as
+    :func:`hist_add` of one duration)."""
+    cdef bytes b = bits.to_bytes((bits.bit_length() + 7) // 8, "little")
+    cdef const unsigned char* p = b
+    cdef Py_ssize_t j, t, i, n
+    cdef double total, vmax
+    cdef list counts
+    for j in range(len(b)):
+        if not p[j]:
+            continue
+        for t in range(8):
+            if not (p[j] >> t) & 1:
+                continue
+            h = hists[8 * j + t]
+            counts = h.counts
+            n = h.n
+            total = h.total
+            vmax = h.max
+            i = _bin(x, len(counts), h.LO_S, h._log_ratio)
+            counts[i] += 1
+            h.n = n + 1
+            h.total = total + x
+            h.max = x if x > vmax else vmax
