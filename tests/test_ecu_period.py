@@ -285,3 +285,23 @@ def test_trace_rows_equal_the_csv_module(tmp_path, buffered):
     for row in want:
         w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
     assert (tmp_path / "t.csv").read_bytes() == buf.getvalue().encode()
+
+
+def test_batch_handler_equals_handle_batch():
+    """EcuNode.batch_handler (the Router's compiled handle_batch) against handle_batch: the same
+    frames out and the same state after the plant's tick frames and the peers' states."""
+    from canbrake.nodes._ecu import BatchTaker
+
+    a, tick0, states = _ecu_after_tick0(3)
+    b, _tick0, _states = _ecu_after_tick0(3)
+    handler = b.batch_handler()
+    assert type(handler) is BatchTaker and type(a.batch_handler()) is BatchTaker
+    for batch in (tick0, states):
+        want = a.handle_batch(list(batch), 0.0)
+        got = handler(list(batch), 0.0)
+        assert _key(got) == _key(want) and got
+        assert (b.k, b.phase, b.stats.ticks) == (a.k, a.phase, a.stats.ticks)
+        assert b.sensors == a.sensors or all(
+            x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(b.sensors.values(), a.sensors.values()))
+        assert all(b.peer_signals[n].tobytes() == a.peer_signals[n].tobytes() for n in a.peer_signals)
+    assert a.stats.ticks == 1

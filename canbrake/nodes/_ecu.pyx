@@ -226,6 +226,26 @@ def take_batch(node, feed, batch, message, bint raw, now):
     ``can.Message``) takes the frames, and the node's Python is called where it acts (a new
     period, its phases, a frame it handles, a rejection, a held frame); returns the frames to
     send, in order."""
+    return _take(node, feed, batch, message, raw, now)
+
+
+cdef class BatchTaker:
+    """``node.handle_batch`` (an :class:`~canbrake.nodes.ecu.EcuNode`'s, over a list of python-can
+    messages) as one compiled call, :func:`take_batch` over its peer table's ``feed``: what
+    :meth:`~canbrake.nodes.ecu.EcuNode.batch_handler` gives the in-process Router."""
+
+    cdef object node, feed
+
+    def __init__(self, node):
+        self.node = node
+        self.feed = node._peers.feed
+
+    def __call__(self, list batch, now):
+        return _take(self.node, self.feed, batch, None, False, now)
+
+
+cdef list _take(node, feed, batch, message, bint raw, now):
+    """:func:`take_batch`."""
     cdef list out = []
     cdef Py_ssize_t i = 0
     cdef long r

@@ -150,6 +150,11 @@ class Node(ABC):
                 break
         return out
 
+    def batch_handler(self) -> Callable[[list[can.Message], float], list[can.Message]]:
+        """:meth:`handle_batch` as the in-process Router calls it (a list of frames, the time), bound
+        once: a node may give a compiled callable that does the same."""
+        return self.handle_batch
+
     def frames_wanted(self) -> int:
         """How many frames this node needs, at least, before it can go on: a driver on the memory
         bus sleeps until that many have come (``MemoryBus.recv_batch(min_frames=...)``) instead

@@ -26,7 +26,7 @@ from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
-from canbrake.nodes._ecu import EcuPeriod, take_batch
+from canbrake.nodes._ecu import BatchTaker, EcuPeriod, take_batch
 from canbrake.nodes.base import (CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame,
                                  write_text_atomic)
 
@@ -245,6 +245,10 @@ class EcuNode(Node):
         if type(msgs) is not list:
             msgs = list(msgs)
         return take_batch(self, self._peers.feed, msgs, None, False, now)  # (compiled)
+
+    def batch_handler(self) -> BatchTaker:
+        """:meth:`handle_batch` over a list as one compiled call (the Router's, in process)."""
+        return BatchTaker(self)
 
     def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
         """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``), taken
