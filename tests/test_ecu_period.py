@@ -245,3 +245,63 @@ def test_state_frames_equal_the_python_encoding_with_broadcast_and_authenticator
     got = p.state_frames(k, {})
     assert [m.arbitration_id for m in got] == [x for fid, *_ in msgs for x in (fid, 0x555)]
     assert calls == [(0x555, m.arbitration_id, bytes(m.data), k) for m in got[0::2]]
+
+
+@pytest.mark.parametrize("buffered", [True, False])
+def test_trace_rows_equal_the_csv_module(tmp_path, buffered):
+    """decide's trace rows (left pending, written by the next decide or write_row: straight into
+    the file inside buffered_traces, else by CsvTrace.append_dict; values the compiled row does
+    not write, by the csv writer) are csv.writer's rows (floats "%.9g") of tick, brake force, the
+    diagnostics by name (NaN where missing), max peer age (inf: none) and peers fresh."""
+    import contextlib
+    import csv
+    import io
+
+    from canbrake.nodes.base import CsvTrace, buffered_traces
+
+    ecu, tick0, states = _ecu_after_tick0(3)
+    ecu.handle_batch(tick0, 0.0)
+    ecu._peers.feed(states[:3], 0, ecu.k, ecu.phase)
+    names = ("x", "missing", "status")
+    header = ["tick", "brake_cmd_n", *names, "max_peer_age_s", "peers_fresh"]
+    with buffered_traces() if buffered else contextlib.nullcontext():
+        trace = CsvTrace(tmp_path / "t.csv", header)
+    assert (trace.row_write() is not None) == buffered
+    ecu._period.set_trace(trace, names)
+    outs = [ControlOutput(12_345.678, {"status": 0.0, "x": 1.5}), ControlOutput(np.float64(-0.1), {"x": np.float64(2.5)}),
+            ControlOutput(7, {"x": None, "status": 1}), ControlOutput(0.3, {"x": 2 ** 70}),
+            ControlOutput(1e-300, {"x": True, "status": np.int64(2)})]
+    want = [header]
+    for j, out in enumerate(outs):
+        k = ecu.k + j
+        result, _cmds, max_age, fresh, _dropped = ecu._period.decide(_Stub(out), k, -1, False)
+        want.append([k, out.brake_force_n, *[out.diagnostics.get(n, math.nan) for n in names],
+                     max_age if max_age > -math.inf else math.inf, fresh])
+    ecu._period.write_row()
+    ecu._period.write_row()  # nothing pending: nothing written
+    trace.close()
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    for row in want:
+        w.writerow([f"{v:.9g}" if isinstance(v, float) else v for v in row])
+    assert (tmp_path / "t.csv").read_bytes() == buf.getvalue().encode()
+
+
+def test_batch_handler_equals_handle_batch():
+    """EcuNode.batch_handler (the Router's compiled handle_batch) against handle_batch: the same
+    frames out and the same state after the plant's tick frames and the peers' states."""
+    from canbrake.nodes._ecu import BatchTaker
+
+    a, tick0, states = _ecu_after_tick0(3)
+    b, _tick0, _states = _ecu_after_tick0(3)
+    handler = b.batch_handler()
+    assert type(handler) is BatchTaker and type(a.batch_handler()) is BatchTaker
+    for batch in (tick0, states):
+        want = a.handle_batch(list(batch), 0.0)
+        got = handler(list(batch), 0.0)
+        assert _key(got) == _key(want) and got
+        assert (b.k, b.phase, b.stats.ticks) == (a.k, a.phase, a.stats.ticks)
+        assert b.sensors == a.sensors or all(
+            x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(b.sensors.values(), a.sensors.values()))
+        assert all(b.peer_signals[n].tobytes() == a.peer_signals[n].tobytes() for n in a.peer_signals)
+    assert a.stats.ticks == 1

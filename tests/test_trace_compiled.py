@@ -90,6 +90,20 @@ def test_csv_dict_row_is_csv_row_of_the_values_by_name():
 
 
 @settings(max_examples=300, deadline=None)
+@given(st.lists(values, max_size=5), st.dictionaries(st.sampled_from("abcdefgh"), st.one_of(values, st.none())),
+       st.lists(st.sampled_from("abcdefghij"), max_size=40), st.lists(values, max_size=5))
+def test_csv_dict_row_equals_the_csv_module(head, diag, names, tail):
+    """csv_dict_row (made in one buffer, no list; beyond 31 values in a heap buffer) against
+    csv.writer over head + the values by name (NaN where missing) + tail; None where a value
+    (here None) is left to the csv writer."""
+    from canbrake.nodes._trace import csv_dict_row
+
+    row = [*head, *[diag.get(n, math.nan) for n in names], *tail]
+    got = csv_dict_row(head, diag, tuple(names), math.nan, tail)
+    assert got == (None if any(v is None for v in row) else csv_module(row))
+
+
+@settings(max_examples=300, deadline=None)
 @given(st.lists(st.lists(finite_or_not, min_size=0, max_size=8), min_size=1, max_size=6), st.data())
 def test_pick_row_equals_the_row_list(cols, data):
     """csv_pick_row against the list it replaces: the values picked from one concatenation,

@@ -15,6 +15,7 @@ default rounding mode), saturated to the raw range; decoded as raw * scale (+ of
 is 0 and scale > 0), unscaled signals as ints. Values that are neither ints nor floats take
 Python's own operators (same results, slower).
 """
+from cpython.buffer cimport PyBUF_WRITABLE, PyBuffer_Release, PyObject_GetBuffer
 from cpython.bytes cimport PyBytes_AS_STRING, PyBytes_FromStringAndSize, PyBytes_GET_SIZE
 from cpython.bytearray cimport PyByteArray_AS_STRING, PyByteArray_GET_SIZE
 from cpython.dict cimport PyDict_GetItem, PyDict_SetItem
@@ -1037,7 +1038,9 @@ cdef class PeerTable:
             sv = self.values["speed_mps"] if speed is None else speed
             sp = &sv[0]
         age = np.empty(self.n)
-        cdef double[::1] a = age
+        cdef Py_buffer buf  # (its buffer as is: no typed memoryview object per call)
+        PyObject_GetBuffer(age, &buf, PyBUF_WRITABLE)
+        cdef double* a = <double*>buf.buf
         cdef int j, fresh = 1
         cdef int64_t o
         cdef double x, max_age = -INFINITY
@@ -1047,6 +1050,7 @@ cdef class PeerTable:
             a[j] = x
             if x != INFINITY and x > max_age:
                 max_age = x
+        PyBuffer_Release(&buf)
         for j in range(self._nlistened):
             if self._origin[self._listened[j]] == k:
                 fresh += 1

@@ -22,10 +22,12 @@ import time
 from canbrake.bus import _codec
 from canbrake.bus._ring import data_frame
 from canbrake.bus.e2e import COUNTER_MODULO
+from canbrake.nodes._trace import csv_dict_row
 
 cdef object _NEW = object.__new__
 cdef object _perf_counter = time.perf_counter
 cdef object _NAN = math.nan
+cdef object _INF = math.inf
 cdef str _SPEED = "speed_mps"
 cdef str _POSITION = "position_m"
 cdef str _FRONT = "deflection_front_m"
@@ -50,7 +52,8 @@ cdef class EcuPeriod:
     payload, tick)``: a STATE frame's authenticator (SecOC) or None; ``pending``/``hist``: the controller step's
     wall times (s) not yet added to ``hist`` (:class:`~canbrake.nodes.base.LogHistogram`), added
     1,024 at a time; ``sign(identifier, payload, tick)``: a command frame's signature (SecOC)
-    or None."""
+    or None. With a trace (:meth:`set_trace`) each decision leaves its trace row pending
+    (:meth:`write_row`; the next ``decide`` writes it first)."""
 
     cdef object table, obs_cls, hist, sign
     cdef dict sensors, views, arrays
@@ -62,6 +65,12 @@ cdef class EcuPeriod:
     cdef object i_obj
     cdef double dt
     cdef bint has_front, has_rear
+    # the trace: CsvTrace, its file's write (None: rows through CsvTrace.append_dict), the
+    # controller's diagnostic names; the pending row (tick, force, diagnostics, max_age, fresh)
+    cdef object trace, row_write
+    cdef tuple diag_names
+    cdef bint has_row
+    cdef object row_k, row_force, row_diag, row_age, row_fresh
 
     def __init__(self, table, dict sensors, tuple own, int i, double dt, dict views, obs_cls, bint has_front,
                  bint has_rear, list cmd_msgs, status_key, list pending, hist, sign=None, list state_msgs=None,
@@ -97,6 +106,8 @@ cdef class EcuPeriod:
         cdef PyObject* p
         cdef bint dropped = False
         cdef Py_ssize_t n
+        if self.has_row:  # the last period's row, before the controller makes this one's diagnostics
+            self._write_row()
         for nm in self.own:  # this ECU's own entries
             self.arrays[nm][self.i_obj] = sensors[nm]
         pt = self.table
@@ -153,7 +164,44 @@ cdef class EcuPeriod:
             if sign is not None:
                 cmd = sign(fid, cmd, k)
             frames.append(data_frame(fid, cmd))
+        if self.trace is not None:  # written later (write_row)
+            self.has_row = True
+            self.row_k = k
+            self.row_force = result.brake_force_n
+            self.row_diag = diag
+            self.row_age = max_age if max_age > -math.inf else _INF
+            self.row_fresh = fresh
         return result, frames, max_age, fresh, dropped
+
+    def set_trace(self, trace, tuple names):
+        """Leave each decision's trace row to ``trace`` (:class:`~canbrake.nodes.base.CsvTrace`;
+        None: no rows): tick, brake force, the diagnostics ``names`` (NaN where missing), max
+        peer age (s; inf: none), peers fresh."""
+        self.trace = trace
+        self.row_write = None if trace is None else trace.row_write()
+        self.diag_names = names
+        self.has_row = False
+
+    def write_row(self):
+        """Write the row of the period last decided, if pending
+        (:meth:`~canbrake.nodes.ecu.EcuNode.after_send`)."""
+        if self.has_row:
+            self._write_row()
+
+    cdef _write_row(self):
+        """The pending row: its text in one compiled call straight into the trace's file, or
+        through ``CsvTrace.append_dict`` (rows flushed one by one, values it writes by the csv module)."""
+        self.has_row = False
+        head = [self.row_k, self.row_force]
+        tail = [self.row_age, self.row_fresh]
+        diag = self.row_diag
+        self.row_diag = None
+        if self.row_write is not None and type(diag) is dict:
+            text = csv_dict_row(head, diag, self.diag_names, _NAN, tail)
+            if text is not None:
+                self.row_write(text)
+                return
+        self.trace.append_dict(head, diag, self.diag_names, _NAN, tail)
 
     def state_frames(self, int64_t k, broadcast):
         """Tick ``k``'s STATE frames (phase 1), each followed by its authenticator with SecOC:
@@ -178,6 +226,26 @@ def take_batch(node, feed, batch, message, bint raw, now):
     ``can.Message``) takes the frames, and the node's Python is called where it acts (a new
     period, its phases, a frame it handles, a rejection, a held frame); returns the frames to
     send, in order."""
+    return _take(node, feed, batch, message, raw, now)
+
+
+cdef class BatchTaker:
+    """``node.handle_batch`` (an :class:`~canbrake.nodes.ecu.EcuNode`'s, over a list of python-can
+    messages) as one compiled call, :func:`take_batch` over its peer table's ``feed``: what
+    :meth:`~canbrake.nodes.ecu.EcuNode.batch_handler` gives the in-process Router."""
+
+    cdef object node, feed
+
+    def __init__(self, node):
+        self.node = node
+        self.feed = node._peers.feed
+
+    def __call__(self, list batch, now):
+        return _take(self.node, self.feed, batch, None, False, now)
+
+
+cdef list _take(node, feed, batch, message, bint raw, now):
+    """:func:`take_batch`."""
     cdef list out = []
     cdef Py_ssize_t i = 0
     cdef long r

@@ -37,10 +37,10 @@ def split(list gen, dict routes, object route, Py_ssize_t n):
     return inbox
 
 
-def hand(object router, list nodes, list inbox, double now):
-    """Hand each node its batch (``node.handle_batch``), unless it has finished; returns the next
-    generation, (node index, frame) in node order and each node's order sent. ``router.current``
-    names the node being called."""
+def hand(object router, list nodes, list handlers, list inbox, double now):
+    """Hand each node its batch (``handlers[i]``: its ``handle_batch``, bound once, ``Node.batch_handler``), unless it has
+    finished; returns the next generation, (node index, frame) in node order and each node's order
+    sent. ``router.current`` names the node being called."""
     cdef list gen = []
     cdef Py_ssize_t i
     cdef list batch, out
@@ -52,7 +52,7 @@ def hand(object router, list nodes, list inbox, double now):
         router.current = node
         if node.finished:
             continue
-        res = node.handle_batch(batch, now)
+        res = (<object>PyList_GET_ITEM(handlers, i))(batch, now)
         if res:
             for m in res:
                 gen.append((i, m))

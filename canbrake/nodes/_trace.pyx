@@ -32,15 +32,66 @@ cdef type NP_BOOL = np.bool_
 cdef object _F64_DTYPE = np.dtype(np.float64)
 
 
+cdef Py_ssize_t _put(object v, char* buf) except -2:
+    """One value of a row (see :func:`csv_row`) into ``buf`` (at least 32 bytes): its length, or
+    -1 for a value csv_row does not write."""
+    cdef type t = type(v)
+    cdef long long iv
+    cdef int ovf = 0
+    if t is float or t is NP_F64:
+        return g9_into(PyFloat_AS_DOUBLE(v), buf)
+    if t is int or t is NP_I64 or t is NP_I32:
+        iv = PyLong_AsLongLongAndOverflow(v if t is int else int(v), &ovf)
+        if ovf:  # beyond 64 bits: Python's own text
+            txt = int.__repr__(v if t is int else int(v)).encode("ascii")
+            if len(txt) > 24:
+                return -1
+            memcpy(buf, <char*>txt, len(txt))
+            return len(txt)
+        return snprintf(buf, 24, "%lld", iv)
+    if t is bool or t is NP_BOOL:
+        if v:
+            memcpy(buf, b"True", 4)
+            return 4
+        memcpy(buf, b"False", 5)
+        return 5
+    return -1
+
+
 def csv_dict_row(list head, dict values, tuple names, object default, list tail):
-    """``csv_row(head + [values.get(n, default) for n in names] + tail)`` without the list."""
-    cdef list row = list(head)
+    """``csv_row(head + [values.get(n, default) for n in names] + tail)``, made in one buffer
+    (no list, no string per value); None where csv_row is None."""
+    cdef Py_ssize_t nh = len(head), nn = len(names), nt = len(tail)
+    cdef Py_ssize_t i, n = nh + nn + nt, pos = 0, w
+    cdef char stack[1024]
+    cdef char* buf = stack
     cdef PyObject* p
-    for nm in names:
-        p = PyDict_GetItem(values, nm)
-        row.append(default if p is NULL else <object>p)
-    row.extend(tail)
-    return csv_row(row)
+    if 32 * n + 2 > 1024:
+        buf = <char*>PyMem_Malloc(32 * n + 2)
+        if buf is NULL:
+            raise MemoryError()
+    try:
+        for i in range(n):
+            if i:
+                buf[pos] = b','
+                pos += 1
+            if i < nh:
+                v = head[i]
+            elif i < nh + nn:
+                p = PyDict_GetItem(values, names[i - nh])
+                v = default if p is NULL else <object>p
+            else:
+                v = tail[i - nh - nn]
+            w = _put(v, buf + pos)
+            if w < 0:
+                return None
+            pos += w
+        buf[pos] = b'\r'
+        buf[pos + 1] = b'\n'
+        return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
+    finally:
+        if buf is not stack:
+            PyMem_Free(buf)
 
 
 def csv_row(list row):
@@ -48,14 +99,9 @@ def csv_row(list row):
     ``f"{v:.9g}"``, for rows of floats, ints and bools (Python's or numpy's); None for a row with
     any other value (the caller takes the csv writer). The text is made in one buffer (no string
     per value)."""
-    cdef Py_ssize_t i, n = len(row), pos = 0, k
+    cdef Py_ssize_t i, n = len(row), pos = 0, w
     cdef Py_ssize_t cap = 32 * n + 2   # a value's text is at most 24 characters (a 64-bit int's 20)
     cdef char* buf = <char*>PyMem_Malloc(cap)
-    cdef char* s
-    cdef object v
-    cdef type t
-    cdef long long iv
-    cdef int ovf = 0
     if buf is NULL:
         raise MemoryError()
     try:
@@ -63,30 +109,10 @@ def csv_row(list row):
             if i:
                 buf[pos] = b','
                 pos += 1
-            v = row[i]
-            t = type(v)
-            if t is float or t is NP_F64:
-                pos += g9_into(PyFloat_AS_DOUBLE(v), buf + pos)
-            elif t is int or t is NP_I64 or t is NP_I32:
-                iv = PyLong_AsLongLongAndOverflow(v if t is int else int(v), &ovf)
-                if ovf:  # beyond 64 bits: Python's own text
-                    s = NULL
-                    txt = int.__repr__(v if t is int else int(v)).encode("ascii")
-                    if len(txt) > 24:
-                        return None
-                    memcpy(buf + pos, <char*>txt, len(txt))
-                    pos += len(txt)
-                else:
-                    pos += snprintf(buf + pos, 24, "%lld", iv)
-            elif t is bool or t is NP_BOOL:
-                if v:
-                    memcpy(buf + pos, b"True", 4)
-                    pos += 4
-                else:
-                    memcpy(buf + pos, b"False", 5)
-                    pos += 5
-            else:
+            w = _put(row[i], buf + pos)
+            if w < 0:
                 return None
+            pos += w
         buf[pos] = b'\r'
         buf[pos + 1] = b'\n'
         return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
@@ -94,27 +120,32 @@ def csv_row(list row):
         PyMem_Free(buf)
 
 
+cdef Py_ssize_t _bin(double x, Py_ssize_t bins, double lo, double log_ratio) except -1:
+    """The bin of duration ``x`` (s) as ``LogHistogram.add`` finds it (its errors for NaN, inf)."""
+    cdef double y
+    cdef Py_ssize_t i
+    if x <= lo:
+        return 0
+    y = log(x / lo) / log_ratio
+    if not y < 1e18:  # what int() says of a NaN or an infinite duration
+        raise ValueError("cannot convert float NaN to integer") if y != y else OverflowError(
+            "cannot convert float infinity to integer")
+    i = 1 + <Py_ssize_t>y
+    return bins - 1 if i >= bins else i
+
+
 def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo, double log_ratio):
     """Add the durations ``xs`` (s) to a LogHistogram's ``counts`` as ``LogHistogram.add`` does,
     one by one; returns its new ``(n, total, max)``."""
     cdef Py_ssize_t bins = len(counts), i
-    cdef double x, y
+    cdef double x
     for v in xs:
         x = v
         n += 1
         total += x
         if x > vmax:
             vmax = x
-        if x <= lo:
-            i = 0
-        else:
-            y = log(x / lo) / log_ratio
-            if not y < 1e18:  # what int() says of a NaN or an infinite duration
-                raise ValueError("cannot convert float NaN to integer") if y != y else OverflowError(
-                    "cannot convert float infinity to integer")
-            i = 1 + <Py_ssize_t>y
-            if i >= bins:
-                i = bins - 1
+        i = _bin(x, bins, lo, log_ratio)
         counts[i] += 1
     return n, total, vmax
 
@@ -303,11 +334,26 @@ def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py
 def hist_add_bits(list hists, bits, double x):
     """``hists[s].add(x)`` (LogHistogram, canbrake.nodes.base) for each bit ``s`` set in
     ``bits`` (a non-negative int), lowest first: the plant's response times of the ECUs whose
-    commands a batch completed, in one call."""
-    cdef Py_ssize_t s_ = 0
-    while bits:
-        if bits & 1:
-            h = hists[s_]
-            h.n, h.total, h.max = hist_add(h.counts, (x,), h.n, h.total, h.max, h.LO_S, h._log_ratio)
-        bits >>= 1
-        s_ += 1
+    commands a batch completed, in one call (the bits read from the int's bytes, each add as
+    :func:`hist_add` of one duration)."""
+    cdef bytes b = bits.to_bytes((bits.bit_length() + 7) // 8, "little")
+    cdef const unsigned char* p = b
+    cdef Py_ssize_t j, t, i, n
+    cdef double total, vmax
+    cdef list counts
+    for j in range(len(b)):
+        if not p[j]:
+            continue
+        for t in range(8):
+            if not (p[j] >> t) & 1:
+                continue
+            h = hists[8 * j + t]
+            counts = h.counts
+            n = h.n
+            total = h.total
+            vmax = h.max
+            i = _bin(x, len(counts), h.LO_S, h._log_ratio)
+            counts[i] += 1
+            h.n = n + 1
+            h.total = total + x
+            h.max = x if x > vmax else vmax

@@ -27,7 +27,7 @@ import csv
 import math
 from abc import ABC, abstractmethod
 from pathlib import Path
-from typing import Any, Iterator, Protocol
+from typing import Any, Callable, Iterator, Protocol
 
 import can
 import numpy as np
@@ -149,6 +149,11 @@ class Node(ABC):
                 break
         return out
 
+    def batch_handler(self) -> Callable[[list[can.Message], float], list[can.Message]]:
+        """:meth:`handle_batch` as the in-process Router calls it (a list of frames, the time), bound
+        once: a node may give a compiled callable that does the same."""
+        return self.handle_batch
+
     def frames_wanted(self) -> int:
         """How many frames this node needs, at least, before it can go on: a driver on the memory
         bus sleeps until that many have come (``MemoryBus.recv_batch(min_frames=...)``) instead
@@ -240,6 +245,12 @@ class CsvTrace:
             return
         text = csv_dict_row(head, values, names, default, tail) if type(values) is dict else None
         self._write(text, None if text is not None else [*head, *[values.get(n, default) for n in names], *tail])
+
+    def row_write(self) -> Callable[[str], Any] | None:
+        """The file's ``write`` for a row's text when rows go through its buffer (inside
+        :func:`buffered_traces`), to call in place of :meth:`append_text`; None when rows are
+        flushed one by one or there is no file."""
+        return self._file.write if self._file is not None and not self._row_by_row else None
 
     def _write(self, text: str | None, row: list[Any] | None) -> None:
         """Write a row's text, or (None) the row through the csv writer."""

@@ -19,6 +19,7 @@ from pathlib import Path
 import can
 import numpy as np
 
+from canbrake.atomic import write_text_atomic
 from canbrake.bus import dbc
 from canbrake.bus._codec import REJECT_CRC, PeerTable
 from canbrake.bus.codec import FrameCodec
@@ -26,8 +27,7 @@ from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.bus.guard import FrameGuard, sign_control, sign_protected, sync_verdict
 from canbrake.bus.secoc import state_authenticator
 from canbrake.control.base import Controller, Observation
-from canbrake.nodes._ecu import EcuPeriod, take_batch
-from canbrake.atomic import write_text_atomic
+from canbrake.nodes._ecu import BatchTaker, EcuPeriod, take_batch
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, PassThrough, SendPath, exact_filter, frame
 
 #: the key of a command frame's Status field among the period's command values (not a name a
@@ -196,9 +196,7 @@ class EcuNode(Node):
         self._cdone = codec.by_id[self._cdone_id]
         self._sync_id = layout.sync_id
         self._deadline: float | None = None
-        self._trace: CsvTrace | None = None
-        #: the trace row of the period last computed, not yet written (see after_send)
-        self._pending_row: tuple[Any, ...] | None = None
+        self._trace: CsvTrace | None = None  # its rows are left pending by self._period (see after_send)
         # realtime: this ECU's own timer (canbrake.bus.clock.EcuClock): phase 1 of tick k starts
         # offset_s(k) after its sensor frames (drift + jitter), not at once; None: on the plant's grid
         self.clock = clock if mode == "realtime" else None
@@ -233,6 +231,7 @@ class EcuNode(Node):
         self._trace = CsvTrace(None if self.out_dir is None else self.out_dir / f"ecu_c{self.car}.csv",
                                ["tick", "brake_cmd_n", *self._diag_names, "max_peer_age_s", "peers_fresh"],
                                self.flush_every)
+        self._period.set_trace(self._trace, self._diag_names)
         return []
 
     # ---------------------------------------------------------------- receive
@@ -246,6 +245,10 @@ class EcuNode(Node):
         if type(msgs) is not list:
             msgs = list(msgs)
         return take_batch(self, self._peers.feed, msgs, None, False, now)  # (compiled)
+
+    def batch_handler(self) -> BatchTaker:
+        """:meth:`handle_batch` over a list as one compiled call (the Router's, in process)."""
+        return BatchTaker(self)
 
     def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
         """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``), taken
@@ -509,8 +512,6 @@ class EcuNode(Node):
         return out
 
     def _phase2(self, now: float) -> list[can.Message]:
-        if self._pending_row is not None:
-            self.after_send()  # the last period's row, before the controller makes this one's diagnostics
         self.phase = 2
         self._deadline = None
         k = self.k
@@ -519,7 +520,8 @@ class EcuNode(Node):
             t, horizon = self._times(now, 2)
             self._release_linked(now)
         # compiled: its own values into the peer table, the peers' ages, the Observation, the
-        # controller's step (timed), the command frames (canbrake.nodes._ecu.EcuPeriod)
+        # controller's step (timed), the command frames (canbrake.nodes._ecu.EcuPeriod); it writes
+        # the last period's trace row first and leaves this one's pending
         hold = self.peer_hold_periods
         result, cmds, max_age, fresh, dropped = self._period.decide(
             self.controller, k, -1 if hold is None else hold, self._in_fallback)
@@ -539,8 +541,6 @@ class EcuNode(Node):
             cdone = sign_control(self.secoc, self._cdone_id, self._cdone.encode({"Tick": k & 0xFFFF}), k)
             out.append(frame(self._cdone_id, cdone))
         self.stats.ticks += 1
-        if self._trace is not None:  # written once the frames are sent (after_send)
-            self._pending_row = (k, result.brake_force_n, diag, max_age, fresh)
         if self._late_rx:
             self._take_held(now)
         return out
@@ -548,13 +548,7 @@ class EcuNode(Node):
     def after_send(self) -> None:
         """Write the trace row of the period last computed, if pending: in a node process after
         its command frames are on the bus, so the row's text is not made before they leave."""
-        pending = self._pending_row
-        if pending is None:
-            return
-        self._pending_row = None
-        k, force, diag, max_age, fresh = pending
-        self._trace.append_dict([k, force], diag, self._diag_names, math.nan,  # type: ignore[union-attr]
-                                [max_age if max_age > -math.inf else math.inf, fresh])
+        self._period.write_row()  # (compiled)
 
     def _count_fallback(self, dropped: bool) -> None:
         """Listened ECUs whose newest value is older than ``peer_hold_periods`` were dropped this

@@ -45,6 +45,8 @@ class Router:
         #: identifier << 1 | extended -> indices of the nodes that accept it (empty routes too)
         self._routes: dict[int, tuple[int, ...]] = {}
         self.current: Node | None = None  # the node being called (names a crash)
+        #: each node's handle_batch, bound once (Node.batch_handler; hand calls these)
+        self._handlers = [n.batch_handler() for n in self.nodes]
 
     def route(self, aid: int, extended: bool) -> tuple[int, ...]:
         """Indices of the nodes that accept identifier ``aid``."""
@@ -63,7 +65,7 @@ class Router:
 
     def step(self, inbox: list[list[can.Message]], now: float) -> list[tuple[int, can.Message]]:
         """Hand each node its batch; returns the next generation (compiled)."""
-        return hand(self, self.nodes, inbox, now)
+        return hand(self, self.nodes, self._handlers, inbox, now)
 
 
 class NodeGroup(Node):
