@@ -61,12 +61,29 @@ cdef Py_ssize_t _put(object v, char* buf) except -2:
 def csv_dict_row(list head, dict values, tuple names, object default, list tail):
     """``csv_row(head + [values.get(n, default) for n in names] + tail)``, made in one buffer
     (no list, no string per value); None where csv_row is None."""
+    return _csv_line(head, values, names, default, tail)
+
+
+def csv_row(list row):
+    """``row`` as the line ``csv.writer`` writes (excel dialect, ``\\r\\n``) with floats as
+    ``f"{v:.9g}"``, for rows of floats, ints and bools (Python's or numpy's); None for a row with
+    any other value (the caller takes the csv writer). The text is made in one buffer (no string
+    per value)."""
+    return _csv_line(row, None, (), None, _NO_TAIL)
+
+
+cdef list _NO_TAIL = []
+
+
+cdef object _csv_line(list head, dict values, tuple names, object default, list tail):
+    """The line of ``head``, then ``values[n]`` (``default`` where missing) for each of ``names``,
+    then ``tail``, as csv_row describes; None for a value it does not write."""
     cdef Py_ssize_t nh = len(head), nn = len(names), nt = len(tail)
     cdef Py_ssize_t i, n = nh + nn + nt, pos = 0, w
     cdef char stack[1024]
     cdef char* buf = stack
     cdef PyObject* p
-    if 32 * n + 2 > 1024:
+    if 32 * n + 2 > 1024:  # a value's text is at most 24 characters (a 64-bit int's 20)
         buf = <char*>PyMem_Malloc(32 * n + 2)
         if buf is NULL:
             raise MemoryError()
@@ -92,32 +109,6 @@ def csv_dict_row(list head, dict values, tuple names, object default, list tail)
     finally:
         if buf is not stack:
             PyMem_Free(buf)
-
-
-def csv_row(list row):
-    """``row`` as the line ``csv.writer`` writes (excel dialect, ``\\r\\n``) with floats as
-    ``f"{v:.9g}"``, for rows of floats, ints and bools (Python's or numpy's); None for a row with
-    any other value (the caller takes the csv writer). The text is made in one buffer (no string
-    per value)."""
-    cdef Py_ssize_t i, n = len(row), pos = 0, w
-    cdef Py_ssize_t cap = 32 * n + 2   # a value's text is at most 24 characters (a 64-bit int's 20)
-    cdef char* buf = <char*>PyMem_Malloc(cap)
-    if buf is NULL:
-        raise MemoryError()
-    try:
-        for i in range(n):
-            if i:
-                buf[pos] = b','
-                pos += 1
-            w = _put(row[i], buf + pos)
-            if w < 0:
-                return None
-            pos += w
-        buf[pos] = b'\r'
-        buf[pos + 1] = b'\n'
-        return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
-    finally:
-        PyMem_Free(buf)
 
 
 cdef Py_ssize_t _bin(double x, Py_ssize_t bins, double lo, double log_ratio) except -1:
