@@ -116,6 +116,46 @@ def test_barrier_is_zero_at_origin_odd_and_unbounded():
     assert barrier_gradient(0.0, -0.5, 2.0) == 0.0
 
 
+def test_the_scalar_barrier_equals_the_batch_form_bit_for_bit():
+    """The compiled barrier_gradient and the numpy barrier_gradient_many are two implementations
+    of one formula: the same floats, inside, at and beyond the bounds, for both kinds."""
+    from canbrake.control.chen import barrier_gradient_many
+
+    z = np.concatenate([np.linspace(-3.0, 3.0, 601), [-0.99, 0.99, -1.0, 1.0, 1e-300, -0.0]])
+    for kind in ("inverse_square", "log"):
+        for lo, hi, clip in ((-1.0, 1.0, 0.99), (-0.5, 2.0, 0.9), (-1.0, 1.0, 0.999)):
+            many = barrier_gradient_many(z, lo, hi, kind, clip)
+            one = np.array([barrier_gradient(float(x), lo, hi, kind, clip) for x in z])
+            assert one.tobytes() == many.tobytes(), (kind, lo, hi, clip)
+    with pytest.raises(ValueError):
+        barrier_gradient(0.1, -1.0, 1.0, "cubic")
+
+
+def test_the_compiled_step_reads_its_gains_at_every_call_and_checks_its_arrays():
+    """step (compiled) reads the controller's parameters when called, so a gain changed on the
+    object (as chen2023_compensated schedules them) acts at once; peer arrays of another dtype
+    give the floats of float arrays; arrays shorter than the train raise, never read past their end."""
+    x = X_NOM + np.array([0.0, 0.002, -0.001, 0.0])
+    v = np.array([25.0, 25.1, 24.9, 25.0])
+    changed, built = chen(), chen(alpha1=240.0, delta=3.0, k=20.0)
+    changed.alpha1, changed.delta, changed.k = 240.0, 3.0, 20.0
+    for t in range(5):
+        a, b = changed.step(obs(1, v, x, tick=t)), built.step(obs(1, v, x, tick=t))
+        assert a.brake_force_n == b.brake_force_n and a.diagnostics == b.diagnostics
+    ints, floats = chen(), chen()
+    vi, xi = np.array([25, 26, 24, 25]), np.array([10, 20, 30, 40])
+    for t in range(3):
+        o = obs(1, vi, xi, tick=t)
+        oi = Observation.of(**{**o.__dict__, "peer_speed_mps": vi, "peer_position_m": xi})
+        assert ints.step(oi).brake_force_n == floats.step(o).brake_force_n
+    short = Observation.of(**{**obs(1, v, x).__dict__, "peer_speed_mps": v[:1]})
+    with pytest.raises(IndexError):
+        chen().step(short)
+    short = Observation.of(**{**obs(3, v, x).__dict__, "peer_position_m": x[:2]})
+    with pytest.raises(IndexError):
+        chen(i=2).step(short)
+
+
 def test_literal_readings_are_available():
     v = np.full(4, V_REF)
     out = chen(feedforward="velocity").step(obs(1, v, X_NOM))

@@ -38,6 +38,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from canbrake.control import _chen
+from canbrake.control._chen import barrier_gradient  # noqa: F401 - the scalar barrier, compiled (used here by name)
 from canbrake.control.base import ControlOutput, Controller, Observation, register
 from canbrake.control.observer import SlidingModeObserver
 
@@ -48,23 +50,10 @@ _SOURCES = ("peer_position", "local")
 _STALE = ("hold", "extrapolate", "drop")
 
 
-def barrier_gradient(z: float, z_lower: float, z_upper: float, kind: str = "inverse_square", clip: float = 0.99) -> float:
-    """∇U(z) of the barrier on [z_lower, z_upper] (z_lower < 0 < z_upper), with ∇U(0) = 0.
-
-    ``z`` is clipped to ``clip``·bound so the value stays finite beyond the bounds.
-    """
-    zl, zu = z_lower * clip, z_upper * clip
-    if z > zu:
-        z = zu
-    elif z < zl:
-        z = zl
-    return _barrier_terms(z, z_lower, z_upper, kind)
-
-
 def barrier_gradient_many(z: np.ndarray, z_lower: float, z_upper: float, kind: Any = "inverse_square",
                           clip: Any = 0.99) -> np.ndarray:
-    """:func:`barrier_gradient` elementwise (the same operations, so the same floats); ``clip`` may
-    be an array of the shape of ``z``."""
+    """:func:`barrier_gradient` (compiled, :mod:`canbrake.control._chen`) elementwise: the same
+    operations, so the same floats; ``clip`` may be an array of the shape of ``z``."""
     zl, zu = z_lower * clip, z_upper * clip
     return _barrier_terms(np.where(z > zu, zu, np.where(z < zl, zl, z)), z_lower, z_upper, kind)
 
@@ -220,7 +209,7 @@ class ChenConsensusController(Controller):
             adj[max(i - 1, 0): i + 2] = True
         adj[i] = False
         self._adj_a = adj
-        self._adj_idx = np.flatnonzero(adj)  # an index array: numpy converts a list on every indexing (~0.7 us)
+        self._adj_tuple = tuple(int(j) for j in np.flatnonzero(adj))  # the neighbours, in order (compiled step)
         self._adj_f = adj.astype(float)
         self._n_adj = int(np.count_nonzero(adj))
         self._spacing_cfg = nominal_spacing_m
@@ -272,20 +261,12 @@ class ChenConsensusController(Controller):
         return x
 
     def _deflections(self, obs: Observation) -> tuple[float | None, float | None]:
-        """(Δl_{i−1}, Δl_i) in m, None where unknown."""
+        """(Δl_{i−1}, Δl_i) in m, None where unknown: every case but the common one (``hold``,
+        peer positions, the spacing latched), which the compiled :meth:`step` computes itself."""
         if self.deflection_source == "local":
             return obs.deflection_front_m, obs.deflection_rear_m
         i, n = self.car_index, self.n_cars
         x = obs.position_m
-        if self._latched and self.stale_policy == "hold":  # fast path
-            px = obs.peer_position_m  # .item: a Python float (numpy scalars' arithmetic is slower, same floats)
-            front = px.item(i - 1) - x - self._spacing_front if i > 0 else None  # type: ignore[operator]
-            rear = x - px.item(i + 1) - self._spacing_rear if i < n - 1 else None  # type: ignore[operator]
-            if front is not None:
-                front = float(front) if front == front else None
-            if rear is not None:
-                rear = float(rear) if rear == rear else None
-            return front, rear
         if not self._latched:
             ok_f = i == 0 or self._peer_ok(i - 1, obs)
             ok_r = i == n - 1 or self._peer_ok(i + 1, obs)
@@ -304,17 +285,10 @@ class ChenConsensusController(Controller):
         return front, rear
 
     def _speed_disagreement(self, obs: Observation) -> float:
-        """Σ_j a_ij (v_i − v_j) over the usable peers (m/s)."""
+        """Σ_j a_ij (v_i − v_j) over the usable peers (m/s) under ``extrapolate`` and ``drop``
+        (under ``hold`` the compiled :meth:`step` sums them peer by peer in index order, as the
+        batch form does)."""
         pv = obs.peer_speed_mps
-        if self.stale_policy == "hold":
-            # summed peer by peer in index order (not a BLAS dot, whose order depends on n): the
-            # batch engine's step_batch sums in the same order and gets the same floats
-            total, cnt = 0.0, 0
-            for pj in pv[self._adj_idx].tolist():
-                if pj == pj:
-                    total += pj
-                    cnt += 1
-            return cnt * obs.speed_mps - total if cnt else 0.0
         ok = self._adj_a & (pv == pv)
         if self.stale_policy == "drop":
             ok &= obs.peer_age_s <= self.stale_timeout_s
@@ -329,56 +303,15 @@ class ChenConsensusController(Controller):
         return cnt * obs.speed_mps - total
 
     # ------------------------------------------------------------------
-    def step(self, obs: Observation) -> ControlOutput:
-        """Brake force (N) for this period from ``obs``."""
-        v = obs.speed_mps
-        m = self.mass_kg
-        kb = self.brake_gain
-        front, rear = self._deflections(obs)
-
-        u1 = 0.0
-        if self.consensus:
-            pos = 0.0
-            if rear is not None:
-                pos += rear
-            if front is not None:
-                pos -= front
-            u1 = self._scale * (self.alpha1 * self._speed_disagreement(obs) + self.alpha2 * pos)
-
-        u2 = 0.0
-        if self.potential_field:
-            unit, zl, zu, kind, clip = self.barrier_unit_m, self._z_lower, self._z_upper, self.barrier, self.barrier_clip
-            g = 0.0
-            if rear is not None:
-                g += barrier_gradient(rear / unit, zl, zu, kind, clip)
-            if front is not None:
-                g -= barrier_gradient(front / unit, zl, zu, kind, clip)
-            u2 = self._scale * self.delta * g
-
-        ff = obs.ref_decel_mps2 if self.feedforward == "decel" else obs.ref_speed_mps
-        u3 = m * (self.k * (v - obs.ref_speed_mps) + ff)
-
-        phi_hat = self._obs.update(obs.position_m, v)
-        force_obs = 0.0
-        if self.observer:
-            force_obs = m * phi_hat if self.observer_cancellation == "mass" else kb * self.k_d * phi_hat
-
-        force = kb * (u1 + u2 + u3) + force_obs
-        if force > self.brake_force_max_n:
-            force = self.brake_force_max_n
-        elif force < -self.traction_force_max_n:
-            force = -self.traction_force_max_n
-        # the observer is driven by the (saturated) force, through the brake-lag model if any
-        self._force_model_n += self._lag_alpha * (force - self._force_model_n)
-        self._obs.predict(self._force_model_n)
-
-        return self._output(force, phi_hat, kb, u1, u2, u3, force_obs, front, rear, math.nan)
+    #: Brake force (N) for this period from ``obs``: eqs. 24-29 as in the module docstring, compiled
+    #: (:func:`canbrake.control._chen.step`; the observer and the uncommon stale policies in Python)
+    step = _chen.step
 
     @staticmethod
     def _output(force: Any, phi_hat: Any, kb: float, u1: Any, u2: Any, u3: Any, force_obs: Any, front: Any,
                 rear: Any, nan: Any) -> ControlOutput:
-        """The step's result (scalars, or arrays of the batch form); ``nan`` stands for an unknown
-        deflection (None)."""
+        """The batch form's result (arrays); ``nan`` stands for an unknown deflection (None); the
+        compiled :meth:`step` makes the same for scalars."""
         return ControlOutput(
             brake_force_n=force,
             diagnostics={

@@ -1,0 +1,204 @@
+# cython: language_level=3
+# distutils: extra_compile_args = -O2 -ffp-contract=off
+"""Chen 2023's control law for one ECU and one period, compiled
+(:meth:`canbrake.control.chen.ChenConsensusController.step` is :func:`step`).
+
+Written by hand because the paper's law runs once per ECU per period and, in Python, was the
+largest single share of the in-process engine's period (six calls of ~3.6 us each of ~130 us,
+most of it attribute and call overhead around a few dozen floating-point operations). The
+operations are those of the Python law it replaced, in the same order and in C doubles (IEEE
+binary64, no contraction into fused multiply-adds: ``-ffp-contract=off``), so the floats are
+the same; ``tests/test_control.py`` checks it against :class:`~canbrake.control.chen.ChenBatch`
+(the batch engine's numpy form of the same law), and the golden runs' files are byte-identical.
+
+What stays in Python, called from here: the observer (``ctrl._obs``: ``update``/``predict``,
+which a subclass may wrap), and the deflections and speed disagreement of every configuration but
+the common one (peer positions held as received, spacing latched): latching, ``extrapolate``,
+``drop`` and ``deflection_source="local"`` (``ctrl._deflections``, ``ctrl._speed_disagreement``).
+The controller's parameters are read from the object at every call, so a change of a gain (as
+:class:`~canbrake.control.chen_compensated.ChenCompensatedController` schedules them) takes effect
+at once.
+"""
+from cpython.dict cimport PyDict_GetItemWithError
+from cpython.object cimport PyObject, PyObject_GenericSetAttr
+from libc.math cimport pow
+
+import math
+
+from canbrake.control.base import ControlOutput
+
+cdef object _NEW = object.__new__
+cdef object _NAN = math.nan
+cdef object _OUTPUT = ControlOutput
+
+
+cdef inline object _get(dict d, object o, str name):
+    """``o.name``, read from its instance dict ``d`` (the controller's parameters and state live
+    there), else as any attribute."""
+    cdef PyObject* p = PyDict_GetItemWithError(d, name)
+    if p is NULL:
+        return getattr(o, name)
+    return <object>p
+
+
+cdef inline double _barrier0(double z_lower, double z_upper, bint log_kind):
+    """∇U(0) of the barrier (its constant: subtracted so that ∇U(0) = 0)."""
+    if log_kind:
+        return 1.0 / z_upper - 1.0 / (-z_lower)
+    return 2.0 / pow(z_upper, 3.0) - 2.0 / pow(-z_lower, 3.0)  # (as Python's float ** 3: pow)
+
+
+cdef double _barrier(double z, double z_lower, double z_upper, bint log_kind, double clip, double g0):
+    """∇U(z) − ∇U(0) (``g0``: :func:`_barrier0`) with z clipped to ``clip``·bound
+    (:func:`barrier_gradient`)."""
+    cdef double zl = z_lower * clip, zu = z_upper * clip, a, b, g
+    if z > zu:
+        z = zu
+    elif z < zl:
+        z = zl
+    if log_kind:
+        g = 1.0 / (z_upper - z) - 1.0 / (z - z_lower)
+    else:  # cubes as products, as numpy's batch form computes them
+        a = z_upper - z
+        b = z - z_lower
+        g = 2.0 / (a * a * a) - 2.0 / (b * b * b)
+    return g - g0
+
+
+def barrier_gradient(double z, double z_lower, double z_upper, str kind="inverse_square", double clip=0.99):
+    """∇U(z) of the barrier on [z_lower, z_upper] (z_lower < 0 < z_upper), with ∇U(0) = 0; ``z``
+    clipped to ``clip``·bound so the value stays finite beyond the bounds; ``kind``:
+    ``"inverse_square"`` or ``"log"``."""
+    if kind != "inverse_square" and kind != "log":
+        raise ValueError(kind)
+    return _barrier(z, z_lower, z_upper, kind == "log", clip, _barrier0(z_lower, z_upper, kind == "log"))
+
+
+cdef double _speed_disagreement_held(object ctrl, dict d, object obs, double v) except? -1.0:
+    """Σ_j a_ij (v_i − v_j) over the peers received (m/s), peer by peer in index order (the batch
+    form sums in the same order): ``stale_policy="hold"``."""
+    cdef list pv = obs.peer_speed_mps.tolist()  # (6 floats: less than a buffer's export)
+    cdef Py_ssize_t n = len(pv)
+    cdef double total = 0.0, pj
+    cdef long cnt = 0
+    cdef Py_ssize_t j
+    for jo in <tuple>_get(d, ctrl, "_adj_tuple"):  # the neighbours in the velocity graph, in order
+        j = jo
+        if j >= n or j < 0:
+            raise IndexError(f"peer_speed_mps has {n} values for car {j}")
+        pj = <double>pv[j]
+        if pj == pj:
+            total += pj
+            cnt += 1
+    if cnt == 0:
+        return 0.0
+    return <double>cnt * v - total
+
+
+def step(ctrl, obs):
+    """One period of :class:`~canbrake.control.chen.ChenConsensusController` ``ctrl`` from the
+    :class:`~canbrake.control.base.Observation` ``obs``: its
+    :class:`~canbrake.control.base.ControlOutput` (brake force in N, + = brake)."""
+    cdef dict d = ctrl.__dict__
+    cdef dict od = obs.__dict__  # (an Observation's fields are in its instance dict: Observation.of)
+    cdef double v = _get(od, obs, "speed_mps")
+    cdef double m = _get(d, ctrl, "mass_kg")
+    cdef double kb = _get(d, ctrl, "brake_gain")
+    cdef double x, front = 0.0, rear = 0.0, pos, u1 = 0.0, u2 = 0.0, u3, g, unit, zl, zu, clip, scale
+    cdef double ff, phi_hat, force_obs = 0.0, force, fm, lim, sd, g0
+    cdef bint log_kind
+    cdef bint has_front = False, has_rear = False, fast
+    cdef int i, n
+    hold = _get(d, ctrl, "stale_policy") == "hold"
+    fast = hold and _get(d, ctrl, "_latched") and _get(d, ctrl, "deflection_source") == "peer_position"
+    # (Δl_{i−1}, Δl_i) in m: the common case here, every other in ChenConsensusController._deflections
+    if fast:
+        i = _get(d, ctrl, "car_index")
+        n = _get(d, ctrl, "n_cars")
+        x = _get(od, obs, "position_m")
+        px = _get(od, obs, "peer_position_m")
+        if i > 0:
+            front = <double>px.item(i - 1) - x - <double>_get(d, ctrl, "_spacing_front")
+            has_front = front == front
+        if i < n - 1:
+            rear = x - <double>px.item(i + 1) - <double>_get(d, ctrl, "_spacing_rear")
+            has_rear = rear == rear
+    else:
+        f_obj, r_obj = ctrl._deflections(obs)
+        if f_obj is not None:
+            front, has_front = f_obj, True
+        if r_obj is not None:
+            rear, has_rear = r_obj, True
+
+    if _get(d, ctrl, "consensus"):
+        pos = 0.0
+        if has_rear:
+            pos += rear
+        if has_front:
+            pos -= front
+        scale = _get(d, ctrl, "_scale")
+        if hold:
+            sd = _speed_disagreement_held(ctrl, d, obs, v)
+        else:
+            sd = ctrl._speed_disagreement(obs)
+        u1 = scale * (<double>_get(d, ctrl, "alpha1") * <double>sd + <double>_get(d, ctrl, "alpha2") * pos)
+
+    if _get(d, ctrl, "potential_field"):
+        unit = _get(d, ctrl, "barrier_unit_m")
+        zl = _get(d, ctrl, "_z_lower")
+        zu = _get(d, ctrl, "_z_upper")
+        clip = _get(d, ctrl, "barrier_clip")
+        kind = _get(d, ctrl, "barrier")
+        if kind != "inverse_square" and kind != "log":
+            raise ValueError(kind)
+        log_kind = kind == "log"
+        g0 = _barrier0(zl, zu, log_kind)
+        g = 0.0
+        if has_rear:
+            g += _barrier(rear / unit, zl, zu, log_kind, clip, g0)
+        if has_front:
+            g -= _barrier(front / unit, zl, zu, log_kind, clip, g0)
+        u2 = <double>_get(d, ctrl, "_scale") * <double>_get(d, ctrl, "delta") * g
+
+    ref_v = _get(od, obs, "ref_speed_mps")
+    ff = _get(od, obs, "ref_decel_mps2") if _get(d, ctrl, "feedforward") == "decel" else ref_v
+    u3 = m * (<double>_get(d, ctrl, "k") * (v - <double>ref_v) + ff)
+
+    observer = _get(d, ctrl, "_obs")
+    phi_hat = observer.update(_get(od, obs, "position_m"), v)
+    if _get(d, ctrl, "observer"):
+        if _get(d, ctrl, "observer_cancellation") == "mass":
+            force_obs = m * phi_hat
+        else:
+            force_obs = kb * <double>_get(d, ctrl, "k_d") * phi_hat
+
+    force = kb * (u1 + u2 + u3) + force_obs
+    lim = _get(d, ctrl, "brake_force_max_n")
+    if force > lim:
+        force = lim
+    else:
+        lim = _get(d, ctrl, "traction_force_max_n")
+        if force < -lim:
+            force = -lim
+    # the observer is driven by the (saturated) force, through the brake-lag model if any
+    fm = _get(d, ctrl, "_force_model_n")
+    fm += <double>_get(d, ctrl, "_lag_alpha") * (force - fm)
+    d["_force_model_n"] = fm
+    observer.predict(fm)
+
+    out = _NEW(_OUTPUT)
+    PyObject_GenericSetAttr(out, "__dict__", {
+        "brake_force_n": force,
+        "diagnostics": {
+            "observer_accel_mps2": phi_hat,
+            "u_consensus_n": kb * u1,
+            "u_potential_n": kb * u2,
+            "u_tracking_n": kb * u3,
+            "u_observer_n": force_obs,
+            "deflection_front_m": front if has_front else _NAN,
+            "deflection_rear_m": rear if has_rear else _NAN,
+        },
+        "commands": {},
+        "broadcast": {},
+    })
+    return out
