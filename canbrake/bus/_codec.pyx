@@ -15,7 +15,7 @@ default rounding mode), saturated to the raw range; decoded as raw * scale (+ of
 is 0 and scale > 0), unscaled signals as ints. Values that are neither ints nor floats take
 Python's own operators (same results, slower).
 """
-from cpython.buffer cimport PyBUF_WRITABLE, PyBuffer_Release, PyObject_GetBuffer
+from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBUF_WRITABLE, PyBuffer_Release, PyObject_GetBuffer
 from cpython.bytes cimport PyBytes_AS_STRING, PyBytes_FromStringAndSize, PyBytes_GET_SIZE
 from cpython.bytearray cimport PyByteArray_AS_STRING, PyByteArray_GET_SIZE
 from cpython.dict cimport PyDict_GetItem, PyDict_SetItem
@@ -1441,14 +1441,16 @@ cdef class SensorPages:
     cdef int _words(self, list sources, uint64_t* words) except -1:
         """Per page its little-endian and big-endian fields' words (``words[2p]``, ``words[2p+1]``)
         from ``sources``: the one encoding behind :meth:`pack` and :meth:`_images`."""
-        cdef Py_ssize_t ns = len(sources)
+        cdef Py_ssize_t ns = len(sources), held = 0
         cdef double** ptr = <double**>PyMem_Malloc((ns if ns > 0 else 1) * sizeof(double*))
         cdef Py_ssize_t* length = <Py_ssize_t*>PyMem_Malloc((ns if ns > 0 else 1) * sizeof(Py_ssize_t))
-        if ptr is NULL or length is NULL:
+        # each source's buffer as is (a typed memoryview object per source and period cost more)
+        cdef Py_buffer* views = <Py_buffer*>PyMem_Malloc((ns if ns > 0 else 1) * sizeof(Py_buffer))
+        if ptr is NULL or length is NULL or views is NULL:
             PyMem_Free(ptr)
             PyMem_Free(length)
+            PyMem_Free(views)
             raise MemoryError()
-        cdef double[::1] view
         cdef FieldCodec codec
         cdef int p, i, s_
         cdef int64_t e
@@ -1457,9 +1459,13 @@ cdef class SensorPages:
         cdef Field* fd
         try:
             for i in range(ns):
-                view = sources[i]
-                ptr[i] = &view[0] if view.shape[0] > 0 else NULL
-                length[i] = view.shape[0]
+                PyObject_GetBuffer(sources[i], &views[i], PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
+                held += 1
+                if views[i].ndim != 1 or views[i].itemsize != 8 or views[i].format is NULL \
+                        or views[i].format[0] != b'd' or views[i].format[1] != 0:
+                    raise ValueError(f"sensor source {i}: a 1-D float64 array is needed")
+                ptr[i] = <double*>views[i].buf if views[i].shape[0] > 0 else NULL
+                length[i] = views[i].shape[0]
             for p in range(self._npg):
                 codec = self._codecs[p]
                 w = 0
@@ -1495,6 +1501,9 @@ cdef class SensorPages:
                 words[2 * p] = w
                 words[2 * p + 1] = wb
         finally:
+            for i in range(held):
+                PyBuffer_Release(&views[i])
+            PyMem_Free(views)
             PyMem_Free(ptr)
             PyMem_Free(length)
         return 0

@@ -8,6 +8,7 @@ Written by hand because both run every control period for every node (a signals.
 Python call per value; ``tests/test_trace_compiled.py`` checks them against ``csv.writer`` with
 ``%.9g`` floats and against ``LogHistogram.add``.
 """
+from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBuffer_Release, PyObject_GetBuffer
 from cpython.dict cimport PyDict_GetItem
 from cpython.float cimport PyFloat_AS_DOUBLE
 from cpython.object cimport PyObject
@@ -259,36 +260,51 @@ cdef PyObject* _take_key(object aid, object ext, object err, bint counted, dict 
     return PyDict_GetItem(phase_of, key)
 
 
-def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py_ssize_t flags_at):
+cdef bint _f64_buffer(object a, Py_buffer* view) except -1:
+    """``a``'s buffer if it is a C-contiguous 1-D float64 array (True; release it), else False:
+    the buffer protocol itself, not a typed memoryview (whose object and format check cost more
+    than the row's nine-digit floats: the plant's row takes seven arrays per period)."""
+    try:
+        PyObject_GetBuffer(a, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
+    except (TypeError, ValueError, BufferError):
+        return False
+    if view.ndim == 1 and view.itemsize == 8 and view.format is not NULL and view.format[0] == b'd' \
+            and view.format[1] == 0:
+        return True
+    PyBuffer_Release(view)
+    return False
+
+
+def csv_pick_row(str head, list arrays, plan, flags, Py_ssize_t flags_at):
     """The plant's trace row (:meth:`canbrake.nodes.plant.PlantNode.after_send`) without a
     Python float per value: ``head`` (the row's first values as csv text, no line end), then
-    per row ``j`` of ``plan`` the value ``arrays[plan[j, 0]][plan[j, 1]]`` as ``f"{v:.9g}"``,
-    with ``flags`` (a bool array or None) written as 0/1 before plan row ``flags_at``; the line
-    ends with ``\\r\\n`` as :func:`csv_row`'s. ``arrays``: float64 arrays (others are converted
-    as ``np.concatenate(..., dtype=float)`` converts them). None if an element is outside its
-    array (the caller's plan is stale)."""
-    cdef Py_ssize_t na = len(arrays), np_ = plan.shape[0], nf = 0, i, j, a, e, pos, k, cap
-    cdef const double** ptr = <const double**>PyMem_Malloc((na if na > 0 else 1) * sizeof(double*))
-    cdef Py_ssize_t* length = <Py_ssize_t*>PyMem_Malloc((na if na > 0 else 1) * sizeof(Py_ssize_t))
-    cdef const double[::1] view
+    per row ``j`` of ``plan`` (an (m, 2) intp array) the value ``arrays[plan[j, 0]][plan[j, 1]]``
+    as ``f"{v:.9g}"``, with ``flags`` (a bool array or None) written as 0/1 before plan row
+    ``flags_at``; the line ends with ``\\r\\n`` as :func:`csv_row`'s. ``arrays``: float64 arrays
+    (others are converted as ``np.concatenate(..., dtype=float)`` converts them). None if an
+    element is outside its array (the caller's plan is stale)."""
+    cdef Py_ssize_t na = len(arrays), np_, nf = 0, i, j, a, e, pos, k, cap, held = 0
+    cdef Py_buffer* views = <Py_buffer*>PyMem_Malloc((na + 2) * sizeof(Py_buffer))
+    cdef Py_buffer pv
+    cdef bint plan_held = False
+    cdef const Py_ssize_t* pl
     cdef const uint8_t[::1] fl
-    cdef list keep = []
     cdef bytes hb = head.encode("ascii")
     cdef char* buf = NULL
-    if ptr is NULL or length is NULL:
-        PyMem_Free(ptr)
-        PyMem_Free(length)
+    if views is NULL:
         raise MemoryError()
     try:
         for i in range(na):
-            arr = arrays[i]
-            if type(arr) is not np.ndarray or (<object>arr).dtype is not _F64_DTYPE \
-                    or not (<object>arr).flags.c_contiguous:
-                arr = np.ascontiguousarray(arr, dtype=np.float64)
-            keep.append(arr)
-            view = arr
-            ptr[i] = &view[0] if view.shape[0] > 0 else NULL
-            length[i] = view.shape[0]
+            if not _f64_buffer(arrays[i], &views[i]) and \
+                    not _f64_buffer(np.ascontiguousarray(arrays[i], dtype=np.float64), &views[i]):  # (the buffer keeps it)
+                raise ValueError("csv_pick_row: the arrays must be 1-D")
+            held += 1
+        PyObject_GetBuffer(plan, &pv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
+        plan_held = True
+        if pv.ndim != 2 or pv.shape[1] != 2 or pv.itemsize != sizeof(Py_ssize_t):
+            raise ValueError("csv_pick_row: plan must be an (m, 2) intp array")
+        np_ = pv.shape[0]
+        pl = <const Py_ssize_t*>pv.buf
         if flags is not None:
             fl = np.ascontiguousarray(flags, dtype=np.bool_).view(np.uint8)
             nf = fl.shape[0]
@@ -306,20 +322,23 @@ def csv_pick_row(str head, list arrays, const Py_ssize_t[:, ::1] plan, flags, Py
                     pos += 2
             if j == np_:
                 break
-            a = plan[j, 0]
-            e = plan[j, 1]
-            if a < 0 or a >= na or e < 0 or e >= length[a]:
+            a = pl[2 * j]
+            e = pl[2 * j + 1]
+            if a < 0 or a >= na or e < 0 or e >= views[a].shape[0]:
                 return None
             buf[pos] = b','
             pos += 1
-            pos += g9_into(ptr[a][e], buf + pos)
+            pos += g9_into((<const double*>views[a].buf)[e], buf + pos)
         buf[pos] = b'\r'
         buf[pos + 1] = b'\n'
         return PyUnicode_DecodeASCII(buf, pos + 2, NULL)
     finally:
         PyMem_Free(buf)
-        PyMem_Free(ptr)
-        PyMem_Free(length)
+        for i in range(held):
+            PyBuffer_Release(&views[i])
+        if plan_held:
+            PyBuffer_Release(&pv)
+        PyMem_Free(views)
 
 
 def hist_add_bits(list hists, bits, double x):
