@@ -123,17 +123,22 @@ def test_node_setup_freezes_the_garbage_collector_unless_told_not_to(monkeypatch
     up and freezes what it holds, so later full collections skip it."""
     import gc
 
-    from canbrake.nodes.driver import freeze_heap, frozen_heap
+    from canbrake.nodes.driver import INPROCESS_GC_THRESHOLD, freeze_heap, frozen_heap
 
     try:
         n = freeze_heap()
         assert n > 1000 and n == gc.get_freeze_count()
         gc.unfreeze()
-        with frozen_heap():
+        before = gc.get_threshold()
+        with frozen_heap():  # an in-process run: frozen, its first generation collected less often
             assert gc.get_freeze_count() > 1000
-        assert gc.get_freeze_count() == 0
+            assert gc.get_threshold()[0] == max(before[0], INPROCESS_GC_THRESHOLD)
+            assert gc.get_threshold()[1:] == before[1:]
+        assert gc.get_freeze_count() == 0 and gc.get_threshold() == before
         monkeypatch.setenv("CANBRAKE_GC", "off")
         assert freeze_heap() == 0 and gc.get_freeze_count() == 0
+        with frozen_heap():
+            assert gc.get_freeze_count() == 0 and gc.get_threshold() == before
     finally:
         gc.unfreeze()
 

@@ -34,13 +34,11 @@ import math
 
 import numpy as np
 
-
-def _sat(z: float) -> float:
-    return 1.0 if z > 1.0 else (-1.0 if z < -1.0 else z)
+from canbrake.control import _observer
 
 
 def _sat_many(z: np.ndarray) -> np.ndarray:
-    """:func:`_sat` elementwise (NaN stays NaN, as in the scalar form)."""
+    """sat(z) = clip(z, -1, 1) elementwise, NaN staying NaN (the compiled scalar form's, :mod:`canbrake.control._observer`)."""
     return np.where(z > 1.0, 1.0, np.where(z < -1.0, -1.0, z))
 
 
@@ -86,22 +84,9 @@ class SlidingModeObserver:
         self.phi_hat_mps2 = 0.0
         self.phi_raw_mps2 = 0.0
 
-    def update(self, position_m: float, speed_mps: float) -> float:
-        """Correct with this tick's measurement; return the filtered estimate φ̂ (m/s²)."""
-        if math.isnan(self.v_hat):
-            self.x_hat, self.v_hat = position_m, speed_mps
-        e2 = speed_mps - self.v_hat
-        emax = self.error_limit_mps
-        if e2 > emax or e2 < -emax:  # state anti-windup
-            e2 = emax if e2 > 0 else -emax
-            self.v_hat = speed_mps - e2
-        raw = self.gamma2_mps2 * _sat(e2 / self.boundary_vel_mps)
-        self.phi_raw_mps2 = raw
-        phi = self.phi_hat_mps2 + self._alpha * (raw - self.phi_hat_mps2)
-        lim = self.limit_mps2
-        self.phi_hat_mps2 = lim if phi > lim else (-lim if phi < -lim else phi)
-        self._e1 = position_m - self.x_hat
-        return self.phi_hat_mps2
+    #: Correct with this tick's measurement (m, m/s); returns the filtered estimate φ̂ (m/s²).
+    #: Compiled (:mod:`canbrake.control._observer`), the state in these attributes.
+    update = _observer.update
 
     def reset_many(self, n_points: int) -> None:
         """Batch form (:mod:`canbrake.batch`): the state becomes arrays of shape (n_points,), one
@@ -140,9 +125,5 @@ class SlidingModeObserver:
         self.x_hat = self.x_hat + dt * (self.v_hat + self.gamma1_mps * s1)
         self.v_hat = self.v_hat + dt * (-brake_force_n / self.mass_kg + self.phi_raw_mps2)
 
-    def predict(self, brake_force_n: float) -> None:
-        """Propagate to the next tick with the force held over the period (N, + = brake)."""
-        dt = self.dt_s
-        s1 = _sat(self._e1 / self.boundary_pos_m)
-        self.x_hat += dt * (self.v_hat + self.gamma1_mps * s1)
-        self.v_hat += dt * (-brake_force_n / self.mass_kg + self.phi_raw_mps2)
+    #: Propagate to the next tick with the force held over the period (N, + = brake); compiled.
+    predict = _observer.predict
