@@ -7,12 +7,17 @@
 Written by hand because Python's float-to-text (``PyOS_double_to_string``, correctly rounded for
 any precision) costs a heap allocation and its general algorithm per value, and a signals.csv row
 of the 106-vehicle train holds ~1,100 values per period: :func:`g9_into` makes the nine digits
-directly where they are certain and asks Python otherwise (ties, near-ties, 0, NaN, infinities,
-magnitudes outside [1e-14, 1e30)). ``tests/test_batch_csv.py`` checks it against Python's
-``"%.9g"`` (hypothesis and the edge cases).
+directly where they are certain and asks Python otherwise (ties, near-ties, magnitudes outside
+[1e-14, 1e30)). ``tests/test_batch_csv.py`` checks it against Python's ``"%.9g"`` (hypothesis and
+the edge cases). Also here, for the same reason: a candump line's time stamp, ``"%.6f"``
+(:func:`f6_into`, exact integer arithmetic), and an integer's decimal text (:func:`i64_into`).
 """
+
+cdef extern from *:
+    ctypedef unsigned long long u128 "unsigned __int128"
 from cpython.mem cimport PyMem_Free
-from libc.math cimport floor, log10
+from libc.math cimport INFINITY, floor, frexp, ldexp, log10, signbit
+from libc.stdint cimport int64_t, uint64_t
 from libc.string cimport memcpy, strlen
 
 cdef extern from "Python.h":
@@ -37,7 +42,23 @@ cdef Py_ssize_t g9_fast(double x, char* out) noexcept:
     cdef unsigned int d
     cdef int e, s, nd, i, pos = 0
     cdef char dig[9]
-    if not (a >= 1e-14 and a < 1e30):  # 0, NaN, inf, tiny or huge: Python's text
+    if a == 0.0:  # Python's "0" / "-0"
+        if signbit(x):
+            out[0] = b'-'
+            out[1] = b'0'
+            return 2
+        out[0] = b'0'
+        return 1
+    if a != a:  # NaN (either sign): "nan"
+        memcpy(out, b"nan", 3)
+        return 3
+    if a == INFINITY:
+        if x < 0:
+            memcpy(out, b"-inf", 4)
+            return 4
+        memcpy(out, b"inf", 3)
+        return 3
+    if not (a >= 1e-14 and a < 1e30):  # tiny or huge: Python's text
         return -1
     e = <int>floor(log10(a))
     for i in range(3):
@@ -132,3 +153,110 @@ def g9(double x):
     cdef char out[32]
     cdef Py_ssize_t n = g9_fast(x, out)
     return None if n < 0 else out[:n].decode("ascii")
+
+
+cdef Py_ssize_t f6_fast(double x, char* out) noexcept:
+    """``"%.6f" % x`` into ``out`` (returns its length) for 0 <= x < 9e12, or -1 (the caller asks
+    Python). Exact: x = m·2**e with a 53-bit integer m, so x·10**6 = m·10**6·2**e is an integer
+    of at most 73 bits shifted, done in 128-bit integers, and rounded half to even on its exact
+    remainder, as Python's correctly rounded float-to-text does."""
+    cdef int ex, e, k, pos = 0
+    cdef double mant
+    cdef uint64_t m, q, ip, fp
+    cdef u128 p, rem, half
+    cdef char dig[24]
+    if not (x >= 0.0 and x < 9e12):  # negative, NaN, huge: Python's text
+        return -1
+    if x == 0.0:
+        if signbit(x):
+            return -1
+        q = 0
+    else:
+        mant = frexp(x, &ex)  # x = mant·2**ex, 0.5 <= mant < 1
+        m = <uint64_t>ldexp(mant, 53)  # exact: 53 bits
+        e = ex - 53
+        p = <u128>m * <u128>1000000
+        if e >= 0:
+            q = <uint64_t>(p << e)  # (x < 9e12: x·1e6 < 9e18 fits)
+        elif e < -120:  # below 2**-67: far below the 6th decimal
+            q = 0
+        else:
+            q = <uint64_t>(p >> (-e))
+            rem = p - ((<u128>q) << (-e))
+            half = (<u128>1) << (-e - 1)
+            if rem > half or (rem == half and (q & 1)):
+                q += 1
+    ip = q // 1000000
+    fp = q % 1000000
+    k = 0
+    while True:
+        dig[k] = <char>(48 + ip % 10)
+        ip //= 10
+        k += 1
+        if ip == 0:
+            break
+    while k > 0:
+        k -= 1
+        out[pos] = dig[k]
+        pos += 1
+    out[pos] = b'.'
+    pos += 1
+    for k in range(5, -1, -1):
+        out[pos + k] = <char>(48 + fp % 10)
+        fp //= 10
+    return pos + 6
+
+
+cdef Py_ssize_t f6_into(double x, char* out) except -1:
+    """``"%.6f" % x`` into ``out`` (at least 32 bytes for |x| < 1e20; returns its length):
+    :func:`f6_fast`, or Python's float-to-text where that defers."""
+    cdef Py_ssize_t k = f6_fast(x, out)
+    cdef char* s
+    if k >= 0:
+        return k
+    s = PyOS_double_to_string(x, b'f', 6, 0, NULL)
+    try:
+        k = <Py_ssize_t>strlen(s)
+        if k > 31:
+            raise OverflowError("f6_into: the text of %r is longer than 31 characters" % x)
+        memcpy(out, s, k)
+    finally:
+        PyMem_Free(s)
+    return k
+
+
+cdef Py_ssize_t i64_into(int64_t v, char* out) noexcept:
+    """``"%d" % v`` into ``out`` (at least 21 bytes; returns its length)."""
+    cdef char dig[24]
+    cdef int k = 0, pos = 0
+    cdef uint64_t u
+    if v < 0:
+        out[0] = b'-'
+        pos = 1
+        u = <uint64_t>(-(v + 1)) + 1  # (also for the most negative value)
+    else:
+        u = <uint64_t>v
+    while True:
+        dig[k] = <char>(48 + u % 10)
+        u //= 10
+        k += 1
+        if u == 0:
+            break
+    while k > 0:
+        k -= 1
+        out[pos] = dig[k]
+        pos += 1
+    return pos
+
+
+def f6(double x):
+    """``"%.6f" % x`` by :func:`f6_fast` (None where it defers to Python): for the tests."""
+    cdef char out[32]
+    cdef Py_ssize_t n = f6_fast(x, out)
+    return None if n < 0 else out[:n].decode("ascii")
+
+
+def i64(int64_t v):
+    """``"%d" % v`` by :func:`i64_into`: for the tests."""
+    cdef char out[24]
+    return out[:i64_into(v, out)].decode("ascii")

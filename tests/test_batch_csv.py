@@ -8,9 +8,11 @@ import io
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from canbrake._batch import csv_bytes
-from canbrake._g9 import g9
+from canbrake._g9 import f6, g9, i64
 
 
 def csv_block(rows: np.ndarray, last_int: bool = False) -> str:
@@ -95,7 +97,36 @@ def test_g9_is_pythons(seed: int) -> None:
 
 
 def test_g9_specials() -> None:
-    for v in (0.0, -0.0, np.nan, np.inf, -np.inf, 5e-324, 1e-300, 1e300):
+    for v in (0.0, -0.0, np.nan, -np.nan, np.inf, -np.inf):  # written directly, as Python writes them
+        assert g9(v) == f"{v:.9g}"
+    for v in (5e-324, 1e-300, 1e300):
         assert g9(v) in (None, f"{v:.9g}")
     assert g9(1.5) == "1.5" and g9(-123456789.25) == "-123456789" and g9(1e-5) == "1e-05"
     assert g9(0.0001) == "0.0001" and g9(123456789012.0) == "1.23456789e+11"
+
+
+@settings(max_examples=3000, deadline=None)
+@given(st.one_of(st.floats(min_value=0.0, max_value=1e13, allow_nan=False),
+                 st.floats(min_value=0.0, max_value=1e-3),
+                 st.integers(min_value=0, max_value=2 ** 40).map(lambda k: k / 128.0),  # exact ties
+                 st.floats(allow_nan=True, allow_infinity=True)))
+def test_f6_is_pythons(x: float) -> None:
+    """A candump line's time stamp: "%.6f" (python-can's "(%f)") in exact integer arithmetic,
+    ties to even as Python's correctly rounded text; None (Python's text) outside [0, 9e12)."""
+    got = f6(x)
+    if 0.0 <= x < 9e12 and not (x == 0.0 and np.signbit(x)):
+        assert got == "%.6f" % x
+    else:
+        assert got is None
+
+
+def test_f6_edges() -> None:
+    for x, text in ((0.0, "0.000000"), (0.0078125, "0.007812"), (3 / 128, "0.023438"), (1e-20, "0.000000"),
+                    (1733.0000005, "1733.000000"), (1.7e9 + 0.25, "1700000000.250000")):
+        assert f6(x) == text == "%.6f" % x
+    assert f6(-0.0) is None and f6(-1.0) is None and f6(float("nan")) is None and f6(1e13) is None
+
+
+@given(st.integers(min_value=-2 ** 63, max_value=2 ** 63 - 1))
+def test_i64_is_pythons(v: int) -> None:
+    assert i64(v) == "%d" % v

@@ -6,6 +6,8 @@ from cpython.mem cimport PyMem_Free
 from libc.stdlib cimport realloc
 from libc.string cimport memcpy, strlen
 
+from canbrake._g9 cimport f6_into
+
 cdef extern from "Python.h":
     char* PyOS_double_to_string(double val, char format_code, int precision, int flags, int* ptype) except NULL
 
@@ -56,22 +58,18 @@ cdef inline int candump_line(Buf* b, double ts, const char* ch, Py_ssize_t chn, 
     ``canbrake.bus._slot``) at timestamp ``ts`` (s, already clamped to the writer's first) on
     channel ``ch`` (``chn`` bytes), received."""
     cdef const char* HEX = b"0123456789ABCDEF"
-    cdef char* s
     cdef Py_ssize_t sl, k, nd = 0
     cdef const unsigned char* d = NULL
     cdef const unsigned char* img
     cdef bint err, ext, rtr
     cdef unsigned int aid32
     cdef object aid, data
-    s = PyOS_double_to_string(ts, b'f', 6, 0, NULL)
-    try:
-        sl = <Py_ssize_t>strlen(s)
-        buf_reserve(b, sl + chn + 8)
-        b.p[b.n] = b'('
-        memcpy(b.p + b.n + 1, s, sl)
-        b.n += sl + 1
-    finally:
-        PyMem_Free(s)
+    cdef char stamp[32]
+    sl = f6_into(ts, stamp)  # the time stamp as "%.6f" (python-can's writer: "(%f)")
+    buf_reserve(b, sl + chn + 8)
+    b.p[b.n] = b'('
+    memcpy(b.p + b.n + 1, stamp, sl)
+    b.n += sl + 1
     b.p[b.n] = b')'
     b.p[b.n + 1] = b' '
     b.n += 2

@@ -15,7 +15,6 @@ from cpython.object cimport PyObject
 from cpython.long cimport PyLong_AsLongLongAndOverflow
 from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
-from libc.stdio cimport snprintf
 from libc.stdint cimport uint8_t, uint32_t
 from libc.string cimport memcpy, strlen
 
@@ -24,7 +23,7 @@ import numpy as np
 cdef extern from "Python.h":
     object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
 
-from canbrake._g9 cimport g9_into
+from canbrake._g9 cimport g9_into, i64_into
 
 cdef type NP_F64 = np.float64
 cdef type NP_I64 = np.int64
@@ -49,7 +48,7 @@ cdef Py_ssize_t _put(object v, char* buf) except -2:
                 return -1
             memcpy(buf, <char*>txt, len(txt))
             return len(txt)
-        return snprintf(buf, 24, "%lld", iv)
+        return i64_into(iv, buf)
     if t is bool or t is NP_BOOL:
         if v:
             memcpy(buf, b"True", 4)
