@@ -192,12 +192,14 @@ def test_recorder_handle_raw_equals_handle_batch(tmp_path):
 
 
 def _take_all(take, batch, n, key_at):
-    """take_frames' caller (the recorder's loop): a new key gets phase 1, a SYNC is passed."""
+    """take_frames' caller (the recorder's loop): a new key (``key_at(i)``, its frame_key) gets
+    phase 1, a SYNC is passed; stops (fails) if a loop takes no step."""
     counts, phase_of, kept, events = {}, {}, [], []
     i, resume = 0, False
     while i < n:
         i, ev, closed = take(batch, i, resume, counts, {0x300}, 0x010, phase_of, kept)
         events.append((i, ev, closed))
+        assert len(events) <= 4 * n, events[-4:]  # a phase set under another key than the loop's
         if ev == 0:
             break
         if ev == 2:
@@ -210,7 +212,7 @@ def test_take_frames_raw_equals_take_frames():
     """The recorder's compiled loop over slot images counts, phases and keeps what it does over
     messages: standard and extended identifiers, a SYNC, a closing frame, an error frame, a
     remote frame and a frame of no database."""
-    from canbrake.nodes._trace import take_frames, take_frames_raw
+    from canbrake.nodes._trace import frame_key, take_frames, take_frames_raw
 
     msgs = [can.Message(arbitration_id=0x010, data=b"\x00\x00\x00\x00", is_extended_id=False),
             can.Message(arbitration_id=0x300, data=b"\x01\x02", is_extended_id=False),
@@ -225,14 +227,14 @@ def test_take_frames_raw_equals_take_frames():
     try:
         images = bus._ring.encode(msgs, True, 0.0)
         got = _take_all(lambda b, *a: take_frames_raw(bus.raw_message, b, *a), images, len(msgs),
-                        lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+                        lambda i: frame_key(msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
         ref = _take_all(take_frames, msgs, len(msgs),
-                        lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+                        lambda i: frame_key(msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
         assert got == ref
         # message None: each frame kept as its slot image (the recorder's candump path), the same frames
         kept = []
         imgs = _take_all(lambda b, *a: take_frames_raw(None, b, *a[:-1], kept), images, len(msgs),
-                         lambda i: (msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
+                         lambda i: frame_key(msgs[i].arbitration_id, msgs[i].is_extended_id, msgs[i].is_error_frame))
         assert imgs[:2] == ref[:2] and imgs[3] == ref[3]
         assert all(type(m) is bytes and len(m) == shm.SLOT_BYTES for *_x, m in kept)
         assert [(p, aid, data, _key([bus.raw_message(m, 0)])) for p, aid, data, m in kept] == ref[2]

@@ -13,6 +13,9 @@ byte, the peer table's arrays).
 """
 from cpython.dict cimport PyDict_Copy, PyDict_GetItem, PyDict_SetItem
 from cpython.list cimport PyList_GET_SIZE
+from cpython.tuple cimport PyTuple_GET_ITEM
+from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBUF_WRITABLE, PyBuffer_Release, PyObject_GetBuffer
+from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from cpython.object cimport PyObject, PyObject_GenericSetAttr
 from libc.stdint cimport int64_t
 
@@ -58,6 +61,10 @@ cdef class EcuPeriod:
     cdef object table, obs_cls, hist, sign
     cdef dict sensors, views, arrays
     cdef tuple own
+    # the peer table's array of each own name, as a pointer (the table keeps its arrays for its
+    # life: PeerTable.values): this ECU's entry is written without numpy's indexing
+    cdef double** own_ptr
+    cdef Py_ssize_t n_own
     cdef list cmd_msgs, pending, state_msgs
     cdef object auth
     cdef object status_key
@@ -75,10 +82,23 @@ cdef class EcuPeriod:
     def __init__(self, table, dict sensors, tuple own, int i, double dt, dict views, obs_cls, bint has_front,
                  bint has_rear, list cmd_msgs, status_key, list pending, hist, sign=None, list state_msgs=None,
                  auth=None):
+        cdef Py_buffer view
         self.table = table
         self.sensors = sensors
         self.arrays = table.values
         self.own = own
+        self.n_own = len(own)
+        self.own_ptr = <double**>PyMem_Malloc((self.n_own if self.n_own > 0 else 1) * sizeof(double*))
+        if self.own_ptr is NULL:
+            raise MemoryError()
+        for j, nm in enumerate(own):
+            PyObject_GetBuffer(self.arrays[nm], &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE)
+            try:
+                if view.ndim != 1 or view.itemsize != 8 or view.format[0] != b'd' or not 0 <= i < view.shape[0]:
+                    raise ValueError(f"peer table array {nm!r}: float64 with an entry {i} needed")
+                self.own_ptr[j] = <double*>view.buf
+            finally:
+                PyBuffer_Release(&view)  # (the table's dict keeps the array, and so its memory)
         self.i = i
         self.i_obj = i
         self.dt = dt
@@ -105,11 +125,11 @@ cdef class EcuPeriod:
         cdef dict peers
         cdef PyObject* p
         cdef bint dropped = False
-        cdef Py_ssize_t n
+        cdef Py_ssize_t n, j
         if self.has_row:  # the last period's row, before the controller makes this one's diagnostics
             self._write_row()
-        for nm in self.own:  # this ECU's own entries
-            self.arrays[nm][self.i_obj] = sensors[nm]
+        for j in range(self.n_own):  # this ECU's own entries
+            self.own_ptr[j][self.i] = <double>sensors[<object>PyTuple_GET_ITEM(self.own, j)]
         pt = self.table
         if hold >= 0:  # lost peers are NaN for the controller: a copy
             peers, dropped = pt.hold_copy(k, hold, self.i)
@@ -172,6 +192,12 @@ cdef class EcuPeriod:
             self.row_age = max_age if max_age > -math.inf else _INF
             self.row_fresh = fresh
         return result, frames, max_age, fresh, dropped
+
+    def __cinit__(self, *args, **kwargs):
+        self.own_ptr = NULL
+
+    def __dealloc__(self):
+        PyMem_Free(self.own_ptr)
 
     def set_trace(self, trace, tuple names):
         """Leave each decision's trace row to ``trace`` (:class:`~canbrake.nodes.base.CsvTrace`;

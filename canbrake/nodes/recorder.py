@@ -64,7 +64,8 @@ from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes._trace import TAKE_END, TAKE_SYNC, take_frames, take_frames_raw, take_realtime_raw
+from canbrake.nodes._trace import (TAKE_END, TAKE_SYNC, frame_key, key_fields, take_frames, take_frames_raw,
+                                   take_realtime_raw)
 from canbrake.atomic import write_text_atomic
 from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
@@ -152,9 +153,9 @@ class RecorderNode(Node):
         self._closing_seen = 0
         self.guard = FrameGuard(secoc)
         self.final_tick = None if n_ticks is None else n_ticks - 1
-        # frames received by (identifier, extended, error frame); the phase each such key is logged in
-        self._counts: dict[tuple[int, bool, bool], int] = {}
-        self._phase_of: dict[tuple[int, bool, bool], int] = {}
+        #: frames received and each kind's phase, by frame_key (identifier, extended, error frame)
+        self._counts: dict[int, int] = {}
+        self._phase_of: dict[int, int] = {}
         self._tick_frames: list[can.Message] = []
         self._bus_free_s = 0.0
         # per-period series in compact arrays (8 bytes per period each); latencies in a histogram
@@ -232,7 +233,7 @@ class RecorderNode(Node):
         counts = self._counts
         if self.mode == "realtime":
             for msg in msgs:
-                key = (msg.arbitration_id, msg.is_extended_id, msg.is_error_frame)
+                key = frame_key(msg.arbitration_id, msg.is_extended_id, msg.is_error_frame)
                 counts[key] = counts.get(key, 0) + 1
                 self._realtime(msg, now)
             return []
@@ -304,7 +305,7 @@ class RecorderNode(Node):
             else:  # TAKE_PHASE
                 aid, ext = msg.arbitration_id, msg.is_extended_id
                 kind = "error" if msg.is_error_frame else self._kinds.get(aid, "other")
-                self._phase_of[(aid, ext, msg.is_error_frame)] = (
+                self._phase_of[frame_key(aid, ext, msg.is_error_frame)] = (
                     0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF) else _PHASE.get(kind, 1))
             resume = True
         return []
@@ -340,7 +341,8 @@ class RecorderNode(Node):
     @property
     def frames_by_kind(self) -> dict[str, int]:
         out: dict[str, int] = {}
-        for (aid, _ext, err), n in self._counts.items():
+        for key, n in self._counts.items():
+            aid, _ext, err = key_fields(key)
             kind = "error" if err else self._kinds.get(aid, "other")
             name = _KIND_NAME.get(kind, kind)
             out[name] = out.get(name, 0) + n
@@ -349,15 +351,16 @@ class RecorderNode(Node):
     @property
     def frames_by_id(self) -> dict[int, int]:
         out: dict[int, int] = {}
-        for (aid, _ext, _err), n in self._counts.items():
-            out[aid] = out.get(aid, 0) + n
+        for key, n in self._counts.items():
+            out[key >> 2] = out.get(key >> 2, 0) + n
         return out
 
     @property
     def other_ids(self) -> dict[str, int]:
         """Frames on identifiers outside the database, by identifier: who flooded or inserted."""
         out: dict[str, int] = {}
-        for (aid, ext, err), n in self._counts.items():
+        for key, n in self._counts.items():
+            aid, ext, err = key_fields(key)
             if not err and aid not in self._kinds:
                 k = f"{aid:#05x}" if not ext else f"{aid:#010x}"
                 out[k] = out.get(k, 0) + n
