@@ -155,6 +155,23 @@ def g9(double x):
     return None if n < 0 else out[:n].decode("ascii")
 
 
+cdef inline int _digits(uint64_t u, char* out) noexcept:
+    """``u``'s decimal digits into ``out`` (at least 20 bytes); returns their number."""
+    cdef char dig[24]
+    cdef int k = 0, pos = 0
+    while True:
+        dig[k] = <char>(48 + u % 10)
+        u //= 10
+        k += 1
+        if u == 0:
+            break
+    while k > 0:
+        k -= 1
+        out[pos] = dig[k]
+        pos += 1
+    return pos
+
+
 cdef Py_ssize_t f6_fast(double x, char* out) noexcept:
     """``"%.6f" % x`` into ``out`` (returns its length) for 0 <= x < 9e12, or -1 (the caller asks
     Python). Exact: x = m·2**e with a 53-bit integer m, so x·10**6 = m·10**6·2**e is an integer
@@ -164,7 +181,6 @@ cdef Py_ssize_t f6_fast(double x, char* out) noexcept:
     cdef double mant
     cdef uint64_t m, q, ip, fp
     cdef u128 p, rem, half
-    cdef char dig[24]
     if not (x >= 0.0 and x < 9e12):  # negative, NaN, huge: Python's text
         return -1
     if x == 0.0:
@@ -188,17 +204,7 @@ cdef Py_ssize_t f6_fast(double x, char* out) noexcept:
                 q += 1
     ip = q // 1000000
     fp = q % 1000000
-    k = 0
-    while True:
-        dig[k] = <char>(48 + ip % 10)
-        ip //= 10
-        k += 1
-        if ip == 0:
-            break
-    while k > 0:
-        k -= 1
-        out[pos] = dig[k]
-        pos += 1
+    pos = _digits(ip, out)
     out[pos] = b'.'
     pos += 1
     for k in range(5, -1, -1):
@@ -227,26 +233,10 @@ cdef Py_ssize_t f6_into(double x, char* out) except -1:
 
 cdef Py_ssize_t i64_into(int64_t v, char* out) noexcept:
     """``"%d" % v`` into ``out`` (at least 21 bytes; returns its length)."""
-    cdef char dig[24]
-    cdef int k = 0, pos = 0
-    cdef uint64_t u
     if v < 0:
         out[0] = b'-'
-        pos = 1
-        u = <uint64_t>(-(v + 1)) + 1  # (also for the most negative value)
-    else:
-        u = <uint64_t>v
-    while True:
-        dig[k] = <char>(48 + u % 10)
-        u //= 10
-        k += 1
-        if u == 0:
-            break
-    while k > 0:
-        k -= 1
-        out[pos] = dig[k]
-        pos += 1
-    return pos
+        return 1 + _digits(<uint64_t>(-(v + 1)) + 1, out + 1)  # (also for the most negative value)
+    return _digits(<uint64_t>v, out)
 
 
 def f6(double x):
