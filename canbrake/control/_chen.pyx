@@ -19,9 +19,10 @@ The controller's parameters are read from the object at every call, so a change 
 :class:`~canbrake.control.chen_compensated.ChenCompensatedController` schedules them) takes effect
 at once.
 """
-from cpython.dict cimport PyDict_GetItemWithError
 from cpython.object cimport PyObject, PyObject_GenericSetAttr
 from libc.math cimport pow
+
+from canbrake.control._attrs cimport attr as _get
 
 import math
 
@@ -30,15 +31,6 @@ from canbrake.control.base import ControlOutput
 cdef object _NEW = object.__new__
 cdef object _NAN = math.nan
 cdef object _OUTPUT = ControlOutput
-
-
-cdef inline object _get(dict d, object o, str name):
-    """``o.name``, read from its instance dict ``d`` (the controller's parameters and state live
-    there), else as any attribute."""
-    cdef PyObject* p = PyDict_GetItemWithError(d, name)
-    if p is NULL:
-        return getattr(o, name)
-    return <object>p
 
 
 cdef inline double _barrier0(double z_lower, double z_upper, bint log_kind):
@@ -102,9 +94,11 @@ def step(ctrl, obs):
     cdef dict d = ctrl.__dict__
     cdef dict od = obs.__dict__  # (an Observation's fields are in its instance dict: Observation.of)
     cdef double v = _get(od, obs, "speed_mps")
+    cdef double x = _get(od, obs, "position_m")
+    cdef double scale = _get(d, ctrl, "_scale")
     cdef double m = _get(d, ctrl, "mass_kg")
     cdef double kb = _get(d, ctrl, "brake_gain")
-    cdef double x, front = 0.0, rear = 0.0, pos, u1 = 0.0, u2 = 0.0, u3, g, unit, zl, zu, clip, scale
+    cdef double front = 0.0, rear = 0.0, pos, u1 = 0.0, u2 = 0.0, u3, g, unit, zl, zu, clip
     cdef double ff, phi_hat, force_obs = 0.0, force, fm, lim, sd, g0
     cdef bint log_kind
     cdef bint has_front = False, has_rear = False, fast
@@ -115,7 +109,6 @@ def step(ctrl, obs):
     if fast:
         i = _get(d, ctrl, "car_index")
         n = _get(d, ctrl, "n_cars")
-        x = _get(od, obs, "position_m")
         px = _get(od, obs, "peer_position_m")
         if i > 0:
             front = <double>px.item(i - 1) - x - <double>_get(d, ctrl, "_spacing_front")
@@ -136,7 +129,6 @@ def step(ctrl, obs):
             pos += rear
         if has_front:
             pos -= front
-        scale = _get(d, ctrl, "_scale")
         if hold:
             sd = _speed_disagreement_held(ctrl, d, obs, v)
         else:
@@ -158,14 +150,14 @@ def step(ctrl, obs):
             g += _barrier(rear / unit, zl, zu, log_kind, clip, g0)
         if has_front:
             g -= _barrier(front / unit, zl, zu, log_kind, clip, g0)
-        u2 = <double>_get(d, ctrl, "_scale") * <double>_get(d, ctrl, "delta") * g
+        u2 = scale * <double>_get(d, ctrl, "delta") * g
 
     ref_v = _get(od, obs, "ref_speed_mps")
     ff = _get(od, obs, "ref_decel_mps2") if _get(d, ctrl, "feedforward") == "decel" else ref_v
     u3 = m * (<double>_get(d, ctrl, "k") * (v - <double>ref_v) + ff)
 
     observer = _get(d, ctrl, "_obs")
-    phi_hat = observer.update(_get(od, obs, "position_m"), v)
+    phi_hat = observer.update(x, v)
     if _get(d, ctrl, "observer"):
         if _get(d, ctrl, "observer_cancellation") == "mass":
             force_obs = m * phi_hat

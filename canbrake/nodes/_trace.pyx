@@ -226,7 +226,7 @@ def take_realtime_raw(frames, Py_ssize_t start, double now, dict counts, dict si
             return i, errors
         fl = slot_flags(q)
         aid = aid32
-        key = (<long long>aid32 << 2) | (2 if fl & SLOT_FLAG_EXTENDED else 0) | (1 if fl & SLOT_FLAG_ERROR else 0)
+        key = _frame_key(aid32, fl & SLOT_FLAG_EXTENDED, fl & SLOT_FLAG_ERROR)
         p = PyDict_GetItem(counts, key)
         counts[key] = 1 if p is NULL else <object>p + 1
         if fl & SLOT_FLAG_ERROR:
@@ -242,10 +242,14 @@ cdef object _SYNC_SENTINEL = object()
 cdef PyObject* _SYNC_MARK = <PyObject*>_SYNC_SENTINEL
 
 
+cdef inline long long _frame_key(long long aid, bint ext, bint err) noexcept:
+    return (aid << 2) | (2 if ext else 0) | (1 if err else 0)
+
+
 def frame_key(aid, ext, err):
     """A frame's key in the recorder's counts and phases: ``aid << 2 | extended << 1 | error``
     (an int: cheaper to make, hash and compare per frame than the tuple it replaced)."""
-    return (<long long>aid << 2) | (2 if ext else 0) | (1 if err else 0)
+    return _frame_key(aid, ext, err)
 
 
 def key_fields(long long key):
@@ -259,7 +263,7 @@ cdef PyObject* _take_key(object aid, object ext, object err, bint counted, dict 
     ``counted`` already), its closing frame counted in ``closed``; returns its phase (borrowed
     from ``phase_of``), NULL if its key has none yet, ``_SYNC_MARK`` for a SYNC."""
     cdef PyObject* p
-    key = (<long long>aid << 2) | (2 if ext else 0) | (1 if err else 0)
+    key = _frame_key(aid, ext, err)
     if not counted:
         p = PyDict_GetItem(counts, key)
         counts[key] = 1 if p is NULL else <object>p + 1
@@ -305,8 +309,9 @@ def csv_pick_row(str head, list arrays, plan, flags, Py_ssize_t flags_at):
         raise MemoryError()
     try:
         for i in range(na):
+            # (another dtype or layout: a float64 copy, kept alive by its buffer)
             if not _f64_buffer(arrays[i], &views[i]) and \
-                    not _f64_buffer(np.ascontiguousarray(arrays[i], dtype=np.float64), &views[i]):  # (the buffer keeps it)
+                    not _f64_buffer(np.ascontiguousarray(arrays[i], dtype=np.float64), &views[i]):
                 raise ValueError("csv_pick_row: the arrays must be 1-D")
             held += 1
         PyObject_GetBuffer(plan, &pv, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
