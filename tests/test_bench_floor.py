@@ -35,6 +35,36 @@ def test_pss_of_this_process_is_its_smaps_pss_and_less_than_rss():
     assert pss_bytes(2 ** 22 + 12345) is None  # no such process
 
 
+def test_the_process_tree_from_children_files_is_the_tree_from_every_stat_file():
+    """`_tree_pids` (each process's /proc/PID/task/*/children) finds the same descendants as a
+    scan of every /proc/PID/stat, grandchildren and a thread's children included."""
+    import subprocess
+    import threading
+
+    kids = [subprocess.Popen(["sh", "-c", "sleep 5 & sleep 5 & wait"]) for _ in range(2)]
+    from_thread: list[subprocess.Popen] = []
+    t = threading.Thread(target=lambda: from_thread.append(subprocess.Popen(["sleep", "5"])))
+    t.start()
+    t.join()
+    try:
+        import time
+
+        deadline = time.monotonic() + 5
+        while True:  # until each shell has forked its two sleeps
+            scan = benchmark._tree_pids_scan(os.getpid())
+            if len(scan) >= 1 + 3 * 2 + 1 or time.monotonic() > deadline:
+                break
+            time.sleep(0.02)
+        tree = benchmark._tree_pids(os.getpid())
+        assert sorted(tree) == sorted(scan)
+        assert {k.pid for k in kids + from_thread} <= set(tree) and len(tree) == 1 + 3 * 2 + 1
+        assert tree[0] == os.getpid()
+    finally:
+        for k in kids + from_thread:
+            k.kill()
+            k.wait()
+
+
 @pytest.mark.skipif(not os.path.exists("/proc/self/smaps_rollup"), reason="needs /proc/PID/smaps_rollup")
 def test_tree_memory_counts_forked_pages_once_in_pss_and_per_process_in_rss():
     """Three forked children share the parent's 64 MB: RSS summed over the four processes counts
