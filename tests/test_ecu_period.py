@@ -58,6 +58,7 @@ def _oracle(ecu, k: int, hold: int | None):
     speed = peers["speed_mps"]
     pt = ecu._peers
     age, fresh, max_age = pt.ages(k, ecu.dt, i, None if peers is ecu._peer_views else speed)
+    age.flags.writeable = False  # the controller gets the table's own ages, read-only (PeerTable.age_view)
     nan = math.nan
     obs = Observation(tick=k, time_s=k * ecu.dt, speed_mps=sensors.get("speed_mps", nan),
                       position_m=sensors.get("position_m", nan), ref_speed_mps=pt.v_ref,
@@ -114,10 +115,28 @@ def test_decide_equals_the_python_phase2(car, hold):
     result, cmds, max_age, fresh, dropped = ecu._period.decide(stub, k, -1 if hold is None else hold, False)
     assert result is out and len(stub.seen) == 1
     _same_obs(stub.seen[0], want)
+    # the ages are the table's buffer, written once per period: valid for the call, as the peer views
+    assert stub.seen[0].peer_age_s is ecu._peers.age_view
+    with pytest.raises(ValueError):
+        stub.seen[0].peer_age_s[0] = 1.0
     assert (fresh, max_age, dropped) == (fresh_w, max_age_w, dropped_w)
     assert dropped == (hold is not None)  # peers never heard of (the lost pages' senders) are dropped
     assert _key(cmds) == _key(_oracle_frames(ecu, k, out, dropped_w))
     assert len(ecu._control_pending) == 1 and ecu._control_pending[0] >= 0.0
+
+
+def test_ages_into_the_table_equal_a_new_array_and_check_the_speed_length():
+    ecu, tick0, states = _ecu_after_tick0(3)
+    ecu.handle_batch(tick0, 0.0)
+    pt = ecu._peers
+    pt.feed(states[:3], 0, ecu.k, ecu.phase)
+    for k in (0, 2, 9):
+        a, fa, ma = pt.ages(k, ecu.dt, ecu.i)
+        b, fb, mb = pt.ages(k, ecu.dt, ecu.i, None, True)
+        assert b is pt.age_view and not b.flags.writeable and a.flags.writeable
+        assert a.tobytes() == b.tobytes() and (fa, ma) == (fb, mb)
+    with pytest.raises(ValueError, match="values for 6 ECUs"):
+        pt.ages(1, ecu.dt, ecu.i, np.zeros(3))
 
 
 def test_decide_status_fallback_and_the_step_times():

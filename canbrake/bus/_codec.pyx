@@ -607,6 +607,10 @@ cdef class PeerTable:
     cdef readonly dict values
     cdef readonly object origin      # int64 array (n,)
     cdef object _fresh_arr, _pages_arr, _flags_arr
+    cdef object _age_arr             # float64 (n,): ages(..., into=True) writes here
+    cdef double* _age
+    #: a read-only view of the ages ``ages(..., into=True)`` last wrote
+    cdef readonly object age_view
     cdef int64_t* _origin
     cdef int64_t* _fresh             # state pages of this tick seen, per ECU
     cdef int64_t* _pages_of          # state pages per ECU and tick
@@ -677,6 +681,11 @@ cdef class PeerTable:
         self._fresh_arr = np.zeros(max(n, 1), dtype=np.int64)
         self._pages_arr = np.zeros(max(n, 1), dtype=np.int64)
         self._origin = _i64(self.origin)
+        self._age_arr = np.zeros(max(n, 1))
+        cdef double[::1] age_mv = self._age_arr
+        self._age = &age_mv[0]
+        self.age_view = self._age_arr[:n]
+        self.age_view.flags.writeable = False
         self._fresh = _i64(self._fresh_arr)
         self._pages_of = _i64(self._pages_arr)
         self.max_lag = max_lag
@@ -1027,20 +1036,29 @@ cdef class PeerTable:
             out[nm] = cp
         return out, nlost > 0
 
-    def ages(self, int64_t k, double dt, int own, speed=None):
+    def ages(self, int64_t k, double dt, int own, speed=None, bint into=False):
         """(age, fresh, max_age) at tick ``k``: per ECU the age in s of its newest value (own
         entry 0; inf for an ECU never heard whose speed, in ``speed`` (float64, (n,); None: the
         table's ``speed_mps``), is unknown), the ECUs with a value of this tick (own included) and
-        the oldest finite age (-inf: none)."""
+        the oldest finite age (-inf: none). ``age`` is a new array, or with ``into`` the table's
+        own, overwritten at the next such call: ``age_view``, read-only (the ECU's period, once
+        per period, hands it to the controller as it hands the peers' values: valid for the call)."""
         cdef const double[::1] sv
         cdef const double* sp = self._speed
         if speed is not None or sp is NULL:
             sv = self.values["speed_mps"] if speed is None else speed
+            if sv.shape[0] < self.n:
+                raise ValueError(f"speed has {sv.shape[0]} values for {self.n} ECUs")
             sp = &sv[0]
-        age = np.empty(self.n)
         cdef Py_buffer buf  # (its buffer as is: no typed memoryview object per call)
-        PyObject_GetBuffer(age, &buf, PyBUF_WRITABLE)
-        cdef double* a = <double*>buf.buf
+        cdef double* a
+        if into:
+            age = self.age_view
+            a = self._age
+        else:
+            age = np.empty(self.n)
+            PyObject_GetBuffer(age, &buf, PyBUF_WRITABLE)
+            a = <double*>buf.buf
         cdef int j, fresh = 1
         cdef int64_t o
         cdef double x, max_age = -INFINITY
@@ -1050,7 +1068,8 @@ cdef class PeerTable:
             a[j] = x
             if x != INFINITY and x > max_age:
                 max_age = x
-        PyBuffer_Release(&buf)
+        if not into:
+            PyBuffer_Release(&buf)
         for j in range(self._nlistened):
             if self._origin[self._listened[j]] == k:
                 fresh += 1

@@ -135,11 +135,11 @@ cdef class EcuPeriod:
             peers, dropped = pt.hold_copy(k, hold, self.i)
             in_fallback = dropped
             speed = peers[_SPEED]
-            age, fresh, max_age = pt.ages(k, self.dt, self.i, speed)
+            age, fresh, max_age = pt.ages(k, self.dt, self.i, speed, True)
         else:
             peers = self.views
             speed = peers[_SPEED]
-            age, fresh, max_age = pt.ages(k, self.dt, self.i, None)
+            age, fresh, max_age = pt.ages(k, self.dt, self.i, None, True)
         obs = _NEW(self.obs_cls)
         f = {}
         f["tick"] = k
