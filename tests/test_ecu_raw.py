@@ -141,7 +141,7 @@ def _recorder_rig(tmp_path, mode: str):
         e.start(0.0)
         ecus.append(e)
     recs = []
-    for name in ("a", "b"):
+    for name in ("a", "b", "c"):
         r = build_node(rec_scn, "recorder", run_dir=None)
         r.log_path = tmp_path / name / "frames.log"
         r.log_path.parent.mkdir()
@@ -165,9 +165,14 @@ def _answers(ecus, frames) -> list:
 def test_recorder_handle_raw_equals_handle_batch(tmp_path):
     """The recorder fed slot images (RecorderNode.handle_raw) logs and counts what it does fed
     messages: the same frames.log bytes and counts, a frame outside the database and a remote
-    frame included."""
-    plant, ecus, (a, b) = _recorder_rig(tmp_path, "lockstep")
-    recs = [a, b]
+    frame included; and so does the recorder fed messages through its compiled batch handler (the
+    in-process Router's, RecorderTaker), the period in two batches."""
+    from canbrake.nodes._trace import RecorderTaker
+
+    plant, ecus, (a, b, c) = _recorder_rig(tmp_path, "lockstep")
+    recs = [a, b, c]
+    take_c = c.batch_handler()
+    assert type(take_c) is RecorderTaker
     bus = can.Bus(interface="canbrake", channel=f"recraw-{os.getpid()}-{uuid.uuid4().hex[:6]}")
     try:
         frames = plant.start(0.0)
@@ -180,10 +185,13 @@ def test_recorder_handle_raw_equals_handle_batch(tmp_path):
             frames = plant.handle_batch([m for m in period if m.arbitration_id in plant._cmd_pages], 0.0)
             a.handle_batch(list(period), 0.0)
             b.handle_raw(bus._ring.encode(period, True, 0.0), 0.0, bus.raw_message)
-            assert a._counts == b._counts and a._phase_of == b._phase_of
+            assert take_c(period[:5], 0.0) == [] and take_c(period[5:], 0.0) == []
+            assert a._counts == b._counts == c._counts and a._phase_of == b._phase_of == c._phase_of
+            assert a._closing_seen == c._closing_seen
         for r in recs:
             r.close()
         assert (tmp_path / "a" / "frames.log").read_bytes() == (tmp_path / "b" / "frames.log").read_bytes()
+        assert (tmp_path / "a" / "frames.log").read_bytes() == (tmp_path / "c" / "frames.log").read_bytes()
         assert (tmp_path / "a" / "frames.log").read_bytes().count(b"\n") > 30
         assert b.handle_raw(b"", 0.0, bus.raw_message) == []
     finally:
@@ -249,9 +257,11 @@ def test_realtime_recorder_handle_raw_equals_handle_batch(tmp_path):
     compiled loops) logs, counts and loads the bus as it does fed messages: the same frames.log
     bytes (the senders' time stamps, ``now`` for a frame without one), counts, error frames and
     per-period bits, with a frame outside the database, a remote frame and error frames among them."""
-    plant, ecus, (a, b) = _recorder_rig(tmp_path, "realtime")
+    plant, ecus, (a, b, c) = _recorder_rig(tmp_path, "realtime")
+    c.close()
     recs = [a, b]
     assert a.mode == b.mode == "realtime"
+    assert c.batch_handler() == c.handle_batch  # realtime: no compiled handler
     bus = can.Bus(interface="canbrake", channel=f"recrt-{os.getpid()}-{uuid.uuid4().hex[:6]}")
     loads = []
     try:

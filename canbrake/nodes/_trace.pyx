@@ -145,6 +145,10 @@ def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo
 TAKE_END = 0      # every frame taken
 TAKE_SYNC = 1     # msgs[i] is a SYNC (counted): the recorder's verdict, then resume at i
 TAKE_PHASE = 2    # msgs[i]'s key has no phase yet: set phase_of[key], then resume at i
+cdef enum:
+    _TAKE_END = 0
+    _TAKE_SYNC = 1
+    _TAKE_PHASE = 2
 
 
 def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, object sync_id, dict phase_of,
@@ -154,20 +158,69 @@ def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, 
     of ``closing`` counted as closing its tick, and kept as (phase, identifier, payload bytes,
     frame) in ``tick_frames`` with its key's phase from ``phase_of``. Returns (i, TAKE_*, closing
     frames seen); ``resume``: msgs[start] was counted already (it was returned)."""
-    cdef Py_ssize_t i, m = len(msgs)
+    cdef int ev
     cdef Py_ssize_t closed = 0
+    cdef Py_ssize_t i = _take_frames(msgs, start, resume, counts, closing, sync_id, phase_of, tick_frames, &ev,
+                                     &closed)
+    return i, ev, closed
+
+
+cdef Py_ssize_t _take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, object sync_id,
+                             dict phase_of, list tick_frames, int* ev, Py_ssize_t* closed) except -1:
+    """:func:`take_frames`: the index, the event in ``ev``, the closing frames added to ``closed``."""
+    cdef Py_ssize_t i, m = len(msgs)
     cdef PyObject* p
     for i in range(start, m):
         msg = msgs[i]
         aid = msg.arbitration_id
         p = _take_key(aid, msg.is_extended_id, msg.is_error_frame, resume and i == start, counts, closing, sync_id,
-                      phase_of, &closed)
+                      phase_of, closed)
         if p is NULL:
-            return i, TAKE_PHASE, closed
+            ev[0] = _TAKE_PHASE
+            return i
         if p == _SYNC_MARK:
-            return i, TAKE_SYNC, closed
+            ev[0] = _TAKE_SYNC
+            return i
         tick_frames.append((<object>p, aid, bytes(msg.data), msg))
-    return m, TAKE_END, closed
+    ev[0] = _TAKE_END
+    return m
+
+
+cdef class RecorderTaker:
+    """A lockstep recorder's ``handle_batch`` (:class:`~canbrake.nodes.recorder.RecorderNode`,
+    over a list of python-can messages) as one compiled call: its receive loop
+    (:func:`take_frames`) and, at a SYNC or a key without a phase, the node's ``_on_event``;
+    what :meth:`~canbrake.nodes.recorder.RecorderNode.batch_handler` gives the in-process Router
+    (three generations a period in Chen case 1, each a Python call less)."""
+
+    cdef object node, closing, sync_id, on_event
+    cdef dict counts, phase_of
+
+    def __init__(self, node):
+        self.node = node
+        self.counts = node._counts
+        self.phase_of = node._phase_of
+        self.closing = node._closing_ids
+        self.sync_id = node.layout.sync_id
+        self.on_event = node._on_event
+
+    def __call__(self, list batch, now):
+        cdef Py_ssize_t i = 0, m = len(batch), closed
+        cdef int ev
+        cdef bint resume = False
+        node = self.node
+        while i < m:
+            closed = 0
+            i = _take_frames(batch, i, resume, self.counts, self.closing, self.sync_id, self.phase_of,
+                             node._tick_frames, &ev, &closed)
+            if closed:
+                node._closing_seen += closed
+            if ev == _TAKE_END:
+                break
+            if self.on_event(ev, batch[i]):
+                break  # the END: the log is complete
+            resume = True
+        return []
 
 
 # the memory bus's slot image (canbrake.bus._slot)

@@ -48,14 +48,12 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 from functools import partial
 from operator import getitem, itemgetter
 from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 
 from canbrake.bus import dbc
 from canbrake.bus._candump import write_candump
@@ -64,8 +62,8 @@ from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes._trace import (TAKE_END, TAKE_SYNC, frame_key, key_fields, take_frames, take_frames_raw,
-                                   take_realtime_raw)
+from canbrake.nodes._trace import (TAKE_END, TAKE_SYNC, RecorderTaker, frame_key, key_fields, take_frames,
+                                   take_frames_raw, take_realtime_raw)
 from canbrake.atomic import write_text_atomic
 from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
@@ -288,6 +286,11 @@ class RecorderNode(Node):
         return (self.net is None and self.wire_model is None and self.timing is None
                 and (self._writer is None or type(self._writer) is can.CanutilsLogWriter))
 
+    def batch_handler(self) -> Any:
+        """:meth:`handle_batch` as the in-process Router calls it: in lockstep, the receive loop
+        as one compiled call (:class:`~canbrake.nodes._trace.RecorderTaker`, the same work)."""
+        return self.handle_batch if self.mode == "realtime" else RecorderTaker(self)
+
     def _take(self, take: Any, batch: Any, n: int, message: Any) -> list[can.Message]:
         """The ``n`` frames of ``batch`` (lockstep) through ``take`` (the compiled loop), back here
         at a SYNC and at a key not seen before; ``message(batch, i)``: frame i as a ``can.Message``."""
@@ -298,17 +301,21 @@ class RecorderNode(Node):
             self._closing_seen += closed
             if ev == TAKE_END:
                 break
-            msg = message(batch, i)
-            if ev == TAKE_SYNC:
-                if self._on_sync(msg):
-                    return []  # the END: the log is complete
-            else:  # TAKE_PHASE
-                aid, ext = msg.arbitration_id, msg.is_extended_id
-                kind = "error" if msg.is_error_frame else self._kinds.get(aid, "other")
-                self._phase_of[frame_key(aid, ext, msg.is_error_frame)] = (
-                    0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF) else _PHASE.get(kind, 1))
+            if self._on_event(ev, message(batch, i)):
+                return []  # the END: the log is complete
             resume = True
         return []
+
+    def _on_event(self, ev: int, msg: can.Message) -> bool:
+        """What the compiled receive loop stopped at: a SYNC (:meth:`_on_sync`; True if it was the
+        END) or a key with no phase yet (its phase set)."""
+        if ev == TAKE_SYNC:
+            return self._on_sync(msg)
+        aid, ext = msg.arbitration_id, msg.is_extended_id
+        kind = "error" if msg.is_error_frame else self._kinds.get(aid, "other")
+        self._phase_of[frame_key(aid, ext, msg.is_error_frame)] = (
+            0 if aid == self.layout.plant_heartbeat_id and ext == (aid > 0x7FF) else _PHASE.get(kind, 1))
+        return False
 
     def _on_sync(self, msg: can.Message) -> bool:
         """A SYNC frame (lockstep): a trusted one ends the period (its frames are written) and
