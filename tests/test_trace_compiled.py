@@ -7,6 +7,7 @@ import io
 import math
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -41,16 +42,55 @@ def test_other_values_are_left_to_the_csv_writer(tmp_path):
         b"0.100000000", b"0.1")
 
 
+class _PyHist:
+    """LogHistogram.add as it was in Python (canbrake.nodes.base, before it was compiled): the oracle."""
+
+    LO_S, HI_S = 1e-7, 1e4
+
+    def __init__(self, ratio: float) -> None:
+        self.RATIO = ratio
+        self._log_ratio = float(np.log(ratio))
+        self.bins = int(np.ceil(np.log(self.HI_S / self.LO_S) / self._log_ratio)) + 2
+        self.counts = [0] * self.bins
+        self.n, self.max, self.total = 0, 0.0, 0.0
+
+    def add(self, x: float) -> None:
+        self.n += 1
+        self.total += x
+        if x > self.max:
+            self.max = x
+        if x <= self.LO_S:
+            self.counts[0] += 1
+        else:
+            i = 1 + int(math.log(x / self.LO_S) / self._log_ratio)
+            self.counts[i if i < self.bins else self.bins - 1] += 1
+
+
+def _state(h) -> tuple:
+    return h.counts, h.n, h.total, h.max, h.bins, h.RATIO
+
+
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.one_of(st.floats(0, 1e5), st.floats(0, 1e-6), st.sampled_from([0.0, 1e-7, 1e4, 2e4])),
                 max_size=60), st.sampled_from([1.001, 1.01]))
 def test_add_many_equals_add_one_by_one(xs, ratio):
-    a, b = LogHistogram(ratio), LogHistogram(ratio)
+    a, b, ref = LogHistogram(ratio), LogHistogram(ratio), _PyHist(ratio)
     for x in xs:
         a.add(x)
+        ref.add(x)
     b.add_many(xs)
-    assert (a.counts, a.n, a.total, a.max) == (b.counts, b.n, b.total, b.max)
+    assert _state(a) == _state(b) == _state(ref)
     assert math.isclose(a.quantile(0.99), b.quantile(0.99)) or a.n == 0
+    assert a.figures()["n"] == len(xs) and a.figures()["max_s"] == max(xs, default=0.0)
+
+
+def test_a_duration_that_is_not_a_number_is_refused_and_not_counted():
+    h = LogHistogram()
+    h.add(0.5)
+    for bad in (math.nan, math.inf):
+        with pytest.raises((ValueError, OverflowError)):
+            h.add(bad)
+    assert h.n == 1 and h.total == 0.5 and sum(h.counts) == 1
 
 
 finite_or_not = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.floats(-1e-300, 1e-300),
@@ -144,7 +184,7 @@ def test_add_bits_equals_add_per_set_bit(calls):
     from canbrake.nodes._trace import hist_add_bits
 
     n = 71
-    a, b = [LogHistogram(1.01) for _ in range(n)], [LogHistogram(1.01) for _ in range(n)]
+    a, b = [_PyHist(1.01) for _ in range(n)], [LogHistogram(1.01) for _ in range(n)]
     for bits, x in calls:
         for s in range(n):
             if bits >> s & 1:

@@ -141,6 +141,69 @@ def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo
     return n, total, vmax
 
 
+cdef double _LO_S = 1e-7
+
+
+cdef class LogHistogram:
+    """Quantiles of positive durations (s) in bounded memory: logarithmic bins ``ratio - 1`` wide
+    (default 0.1 %) from 1e-7 s to 1e4 s (~25 000 counters at the default, whatever the run
+    length); a quantile is exact to that width, the maximum and the total exactly.
+
+    Compiled because the nodes add to one several times a period (the plant: its model step's
+    time, each ECU's response time; an ECU: its controller step's); ``counts`` stays a list
+    (one element touched per add)."""
+
+    LO_S, HI_S = _LO_S, 1e4
+    cdef public double RATIO, _log_ratio, max, total
+    cdef public Py_ssize_t bins, n
+    cdef public list counts
+
+    def __init__(self, double ratio=1.001):
+        self.RATIO = ratio
+        self._log_ratio = float(np.log(ratio))
+        self.bins = int(np.ceil(np.log(self.HI_S / self.LO_S) / self._log_ratio)) + 2
+        self.counts = [0] * self.bins
+        self.n = 0
+        self.max = 0.0
+        self.total = 0.0  # s: the sum of every duration added
+
+    cdef int _add(self, double x) except -1:
+        cdef Py_ssize_t i = _bin(x, self.bins, _LO_S, self._log_ratio)
+        self.n += 1
+        self.total += x
+        if x > self.max:
+            self.max = x
+        self.counts[i] += 1
+        return 0
+
+    def add(self, double x) -> None:
+        """Add the duration ``x`` (s)."""
+        self._add(x)
+
+    def add_many(self, xs) -> None:
+        """:meth:`add` for each of ``xs`` (s), in order."""
+        for v in xs:
+            self._add(v)
+
+    def quantile(self, double q) -> float:
+        """The ``q`` quantile (0..1), as the geometric middle of its bin (0 when empty)."""
+        if not self.n:
+            return 0.0
+        return self.ranked(max(1, int(np.ceil(q * self.n))))
+
+    def ranked(self, r) -> float:
+        """The ``r``-th smallest duration (1 .. n), as the geometric middle of its bin."""
+        k = int(np.searchsorted(np.cumsum(np.asarray(self.counts, dtype=np.int64)), r))
+        if k == 0:
+            return min(self.LO_S, self.max)
+        return float(min(self.max, self.LO_S * self.RATIO ** (k - 0.5)))
+
+    def figures(self) -> dict:
+        """n, mean, p50, p99, max and total (s) for a JSON statistics file."""
+        return {"n": self.n, "mean_s": self.total / self.n if self.n else 0.0, "p50_s": self.quantile(0.5),
+                "p99_s": self.quantile(0.99), "max_s": self.max, "total_s": self.total}
+
+
 #: take_frames' events
 TAKE_END = 0      # every frame taken
 TAKE_SYNC = 1     # msgs[i] is a SYNC (counted): the recorder's verdict, then resume at i
@@ -410,28 +473,15 @@ def csv_pick_row(str head, list arrays, plan, flags, Py_ssize_t flags_at):
 
 
 def hist_add_bits(list hists, bits, double x):
-    """``hists[s].add(x)`` (LogHistogram, canbrake.nodes.base) for each bit ``s`` set in
-    ``bits`` (a non-negative int), lowest first: the plant's response times of the ECUs whose
-    commands a batch completed, in one call (the bits read from the int's bytes, each add as
-    :func:`hist_add` of one duration)."""
+    """``hists[s].add(x)`` (:class:`LogHistogram`) for each bit ``s`` set in ``bits`` (a
+    non-negative int), lowest first: the plant's response times of the ECUs whose commands a
+    batch completed, in one call (the bits read from the int's bytes)."""
     cdef bytes b = bits.to_bytes((bits.bit_length() + 7) // 8, "little")
     cdef const unsigned char* p = b
-    cdef Py_ssize_t j, t, i, n
-    cdef double total, vmax
-    cdef list counts
+    cdef Py_ssize_t j, t
     for j in range(len(b)):
         if not p[j]:
             continue
         for t in range(8):
-            if not (p[j] >> t) & 1:
-                continue
-            h = hists[8 * j + t]
-            counts = h.counts
-            n = h.n
-            total = h.total
-            vmax = h.max
-            i = _bin(x, len(counts), h.LO_S, h._log_ratio)
-            counts[i] += 1
-            h.n = n + 1
-            h.total = total + x
-            h.max = x if x > vmax else vmax
+            if (p[j] >> t) & 1:
+                (<LogHistogram?>hists[8 * j + t])._add(x)

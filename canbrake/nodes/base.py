@@ -33,60 +33,7 @@ import can
 import numpy as np
 
 from canbrake.bus._ring import data_frame
-from canbrake.nodes._trace import csv_dict_row, csv_row, hist_add
-
-
-class LogHistogram:
-    """Quantiles of positive durations (s) in bounded memory: logarithmic bins ``ratio - 1`` wide
-    (default 0.1 %) from 1e-7 s to 1e4 s (~25 000 counters at the default, whatever the run
-    length); a quantile is exact to that width, the maximum and the total exactly."""
-
-    LO_S, HI_S, RATIO = 1e-7, 1e4, 1.001
-
-    def __init__(self, ratio: float = RATIO) -> None:
-        self.RATIO = ratio
-        self._log_ratio = float(np.log(self.RATIO))  # a Python float: add() divides by it per frame
-        self.bins = int(np.ceil(np.log(self.HI_S / self.LO_S) / self._log_ratio)) + 2
-        # a list, not a numpy array: add() touches one element per frame (a numpy element
-        # update costs several times a list's); quantile() converts
-        self.counts: list[int] = [0] * self.bins
-        self.n = 0
-        self.max = 0.0
-        self.total = 0.0  # s: the sum of every duration added
-
-    def add(self, x: float) -> None:
-        self.n += 1
-        self.total += x
-        if x > self.max:
-            self.max = x
-        if x <= self.LO_S:
-            self.counts[0] += 1
-        else:
-            i = 1 + int(math.log(x / self.LO_S) / self._log_ratio)  # math.log: numpy's costs more on a scalar
-            self.counts[i if i < self.bins else self.bins - 1] += 1
-
-    def add_many(self, xs: list[float]) -> None:
-        """:meth:`add` for each of ``xs`` (s), in order, in one compiled call."""
-        self.n, self.total, self.max = hist_add(self.counts, xs, self.n, self.total, self.max, self.LO_S,
-                                                self._log_ratio)
-
-    def quantile(self, q: float) -> float:
-        """The ``q`` quantile (0..1), as the geometric middle of its bin (0 when empty)."""
-        if not self.n:
-            return 0.0
-        return self.ranked(max(1, int(np.ceil(q * self.n))))
-
-    def ranked(self, r: int) -> float:
-        """The ``r``-th smallest duration (1 .. n), as the geometric middle of its bin."""
-        k = int(np.searchsorted(np.cumsum(np.asarray(self.counts, dtype=np.int64)), r))
-        if k == 0:
-            return min(self.LO_S, self.max)
-        return float(min(self.max, self.LO_S * self.RATIO ** (k - 0.5)))
-
-    def figures(self) -> dict[str, float | int]:
-        """n, mean, p50, p99, max and total (s) for a JSON statistics file."""
-        return {"n": self.n, "mean_s": self.total / self.n if self.n else 0.0, "p50_s": self.quantile(0.5),
-                "p99_s": self.quantile(0.99), "max_s": self.max, "total_s": self.total}
+from canbrake.nodes._trace import LogHistogram, csv_dict_row, csv_row  # noqa: F401  (LogHistogram: also imported from here)
 
 
 class SendPath(Protocol):
