@@ -20,10 +20,10 @@ from libc.stdint cimport uint8_t, uint16_t, uint32_t
 from libc.stdlib cimport free, qsort
 from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
 from libc.errno cimport EINTR, errno
-from libc.stdio cimport snprintf
 from posix.unistd cimport close as c_close, write as c_write
 from libc.string cimport memcmp, memcpy, strlen
 
+from canbrake._g9 cimport g9_into, i64_into
 from canbrake.bus._candump cimport Buf, PyOS_double_to_string, buf_reserve, candump_line
 
 from operator import itemgetter
@@ -358,6 +358,20 @@ cdef list _bus_order(list frames):
         PyMem_Free(e)
 
 
+cdef object _ch_args = None
+cdef bytes _ch_bytes = None
+
+
+cdef bytes _channel_bytes(channel, writer_channel):
+    """``channel_name(channel, writer_channel)`` as UTF-8 bytes, the last one remembered (a
+    recorder asks for the same every period)."""
+    global _ch_args, _ch_bytes
+    if _ch_args is None or _ch_args[0] is not channel or _ch_args[1] is not writer_channel:
+        _ch_bytes = str(channel_name(channel, writer_channel)).encode("utf-8")
+        _ch_args = (channel, writer_channel)
+    return _ch_bytes
+
+
 def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k, double dt, double bitrate,
                double epoch, writer, channel, LoadSeries series, int fd=-1):
     """A control period of the recorder's common case in one call: its frames (as kept by
@@ -395,7 +409,7 @@ def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k
                 break
         else:
             return res
-        ch = str(channel_name(channel, writer.channel)).encode("utf-8")
+        ch = _channel_bytes(channel, writer.channel)
         if writer.last_timestamp is None:  # the very first message
             first = stamps[i]
             writer.last_timestamp = first or 0.0
@@ -468,7 +482,7 @@ cdef class LoadSeries:
     cdef int add_counts(self, double load, long long frames, long long errors) except -1:
         """:meth:`add` with a count of frames (no Python call)."""
         cdef char txt[24]
-        cdef int k = snprintf(txt, 24, "%lld", frames)
+        cdef Py_ssize_t k = i64_into(frames, txt)
         return self._add(load, txt, k, errors)
 
     cdef int _add(self, double load, const char* frames, Py_ssize_t nf, long long errors) except -1:
@@ -488,12 +502,10 @@ cdef class LoadSeries:
         if self._fd >= 0:  # the csv writer's line for these values (no quoting needed)
             if nf > 24:
                 raise ValueError("LoadSeries.add: frames text longer than 24 characters")
-            pos = snprintf(buf, 24, "%lld,", self.n)
-            s = PyOS_double_to_string(<double>self.n * self.dt, b'g', 9, 0, NULL)
-            k = strlen(s)
-            memcpy(buf + pos, s, k)
-            PyMem_Free(s)
-            pos += k
+            pos = i64_into(self.n, buf)  # (buf: 160 bytes; each number below at most 32 characters)
+            buf[pos] = b','
+            pos += 1
+            pos += g9_into(<double>self.n * self.dt, buf + pos)
             buf[pos] = b','
             pos += 1
             s = PyOS_double_to_string(load, b'g', 6, 0, NULL)
@@ -504,7 +516,12 @@ cdef class LoadSeries:
             buf[pos] = b','
             memcpy(buf + pos + 1, frames, nf)
             pos += nf + 1
-            pos += snprintf(buf + pos, 26, ",%lld\r\n", errors)
+            buf[pos] = b','
+            pos += 1
+            pos += i64_into(errors, buf + pos)
+            buf[pos] = b'\r'
+            buf[pos + 1] = b'\n'
+            pos += 2
             buf_reserve(&self._out, pos)
             memcpy(self._out.p + self._out.n, buf, pos)
             self._out.n += pos
