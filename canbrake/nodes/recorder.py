@@ -110,6 +110,15 @@ def is_sim_control(aid: int, layout: Any = None) -> bool:
     return dbc.STATE_DONE_BASE < aid < dbc.STATE_DONE_BASE + 0x80
 
 
+def _log_writer(path: str | Path) -> can.io.generic.MessageWriter:
+    """python-can's writer for ``path`` as ``can.Logger(path)`` picks it: candump ``.log`` made
+    directly (``can.Logger`` reads every installed package's entry points to find the writer
+    plug-ins, ~7 ms at each run's start), every other format through ``can.Logger``."""
+    if Path(path).suffix.lower() == ".log":
+        return can.CanutilsLogWriter(str(path))
+    return can.Logger(str(path))
+
+
 class RecorderNode(Node):
     """Listens to everything; writes ``frames.log`` and ``bus_stats.json``."""
 
@@ -196,11 +205,11 @@ class RecorderNode(Node):
         #: in-process engine's files are written through their buffers (canbrake.nodes.base.buffered_traces)
         self._flush_each = rows_by_row()
         if self.log_path is not None:
-            self._writer = can.Logger(str(self.log_path))
+            self._writer = _log_writer(self.log_path)
             writers = [self._writer]
             if self.net is not None:
                 for seg in self.topo.names:
-                    self._seg_writers[seg] = can.Logger(str(self._seg_log(seg)))
+                    self._seg_writers[seg] = _log_writer(self._seg_log(seg))
                     writers.append(self._seg_writers[seg])
             # the text log's file, flushed each period (binary formats keep python-can's buffering)
             w0 = self._writer
