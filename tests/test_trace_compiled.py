@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import os
 
 import numpy as np
 import pytest
@@ -191,3 +192,32 @@ def test_add_bits_equals_add_per_set_bit(calls):
                 a[s].add(x)
         hist_add_bits(b, bits, x)
     assert [(h.counts, h.n, h.total, h.max) for h in a] == [(h.counts, h.n, h.total, h.max) for h in b]
+
+
+def test_a_node_process_trace_row_goes_to_the_os_at_once(tmp_path):
+    """Outside buffered_traces (a node process) CsvTrace.row_fd is the file's descriptor and a
+    row written there with write_text is in the file at once, after the header, in order with
+    rows appended the csv writer's way; inside, rows stay in the buffer (row_fd -1)."""
+    from canbrake.nodes._trace import write_text
+    from canbrake.nodes.base import buffered_traces
+
+    t = CsvTrace(tmp_path / "t.csv", ["a", "b"])
+    fd = t.row_fd()
+    assert fd >= 0
+    write_text(fd, csv_row([1, 0.5]))
+    assert (tmp_path / "t.csv").read_bytes() == b"a,b\r\n1,0.5\r\n"  # no flush needed
+    t.append([2, "x,y"])  # the csv writer's path, flushed: after it
+    write_text(fd, csv_row([3, 1e-9]))
+    t.close()
+    assert (tmp_path / "t.csv").read_bytes() == b'a,b\r\n1,0.5\r\n2,"x,y"\r\n3,1e-09\r\n'
+    r, w = os.pipe()
+    os.close(r)
+    try:
+        with pytest.raises(OSError):  # EPIPE: an error of the write is an OSError, as the file's
+            write_text(w, "4,4\r\n")
+    finally:
+        os.close(w)
+    with buffered_traces():
+        u = CsvTrace(tmp_path / "u.csv", ["a"])
+        assert u.row_fd() == -1
+        u.close()

@@ -26,6 +26,7 @@ from canbrake.bus import _codec
 from canbrake.bus._ring import data_frame
 from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.nodes._trace import csv_dict_row
+from canbrake.nodes._trace cimport write_str
 
 cdef object _NEW = object.__new__
 cdef object _perf_counter = time.perf_counter
@@ -75,6 +76,7 @@ cdef class EcuPeriod:
     # the trace: CsvTrace, its file's write (None: rows through CsvTrace.append_dict), the
     # controller's diagnostic names; the pending row (tick, force, diagnostics, max_age, fresh)
     cdef object trace, row_write
+    cdef int row_fd  # the trace's file descriptor (rows written there at once), or -1
     cdef tuple diag_names
     cdef bint has_row
     cdef object row_k, row_force, row_diag, row_age, row_fresh
@@ -205,6 +207,7 @@ cdef class EcuPeriod:
         peer age (s; inf: none), peers fresh."""
         self.trace = trace
         self.row_write = None if trace is None else trace.row_write()
+        self.row_fd = -1 if trace is None else trace.row_fd()
         self.diag_names = names
         self.has_row = False
 
@@ -222,10 +225,13 @@ cdef class EcuPeriod:
         tail = [self.row_age, self.row_fresh]
         diag = self.row_diag
         self.row_diag = None
-        if self.row_write is not None and type(diag) is dict:
+        if (self.row_write is not None or self.row_fd >= 0) and type(diag) is dict:
             text = csv_dict_row(head, diag, self.diag_names, _NAN, tail)
             if text is not None:
-                self.row_write(text)
+                if self.row_fd >= 0:  # a node process: handed to the OS now
+                    write_str(self.row_fd, text)
+                else:
+                    self.row_write(text)
                 return
         self.trace.append_dict(head, diag, self.diag_names, _NAN, tail)
 

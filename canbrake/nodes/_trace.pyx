@@ -58,6 +58,39 @@ cdef Py_ssize_t _put(object v, char* buf) except -2:
     return -1
 
 
+cdef extern from "Python.h":
+    const char* PyUnicode_AsUTF8AndSize(object s, Py_ssize_t* size) except NULL
+
+from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
+from libc.errno cimport EINTR, errno
+from posix.unistd cimport write as c_write
+
+
+cdef int write_str(int fd, str text) except -1:
+    """``text`` (a row's csv text) to the file descriptor ``fd`` with ``write(2)`` until all of
+    it is written (its UTF-8 bytes, which Python keeps for an ASCII string: no copy); OSError as
+    the file object's write would raise it (a full disk)."""
+    cdef Py_ssize_t n, k
+    cdef const char* p = PyUnicode_AsUTF8AndSize(text, &n)
+    while n > 0:
+        k = c_write(fd, p, n)
+        if k < 0:
+            if errno == EINTR:
+                PyErr_CheckSignals()
+                continue
+            PyErr_SetFromErrno(OSError)
+            return -1
+        p += k
+        n -= k
+    return 0
+
+
+def write_text(int fd, str text):
+    """:func:`write_str`: a trace row handed to the OS at once (a node process's traces,
+    :meth:`~canbrake.nodes.base.CsvTrace.row_fd`)."""
+    write_str(fd, text)
+
+
 def csv_dict_row(list head, dict values, tuple names, object default, list tail):
     """``csv_row(head + [values.get(n, default) for n in names] + tail)``, made in one buffer
     (no list, no string per value); None where csv_row is None."""

@@ -199,6 +199,13 @@ class CsvTrace:
         flushed one by one or there is no file."""
         return self._file.write if self._file is not None and not self._row_by_row else None
 
+    def row_fd(self) -> int:
+        """The file's descriptor when each row is handed to the OS as it is appended (outside
+        :func:`buffered_traces`): a caller may write a row's text there itself (one ``write(2)``,
+        :func:`canbrake.nodes._trace.write_text`), in place of :meth:`append_text` (the file's
+        buffers are empty between rows); -1 otherwise."""
+        return self._file.fileno() if self._file is not None and self._row_by_row else -1
+
     def _write(self, text: str | None, row: list[Any] | None) -> None:
         """Write a row's text, or (None) the row through the csv writer."""
         if text is not None:

@@ -24,7 +24,7 @@ from canbrake.bus._codec import (CMD_BAD_COUNTER, CMD_BAD_CRC, CMD_FRESH, CMD_OU
 from canbrake.bus._ring import messages_of
 from canbrake.bus.guard import FrameGuard, sign_control
 from canbrake.bus.memory_shm import SLOT_BYTES
-from canbrake.nodes._trace import csv_pick_row, csv_row, hist_add_bits
+from canbrake.nodes._trace import csv_pick_row, csv_row, hist_add_bits, write_text
 from canbrake.atomic import write_text_atomic
 from canbrake.nodes.base import CsvTrace, LogHistogram, Node, exact_filter, frame
 
@@ -207,6 +207,7 @@ class PlantNode(Node):
         self._t0_wall: float | None = None
         self._t_start_wall: float | None = None
         self._trace: CsvTrace | None = None
+        self._row_fd = -1  # signals.csv's descriptor where each row goes straight to the OS (_open_trace)
         #: the trace row taken at the last tick and not yet written (see _record / after_send)
         self._pending_row: tuple[Any, ...] | None = None
         self._extra_meas: list[str] | None = None
@@ -638,6 +639,7 @@ class PlantNode(Node):
     def _open_trace(self) -> None:
         self._trace = CsvTrace(None if self.out_dir is None else self.out_dir / "signals.csv", self.columns(),
                                self.flush_every)
+        self._row_fd = self._trace.row_fd()  # a node process: each row straight to the OS (write_text)
 
     def _record(self, final: bool = False) -> None:
         """Take this tick's trace row: the state, the reference and the commands applied, copied
@@ -716,7 +718,10 @@ class PlantNode(Node):
         if text is None:  # no plan yet (or the arrays' sizes changed): make it
             plan = self._row_plan = self._plan_pairs([np.size(a) for a in parts])
             text = csv_pick_row(head_text[:-2], parts, plan[0], fs, plan[1])
-        self._trace.append_text(text)
+        if self._row_fd >= 0:
+            write_text(self._row_fd, text)
+        else:
+            self._trace.append_text(text)
 
     def _plan_pairs(self, sizes: list[int]) -> tuple[np.ndarray, int]:
         """:meth:`_plan_row` as (array, element) pairs for :func:`csv_pick_row`, and where the
