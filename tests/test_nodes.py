@@ -171,6 +171,48 @@ def test_a_late_realtime_wakeup_moves_the_grid_on_instead_of_bursting(tmp_path):
     assert plant.stats.late_periods == 1 and plant.next_deadline() == pytest.approx(late + 2 * dt)
 
 
+def test_a_realtime_plant_writes_its_row_once_the_periods_commands_are_in(tmp_path):
+    """Realtime: the plant's trace row of a period is not written when its SYNC goes out (the
+    ECUs need the CPUs then) but once every ECU's command of the period is in, or else when the
+    next period's row is taken; the rows stay in order, one per period."""
+    from canbrake.build import build_node
+
+    scn = load_scenario(CASE1, overrides={"mode": "realtime", "duration_s": 0.1})
+    plant = build_node(scn, "plant", run_dir=None)
+    ecus = [build_node(scn, "ecu", car=c, run_dir=None) for c in range(1, 7)]
+    for e in ecus:
+        e.start(0.0)
+    plant.out_dir = tmp_path
+    plant.start(100.0)
+    dt = scn.control_period_s
+    rows = lambda: (tmp_path / "signals.csv").read_text().count("\n") - 1  # noqa: E731
+    frames = plant.on_timer(100.0 + dt)  # tick 1: tick 0's row taken
+    plant.after_send()
+    assert plant.k == 1 and rows() == 0  # SYNC sent: the row waits
+    # the ECUs answer tick 1: their states to each other, their commands to the plant
+    phase = list(frames)
+    cmds = []
+    for _ in range(3):
+        nxt = []
+        for e in ecus:
+            nxt += e.handle_batch(list(phase), 100.0 + dt)
+        cmds += [m for m in nxt if m.arbitration_id in plant._cmd_pages]
+        phase = nxt
+    assert len(cmds) == 6
+    plant.handle_batch(cmds[:5], 100.0 + 1.5 * dt)
+    assert rows() == 0  # one command still to come
+    plant.handle_batch(cmds[5:], 100.0 + 1.6 * dt)
+    assert rows() == 1  # all in: tick 0's row written
+    plant.on_timer(100.0 + 2 * dt)  # tick 2, no command comes: tick 1's row when tick 2's is taken
+    plant.after_send()
+    assert rows() == 1
+    plant.on_timer(100.0 + 3 * dt)
+    assert rows() == 2
+    plant.close()
+    ticks = [int(ln.split(",")[0]) for ln in (tmp_path / "signals.csv").read_text().splitlines()[1:]]
+    assert ticks == [0, 1, 2]
+
+
 def test_virtual_and_inprocess_refuse_realtime(tmp_path):
     from canbrake.scenario import ScenarioError
 

@@ -155,6 +155,10 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
             return recv_batch(timeout=timeout, min_frames=n)
         handle = node.handle_batch
         send = lambda msgs: _send_all(bus, msgs)  # noqa: E731
+    # realtime (``spin_s``), a node that asks for it (an ECU): once its frames are sent, let the
+    # other runnable processes of its priority (the other ECUs, SCHED_FIFO) go first: what it does
+    # after sending (its trace row) is on no one's path, theirs is on the period's
+    rt_yield = spin_s > 0.0 and getattr(node, "yield_after_send", False)
     while not node.finished:
         deadline = node.next_deadline()
         now = clock()
@@ -172,7 +176,10 @@ def drive(node: Node, bus: can.BusABC, *, clock: Callable[[], float] = time.time
             continue
         now = clock()
         if frames:
-            send(handle(frames, now))
+            out = handle(frames, now)
+            send(out)
+            if out and rt_yield:
+                os.sched_yield()  # (see rt_yield above)
             node.after_send()
         elif timeout == 0.0 and spin_s > 0.0:
             os.sched_yield()

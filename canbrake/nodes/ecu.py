@@ -65,6 +65,10 @@ class EcuNode(Node):
     controller: SENSOR frames from its vehicle and STATE frames of the ECUs it listens to in,
     command frames to the plant and STATE frames to its listeners out."""
 
+    #: realtime: its driver yields the CPU once its frames are sent, before its trace row
+    #: (:func:`canbrake.nodes.driver.drive`), so the other ECUs of its priority compute first
+    yield_after_send = True
+
     def __init__(self, spec: Any, layout: Any, controller: Controller, codec: FrameCodec, *, dt_s: float,
                  mode: str = "lockstep", send_path: SendPath | None = None, heartbeat_period_s: float = 0.1,
                  compute_deadline: float = 0.5, out_dir: str | Path | None = None, flush_every: int = 1000,

@@ -360,6 +360,8 @@ class PlantNode(Node):
                 if self.mode == "realtime" and self._sync_wall is not None and self._fresh.all():
                     self._cmd_latency.add(now - self._sync_wall)
                     self._sync_wall = None  # one latency per period
+                    if not self._sync_unsent:
+                        self._write_row()  # the period's row, now that the CPUs are free (after_send)
                 if (not self.barrier or ext) and self.mode == "lockstep" and not self._done >> slot & 1:
                     if self._fresh_pages[slot] >= self._pages_per_ecu[slot]:
                         return self._slot_done(slot, now)
@@ -645,7 +647,7 @@ class PlantNode(Node):
         """Take this tick's trace row: the state, the reference and the commands applied, copied
         now; its text is made and written by :meth:`after_send` (once the tick's frames are on
         the bus: in a node process, while the ECUs compute) or before anything else happens here."""
-        self.after_send()
+        self._write_row()
         m = self.model.measurements()  # (arrays made per state: the next step leaves them alone)
         # brake_force_n, then each traced command, over the vehicles (copied in one call)
         n_cmd = self.n * (1 + len(self._row_cmds))
@@ -655,7 +657,7 @@ class PlantNode(Node):
         fs = self._in_failsafe.copy() if self.failsafe is not None else None
         self._pending_row = (self.k, m, cmds, fs)
         if final:
-            self.after_send()
+            self._write_row()
             if self._trace is not None:
                 self._trace.flush()
 
@@ -682,13 +684,21 @@ class PlantNode(Node):
         """Write the trace row taken by :meth:`_record`, if one is pending (the drivers call this
         once a node's frames are sent); in realtime, first, the time the period's SYNC went out:
         its commands' latency counts from there (``cmd_latency_*``), the time from the period's
-        timer to it is the plant's own delay (``sync_delay_*``)."""
+        timer to it is the plant's own delay (``sync_delay_*``); there the row waits until the
+        period's commands are in (:meth:`handle`) or the next period's row is taken: just after
+        SYNC the ECUs need the CPUs (the plant's too), and after their commands the plant idles."""
         if self._sync_unsent:
             self._sync_unsent = False
             if self._sync_wall is not None:
                 t = time.time()  # (the node driver's clock)
                 self._sync_delay.add(t - self._sync_wall)
                 self._sync_wall = t
+            if self._pending_row is not None and not self._fresh.all():
+                return  # (realtime: the commands of this period still to come)
+        self._write_row()
+
+    def _write_row(self) -> None:
+        """Write the trace row taken by :meth:`_record`, if one is pending."""
         pending = self._pending_row
         if pending is None:
             return
@@ -742,7 +752,7 @@ class PlantNode(Node):
 
     def close(self, status: str = "ok") -> None:
         try:
-            self.after_send()  # the last period's row (a full disk: the close below trims it)
+            self._write_row()  # the last period's row (a full disk: the close below trims it)
         finally:
             if self._trace is not None:
                 self._trace.close()
