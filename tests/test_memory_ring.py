@@ -478,3 +478,30 @@ def test_a_timed_receive_sleeps_to_its_deadline_not_to_the_next_whole_millisecon
         assert 0.0002 <= min(waits) < 0.0009, waits
     finally:
         bus.shutdown()
+
+
+def test_a_message_field_read_from_its_slot_is_its_attribute():
+    """The compiled readers' msg_get (canbrake.bus._ring, through message_field) gives every
+    field of a python-can Message as its attribute does, of a subclass too (read by getattr)."""
+    import can
+
+    from canbrake.bus._ring import _SLOTS, message_field
+
+    class Sub(can.Message):
+        __slots__ = ()
+
+        @property
+        def dlc(self):  # noqa: D401 - a subclass may change what a field says
+            return 7
+
+        @dlc.setter
+        def dlc(self, value):
+            pass
+
+    for cls in (can.Message, Sub):
+        for kw in ({"arbitration_id": 0x1ABCDE, "is_extended_id": True, "data": b"\x01\x02", "channel": "c"},
+                   {"arbitration_id": 0x12, "is_extended_id": False, "is_remote_frame": True, "dlc": 3},
+                   {"arbitration_id": 0x80, "is_error_frame": True, "timestamp": 1.5, "is_rx": False}):
+            m = cls(**kw)
+            assert [message_field(m, i) for i in range(len(_SLOTS))] == [getattr(m, n) for n in _SLOTS]
+    assert message_field(Sub(arbitration_id=1, data=b"\x00"), _SLOTS.index("dlc")) == 7

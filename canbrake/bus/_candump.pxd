@@ -7,6 +7,7 @@ from libc.stdlib cimport realloc
 from libc.string cimport memcpy, strlen
 
 from canbrake._g9 cimport f6_into
+from canbrake.bus._ring cimport MSG_DATA, MSG_ERR, MSG_EXT, MSG_ID, MSG_RTR, msg_get
 
 cdef extern from "Python.h":
     char* PyOS_double_to_string(double val, char format_code, int precision, int flags, int* ptype) except NULL
@@ -87,12 +88,12 @@ cdef inline int candump_line(Buf* b, double ts, const char* ch, Py_ssize_t chn, 
         d = img + 24
         nd = img[18] if img[18] <= 64 else 64
     else:
-        err = m.is_error_frame
-        ext = m.is_extended_id
-        rtr = m.is_remote_frame
-        aid = m.arbitration_id if not err else 0
+        err = msg_get(m, MSG_ERR)
+        ext = msg_get(m, MSG_EXT)
+        rtr = msg_get(m, MSG_RTR)
+        aid = msg_get(m, MSG_ID) if not err else 0
         if not rtr:
-            data = m.data
+            data = msg_get(m, MSG_DATA)
             if not isinstance(data, bytes):
                 data = bytes(data)
             d = <const unsigned char*>(<char*>(<bytes>data))

@@ -30,6 +30,7 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
 import numpy as np
 
 from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
+from canbrake.bus._ring cimport MSG_DATA, MSG_EXT, MSG_ID, msg_get
 
 cdef extern from "Python.h":
     bint PyFloat_Check(object o)
@@ -919,17 +920,17 @@ cdef class PeerTable:
         cdef Py_ssize_t n
         for i in range(start, m):
             msg = msgs[i]
-            aid_obj = msg.arbitration_id
+            aid_obj = msg_get(msg, MSG_ID)
             r = PyDict_GetItem(self._route, aid_obj)
             if r is NULL:
                 continue
             if (<long><object>r) >> 24 == R_PY:
                 return i << 3 | _FRAME
-            data = msg.data
+            data = msg_get(msg, MSG_DATA)
             if not _payload(data, &s, &n):
                 data = bytes(data)
                 _payload(data, &s, &n)
-            ev = self._feed_one(<long><object>r, aid_obj, msg.is_extended_id, s, n, k, phase)
+            ev = self._feed_one(<long><object>r, aid_obj, msg_get(msg, MSG_EXT), s, n, k, phase)
             if ev >= 0:
                 return i << 3 | ev
         return m << 3 | _END
@@ -1325,11 +1326,11 @@ cdef class CommandTable:
         self._completed = 0
         for i in range(start, m):
             msg = msgs[i]
-            aid_obj = msg.arbitration_id
+            aid_obj = msg_get(msg, MSG_ID)
             p = PyDict_GetItem(self._index, aid_obj)
             if p is NULL:
                 return i, TAKE_BATCH_OTHER, 0, self._completed, accepted
-            data = msg.data
+            data = msg_get(msg, MSG_DATA)
             if not _payload(data, &s, &n):
                 data = bytes(data)
                 _payload(data, &s, &n)

@@ -24,6 +24,7 @@ from posix.unistd cimport close as c_close, write as c_write
 from libc.string cimport memcmp, memcpy, strlen
 
 from canbrake._g9 cimport g9_into, i64_into
+from canbrake.bus._ring cimport MSG_DLC, MSG_EXT, MSG_RTR, msg_get
 from canbrake.bus._candump cimport Buf, PyOS_double_to_string, buf_reserve, candump_line
 
 from operator import itemgetter
@@ -220,9 +221,9 @@ cdef tuple _account(list ordered, dict untimed, dict sim_control, double t, doub
             rtr = slot_flags(<const uint8_t*>(<char*>(<bytes>msg))) & SLOT_FLAG_REMOTE
             dlc = (<const uint8_t*>(<char*>(<bytes>msg)))[17]
         else:
-            ext = msg.is_extended_id
-            rtr = msg.is_remote_frame
-            dlc = msg.dlc
+            ext = msg_get(msg, MSG_EXT)
+            rtr = msg_get(msg, MSG_RTR)
+            dlc = msg_get(msg, MSG_DLC)
         durs[i] = _actual_bits(aid, ext, dlc, rtr, <const uint8_t*>(<char*>data), len(data)) / bitrate
     wire = sum(durs)  # Python's own sum (its rounding, whatever the Python release)
     scale = min(1.0, dt / wire) if wire > 0 else 1.0

@@ -10,6 +10,7 @@ from cpython.dict cimport PyDict_GetItem
 from cpython.list cimport PyList_GET_ITEM, PyList_GET_SIZE
 from cpython.object cimport PyObject
 from cpython.tuple cimport PyTuple_GET_ITEM, PyTuple_GET_SIZE
+from canbrake.bus._ring cimport MSG_EXT, MSG_ID, msg_get
 
 
 def split(list gen, dict routes, object route, Py_ssize_t n):
@@ -25,8 +26,8 @@ def split(list gen, dict routes, object route, Py_ssize_t n):
         item = <tuple>PyList_GET_ITEM(gen, i)
         sender = <object>PyTuple_GET_ITEM(item, 0)
         msg = <object>PyTuple_GET_ITEM(item, 1)
-        aid = msg.arbitration_id
-        ext = msg.is_extended_id
+        aid = msg_get(msg, MSG_ID)
+        ext = msg_get(msg, MSG_EXT)
         key = (aid << 1) | (1 if ext else 0)
         r = PyDict_GetItem(routes, key)
         targets = route(aid, ext) if r is NULL else <tuple>r

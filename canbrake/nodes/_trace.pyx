@@ -17,6 +17,7 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
 from libc.stdint cimport uint8_t, uint32_t
 from libc.string cimport memcpy, strlen
+from canbrake.bus._ring cimport MSG_DATA, MSG_ERR, MSG_EXT, MSG_ID, msg_get
 
 import numpy as np
 
@@ -268,16 +269,16 @@ cdef Py_ssize_t _take_frames(list msgs, Py_ssize_t start, bint resume, dict coun
     cdef PyObject* p
     for i in range(start, m):
         msg = msgs[i]
-        aid = msg.arbitration_id
-        p = _take_key(aid, msg.is_extended_id, msg.is_error_frame, resume and i == start, counts, closing, sync_id,
-                      phase_of, closed)
+        aid = msg_get(msg, MSG_ID)
+        p = _take_key(aid, msg_get(msg, MSG_EXT), msg_get(msg, MSG_ERR), resume and i == start, counts, closing,
+                      sync_id, phase_of, closed)
         if p is NULL:
             ev[0] = _TAKE_PHASE
             return i
         if p == _SYNC_MARK:
             ev[0] = _TAKE_SYNC
             return i
-        tick_frames.append((<object>p, aid, bytes(msg.data), msg))
+        tick_frames.append((<object>p, aid, bytes(msg_get(msg, MSG_DATA)), msg))
     ev[0] = _TAKE_END
     return m
 
