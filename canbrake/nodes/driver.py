@@ -21,6 +21,7 @@ import can
 
 from canbrake.bus.memory import BusOverrunError
 from canbrake.nodes.base import Node
+from canbrake.nodes._route import hand, split
 from canbrake.nodes.group import Router, _matches
 
 
@@ -224,12 +225,14 @@ def _run_direct(nodes: Sequence[Node], max_frames: int | None) -> int:
     for idx, node in enumerate(nodes):
         gen.extend((idx, m) for m in _call(node, node.start, 0.0))
     moved = 0
+    # Router.step(Router.inboxes(gen), 0.0) without its two Python frames per generation
+    n, routes, route, handlers = len(router.nodes), router._routes, router.route, router._handlers
     try:  # what _call does, around the loop instead of per call
         while gen:
             moved += len(gen)
             if max_frames is not None and moved > max_frames:
                 raise NodeFailure(f"in-process run exceeded {max_frames} frames")
-            gen = router.step(router.inboxes(gen), 0.0)
+            gen = hand(router, router.nodes, handlers, split(gen, routes, route, n), 0.0)
     except NodeFailure:
         raise
     except Exception as e:  # noqa: BLE001 - as in _call: the node whose handle raised, named
