@@ -1,12 +1,13 @@
 # cython: language_level=3
 # distutils: extra_compile_args = -O2 -ffp-contract=off
 """The nodes' per-period bookkeeping, compiled: a trace row as csv text (:class:`CsvTrace`)
-and a batch of durations into a :class:`LogHistogram` (canbrake.nodes.base).
+and its ``write(2)``, the nodes' duration histograms (:class:`LogHistogram`, re-exported by
+canbrake.nodes.base) and the recorder's receive loops.
 
-Written by hand because both run every control period for every node (a signals.csv row of the
-106-vehicle train holds ~1,100 values) and neither the csv module nor numpy does either without a
+Written by hand because all of it runs every control period for every node (a signals.csv row of
+the 106-vehicle train holds ~1,100 values) and neither the csv module nor numpy does it without a
 Python call per value; ``tests/test_trace_compiled.py`` checks them against ``csv.writer`` with
-``%.9g`` floats and against ``LogHistogram.add``.
+``%.9g`` floats and against the Python ``LogHistogram.add`` they replaced (written out there).
 """
 from cpython.buffer cimport PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBuffer_Release, PyObject_GetBuffer
 from cpython.dict cimport PyDict_GetItem
@@ -17,12 +18,16 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
 from libc.stdint cimport uint8_t, uint32_t
 from libc.string cimport memcpy, strlen
+from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
+from libc.errno cimport EINTR, errno
+from posix.unistd cimport write as c_write
 from canbrake.bus._ring cimport MSG_DATA, MSG_ERR, MSG_EXT, MSG_ID, msg_get
 
 import numpy as np
 
 cdef extern from "Python.h":
     object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
+    const char* PyUnicode_AsUTF8AndSize(object s, Py_ssize_t* size) except NULL
 
 from canbrake._g9 cimport g9_into, i64_into
 
@@ -57,14 +62,6 @@ cdef Py_ssize_t _put(object v, char* buf) except -2:
         memcpy(buf, b"False", 5)
         return 5
     return -1
-
-
-cdef extern from "Python.h":
-    const char* PyUnicode_AsUTF8AndSize(object s, Py_ssize_t* size) except NULL
-
-from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
-from libc.errno cimport EINTR, errno
-from posix.unistd cimport write as c_write
 
 
 cdef int write_str(int fd, str text) except -1:
@@ -159,22 +156,6 @@ cdef Py_ssize_t _bin(double x, Py_ssize_t bins, double lo, double log_ratio) exc
     return bins - 1 if i >= bins else i
 
 
-def hist_add(list counts, xs, Py_ssize_t n, double total, double vmax, double lo, double log_ratio):
-    """Add the durations ``xs`` (s) to a LogHistogram's ``counts`` as ``LogHistogram.add`` does,
-    one by one; returns its new ``(n, total, max)``."""
-    cdef Py_ssize_t bins = len(counts), i
-    cdef double x
-    for v in xs:
-        x = v
-        n += 1
-        total += x
-        if x > vmax:
-            vmax = x
-        i = _bin(x, bins, lo, log_ratio)
-        counts[i] += 1
-    return n, total, vmax
-
-
 cdef double _LO_S = 1e-7
 
 
@@ -239,13 +220,11 @@ cdef class LogHistogram:
 
 
 #: take_frames' events
-TAKE_END = 0      # every frame taken
-TAKE_SYNC = 1     # msgs[i] is a SYNC (counted): the recorder's verdict, then resume at i
-TAKE_PHASE = 2    # msgs[i]'s key has no phase yet: set phase_of[key], then resume at i
 cdef enum:
-    _TAKE_END = 0
-    _TAKE_SYNC = 1
-    _TAKE_PHASE = 2
+    _TAKE_END = 0      # every frame taken
+    _TAKE_SYNC = 1     # msgs[i] is a SYNC (counted): the recorder's verdict, then resume at i
+    _TAKE_PHASE = 2    # msgs[i]'s key has no phase yet: set phase_of[key], then resume at i
+TAKE_END, TAKE_SYNC, TAKE_PHASE = _TAKE_END, _TAKE_SYNC, _TAKE_PHASE
 
 
 def take_frames(list msgs, Py_ssize_t start, bint resume, dict counts, closing, object sync_id, dict phase_of,
