@@ -113,11 +113,17 @@ def _tree_pids(root_pid: int) -> list[int]:
     process's ``children`` files: the bench samples this every 0.25 s from a thread beside an
     in-process run, and reading every process's /proc/PID/stat instead (the fallback) took ~1 ms
     of Python holding the GIL, with two GIL hand-overs per file."""
+    tree = _walk(root_pid, _children)
+    return _tree_pids_scan(root_pid) if tree is None else tree
+
+
+def _walk(root_pid: int, children_of: Callable[[int], list[int] | None]) -> list[int] | None:
+    """``root_pid`` and its descendants by ``children_of(pid)`` (None: it cannot tell)."""
     tree, frontier = [root_pid], [root_pid]
     while frontier:
-        kids = _children(frontier.pop())
+        kids = children_of(frontier.pop())
         if kids is None:
-            return _tree_pids_scan(root_pid)
+            return None
         for c in kids:
             if c not in tree:
                 tree.append(c)
@@ -137,13 +143,7 @@ def _tree_pids_scan(root_pid: int) -> list[int]:
         except OSError:
             continue
         children.setdefault(int(st[st.rindex(")") + 2:].split()[1]), []).append(int(d))
-    tree, frontier = [root_pid], [root_pid]
-    while frontier:
-        for c in children.get(frontier.pop(), []):
-            if c not in tree:
-                tree.append(c)
-                frontier.append(c)
-    return tree
+    return _walk(root_pid, lambda pid: children.get(pid, [])) or [root_pid]
 
 
 def _role(pid: int) -> str:
