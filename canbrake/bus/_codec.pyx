@@ -30,6 +30,7 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc, PyMem_Realloc
 import numpy as np
 
 from canbrake.bus._crc import TABLE as _CRC_TABLE_TUPLE
+from canbrake._buffers cimport is_f64_vector
 from canbrake.bus._ring cimport MSG_DATA, MSG_EXT, MSG_ID, msg_get
 
 cdef extern from "Python.h":
@@ -1481,8 +1482,7 @@ cdef class SensorPages:
             for i in range(ns):
                 PyObject_GetBuffer(sources[i], &views[i], PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
                 held += 1
-                if views[i].ndim != 1 or views[i].itemsize != 8 or views[i].format is NULL \
-                        or views[i].format[0] != b'd' or views[i].format[1] != 0:
+                if not is_f64_vector(&views[i]):
                     raise ValueError(f"sensor source {i}: a 1-D float64 array is needed")
                 ptr[i] = <double*>views[i].buf if views[i].shape[0] > 0 else NULL
                 length[i] = views[i].shape[0]

@@ -27,6 +27,7 @@ from canbrake.bus._ring import data_frame
 from canbrake.bus.e2e import COUNTER_MODULO
 from canbrake.nodes._trace import csv_dict_row
 from canbrake.nodes._trace cimport write_str
+from canbrake._buffers cimport is_f64_vector
 
 cdef object _NEW = object.__new__
 cdef object _perf_counter = time.perf_counter
@@ -96,7 +97,7 @@ cdef class EcuPeriod:
         for j, nm in enumerate(own):
             PyObject_GetBuffer(self.arrays[nm], &view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE)
             try:
-                if view.ndim != 1 or view.itemsize != 8 or view.format[0] != b'd' or not 0 <= i < view.shape[0]:
+                if not is_f64_vector(&view) or not 0 <= i < view.shape[0]:
                     raise ValueError(f"peer table array {nm!r}: float64 with an entry {i} needed")
                 self.own_ptr[j] = <double*>view.buf
             finally:

@@ -29,6 +29,7 @@ cdef extern from "Python.h":
     object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
     const char* PyUnicode_AsUTF8AndSize(object s, Py_ssize_t* size) except NULL
 
+from canbrake._buffers cimport is_f64_vector
 from canbrake._g9 cimport g9_into, i64_into
 
 cdef type NP_F64 = np.float64
@@ -411,8 +412,7 @@ cdef bint _f64_buffer(object a, Py_buffer* view) except -1:
         PyObject_GetBuffer(a, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT)
     except (TypeError, ValueError, BufferError):
         return False
-    if view.ndim == 1 and view.itemsize == 8 and view.format is not NULL and view.format[0] == b'd' \
-            and view.format[1] == 0:
+    if is_f64_vector(view):
         return True
     PyBuffer_Release(view)
     return False
