@@ -18,11 +18,10 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from cpython.ref cimport Py_INCREF
 from libc.stdint cimport uint8_t, uint16_t, uint32_t
 from libc.stdlib cimport free, qsort
-from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
-from libc.errno cimport EINTR, errno
 from posix.unistd cimport close as c_close, write as c_write
 from libc.string cimport memcmp, memcpy, strlen
 
+from canbrake._buffers cimport write_all
 from canbrake._g9 cimport g9_into, i64_into
 from canbrake.bus._ring cimport MSG_DLC, MSG_EXT, MSG_RTR, msg_get
 from canbrake.bus._candump cimport Buf, PyOS_double_to_string, buf_reserve, candump_line
@@ -277,22 +276,6 @@ def ideal_period(list ordered, dict untimed, dict sim_control, double t, double 
         PyMem_Free(logged)
 
 
-cdef int _write_all(int fd, const char* p, Py_ssize_t n) except -1:
-    """``n`` bytes at ``p`` to the file descriptor ``fd`` (``write(2)`` until all are written)."""
-    cdef Py_ssize_t k
-    while n > 0:
-        k = c_write(fd, p, n)
-        if k < 0:
-            if errno == EINTR:
-                PyErr_CheckSignals()
-                continue
-            PyErr_SetFromErrno(OSError)
-            return -1
-        p += k
-        n -= k
-    return 0
-
-
 #: bus order of a period's frames: phase, then identifier (arbitration), then payload
 _BUS_ORDER = itemgetter(0, 1, 2)
 
@@ -420,7 +403,7 @@ def ideal_tick(list frames, dict untimed, dict sim_control, double t, double t_k
                 ts = stamps[i]
                 candump_line(&b, last if ts < last else ts, ch, len(ch), ordered[i][3])
         if fd >= 0:
-            _write_all(fd, b.p, b.n)
+            write_all(fd, b.p, b.n)
         else:
             writer.file.write(b.p[:b.n].decode("utf-8"))
         return res
@@ -561,7 +544,7 @@ cdef class LoadSeries:
     cdef int _write_out(self) except -1:
         cdef Py_ssize_t n = self._out.n
         self._out.n = 0  # a failed write loses these lines rather than repeating part of them
-        return _write_all(self._fd, self._out.p, n)
+        return write_all(self._fd, self._out.p, n)
 
     def flush(self) -> None:
         """Hand the pending lines to the OS (one ``write(2)``)."""

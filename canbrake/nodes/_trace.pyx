@@ -18,9 +18,6 @@ from cpython.mem cimport PyMem_Free, PyMem_Malloc
 from libc.math cimport log
 from libc.stdint cimport uint8_t, uint32_t
 from libc.string cimport memcpy, strlen
-from cpython.exc cimport PyErr_CheckSignals, PyErr_SetFromErrno
-from libc.errno cimport EINTR, errno
-from posix.unistd cimport write as c_write
 from canbrake.bus._ring cimport MSG_DATA, MSG_ERR, MSG_EXT, MSG_ID, msg_get
 
 import numpy as np
@@ -29,7 +26,7 @@ cdef extern from "Python.h":
     object PyUnicode_DecodeASCII(const char* s, Py_ssize_t size, const char* errors)
     const char* PyUnicode_AsUTF8AndSize(object s, Py_ssize_t* size) except NULL
 
-from canbrake._buffers cimport is_f64_vector
+from canbrake._buffers cimport is_f64_vector, write_all
 from canbrake._g9 cimport g9_into, i64_into
 
 cdef type NP_F64 = np.float64
@@ -69,19 +66,9 @@ cdef int write_str(int fd, str text) except -1:
     """``text`` (a row's csv text) to the file descriptor ``fd`` with ``write(2)`` until all of
     it is written (its UTF-8 bytes, which Python keeps for an ASCII string: no copy); OSError as
     the file object's write would raise it (a full disk)."""
-    cdef Py_ssize_t n, k
+    cdef Py_ssize_t n
     cdef const char* p = PyUnicode_AsUTF8AndSize(text, &n)
-    while n > 0:
-        k = c_write(fd, p, n)
-        if k < 0:
-            if errno == EINTR:
-                PyErr_CheckSignals()
-                continue
-            PyErr_SetFromErrno(OSError)
-            return -1
-        p += k
-        n -= k
-    return 0
+    return write_all(fd, p, n)
 
 
 def write_text(int fd, str text):
