@@ -251,11 +251,11 @@ cdef Py_ssize_t _take_frames(list msgs, Py_ssize_t start, bint resume, dict coun
 
 
 cdef class RecorderTaker:
-    """A lockstep recorder's ``handle_batch`` (:class:`~canbrake.nodes.recorder.RecorderNode`,
-    over a list of python-can messages) as one compiled call: its receive loop
-    (:func:`take_frames`) and, at a SYNC or a key without a phase, the node's ``_on_event``;
-    what :meth:`~canbrake.nodes.recorder.RecorderNode.batch_handler` gives the in-process Router
-    (three generations a period in Chen case 1, each a Python call less)."""
+    """A lockstep recorder's receive loop (:class:`~canbrake.nodes.recorder.RecorderNode`), one
+    compiled call per batch: over python-can messages (calling it: ``handle_batch``, and what
+    :meth:`~canbrake.nodes.recorder.RecorderNode.batch_handler` gives the in-process Router) or
+    over the memory bus's slot images (:meth:`raw`: ``handle_raw``), through :func:`take_frames`
+    / :func:`take_frames_raw`, and at a SYNC or a key without a phase the node's ``_on_event``."""
 
     cdef object node, closing, sync_id, on_event
     cdef dict counts, phase_of
@@ -269,6 +269,7 @@ cdef class RecorderTaker:
         self.on_event = node._on_event
 
     def __call__(self, list batch, now):
+        """The messages ``batch``; returns the frames to send (none)."""
         cdef Py_ssize_t i = 0, m = len(batch), closed
         cdef int ev
         cdef bint resume = False
@@ -282,6 +283,29 @@ cdef class RecorderTaker:
             if ev == _TAKE_END:
                 break
             if self.on_event(ev, batch[i]):
+                break  # the END: the log is complete
+            resume = True
+        return []
+
+    def raw(self, frames, keep, message):
+        """The slot images ``frames``: each kept as ``keep(frames, i)`` (None: the image itself,
+        :func:`take_frames_raw`); ``message(frames, i)`` is image i as a ``can.Message`` for
+        ``_on_event``. Returns the frames to send (none)."""
+        cdef const uint8_t[::1] v = frames
+        cdef const uint8_t* base = &v[0] if v.shape[0] else NULL
+        cdef Py_ssize_t i = 0, m = v.shape[0] // SLOT_BYTES, closed
+        cdef int ev
+        cdef bint resume = False
+        node = self.node
+        while i < m:
+            closed = 0
+            i = _take_frames_raw(keep, base, m, frames, i, resume, self.counts, self.closing, self.sync_id,
+                                 self.phase_of, node._tick_frames, &ev, &closed)
+            if closed:
+                node._closing_seen += closed
+            if ev == _TAKE_END:
+                break
+            if self.on_event(ev, message(frames, i)):
                 break  # the END: the log is complete
             resume = True
         return []
@@ -301,23 +325,38 @@ def take_frames_raw(object message, frames, Py_ssize_t start, bint resume, dict 
     ``_candump.write_candump`` read as they read that message), its payload bytes from the
     image; ``i`` is the image's index."""
     cdef const uint8_t[::1] v = frames
-    cdef Py_ssize_t i, m = v.shape[0] // SLOT_BYTES, n
+    cdef int ev
     cdef Py_ssize_t closed = 0
+    cdef Py_ssize_t i = _take_frames_raw(message, &v[0] if v.shape[0] else NULL, v.shape[0] // SLOT_BYTES, frames,
+                                         start, resume, counts, closing, sync_id, phase_of, tick_frames, &ev,
+                                         &closed)
+    return i, ev, closed
+
+
+cdef Py_ssize_t _take_frames_raw(object message, const uint8_t* base, Py_ssize_t m, object frames, Py_ssize_t start,
+                                 bint resume, dict counts, closing, object sync_id, dict phase_of,
+                                 list tick_frames, int* ev, Py_ssize_t* closed) except -1:
+    """:func:`take_frames_raw` over the ``m`` images at ``base`` (of ``frames``): the index, the
+    event in ``ev``, the closing frames added to ``closed``."""
+    cdef Py_ssize_t i, n
     cdef PyObject* p
     cdef const uint8_t* q
     for i in range(start, m):
-        q = &v[i * SLOT_BYTES]
+        q = base + i * SLOT_BYTES
         aid = slot_id(q)
         p = _take_key(aid, bool(slot_flags(q) & SLOT_FLAG_EXTENDED), bool(slot_flags(q) & SLOT_FLAG_ERROR),
-                      resume and i == start, counts, closing, sync_id, phase_of, &closed)
+                      resume and i == start, counts, closing, sync_id, phase_of, closed)
         if p is NULL:
-            return i, TAKE_PHASE, closed
+            ev[0] = _TAKE_PHASE
+            return i
         if p == _SYNC_MARK:
-            return i, TAKE_SYNC, closed
+            ev[0] = _TAKE_SYNC
+            return i
         n = 0 if slot_flags(q) & SLOT_FLAG_REMOTE else slot_len(q)  # a remote frame: no data
         tick_frames.append((<object>p, aid, (<const char*>q)[DATA_OFFSET:DATA_OFFSET + n],
                             (<const char*>q)[:SLOT_BYTES] if message is None else message(frames, i)))
-    return m, TAKE_END, closed
+    ev[0] = _TAKE_END
+    return m
 
 
 def take_realtime_raw(frames, Py_ssize_t start, double now, dict counts, dict sim_control, long long sync_id,

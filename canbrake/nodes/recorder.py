@@ -48,8 +48,7 @@ from __future__ import annotations
 
 import csv
 import json
-from functools import partial
-from operator import getitem, itemgetter
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -62,8 +61,7 @@ from canbrake.bus.guard import FrameGuard, sync_verdict
 from canbrake.bus.memory_shm import SLOT_BYTES
 from canbrake.bus.rt_errors import error_frame  # noqa: F401  (built in the bus layer; also imported from here)
 from canbrake.bus.timing import actual_frame_bits, frame_bits
-from canbrake.nodes._trace import (TAKE_END, TAKE_SYNC, RecorderTaker, frame_key, key_fields, take_frames,
-                                   take_frames_raw, take_realtime_raw)
+from canbrake.nodes._trace import TAKE_SYNC, RecorderTaker, frame_key, key_fields, take_realtime_raw
 from canbrake.atomic import write_text_atomic
 from canbrake.nodes.base import LogHistogram, Node, rows_by_row, trim_partial_line  # noqa: F401  (LogHistogram, trim_partial_line: also imported from here)
 
@@ -164,6 +162,8 @@ class RecorderNode(Node):
         self._counts: dict[int, int] = {}
         self._phase_of: dict[int, int] = {}
         self._tick_frames: list[can.Message] = []
+        #: the lockstep receive loop, compiled: handle_batch's and handle_raw's (nodes._trace)
+        self._taker = RecorderTaker(self)
         self._bus_free_s = 0.0
         # per-period series in compact arrays (8 bytes per period each); latencies in a histogram
         # of fixed size whatever the run length
@@ -173,7 +173,6 @@ class RecorderNode(Node):
         self._rt_tick_start: float | None = None
         self._flush_each = True
         self._text_file: Any = None
-        self._raw_take: Any = None  # take_frames_raw with handle_raw's message maker (or None) bound
         self._text_fd = -1  # frames.log's descriptor when ideal_tick writes its lines straight to it
         # the timing model (canbrake.bus.schedule.LockstepBusTiming, the recorder's own replica):
         # modelled wire times for the stamps and, with bus errors, the error frames
@@ -247,12 +246,12 @@ class RecorderNode(Node):
         # the frames in one compiled loop, back here at a SYNC and at a key not seen before
         if type(msgs) is not list:
             msgs = list(msgs)
-        return self._take(take_frames, msgs, len(msgs), getitem)
+        return self._taker(msgs, now)
 
     def handle_raw(self, frames: bytes | bytearray, now: float, message: Any) -> list[can.Message]:
         """:meth:`handle_batch` for the memory bus's slot images (``MemoryBus.recv_raw``: the
         receive and its wait in one compiled call), counted and kept by
-        :func:`~canbrake.nodes._trace.take_frames_raw` (keys and payloads read from the images);
+        :class:`~canbrake.nodes._trace.RecorderTaker` (keys and payloads read from the images);
         ``message(frames, i)`` makes image i the ``can.Message`` the bus's ``recv`` gives (kept
         for the log; realtime: every frame)."""
         n = len(frames) // SLOT_BYTES
@@ -260,11 +259,7 @@ class RecorderNode(Node):
             return self._realtime_raw(frames, n, now, message)
         # the period's frames kept as their slot images (no Message each) where only the ideal
         # accounting and the candump text read them (_wire.ideal_period, _candump.write_candump)
-        keep = None if self._images_kept() else message
-        take = self._raw_take
-        if take is None or take.args[0] is not keep:  # the compiled loop with its message maker bound
-            take = self._raw_take = partial(take_frames_raw, keep)
-        return self._take(take, frames, n, message)
+        return self._taker.raw(frames, None if self._images_kept() else message, message)
 
     def _realtime_raw(self, frames: bytes | bytearray, n: int, now: float, message: Any) -> list[can.Message]:
         """Realtime :meth:`handle_batch` over the ``n`` slot images ``frames``: the frames between
@@ -298,22 +293,7 @@ class RecorderNode(Node):
     def batch_handler(self) -> Any:
         """:meth:`handle_batch` as the in-process Router calls it: in lockstep, the receive loop
         as one compiled call (:class:`~canbrake.nodes._trace.RecorderTaker`, the same work)."""
-        return self.handle_batch if self.mode == "realtime" else RecorderTaker(self)
-
-    def _take(self, take: Any, batch: Any, n: int, message: Any) -> list[can.Message]:
-        """The ``n`` frames of ``batch`` (lockstep) through ``take`` (the compiled loop), back here
-        at a SYNC and at a key not seen before; ``message(batch, i)``: frame i as a ``can.Message``."""
-        i, resume = 0, False
-        while i < n:
-            i, ev, closed = take(batch, i, resume, self._counts, self._closing_ids, self.layout.sync_id,
-                                 self._phase_of, self._tick_frames)
-            self._closing_seen += closed
-            if ev == TAKE_END:
-                break
-            if self._on_event(ev, message(batch, i)):
-                return []  # the END: the log is complete
-            resume = True
-        return []
+        return self.handle_batch if self.mode == "realtime" else self._taker
 
     def _on_event(self, ev: int, msg: can.Message) -> bool:
         """What the compiled receive loop stopped at: a SYNC (:meth:`_on_sync`; True if it was the
