@@ -6,6 +6,7 @@ recv_filtered on a twin reader of the same channel (frames, order, overrun error
 """
 from __future__ import annotations
 
+import json
 import os
 import struct
 import threading
@@ -505,3 +506,49 @@ def test_a_message_field_read_from_its_slot_is_its_attribute():
             m = cls(**kw)
             assert [message_field(m, i) for i in range(len(_SLOTS))] == [getattr(m, n) for n in _SLOTS]
     assert message_field(Sub(arbitration_id=1, data=b"\x00"), _SLOTS.index("dlc")) == 7
+
+
+
+
+_ONE_CPU_RUN = """
+import json, os, sys
+from pathlib import Path
+os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+os.environ["CANBRAKE_MEMORY_YIELD"] = "1"
+what, out = sys.argv[1], Path(sys.argv[2])
+if what == "floor":
+    from canbrake.floor import run_floor
+    r = run_floor(6, 0.5, phases=2)
+    print(json.dumps({"status": r["status"], "sleeps_per_period": r["sleeps_per_period"]}))
+else:
+    from canbrake.run import run_scenario
+    from canbrake.scenario import load_scenario
+    from canbrake.benchmark import scenario_path
+    s = run_scenario(load_scenario(scenario_path("chen2023_case1_fine_rail.yaml"), overrides={"duration_s": 0.3}),
+                     out, backend="memory", plots=False)
+    sleeps = sum(json.loads(f.read_text())["sleeps"] for f in (out / "processes").glob("*.json"))
+    print(json.dumps({"status": s["status"], "sleeps_per_period": sleeps / s["ticks"]}))
+"""
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs sched_setaffinity")
+@pytest.mark.parametrize("what", ["floor", "run"])
+def test_lockstep_nodes_on_one_cpu_yield_to_each_other_instead_of_sleeping(what, tmp_path):
+    """A plant and six ECU processes on one CPU (more node processes than cores, as a lockstep
+    run on 2 cores), their two-phase exchange: a reader waiting for its frames yields while a
+    yield hands the CPU to another process (the bus's rule, canbrake.bus._ring.YIELD_MAX), so
+    the frames come without sleeps and wake-ups. ``floor``: canbrake.floor's exchange (the bus's
+    Python recv path); ``run``: Chen case 1 (the nodes' compiled path). Measured with a single
+    yield before sleeping (canbrake before session 24): 3.1 and 2.9 sleeps a period; now 0."""
+    import subprocess
+    import sys
+
+    from canbrake.bus._ring import YIELD_LIMIT
+
+    assert YIELD_LIMIT >= 2
+    p = subprocess.run([sys.executable, "-c", _ONE_CPU_RUN, what, str(tmp_path / "run")],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    r = json.loads(p.stdout.strip().splitlines()[-1])
+    assert r["status"] == "ok"
+    assert r["sleeps_per_period"] < 0.5, r

@@ -110,6 +110,33 @@ DEF M_FD = 8
 DEF M_BRS = 16
 DEF M_ESI = 32
 cdef uint64_t SLOT_INVALID = 0xFFFFFFFFFFFFFFFFULL
+
+# Before a reader blocks, it yields the CPU and looks again, while a yield hands the CPU to
+# another process (it took at least YIELD_RAN_S: someone ran), at most YIELD_MAX times. With
+# more node processes than cores, a lockstep node's frames are then usually there without a
+# sleep: a sleep costs a voluntary switch, the writer's FIFO write and a (cross-core) wake-up.
+# A yield that comes straight back (nobody else runnable on this CPU, ~0.5-1 us) ends it at
+# once, so an idle machine is not spun on. Chen case 1 with one process per ECU on 2 cores:
+# one yield ~3,700 periods/s (27 switches a period), this rule 5,300-6,800 (docs/performance.md).
+DEF YIELD_MAX = 8
+DEF YIELD_RAN_S = 3e-6
+
+
+cdef bint _yield_ran() noexcept nogil:
+    """``sched_yield``; True when another process ran meanwhile (it took >= YIELD_RAN_S)."""
+    cdef double t0 = _monotonic()
+    sched_yield()
+    return _monotonic() - t0 >= YIELD_RAN_S
+
+
+def yield_cpu() -> bool:
+    """One yield of the memory bus's wait (:data:`YIELD_MAX` of them at most before it sleeps):
+    ``sched_yield``; True when another process ran meanwhile, so that looking again and
+    yielding again is worth it; False when it came straight back (nothing else to run here)."""
+    return _yield_ran()
+
+
+YIELD_LIMIT = YIELD_MAX
 #: the slot format compiled in, checked against memory_shm's layout by memory.py at import
 LAYOUT = {"SLOT_BYTES": SLOT_BYTES, "DATA_OFFSET": DATA_OFFSET, "MAX_DATA": MAX_DATA,
           "SLOT_SEQ_OFFSET": SLOT_SEQ_OFFSET, "H_WRITE_SEQ": WRITE_SEQ_BYTE // 8,
@@ -403,7 +430,7 @@ cdef class Ring:
         the channel file's descriptor (the writer lock, ``flock``) and the thread lock taken with
         it, its wake-up FIFO, ``publish()`` (publishes the read position when senders wait for
         it), the reader ``mode`` (0 overrun, 1 backpressure, 2 protected), whether it receives
-        its own frames and yields the CPU once before sleeping."""
+        its own frames and yields the CPU before sleeping (see YIELD_MAX)."""
         self._check()
         self.e_off = entry_word * 8
         self.lock_fd, self.rx_fd = lock_fd, rx_fd
@@ -897,11 +924,12 @@ cdef class Ring:
 
     cdef int _wait_raw(self, bytearray acc, double deadline, bint poll_only, int64_t want) except -1:
         """memory.py's ``_recv_locked`` for slot images: fetch, else (unless ``poll_only``) yield
-        once, then sleep until ``want`` accepted frames have come or ``deadline``; the
+        (see YIELD_MAX), then sleep until ``want`` accepted frames have come or ``deadline``; the
         :meth:`_fetch_raw` result (0: the timeout)."""
         cdef Py_ssize_t before = PyByteArray_GET_SIZE(acc)
         cdef int r = self._fetch_raw(acc)
-        cdef bint idle
+        cdef bint idle, ran
+        cdef int k
         cdef char *e = self.mem + self.e_off
         if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
             return r
@@ -910,10 +938,13 @@ cdef class Ring:
         self.in_recv = True
         try:
             if self.yield_first:  # let runnable peers on this CPU produce first: often no sleep needed
-                sched_yield()
-                r = self._fetch_raw(acc)
-                if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
-                    return r
+                for k in range(YIELD_MAX):
+                    ran = _yield_ran()
+                    r = self._fetch_raw(acc)
+                    if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
+                        return r
+                    if not ran:  # nobody else to run here: sleep (see YIELD_MAX)
+                        break
             while True:
                 if self.fifo_dirty:  # a wake-up byte may still be on its way from a past sleep
                     self._drain_fifo()

@@ -29,9 +29,11 @@ Design
   * Frames that went by while a reader slept were checked against its filters by the writers,
     so on waking it starts at ``wake_seq`` (or at ``write_seq`` after a timeout) and never
     scans, or overruns on, traffic it does not want.
-  * Before blocking, ``recv`` yields the CPU once (``sched_yield``; ``yield_before_sleep``) and
-    looks again: with more node processes than cores, the frames are usually there by then,
-    which saves the expensive cross-core sleep/wake-up. Never a spin: one yield, then block.
+  * Before blocking, ``recv`` yields the CPU (``sched_yield``; ``yield_before_sleep``) and looks
+    again, while a yield hands the CPU to another process, at most 8 times: with more node
+    processes than cores, the frames are usually there by then, which saves the expensive
+    sleep and cross-core wake-up. A yield that comes straight back (nothing else runnable on
+    that CPU) ends it: an idle CPU is not spun on.
 
 Slow readers (choice: per bus, default overrun)
   * ``backpressure=False`` (default, like a CAN controller's receive FIFO): writers never wait.
@@ -110,7 +112,7 @@ from can.typechecking import AutoDetectedConfig, CanFilters
 
 from canbrake.bus import memory_shm as shm
 from canbrake.bus._ring import LAYOUT as _RING_LAYOUT
-from canbrake.bus._ring import Filters, Ring
+from canbrake.bus._ring import YIELD_LIMIT, Filters, Ring, yield_cpu
 from canbrake.bus.memory_shm import (
     DATA_OFFSET,
     DEFAULT_RING_SIZE,
@@ -221,10 +223,11 @@ class MemoryBus(BusABC):
     :param ring_size: frames in the shared ring (power of two), used by the bus creating the channel.
     :param shm_dir: directory of the channel files (default ``$CANBRAKE_SHM_DIR`` or ``/dev/shm``).
     :param fd: report :attr:`protocol` as CAN FD (CAN FD frames are carried either way).
-    :param yield_before_sleep: before blocking in ``recv``, give the CPU once to processes that
-        are ready to run (``sched_yield``, a no-op on an idle CPU) and look again: when nodes
-        outnumber cores, the frames a reader waits for are often there by then, which saves
-        a sleep and a cross-core wake-up. One yield per blocking call, never a spin.
+    :param yield_before_sleep: before blocking in ``recv``, give the CPU to processes that are
+        ready to run (``sched_yield``) and look again, while a yield hands the CPU to another
+        process, at most 8 times: when nodes outnumber cores, the frames a reader waits for are
+        often there by then, which saves a sleep and a cross-core wake-up. A yield that comes
+        straight back (nothing else runnable on that CPU) ends it: never a spin on an idle CPU.
     :param wake_on: an identifier (29-bit if above 0x7FF): while this bus sleeps in ``recv``, only
         a frame with it wakes it; the frames it accepts before are kept for it (writers treat
         them as unread, and one held back by them wakes it). A lockstep recorder is woken once a
@@ -934,11 +937,14 @@ class MemoryBus(BusABC):
         self._in_recv = True
         try:
             if self._yield:  # let runnable peers on this CPU produce first: often no sleep needed
-                os.sched_yield()
-                self._fetch()
-                if buf:
-                    self._n_recv += 1
-                    return buf.popleft(), True
+                for _ in range(YIELD_LIMIT):  # the rule of the compiled wait (canbrake.bus._ring)
+                    ran = yield_cpu()
+                    self._fetch()
+                    if buf:
+                        self._n_recv += 1
+                        return buf.popleft(), True
+                    if not ran:
+                        break
             while True:
                 if self._fifo_dirty:  # a wake-up byte may still be on its way from a past sleep
                     self._drain(self._rx_fd)
