@@ -5,6 +5,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from canbrake.control.base import Observation, available, make_controller
 from canbrake.control.chen import ChenConsensusController, barrier_gradient
@@ -471,3 +473,108 @@ def test_brake_functions_easing_batch_form_equals_step():
             for a, b in ((out.brake_force_n[p], ref.brake_force_n),
                          (out.diagnostics["easing_cap_n"][p], ref.diagnostics["easing_cap_n"])):
                 assert a == b or (math.isnan(a) and math.isnan(b)), (k, p)
+
+
+# --- the compiled stale policies against the Python law they replaced (session 24) -------------
+def _ref_peer_ok(c, j, o):
+    age = o.peer_age_s[j]
+    if not (o.peer_position_m[j] == o.peer_position_m[j]):
+        return False
+    return not (c.stale_policy == "drop" and age > c.stale_timeout_s)
+
+
+def _ref_peer_position(c, j, o):
+    x = float(o.peer_position_m[j])
+    if c.stale_policy == "extrapolate":
+        age = float(o.peer_age_s[j])
+        if age > 0 and math.isfinite(age):
+            x += float(o.peer_speed_mps[j]) * age - 0.5 * o.ref_decel_mps2 * age * age
+    return x
+
+
+def _ref_deflections(c, o, spacing):
+    """(front, rear) as ChenConsensusController._deflections computed them; ``spacing`` the
+    [front, rear, latched] state, updated as the controller's."""
+    i, n, x = c.car_index, c.n_cars, o.position_m
+    if not spacing[2]:
+        if not ((i == 0 or _ref_peer_ok(c, i - 1, o)) and (i == n - 1 or _ref_peer_ok(c, i + 1, o))):
+            return None, None
+        if i > 0:
+            spacing[0] = _ref_peer_position(c, i - 1, o) - x
+        if i < n - 1:
+            spacing[1] = x - _ref_peer_position(c, i + 1, o)
+        spacing[2] = True
+    front = rear = None
+    if i > 0 and _ref_peer_ok(c, i - 1, o):
+        front = _ref_peer_position(c, i - 1, o) - x - spacing[0]
+    if i < n - 1 and _ref_peer_ok(c, i + 1, o):
+        rear = x - _ref_peer_position(c, i + 1, o) - spacing[1]
+    return front, rear
+
+
+def _ref_speed_disagreement(c, o):
+    pv = o.peer_speed_mps
+    if c.stale_policy == "hold":  # peer by peer in index order (as the batch form sums)
+        total, cnt = 0.0, 0
+        for j in np.flatnonzero(c._adj_a):
+            if pv[j] == pv[j]:
+                total += float(pv[j])
+                cnt += 1
+        return 0.0 if cnt == 0 else cnt * o.speed_mps - total
+    ok = c._adj_a & (pv == pv)
+    if c.stale_policy == "drop":
+        ok &= o.peer_age_s <= c.stale_timeout_s
+    cnt = int(np.count_nonzero(ok))
+    if cnt == 0:
+        return 0.0
+    total = float(pv[ok].sum())
+    if c.stale_policy == "extrapolate":
+        ages = o.peer_age_s[ok]
+        ages = ages[np.isfinite(ages)]
+        total -= o.ref_decel_mps2 * float(ages.sum())
+    return cnt * o.speed_mps - total
+
+
+_value = st.one_of(st.floats(-50, 50, allow_nan=False), st.sampled_from([0.0, -0.0, math.nan]))
+_age = st.one_of(st.floats(0, 0.2), st.sampled_from([0.0, -0.0, 1e-3, math.inf, math.nan, 0.05]))
+
+
+@settings(max_examples=150, deadline=None)
+@given(n=st.sampled_from([2, 3, 6, 9, 17, 70, 140]), data=st.data(),
+       policy=st.sampled_from(["extrapolate", "drop", "hold"]), graph=st.sampled_from(["all", "neighbours"]),
+       latched=st.booleans())
+def test_compiled_stale_policies_give_the_floats_of_the_python_law(n, data, policy, graph, latched):
+    """Deflections and speed disagreement under every stale policy, computed by the compiled step,
+    equal bit for bit what the Python law (kept here as the reference) computed: NaN peers, ages
+    0, inf, NaN, stale or fresh, the spacing latched at the first usable positions or given, trains
+    whose peer sums numpy makes pairwise (9 cars and more)."""
+    i = data.draw(st.integers(0, n - 1))
+    periods = data.draw(st.integers(1, 3))
+    c = ChenConsensusController(car_index=i, n_cars=n, mass_kg=M, dt_s=1e-3, stale_policy=policy,
+                                stale_timeout_s=0.03, velocity_graph=graph,
+                                nominal_spacing_m=-10.0 if latched else None)
+    spacing = [c._spacing_front, c._spacing_rear, c._latched]
+    for k in range(periods):
+        v = np.array(data.draw(st.lists(_value, min_size=n, max_size=n)))
+        x = np.array(data.draw(st.lists(_value, min_size=n, max_size=n))) + 10.0 * np.arange(n)
+        age = np.array(data.draw(st.lists(_age, min_size=n, max_size=n)))
+        v[i] = abs(v[i]) if v[i] == v[i] else 20.0  # its own speed and position are measured
+        x[i] = 10.0 * i
+        o = obs(i, v, x, age, tick=k)
+        front, rear = _ref_deflections(c, o, spacing)
+        sd = _ref_speed_disagreement(c, o)
+        d = c.step(o).diagnostics
+        nan = math.nan
+        assert np.array_equal(np.array([d["deflection_front_m"], d["deflection_rear_m"]]),
+                              np.array([nan if front is None else front, nan if rear is None else rear]),
+                              equal_nan=True)
+        pos = 0.0
+        if rear is not None:
+            pos += rear
+        if front is not None:
+            pos -= front
+        u1 = c._scale * (c.alpha1 * sd + c.alpha2 * pos)
+        assert np.array_equal(np.array(d["u_consensus_n"]), np.array(c.brake_gain * u1), equal_nan=True)
+        assert math.copysign(1.0, d["u_consensus_n"]) == math.copysign(1.0, c.brake_gain * u1) or u1 != u1
+        assert (c._spacing_front, c._spacing_rear, c._latched) == tuple(spacing) or not all(
+            s == s for s in spacing[:2] if s is not None)

@@ -11,16 +11,17 @@ binary64, no contraction into fused multiply-adds: ``-ffp-contract=off``), so th
 the same; ``tests/test_control.py`` checks it against :class:`~canbrake.control.chen.ChenBatch`
 (the batch engine's numpy form of the same law), and the golden runs' files are byte-identical.
 
-What stays in Python, called from here: the observer (``ctrl._obs``: ``update``/``predict``,
-which a subclass may wrap), and the deflections and speed disagreement of every configuration but
-the common one (peer positions held as received, spacing latched): latching, ``extrapolate``,
-``drop`` and ``deflection_source="local"`` (``ctrl._deflections``, ``ctrl._speed_disagreement``).
+The deflections and the speed disagreement of every configuration are computed here too: peer
+positions held as received, extrapolated or dropped when stale (``stale_policy``), the spacing
+latched when the first positions come, ``deflection_source="local"``. What stays in Python,
+called from here: the observer (``ctrl._obs``: ``update``/``predict``, which a subclass may wrap).
 The controller's parameters are read from the object at every call, so a change of a gain (as
 :class:`~canbrake.control.chen_compensated.ChenCompensatedController` schedules them) takes effect
 at once.
 """
+from cpython.bytearray cimport PyByteArray_AS_STRING
 from cpython.object cimport PyObject, PyObject_GenericSetAttr
-from libc.math cimport pow
+from libc.math cimport isfinite, pow
 
 from canbrake.control._attrs cimport attr as _get
 
@@ -87,6 +88,116 @@ cdef double _speed_disagreement_held(object ctrl, dict d, object obs, double v) 
     return <double>cnt * v - total
 
 
+cdef double _np_sum(double *a, Py_ssize_t n) noexcept:
+    """``float(np.sum(a))`` for ``n`` contiguous doubles, bit for bit: numpy's pairwise summation
+    (sequential below 8 values, 8 partial sums up to 128, halves above) added to an output that
+    starts at 0.0. Written out because the speed disagreement under ``extrapolate``/``drop``
+    summed a numpy selection before it was compiled, and its floats must stay those
+    (tests/test_control.py checks this against ``np.sum``)."""
+    return 0.0 + _pairwise(a, n)
+
+
+cdef double _pairwise(double *a, Py_ssize_t n) noexcept:
+    cdef double res
+    cdef double r[8]
+    cdef Py_ssize_t i, j, n2
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += a[i]
+        return res
+    if n <= 128:
+        for j in range(8):
+            r[j] = a[j]
+        i = 8
+        while i < n - (n % 8):
+            for j in range(8):
+                r[j] += a[i + j]
+            i += 8
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        while i < n:
+            res += a[i]
+            i += 1
+        return res
+    n2 = n // 2
+    n2 -= n2 % 8
+    return _pairwise(a, n2) + _pairwise(a + n2, n - n2)
+
+
+cdef class _Peers:
+    """One period's peer arrays as C doubles, and the stale policy's view of them."""
+    cdef list px, pv, age
+    cdef int policy          # 0 hold, 1 extrapolate, 2 drop
+    cdef double timeout, ref_decel
+
+    cdef bint ok(self, Py_ssize_t j):
+        """``_peer_ok``: its position received (not NaN) and, under ``drop``, not too old."""
+        cdef double x = self.px[j]
+        if not (x == x):
+            return False
+        return not (self.policy == 2 and <double>self.age[j] > self.timeout)
+
+    cdef double position(self, Py_ssize_t j):
+        """``_peer_position``: as received, or under ``extrapolate`` moved on by its age."""
+        cdef double x = self.px[j], age
+        if self.policy == 1:
+            age = self.age[j]
+            if age > 0 and isfinite(age):
+                x += <double>self.pv[j] * age - 0.5 * self.ref_decel * age * age
+        return x
+
+
+cdef _Peers _peers(dict d, object ctrl, dict od, object obs, int policy):
+    cdef _Peers p = _Peers.__new__(_Peers)
+    p.px = (<object>_get(od, obs, "peer_position_m")).tolist()
+    p.pv = (<object>_get(od, obs, "peer_speed_mps")).tolist()
+    p.age = (<object>_get(od, obs, "peer_age_s")).tolist() if policy else None
+    p.policy = policy
+    p.timeout = _get(d, ctrl, "stale_timeout_s")
+    p.ref_decel = _get(od, obs, "ref_decel_mps2")
+    return p
+
+
+cdef double _speed_disagreement_stale(object ctrl, dict d, _Peers p, double v) except? -1.0:
+    """Σ_j a_ij (v_i − v_j) over the usable peers (m/s) under ``extrapolate`` (each peer's speed
+    moved on by its age at the reference deceleration) and ``drop`` (peers older than the
+    timeout left out); the sums as numpy made them (:func:`_np_sum`)."""
+    cdef Py_ssize_t n = len(p.pv), j, cnt = 0, na = 0
+    cdef double pj, a
+    cdef double[64] sbuf, abuf
+    cdef double *speeds = sbuf
+    cdef double *ages = abuf
+    cdef double total
+    cdef bytearray big
+    adj = _get(d, ctrl, "_adj_tuple")
+    if n > 64:  # a long train: room for every peer
+        big = bytearray(16 * n)
+        speeds = <double *>PyByteArray_AS_STRING(big)
+        ages = speeds + n
+    for jo in <tuple>adj:
+        j = jo
+        if j >= n or j < 0:
+            raise IndexError(f"peer_speed_mps has {n} values for car {j}")
+        pj = p.pv[j]
+        if not (pj == pj):
+            continue
+        if p.policy == 2 and not (<double>p.age[j] <= p.timeout):
+            continue
+        speeds[cnt] = pj
+        cnt += 1
+        if p.policy == 1:
+            a = p.age[j]
+            if isfinite(a):
+                ages[na] = a
+                na += 1
+    if cnt == 0:
+        return 0.0
+    total = _np_sum(speeds, cnt)
+    if p.policy == 1:
+        total -= p.ref_decel * _np_sum(ages, na)
+    return <double>cnt * v - total
+
+
 def step(ctrl, obs):
     """One period of :class:`~canbrake.control.chen.ChenConsensusController` ``ctrl`` from the
     :class:`~canbrake.control.base.Observation` ``obs``: its
@@ -102,11 +213,15 @@ def step(ctrl, obs):
     cdef double ff, phi_hat, force_obs = 0.0, force, fm, lim, sd, g0
     cdef bint log_kind
     cdef bint has_front = False, has_rear = False, fast
-    cdef int i, n
-    hold = _get(d, ctrl, "stale_policy") == "hold"
-    fast = hold and _get(d, ctrl, "_latched") and _get(d, ctrl, "deflection_source") == "peer_position"
-    # (Δl_{i−1}, Δl_i) in m: the common case here, every other in ChenConsensusController._deflections
-    if fast:
+    cdef int i, n, policy
+    cdef _Peers peers = None
+    stale = _get(d, ctrl, "stale_policy")
+    hold = stale == "hold"
+    policy = 0 if hold else 1 if stale == "extrapolate" else 2
+    local = _get(d, ctrl, "deflection_source") == "local"
+    fast = hold and not local and _get(d, ctrl, "_latched")
+    # (Δl_{i−1}, Δl_i) in m
+    if fast:  # the common case: positions held as received, the spacing latched
         i = _get(d, ctrl, "car_index")
         n = _get(d, ctrl, "n_cars")
         px = _get(od, obs, "peer_position_m")
@@ -116,12 +231,29 @@ def step(ctrl, obs):
         if i < n - 1:
             rear = x - <double>px.item(i + 1) - <double>_get(d, ctrl, "_spacing_rear")
             has_rear = rear == rear
-    else:
-        f_obj, r_obj = ctrl._deflections(obs)
+    elif local:  # the ECU's own coupler measurement
+        f_obj = _get(od, obs, "deflection_front_m")
+        r_obj = _get(od, obs, "deflection_rear_m")
         if f_obj is not None:
             front, has_front = f_obj, True
         if r_obj is not None:
             rear, has_rear = r_obj, True
+    else:
+        peers = _peers(d, ctrl, od, obs, policy)
+        i = _get(d, ctrl, "car_index")
+        n = _get(d, ctrl, "n_cars")
+        if not _get(d, ctrl, "_latched"):  # the spacing: latched once both neighbours' positions came
+            if (i == 0 or peers.ok(i - 1)) and (i == n - 1 or peers.ok(i + 1)):
+                if i > 0:
+                    d["_spacing_front"] = peers.position(i - 1) - x
+                if i < n - 1:
+                    d["_spacing_rear"] = x - peers.position(i + 1)
+                d["_latched"] = True
+        if _get(d, ctrl, "_latched"):
+            if i > 0 and peers.ok(i - 1):
+                front, has_front = peers.position(i - 1) - x - <double>_get(d, ctrl, "_spacing_front"), True
+            if i < n - 1 and peers.ok(i + 1):
+                rear, has_rear = x - peers.position(i + 1) - <double>_get(d, ctrl, "_spacing_rear"), True
 
     if _get(d, ctrl, "consensus"):
         pos = 0.0
@@ -132,7 +264,9 @@ def step(ctrl, obs):
         if hold:
             sd = _speed_disagreement_held(ctrl, d, obs, v)
         else:
-            sd = ctrl._speed_disagreement(obs)
+            if peers is None:
+                peers = _peers(d, ctrl, od, obs, policy)
+            sd = _speed_disagreement_stale(ctrl, d, peers, v)
         u1 = scale * (<double>_get(d, ctrl, "alpha1") * <double>sd + <double>_get(d, ctrl, "alpha2") * pos)
 
     if _get(d, ctrl, "potential_field"):

@@ -246,65 +246,8 @@ class ChenConsensusController(Controller):
         return self._obs.phi_hat_mps2
 
     # ------------------------------------------------------------------
-    def _peer_ok(self, j: int, obs: Observation) -> bool:
-        age = obs.peer_age_s[j]
-        if not (obs.peer_position_m[j] == obs.peer_position_m[j]):  # NaN
-            return False
-        return not (self.stale_policy == "drop" and age > self.stale_timeout_s)
-
-    def _peer_position(self, j: int, obs: Observation) -> float:
-        x = float(obs.peer_position_m[j])
-        if self.stale_policy == "extrapolate":
-            age = float(obs.peer_age_s[j])
-            if age > 0 and math.isfinite(age):
-                x += float(obs.peer_speed_mps[j]) * age - 0.5 * obs.ref_decel_mps2 * age * age
-        return x
-
-    def _deflections(self, obs: Observation) -> tuple[float | None, float | None]:
-        """(Δl_{i−1}, Δl_i) in m, None where unknown: every case but the common one (``hold``,
-        peer positions, the spacing latched), which the compiled :meth:`step` computes itself."""
-        if self.deflection_source == "local":
-            return obs.deflection_front_m, obs.deflection_rear_m
-        i, n = self.car_index, self.n_cars
-        x = obs.position_m
-        if not self._latched:
-            ok_f = i == 0 or self._peer_ok(i - 1, obs)
-            ok_r = i == n - 1 or self._peer_ok(i + 1, obs)
-            if not (ok_f and ok_r):
-                return None, None
-            if i > 0:
-                self._spacing_front = self._peer_position(i - 1, obs) - x
-            if i < n - 1:
-                self._spacing_rear = x - self._peer_position(i + 1, obs)
-            self._latched = True
-        front = rear = None
-        if i > 0 and self._peer_ok(i - 1, obs):
-            front = self._peer_position(i - 1, obs) - x - self._spacing_front  # type: ignore[operator]
-        if i < n - 1 and self._peer_ok(i + 1, obs):
-            rear = x - self._peer_position(i + 1, obs) - self._spacing_rear  # type: ignore[operator]
-        return front, rear
-
-    def _speed_disagreement(self, obs: Observation) -> float:
-        """Σ_j a_ij (v_i − v_j) over the usable peers (m/s) under ``extrapolate`` and ``drop``
-        (under ``hold`` the compiled :meth:`step` sums them peer by peer in index order, as the
-        batch form does)."""
-        pv = obs.peer_speed_mps
-        ok = self._adj_a & (pv == pv)
-        if self.stale_policy == "drop":
-            ok &= obs.peer_age_s <= self.stale_timeout_s
-        cnt = int(np.count_nonzero(ok))
-        if cnt == 0:
-            return 0.0
-        total = float(pv[ok].sum())
-        if self.stale_policy == "extrapolate":
-            ages = obs.peer_age_s[ok]
-            ages = ages[np.isfinite(ages)]
-            total -= obs.ref_decel_mps2 * float(ages.sum())
-        return cnt * obs.speed_mps - total
-
-    # ------------------------------------------------------------------
     #: Brake force (N) for this period from ``obs``: eqs. 24-29 as in the module docstring, compiled
-    #: (:func:`canbrake.control._chen.step`; the observer and the uncommon stale policies in Python)
+    #: (:func:`canbrake.control._chen.step`, every stale policy and deflection source; the observer in Python)
     step = _chen.step
 
     @staticmethod
