@@ -552,3 +552,43 @@ def test_lockstep_nodes_on_one_cpu_yield_to_each_other_instead_of_sleeping(what,
     r = json.loads(p.stdout.strip().splitlines()[-1])
     assert r["status"] == "ok"
     assert r["sleeps_per_period"] < 0.5, r
+
+
+def _hog(cpu: int, seconds: float) -> None:
+    os.sched_setaffinity(0, {cpu})
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        pass
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs sched_setaffinity")
+def test_the_wait_stops_yielding_when_its_budget_is_spent_or_a_cpu_bound_process_holds_the_cpu():
+    """The yield rule's budget (200 us from the wait's start): spent, no further yield is worth
+    it; beside a CPU-bound process on the same CPU a yield lasts that process's time slice, so the
+    rule says sleep instead of handing it the CPU again and again (Chen case 1 beside two such
+    processes, yields forced: 0.25x real time with one yield, 0.13x yielding 8 times unbounded,
+    0.18x with the budget)."""
+    import multiprocessing as mp
+
+    from canbrake.bus._ring import yield_cpu
+
+    assert not yield_cpu(time.monotonic() - 1.0)  # a wait that began 1 s ago
+    cpu = min(os.sched_getaffinity(0))
+    everywhere = os.sched_getaffinity(0)
+    p = mp.get_context("spawn").Process(target=_hog, args=(cpu, 20.0))
+    p.start()
+    try:
+        os.sched_setaffinity(0, {cpu})
+        time.sleep(1.0)  # the hog is running on this CPU
+        took, more = [], []
+        for _ in range(20):
+            t0 = time.monotonic()
+            more.append(yield_cpu(t0))
+            took.append(time.monotonic() - t0)
+    finally:
+        os.sched_setaffinity(0, everywhere)
+        p.kill()
+        p.join()
+    long_ = [t >= 200e-6 for t in took]
+    assert sum(long_) >= 3, took  # the hog ran for its slice (not at every yield: the scheduler alternates)
+    assert not any(m for m, lg in zip(more, long_) if lg), (more, took)

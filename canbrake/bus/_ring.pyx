@@ -112,28 +112,35 @@ DEF M_ESI = 32
 cdef uint64_t SLOT_INVALID = 0xFFFFFFFFFFFFFFFFULL
 
 # Before a reader blocks, it yields the CPU and looks again, while a yield hands the CPU to
-# another process (it took at least YIELD_RAN_S: someone ran), at most YIELD_MAX times. With
-# more node processes than cores, a lockstep node's frames are then usually there without a
-# sleep: a sleep costs a voluntary switch, the writer's FIFO write and a (cross-core) wake-up.
-# A yield that comes straight back (nobody else runnable on this CPU, ~0.5-1 us) ends it at
-# once, so an idle machine is not spun on. Chen case 1 with one process per ECU on 2 cores:
-# one yield ~3,700 periods/s (27 switches a period), this rule 5,300-6,800 (docs/performance.md).
+# another process (it took at least YIELD_RAN_S: someone ran) and for at most YIELD_BUDGET_S
+# since the wait began, at most YIELD_MAX times. With more node processes than cores, a lockstep
+# node's frames are then usually there without a sleep: a sleep costs a voluntary switch, the
+# writer's FIFO write and a (cross-core) wake-up. A yield that comes straight back (nobody else
+# runnable on this CPU, ~0.5-1 us) ends it at once, so an idle CPU is not spun on; the budget
+# ends it when the CPU is shared with other work (a yield to a CPU-bound process lasts its time
+# slice) or the frames are far off. Chen case 1 with one process per ECU on 2 cores: one yield
+# ~3,700 periods/s (27 switches a period), this rule 5,300-6,800 (docs/performance.md, session 24).
 DEF YIELD_MAX = 8
 DEF YIELD_RAN_S = 3e-6
+DEF YIELD_BUDGET_S = 200e-6
 
 
-cdef bint _yield_ran() noexcept nogil:
-    """``sched_yield``; True when another process ran meanwhile (it took >= YIELD_RAN_S)."""
-    cdef double t0 = _monotonic()
+cdef bint _yield_more(double t0) noexcept nogil:
+    """``sched_yield`` in a wait that began at ``t0`` (monotonic s); True when looking again and
+    yielding again is worth it: another process ran meanwhile and the budget is not spent."""
+    cdef double t1 = _monotonic(), t2
     sched_yield()
-    return _monotonic() - t0 >= YIELD_RAN_S
+    t2 = _monotonic()
+    return t2 - t1 >= YIELD_RAN_S and t2 - t0 < YIELD_BUDGET_S
 
 
-def yield_cpu() -> bool:
-    """One yield of the memory bus's wait (:data:`YIELD_MAX` of them at most before it sleeps):
-    ``sched_yield``; True when another process ran meanwhile, so that looking again and
-    yielding again is worth it; False when it came straight back (nothing else to run here)."""
-    return _yield_ran()
+def yield_cpu(double t0) -> bool:
+    """One yield of the memory bus's wait that began at ``t0`` (``time.monotonic`` s; at most
+    :data:`YIELD_LIMIT` yields before it sleeps): ``sched_yield``; True when another process ran
+    meanwhile and less than 200 us have passed since ``t0``, so that looking again and yielding
+    again is worth it; False when it came straight back (nothing else to run on this CPU) or the
+    budget is spent."""
+    return _yield_more(t0)
 
 
 YIELD_LIMIT = YIELD_MAX
@@ -929,6 +936,7 @@ cdef class Ring:
         cdef Py_ssize_t before = PyByteArray_GET_SIZE(acc)
         cdef int r = self._fetch_raw(acc)
         cdef bint idle, ran
+        cdef double t_w
         cdef int k
         cdef char *e = self.mem + self.e_off
         if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
@@ -938,12 +946,13 @@ cdef class Ring:
         self.in_recv = True
         try:
             if self.yield_first:  # let runnable peers on this CPU produce first: often no sleep needed
+                t_w = _monotonic()
                 for k in range(YIELD_MAX):
-                    ran = _yield_ran()
+                    ran = _yield_more(t_w)
                     r = self._fetch_raw(acc)
                     if r >= 2 or PyByteArray_GET_SIZE(acc) > before:
                         return r
-                    if not ran:  # nobody else to run here: sleep (see YIELD_MAX)
+                    if not ran:  # nobody else to run here, or the budget spent: sleep (see YIELD_MAX)
                         break
             while True:
                 if self.fifo_dirty:  # a wake-up byte may still be on its way from a past sleep

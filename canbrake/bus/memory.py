@@ -30,10 +30,10 @@ Design
     so on waking it starts at ``wake_seq`` (or at ``write_seq`` after a timeout) and never
     scans, or overruns on, traffic it does not want.
   * Before blocking, ``recv`` yields the CPU (``sched_yield``; ``yield_before_sleep``) and looks
-    again, while a yield hands the CPU to another process, at most 8 times: with more node
-    processes than cores, the frames are usually there by then, which saves the expensive
-    sleep and cross-core wake-up. A yield that comes straight back (nothing else runnable on
-    that CPU) ends it: an idle CPU is not spun on.
+    again, while a yield hands the CPU to another process, for at most 200 us and 8 yields: with
+    more node processes than cores, the frames are usually there by then, which saves the
+    expensive sleep and cross-core wake-up. A yield that comes straight back (nothing else
+    runnable on that CPU) ends it: an idle CPU is not spun on.
 
 Slow readers (choice: per bus, default overrun)
   * ``backpressure=False`` (default, like a CAN controller's receive FIFO): writers never wait.
@@ -225,9 +225,10 @@ class MemoryBus(BusABC):
     :param fd: report :attr:`protocol` as CAN FD (CAN FD frames are carried either way).
     :param yield_before_sleep: before blocking in ``recv``, give the CPU to processes that are
         ready to run (``sched_yield``) and look again, while a yield hands the CPU to another
-        process, at most 8 times: when nodes outnumber cores, the frames a reader waits for are
-        often there by then, which saves a sleep and a cross-core wake-up. A yield that comes
-        straight back (nothing else runnable on that CPU) ends it: never a spin on an idle CPU.
+        process, for at most 200 us and 8 yields: when nodes outnumber cores, the frames a
+        reader waits for are often there by then, which saves a sleep and a cross-core wake-up.
+        A yield that comes straight back (nothing else runnable on that CPU) ends it: never a
+        spin on an idle CPU.
     :param wake_on: an identifier (29-bit if above 0x7FF): while this bus sleeps in ``recv``, only
         a frame with it wakes it; the frames it accepts before are kept for it (writers treat
         them as unread, and one held back by them wakes it). A lockstep recorder is woken once a
@@ -937,8 +938,9 @@ class MemoryBus(BusABC):
         self._in_recv = True
         try:
             if self._yield:  # let runnable peers on this CPU produce first: often no sleep needed
+                t_w = time.monotonic()
                 for _ in range(YIELD_LIMIT):  # the rule of the compiled wait (canbrake.bus._ring)
-                    ran = yield_cpu()
+                    ran = yield_cpu(t_w)
                     self._fetch()
                     if buf:
                         self._n_recv += 1
