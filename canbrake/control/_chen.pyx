@@ -67,27 +67,6 @@ def barrier_gradient(double z, double z_lower, double z_upper, str kind="inverse
     return _barrier(z, z_lower, z_upper, kind == "log", clip, _barrier0(z_lower, z_upper, kind == "log"))
 
 
-cdef double _speed_disagreement_held(object ctrl, dict d, object obs, double v) except? -1.0:
-    """Σ_j a_ij (v_i − v_j) over the peers received (m/s), peer by peer in index order (the batch
-    form sums in the same order): ``stale_policy="hold"``."""
-    cdef list pv = obs.peer_speed_mps.tolist()  # (6 floats: less than a buffer's export)
-    cdef Py_ssize_t n = len(pv)
-    cdef double total = 0.0, pj
-    cdef long cnt = 0
-    cdef Py_ssize_t j
-    for jo in <tuple>_get(d, ctrl, "_adj_tuple"):  # the neighbours in the velocity graph, in order
-        j = jo
-        if j >= n or j < 0:
-            raise IndexError(f"peer_speed_mps has {n} values for car {j}")
-        pj = <double>pv[j]
-        if pj == pj:
-            total += pj
-            cnt += 1
-    if cnt == 0:
-        return 0.0
-    return <double>cnt * v - total
-
-
 cdef double _np_sum(double *a, Py_ssize_t n) noexcept:
     """``float(np.sum(a))`` for ``n`` contiguous doubles, bit for bit: numpy's pairwise summation
     (sequential below 8 values, 8 partial sums up to 128, halves above) added to an output that
@@ -158,43 +137,50 @@ cdef _Peers _peers(dict d, object ctrl, dict od, object obs, int policy):
     return p
 
 
-cdef double _speed_disagreement_stale(object ctrl, dict d, _Peers p, double v) except? -1.0:
-    """Σ_j a_ij (v_i − v_j) over the usable peers (m/s) under ``extrapolate`` (each peer's speed
-    moved on by its age at the reference deceleration) and ``drop`` (peers older than the
-    timeout left out); the sums as numpy made them (:func:`_np_sum`)."""
-    cdef Py_ssize_t n = len(p.pv), j, cnt = 0, na = 0
+cdef double _speed_disagreement(object ctrl, dict d, list pv, list age, int policy, double timeout,
+                                double ref_decel, double v) except? -1.0:
+    """Σ_j a_ij (v_i − v_j) over the usable peers (m/s), the neighbours in the velocity graph in
+    index order: under ``hold`` (``policy`` 0) every peer received, summed one by one (as the
+    batch form sums); under ``extrapolate`` (1) each peer's speed moved on by its age (``age``, s)
+    at the reference deceleration ``ref_decel``; under ``drop`` (2) peers older than ``timeout``
+    (s) left out; the sums of these two as numpy made them (:func:`_np_sum`)."""
+    cdef Py_ssize_t n = len(pv), j, k, cnt = 0, na = 0
     cdef double pj, a
     cdef double[64] sbuf, abuf
     cdef double *speeds = sbuf
     cdef double *ages = abuf
     cdef double total
     cdef bytearray big
-    adj = _get(d, ctrl, "_adj_tuple")
     if n > 64:  # a long train: room for every peer
         big = bytearray(16 * n)
         speeds = <double *>PyByteArray_AS_STRING(big)
         ages = speeds + n
-    for jo in <tuple>adj:
+    for jo in <tuple>_get(d, ctrl, "_adj_tuple"):
         j = jo
         if j >= n or j < 0:
             raise IndexError(f"peer_speed_mps has {n} values for car {j}")
-        pj = p.pv[j]
+        pj = pv[j]
         if not (pj == pj):
             continue
-        if p.policy == 2 and not (<double>p.age[j] <= p.timeout):
+        if policy == 2 and not (<double>age[j] <= timeout):
             continue
         speeds[cnt] = pj
         cnt += 1
-        if p.policy == 1:
-            a = p.age[j]
+        if policy == 1:
+            a = age[j]
             if isfinite(a):
                 ages[na] = a
                 na += 1
     if cnt == 0:
         return 0.0
-    total = _np_sum(speeds, cnt)
-    if p.policy == 1:
-        total -= p.ref_decel * _np_sum(ages, na)
+    if policy == 0:
+        total = 0.0
+        for k in range(cnt):
+            total += speeds[k]
+    else:
+        total = _np_sum(speeds, cnt)
+    if policy == 1:
+        total -= ref_decel * _np_sum(ages, na)
     return <double>cnt * v - total
 
 
@@ -221,9 +207,9 @@ def step(ctrl, obs):
     local = _get(d, ctrl, "deflection_source") == "local"
     fast = hold and not local and _get(d, ctrl, "_latched")
     # (Δl_{i−1}, Δl_i) in m
+    i = _get(d, ctrl, "car_index")
+    n = _get(d, ctrl, "n_cars")
     if fast:  # the common case: positions held as received, the spacing latched
-        i = _get(d, ctrl, "car_index")
-        n = _get(d, ctrl, "n_cars")
         px = _get(od, obs, "peer_position_m")
         if i > 0:
             front = <double>px.item(i - 1) - x - <double>_get(d, ctrl, "_spacing_front")
@@ -240,8 +226,6 @@ def step(ctrl, obs):
             rear, has_rear = r_obj, True
     else:
         peers = _peers(d, ctrl, od, obs, policy)
-        i = _get(d, ctrl, "car_index")
-        n = _get(d, ctrl, "n_cars")
         if not _get(d, ctrl, "_latched"):  # the spacing: latched once both neighbours' positions came
             if (i == 0 or peers.ok(i - 1)) and (i == n - 1 or peers.ok(i + 1)):
                 if i > 0:
@@ -261,12 +245,13 @@ def step(ctrl, obs):
             pos += rear
         if has_front:
             pos -= front
-        if hold:
-            sd = _speed_disagreement_held(ctrl, d, obs, v)
-        else:
-            if peers is None:
-                peers = _peers(d, ctrl, od, obs, policy)
-            sd = _speed_disagreement_stale(ctrl, d, peers, v)
+        if peers is None and not hold:
+            peers = _peers(d, ctrl, od, obs, policy)
+        if peers is not None:
+            sd = _speed_disagreement(ctrl, d, peers.pv, peers.age, policy, peers.timeout, peers.ref_decel, v)
+        else:  # hold, the common case: the speeds alone (6 floats as a list: less than a buffer's export)
+            sd = _speed_disagreement(ctrl, d, (<object>_get(od, obs, "peer_speed_mps")).tolist(), None, 0, 0.0,
+                                     0.0, v)
         u1 = scale * (<double>_get(d, ctrl, "alpha1") * <double>sd + <double>_get(d, ctrl, "alpha2") * pos)
 
     if _get(d, ctrl, "potential_field"):
