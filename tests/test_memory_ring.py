@@ -508,8 +508,6 @@ def test_a_message_field_read_from_its_slot_is_its_attribute():
     assert message_field(Sub(arbitration_id=1, data=b"\x00"), _SLOTS.index("dlc")) == 7
 
 
-
-
 _ONE_CPU_RUN = """
 import json, os, sys
 from pathlib import Path
@@ -539,19 +537,27 @@ def test_lockstep_nodes_on_one_cpu_yield_to_each_other_instead_of_sleeping(what,
     yield hands the CPU to another process (the bus's rule, canbrake.bus._ring.YIELD_MAX), so
     the frames come without sleeps and wake-ups. ``floor``: canbrake.floor's exchange (the bus's
     Python recv path); ``run``: Chen case 1 (the nodes' compiled path). Measured with a single
-    yield before sleeping (canbrake before session 24): 3.1 and 2.9 sleeps a period; now 0."""
+    yield before sleeping (canbrake before session 24): 3.1 and 2.9 sleeps a period; now 0.
+    A foreign CPU-bound process on that CPU (another test of a parallel run) makes the rule sleep
+    on purpose (its yields last that process's time slice: ~1 sleep a period measured beside
+    one), so up to three attempts are made; one yield slept in every attempt."""
     import subprocess
     import sys
 
     from canbrake.bus._ring import YIELD_LIMIT
 
     assert YIELD_LIMIT >= 2
-    p = subprocess.run([sys.executable, "-c", _ONE_CPU_RUN, what, str(tmp_path / "run")],
-                       capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0, p.stderr[-2000:]
-    r = json.loads(p.stdout.strip().splitlines()[-1])
-    assert r["status"] == "ok"
-    assert r["sleeps_per_period"] < 0.5, r
+    seen = []
+    for attempt in range(3):
+        p = subprocess.run([sys.executable, "-c", _ONE_CPU_RUN, what, str(tmp_path / f"run{attempt}")],
+                           capture_output=True, text=True, timeout=300)
+        assert p.returncode == 0, p.stderr[-2000:]
+        r = json.loads(p.stdout.strip().splitlines()[-1])
+        assert r["status"] == "ok"
+        seen.append(r["sleeps_per_period"])
+        if r["sleeps_per_period"] < 0.5:
+            break
+    assert min(seen) < 0.5, seen
 
 
 def _hog(cpu: int, seconds: float) -> None:
