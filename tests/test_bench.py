@@ -103,8 +103,10 @@ def test_controller_call_rows_have_sane_fields():
 
     rows = controller_figures(n=20)
     names = [r["figure"] for r in rows]
-    assert names == ["controller call, trivial user controller", "controller call, chen2023"]
-    for r in rows:
+    assert names == ["controller call, trivial user controller", "controller call, chen2023",
+                     "controller steps, 6 chen2023 ECUs as one numpy batch"]
+    assert rows[2]["unit"] == "us/period" and 0 < rows[2]["value"] < 1e5 and rows[2]["ratio"] > 0
+    for r in rows[:2]:
         assert r["unit"] == "us/call" and r["status"] == "ok"
         assert 0 < r["value"] < 1e5 and 0 < r["baseline"] < 1e5 and r["ratio"] > 0
     assert rows[1]["baseline"] == rows[0]["value"]  # chen2023 beside the trivial controller of the same run
