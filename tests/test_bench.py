@@ -134,3 +134,31 @@ def test_a_bench_of_some_groups_keeps_the_whole_tables_results(tmp_path, monkeyp
     assert not (tmp_path / "p.md").exists()
     assert main(["bench", "--only", "codec", "--quiet"]) == 0
     assert (tmp_path / "bench" / "results-codec.json").exists() and not (tmp_path / "bench" / "results.json").exists()
+
+
+def test_realtime_targets_are_judged_over_their_run_length(monkeypatch):
+    """Issue 26's realtime targets are shares over 60 s (1 ms) and 120 s (10 ms): a shorter run is
+    measured, not judged, unless its misses alone reach the share of the whole length; a run of
+    the length is judged either way."""
+    from canbrake import benchmark
+
+    def rows_for(periods_1ms: int, misses_1ms: int, periods_10ms: int, misses_10ms: int) -> dict:
+        def fake(case, **kw):
+            n, m = (periods_1ms, misses_1ms) if case.get("profile") is None else (periods_10ms, misses_10ms)
+            return {"status": "ok", "ticks": n, "periods": n, "deadline_misses": m, "cmd_latency_p99_s": 0.3e-3,
+                    "cmd_latency_missing": 0}
+        monkeypatch.setattr(benchmark, "run_case_subprocess", fake)
+        return {r["figure"]: r for r in benchmark.realtime_figures(1.0, lambda s: None)}
+
+    r = rows_for(1000, 13, 2000, 1)  # a --quick run: 1.3 % of 1 s is 13 misses, < 60 in 60 s
+    assert r["realtime 1 ms deadline misses"]["met"] is None
+    assert r["realtime 1 ms p99 command latency"]["met"] is None
+    assert r["realtime 10 ms deadline misses"]["met"] is None  # 1 miss: < 0.01 % of 12,000 still possible
+    r = rows_for(5000, 60, 2000, 2)  # misses alone already reach the share of the whole length
+    assert r["realtime 1 ms deadline misses"]["met"] is False
+    assert r["realtime 10 ms deadline misses"]["met"] is False
+    r = rows_for(60000, 59, 12000, 1)  # the target's length
+    assert r["realtime 1 ms deadline misses"]["met"] is True and r["realtime 10 ms deadline misses"]["met"] is True
+    assert r["realtime 1 ms p99 command latency"]["met"] is True
+    r = rows_for(60000, 61, 12000, 2)
+    assert r["realtime 1 ms deadline misses"]["met"] is False and r["realtime 10 ms deadline misses"]["met"] is False
